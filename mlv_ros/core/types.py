@@ -1,0 +1,108 @@
+"""Plain data records that flow through the pipeline (pure numpy; the conversion module maps
+each to its ROS message)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mlv_ros.core.geometry import SliceGeometry
+
+VIEW_SA = 0
+VIEW_LA = 1
+VIEW_NAMES = {VIEW_SA: "SA", VIEW_LA: "LA"}
+
+
+@dataclass
+class Frame:
+    """One tagged cine image (one slice at one phase).
+
+    Attributes
+    ----------
+    image : ndarray, shape (rows, cols)
+        Pixel values: uint16 (scanner units) or float32.
+    geometry : SliceGeometry
+        Plane in patient coordinates.
+    view : int
+        ``VIEW_SA`` or ``VIEW_LA``.
+    slice_index : int
+        Index within its view (SA: 0 = most basal).
+    phase_index, num_phases : int
+        Cardiac phase (0 = end-diastole) and phases per cycle.
+    trigger_time : float
+        Seconds after the R wave.
+    cycle_duration : float
+        RR interval, s (0 if unknown).
+    series_uid : str
+        DICOM SeriesInstanceUID of the slice's cine (or a synthetic id).
+    """
+
+    image: np.ndarray
+    geometry: SliceGeometry
+    view: int
+    slice_index: int
+    phase_index: int
+    num_phases: int
+    trigger_time: float = 0.0
+    cycle_duration: float = 0.0
+    series_uid: str = ""
+
+
+@dataclass
+class TagPointSet:
+    """Tag intersections of one frame.
+
+    Attributes
+    ----------
+    pixel_rc : ndarray, shape (N, 2)
+        (row, column), pixels, sub-pixel.
+    position : ndarray, shape (N, 3)
+        Patient coordinates, mm (LPS).
+    track_id : ndarray of int32, shape (N,)
+        Stable through the slice's cine, assigned at ED; -1 = untracked.
+    confidence : ndarray of float32, shape (N,)
+        0..1.
+    status : str
+        Empty when fine; otherwise why the set is empty or partial.
+    """
+
+    view: int
+    slice_index: int
+    phase_index: int
+    num_phases: int
+    geometry: SliceGeometry
+    pixel_rc: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    track_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    status: str = ""
+    stamp: float = 0.0  # s, copied from the source frame's header
+
+    def __len__(self) -> int:
+        return int(self.track_id.shape[0])
+
+
+@dataclass
+class ModelState:
+    """Global parameters of the meshless deformable model at one phase (paper eq. 1–3).
+
+    ``x = c + R p``, ``p = s + d``; ``rotation`` is the unit quaternion (w, x, y, z) of R
+    (model-centred → patient); ``translation`` is c in mm; ``a0`` mm; ``a1..a3`` and ``tau``
+    dimensionless (twist φ = π τ sin α).
+    """
+
+    phase_index: int = 0
+    num_phases: int = 0
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rotation: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    a0: float = 1.0
+    a1: float = 1.0
+    a2: float = 1.0
+    a3: float = 1.0
+    tau: float = 0.0
+    iterations: int = 0
+    residual: float = 0.0
+    converged: bool = False
+    num_particles: int = 0
+    num_control_points: int = 0

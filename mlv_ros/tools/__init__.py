@@ -1,0 +1,1 @@
+"""Implementations of the ``mlv-ros`` subcommands (one module each)."""

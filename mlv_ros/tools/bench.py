@@ -1,0 +1,34 @@
+"""``mlv-ros bench NAME``: run ``bench/NAME.py`` (each prints one JSON document to stdout)."""
+
+from __future__ import annotations
+
+import runpy
+import sys
+from pathlib import Path
+
+BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
+
+
+def available() -> list[str]:
+    return sorted(p.stem for p in BENCH_DIR.glob("*.py") if not p.stem.startswith("_"))
+
+
+def add_arguments(parser):
+    parser.add_argument("name", help="benchmark name (a file in bench/), or 'all'")
+    parser.add_argument("extra", nargs="*", help="arguments passed to the benchmark")
+
+
+def run(args) -> int:
+    names = available() if args.name == "all" else [args.name]
+    for name in names:
+        path = BENCH_DIR / f"{name}.py"
+        if not path.exists():
+            print(f"mlv-ros bench: no benchmark {name!r}; have: {', '.join(available())}", file=sys.stderr)
+            return 2
+        sys.argv = [str(path), *args.extra]
+        try:
+            runpy.run_path(str(path), run_name="__main__")
+        except SystemExit as exc:
+            if exc.code not in (None, 0):
+                return int(exc.code) if isinstance(exc.code, int) else 1
+    return 0

