@@ -1,0 +1,260 @@
+"""Tagged-MRI image formation: slice planning, SPAMM tags carried by the material, slab profile.
+
+Signal model (per sample point ``x`` of an image at trigger time ``t``)
+---------------------------------------------------------------------
+``X = motion.inverse(x, t)`` is the ED material position of whatever sits at ``x``:
+
+* myocardium (``X`` inside the ED wall): ``M_myo · (E P(X) + 1 − E)``;
+* blood (``X`` in the cavity or atrium): ``M_blood`` — flow washes the tags out;
+* background tissue (static, inside a sphere around the LV): ``M_bg · (E P(x) + 1 − E)``; air 0.
+
+``P(X) = sin²(π a / λ) · sin²(π b / λ)`` is the 1-1 SPAMM grid at 45° flips (method notes,
+"Tags"): ``a, b`` are the in-plane coordinates of ``X`` along the image's row and column
+directions measured from the image centre, λ the tag spacing, so dark tag planes ⟂ the image lie
+at ``a, b ∈ λℤ``. ``E = exp(−t / T1)`` fades the tags. The slab is integrated over sub-planes at
+offsets ``±0.75·thickness`` along the normal with Gaussian weights (FWHM = thickness); each
+sub-plane point is mapped back on its own, so through-plane motion is real. A Gaussian in-plane
+PSF (``psf_sigma_px``) stands in for the finite k-space window, then Rician noise
+``|S + σ(n₁ + i n₂)|`` with ``σ = M_myo / SNR`` is added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.sim.motion import LVMotion
+from mlv_ros.core.types import VIEW_LA, VIEW_SA
+
+
+@dataclass(frozen=True)
+class PlannedSlice:
+    """One image plane of the acquisition.
+
+    Attributes
+    ----------
+    view : int
+        ``VIEW_SA`` or ``VIEW_LA``.
+    index : int
+        Index within its view (SA 0 = most basal; LA k at ``k · la_angle_step`` from the septum).
+    geometry : SliceGeometry
+        Plane, pixel grid and slab thickness.
+    description : str
+        DICOM SeriesDescription, e.g. ``"tagged SA 3"`` or ``"tagged LA 60deg"``.
+    level : float
+        SA: ED fractional level of the plane (0 apex, 1 base); LA: angle from the septum, deg.
+    """
+
+    view: int
+    index: int
+    geometry: SliceGeometry
+    description: str
+    level: float
+
+
+def _geometry(centre, row_dir, col_dir, size, spacing, thickness) -> SliceGeometry:
+    """Plane whose pixel grid is centred on ``centre`` (mm)."""
+    half = 0.5 * (size - 1) * spacing
+    ipp = np.asarray(centre) - half * np.asarray(row_dir) - half * np.asarray(col_dir)
+    return SliceGeometry(ipp, row_dir, col_dir, spacing, spacing, thickness)
+
+
+def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
+                pixel_spacing: float | None = None) -> list[PlannedSlice]:
+    """SA stack base → apex plus LA planes through the long axis (paper Fig. 6).
+
+    Parameters
+    ----------
+    motion : LVMotion
+        Supplies the long-axis frame and length.
+    imaging : dict
+        The preset's ``imaging`` section.
+    size : int, optional
+        Rows = columns (default ``imaging.size``).
+    pixel_spacing : float, optional
+        mm (default ``imaging.pixel_spacing_mm``).
+
+    Returns
+    -------
+    list of PlannedSlice
+        SA slices first (index 0 most basal), then LA planes.
+    """
+    f = motion.frame
+    L = motion.length
+    n = int(size or imaging["size"])
+    dx = float(pixel_spacing or imaging["pixel_spacing_mm"])
+    th = float(imaging["slice_thickness_mm"])
+    z_top = L - float(imaging["sa_base_gap_mm"])
+    z_bot = float(imaging["sa_apex_gap_mm"])
+    n_sa = int(imaging["sa_slices"])
+    if not z_bot < z_top:
+        raise ValueError("imaging.sa_base_gap_mm + sa_apex_gap_mm must be less than the LV length")
+    out = []
+    # SA: rows run along e_2, columns along the septal direction; the normal is base → apex.
+    row = f.septum
+    col = np.cross(-f.long_axis, row)
+    for k, z in enumerate(np.linspace(z_top, z_bot, n_sa)):
+        g = _geometry(f.apex + z * f.long_axis, row, col, n, dx, th)
+        out.append(PlannedSlice(VIEW_SA, k, g, f"tagged SA {k}", float(z / L)))
+    # LA: columns along the radial direction at angle β, rows from base (top) to apex (bottom).
+    step = float(imaging["la_angle_step_deg"])
+    extra = motion.atrium_height
+    centre_z = 0.5 * (L + min(extra, 20.0))
+    for k in range(int(imaging["la_planes"])):
+        beta = np.radians(k * step)
+        radial = np.cos(beta) * f.septum + np.sin(beta) * f.e2
+        g = _geometry(f.apex + centre_z * f.long_axis, radial, -f.long_axis, n, dx, th)
+        out.append(PlannedSlice(VIEW_LA, k, g, f"tagged LA {k * step:g}deg", float(k * step)))
+    return out
+
+
+def slab_profile(thickness: float, subplanes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-plane offsets (mm, along the normal) and normalised weights of the slab.
+
+    Gaussian profile with FWHM = ``thickness``, sampled at ``subplanes`` midpoints of
+    ``[−0.75, 0.75] · thickness``; one sub-plane means the mid-plane only.
+
+    Returns
+    -------
+    offsets, weights : ndarray, shape (subplanes,)
+    """
+    if subplanes < 1:
+        raise ValueError(f"subplanes must be >= 1, got {subplanes}")
+    if subplanes == 1:
+        return np.zeros(1), np.ones(1)
+    span = 1.5 * thickness
+    off = ((np.arange(subplanes) + 0.5) / subplanes - 0.5) * span
+    sigma = thickness / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    w = np.exp(-0.5 * (off / sigma) ** 2)
+    return off, w / w.sum()
+
+
+def plane_centre(geometry: SliceGeometry, shape: tuple[int, int]) -> np.ndarray:
+    """Patient position of the centre of a ``shape = (rows, cols)`` image (the tag-grid origin), mm."""
+    rows, cols = shape
+    return geometry.pixel_to_patient(np.array([(rows - 1) / 2.0, (cols - 1) / 2.0]))
+
+
+def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, int],
+                spacing: float) -> np.ndarray:
+    """1-1 SPAMM grid ``P = sin²(π a/λ) sin²(π b/λ)`` of one image plane, in [0, 1].
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Positions (ED material positions for moving tissue), mm.
+    geometry : SliceGeometry
+        Plane whose tags are evaluated: tag planes ⟂ the image, one family ⟂ each of the row
+        and column directions, through the image centre.
+    shape : (int, int)
+        Image rows, columns (locates the centre).
+    spacing : float
+        Tag period λ, mm.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        0 on tag planes, 1 midway between them in both directions.
+    """
+    d = np.asarray(points, dtype=np.float64) - plane_centre(geometry, shape)
+    a = d @ geometry.row_direction
+    b = d @ geometry.column_direction
+    return (np.sin(np.pi * a / spacing) * np.sin(np.pi * b / spacing)) ** 2
+
+
+class ImageSynthesizer:
+    """Renders the tagged images of one planned slice at any phase.
+
+    Parameters
+    ----------
+    motion : LVMotion
+        Ground-truth motion and ED geometry.
+    plane : PlannedSlice
+        The slice.
+    size : int
+        Rows = columns.
+    imaging : dict
+        The preset's ``imaging`` section (tag spacing, T1, intensities, PSF, slab).
+    subplanes : int, optional
+        Overrides ``imaging.subplanes``.
+    """
+
+    def __init__(self, motion: LVMotion, plane: PlannedSlice, size: int, imaging: dict,
+                 subplanes: int | None = None):
+        self.motion = motion
+        self.plane = plane
+        self.size = n = int(size)
+        self.im = imaging
+        g = plane.geometry
+        self.spacing = float(imaging["tag_spacing_mm"])
+        self.offsets, self.weights = slab_profile(g.slice_thickness,
+                                                  int(subplanes or imaging["subplanes"]))
+        rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        self.pix = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], axis=1))  # (n², 3)
+        # Static background: tags at the pixel itself; the same on every sub-plane.
+        f = motion.frame
+        heart_c = f.apex + 0.5 * motion.length * f.long_axis
+        body = np.linalg.norm(self.pix - heart_c, axis=1) < float(imaging["body_radius_mm"])
+        self.bg_m0 = np.where(body, float(imaging["background_m0"]), 0.0)
+        self.bg_tags = self._tags(self.pix)
+        # Pixels whose slab can meet the LV at any phase: the LV stays inside the cylinder of
+        # radius ~1.15 max ED radius (the apical cap widens by 1/sqrt(λ)) up to the atrium top.
+        r, _, z = f.to_local(self.pix)
+        reach = np.abs(self.offsets).max()
+        zmax = motion.length + motion.atrium_height
+        self.cand = np.flatnonzero((r < 1.15 * motion.max_radius + 3.0 + reach)
+                                   & (z > -3.0 - reach) & (z < zmax + 3.0 + reach))
+        self.normal = g.normal
+
+    def _tags(self, pts):
+        return tag_pattern(pts, self.plane.geometry, (self.size, self.size), self.spacing)
+
+    def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:
+        """Slab-weighted myocardium and blood fractions at ``phase``, each (rows, cols) in [0, 1]."""
+        myo = np.zeros(self.size * self.size)
+        blood = np.zeros_like(myo)
+        base = self.pix[self.cand]
+        for off, w in zip(self.offsets, self.weights):
+            X = self.motion.inverse(base + off * self.normal, phase)
+            myo[self.cand] += w * self.motion.inside_myocardium(X)
+            blood[self.cand] += w * self.motion.inside_blood(X)
+        return myo.reshape(self.size, self.size), blood.reshape(self.size, self.size)
+
+    def render(self, phase, time_s: float, snr: float | None, rng: np.random.Generator | None):
+        """Image at ``phase`` (trigger time ``time_s``), float32 (rows, cols).
+
+        ``snr`` None or ``inf`` gives the noiseless magnitude image.
+        """
+        im = self.im
+        E = np.exp(-time_s / float(im["t1_s"]))
+        sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
+        base = self.pix[self.cand]
+        acc = np.zeros(base.shape[0])
+        m_myo, m_blood = float(im["myocardium_m0"]), float(im["blood_m0"])
+        bg = sig[self.cand]
+        for off, w in zip(self.offsets, self.weights):
+            X = self.motion.inverse(base + off * self.normal, phase)
+            myo = self.motion.inside_myocardium(X)
+            blood = self.motion.inside_blood(X)
+            val = np.where(myo, m_myo * (E * self._tags(X) + 1.0 - E),
+                           np.where(blood, m_blood, bg))
+            acc += w * val
+        sig = sig.copy()
+        sig[self.cand] = acc
+        img = sig.reshape(self.size, self.size)
+        psf = float(im.get("psf_sigma_px", 0.0))
+        if psf > 0:
+            img = gaussian_filter(img, psf, mode="nearest")
+        if snr is not None and np.isfinite(snr):
+            if snr <= 0:
+                raise ValueError(f"snr must be positive (or None/inf for no noise), got {snr}")
+            if rng is None:
+                raise ValueError("render needs an rng when snr is finite")
+            sigma = m_myo / snr
+            n1 = rng.standard_normal(img.shape)
+            n2 = rng.standard_normal(img.shape)
+            img = np.hypot(img + sigma * n1, sigma * n2)
+        return img.astype(np.float32)

@@ -1,0 +1,558 @@
+"""Analytic, invertible, volume-preserving LV motion over one cardiac cycle.
+
+Local frame
+-----------
+Origin at the ED epicardial apex ``A``; ``e_L`` the unit long axis (apex → base); ``e_1`` the
+in-plane direction toward the middle of the septum; ``e_2 = -e_L × e_1``, so that
+``(e_1, e_2, -e_L)`` is right-handed and the angle ``θ = atan2(p·e_2, p·e_1)`` grows
+counter-clockwise *as seen from the apex looking toward the base* (the twist sign convention of
+the method notes). ``z = p·e_L`` is the height above the apex and ``u = z / L`` the fractional
+level (0 apex, 1 base plane); ``r`` is the distance from the axis.
+
+Motion map (ED material point ``(r, θ, z)`` → phase-t position ``(r', θ', z')``)
+------------------------------------------------------------------------------
+With the activation ``s(t) ∈ [0, 1]`` (0 at ED, 1 at ES; raised-cosine rise and fall, C¹):
+
+* twist:        ``θ' = θ + s φ_ES(u)``, ``φ_ES`` a monotone PCHIP through
+  ``(0, φ_apex), (u_0, 0), (1, φ_base)``;
+* long axis:    ``z' = Z(z, θ) = z − s ε (z − k L a(θ) B(u))``, ``ε = base_descent / L``: the apex
+  is fixed and the base descends ``ε L``; in an infarct ``a(θ) b(u)`` is a smooth segment
+  window, ``B(u) = ∫_0^u b``, and ``k`` the lost contractility, so the segment stops shortening;
+* radial:       ``r'² = ρ² Q(z) + (r² − Q(z)) / J₂``, with ``Q`` the squared reference
+  endocardial radius, ``ρ = 1 − s (1 − ρ_ES)(1 − k a b)`` the endocardial radius ratio and
+  ``J₂ = ∂(θ', z')/∂(θ, z) = Z_z − φ' Z_θ``.
+
+In the volume coordinates ``(r²/2, θ, z)`` the Jacobian is triangular with determinant
+``(1/J₂)·J₂ = 1``: the map is exactly isochoric (det F = 1) for any smooth ``Q, ρ, φ, Z``, and
+every step inverts in closed form except ``z`` in an infarct (a few Newton steps).
+The geometry (which ED points are myocardium) is independent of the map; material outside the
+myocardium moves with the same formula, but the imaging treats the background as static.
+
+References
+----------
+Paper §3.2 and Fig. 9–16 (shortening, radial contraction, apex CCW / base CW twist); method
+notes "Coordinates and conventions" (twist sign, ≈45 % zero-rotation level); AHA 17-segment
+model (Cerqueira et al., Circulation 2002) for the infarct segment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from mlv_ros.core.sim.presets import load_preset
+
+# AHA segment centres in the local angle θ (deg, CCW from apex, 0 = mid-septum): basal and mid
+# rings 60° wide in the order anterior, anteroseptal, inferoseptal, inferior, inferolateral,
+# anterolateral (counter-clockwise in the apex-view bull's-eye); apical ring 90° wide.
+_RING6 = [-90.0, -30.0, 30.0, 90.0, 150.0, -150.0]
+_RING4 = [-90.0, 0.0, 90.0, 180.0]
+AHA_LEVELS = {"apex": (0.0, 0.1), "apical": (0.1, 0.4), "mid": (0.4, 0.7), "basal": (0.7, 1.0)}
+
+
+def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
+    """Angular centre, half-width (deg) and level range (fractions of L) of an AHA segment.
+
+    Parameters
+    ----------
+    segment : int
+        1–17 (1–6 basal, 7–12 mid, 13–16 apical, 17 apex cap).
+
+    Returns
+    -------
+    centre_deg, half_width_deg, u0, u1 : float
+        ``half_width_deg = 180`` for the apex cap (all angles).
+    """
+    if not 1 <= int(segment) <= 17:
+        raise ValueError(f"AHA segment must be in 1..17, got {segment}")
+    s = int(segment)
+    if s <= 6:
+        return _RING6[s - 1], 30.0, *AHA_LEVELS["basal"]
+    if s <= 12:
+        return _RING6[s - 7], 30.0, *AHA_LEVELS["mid"]
+    if s <= 16:
+        return _RING4[s - 13], 45.0, *AHA_LEVELS["apical"]
+    return 0.0, 180.0, *AHA_LEVELS["apex"]
+
+
+def _smoothstep(x):
+    """C¹ ramp 3x² − 2x³ clipped to [0, 1]; returns (value, derivative)."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
+
+
+def _smoothstep_integral(x):
+    """∫_0^x smoothstep, valid for any x (0 below 0, x − ½ above 1)."""
+    xc = np.clip(x, 0.0, 1.0)
+    return xc ** 3 - 0.5 * xc ** 4 + np.maximum(x - 1.0, 0.0)
+
+
+@dataclass(frozen=True)
+class CardiacFrame:
+    """Long-axis frame of the phantom in patient coordinates (ED; the apex and axis stay fixed).
+
+    Attributes
+    ----------
+    apex : ndarray, shape (3,)
+        ED epicardial apex, mm (LPS).
+    base_centre : ndarray, shape (3,)
+        Centre of the ED base plane, mm.
+    long_axis : ndarray, shape (3,)
+        Unit vector apex → base.
+    septum : ndarray, shape (3,)
+        Unit vector ⟂ long axis toward the middle of the septum (θ = 0).
+    e2 : ndarray, shape (3,)
+        ``-long_axis × septum`` (θ = +90°, anterior → inferior sense; see module docstring).
+    length : float
+        ``|base_centre − apex|``, mm.
+    """
+
+    apex: np.ndarray
+    base_centre: np.ndarray
+    long_axis: np.ndarray
+    septum: np.ndarray
+    e2: np.ndarray
+    length: float
+
+    def to_local(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Patient points (N, 3) mm → cylindrical ``(r, θ, z)``: mm, rad in (−π, π], mm."""
+        p = np.asarray(x, dtype=np.float64) - self.apex
+        z = p @ self.long_axis
+        p1 = p @ self.septum
+        p2 = p @ self.e2
+        return np.hypot(p1, p2), np.arctan2(p2, p1), z
+
+    def from_local(self, r, theta, z) -> np.ndarray:
+        """Cylindrical ``(r, θ, z)`` (each shape (N,)) → patient points (N, 3), mm."""
+        r = np.asarray(r, dtype=np.float64)
+        return (self.apex
+                + np.multiply.outer(z, self.long_axis)
+                + np.multiply.outer(r * np.cos(theta), self.septum)
+                + np.multiply.outer(r * np.sin(theta), self.e2))
+
+
+class LVMotion:
+    """Ground-truth LV geometry and motion of one preset (see the module docstring).
+
+    Parameters
+    ----------
+    preset : dict, str or Path
+        A preset (see :func:`~mlv_ros.core.sim.presets.load_preset`).
+    num_phases : int, optional
+        Overrides ``motion.num_phases``; phases are ``t_p = p T / num_phases``.
+
+    Attributes
+    ----------
+    frame : CardiacFrame
+        Apex, base centre, long axis, septal direction.
+    num_phases : int
+    cycle_duration : float
+        RR interval T, s.
+    times : ndarray, shape (num_phases,)
+        Trigger times, s.
+    es_phase : float
+        End-systolic phase (fractional index).
+    """
+
+    def __init__(self, preset, num_phases: int | None = None):
+        self.preset = load_preset(preset)
+        g, m, o = self.preset["geometry"], self.preset["motion"], self.preset["orientation"]
+        self.kind = g["kind"]
+        self.length = L = float(g["length_mm"])
+        self.num_phases = int(num_phases if num_phases is not None else m["num_phases"])
+        if self.num_phases < 2:
+            raise ValueError(f"num_phases must be >= 2, got {self.num_phases}")
+        self.cycle_duration = float(m["cycle_duration_s"])
+        self.times = np.arange(self.num_phases) * self.cycle_duration / self.num_phases
+        self.es_fraction = float(m["es_fraction"])
+        self.relax_fraction = float(m["relaxation_fraction"])
+        self.es_phase = self.es_fraction * self.num_phases
+
+        axis = np.asarray(o["long_axis"], dtype=np.float64)
+        if np.linalg.norm(axis) < 1e-9:
+            raise ValueError("orientation.long_axis must be a non-zero vector")
+        axis = axis / np.linalg.norm(axis)
+        hint = np.asarray(o["septum_hint"], dtype=np.float64)
+        hint = hint - (hint @ axis) * axis
+        if np.linalg.norm(hint) < 1e-6:
+            raise ValueError("orientation.septum_hint must not be parallel to long_axis")
+        e1 = hint / np.linalg.norm(hint)
+        e2 = np.cross(-axis, e1)
+        base = np.asarray(o["base_centre_mm"], dtype=np.float64)
+        self.frame = CardiacFrame(apex=base - L * axis, base_centre=base, long_axis=axis,
+                                  septum=e1, e2=e2, length=L)
+
+        if self.kind == "prolate":
+            self.endo_a = float(g["endo_radius_mm"])
+            self.endo_c = float(g["endo_depth_mm"])
+            self.epi_a = float(g["epi_radius_mm"])
+            self.epi_c = L
+            self.septal_extra = float(g.get("septal_extra_mm", 0.0))
+            self.atrium_height = float(g.get("atrium_height_mm", 0.0))
+            self.max_radius = self.epi_a + self.septal_extra
+        else:
+            self.r_in = float(g["inner_radius_mm"])
+            self.r_out = float(g["outer_radius_mm"])
+            self.septal_extra = 0.0
+            self.atrium_height = 0.0
+            self.max_radius = self.r_out
+
+        self.eps = float(m["base_descent_mm"]) / L
+        self.rho_es = float(m["endo_radius_ratio_es"])
+        u0 = float(m["twist_zero_level"])
+        self._twist = PchipInterpolator(
+            [0.0, u0, 1.0], np.radians([m["twist_apex_deg"], 0.0, m["twist_base_deg"]]))
+        self._dtwist = self._twist.derivative()
+
+        inf = m.get("infarct")
+        if inf:
+            centre, half, u_lo, u_hi = aha_segment_window(int(inf["aha_segment"]))
+            self.inf_k = 1.0 - float(inf.get("residual_motion", 0.0))
+            self.inf_centre = np.radians(centre)
+            self.inf_half = np.radians(half)
+            self.inf_blend_theta = np.radians(float(inf.get("blend_deg", 20.0)))
+            self.inf_blend_u = float(inf.get("blend_fraction", 0.06))
+            self.inf_u = (u_lo, u_hi)
+            self.infarct_segment = int(inf["aha_segment"])
+        else:
+            self.inf_k = 0.0
+            self.infarct_segment = None
+        # Softplus width for the clamped reference radius (mm²): keeps Q smooth at the endo apex.
+        self._q_soft = 0.02 * (self.endo_a ** 2 if self.kind == "prolate" else self.r_in ** 2)
+
+    # ----------------------------------------------------------------- time course
+    def activation(self, phase) -> np.ndarray:
+        """Activation ``s`` at a (fractional) phase: 0 at ED, 1 at ES, raised-cosine (C¹).
+
+        Parameters
+        ----------
+        phase : float or array_like
+            Phase index (0 = ED); periodic with ``num_phases``.
+        """
+        f = np.mod(np.asarray(phase, dtype=np.float64) / self.num_phases, 1.0)
+        es, rel = self.es_fraction, self.relax_fraction
+        rise = 0.5 * (1.0 - np.cos(np.pi * np.clip(f / es, 0.0, 1.0)))
+        fall = 0.5 * (1.0 + np.cos(np.pi * np.clip((f - es) / rel, 0.0, 1.0)))
+        return np.where(f <= es, rise, fall)
+
+    def phase_of_time(self, t) -> np.ndarray:
+        """Fractional phase index of a trigger time ``t`` (s)."""
+        return np.asarray(t, dtype=np.float64) * self.num_phases / self.cycle_duration
+
+    # ----------------------------------------------------------------- ED geometry
+    def endo_radius(self, z) -> np.ndarray:
+        """ED endocardial radius at height z (mm; 0 where there is no cavity)."""
+        z = np.asarray(z, dtype=np.float64)
+        if self.kind == "cylinder":
+            return np.where((z >= 0) & (z <= self.length), self.r_in, 0.0)
+        d = (self.length - np.minimum(z, self.length)) / self.endo_c
+        return self.endo_a * np.sqrt(np.clip(1.0 - d * d, 0.0, None))
+
+    def epi_radius(self, z, theta=0.0) -> np.ndarray:
+        """ED epicardial radius at height z and angle θ (mm; septal bulge included)."""
+        z = np.asarray(z, dtype=np.float64)
+        if self.kind == "cylinder":
+            return np.where((z >= 0) & (z <= self.length), self.r_out, 0.0)
+        d = (self.length - np.minimum(z, self.length)) / self.epi_c
+        r = self.epi_a * np.sqrt(np.clip(1.0 - d * d, 0.0, None))
+        if self.septal_extra:
+            # cos²θ bump on the septal half, absent in the apical 15 %, full from 40 % up.
+            bump = np.where(np.cos(theta) > 0, np.cos(theta) ** 2, 0.0)
+            taper, _ = _smoothstep((z / self.length - 0.15) / 0.25)
+            r = r + self.septal_extra * bump * taper
+        return r
+
+    def inside_myocardium(self, X_ed: np.ndarray) -> np.ndarray:
+        """Whether ED points are myocardium.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3)
+            ED positions, mm (LPS).
+
+        Returns
+        -------
+        ndarray of bool, shape (N,)
+        """
+        r, th, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
+        return (z >= 0) & (z <= self.length) & (r <= self.epi_radius(z, th)) & (r >= self.endo_radius(z))
+
+    def inside_blood(self, X_ed: np.ndarray) -> np.ndarray:
+        """Whether ED points are blood: the LV cavity or the atrial cylinder above the base.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3)
+            ED positions, mm.
+
+        Returns
+        -------
+        ndarray of bool, shape (N,)
+        """
+        r, _, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
+        cav = (z >= 0) & (z <= self.length) & (r < self.endo_radius(z))
+        if self.atrium_height > 0:
+            cav |= (z > self.length) & (z <= self.length + self.atrium_height) & (r < self.endo_a)
+        return cav
+
+    def sample_myocardium(self, n: int, seed: int = 0) -> np.ndarray:
+        """Uniform random ED myocardial points (rejection sampling in the bounding cylinder).
+
+        Parameters
+        ----------
+        n : int
+            Number of points.
+        seed : int
+            ``numpy.random.default_rng`` seed.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            ED positions, mm (LPS).
+        """
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
+        rng = np.random.default_rng(seed)
+        out = np.empty((0, 3))
+        R = self.max_radius
+        while out.shape[0] < n:
+            m = max(4 * (n - out.shape[0]), 1024)
+            r = R * np.sqrt(rng.random(m))
+            th = rng.uniform(-np.pi, np.pi, m)
+            z = rng.uniform(0.0, self.length, m)
+            x = self.frame.from_local(r, th, z)
+            out = np.concatenate([out, x[self.inside_myocardium(x)]])
+        return out[:n]
+
+    # ----------------------------------------------------------------- map components
+    def _ref_q(self, z):
+        """Squared reference endocardial radius Q(z), softly clamped at 0 (mm²)."""
+        if self.kind == "cylinder":
+            return np.full_like(z, self.r_in ** 2)
+        d = (self.length - np.minimum(z, self.length)) / self.endo_c
+        q = self.endo_a ** 2 * (1.0 - d * d)
+        return self._q_soft * np.logaddexp(0.0, q / self._q_soft)
+
+    def _window(self, theta, u):
+        """Infarct window a(θ), a'(θ), b(u), B(u) (all zeros without an infarct)."""
+        if not self.inf_k:
+            z = np.zeros_like(u)
+            return z, z, z, z
+        d = np.angle(np.exp(1j * (theta - self.inf_centre)))  # wrapped to (−π, π]
+        bt = self.inf_blend_theta
+        a, da = _smoothstep((self.inf_half + 0.5 * bt - np.abs(d)) / bt)
+        if self.inf_half >= np.pi:  # apex cap: every angle
+            a, da = np.ones_like(theta), np.zeros_like(theta)
+        else:
+            da = -np.sign(d) * da / bt
+        w = self.inf_blend_u
+        lo, hi = self.inf_u
+        x0 = (u - lo + 0.5 * w) / w
+        x1 = (u - hi + 0.5 * w) / w
+        b = _smoothstep(x0)[0] - _smoothstep(x1)[0]
+        B = w * (_smoothstep_integral(x0) - _smoothstep_integral((0.5 * w - lo) / w)
+                 - _smoothstep_integral(x1) + _smoothstep_integral((0.5 * w - hi) / w))
+        return a, da, b, B
+
+    def _components(self, theta, z, s):
+        """Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s."""
+        L = self.length
+        u = z / L
+        uc = np.clip(u, 0.0, 1.0)
+        inside = (u > 0.0) & (u < 1.0)
+        phi = s * self._twist(uc)
+        dphi = np.where(inside, s * self._dtwist(uc) / L, 0.0)
+        a, da, b, B = self._window(theta, u)
+        k = self.inf_k
+        Z = z - s * self.eps * (z - k * L * a * B)
+        Zz = 1.0 - s * self.eps * (1.0 - k * a * b)
+        Zt = s * self.eps * k * L * da * B
+        J2 = Zz - dphi * Zt
+        rho = 1.0 - s * (1.0 - self.rho_es) * (1.0 - k * a * b)
+        return phi, dphi, Z, Zz, Zt, J2, rho
+
+    # ----------------------------------------------------------------- public map
+    def _s(self, phase):
+        s = np.asarray(self.activation(phase), dtype=np.float64)
+        if s.ndim:
+            raise ValueError("phase must be a scalar (int or float)")
+        return float(s)
+
+    def position(self, X_ed: np.ndarray, phase) -> np.ndarray:
+        """Position at ``phase`` of material points given by their ED positions.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3) or (3,)
+            ED positions, mm (LPS).
+        phase : int or float
+            Phase index (0 = ED), fractional allowed, periodic.
+
+        Returns
+        -------
+        ndarray, same shape as ``X_ed``
+            Positions, mm (LPS).
+        """
+        X = np.asarray(X_ed, dtype=np.float64)
+        flat = X.reshape(-1, 3)
+        s = self._s(phase)
+        r, th, z = self.frame.to_local(flat)
+        phi, _, Z, _, _, J2, rho = self._components(th, z, s)
+        q = self._ref_q(z)
+        r2 = np.maximum(rho * rho * q + (r * r - q) / J2, 0.0)
+        return self.frame.from_local(np.sqrt(r2), th + phi, Z).reshape(X.shape)
+
+    def inverse(self, x: np.ndarray, phase, tol: float = 1e-9, max_iter: int = 30) -> np.ndarray:
+        """ED material position of the points at ``x`` at ``phase`` (inverse of :meth:`position`).
+
+        Parameters
+        ----------
+        x : ndarray, shape (N, 3) or (3,)
+            Positions at ``phase``, mm (LPS).
+        phase : int or float
+            Phase index.
+        tol : float
+            Newton tolerance on the height z, mm (only an infarct needs iterations).
+        max_iter : int
+            Newton iteration cap.
+
+        Returns
+        -------
+        ndarray, same shape as ``x``
+            ED positions, mm. Exact inverse for points whose ED position is outside the
+            forward map's clamp (``r'² = 0``), i.e. for all myocardium.
+        """
+        xa = np.asarray(x, dtype=np.float64)
+        flat = xa.reshape(-1, 3)
+        s = self._s(phase)
+        rp, thp, zp = self.frame.to_local(flat)
+        # Normal hearts: Z = (1 − sε) z, so the first Newton step is exact.
+        z = zp / (1.0 - s * self.eps)
+        for _ in range(max_iter if self.inf_k else 1):
+            th = thp - s * self._twist(np.clip(z / self.length, 0.0, 1.0))
+            _, _, Z, _, _, J2, _ = self._components(th, z, s)
+            step = (Z - zp) / J2
+            z = z - step
+            if np.max(np.abs(step), initial=0.0) < tol:
+                break
+        th = thp - s * self._twist(np.clip(z / self.length, 0.0, 1.0))
+        _, _, _, _, _, J2, rho = self._components(th, z, s)
+        q = self._ref_q(z)
+        r2 = np.maximum(q + J2 * (rp * rp - rho * rho * q), 0.0)
+        return self.frame.from_local(np.sqrt(r2), th, z).reshape(xa.shape)
+
+    def deformation_gradient(self, X_ed: np.ndarray, phase, h: float = 1e-3) -> np.ndarray:
+        """Deformation gradient ``F = ∂x/∂X`` at ED points.
+
+        Central differences of the analytic map (step ``h`` mm, truncation error O(h²) ≈ 1e-8):
+        the closed form in cylindrical coordinates is singular on the axis, which the apical cap
+        crosses, while the Cartesian map is smooth there.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3)
+            ED positions, mm.
+        phase : int or float
+            Phase index.
+        h : float
+            Difference step, mm.
+
+        Returns
+        -------
+        ndarray, shape (N, 3, 3)
+            ``F[n, i, j] = ∂x_i/∂X_j`` (dimensionless).
+        """
+        X = np.asarray(X_ed, dtype=np.float64).reshape(-1, 3)
+        F = np.empty((X.shape[0], 3, 3))
+        for j in range(3):  # three axes, not a loop over points
+            d = np.zeros(3)
+            d[j] = h
+            F[:, :, j] = (self.position(X + d, phase) - self.position(X - d, phase)) / (2 * h)
+        return F
+
+    def displacement(self, X_ed: np.ndarray, phase) -> np.ndarray:
+        """``position(X_ed, phase) − X_ed``, shape like ``X_ed``, mm."""
+        return self.position(X_ed, phase) - np.asarray(X_ed, dtype=np.float64)
+
+    # ----------------------------------------------------------------- ground-truth curves
+    def twist_deg(self, level, phase) -> np.ndarray:
+        """Prescribed rotation about the long axis of the material at ED level ``level``.
+
+        Parameters
+        ----------
+        level : float or array_like
+            Fraction of the length from the apex (0 apex, 1 base plane).
+        phase : int or float
+            Phase index.
+
+        Returns
+        -------
+        ndarray, shape of ``level``
+            Degrees, counter-clockwise seen from the apex positive.
+        """
+        u = np.clip(np.asarray(level, dtype=np.float64), 0.0, 1.0)
+        return np.degrees(self._s(phase) * self._twist(u))
+
+    def level_curves(self, levels, phases=None, n_theta: int = 72) -> dict:
+        """Per-level twist, radii and thickness measured on forward-mapped rings of material.
+
+        Rings of ``n_theta`` ED points at the endocardium, mid-wall and epicardium of each level
+        are moved with :meth:`position`; angles and radii are measured about the (fixed) long
+        axis, so these numbers check the map rather than restate its parameters.
+
+        Parameters
+        ----------
+        levels : array_like, shape (K,)
+            Fractions of the length from the apex, in [0, 1].
+        phases : array_like of shape (P,), optional
+            Phase indices; all phases by default.
+        n_theta : int
+            Ring resolution.
+
+        Returns
+        -------
+        dict of ndarray
+            ``levels`` (K,), ``phases`` (P,), ``twist_deg`` (P, K) mean rotation of the mid-wall
+            ring (CCW from apex positive), ``endo_radius_mm``, ``epi_radius_mm``,
+            ``mid_radius_mm``, ``thickness_mm`` (P, K) ring means (endo is 0 below the cavity),
+            ``height_mm`` (P, K) mean height of the mid-wall ring above the apex.
+        """
+        lv = np.atleast_1d(np.asarray(levels, dtype=np.float64))
+        ph = np.arange(self.num_phases) if phases is None else np.atleast_1d(np.asarray(phases, float))
+        th = np.linspace(-np.pi, np.pi, n_theta, endpoint=False)
+        TH, U = np.meshgrid(th, lv)  # (K, n_theta)
+        Z = U * self.length
+        r_en = self.endo_radius(Z)
+        r_ep = self.epi_radius(Z, TH)
+        r_mid = 0.5 * (r_en + r_ep)
+        pts = np.concatenate([self.frame.from_local(rr.ravel(), TH.ravel(), Z.ravel())
+                              for rr in (r_en, r_mid, r_ep)])
+        n = TH.size
+        out = {k: np.empty((ph.size, lv.size)) for k in
+               ("twist_deg", "endo_radius_mm", "epi_radius_mm", "mid_radius_mm", "thickness_mm",
+                "height_mm")}
+        for i, p in enumerate(ph):
+            r, t, z = self.frame.to_local(self.position(pts, p))
+            r = r.reshape(3, *TH.shape)
+            dth = np.angle(np.exp(1j * (t[n:2 * n].reshape(TH.shape) - TH)))
+            out["twist_deg"][i] = np.degrees(dth.mean(axis=1))
+            out["endo_radius_mm"][i] = r[0].mean(axis=1)
+            out["mid_radius_mm"][i] = r[1].mean(axis=1)
+            out["epi_radius_mm"][i] = r[2].mean(axis=1)
+            out["thickness_mm"][i] = (r[2] - r[0]).mean(axis=1)
+            out["height_mm"][i] = z[n:2 * n].reshape(TH.shape).mean(axis=1)
+        out["levels"] = lv
+        out["phases"] = ph
+        return out
+
+    def base_descent_mm(self, phase) -> float:
+        """Mean displacement of the base-plane mid-wall ring toward the apex, mm."""
+        c = self.level_curves([1.0], [phase])
+        return float(self.length - c["height_mm"][0, 0])
+
+
+def make_motion(preset, num_phases: int | None = None) -> LVMotion:
+    """Build the ground-truth motion of a preset (name, YAML path or dict); see :class:`LVMotion`."""
+    return LVMotion(preset, num_phases=num_phases)
