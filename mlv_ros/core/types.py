@@ -36,6 +36,9 @@ class Frame:
         RR interval, s (0 if unknown).
     series_uid : str
         DICOM SeriesInstanceUID of the slice's cine (or a synthetic id).
+    num_sa_slices, num_la_slices : int
+        Slices per view in the whole acquisition (0 = unknown); lets a consumer tell when all
+        slices of a phase have arrived.
     """
 
     image: np.ndarray
@@ -47,6 +50,8 @@ class Frame:
     trigger_time: float = 0.0
     cycle_duration: float = 0.0
     series_uid: str = ""
+    num_sa_slices: int = 0
+    num_la_slices: int = 0
 
 
 @dataclass
@@ -78,6 +83,8 @@ class TagPointSet:
     confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     status: str = ""
     stamp: float = 0.0  # s, copied from the source frame's header
+    num_sa_slices: int = 0  # as in Frame
+    num_la_slices: int = 0
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])

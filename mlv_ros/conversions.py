@@ -1,0 +1,456 @@
+"""numpy ⇄ ROS messages: the only module where arrays meet messages.
+
+Every converter validates what it reads and raises ``ValueError`` naming the problem (wrong
+encoding, step/size mismatch, missing fields, inconsistent array lengths, non-finite values where
+the message forbids them). Large payloads use the fast paths: ``bytes``/``array.array`` built from
+the array's buffer on the way out, ``np.frombuffer`` on the way in (assigning a numpy array to a
+``uint8[]`` field element by element is about 100× slower).
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from typing import Iterable, Mapping
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from sensor_msgs.msg import Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from mlv_msgs.msg import ModelState as ModelStateMsg
+from mlv_msgs.msg import MotionMetrics as MotionMetricsMsg
+from mlv_msgs.msg import SliceGeometry as SliceGeometryMsg
+from mlv_msgs.msg import TaggedFrame, TagPoints
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame, ModelState, TagPointSet
+
+PATIENT_FRAME = "patient"
+_HOST_BIG_ENDIAN = sys.byteorder == "big"
+
+# Image encodings we read and write (sensor_msgs/image_encodings.hpp names).
+IMAGE_ENCODINGS = {
+    "mono8": np.dtype(np.uint8),
+    "mono16": np.dtype(np.uint16),
+    "16UC1": np.dtype(np.uint16),
+    "32FC1": np.dtype(np.float32),
+}
+_DTYPE_TO_ENCODING = {np.dtype(np.uint8): "mono8", np.dtype(np.uint16): "mono16", np.dtype(np.float32): "32FC1"}
+
+# PointField datatypes (sensor_msgs/PointField constants) ⇄ numpy dtypes.
+_POINTFIELD_DTYPES = {
+    PointField.INT8: np.dtype(np.int8),
+    PointField.UINT8: np.dtype(np.uint8),
+    PointField.INT16: np.dtype(np.int16),
+    PointField.UINT16: np.dtype(np.uint16),
+    PointField.INT32: np.dtype(np.int32),
+    PointField.UINT32: np.dtype(np.uint32),
+    PointField.FLOAT32: np.dtype(np.float32),
+    PointField.FLOAT64: np.dtype(np.float64),
+}
+_DTYPE_TO_POINTFIELD = {v: k for k, v in _POINTFIELD_DTYPES.items()}
+
+
+# --------------------------------------------------------------------------- time / header
+def to_time(seconds: float) -> Time:
+    """Float seconds → ``builtin_interfaces/Time`` (nanosecond resolution)."""
+    if not np.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"stamp must be a finite, non-negative number of seconds, got {seconds}")
+    ns = int(round(float(seconds) * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def from_time(t: Time) -> float:
+    """``builtin_interfaces/Time`` → float seconds."""
+    return t.sec + t.nanosec * 1e-9
+
+
+def make_header(stamp: float | Time = 0.0, frame_id: str = PATIENT_FRAME) -> Header:
+    """A ``std_msgs/Header`` in ``frame_id`` at ``stamp`` (seconds or a Time)."""
+    return Header(stamp=stamp if isinstance(stamp, Time) else to_time(stamp), frame_id=frame_id)
+
+
+def _fast_array(typecode: str, values: np.ndarray, dtype) -> array.array:
+    """``array.array`` from a numpy array through its buffer (no per-element conversion)."""
+    return array.array(typecode, np.ascontiguousarray(values, dtype=dtype).tobytes())
+
+
+def _require_finite(name: str, values: np.ndarray) -> None:
+    bad = np.size(values) - int(np.count_nonzero(np.isfinite(values)))
+    if bad:
+        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN/inf)")
+
+
+# --------------------------------------------------------------------------- Image
+def image_to_msg(image: np.ndarray, header: Header | None = None, encoding: str | None = None) -> Image:
+    """numpy image → ``sensor_msgs/Image``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (rows, cols)
+        uint8 (``mono8``), uint16 (``mono16``) or float32 (``32FC1``).
+    header : Header, optional
+    encoding : str, optional
+        Override the encoding chosen from the dtype (must match the dtype's size and kind).
+
+    Returns
+    -------
+    Image
+        Tightly packed (``step = cols · itemsize``), host byte order flagged in ``is_bigendian``.
+    """
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"image must be 2-D (rows, cols), got shape {image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"image is empty: shape {image.shape}")
+    if encoding is None:
+        encoding = _DTYPE_TO_ENCODING.get(image.dtype)
+        if encoding is None:
+            raise ValueError(f"no image encoding for dtype {image.dtype}; use uint8, uint16 or float32")
+    elif encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f"unsupported image encoding {encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}")
+    elif IMAGE_ENCODINGS[encoding] != image.dtype:
+        raise ValueError(f"encoding {encoding!r} needs dtype {IMAGE_ENCODINGS[encoding]}, got {image.dtype}")
+    msg = Image(header=header or Header(), height=image.shape[0], width=image.shape[1], encoding=encoding)
+    msg.is_bigendian = int(_HOST_BIG_ENDIAN)
+    msg.step = image.shape[1] * image.dtype.itemsize
+    msg.data = np.ascontiguousarray(image).tobytes()
+    return msg
+
+
+def msg_to_image(msg: Image, allow_nonfinite: bool = False) -> np.ndarray:
+    """``sensor_msgs/Image`` → numpy array, shape (height, width).
+
+    Honours ``step`` padding and ``is_bigendian``. The result may share memory with the message.
+
+    Raises
+    ------
+    ValueError
+        Unsupported encoding, zero size, ``step`` smaller than a row, data length different from
+        ``height · step``, or (float images, unless ``allow_nonfinite``) NaN/inf pixels.
+    """
+    dtype = IMAGE_ENCODINGS.get(msg.encoding)
+    if dtype is None:
+        raise ValueError(f"unsupported image encoding {msg.encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h == 0 or w == 0:
+        raise ValueError(f"image has zero size ({h}×{w})")
+    row_bytes = w * dtype.itemsize
+    if step < row_bytes:
+        raise ValueError(f"image step {step} is smaller than width·bytes-per-pixel = {row_bytes}")
+    if step % dtype.itemsize:
+        raise ValueError(f"image step {step} is not a multiple of the pixel size {dtype.itemsize}")
+    if len(msg.data) != h * step:
+        raise ValueError(f"image data has {len(msg.data)} bytes, expected height·step = {h * step}")
+    if msg.is_bigendian:
+        dtype = dtype.newbyteorder(">")
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    img = np.lib.stride_tricks.as_strided(buf.view(dtype), shape=(h, w), strides=(step, dtype.itemsize))
+    if msg.is_bigendian != int(_HOST_BIG_ENDIAN):
+        img = img.astype(dtype.newbyteorder("="))
+    elif step != row_bytes:
+        img = np.ascontiguousarray(img)
+    if img.dtype.kind == "f" and not allow_nonfinite:
+        _require_finite("image", img)
+    return img
+
+
+# --------------------------------------------------------------------------- PointCloud2
+def cloud_to_msg(points: np.ndarray | Mapping[str, np.ndarray], header: Header | None = None) -> PointCloud2:
+    """Structured array (or mapping name → 1-D array) → ``sensor_msgs/PointCloud2``.
+
+    Parameters
+    ----------
+    points : structured ndarray, shape (N,), or mapping of equal-length 1-D arrays
+        One named scalar field per point channel (e.g. ``x, y, z, dx, dy, dz``), any
+        PointField-representable dtype; float fields must be finite (``is_dense`` is true).
+    header : Header, optional
+
+    Returns
+    -------
+    PointCloud2
+        ``height = 1``, ``width = N``, ``point_step`` = record size, little-endian on x86.
+    """
+    if isinstance(points, Mapping):
+        points = structured(points)
+    points = np.asarray(points)
+    if points.dtype.names is None:
+        raise ValueError("point cloud must be a structured array with named fields")
+    if points.ndim != 1:
+        raise ValueError(f"point cloud must be 1-D (N,), got shape {points.shape}")
+    fields = []
+    for name in points.dtype.names:
+        fdt, offset = points.dtype.fields[name][:2]
+        if fdt.shape:
+            raise ValueError(f"field {name!r} has sub-array shape {fdt.shape}; use one scalar field per channel")
+        datatype = _DTYPE_TO_POINTFIELD.get(fdt.newbyteorder("="))
+        if datatype is None:
+            raise ValueError(f"field {name!r} has dtype {fdt}, which PointField cannot represent")
+        if fdt.kind == "f":
+            _require_finite(f"point field {name!r}", points[name])
+        fields.append(PointField(name=name, offset=offset, datatype=datatype, count=1))
+    n = points.shape[0]
+    msg = PointCloud2(header=header or Header(), height=1, width=n, fields=fields)
+    msg.is_bigendian = int(_HOST_BIG_ENDIAN)
+    msg.point_step = points.dtype.itemsize
+    msg.row_step = n * points.dtype.itemsize
+    msg.is_dense = True
+    msg.data = np.ascontiguousarray(points).tobytes()
+    return msg
+
+
+def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = ()) -> np.ndarray:
+    """``sensor_msgs/PointCloud2`` → structured array, shape (height·width,).
+
+    Parameters
+    ----------
+    msg : PointCloud2
+    required : iterable of str
+        Field names that must be present (e.g. ``("x", "y", "z")``).
+
+    Raises
+    ------
+    ValueError
+        Missing required fields, unknown datatypes, ``count != 1``, overlapping or out-of-record
+        fields, or ``data`` whose length differs from ``row_step · height``.
+    """
+    names = [f.name for f in msg.fields]
+    missing = [r for r in required if r not in names]
+    if missing:
+        raise ValueError(f"point cloud lacks field(s) {missing}; has {names}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"point cloud has duplicate field names: {names}")
+    point_step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
+    spec = {"names": [], "formats": [], "offsets": [], "itemsize": point_step}
+    order = ">" if msg.is_bigendian else "<"
+    for f in msg.fields:
+        dt = _POINTFIELD_DTYPES.get(f.datatype)
+        if dt is None:
+            raise ValueError(f"field {f.name!r} has unknown PointField datatype {f.datatype}")
+        if f.count != 1:
+            raise ValueError(f"field {f.name!r} has count {f.count}; only scalar fields are supported")
+        if f.offset + dt.itemsize > point_step:
+            raise ValueError(f"field {f.name!r} (offset {f.offset}) does not fit in point_step {point_step}")
+        spec["names"].append(f.name)
+        spec["formats"].append(dt.newbyteorder(order))
+        spec["offsets"].append(f.offset)
+    try:
+        dtype = np.dtype(spec)
+    except ValueError as exc:
+        raise ValueError(f"point cloud fields overlap or are malformed: {exc}") from None
+    if int(msg.row_step) < width * point_step:
+        raise ValueError(f"row_step {msg.row_step} is smaller than width·point_step = {width * point_step}")
+    if len(msg.data) != int(msg.row_step) * height:
+        raise ValueError(f"point cloud data has {len(msg.data)} bytes, expected row_step·height = {msg.row_step * height}")
+    buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(height, int(msg.row_step))[:, : width * point_step]
+    pts = np.ascontiguousarray(buf).view(dtype).reshape(-1)
+    if msg.is_bigendian != int(_HOST_BIG_ENDIAN):
+        pts = pts.astype(pts.dtype.newbyteorder("="))
+    return pts
+
+
+def structured(columns: Mapping[str, np.ndarray], dtype=np.float32) -> np.ndarray:
+    """Mapping name → 1-D array (all length N) → packed structured array of ``dtype`` fields."""
+    if not columns:
+        raise ValueError("no columns given for the point cloud")
+    lengths = {k: np.shape(v) for k, v in columns.items()}
+    n = {s[0] if len(s) == 1 else None for s in lengths.values()}
+    if len(n) != 1 or None in n:
+        raise ValueError(f"point cloud columns must be 1-D of equal length, got shapes {lengths}")
+    out = np.empty(n.pop(), dtype=[(k, dtype) for k in columns])
+    for k, v in columns.items():
+        out[k] = v
+    return out
+
+
+def xyz(points: np.ndarray, names: tuple[str, str, str] = ("x", "y", "z")) -> np.ndarray:
+    """Three fields of a structured point array as a float64 (N, 3) array."""
+    return np.stack([points[n].astype(np.float64) for n in names], axis=-1)
+
+
+# --------------------------------------------------------------------------- custom messages
+def geometry_to_msg(geometry: SliceGeometry) -> SliceGeometryMsg:
+    """:class:`SliceGeometry` → ``mlv_msgs/SliceGeometry``."""
+    return SliceGeometryMsg(
+        image_position=geometry.image_position, row_direction=geometry.row_direction,
+        column_direction=geometry.column_direction, row_spacing=geometry.row_spacing,
+        column_spacing=geometry.column_spacing, slice_thickness=geometry.slice_thickness)
+
+
+def msg_to_geometry(msg: SliceGeometryMsg) -> SliceGeometry:
+    """``mlv_msgs/SliceGeometry`` → :class:`SliceGeometry` (validated: unit, orthogonal, positive)."""
+    return SliceGeometry(
+        image_position=np.array(msg.image_position), row_direction=np.array(msg.row_direction),
+        column_direction=np.array(msg.column_direction), row_spacing=msg.row_spacing,
+        column_spacing=msg.column_spacing, slice_thickness=msg.slice_thickness)
+
+
+def _check_view(view: int) -> int:
+    if view not in (VIEW_SA, VIEW_LA):
+        raise ValueError(f"view must be VIEW_SA ({VIEW_SA}) or VIEW_LA ({VIEW_LA}), got {view}")
+    return int(view)
+
+
+def _check_phase(phase_index: int, num_phases: int) -> None:
+    if num_phases < 1:
+        raise ValueError(f"num_phases must be ≥ 1, got {num_phases}")
+    if not 0 <= phase_index < num_phases:
+        raise ValueError(f"phase_index {phase_index} outside [0, {num_phases})")
+
+
+def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
+    """:class:`Frame` → ``mlv_msgs/TaggedFrame``; ``stamp`` goes to both headers."""
+    _check_view(frame.view)
+    _check_phase(frame.phase_index, frame.num_phases)
+    header = make_header(stamp)
+    return TaggedFrame(
+        header=header, image=image_to_msg(frame.image, header=header),
+        geometry=geometry_to_msg(frame.geometry), view=frame.view, slice_index=frame.slice_index,
+        phase_index=frame.phase_index, num_phases=frame.num_phases,
+        trigger_time=float(frame.trigger_time), cycle_duration=float(frame.cycle_duration),
+        series_uid=frame.series_uid, num_sa_slices=frame.num_sa_slices, num_la_slices=frame.num_la_slices)
+
+
+def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
+    """``mlv_msgs/TaggedFrame`` → :class:`Frame` (image, geometry, indices validated)."""
+    _check_view(msg.view)
+    _check_phase(msg.phase_index, msg.num_phases)
+    return Frame(
+        image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite), geometry=msg_to_geometry(msg.geometry),
+        view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
+        num_phases=msg.num_phases, trigger_time=msg.trigger_time, cycle_duration=msg.cycle_duration,
+        series_uid=msg.series_uid, num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
+
+
+def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> TagPoints:
+    """:class:`TagPointSet` → ``mlv_msgs/TagPoints`` (per-point arrays flattened row-major)."""
+    n = len(points)
+    rc = np.asarray(points.pixel_rc, dtype=np.float64).reshape(-1, 2)
+    pos = np.asarray(points.position, dtype=np.float64).reshape(-1, 3)
+    conf = np.asarray(points.confidence, dtype=np.float32).reshape(-1)
+    if not (rc.shape[0] == pos.shape[0] == conf.shape[0] == n):
+        raise ValueError(f"tag point arrays disagree: pixel_rc {rc.shape[0]}, position {pos.shape[0]}, "
+                         f"track_id {n}, confidence {conf.shape[0]}")
+    _require_finite("tag pixel_rc", rc)
+    _require_finite("tag position", pos)
+    _require_finite("tag confidence", conf)
+    _check_view(points.view)
+    _check_phase(points.phase_index, points.num_phases)
+    return TagPoints(
+        header=make_header(points.stamp if stamp is None else stamp), view=points.view,
+        slice_index=points.slice_index, phase_index=points.phase_index, num_phases=points.num_phases,
+        num_sa_slices=points.num_sa_slices, num_la_slices=points.num_la_slices, geometry=geometry_to_msg(points.geometry), pixel_rc=_fast_array("d", rc, np.float64),
+        position=_fast_array("d", pos, np.float64),
+        track_id=_fast_array("i", np.asarray(points.track_id).reshape(-1), np.int32),
+        confidence=_fast_array("f", conf, np.float32), status=points.status)
+
+
+def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
+    """``mlv_msgs/TagPoints`` → :class:`TagPointSet`; array lengths must agree (2N, 3N, N, N)."""
+    n = len(msg.track_id)
+    if len(msg.pixel_rc) != 2 * n or len(msg.position) != 3 * n or len(msg.confidence) != n:
+        raise ValueError(f"TagPoints arrays disagree: track_id {n}, pixel_rc {len(msg.pixel_rc)} (want {2 * n}), "
+                         f"position {len(msg.position)} (want {3 * n}), confidence {len(msg.confidence)} (want {n})")
+    _check_view(msg.view)
+    _check_phase(msg.phase_index, msg.num_phases)
+    rc = np.frombuffer(msg.pixel_rc, dtype=np.float64).reshape(n, 2).copy()
+    pos = np.frombuffer(msg.position, dtype=np.float64).reshape(n, 3).copy()
+    conf = np.frombuffer(msg.confidence, dtype=np.float32).copy()
+    _require_finite("tag pixel_rc", rc)
+    _require_finite("tag position", pos)
+    _require_finite("tag confidence", conf)
+    return TagPointSet(
+        view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
+        num_phases=msg.num_phases, geometry=msg_to_geometry(msg.geometry), pixel_rc=rc, position=pos,
+        track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(), confidence=conf, status=msg.status,
+        stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
+
+
+def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelStateMsg:
+    """:class:`ModelState` → ``mlv_msgs/ModelState`` (all parameters must be finite)."""
+    q = np.asarray(state.rotation, dtype=np.float64).reshape(-1)
+    c = np.asarray(state.translation, dtype=np.float64).reshape(-1)
+    if q.shape != (4,) or c.shape != (3,):
+        raise ValueError(f"model state needs translation (3,) and rotation quaternion (4,), got {c.shape}, {q.shape}")
+    scalars = np.array([state.a0, state.a1, state.a2, state.a3, state.tau, state.residual], dtype=np.float64)
+    _require_finite("model state", np.concatenate([q, c, scalars]))
+    if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+        raise ValueError(f"model rotation must be a unit quaternion (norm {np.linalg.norm(q):.6g})")
+    _check_phase(state.phase_index, state.num_phases)
+    return ModelStateMsg(
+        header=make_header(stamp), phase_index=state.phase_index, num_phases=state.num_phases,
+        translation=c, rotation=q, a0=float(state.a0), a1=float(state.a1), a2=float(state.a2),
+        a3=float(state.a3), tau=float(state.tau), iterations=int(state.iterations),
+        residual=float(state.residual), converged=bool(state.converged),
+        num_particles=int(state.num_particles), num_control_points=int(state.num_control_points))
+
+
+def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
+    """``mlv_msgs/ModelState`` → :class:`ModelState`."""
+    state = ModelState(
+        phase_index=msg.phase_index, num_phases=msg.num_phases, translation=np.array(msg.translation),
+        rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
+        iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
+        num_particles=msg.num_particles, num_control_points=msg.num_control_points)
+    _require_finite("model state", np.concatenate([state.translation, state.rotation,
+                                                   [state.a0, state.a1, state.a2, state.a3, state.tau]]))
+    return state
+
+
+# MotionMetrics: per-level arrays share one length L; segment arrays are empty or 17 long.
+METRIC_LEVEL_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
+                       "radial_displacement_mm", "circumferential_displacement_mm")
+METRIC_SCALAR_FIELDS = ("time_fraction", "la_radius_mm", "torsion_deg_per_cm", "cavity_volume_ml",
+                        "ejection_fraction")
+METRIC_SEGMENT_FIELDS = ("segment_err", "segment_ecc", "segment_ell")
+
+
+def _metrics_value(metrics, name):
+    return metrics[name] if isinstance(metrics, Mapping) else getattr(metrics, name)
+
+
+def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
+    """Per-phase motion metrics (mapping or object with the MotionMetrics field names) →
+    ``mlv_msgs/MotionMetrics``. Per-level arrays must share one length; segment arrays must be
+    empty or have 17 entries; values must be finite."""
+    msg = MotionMetricsMsg(header=make_header(stamp))
+    msg.phase_index = int(_metrics_value(metrics, "phase_index"))
+    msg.num_phases = int(_metrics_value(metrics, "num_phases"))
+    _check_phase(msg.phase_index, msg.num_phases)
+    lengths = set()
+    for name in METRIC_LEVEL_FIELDS:
+        v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
+        _require_finite(name, v)
+        lengths.add(v.size)
+        setattr(msg, name, _fast_array("d", v, np.float64))
+    if len(lengths) > 1:
+        raise ValueError(f"per-level metric arrays have different lengths: {sorted(lengths)}")
+    for name in METRIC_SEGMENT_FIELDS:
+        v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
+        if v.size not in (0, 17):
+            raise ValueError(f"{name} must have 0 or 17 (AHA segments) entries, got {v.size}")
+        _require_finite(name, v)
+        setattr(msg, name, _fast_array("d", v, np.float64))
+    for name in METRIC_SCALAR_FIELDS:
+        v = float(_metrics_value(metrics, name))
+        _require_finite(name, np.array([v]))
+        setattr(msg, name, v)
+    return msg
+
+
+def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
+    """``mlv_msgs/MotionMetrics`` → dict of numpy arrays and floats (validated lengths)."""
+    out = {"phase_index": msg.phase_index, "num_phases": msg.num_phases, "stamp": from_time(msg.header.stamp)}
+    lengths = set()
+    for name in METRIC_LEVEL_FIELDS:
+        out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
+        lengths.add(out[name].size)
+    if len(lengths) > 1:
+        raise ValueError(f"per-level metric arrays have different lengths: {sorted(lengths)}")
+    for name in METRIC_SEGMENT_FIELDS:
+        out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
+        if out[name].size not in (0, 17):
+            raise ValueError(f"{name} must have 0 or 17 entries, got {out[name].size}")
+    for name in METRIC_SCALAR_FIELDS:
+        out[name] = float(getattr(msg, name))
+    return out

@@ -1,0 +1,115 @@
+"""What every node shares: declared parameters with descriptors, /diagnostics reporting, and a
+``main()`` runner with clean shutdown on SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import signal
+import sys
+from typing import Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.task import Future
+
+from mlv_ros import qos
+
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+class GraphNode(Node):
+    """A Node with typed parameter declaration and a /diagnostics publisher."""
+
+    def __init__(self, name: str, **kwargs):
+        super().__init__(name, **kwargs)
+        self._diag_pub = self.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos())
+        self.diagnostics_sent = 0
+        # Like diagnostic_updater: the node's current status is republished every second, so a
+        # monitor that joins late still sees it; events are also published the moment they occur.
+        self._status = DiagnosticStatus(level=OK, name=self.get_fully_qualified_name(),
+                                        message="starting", hardware_id=self.get_name())
+        self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._status))
+        self.finished = Future()  # completed when the node's job is over (run_node then exits)
+
+    @property
+    def done(self) -> bool:
+        return self.finished.done()
+
+    def stop(self) -> None:
+        """Declare the node's job over; ``run_node`` returns once the executor sees it."""
+        if not self.finished.done():
+            self.finished.set_result(True)
+
+    def param(self, name: str, default, description: str, *, min_value=None, max_value=None,
+              choices: tuple | None = None, read_only: bool = True):
+        """Declare a parameter with a descriptor (and range) and return its value.
+
+        Integer/float ranges are enforced by rclpy when set at start-up or at run time.
+        """
+        desc = ParameterDescriptor(description=description, read_only=read_only)
+        if choices:
+            desc.additional_constraints = "one of: " + ", ".join(map(str, choices))
+        if min_value is not None or max_value is not None:
+            if isinstance(default, bool):
+                raise TypeError("bool parameters take no range")
+            if isinstance(default, int):
+                desc.integer_range = [IntegerRange(from_value=int(min_value), to_value=int(max_value), step=0)]
+            else:
+                desc.floating_point_range = [FloatingPointRange(
+                    from_value=float(min_value), to_value=float(max_value), step=0.0)]
+        value = self.declare_parameter(name, default, desc).value
+        if choices and value not in choices:
+            raise ValueError(f"parameter {name}={value!r} must be one of {choices}")
+        return value
+
+    def report(self, level: int, message: str, **values) -> None:
+        """Publish one DiagnosticStatus (name = node, hardware_id = node name) now, make it the
+        node's current status, and log it."""
+        status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
+                                  message=message, hardware_id=self.get_name())
+        status.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+        self._status = status
+        self._publish(status)
+        extra = " ".join(f"{k}={v}" for k, v in values.items())
+        log = {OK: self.get_logger().info, WARN: self.get_logger().warning}.get(level, self.get_logger().error)
+        log(f"{message} {extra}".strip())
+
+
+    def _publish(self, status: DiagnosticStatus) -> None:
+        arr = DiagnosticArray(status=[status])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self._diag_pub.publish(arr)
+        self.diagnostics_sent += 1
+
+
+def run_node(factory: Callable[[], Node], args=None) -> int:
+    """Create the node, spin until SIGINT/SIGTERM or the node asks to stop, shut down cleanly.
+
+    A node may define ``finish()`` (called once before destruction, e.g. to close a file) and
+    end its own run with :meth:`GraphNode.stop`.
+    """
+    rclpy.init(args=args)
+    node = None
+    # SIGTERM (e.g. from a process manager) shuts down like Ctrl-C does.
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        try:
+            node = factory()
+        except (ValueError, ParameterException) as exc:  # bad parameters: say so, exit non-zero
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        # No timeout: a timed spin_once creates a timer, which fails if SIGINT lands meanwhile.
+        rclpy.spin_until_future_complete(node, node.finished)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut teardown short
+        if node is not None:
+            if hasattr(node, "finish"):
+                node.finish()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

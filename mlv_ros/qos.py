@@ -1,0 +1,37 @@
+"""Topic names and QoS profiles of the graph, in one place (as image_pipeline does).
+
+Every stream that carries acquisition data or results is RELIABLE with a deep KEEP_LAST queue,
+so a whole study (25 phases × 11 slices = 275 frames) fits in flight without a drop. Results
+that late joiners need (the registered model, the ED reference) are also TRANSIENT_LOCAL.
+"""
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# Topics (absolute; remap with --ros-args -r old:=new).
+FRAMES = "/mlv/frames"                    # mlv_msgs/TaggedFrame
+TAG_POINTS = "/mlv/tag_points"            # mlv_msgs/TagPoints
+REGISTERED_CLOUD = "/mlv/registered_cloud"  # sensor_msgs/PointCloud2, ED particles (latched)
+REGISTERED_STATE = "/mlv/registered_state"  # mlv_msgs/ModelState at ED (latched)
+MOTION = "/lv/motion"                     # sensor_msgs/PointCloud2, one per phase
+MODEL_STATE = "/lv/model_state"           # mlv_msgs/ModelState, one per phase
+METRICS = "/lv/metrics"                   # mlv_msgs/MotionMetrics, one per phase
+DIAGNOSTICS = "/diagnostics"              # diagnostic_msgs/DiagnosticArray
+
+STREAM_DEPTH = 1000
+
+
+def stream_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
+    """RELIABLE, VOLATILE, KEEP_LAST(depth): per-frame and per-phase data that must not be lost."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """RELIABLE, TRANSIENT_LOCAL: the last ``depth`` messages are delivered to late joiners."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def diagnostics_qos() -> QoSProfile:
+    """As diagnostic_updater publishes /diagnostics: RELIABLE, KEEP_LAST(100)."""
+    return stream_qos(100)
