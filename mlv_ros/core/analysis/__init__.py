@@ -1,0 +1,53 @@
+"""Motion analysis of the dense LV point cloud (issue 9): cardiac frame, displacement
+decomposition, per-level twist / radius, cavity volume, Lagrangian strain and AHA segments.
+
+Pure numpy/scipy; nothing here imports rclpy. Inputs are arrays in DICOM patient coordinates
+(mm); every function is Lagrangian: quantities are relative to end-diastole (ED, phase 0).
+
+Sign conventions (see :mod:`mlv_ros.core.analysis.frame`): the long axis points apex → base,
+circumferential angles and twist are positive counter-clockwise seen from the apex looking
+toward the base, radial is positive outward, strains are Green–Lagrange ``E = ½(FᵀF − I)``.
+"""
+
+from mlv_ros.core.analysis.frame import CardiacCoordinates, LVFrame, cardiac_coordinates, estimate_frame
+from mlv_ros.core.analysis.metrics import LVAnalyzer, PhaseMetrics, phase_metrics
+from mlv_ros.core.analysis.motion import (
+    cavity_volume,
+    decompose_displacement,
+    endocardial_mask,
+    la_radius,
+    level_metrics,
+    torsion,
+)
+from mlv_ros.core.analysis.strain import (
+    AHA_SEGMENT_NAMES,
+    aha_segments,
+    cardiac_strain,
+    deformation_gradient_mls,
+    green_lagrange,
+    mls_neighbourhood,
+    segment_means,
+)
+
+__all__ = [
+    "AHA_SEGMENT_NAMES",
+    "CardiacCoordinates",
+    "LVAnalyzer",
+    "LVFrame",
+    "PhaseMetrics",
+    "aha_segments",
+    "cardiac_coordinates",
+    "cardiac_strain",
+    "cavity_volume",
+    "decompose_displacement",
+    "deformation_gradient_mls",
+    "endocardial_mask",
+    "estimate_frame",
+    "green_lagrange",
+    "la_radius",
+    "level_metrics",
+    "mls_neighbourhood",
+    "phase_metrics",
+    "segment_means",
+    "torsion",
+]

@@ -1,0 +1,234 @@
+"""Per-phase motion metrics of the whole LV: the content of ``MotionMetrics.msg``.
+
+:class:`LVAnalyzer` precomputes everything that depends only on the ED cloud (levels, AHA
+segments, cardiac frame vectors, endocardial polygon stack, MLS neighbourhoods, EDV) so a
+phase costs a few vectorised passes over the particles; :func:`phase_metrics` is the one-shot
+convenience wrapper.
+
+Example
+-------
+>>> an = LVAnalyzer(X_ed, frame, levels=10)            # doctest: +SKIP
+>>> m = an.phase(x, F=None, phase_index=7, num_phases=20)
+>>> m.twist_deg, m.cavity_volume_ml, m.segment_ecc
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+import numpy as np
+
+from mlv_ros.core.analysis.frame import LVFrame, as_points, cardiac_coordinates
+from mlv_ros.core.analysis.motion import CavityModel, LevelBinning, _level_dict, decompose_displacement, torsion
+from mlv_ros.core.analysis.strain import MLSNeighbourhood, aha_segments, cardiac_strain, green_lagrange, segment_means
+
+_ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
+                 "radial_displacement_mm", "circumferential_displacement_mm",
+                 "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count")
+
+
+def _empty() -> np.ndarray:
+    return np.zeros(0)
+
+
+@dataclass
+class PhaseMetrics:
+    """Motion metrics of one phase relative to ED; fields map 1:1 onto MotionMetrics.msg.
+
+    Per-level arrays have one entry per *populated* level, apex → base (empty level bins are
+    left out, so their length L' may be below the requested ``levels``). Segment arrays have
+    17 entries (AHA order 1…17) or are empty when no strain was available. Sign conventions:
+    :mod:`mlv_ros.core.analysis.frame` and :mod:`mlv_ros.core.analysis.motion`.
+
+    Attributes
+    ----------
+    phase_index, num_phases : int
+    time_fraction : float
+        Phase time / cycle duration, 0..1.
+    level_position : ndarray, shape (L',)
+        Level bin centre, 0 apex … 1 base (fraction of the ED long-axis length).
+    twist_deg : ndarray, shape (L',)
+        Rotation about the long axis relative to ED, degrees, + CCW seen from the apex.
+    sa_radius_mm : ndarray, shape (L',)
+        Average short-axis radius of the level, mm.
+    longitudinal_displacement_mm, radial_displacement_mm, circumferential_displacement_mm : ndarray, shape (L',)
+        Level means of the displacement components, mm (+ toward base / outward / CCW arc).
+    la_radius_mm : float
+        Apex → particle centroid along the long axis, mm (paper's "LA radius").
+    torsion_deg_per_cm : float
+        (twist_base − twist_apex) / ED distance of those levels, °/cm.
+    cavity_volume_ml : float
+    ejection_fraction : float
+        (EDV − V)/EDV at this phase (0 at ED; 0 if EDV is not positive).
+    segment_err, segment_ecc, segment_ell : ndarray, shape (17,) or (0,)
+        Mean Green–Lagrange E_rr, E_cc, E_ll per AHA segment; a segment without particles
+        (``segment_count == 0``) holds 0.0.
+    level_count : ndarray of int, shape (L',)
+        Particles per level. Not in MotionMetrics.msg (optional; empty when unknown).
+    segment_count : ndarray of int, shape (17,) or (0,)
+        Particles with a valid strain per segment. Not in MotionMetrics.msg (optional).
+    """
+
+    phase_index: int = 0
+    num_phases: int = 0
+    time_fraction: float = 0.0
+    level_position: np.ndarray = field(default_factory=_empty)
+    twist_deg: np.ndarray = field(default_factory=_empty)
+    sa_radius_mm: np.ndarray = field(default_factory=_empty)
+    longitudinal_displacement_mm: np.ndarray = field(default_factory=_empty)
+    radial_displacement_mm: np.ndarray = field(default_factory=_empty)
+    circumferential_displacement_mm: np.ndarray = field(default_factory=_empty)
+    la_radius_mm: float = 0.0
+    torsion_deg_per_cm: float = 0.0
+    cavity_volume_ml: float = 0.0
+    ejection_fraction: float = 0.0
+    segment_err: np.ndarray = field(default_factory=_empty)
+    segment_ecc: np.ndarray = field(default_factory=_empty)
+    segment_ell: np.ndarray = field(default_factory=_empty)
+    level_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    segment_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def __post_init__(self):
+        for name in _ARRAY_FIELDS:
+            dt = np.int64 if name.endswith("count") else np.float64
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dt).reshape(-1))
+
+    @property
+    def has_strain(self) -> bool:
+        """True when the three segment arrays hold 17 values each."""
+        return all(getattr(self, f).size == 17 for f in ("segment_err", "segment_ecc", "segment_ell"))
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dict (arrays as lists); inverse of :meth:`from_dict`."""
+        d = asdict(self)
+        for k in _ARRAY_FIELDS:
+            d[k] = np.asarray(d[k]).tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PhaseMetrics":
+        """Build from a dict (e.g. a converted MotionMetrics message); unknown keys ignored,
+        missing ones take their defaults."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+class LVAnalyzer:
+    """Per-run analysis state built from the ED cloud; call :meth:`phase` per phase.
+
+    Parameters
+    ----------
+    X_ed : array_like, shape (N, 3)
+        ED particle positions, mm (row i = particle i at every phase).
+    frame : LVFrame
+        ED long-axis frame.
+    levels : int
+        Equal level bins on [0, 1], apex → base (default 10).
+    endo_mask : array_like of bool, shape (N,), optional
+        Endocardial particles for the cavity volume (default: innermost per sector).
+    volume_slabs, angle_bins : int
+        Cavity polygon stack resolution (:class:`~mlv_ros.core.analysis.motion.CavityModel`).
+    estimate_strain : bool
+        When :meth:`phase` gets no F, estimate it by MLS from positions (default True).
+        If False and no F is given, the segment arrays are empty.
+    mls_k : int
+        Neighbours of the MLS estimate.
+    apex_cap : float
+        AHA apex-cap level (segment 17).
+    edv_ml : float, optional
+        End-diastolic volume for the ejection fraction; default the cavity volume of X_ed.
+    """
+
+    def __init__(self, X_ed, frame: LVFrame, *, levels: int = 10, endo_mask=None,
+                 volume_slabs: int = 20, angle_bins: int = 36, estimate_strain: bool = True,
+                 mls_k: int = 12, apex_cap: float = 0.1, edv_ml: float | None = None):
+        if not isinstance(frame, LVFrame):
+            raise ValueError(f"frame must be an LVFrame, got {type(frame).__name__}")
+        self.X = as_points(X_ed, "X_ed")
+        self.frame = frame
+        self.levels = LevelBinning(self.X, frame, levels)
+        self.coords = cardiac_coordinates(self.X, frame, levels=int(levels))
+        self.segments = aha_segments(self.coords.h, self.coords.theta, frame.aha_origin_deg, apex_cap)
+        self.cavity = CavityModel(self.X, frame, endo_mask, volume_slabs, angle_bins)
+        self.estimate_strain = bool(estimate_strain)
+        self.mls_k = int(mls_k)
+        self._mls: MLSNeighbourhood | None = None
+        self.edv_ml = self.cavity.volume_ml(self.X) if edv_ml is None else float(edv_ml)
+
+    @property
+    def mls(self) -> MLSNeighbourhood:
+        """MLS neighbourhoods of X_ed (built on first use)."""
+        if self._mls is None:
+            self._mls = MLSNeighbourhood(self.X, self.mls_k)
+        return self._mls
+
+    def strain(self, x: np.ndarray, F=None) -> dict | None:
+        """Cardiac strain components per particle (dict of (N,) arrays) or None when no F is
+        given and estimation is off."""
+        if F is None:
+            if not self.estimate_strain:
+                return None
+            F = self.mls.gradient(x)
+        else:
+            F = np.asarray(F, dtype=np.float64)
+            if F.shape != (self.X.shape[0], 3, 3):
+                raise ValueError(f"F must have shape ({self.X.shape[0]}, 3, 3), got {F.shape}")
+        c = self.coords
+        return cardiac_strain(green_lagrange(F), c.e_r, c.e_c, c.e_l)
+
+    def phase(self, x, F=None, *, phase_index: int = 0, num_phases: int = 0,
+              time_fraction: float | None = None, apex=None) -> PhaseMetrics:
+        """Metrics of one phase.
+
+        Parameters
+        ----------
+        x : array_like, shape (N, 3)
+            Current positions, mm, same particle order as X_ed.
+        F : array_like, shape (N, 3, 3), optional
+            Deformation gradients ∂x/∂X relative to ED (e.g. the meshless model's MLS
+            gradient); NaN rows are skipped in the segment means.
+        phase_index, num_phases : int
+        time_fraction : float, optional
+            Default ``phase_index / num_phases`` (0 when num_phases is 0).
+        apex : array_like, shape (3,), optional
+            Current apex for the LA radius (default: the ED apex).
+
+        Returns
+        -------
+        PhaseMetrics
+        """
+        x = as_points(x, "x")
+        if x.shape != self.X.shape:
+            raise ValueError(f"x must have shape {self.X.shape} like X_ed, got {x.shape}")
+        lv = _level_dict(self.levels, decompose_displacement(self.X, x, self.frame), x)
+        vol = self.cavity.volume_ml(x)
+        ef = (self.edv_ml - vol) / self.edv_ml if self.edv_ml > 0 else 0.0
+        if time_fraction is None:
+            time_fraction = phase_index / num_phases if num_phases > 0 else 0.0
+        ap = self.frame.apex if apex is None else np.asarray(apex, dtype=np.float64).reshape(3)
+        seg = {}
+        st = self.strain(x, F)
+        if st is not None:
+            for key, comp in (("segment_err", "rr"), ("segment_ecc", "cc"), ("segment_ell", "ll")):
+                seg[key], seg["segment_count"] = segment_means(st[comp], self.segments)
+        return PhaseMetrics(
+            phase_index=int(phase_index), num_phases=int(num_phases), time_fraction=float(time_fraction),
+            level_position=lv["level_position"], twist_deg=lv["twist_deg"],
+            sa_radius_mm=lv["sa_radius_mm"],
+            longitudinal_displacement_mm=lv["longitudinal_displacement_mm"],
+            radial_displacement_mm=lv["radial_displacement_mm"],
+            circumferential_displacement_mm=lv["circumferential_displacement_mm"],
+            la_radius_mm=float((x.mean(axis=0) - ap) @ self.frame.axis),
+            torsion_deg_per_cm=torsion(lv["twist_deg"], lv["axial_ed_mm"]),
+            cavity_volume_ml=vol, ejection_fraction=float(ef), level_count=lv["count"], **seg)
+
+
+def phase_metrics(X_ed, x, frame: LVFrame, F=None, levels: int = 10, **kwargs) -> PhaseMetrics:
+    """One-shot :class:`PhaseMetrics` of positions ``x`` relative to ``X_ed``.
+
+    Builds an :class:`LVAnalyzer` (keyword arguments are passed on, plus ``phase_index``,
+    ``num_phases``, ``time_fraction`` and ``apex`` to :meth:`LVAnalyzer.phase`). For a whole
+    cycle build the analyzer once instead: the ED precomputation dominates the cost.
+    """
+    phase_kw = {k: kwargs.pop(k) for k in ("phase_index", "num_phases", "time_fraction", "apex") if k in kwargs}
+    return LVAnalyzer(X_ed, frame, levels=levels, **kwargs).phase(x, F, **phase_kw)

@@ -1,0 +1,96 @@
+"""LV frame and cardiac coordinates: orientation, sign conventions, validation."""
+
+import numpy as np
+import pytest
+
+from mlv_ros.core.analysis.frame import LVFrame, angle_bin, cardiac_coordinates, estimate_frame, level_bin
+from mlv_ros.core.analysis.synthetic import cylinder_shell, oblique_frame, to_patient
+
+TOL = 1e-12
+
+
+def test_axis_length_and_inplane_basis():
+    fr = LVFrame([1, 2, 3], [1, 2, 83], [1, 0, 5])  # reference has an axial part: removed
+    np.testing.assert_allclose(fr.axis, [0, 0, 1], atol=TOL)
+    assert fr.length == pytest.approx(80.0, abs=TOL)
+    np.testing.assert_allclose(fr.e1, [1, 0, 0], atol=TOL)
+    # e2 = e1 × axis = x × z = −y
+    np.testing.assert_allclose(fr.e2, [0, -1, 0], atol=TOL)
+
+
+def test_positive_angle_is_counter_clockwise_seen_from_apex():
+    # Apex at the origin, base up +z. A viewer at the apex looks along +z; seen from there
+    # +x is on the viewer's left when +y is up, so CCW (left -> top) goes from +x toward −y.
+    fr = LVFrame([0, 0, 0], [0, 0, 80], [1, 0, 0])
+    pts = np.array([[10.0, 0, 40], [0, -10.0, 40], [-10.0, 0, 40], [0, 10.0, 40]])
+    c = cardiac_coordinates(pts, fr)
+    np.testing.assert_allclose(np.degrees(c.theta), [0, 90, 180, -90], atol=1e-9)
+    # e_c at θ = 0 points toward increasing θ (toward −y here)
+    np.testing.assert_allclose(c.e_c[0], [0, -1, 0], atol=TOL)
+    np.testing.assert_allclose(c.h, 0.5, atol=TOL)
+    np.testing.assert_allclose(c.rho, 10.0, atol=TOL)
+
+
+def test_unit_vectors_orthonormal_and_radial_outward():
+    fr = oblique_frame()
+    X, _ = cylinder_shell(fr, n_theta=12, n_z=5)
+    c = cardiac_coordinates(X, fr)
+    for v in (c.e_r, c.e_c, c.e_l):
+        np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=TOL)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_r, c.e_c), 0, atol=TOL)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_r, c.e_l), 0, atol=TOL)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_c, c.e_l), 0, atol=TOL)
+    # radial: X − (point on axis at the same level) = ρ e_r
+    foot = fr.apex + np.outer(c.axial, fr.axis)
+    np.testing.assert_allclose(X - foot, c.rho[:, None] * c.e_r, atol=1e-9)
+    # e_c = e_r × e_l (documented: left-handed triple)
+    np.testing.assert_allclose(c.e_c, np.cross(c.e_r, c.e_l), atol=TOL)
+
+
+def test_transmural_from_radii_and_per_bin():
+    fr = oblique_frame()
+    X, endo = cylinder_shell(fr, r_in=20, r_out=30, n_r=5, n_theta=24, n_z=10)
+    c = cardiac_coordinates(X, fr, endo_radius=20.0, epi_radius=30.0)
+    np.testing.assert_allclose(c.transmural, (c.rho - 20) / 10, atol=1e-9)
+    c2 = cardiac_coordinates(X, fr)  # per (level, angle) bin normalisation
+    np.testing.assert_allclose(c2.transmural, c.transmural, atol=1e-9)
+    np.testing.assert_allclose(c2.transmural[endo], 0.0, atol=1e-12)
+
+
+def test_bins_clip_and_wrap():
+    np.testing.assert_array_equal(level_bin(np.array([-0.2, 0.0, 0.15, 0.999, 1.0, 1.3]), 10), [0, 0, 1, 9, 9, 9])
+    np.testing.assert_array_equal(angle_bin(np.radians([0, 5, 95, 180, -90, -1]), 4), [0, 0, 1, 2, 3, 3])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(apex=[0, 0, 0], base=[0, 0, 0], reference=[1, 0, 0]), "coincide"),
+    (dict(apex=[0, 0, 0], base=[0, 0, 1], reference=[0, 0, 2]), "parallel"),
+    (dict(apex=[0, 0, 0], base=[0, 0, 1], reference=[0, 0, 0]), "zero vector"),
+    (dict(apex=[0, 0, np.nan], base=[0, 0, 1], reference=[1, 0, 0]), "apex is not finite"),
+    (dict(apex=[0, 0], base=[0, 0, 1], reference=[1, 0, 0]), "3 components"),
+])
+def test_frame_validation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LVFrame(**kwargs)
+
+
+def test_cardiac_coordinates_rejects_bad_points():
+    fr = oblique_frame()
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        cardiac_coordinates(np.zeros((4, 2)), fr)
+    with pytest.raises(ValueError, match="non-finite rows .*row 1"):
+        cardiac_coordinates(np.array([[0, 0, 0], [np.nan, 0, 0]]), fr)
+    with pytest.raises(ValueError, match="empty"):
+        cardiac_coordinates(np.zeros((0, 3)), fr)
+
+
+def test_estimate_frame_recovers_axis_direction_of_a_prolate_cloud():
+    fr = oblique_frame()
+    # tapered cloud: radius grows from apex (small) to base (large)
+    z = np.repeat(np.linspace(2, 78, 20), 36)
+    th = np.tile(np.linspace(0, 2 * np.pi, 36, endpoint=False), 20)
+    X = to_patient(fr, 5 + 0.3 * z, th, z)
+    est = estimate_frame(X, reference=fr.e1)
+    assert est.axis @ fr.axis > 0.999
+    assert np.linalg.norm(est.apex - fr.apex) < 0.1 * fr.length
+    assert est.e1 @ fr.e1 > 0.999

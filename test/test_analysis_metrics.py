@@ -1,0 +1,95 @@
+"""PhaseMetrics / LVAnalyzer: the MotionMetrics.msg content of one phase."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, phase_metrics
+from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
+
+FR = oblique_frame()
+X, ENDO = cylinder_shell(FR, r_in=20, r_out=30, n_r=5, n_theta=48, n_z=20)
+MSG = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg" / "MotionMetrics.msg"
+
+
+def test_fields_map_onto_motion_metrics_msg():
+    names = []
+    for line in MSG.read_text().splitlines():
+        m = re.match(r"^\s*[\w/]+(\[\])?\s+(\w+)", line)
+        if m and not line.lstrip().startswith("#"):
+            names.append(m.group(2))
+    names.remove("header")
+    fields = set(PhaseMetrics.__dataclass_fields__)
+    assert set(names) <= fields
+    assert fields - set(names) == {"level_count", "segment_count"}  # documented extras
+
+
+def test_phase_metrics_of_an_analytic_motion_with_given_F():
+    s_r, s_l = 0.85, 0.9
+    x, F = cylindrical_motion(FR, X, s_r=s_r, s_l=s_l, twist_apex_deg=9, twist_base_deg=9)
+    m = phase_metrics(X, x, FR, F=F, levels=10, endo_mask=ENDO, phase_index=6, num_phases=20)
+    assert m.phase_index == 6 and m.num_phases == 20 and m.time_fraction == pytest.approx(0.3)
+    np.testing.assert_allclose(m.level_position, np.arange(10) / 10 + 0.05, atol=1e-12)
+    np.testing.assert_allclose(m.twist_deg, 9.0, atol=1e-9)
+    np.testing.assert_allclose(m.sa_radius_mm, 25 * s_r, atol=1e-9)
+    assert m.torsion_deg_per_cm == pytest.approx(0.0, abs=1e-9)
+    assert m.la_radius_mm == pytest.approx(40 * s_l, abs=1e-9)
+    assert m.ejection_fraction == pytest.approx(1 - s_r**2 * s_l, abs=1e-12)
+    assert m.has_strain
+    np.testing.assert_allclose(m.segment_err, 0.5 * (s_r**2 - 1), atol=1e-12)
+    np.testing.assert_allclose(m.segment_ecc, 0.5 * (s_r**2 - 1), atol=1e-12)
+    np.testing.assert_allclose(m.segment_ell, 0.5 * (s_l**2 - 1), atol=1e-12)
+    assert m.segment_count.shape == (17,) and m.segment_count.sum() == len(X)
+    np.testing.assert_array_equal(m.level_count, len(X) // 10)
+
+
+def test_analyzer_estimates_strain_when_no_F_and_can_be_told_not_to():
+    x, _ = cylindrical_motion(FR, X, s_r=0.85, s_l=0.9)  # affine: MLS is exact
+    an = LVAnalyzer(X, FR)
+    m = an.phase(x)
+    np.testing.assert_allclose(m.segment_ecc, 0.5 * (0.85**2 - 1), atol=1e-9)
+    np.testing.assert_allclose(m.segment_ell, 0.5 * (0.9**2 - 1), atol=1e-9)
+    m0 = LVAnalyzer(X, FR, estimate_strain=False).phase(x)
+    assert not m0.has_strain and m0.segment_ecc.size == 0 and m0.segment_count.size == 0
+    assert m0.cavity_volume_ml == pytest.approx(m.cavity_volume_ml)
+
+
+def test_ed_phase_is_all_zero_motion():
+    m = LVAnalyzer(X, FR).phase(X)
+    for f in ("twist_deg", "longitudinal_displacement_mm", "radial_displacement_mm",
+              "circumferential_displacement_mm", "segment_err", "segment_ecc", "segment_ell"):
+        np.testing.assert_allclose(getattr(m, f), 0, atol=1e-12)
+    assert m.ejection_fraction == 0.0
+
+
+def test_to_dict_roundtrip_and_from_partial_dict():
+    x, F = cylindrical_motion(FR, X, 0.9, 0.9, 5, -2)
+    m = phase_metrics(X, x, FR, F=F)
+    d = m.to_dict()
+    import json
+    back = PhaseMetrics.from_dict(json.loads(json.dumps(d)))
+    for k, v in d.items():
+        np.testing.assert_allclose(getattr(back, k), v)
+    partial = PhaseMetrics.from_dict({"phase_index": 3, "twist_deg": [1.0, 2.0], "unknown": 1})
+    assert partial.phase_index == 3 and partial.segment_ecc.size == 0
+
+
+def test_bad_inputs():
+    an = LVAnalyzer(X, FR)
+    with pytest.raises(ValueError, match="like X_ed"):
+        an.phase(X[:-1])
+    with pytest.raises(ValueError, match=r"F must have shape"):
+        an.phase(X, F=np.zeros((3, 3, 3)))
+    bad = X.copy()
+    bad[0] = np.inf
+    with pytest.raises(ValueError, match="non-finite"):
+        an.phase(bad)
+    with pytest.raises(ValueError, match="LVFrame"):
+        LVAnalyzer(X, "frame")
+    # NaN gradients (e.g. degenerate MLS) are skipped, never turned into NaN means
+    F = np.broadcast_to(np.eye(3), (len(X), 3, 3)).copy()
+    F[:100] = np.nan
+    m = an.phase(X, F=F)
+    assert np.all(np.isfinite(m.segment_ecc)) and m.segment_count.sum() == len(X) - 100
