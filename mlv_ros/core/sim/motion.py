@@ -16,7 +16,7 @@ With the activation ``s(t) ∈ [0, 1]`` (0 at ED, 1 at ES; raised-cosine rise an
 * twist:        ``θ' = θ + s φ_ES(u)``, ``φ_ES`` a monotone PCHIP through
   ``(0, φ_apex), (u_0, 0), (1, φ_base)``;
 * long axis:    ``z' = Z(z, θ) = z − s ε (z − k L a(θ) B(u))``, ``ε = base_descent / L``: the apex
-  is fixed and the base descends ``ε L``; in an infarct ``a(θ) b(u)`` is a smooth segment
+  is fixed and the base descends ``ε L``; in an infarct ``a(θ) b(u)`` is a C² segment
   window, ``B(u) = ∫_0^u b``, and ``k`` the lost contractility, so the segment stops shortening;
 * radial:       ``r'² = ρ² Q(z) + (r² − Q(z)) / J₂``, with ``Q`` the squared reference
   endocardial radius, ``ρ = 1 − s (1 − ρ_ES)(1 − k a b)`` the endocardial radius ratio and
@@ -78,15 +78,18 @@ def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
 
 
 def _smoothstep(x):
-    """C¹ ramp 3x² − 2x³ clipped to [0, 1]; returns (value, derivative)."""
+    """C² ramp 6x⁵ − 15x⁴ + 10x³ clipped to [0, 1]; returns (value, derivative).
+
+    C² (not just C¹) because F contains second derivatives of the infarct window through J₂.
+    """
     x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
+    return x ** 3 * (x * (6.0 * x - 15.0) + 10.0), 30.0 * x * x * (1.0 - x) ** 2
 
 
 def _smoothstep_integral(x):
     """∫_0^x smoothstep, valid for any x (0 below 0, x − ½ above 1)."""
     xc = np.clip(x, 0.0, 1.0)
-    return xc ** 3 - 0.5 * xc ** 4 + np.maximum(x - 1.0, 0.0)
+    return xc ** 4 * (xc * (xc - 3.0) + 2.5) + np.maximum(x - 1.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -219,7 +222,7 @@ class LVMotion:
         else:
             self.inf_k = 0.0
             self.infarct_segment = None
-        # Softplus width for the clamped reference radius (mm²): keeps Q smooth at the endo apex.
+        # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
         self._q_soft = 0.02 * (self.endo_a ** 2 if self.kind == "prolate" else self.r_in ** 2)
 
     # ----------------------------------------------------------------- time course
@@ -328,12 +331,17 @@ class LVMotion:
 
     # ----------------------------------------------------------------- map components
     def _ref_q(self, z):
-        """Squared reference endocardial radius Q(z), softly clamped at 0 (mm²)."""
+        """Squared reference endocardial radius Q(z) = q · S(q/δ) with q = R_en², mm².
+
+        Q ≤ R_en² and Q = 0 wherever the wall reaches the axis (below the endocardial apex), so
+        ``r'² = ρ²Q + (r² − Q)/J₂ ≥ ρ²Q ≥ 0`` for all myocardium (the map never clamps there);
+        the C² ramp S over δ = 0.02 a² keeps Q smooth at the endocardial apex.
+        """
         if self.kind == "cylinder":
             return np.full_like(z, self.r_in ** 2)
         d = (self.length - np.minimum(z, self.length)) / self.endo_c
-        q = self.endo_a ** 2 * (1.0 - d * d)
-        return self._q_soft * np.logaddexp(0.0, q / self._q_soft)
+        q = np.maximum(self.endo_a ** 2 * (1.0 - d * d), 0.0)
+        return q * _smoothstep(q / self._q_soft)[0]
 
     def _window(self, theta, u):
         """Infarct window a(θ), a'(θ), b(u), B(u) (all zeros without an infarct)."""
