@@ -17,6 +17,19 @@ MODEL_STATE = "/lv/model_state"           # mlv_msgs/ModelState, one per phase
 METRICS = "/lv/metrics"                   # mlv_msgs/MotionMetrics, one per phase
 DIAGNOSTICS = "/diagnostics"              # diagnostic_msgs/DiagnosticArray
 
+# What each topic carries, as rosbag2 names types (pkg/msg/Type).
+TOPIC_TYPES = {
+    FRAMES: "mlv_msgs/msg/TaggedFrame",
+    TAG_POINTS: "mlv_msgs/msg/TagPoints",
+    REGISTERED_CLOUD: "sensor_msgs/msg/PointCloud2",
+    REGISTERED_STATE: "mlv_msgs/msg/ModelState",
+    MOTION: "sensor_msgs/msg/PointCloud2",
+    MODEL_STATE: "mlv_msgs/msg/ModelState",
+    METRICS: "mlv_msgs/msg/MotionMetrics",
+    DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+}
+LATCHED_TOPICS = (REGISTERED_CLOUD, REGISTERED_STATE)
+
 STREAM_DEPTH = 1000
 
 
@@ -35,3 +48,16 @@ def latched_qos(depth: int = 1) -> QoSProfile:
 def diagnostics_qos() -> QoSProfile:
     """As diagnostic_updater publishes /diagnostics: RELIABLE, KEEP_LAST(100)."""
     return stream_qos(100)
+
+
+def topic_qos(topic: str) -> QoSProfile:
+    """The profile a graph topic is published with (latched for the registration results)."""
+    return latched_qos() if topic in LATCHED_TOPICS else stream_qos()
+
+
+def qos_dict(profile: QoSProfile) -> dict:
+    """A profile in rosbag2's offered_qos_profiles vocabulary."""
+    return {"history": "keep_all" if profile.history == HistoryPolicy.KEEP_ALL else "keep_last",
+            "depth": profile.depth,
+            "reliability": "best_effort" if profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
+            "durability": "transient_local" if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile"}

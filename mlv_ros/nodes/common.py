@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from typing import Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.task import Future
 
@@ -85,31 +87,42 @@ class GraphNode(Node):
         self.diagnostics_sent += 1
 
 
-def run_node(factory: Callable[[], Node], args=None) -> int:
-    """Create the node, spin until SIGINT/SIGTERM or the node asks to stop, shut down cleanly.
+def run_node(factory: Callable[..., Node], args=None) -> int:
+    """Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
+    then drain what has already arrived and shut down cleanly.
 
-    A node may define ``finish()`` (called once before destruction, e.g. to close a file) and
-    end its own run with :meth:`GraphNode.stop`.
+    rclpy's own signal handlers are replaced by ours: a signal only sets a flag, so the context
+    stays valid while the node takes every message still queued (a recorder must not lose what
+    was sent before the signal) and runs its ``finish()`` (e.g. closing a file).
     """
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop_requested = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stop_requested.append(signum))
     node = None
-    # SIGTERM (e.g. from a process manager) shuts down like Ctrl-C does.
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    executor = SingleThreadedExecutor()
     try:
         try:
             node = factory()
         except (ValueError, ParameterException) as exc:  # bad parameters: say so, exit non-zero
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        # No timeout: a timed spin_once creates a timer, which fails if SIGINT lands meanwhile.
-        rclpy.spin_until_future_complete(node, node.finished)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        executor.add_node(node)
+        while not stop_requested and not getattr(node, "done", False) and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+        # Drain: keep taking queued messages until none has arrived for 0.2 s.
+        handled = getattr(node, "messages_handled", 0)
+        quiet_since = time.monotonic()
+        while rclpy.ok() and time.monotonic() - quiet_since < 0.2:
+            executor.spin_once(timeout_sec=0.05)
+            if getattr(node, "messages_handled", 0) != handled:
+                handled, quiet_since = node.messages_handled, time.monotonic()
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut teardown short
         if node is not None:
             if hasattr(node, "finish"):
                 node.finish()
+            executor.remove_node(node)
             node.destroy_node()
+        executor.shutdown()
         rclpy.try_shutdown()
     return 0

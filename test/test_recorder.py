@@ -1,0 +1,102 @@
+"""The recorder writes MCAP that an independent reader (rosbags) opens, with rosbag2's schema,
+channel and metadata conventions, and loses nothing on SIGINT/SIGTERM."""
+
+import signal
+import subprocess
+
+import numpy as np
+import pytest
+import yaml
+from rclpy.parameter import Parameter
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from conftest import console_script, spin_until
+from mlv_ros import bagio, qos
+from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.nodes.frame_source import FrameSource
+from mlv_ros.nodes.recorder import Recorder
+
+
+def read_with_rosbags(path):
+    """(topic, msgtype, deserialised message) for every message, by rosbags alone."""
+    out = []
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _t, raw in reader.messages():
+            out.append((conn.topic, conn.msgtype, reader.deserialize(raw, conn.msgtype)))
+    return out
+
+
+def test_recorder_in_process_and_rosbags_reads_it(ros_context, executor, tmp_path):
+    out = tmp_path / "run" / "run.mcap"
+    rec = Recorder(context=ros_context, parameter_overrides=[Parameter("output", value=str(out))])
+    src = FrameSource(context=ros_context, parameter_overrides=[
+        Parameter("source", value="pattern"), Parameter("num_phases", value=3),
+        Parameter("wait_for_subscribers", value=1)])
+    executor.add_node(rec)
+    executor.add_node(src)
+    assert spin_until(executor, lambda: src.done, timeout=30)
+    assert spin_until(executor, lambda: rec.messages_handled >= 6, timeout=10)
+    rec.finish()
+
+    expected = pattern_frames(num_phases=3)
+    topics = bagio.bag_topics(out)
+    assert topics[qos.FRAMES]["count"] == len(expected) == 6
+    assert topics[qos.FRAMES]["type"] == "mlv_msgs/msg/TaggedFrame"
+    assert topics[qos.FRAMES]["type_hash"].startswith("RIHS01_")
+    assert yaml.safe_load(topics[qos.FRAMES]["qos"])[0]["reliability"] == "reliable"
+
+    # The directory is a rosbag2 bag as well (metadata.yaml), and rosbags reads the file alone.
+    meta = yaml.safe_load((out.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["storage_identifier"] == "mcap" and meta["relative_file_paths"] == ["run.mcap"]
+    frames = [m for t, _, m in read_with_rosbags(out) if t == qos.FRAMES]
+    assert len(frames) == 6
+    for f, m in zip(expected, frames):
+        assert (m.slice_index, m.phase_index, m.image.encoding) == (f.slice_index, f.phase_index, "mono16")
+        img = np.frombuffer(m.image.data.tobytes(), np.uint16).reshape(m.image.height, m.image.width)
+        np.testing.assert_array_equal(img, f.image)
+        np.testing.assert_allclose(m.geometry.image_position, f.geometry.image_position)
+
+
+def test_schema_text_follows_rosbag2(tmp_path):
+    text = bagio.message_definition("sensor_msgs/msg/PointCloud2")
+    sections = text.split("\n" + "=" * 80 + "\n")
+    assert [s.splitlines()[0] for s in sections[1:]] == [
+        "MSG: std_msgs/Header", "MSG: builtin_interfaces/Time", "MSG: sensor_msgs/PointField"]
+    with pytest.raises(FileNotFoundError, match="no .msg for nosuch_msgs/msg/Thing"):
+        bagio.message_definition("nosuch_msgs/msg/Thing")
+    with pytest.raises(ValueError, match="not a message type"):
+        bagio.message_definition("Thing")
+
+
+def test_writer_refuses_to_overwrite_and_unknown_topics(tmp_path):
+    path = tmp_path / "a.mcap"
+    w = bagio.BagWriter(path)
+    with pytest.raises(ValueError, match="was not added"):
+        w.write("/nope", b"", 0)
+    w.close()
+    with pytest.raises(FileExistsError, match="refusing to overwrite"):
+        bagio.BagWriter(path)
+    with pytest.raises(ValueError, match="cannot read"):
+        list(bagio.read_bag(tmp_path / "metadata.yaml"))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_recorder_process_keeps_every_message_on_signal(sig, ros_context, executor, tmp_path):
+    out = tmp_path / "run.mcap"
+    rec = subprocess.Popen([console_script("recorder"), "--ros-args", "-p", f"output:={out}",
+                            "-p", f"topics:=['{qos.FRAMES}']"], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True)
+    src = FrameSource(context=ros_context, parameter_overrides=[
+        Parameter("source", value="pattern"), Parameter("num_phases", value=20)])
+    executor.add_node(src)
+    try:
+        assert spin_until(executor, lambda: src.done, timeout=60), "recorder never subscribed"
+        rec.send_signal(sig)  # every frame was acknowledged by the recorder before this
+        assert rec.wait(timeout=30) == 0
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    log = rec.stdout.read()
+    assert bagio.bag_topics(out)[qos.FRAMES]["count"] == src.published == 40, log
+    assert sum(1 for t, _, _ in read_with_rosbags(out) if t == qos.FRAMES) == 40
