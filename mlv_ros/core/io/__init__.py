@@ -1,0 +1,22 @@
+"""Readers and writers: DICOM tagged cine MR (:mod:`.dicom`) and simulator ground truth
+(:mod:`.groundtruth`). Pure Python + pydicom; no rclpy.
+
+Public API
+----------
+write_study_dicom(study, out_dir) -> list[Path]
+read_dicom_dir(path) -> DicomReadResult   (``frames, problems = read_dicom_dir(path)``;
+    also ``.series`` and ``.long_axis``; raises DicomReadError when nothing is usable)
+write_groundtruth(study, out_dir) -> (json_path, npz_path)
+load_groundtruth(path) -> GroundTruth
+"""
+
+from mlv_ros.core.io.dicom import (DicomReadError, DicomReadResult, LongAxisEstimate, SeriesInfo,
+                                   estimate_long_axis, frame_to_dataset, read_dicom_dir,
+                                   write_study_dicom)
+from mlv_ros.core.io.groundtruth import GroundTruth, load_groundtruth, write_groundtruth
+
+__all__ = [
+    "DicomReadError", "DicomReadResult", "GroundTruth", "LongAxisEstimate", "SeriesInfo",
+    "estimate_long_axis", "frame_to_dataset", "load_groundtruth", "read_dicom_dir",
+    "write_groundtruth", "write_study_dicom",
+]

@@ -1,0 +1,159 @@
+"""Ground truth written next to a simulated study: ``groundtruth.json`` + ``groundtruth.npz``.
+
+Format (version 1)
+------------------
+``groundtruth.json`` (UTF-8):
+    ``format`` = "mlv_ros.groundtruth", ``version`` = 1, ``preset`` (the full preset dict
+    used), ``num_phases``, ``cycle_duration_s``, ``times_s`` (list), ``es_phase`` (fractional),
+    ``snr`` (null = noiseless), ``seed``, ``frame`` (``apex``, ``base_centre``, ``long_axis``
+    apex → base, ``septum`` (θ = 0), ``e2``, ``length_mm``; LPS mm), ``slices`` (one entry per
+    slice in the npz order: ``view`` "SA"/"LA", ``slice_index``, ``series_uid``, ``description``,
+    ``rows``, ``columns``, ``geometry`` = ImagePositionPatient / ImageOrientationPatient /
+    PixelSpacing / SliceThickness), ``conventions`` (text) and ``arrays`` (what each npz array is).
+``groundtruth.npz``:
+    ``ed_masks`` bool (S, rows, cols) — ED myocardium per slice (slab fraction ≥ 0.5);
+    ``material_points`` float64 (N, 3) — ED positions of uniformly sampled myocardium, mm;
+    ``trajectories`` float32 (P, N, 3) — their positions at every phase, mm;
+    ``levels`` (K,) — fractions of the length from the apex; ``twist_deg``, ``endo_radius_mm``,
+    ``mid_radius_mm``, ``epi_radius_mm``, ``thickness_mm``, ``height_mm`` (P, K) — per-level
+    curves from :meth:`LVMotion.level_curves`; ``base_descent_mm`` (P,).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.types import VIEW_LA, VIEW_NAMES, VIEW_SA
+
+FORMAT = "mlv_ros.groundtruth"
+VERSION = 1
+JSON_NAME = "groundtruth.json"
+NPZ_NAME = "groundtruth.npz"
+_CURVES = ("twist_deg", "endo_radius_mm", "mid_radius_mm", "epi_radius_mm", "thickness_mm",
+           "height_mm")
+_CONVENTIONS = (
+    "Positions in DICOM patient coordinates (LPS), mm. Twist is the rotation about the long axis, "
+    "degrees, counter-clockwise seen from the apex looking toward the base positive. Levels are "
+    "fractions of the ED apex-to-base length measured from the epicardial apex (material levels). "
+    "Phase p is at trigger time p * cycle_duration_s / num_phases; phase 0 = end-diastole.")
+
+
+@dataclass
+class GroundTruth:
+    """Loaded ground truth (see the module docstring for every field's meaning)."""
+
+    meta: dict
+    ed_masks: dict
+    geometries: dict
+    material_points: np.ndarray
+    trajectories: np.ndarray
+    curves: dict
+
+    @property
+    def num_phases(self) -> int:
+        return int(self.meta["num_phases"])
+
+
+def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None) -> tuple[Path, Path]:
+    """Write ``groundtruth.json`` and ``groundtruth.npz`` for a simulated study.
+
+    Parameters
+    ----------
+    study : mlv_ros.core.sim.Study
+    out_dir : str or Path
+        Created if needed.
+    n_points : int
+        Number of material points whose trajectories are stored.
+    levels : array_like, optional
+        Levels of the per-level curves (default 0, 0.05, …, 1).
+
+    Returns
+    -------
+    (Path, Path)
+        The JSON and NPZ paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    m = study.motion
+    lv = np.linspace(0.0, 1.0, 21) if levels is None else np.asarray(levels, dtype=np.float64)
+    X = m.sample_myocardium(n_points, seed=study.seed)
+    traj = np.stack([m.position(X, p) for p in range(m.num_phases)]).astype(np.float32)
+    curves = m.level_curves(lv)
+    f = m.frame
+    slices = []
+    masks = []
+    for sl in study.slices:
+        key = (sl.view, sl.index)
+        mask = study.ed_masks[key]
+        masks.append(mask)
+        slices.append({
+            "view": VIEW_NAMES[sl.view], "slice_index": sl.index,
+            "series_uid": study.series_uids[key], "description": sl.description,
+            "rows": int(mask.shape[0]), "columns": int(mask.shape[1]),
+            "geometry": sl.geometry.to_dicom()})
+    meta = {
+        "format": FORMAT, "version": VERSION, "preset": study.preset,
+        "num_phases": m.num_phases, "cycle_duration_s": m.cycle_duration,
+        "times_s": [float(t) for t in m.times], "es_phase": float(m.es_phase),
+        "snr": None if study.snr is None or not np.isfinite(study.snr) else float(study.snr),
+        "seed": int(study.seed),
+        "frame": {"apex": f.apex.tolist(), "base_centre": f.base_centre.tolist(),
+                  "long_axis": f.long_axis.tolist(), "septum": f.septum.tolist(),
+                  "e2": f.e2.tolist(), "length_mm": f.length},
+        "slices": slices, "conventions": _CONVENTIONS,
+        "arrays": {
+            "ed_masks": "bool (S, rows, cols): ED myocardium per slice, in 'slices' order",
+            "material_points": "float64 (N, 3): ED positions, mm",
+            "trajectories": "float32 (P, N, 3): positions at each phase, mm",
+            "levels": "(K,): fractions of the length from the apex",
+            **{k: "(P, K)" for k in _CURVES},
+            "base_descent_mm": "(P,): base-plane displacement toward the apex, mm"},
+    }
+    jpath, npath = out / JSON_NAME, out / NPZ_NAME
+    with open(jpath, "w", encoding="utf-8") as fh:
+        json.dump(meta, fh, indent=1)
+    np.savez_compressed(
+        npath, ed_masks=np.stack(masks), material_points=X, trajectories=traj, levels=lv,
+        base_descent_mm=m.length - m.level_curves([1.0])["height_mm"][:, 0],
+        **{k: curves[k] for k in _CURVES})
+    return jpath, npath
+
+
+def load_groundtruth(path) -> GroundTruth:
+    """Read a ground-truth directory (or the path of its JSON file).
+
+    Raises
+    ------
+    FileNotFoundError
+        A file is missing.
+    ValueError
+        The JSON is not this format or an unsupported version.
+    """
+    p = Path(path)
+    d = p.parent if p.suffix == ".json" else p
+    with open(d / JSON_NAME, encoding="utf-8") as fh:
+        meta = json.load(fh)
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{d / JSON_NAME}: not a {FORMAT} file (format={meta.get('format')!r})")
+    if meta.get("version") != VERSION:
+        raise ValueError(f"{d / JSON_NAME}: unsupported version {meta.get('version')} (need {VERSION})")
+    with np.load(d / NPZ_NAME) as z:
+        arrays = {k: z[k] for k in z.files}
+    views = {"SA": VIEW_SA, "LA": VIEW_LA}
+    masks, geoms = {}, {}
+    for i, s in enumerate(meta["slices"]):
+        key = (views[s["view"]], int(s["slice_index"]))
+        masks[key] = arrays["ed_masks"][i]
+        g = s["geometry"]
+        iop = np.asarray(g["ImageOrientationPatient"], dtype=np.float64)
+        geoms[key] = SliceGeometry(np.asarray(g["ImagePositionPatient"]), iop[:3], iop[3:],
+                                   g["PixelSpacing"][0], g["PixelSpacing"][1], g["SliceThickness"])
+    curves = {k: arrays[k] for k in (*_CURVES, "levels", "base_descent_mm")}
+    return GroundTruth(meta=meta, ed_masks=masks, geometries=geoms,
+                       material_points=arrays["material_points"],
+                       trajectories=arrays["trajectories"], curves=curves)
