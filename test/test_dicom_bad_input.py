@@ -39,6 +39,7 @@ def test_bad_files_reported_rest_loads(good, tmp_path):
     # 2. truncated copy of a valid image (its original still loads)
     raw = files[0].read_bytes()
     (d / "truncated.dcm").write_bytes(raw[: len(raw) * 2 // 3])
+    (d / "header_cut.dcm").write_bytes(raw[:1000])  # cut inside the header, before the pixels
     # 3. non-image DICOM (no PixelData)
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.88.11"  # Basic Text SR
@@ -71,13 +72,14 @@ def test_bad_files_reported_rest_loads(good, tmp_path):
     res = read_dicom_dir(d)
     why = dict(res.problems)
     assert "not a DICOM file" in why[str(d / "corrupt.dcm")]
-    assert str(d / "truncated.dcm") in why
+    assert "pixel data unreadable" in why[str(d / "truncated.dcm")]
+    assert "truncated" in why[str(d / "header_cut.dcm")]
     assert "no pixel data" in why[str(d / "report.dcm")]
     assert len(missing) == 3
     for f in missing:
         assert why[f] == "missing geometry tag(s): ImagePositionPatient"
     assert "image size 32x32 differs" in why[str(odd)]
-    assert len(res.problems) == 3 + 3 + 1
+    assert len(res.problems) == 4 + 3 + 1
     # everything valid still loads: 10 series; SA 1 has 2 phases left
     assert len(res.series) == 10
     assert sum(s.view == VIEW_LA for s in res.series) == 2

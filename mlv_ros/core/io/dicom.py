@@ -245,8 +245,13 @@ def _read_one(path: str) -> tuple[_Image | None, str | None]:
     except Exception as exc:  # pydicom raises many types on damaged files
         return None, f"unreadable DICOM ({type(exc).__name__}: {exc})"
     if "PixelData" not in ds:
-        sop = ds.get("SOPClassUID", "unknown SOP class")
-        name = getattr(sop, "name", str(sop))
+        meta = getattr(ds, "file_meta", None)
+        sop = ds.get("SOPClassUID") or (meta.get("MediaStorageSOPClassUID") if meta else None)
+        name = getattr(sop, "name", str(sop)) if sop else ""
+        if "Image" in name or "Rows" in ds:
+            return None, f"no pixel data in an image object ({name or 'Rows present'}): truncated file?"
+        if not sop:
+            return None, "no pixel data and no SOP class (truncated or not an image)"
         return None, f"no pixel data (non-image DICOM: {name})"
     missing = [t for t in _GEOMETRY_TAGS if t not in ds]
     if missing:
