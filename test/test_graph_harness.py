@@ -47,7 +47,7 @@ def test_frames_between_nodes_in_one_process(ros_context, executor):
     executor.add_node(source)
     expected = pattern_frames(num_phases=4)
     assert spin_until(executor, lambda: source.done, timeout=30), "frame_source never finished"
-    assert len(collector.msgs) == len(expected) == 8
+    assert spin_until(executor, lambda: len(collector.msgs) == len(expected) == 8, timeout=10)
     got = sorted((conversions.msg_to_frame(m) for m in collector.msgs), key=lambda f: (f.slice_index, f.phase_index))
     for f, g in zip(expected, got):
         assert (f.slice_index, f.phase_index) == (g.slice_index, g.phase_index)
@@ -77,12 +77,30 @@ def test_frames_across_processes_from_console_script(ros_context, executor):
     assert spin_until(executor, lambda: any("all frames published" in s.message for d in diags.msgs for s in d.status))
 
 
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A small MCAP of pattern frames written with BagWriter (no nodes involved)."""
+    from rclpy.serialization import serialize_message
+
+    from mlv_ros import bagio
+
+    path = tmp_path_factory.mktemp("bag") / "pattern.mcap"
+    writer = bagio.BagWriter(path)
+    writer.add_topic(qos.FRAMES, qos.TOPIC_TYPES[qos.FRAMES], [qos.qos_dict(qos.stream_qos())])
+    for i, f in enumerate(pattern_frames()):
+        writer.write(qos.FRAMES, serialize_message(conversions.frame_to_msg(f)), 1_000_000_000 + i)
+    writer.close()
+    return path
+
+
 @pytest.mark.parametrize("name", ALL_NODES)
-def test_every_node_console_script_starts_and_stops_on_sigint(name, ros_context, executor):
+def test_every_node_console_script_starts_and_stops_on_sigint(name, ros_context, executor, tmp_path, recording):
     diags = Collector(ros_context, qos.DIAGNOSTICS, DiagnosticArray, qos.diagnostics_qos())
     executor.add_node(diags)
-    args = [console_script(name), "--ros-args", "-p", "source:=pattern", "-p", "wait_for_subscribers:=5"] \
-        if name == "frame_source" else [console_script(name)]
+    extra = {"frame_source": ["-p", "source:=pattern", "-p", "wait_for_subscribers:=5"],
+             "recorder": ["-p", f"output:={tmp_path / 'run.mcap'}"],
+             "replay": ["-p", f"path:={recording}", "-p", "wait_for_subscribers:=5"]}.get(name)
+    args = [console_script(name)] + (["--ros-args", *extra] if extra else [])
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert spin_until(executor, lambda: any(s.hardware_id == name for d in diags.msgs for s in d.status),

@@ -12,7 +12,7 @@ import time
 
 from rclpy.duration import Duration
 
-from mlv_ros import conversions, qos
+from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 from mlv_msgs.msg import TaggedFrame
@@ -26,6 +26,14 @@ def order_frames(frames: list[Frame], order: str) -> list[Frame]:
     if order == "slice_major":
         return sorted(frames, key=lambda f: (f.view, f.slice_index, f.phase_index))
     return sorted(frames, key=lambda f: (f.phase_index, f.view, f.slice_index))
+
+
+def read_bag_frames(path) -> list[Frame]:
+    """Every ``/mlv/frames`` message of a recording, as Frames."""
+    from rclpy.serialization import deserialize_message
+
+    return [conversions.msg_to_frame(deserialize_message(m.data, TaggedFrame))
+            for m in bagio.read_bag(path, topics=[qos.FRAMES])]
 
 
 class FrameSource(GraphNode):
@@ -69,9 +77,7 @@ class FrameSource(GraphNode):
             for path, reason in problems:
                 self.report(WARN, "skipped DICOM file", file=path, reason=reason)
             return frames
-        from mlv_ros.core.io.bag import read_frames
-
-        return read_frames(self.path)
+        return read_bag_frames(self.path)
 
     def _frame_interval(self, frame: Frame) -> float:
         if self.rate_factor <= 0 or frame.num_phases == 0:
