@@ -181,3 +181,14 @@ def test_frame_independent_of_patient_orientation():
     a, b = level_metrics(X_CYL, x1, FR), level_metrics(X2, x2, fr2)
     for k in a:
         np.testing.assert_allclose(a[k], b[k], atol=1e-9)
+
+
+def test_layered_cloud_with_empty_slabs_and_layers_on_slab_boundaries():
+    # 10 layers at 4, 12, …, 76 mm: every layer sits exactly on a boundary of the 20 volume
+    # slabs (4 mm) and every other slab is empty; the volume must still cover the full axis.
+    X, endo = cylinder_shell(FR, r_in=20, r_out=30, n_r=3, n_theta=72, n_z=10)
+    exact = np.pi * 20.0**2 * 80.0 / 1000.0
+    v = cavity_volume(X, X, FR, endo_mask=endo)
+    assert v == pytest.approx(exact, rel=0.01)
+    x, _ = cylindrical_motion(FR, X, s_r=0.9, s_l=0.8)
+    assert cavity_volume(X, x, FR, endo_mask=endo) == pytest.approx(0.81 * 0.8 * v, rel=1e-12)

@@ -242,12 +242,17 @@ def cardiac_coordinates(X, frame: LVFrame, *, endo_radius=None, epi_radius=None,
                               eta=eta, e_r=e_r, e_c=e_c, e_l=e_l, transmural=transmural)
 
 
+_BIN_EPS = 1e-9  # in bin units: a point this close below a boundary goes to the upper bin
+
+
 def level_bin(h: np.ndarray, levels: int) -> np.ndarray:
     """Bin index 0 … levels−1 of normalised level ``h`` (equal bins on [0, 1]; values outside
-    are clipped into the end bins)."""
+    are clipped into the end bins). Points within 1e-9 bin widths of a boundary go to the upper
+    bin, so a lattice layer lying exactly on a boundary is not split between two bins by
+    rounding."""
     if int(levels) < 1:
         raise ValueError(f"levels must be >= 1, got {levels}")
-    return np.clip(np.floor(np.asarray(h) * levels).astype(np.int64), 0, levels - 1)
+    return np.clip(np.floor(np.asarray(h) * levels + _BIN_EPS).astype(np.int64), 0, levels - 1)
 
 
 def angle_bin(theta: np.ndarray, bins: int) -> np.ndarray:

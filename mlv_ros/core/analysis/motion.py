@@ -14,8 +14,10 @@ Displacement components (Fig. 9b–d), cylindrical about the fixed ED long axis:
     exactly, and a pure radial contraction has u_c = 0.
 Twist of a level (Fig. 13/16): mean over the level's particles of the rotation angle Δθ
     measured about the line parallel to the long axis through the level's own in-plane
-    centroid (ED centroid for X, current centroid for x), degrees, + CCW seen from the apex.
-    Using the level centroid makes twist insensitive to in-plane translation of the slice.
+    centroid (ED centroid for X, current centroid for x), degrees, + CCW seen from the apex,
+    weighted by each particle's ED distance from that line (particles on it have no angle;
+    with equal radii this is the plain mean). Using the level centroid makes twist
+    insensitive to in-plane translation of the slice.
 Average SA radius of a level (Fig. 11/14): mean in-plane distance of the level's particles
     from the level's current centroid, mm (whole wall, not the cavity radius).
 Long-axis motion of a level (Fig. 12/15): mean ``u_l`` of the level, mm.
@@ -118,6 +120,7 @@ class LevelBinning:
         self.axial_ed = self.mean(axial)
         p0 = frame.inplane(X)
         self._p0 = p0 - self.mean(p0)[self.index]  # ED offsets from the level centroid
+        self._rho0 = np.hypot(self._p0[:, 0], self._p0[:, 1])
 
     def mean(self, v: np.ndarray) -> np.ndarray:
         """Per-level mean of a per-particle quantity, shape (N,) → (L',) or (N, k) → (L', k)."""
@@ -133,7 +136,13 @@ class LevelBinning:
         p1 = p1 - self.mean(p1)[self.index]
         p0 = self._p0
         dth = np.arctan2(p0[:, 0] * p1[:, 1] - p0[:, 1] * p1[:, 0], np.einsum("ij,ij->i", p0, p1))
-        return np.degrees(self.mean(dth)), self.mean(np.hypot(p1[:, 0], p1[:, 1]))
+        # ED-radius-weighted mean: a particle at the level centre has no defined angle (its Δθ
+        # is rounding noise) and must not count; equal radii give the plain mean.
+        n = self.populated.size
+        w = self._rho0
+        wsum = np.bincount(self.index, w, n)
+        twist = np.bincount(self.index, w * dth, n) / np.where(wsum > 0, wsum, 1.0)
+        return np.degrees(twist), self.mean(np.hypot(p1[:, 0], p1[:, 1]))
 
 
 def level_metrics(X, x, frame: LVFrame, levels: int = 10) -> dict:
@@ -223,10 +232,13 @@ class CavityModel:
     into ``angle_bins`` sectors about the slab's ED in-plane centroid. At a phase, each
     sector contributes one vertex, the mean current in-plane position of its endocardial
     particles; the vertices, in CCW sector order, form a polygon whose shoelace area is the
-    slab's cavity cross-section. The slab's current thickness is its ED thickness
-    ``length/slabs`` times the local longitudinal stretch ``d z_cur / d Z_ed`` of the slab
-    centroids (central differences). Volume = Σ area × thickness. Slabs with fewer than three
-    vertices contribute nothing (e.g. a solid apical cap when an endocardial mask is given).
+    slab's cavity cross-section. Each populated slab (one with any particle) owns a cell of
+    the axis between the midpoints to its populated neighbours (the end cells reach the apex
+    and base planes), so empty slabs of a sparse or layered cloud are bridged rather than
+    counted as zero; the cell boundaries follow the current axial positions of the slab
+    centroids (:meth:`thickness`). Volume = Σ area × current cell thickness. A populated slab
+    with fewer than three vertices has zero area (a solid apical cap when an endocardial
+    mask is given).
 
     Endocardial particles: ``endo_mask`` if given, else in every (slab, sector) the one
     particle nearest to the slab centroid at ED (tracked materially thereafter). Without a
@@ -235,7 +247,9 @@ class CavityModel:
 
     Accuracy on analytic cavities with particles on the endocardium: polygon and sector
     averaging under-estimate a circle by ≈ 0.8 % at 36 sectors; the slab rule is exact for a
-    cylinder and second order in slab height for a prolate cavity.
+    cylinder and second order in slab height for a prolate cavity. Uniform scalings
+    (radial by s_r about the axis, longitudinal by s_l about the apex) scale it by s_r² s_l
+    exactly.
     """
 
     def __init__(self, X: np.ndarray, frame: LVFrame, endo_mask=None, slabs: int = 20,
@@ -288,7 +302,6 @@ class CavityModel:
         self._slab_count = cnt
         self._pop = np.flatnonzero(cnt)
         self._Z = np.bincount(slab, axial, slabs)[self._pop] / cnt[self._pop]
-        self.thickness_ed = frame.length / slabs
 
     def areas(self, x: np.ndarray) -> np.ndarray:
         """Cavity cross-section of every slab at positions x, mm², shape (slabs,)."""
@@ -300,17 +313,28 @@ class CavityModel:
         a = 0.5 * np.bincount(self._vslab, cross, self.slabs)
         return np.where(self._slab_ok, np.maximum(a, 0.0), 0.0)
 
-    def stretch(self, x: np.ndarray) -> np.ndarray:
-        """Longitudinal stretch of every slab (1 for empty slabs), shape (slabs,)."""
-        out = np.ones(self.slabs)
-        if self._pop.size >= 2:
-            z = np.bincount(self._slab, self.frame.axial(x), self.slabs)[self._pop] / self._slab_count[self._pop]
-            out[self._pop] = np.gradient(z, self._Z)
-        return out
+    def thickness(self, x: np.ndarray) -> np.ndarray:
+        """Current axial thickness of the cell of every populated slab, mm, shape (P,).
+
+        Cells partition the ED axis: boundaries halfway between consecutive populated slab
+        centroids, outer boundaries at the apex and base planes (or the extreme centroids if
+        these lie beyond). Boundaries move with the piecewise-linear map from ED to current
+        axial slab centroids, extrapolated linearly past the end centroids.
+        """
+        Z = self._Z
+        z = np.bincount(self._slab, self.frame.axial(x), self.slabs)[self._pop] / self._slab_count[self._pop]
+        b = np.concatenate([[min(0.0, Z[0])], 0.5 * (Z[1:] + Z[:-1]), [max(self.frame.length, Z[-1])]])
+        if Z.size == 1:
+            return np.array([b[1] - b[0]])
+        zb = np.interp(b, Z, z)
+        dz0, dz1 = Z[1] - Z[0], Z[-1] - Z[-2]
+        zb[0] = z[0] + (b[0] - Z[0]) * ((z[1] - z[0]) / dz0 if dz0 > 0 else 1.0)
+        zb[-1] = z[-1] + (b[-1] - Z[-1]) * ((z[-1] - z[-2]) / dz1 if dz1 > 0 else 1.0)
+        return np.diff(zb)
 
     def volume_ml(self, x: np.ndarray) -> float:
         """Cavity volume at positions x, ml (1 ml = 1000 mm³)."""
-        return float(np.sum(self.areas(x) * self.stretch(x)) * self.thickness_ed / 1000.0)
+        return float(self.areas(x)[self._pop] @ self.thickness(x) / 1000.0)
 
 
 def endocardial_mask(X, frame: LVFrame, slabs: int = 20, angle_bins: int = 36) -> np.ndarray:

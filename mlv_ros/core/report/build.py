@@ -1,0 +1,221 @@
+"""One-page report of a run (optionally against a second run): PNG figures, summary.json and
+index.html, built from arrays only (the lead feeds it from recorded MCAP runs).
+
+Missing data never raises: whatever cannot be drawn is listed under "Missing / not shown" on
+the page and in ``summary.json`` (``runs[i].missing`` and ``figures_skipped``).
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from mlv_ros.core.analysis.frame import as_points, estimate_frame
+from mlv_ros.core.report.figures import (
+    plot_displacement_3d,
+    plot_global_curves,
+    plot_level_curves,
+    plot_strain_bullseyes,
+)
+from mlv_ros.core.report.summary import RunData, sorted_phases, summarize, write_summary_json
+
+log = logging.getLogger(__name__)
+
+CONVENTIONS = [
+    "Positions in DICOM patient coordinates (mm); all motion relative to end-diastole (phase 0).",
+    "Levels are material bins of the ED long axis: 0 = apex, 1 = base.",
+    "Twist and circumferential displacement: counter-clockwise seen from the apex is positive.",
+    "Long-axis displacement positive toward the base; radial positive outward.",
+    "Torsion = (twist_base − twist_apex) / ED distance, °/cm (negative for a normal heart).",
+    "LA radius = axial distance from the ED apex to the particle centroid (paper: model centre to apex).",
+    "Strain: Green–Lagrange E = ½(FᵀF − I), negative = shortening; peak = largest magnitude over the cycle.",
+    "Bull's-eye seen from the apex: anterior at the top, septum on the left (AHA 17 segments).",
+]
+
+_KEY_ROWS = (
+    ("edv_ml", "EDV (ml)", "{:.1f}"), ("esv_ml", "ESV (ml)", "{:.1f}"),
+    ("ejection_fraction", "ejection fraction (%)", "pct"),
+    ("es_time_fraction", "end-systole (fraction of cycle)", "{:.2f}"),
+    ("peak_twist_apex_deg", "peak apical twist (°)", "{:+.1f}"),
+    ("peak_twist_base_deg", "peak basal twist (°)", "{:+.1f}"),
+    ("peak_torsion_deg_per_cm", "peak torsion (°/cm)", "{:+.2f}"),
+    ("peak_sa_radius_change_mm", "peak mean SA radius change (mm)", "{:+.2f}"),
+    ("peak_base_longitudinal_mm", "peak basal long-axis motion (mm)", "{:+.2f}"),
+    ("la_radius_ed_mm", "LA radius at ED (mm)", "{:.1f}"), ("la_radius_es_mm", "LA radius at ES (mm)", "{:.1f}"),
+    ("peak_global_err", "peak global Err", "{:+.3f}"), ("peak_global_ecc", "peak global Ecc", "{:+.3f}"),
+    ("peak_global_ell", "peak global Ell", "{:+.3f}"),
+)
+
+
+def _get_positions(positions_by_phase, index: int):
+    if positions_by_phase is None:
+        return None
+    if isinstance(positions_by_phase, Mapping):
+        return positions_by_phase.get(index)
+    if isinstance(positions_by_phase, Sequence) and 0 <= index < len(positions_by_phase):
+        return positions_by_phase[index]
+    return None
+
+
+def _es_view(run: RunData, summary: dict, notes: list[str]):
+    """(X_ed, x_es, frame, title) for the 3D figure, or None with a note saying why not."""
+    if run.ed_positions is None:
+        notes.append(f"{run.label}: no ED positions, 3D displacement figure not drawn")
+        return None
+    ph, _ = sorted_phases(run.phases)
+    vol = {p.phase_index: p.cavity_volume_ml for p in ph}
+    es = summary["key"].get("es_phase_index")
+    cand = [i for i in sorted(vol, key=lambda i: vol[i]) if i != 0 and _get_positions(run.positions_by_phase, i) is not None]
+    if es is None or _get_positions(run.positions_by_phase, es) is None:
+        if not cand:
+            notes.append(f"{run.label}: no positions for end-systole or any later phase, 3D figure not drawn")
+            return None
+        notes.append(f"{run.label}: no positions for the ES phase {es}; 3D figure shows phase {cand[0]} "
+                     "(smallest volume with positions)")
+        es = cand[0]
+    try:
+        X = as_points(run.ed_positions, f"{run.label} ED positions")
+        x = as_points(_get_positions(run.positions_by_phase, es), f"{run.label} positions of phase {es}")
+        if X.shape != x.shape:
+            raise ValueError(f"ED positions {X.shape} and phase {es} positions {x.shape} differ in shape")
+        frame = run.frame
+        if frame is None:
+            frame = estimate_frame(X)
+            notes.append(f"{run.label}: no LV frame given, estimated from the ED cloud (reference angle arbitrary)")
+    except ValueError as e:
+        notes.append(f"{run.label}: 3D figure not drawn: {e}")
+        return None
+    return X, x, frame, f"{run.label} (phase {es})"
+
+
+def _fmt(v, f: str) -> str:
+    if v is None:
+        return "—"
+    if f == "pct":
+        return f"{100 * v:.1f}"
+    return f.format(v)
+
+
+def _html(title: str, meta: dict, summaries: list[dict], figures: list[tuple[str, str]], skipped: list[str]) -> str:
+    e = html.escape
+    head = "".join(f"<th>{e(s['label'])}</th>" for s in summaries)
+    rows = "".join(
+        f"<tr><td>{e(lab)}</td>" + "".join(f"<td>{e(_fmt(s['key'].get(k), f))}</td>" for s in summaries) + "</tr>"
+        for k, lab, f in _KEY_ROWS)
+    rows += ("<tr><td>phases present / expected</td>"
+             + "".join(f"<td>{len(s['phases_present'])} / {s['num_phases']}</td>" for s in summaries) + "</tr>")
+    miss = [f"{s['label']}: {m}" for s in summaries for m in s["missing"]] + skipped
+    miss_html = ("<ul>" + "".join(f"<li>{e(m)}</li>" for m in miss) + "</ul>") if miss else "<p>Nothing missing.</p>"
+    figs = "".join(f'<figure><img src="{e(f)}" alt="{e(c)}"><figcaption>{e(c)}</figcaption></figure>'
+                   for f, c in figures) or "<p>No figures could be drawn.</p>"
+    meta_html = "".join(f"<li><b>{e(str(k))}</b>: {e(str(v))}</li>" for k, v in meta.items())
+    conv = "".join(f"<li>{e(c)}</li>" for c in CONVENTIONS)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{e(title)}</title>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em auto; max-width: 1500px; color: #222; }}
+table {{ border-collapse: collapse; margin: 0.5em 0 1em; }}
+td, th {{ border: 1px solid #bbb; padding: 3px 10px; text-align: right; }}
+td:first-child {{ text-align: left; }}
+figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
+figcaption {{ font-size: 0.9em; color: #555; }}
+.missing {{ background: #fff6e0; padding: 0.3em 1em; border-left: 4px solid #e0a000; }}
+</style></head><body>
+<h1>{e(title)}</h1>
+<ul>{meta_html}</ul>
+<h2>Key numbers</h2>
+<table><tr><th></th>{head}</tr>{rows}</table>
+<h2>Missing / not shown</h2><div class="missing">{miss_html}</div>
+<h2>Figures</h2>{figs}
+<h2>Conventions</h2><ul>{conv}</ul>
+<p><a href="summary.json">summary.json</a> holds every number of every phase.</p>
+</body></html>
+"""
+
+
+def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phase=None, compare=None,
+                 meta: dict | None = None, *, frame=None) -> Path:
+    """Write the report of a run (and optionally a comparison run) to ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        Created if needed; receives ``index.html``, ``summary.json`` and PNGs
+        (``level_curves.png``, ``global_curves.png``, ``strain_bullseye.png``,
+        ``displacement_es.png``), each only when it can be drawn.
+    phases : sequence of PhaseMetrics
+        The run's per-phase metrics (any order; gaps allowed).
+    ed_positions : array_like, shape (N, 3), optional
+        ED particle positions, mm.
+    positions_by_phase : mapping phase_index -> (N, 3) array, or sequence indexed by phase, optional
+        Particle positions per phase (at least the ES phase is needed for the 3D figure).
+    compare : RunData or sequence of PhaseMetrics, optional
+        A second run (e.g. hypertrophic) shown side by side.
+    meta : dict, optional
+        Free-form description shown on the page and stored in summary.json; the keys
+        ``title``, ``label`` and ``compare_label`` are used for headings.
+    frame : LVFrame, optional
+        ED frame of the main run (estimated from ``ed_positions`` if needed).
+
+    Returns
+    -------
+    Path
+        ``out_dir / "index.html"``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = dict(meta or {})
+    runs = [RunData(list(phases or []), ed_positions, positions_by_phase, frame, str(meta.get("label", "run")))]
+    if compare is not None:
+        if isinstance(compare, RunData):
+            runs.append(compare)
+        else:
+            runs.append(RunData(list(compare), label=str(meta.get("compare_label", "comparison"))))
+    summaries = [summarize(r.phases, r.label) for r in runs]
+    figures: list[tuple[str, str]] = []
+    skipped: list[str] = []
+
+    def attempt(name: str, caption: str, fn):
+        try:
+            p = fn()
+        except Exception as exc:  # a figure must never take the report down; say why instead
+            log.exception("report figure %s failed", name)
+            skipped.append(f"{name} failed: {type(exc).__name__}: {exc}")
+            return
+        if p is not None:
+            figures.append((Path(p).name, caption))
+
+    with_phases = [r for r, s in zip(runs, summaries) if s["phases_present"]]
+    if with_phases:
+        attempt("level_curves.png",
+                "Average SA radius, long-axis motion and twist per level over the cycle (cf. Fig. 11–16).",
+                lambda: plot_level_curves(with_phases, out / "level_curves.png"))
+        attempt("global_curves.png", "Cavity volume (with EF), LA radius and torsion over the cycle.",
+                lambda: plot_global_curves(with_phases, out / "global_curves.png"))
+        attempt("strain_bullseye.png", "Peak Err / Ecc / Ell by AHA segment (bull's-eye seen from the apex).",
+                lambda: plot_strain_bullseyes(with_phases, out / "strain_bullseye.png"))
+    else:
+        skipped.append("no phases in any run: no curves")
+    views = []
+    for r, s in zip(runs, summaries):
+        v = _es_view(r, s, skipped) if s["phases_present"] else None
+        if v is not None:
+            views.append(v)
+    if views:
+        attempt("displacement_es.png",
+                "Particles at end-systole coloured by long-axis, radial and circumferential displacement (cf. Fig. 9–10).",
+                lambda: plot_displacement_3d(*views[0][:3], out / "displacement_es.png", title=views[0][3],
+                                             compare=views[1] if len(views) > 1 else None))
+    title = str(meta.get("title", "LV motion report"))
+    write_summary_json(out / "summary.json", {
+        "title": title, "meta": meta, "conventions": CONVENTIONS,
+        "figures": [f for f, _ in figures], "figures_skipped": skipped, "runs": summaries,
+        "frames": [r.frame.to_dict() if r.frame is not None else None for r in runs],
+    })
+    index = out / "index.html"
+    index.write_text(_html(title, meta, summaries, figures, skipped), encoding="utf-8")
+    return index

@@ -1,0 +1,230 @@
+"""Matplotlib figures in the spirit of the paper's Fig. 9–16 (Agg, no pyplot state).
+
+Every function takes arrays / :class:`PhaseMetrics` lists and writes one PNG; they never
+recompute motion from images. Units: mm, degrees, ml, time as a fraction of the cycle (as in
+the paper). Sign conventions are those of :mod:`mlv_ros.core.analysis`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+import numpy as np
+from matplotlib import cm, colors
+from matplotlib.figure import Figure
+
+from mlv_ros.core.analysis.frame import LVFrame
+from mlv_ros.core.analysis.motion import decompose_displacement
+from mlv_ros.core.report.summary import RunData, level_table, peak_segment_strain, sorted_phases
+
+DPI = 110
+_MAX_SCATTER = 4000  # points drawn per 3D panel (deterministic subsample beyond this)
+_COMPONENTS = (("longitudinal", "long-axis displacement (mm, + toward base)"),
+               ("radial", "radial displacement (mm, + outward)"),
+               ("circumferential", "circumferential displacement (mm, + CCW from apex)"))
+
+
+def _save(fig: Figure, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def _time(phases) -> np.ndarray:
+    return np.array([p.time_fraction for p in phases], dtype=np.float64)
+
+
+def plot_displacement_3d(ed_positions, es_positions, frame: LVFrame, path, *, title: str = "",
+                         compare: tuple | None = None) -> Path:
+    """3D particles at ES coloured by each displacement component (Fig. 9b–d / 10b–d).
+
+    Parameters
+    ----------
+    ed_positions, es_positions : array_like, shape (N, 3)
+        Same particles at ED and ES, mm.
+    frame : LVFrame
+        ED frame used for the decomposition; the plot is drawn in frame coordinates
+        (ξ along the reference direction, η, long axis up).
+    path : path-like
+        PNG to write.
+    title : str
+        Row label (e.g. "normal").
+    compare : (ed, es, frame, title), optional
+        A second run drawn as a second row with the same colour limits per component.
+    """
+    rows = [(ed_positions, es_positions, frame, title)]
+    if compare is not None:
+        rows.append(compare)
+    data = []
+    for X, x, fr, t in rows:
+        X = np.asarray(X, dtype=np.float64)
+        x = np.asarray(x, dtype=np.float64)
+        d = decompose_displacement(X, x, fr)
+        keep = np.arange(len(x))
+        if len(x) > _MAX_SCATTER:
+            keep = np.linspace(0, len(x) - 1, _MAX_SCATTER).astype(int)
+        loc = np.c_[fr.inplane(x[keep]), fr.axial(x[keep])]
+        data.append((loc, d[keep], t))
+    lim = [max(float(np.max(np.abs(dd[:, j]))) for _, dd, _ in data) or 1.0 for j in range(3)]
+    fig = Figure(figsize=(15, 4.8 * len(rows)), layout="constrained")
+    for r, (loc, d, t) in enumerate(data):
+        for j, (name, label) in enumerate(_COMPONENTS):
+            ax = fig.add_subplot(len(rows), 3, 3 * r + j + 1, projection="3d")
+            sc = ax.scatter(loc[:, 0], loc[:, 1], loc[:, 2], c=d[:, j], cmap="coolwarm", s=4,
+                            vmin=-lim[j], vmax=lim[j], depthshade=False)
+            ax.set_xlabel("ξ (mm)")
+            ax.set_ylabel("η (mm)")
+            ax.set_zlabel("long axis (mm)")
+            ax.set_title(f"{t}: {name} at ES" if t else f"{name} at ES", fontsize=10)
+            fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=label)
+    fig.suptitle("Displacement components at end-systole relative to end-diastole (cf. paper Fig. 9–10)")
+    return _save(fig, path)
+
+
+def plot_level_curves(runs: Sequence[RunData], path) -> Path:
+    """Per-level curves over the cycle (Fig. 11–16): average SA radius, long-axis motion and
+    twist angle; one column per run, one line per level (apex dark → base light)."""
+    quantities = (("sa_radius_mm", "average SA radius (mm)"),
+                  ("longitudinal_displacement_mm", "long-axis motion (mm, + toward base)"),
+                  ("twist_deg", "twist (°, + CCW from apex)"))
+    fig = Figure(figsize=(6.2 * len(runs) + 1.5, 10), layout="constrained")
+    axes = fig.subplots(3, len(runs), squeeze=False, sharex=True)
+    for j, run in enumerate(runs):
+        ph, _ = sorted_phases(run.phases)
+        t = _time(ph)
+        for i, (name, ylabel) in enumerate(quantities):
+            ax = axes[i, j]
+            pos, table = level_table(ph, name)
+            cmap = cm.viridis
+            for k, h in enumerate(pos):
+                ax.plot(t, table[:, k], marker=".", ms=3, color=cmap(h), label=f"{h:.2f}")
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3)
+            if i == 0:
+                ax.set_title(run.label)
+            if i == 2:
+                ax.set_xlabel("time (fraction of cardiac cycle)")
+            if not pos.size:
+                ax.text(0.5, 0.5, "no per-level data", ha="center", transform=ax.transAxes)
+        for i in range(3):  # share y per quantity across runs so differences read directly
+            lo = min(a.get_ylim()[0] for a in axes[i])
+            hi = max(a.get_ylim()[1] for a in axes[i])
+            for a in axes[i]:
+                a.set_ylim(lo, hi)
+    handles, labels = axes[0, -1].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, title="level\n(0 apex,\n1 base)", loc="outside right center", fontsize=8)
+    fig.suptitle("Per-level motion over the cardiac cycle (cf. paper Fig. 11–16)")
+    return _save(fig, path)
+
+
+def plot_global_curves(runs: Sequence[RunData], path) -> Path:
+    """Cavity volume, LA radius and torsion over the cycle; one line per run."""
+    fig = Figure(figsize=(15, 4.2), layout="constrained")
+    axes = fig.subplots(1, 3)
+    specs = (("cavity_volume_ml", "cavity volume (ml)"), ("la_radius_mm", "LA radius (mm)"),
+             ("torsion_deg_per_cm", "torsion (°/cm, base − apex)"))
+    for run, style in zip(runs, ("-o", "--s", ":^", "-.v")):
+        ph, _ = sorted_phases(run.phases)
+        t = _time(ph)
+        for ax, (name, _) in zip(axes, specs):
+            v = np.array([getattr(p, name) for p in ph], dtype=np.float64)
+            lab = run.label
+            if name == "cavity_volume_ml" and len(v) and v[0] > 0:
+                lab = f"{run.label} (EF {100 * (v[0] - v.min()) / v[0]:.0f} %)"
+            ax.plot(t, v, style, ms=4, label=lab)
+    for ax, (_, ylabel) in zip(axes, specs):
+        ax.set_xlabel("time (fraction of cardiac cycle)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("Global function over the cardiac cycle")
+    return _save(fig, path)
+
+
+# AHA bull's-eye: rings from the centre: apex (17), apical, mid, basal. Display seen from the
+# apex: anterior at the top, septum on the left; ψ (from the anterior RV–LV insertion, CCW from
+# the apex) maps to the display angle 90° + (ψ − 330°), so segment 1 (ψ 300–360°) is centred
+# on the top and segments run counter-clockwise on the page.
+def _aha_wedges():
+    wedges = []
+    for ring, first in ((3, 1), (2, 7)):  # basal outermost
+        for i in range(6):
+            psi0 = (300 + 60 * i) % 360
+            wedges.append((first + i, ring, psi0, 60.0))
+    for i in range(4):
+        wedges.append((13 + i, 1, (285 + 90 * i) % 360, 90.0))
+    return wedges
+
+
+def draw_bullseye(ax, values, *, vlim: float | None = None, title: str = "", cmap="coolwarm",
+                  label: str = ""):
+    """Draw a 17-segment AHA bull's-eye on a polar Axes.
+
+    Parameters
+    ----------
+    ax : matplotlib polar Axes
+    values : array_like, shape (17,)
+        Segment values in AHA order; NaN segments are drawn grey and labelled "n/a".
+    vlim : float, optional
+        Symmetric colour limit (default max |value|).
+    Returns
+    -------
+    ScalarMappable for a colorbar.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if v.shape != (17,):
+        raise ValueError(f"bull's-eye needs 17 values, got {v.shape}")
+    fin = v[np.isfinite(v)]
+    vlim = vlim or (float(np.max(np.abs(fin))) if fin.size else 1.0) or 1.0
+    norm = colors.Normalize(-vlim, vlim)
+    cmap = matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap
+
+    def colour(x):
+        return cmap(norm(x)) if np.isfinite(x) else (0.85, 0.85, 0.85, 1.0)
+
+    for seg, ring, psi0, width in _aha_wedges():
+        ang0 = np.radians(90.0 + psi0 - 330.0)
+        w = np.radians(width)
+        ax.bar(ang0 + w / 2, 1.0, width=w, bottom=ring, color=colour(v[seg - 1]), edgecolor="k", lw=0.8)
+        txt = "n/a" if not np.isfinite(v[seg - 1]) else f"{v[seg - 1]:.2f}"
+        ax.text(ang0 + w / 2, ring + 0.5, f"{seg}\n{txt}", ha="center", va="center", fontsize=6.5)
+    ax.bar(0, 1.0, width=2 * np.pi, bottom=0, color=colour(v[16]), edgecolor="none")
+    ring = np.linspace(0, 2 * np.pi, 181)
+    ax.plot(ring, np.ones_like(ring), color="k", lw=0.8)
+    ax.text(0, 0, f"17\n{'n/a' if not np.isfinite(v[16]) else f'{v[16]:.2f}'}", ha="center", va="center",
+            fontsize=6.5)
+    ax.set_ylim(0, 4)
+    ax.set_axis_off()
+    ax.text(np.pi / 2, 4.35, "anterior", ha="center", fontsize=7)
+    ax.text(np.pi, 4.45, "septal", ha="center", va="center", rotation=90, fontsize=7)
+    ax.text(-np.pi / 2, 4.4, "inferior", ha="center", va="center", fontsize=7)
+    ax.text(0, 4.45, "lateral", ha="center", va="center", rotation=-90, fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=10, pad=14)
+    return cm.ScalarMappable(norm=norm, cmap=cmap)
+
+
+def plot_strain_bullseyes(runs: Sequence[RunData], path) -> Path | None:
+    """Peak Err, Ecc, Ell by AHA segment (signed peak over the cycle), one row per run; the
+    colour scale of each strain component is shared across runs. Returns None (and writes
+    nothing) when no run carries strain."""
+    peaks = [(run.label, peak_segment_strain(sorted_phases(run.phases)[0])) for run in runs]
+    peaks = [(lab, p) for lab, p in peaks if p is not None]
+    if not peaks:
+        return None
+    comps = (("err", "peak Err (radial)"), ("ecc", "peak Ecc (circumferential)"), ("ell", "peak Ell (longitudinal)"))
+    fig = Figure(figsize=(13, 4.6 * len(peaks)), layout="constrained")
+    for j, (c, name) in enumerate(comps):
+        allv = np.concatenate([p[c] for _, p in peaks])
+        allv = allv[np.isfinite(allv)]
+        vlim = float(np.max(np.abs(allv))) if allv.size else 1.0
+        for r, (lab, p) in enumerate(peaks):
+            ax = fig.add_subplot(len(peaks), 3, 3 * r + j + 1, projection="polar")
+            sm = draw_bullseye(ax, p[c], vlim=vlim or 1.0, title=f"{lab}: {name}")
+            fig.colorbar(sm, ax=ax, shrink=0.7, label="Green–Lagrange strain (–)")
+    fig.suptitle("Peak Lagrangian strain by AHA segment (seen from the apex; negative = shortening)")
+    return _save(fig, path)

@@ -1,0 +1,237 @@
+"""Key numbers of a run from its per-phase metrics, with an account of what is missing.
+
+Everything here is a pure function of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`
+lists; nothing is recomputed from images or point clouds.
+
+Peaks
+-----
+"Peak" of a signed quantity is its value of largest magnitude over the cycle, sign kept
+(so peak Ecc is the most negative Ecc of a normally contracting segment). End-systole (ES) is
+the phase of smallest cavity volume (ties: the earliest).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from mlv_ros.core.analysis.frame import LVFrame
+from mlv_ros.core.analysis.metrics import PhaseMetrics
+
+
+@dataclass
+class RunData:
+    """One run for the report.
+
+    Attributes
+    ----------
+    phases : list of PhaseMetrics
+        Any order; sorted by ``phase_index`` (later duplicates replace earlier ones).
+    ed_positions : ndarray, shape (N, 3), optional
+        ED particle positions, mm (for the 3D displacement figure).
+    positions_by_phase : mapping phase_index -> ndarray (N, 3), optional
+        Particle positions per phase (a list/tuple indexed by phase is accepted too).
+    frame : LVFrame, optional
+        ED long-axis frame; estimated from ``ed_positions`` when missing.
+    label : str
+    """
+
+    phases: list = field(default_factory=list)
+    ed_positions: np.ndarray | None = None
+    positions_by_phase: Mapping[int, np.ndarray] | Sequence | None = None
+    frame: LVFrame | None = None
+    label: str = "run"
+
+
+def sorted_phases(phases: Sequence[PhaseMetrics]) -> tuple[list[PhaseMetrics], list[int]]:
+    """Phases sorted by index with duplicates removed (last wins); also the duplicate indices."""
+    by: dict[int, PhaseMetrics] = {}
+    dup = []
+    for p in phases:
+        if p.phase_index in by:
+            dup.append(int(p.phase_index))
+        by[int(p.phase_index)] = p
+    return [by[k] for k in sorted(by)], sorted(set(dup))
+
+
+def signed_peak(v: np.ndarray, axis=None):
+    """Value of largest magnitude (sign kept) along ``axis``, ignoring NaN; NaN if none."""
+    v = np.asarray(v, dtype=np.float64)
+    a = np.where(np.isfinite(v), np.abs(v), -1.0)
+    i = np.argmax(a, axis=axis)
+    if axis is None:
+        return float(v.ravel()[i]) if a.ravel()[i] >= 0 else math.nan
+    out = np.take_along_axis(v, np.expand_dims(i, axis), axis).squeeze(axis)
+    return np.where(np.take_along_axis(a, np.expand_dims(i, axis), axis).squeeze(axis) >= 0, out, np.nan)
+
+
+def level_table(phases: Sequence[PhaseMetrics], name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-level quantity over the cycle as a (phases, levels) table.
+
+    Returns
+    -------
+    positions : ndarray, shape (L,)
+        Union of the phases' level positions, apex → base.
+    table : ndarray, shape (P, L)
+        ``getattr(phase, name)`` per level; NaN where a phase lacks that level.
+    """
+    keys = sorted({round(float(v), 6) for p in phases for v in p.level_position})
+    col = {k: j for j, k in enumerate(keys)}
+    t = np.full((len(phases), len(keys)), np.nan)
+    for i, p in enumerate(phases):
+        vals = np.asarray(getattr(p, name), dtype=np.float64)
+        if vals.shape != p.level_position.shape:
+            continue  # inconsistent message: leave the row empty (reported by summarize)
+        for pos, v in zip(p.level_position, vals):
+            t[i, col[round(float(pos), 6)]] = v
+    return np.asarray(keys), t
+
+
+def peak_segment_strain(phases: Sequence[PhaseMetrics]) -> dict[str, np.ndarray] | None:
+    """Signed peak over the cycle of each AHA segment's Err, Ecc, Ell, shape (17,) each;
+    None when no phase carries strain. Segments never populated (count 0 where counts are
+    known) are NaN here (and drawn as "n/a")."""
+    ph = [p for p in phases if p.has_strain]
+    if not ph:
+        return None
+    out = {}
+    for key, f in (("err", "segment_err"), ("ecc", "segment_ecc"), ("ell", "segment_ell")):
+        t = np.stack([getattr(p, f) for p in ph])
+        for i, p in enumerate(ph):
+            if p.segment_count.size == 17:
+                t[i, p.segment_count == 0] = np.nan
+        out[key] = signed_peak(t, axis=0)
+    return out
+
+
+def _row_nanmean(t: np.ndarray) -> np.ndarray:
+    """Mean of each row over its finite entries (NaN for a row without any, no warning)."""
+    ok = np.isfinite(t)
+    n = ok.sum(axis=1)
+    return np.where(n > 0, np.where(ok, t, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
+
+
+def _f(v) -> float | None:
+    """JSON-safe float (None for NaN/inf)."""
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
+    """Key numbers of a run and a list of what is missing.
+
+    Returns
+    -------
+    dict
+        ``label``, ``num_phases`` (expected), ``phases_present``, ``missing_phases``,
+        ``missing`` (sentences), ``key`` (headline numbers, None where not computable:
+        edv_ml, esv_ml, ejection_fraction, es_phase_index, es_time_fraction,
+        peak_twist_apex_deg, peak_twist_base_deg, peak_torsion_deg_per_cm,
+        peak_sa_radius_change_mm, peak_base_longitudinal_mm, la_radius_ed_mm,
+        la_radius_es_mm, peak_global_err/ecc/ell), ``peak_segment_strain`` (17 each or
+        None) and ``phases`` (every field of every phase).
+    """
+    ph, dup = sorted_phases(phases)
+    missing: list[str] = []
+    out: dict = {"label": label, "missing": missing, "key": {}, "peak_segment_strain": None, "phases": []}
+    if not ph:
+        missing.append("no phases: nothing to report")
+        out.update(num_phases=0, phases_present=[], missing_phases=[])
+        return out
+    n_exp = max(int(max(p.num_phases for p in ph)), len(ph), max(p.phase_index for p in ph) + 1)
+    present = [p.phase_index for p in ph]
+    gaps = sorted(set(range(n_exp)) - set(present))
+    out.update(num_phases=n_exp, phases_present=present, missing_phases=gaps,
+               phases=[p.to_dict() for p in ph])
+    if gaps:
+        missing.append(f"{len(gaps)} of {n_exp} phases missing: {gaps}")
+    if 0 not in present:
+        missing.append("phase 0 (end-diastole) missing: ED-relative numbers use the first phase present")
+    if dup:
+        missing.append(f"duplicate phases {dup}: the last received was kept")
+    bad = [p.phase_index for p in ph if any(np.asarray(getattr(p, f)).shape != p.level_position.shape
+                                             for f in ("twist_deg", "sa_radius_mm", "longitudinal_displacement_mm"))]
+    if bad:
+        missing.append(f"phases {bad}: per-level arrays of inconsistent length (left out of level curves)")
+    no_strain = [p.phase_index for p in ph if not p.has_strain]
+    if len(no_strain) == len(ph):
+        missing.append("no strain in any phase: AHA bull's-eye and peak strains not available")
+    elif no_strain:
+        missing.append(f"strain missing in phases {no_strain}: peaks use the other phases")
+    if all(p.level_position.size == 0 for p in ph):
+        missing.append("no per-level metrics in any phase")
+
+    vol = np.array([p.cavity_volume_ml for p in ph])
+    es = int(np.argmin(vol))
+    ed = ph[0]
+    pos, tw = level_table(ph, "twist_deg")
+    _, rad = level_table(ph, "sa_radius_mm")
+    _, lon = level_table(ph, "longitudinal_displacement_mm")
+    key = out["key"]
+    key["edv_ml"] = _f(ed.cavity_volume_ml)
+    key["esv_ml"] = _f(vol[es])
+    key["ejection_fraction"] = _f((ed.cavity_volume_ml - vol[es]) / ed.cavity_volume_ml) if ed.cavity_volume_ml > 0 else None
+    key["es_phase_index"] = int(ph[es].phase_index)
+    key["es_time_fraction"] = _f(ph[es].time_fraction)
+    key["la_radius_ed_mm"] = _f(ed.la_radius_mm)
+    key["la_radius_es_mm"] = _f(ph[es].la_radius_mm)
+    key["peak_torsion_deg_per_cm"] = _f(signed_peak([p.torsion_deg_per_cm for p in ph]))
+    if pos.size:
+        key["peak_twist_apex_deg"] = _f(signed_peak(tw[:, 0]))
+        key["peak_twist_base_deg"] = _f(signed_peak(tw[:, -1]))
+        key["peak_sa_radius_change_mm"] = _f(signed_peak(_row_nanmean(rad - rad[0])))
+        key["peak_base_longitudinal_mm"] = _f(signed_peak(lon[:, -1]))
+    else:
+        for k in ("peak_twist_apex_deg", "peak_twist_base_deg", "peak_sa_radius_change_mm", "peak_base_longitudinal_mm"):
+            key[k] = None
+    seg = peak_segment_strain(ph)
+    for c in ("err", "ecc", "ell"):
+        key[f"peak_global_{c}"] = None
+    if seg is not None:
+        out["peak_segment_strain"] = {k: [_f(x) for x in v] for k, v in seg.items()}
+        for c in ("err", "ecc", "ell"):
+            g = []
+            for p in ph:
+                if not p.has_strain:
+                    continue
+                v = getattr(p, f"segment_{c}")
+                w = p.segment_count if p.segment_count.size == 17 else np.ones(17)
+                g.append(float(v @ w / w.sum()) if w.sum() > 0 else math.nan)
+            key[f"peak_global_{c}"] = _f(signed_peak(g))
+    return out
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def _clean(o):
+    """Replace NaN/inf floats by None recursively (strict JSON)."""
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, (float, np.floating)):
+        return float(o) if math.isfinite(o) else None
+    return o
+
+
+def write_summary_json(path, summary: dict) -> Path:
+    """Write ``summary`` as strict JSON (NaN → null), UTF-8, indented; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default, allow_nan=False), encoding="utf-8")
+    return path
