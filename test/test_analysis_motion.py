@@ -192,3 +192,14 @@ def test_layered_cloud_with_empty_slabs_and_layers_on_slab_boundaries():
     assert v == pytest.approx(exact, rel=0.01)
     x, _ = cylindrical_motion(FR, X, s_r=0.9, s_l=0.8)
     assert cavity_volume(X, x, FR, endo_mask=endo) == pytest.approx(0.81 * 0.8 * v, rel=1e-12)
+
+
+def test_pure_twist_exact_on_a_random_cloud():
+    # level centroids are off-axis for a random cloud, but rotate with it: still exact
+    rng = np.random.default_rng(7)
+    from mlv_ros.core.analysis.synthetic import to_patient
+    X = to_patient(FR, rng.uniform(18, 32, 3000), rng.uniform(-np.pi, np.pi, 3000), rng.uniform(0, 80, 3000))
+    x, _ = cylindrical_motion(FR, X, twist_apex_deg=-6.0, twist_base_deg=-6.0)
+    lv = level_metrics(X, x, FR)
+    np.testing.assert_allclose(lv["twist_deg"], -6.0, atol=1e-9)
+    np.testing.assert_allclose(lv["radial_displacement_mm"], 0, atol=1e-9)
