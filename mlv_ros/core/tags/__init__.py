@@ -1,0 +1,66 @@
+"""Tag detection and tracking for 1-1 SPAMM tagged MRI (pure numpy/scipy/OpenCV; no ROS).
+
+Public API
+----------
+``detect_intersections(image, mask=None, spacing_px=None, angles=None, *, params=None, ...) -> Detection``
+    Stateless. Estimates the tag spacing and the two tag directions from the image spectrum
+    (unless given), filters with a complex Gabor bank (3 orientations × 3 spacings per direction,
+    zero-mean kernels, FFT), takes per pixel the strongest response, and returns the points where
+    both directions' phases are ≡ π (dark tag centres), refined to sub-pixel accuracy by Newton's
+    method on the two wrapped phases, with a confidence (response over local contrast) and grid
+    labels (k1, k2). Bad input (constant image, NaN pixels, no tags, < 16×16 px …) gives an empty
+    :class:`Detection` whose ``reason`` says why; it never raises for image content.
+
+``SliceTracker(geometry=None, *, spacing_px=None, angles=None, max_gap=1, gate=0.4, ...)``
+    Stateful, one per (view, slice). ``tracker.update(frame, mask=None) -> TagPointSet`` once per
+    phase in phase order (phase 0 = ED starts a cine and assigns track ids; pass the ED
+    myocardium mask there). Later phases: prediction by the previous displacement, detection
+    near it, TPS-RPM matching; undetected points are dropped (after ``max_gap`` coasting phases),
+    never invented. Points carry patient coordinates (mm) from the slice geometry. Never raises:
+    problems come back as an empty (or partial) set with ``status`` set.
+
+``harp_track(images, start_rc, params) -> HarpTrack``
+    HARP baseline (Osman et al. 1999): band-pass one spectral peak per direction, harmonic
+    phase, phase-constancy Newton tracking; for comparison in ``bench/tags.py``.
+
+``tps_rpm(source, target, ...) -> RPMResult`` and ``ThinPlateSpline``
+    Chui & Rangarajan (2003) robust point matching with outlier row/column and Sinkhorn
+    normalisation; usable on its own.
+
+``estimate_tag_parameters(image, mask=None) -> TagParameters``
+    Spectral estimate of the tag spacing (px) and wave-vector angles (rad).
+
+Conventions
+-----------
+Pixel coordinates are (row, col). A tag direction is the angle θ of its wave vector (normal to
+its tag lines) from the column axis toward the row axis, in [0, π); unit wave vector
+(sin θ, cos θ) in (row, col) order. Spacing = distance between tag lines, px.
+
+Example
+-------
+>>> from mlv_ros.core.tags import detect_intersections, SliceTracker
+>>> det = detect_intersections(frame.image, mask=myocardium)
+>>> det.pixel_rc, det.labels, det.confidence, det.reason
+>>> tracker = SliceTracker(frame.geometry)
+>>> points = tracker.update(frame, mask=myocardium)    # ED
+>>> points = tracker.update(next_frame)                 # phase 1, 2, …
+
+References
+----------
+Chen, T., Wang, X., Chung, S., Metaxas, D., Axel, L. IEEE TMI 29(1):1–11, 2010.
+Chui, H., Rangarajan, A. Computer Vision and Image Understanding 89:114–141, 2003.
+Osman, N. F., Kerwin, W. S., McVeigh, E. R., Prince, J. L. Magn. Reson. Med. 42:1048–1060, 1999.
+"""
+
+from .gabor import (GaborMaps, TagInputError, TagParameters, estimate_tag_parameters, gabor_filter_bank,
+                    kernel_bank)
+from .harp import HarpTrack, harmonic_phase, harp_track
+from .intersections import Detection, detect_intersections, grid_labels
+from .rpm import RPMResult, ThinPlateSpline, tps_rpm
+from .tracker import SliceTracker
+
+__all__ = [
+    "Detection", "GaborMaps", "HarpTrack", "RPMResult", "SliceTracker", "TagInputError", "TagParameters",
+    "ThinPlateSpline", "detect_intersections", "estimate_tag_parameters", "gabor_filter_bank", "grid_labels",
+    "harmonic_phase", "harp_track", "kernel_bank", "tps_rpm",
+]

@@ -1,0 +1,281 @@
+"""Per-slice temporal tracking of tag intersections (Gabor detection + TPS-RPM matching).
+
+At end-diastole (phase 0) the tracker detects the intersections inside the myocardium and gives
+each a track id. At every later phase it predicts each live track by its previous displacement,
+detects intersections near the prediction (the ED myocardium mask carried along by a TPS fitted
+to the tracks), and matches prediction to detections with TPS-RPM. Matched tracks take the
+detected position; unmatched ones are coasted on the RPM warp for at most ``max_gap`` phases and
+then dropped for good: a tag intersection that fades or leaves the slice (through-plane motion)
+is never invented, and material that enters the slice is not a continuation of an ED track.
+
+References
+----------
+Chen, T. et al. IEEE TMI 29(1):1–11, 2010 (Gabor + RPM tag tracking).
+Chui, H., Rangarajan, A. CVIU 89:114–141, 2003 (TPS-RPM).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.types import Frame, TagPointSet
+
+from .gabor import TagParameters
+from .intersections import Detection, detect_intersections
+from .rpm import ThinPlateSpline, tps_rpm
+
+
+class SliceTracker:
+    """Stateful tag-intersection tracker for one slice (one per (view, slice) in the node).
+
+    Parameters
+    ----------
+    geometry : SliceGeometry, optional
+        Plane of the slice; patient positions use it (the frame's own geometry when None).
+    spacing_px, angles : optional
+        Tag parameter overrides passed to :func:`detect_intersections` at ED.
+    max_gap : int
+        Phases a track may go undetected (coasting on the RPM warp) before it is dropped.
+    gate : float
+        Largest distance between a prediction and its matched detection, in tag spacings.
+    rpm_t_init, rpm_t_final : float
+        RPM temperatures as (fractions of the tag spacing)²: the seeded prediction is already
+        within a fraction of a spacing, so annealing starts local rather than at the global
+        largest distance (which on a periodic grid would allow whole-period slips).
+    propagate_mask : bool
+        Carry the ED mask to later phases (TPS fitted from current to ED positions); used to
+        restrict and normalise detection when :meth:`update` gets no mask.
+    mask_erosion_px : int
+        Erode the mask propagated through the matched points by this radius before the final
+        (second) detection pass, px (its border is uncertain by ~1 px).
+    **detect_kwargs
+        Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
+
+    Examples
+    --------
+    >>> tracker = SliceTracker(frames[0].geometry)
+    >>> sets = [tracker.update(f, mask=ed_mask if f.phase_index == 0 else None) for f in frames]
+    """
+
+    def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
+                 gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
+                 propagate_mask: bool = True, mask_erosion_px: int = 0, **detect_kwargs):
+        self.geometry = geometry
+        self.spacing_px = spacing_px
+        self.angles = angles
+        self.max_gap = int(max_gap)
+        self.gate = float(gate)
+        self.rpm_t_init = float(rpm_t_init)
+        self.rpm_t_final = float(rpm_t_final)
+        self.propagate_mask = bool(propagate_mask)
+        self.mask_erosion_px = int(mask_erosion_px)
+        self.detect_kwargs = detect_kwargs
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all tracks (the next :meth:`update` must be an ED frame)."""
+        self.params: TagParameters | None = None
+        self.ed_mask: np.ndarray | None = None
+        self.track_id = np.zeros(0, np.int32)
+        self.ed_rc = np.zeros((0, 2))
+        self.labels = np.zeros((0, 2), np.int32)
+        self._pos = np.zeros((0, 2))
+        self._step = np.zeros((0, 2))
+        self._gap = np.zeros(0, int)
+        self._dead = np.zeros(0, bool)
+        self.last_phase = -1
+        self.last_detection: Detection | None = None
+        self._started = False
+        self._ed_failure = ""
+
+    @property
+    def alive(self) -> np.ndarray:
+        """Ids of the tracks still followed, int32 (K,)."""
+        return self.track_id[~self._dead]
+
+    def update(self, frame: Frame, mask=None) -> TagPointSet:
+        """Process the next phase of the slice (phase 0 = ED starts a new cine).
+
+        Parameters
+        ----------
+        frame : Frame
+        mask : array_like of bool, shape (H, W), optional
+            Myocardium mask for this frame; required for a clean ED set (otherwise tag energy
+            decides), optional later (the ED mask is propagated).
+
+        Returns
+        -------
+        TagPointSet
+            Detected intersections carrying ED track ids; empty with ``status`` set when the frame
+            is unusable. Never raises.
+        """
+        try:
+            return self._update(frame, mask)
+        except Exception as exc:  # the node must survive any bad frame; report instead of raising
+            return self._result(frame, None, None, None, f"tag tracker error: {type(exc).__name__}: {exc}")
+
+    # -- internals ---------------------------------------------------------------------------------
+
+    def _result(self, frame, rc, ids, conf, status) -> TagPointSet:
+        geom = self.geometry if self.geometry is not None else getattr(frame, "geometry", None)
+        out = TagPointSet(view=int(getattr(frame, "view", 0)), slice_index=int(getattr(frame, "slice_index", 0)),
+                          phase_index=int(getattr(frame, "phase_index", 0)),
+                          num_phases=int(getattr(frame, "num_phases", 0)), geometry=geom, status=status,
+                          stamp=float(getattr(frame, "trigger_time", 0.0)))
+        if rc is not None and len(rc):
+            out.pixel_rc = np.asarray(rc, float)
+            out.position = geom.pixel_to_patient(out.pixel_rc) if geom is not None else np.full((len(rc), 3), np.nan)
+            out.track_id = np.asarray(ids, np.int32)
+            out.confidence = np.asarray(conf, np.float32)
+        return out
+
+    def _update(self, frame: Frame, mask) -> TagPointSet:
+        image = frame.image
+        if frame.phase_index == 0 or not self._started:
+            return self._start(frame, mask)
+        if self.params is None:
+            return self._result(frame, None, None, None, f"no ED reference: {self._ed_failure}")
+        note = ""
+        if frame.phase_index != self.last_phase + 1:
+            note = f"phase jump {self.last_phase} -> {frame.phase_index}; "
+        self.last_phase = frame.phase_index
+        live = np.nonzero(~self._dead)[0]
+        if live.size == 0:
+            return self._result(frame, None, None, None, note + "all tracks lost")
+        pred = self._pos[live] + self._step[live]
+        sp = float(np.mean(self.params.spacing_px))
+        region = accept = None
+        if mask is not None:
+            region = np.asarray(mask, bool)
+        elif self.propagate_mask and self.ed_mask is not None:
+            # First pass, for matching only: the mask from the prediction is ~0.5 px uncertain, so
+            # filter with it as is and accept points up to 2 px beyond it.
+            region, accept = self._propagated_mask(pred, live, np.shape(image), erode=0, dilate=2)
+        lo = np.floor(pred.min(0) - 2 * sp)
+        hi = np.ceil(pred.max(0) + 2 * sp) + 1
+        roi = (lo[0], hi[0], lo[1], hi[1])
+        det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
+                                   **self.detect_kwargs)
+        self.last_detection = det
+        if not det.ok or len(det) == 0:
+            self._coast(live, pred, pred)
+            return self._result(frame, None, None, None, note + f"phase {frame.phase_index}: {det.reason}")
+        res = tps_rpm(pred, det.pixel_rc, t_init=(self.rpm_t_init * sp) ** 2, t_final=(self.rpm_t_final * sp) ** 2,
+                      anneal=0.85, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
+                      gate=self.gate * sp)
+        hit = res.match >= 0
+        new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
+        conf = det.confidence[np.maximum(res.match, 0)]
+        if mask is None and region is not None and hit.sum() >= 4:
+            # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
+            # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
+            # leaking blood or static background tags into the phase near the wall's border.
+            region2, accept2 = self._propagated_mask(new[hit], live[hit], np.shape(image),
+                                                     erode=self.mask_erosion_px, dilate=0)
+            if region2 is not None:
+                det2 = detect_intersections(image, mask=region2, params=self.params, roi=roi,
+                                            accept_mask=accept2, **self.detect_kwargs)
+                # Only points the second pass confirms (within 0.5 px) count as detected: a first-
+                # pass point that came from tags just outside the predicted border is not one.
+                found = np.zeros(int(hit.sum()), bool)
+                j2 = np.zeros(int(hit.sum()), int)
+                if det2.ok and len(det2):
+                    d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=0.5)
+                    found = np.isfinite(d2)
+                idx = np.nonzero(hit)[0]
+                new[idx[found]] = det2.pixel_rc[j2[found]]
+                conf[idx[found]] = det2.confidence[j2[found]]
+                new[idx[~found]] = res.warped[idx[~found]]
+                hit[idx[~found]] = False
+        self._coast(live[~hit], pred[~hit], new[~hit])
+        prev = self._pos[live[hit]]
+        self._step[live[hit]] = new[hit] - prev
+        self._pos[live[hit]] = new[hit]
+        self._gap[live[hit]] = 0
+        n_ed = len(self.track_id)
+        n_out = int(hit.sum())
+        status = note
+        if n_out < n_ed:
+            status += (f"{n_out} of {n_ed} ED tracks reported: {int(np.sum(~hit))} undetected at this phase, "
+                       f"{int(self._dead.sum())} dropped (faded or through-plane)")
+        if not hit.any():
+            status = note + "no detection matched any track"
+        return self._result(frame, new[hit], self.track_id[live[hit]], conf[hit], status)
+
+    def _coast(self, idx, pred, warped):
+        """Unmatched tracks: keep an internal prediction, count the gap, drop after max_gap."""
+        if len(idx) == 0:
+            return
+        self._step[idx] = warped - self._pos[idx]
+        self._pos[idx] = warped
+        self._gap[idx] += 1
+        self._dead[idx] |= self._gap[idx] > self.max_gap
+
+    def _start(self, frame: Frame, mask) -> TagPointSet:
+        self.reset()
+        self._started = True
+        self.last_phase = frame.phase_index
+        det = detect_intersections(frame.image, mask=mask, spacing_px=self.spacing_px, angles=self.angles,
+                                   **self.detect_kwargs)
+        self.last_detection = det
+        note = "" if frame.phase_index == 0 else f"no ED frame: started at phase {frame.phase_index}; "
+        if not det.ok:
+            self._ed_failure = f"detection at phase {frame.phase_index} failed: {det.reason}"
+            return self._result(frame, None, None, None, note + f"ED detection failed: {det.reason}")
+        self.params = det.params
+        if mask is not None:
+            self.ed_mask = np.asarray(mask, bool).copy()
+        n = len(det)
+        self.track_id = np.arange(n, dtype=np.int32)
+        self.ed_rc = det.pixel_rc.copy()
+        self.labels = det.labels.copy()
+        self._pos = det.pixel_rc.copy()
+        self._step = np.zeros((n, 2))
+        self._gap = np.zeros(n, int)
+        self._dead = np.zeros(n, bool)
+        return self._result(frame, det.pixel_rc, self.track_id, det.confidence, note.rstrip("; "))
+
+    def _propagated_mask(self, pred, live, shape, erode: int = 0, dilate: int = 0):
+        """ED mask warped to the predicted configuration (TPS from predicted to ED positions).
+
+        Returns ``(filter_mask, accept_mask)``: the warped mask eroded by ``erode`` px
+        (filtering support) and dilated by ``dilate`` px (where points may lie); ``(None, None)``
+        when it cannot be built."""
+        if len(live) < 4 or self.ed_mask is None or self.ed_mask.shape != tuple(shape):
+            return None, None
+        # Smoothing keeps the extrapolation to the wall's border (outside the points) near-affine.
+        inv = ThinPlateSpline.fit(pred, self.ed_rc[live], lam=300.0)
+        sp = float(np.mean(self.params.spacing_px))
+        lo = np.maximum(np.floor(pred.min(0) - 3 * sp), 0).astype(int)
+        hi = np.minimum(np.ceil(pred.max(0) + 3 * sp) + 1, np.array(shape)).astype(int)
+        if np.any(hi - lo < 2):
+            return None, None
+        # The warp is smooth on the scale of a tag spacing: evaluate it every 4 px and
+        # interpolate bilinearly (the TPS kernel on every pixel would dominate the frame time).
+        step = 4
+        rr, cc = np.meshgrid(np.arange(lo[0], hi[0] + step, step, dtype=float),
+                             np.arange(lo[1], hi[1] + step, step, dtype=float), indexing="ij")
+        src = inv(np.stack([rr.ravel(), cc.ravel()], -1)).reshape(rr.shape + (2,)).astype(np.float32)
+        fr, fc = np.meshgrid(np.arange(hi[0] - lo[0], dtype=np.float32) / step,
+                             np.arange(hi[1] - lo[1], dtype=np.float32) / step, indexing="ij")
+        map_r = cv2.remap(src[..., 0], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        map_c = cv2.remap(src[..., 1], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        warped = cv2.remap(self.ed_mask.astype(np.uint8), map_c, map_r, cv2.INTER_NEAREST,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if not warped.any():
+            return None, None
+        disk = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        acc_w = cv2.dilate(warped, disk(dilate)) if dilate > 0 else warped
+        # The propagated border is uncertain: static background tags or blood just outside it
+        # bias the phase more than a lost rim of myocardium does, hence the erosion.
+        filt_w = cv2.erode(warped, disk(erode)) if erode > 0 else warped
+        if not filt_w.any():
+            filt_w = warped
+        accept = np.zeros(shape, bool)
+        accept[lo[0]:hi[0], lo[1]:hi[1]] = acc_w > 0
+        filt = np.zeros(shape, bool)
+        filt[lo[0]:hi[0], lo[1]:hi[1]] = filt_w > 0
+        return filt, accept
