@@ -146,7 +146,7 @@ def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None
 
 
 def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray, sigma_u: float = 0.5,
-                 sigma_v: float = 0.6, iterations: int = 3):
+                 sigma_v: float = 0.6, iterations: int = 2):
     """Re-locate intersections with Gabor kernels tuned to each point's local wave vectors.
 
     The filter bank quantises orientation and spacing; next to the myocardium border (where the
@@ -189,10 +189,11 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
                  for i in range(0, len(x), 128)]
         return tuple(np.concatenate(z) for z in zip(*parts))
     k0 = k.copy()
-    # Patch: three envelope widths of the typical (median) local spacing, +25 % for stretch;
-    # a longer kernel is truncated there (its mean is still removed exactly, see c below).
-    lam_typ = min(float(np.median(2 * np.pi / np.linalg.norm(k[ok], axis=2))) * 1.25, 32.0)
-    half = int(np.ceil(3 * max(sigma_u, sigma_v) * lam_typ))
+    # Patch: 2.5 envelope widths (weight ≥ 0.04 of the peak) of the typical (median) local
+    # spacing, +10 % for stretch; a longer kernel is truncated there (its mean is still removed
+    # exactly, see c below).
+    lam_typ = min(float(np.median(2 * np.pi / np.linalg.norm(k[ok], axis=2))) * 1.1, 32.0)
+    half = int(np.ceil(2.5 * max(sigma_u, sigma_v) * lam_typ))
     off = np.stack(np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1), indexing="ij"),
                    -1).reshape(-1, 2)                                  # (P, 2)
     for _ in range(max(1, iterations)):
@@ -208,17 +209,18 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
         inside = (p[..., 0] >= 0) & (p[..., 0] < h) & (p[..., 1] >= 0) & (p[..., 1] < w)
         vals = img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside
         dlt = p - x[:, None, :]                                        # δ = p − y, (N, P, 2)
-        du = np.einsum("npa,nda->ndp", dlt, u)                         # (N, 2, P)
-        dv = np.einsum("npa,nda->ndp", dlt, v)
+        dt = np.swapaxes(dlt, 1, 2)                                    # (N, 2, P)
+        du = np.matmul(u, dt)                                          # (N, 2 directions, P)
+        dv = np.matmul(v, dt)
         g = np.exp(-0.5 * (du / su) ** 2 - 0.5 * (dv / sv) ** 2) * inside[:, None, :]
         # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
-        carrier = np.exp(-1j * np.einsum("npa,nda->ndp", dlt, k))
+        carrier = np.exp(-1j * np.matmul(k, dt))
         c = np.sum(g * carrier, axis=2, keepdims=True) / np.maximum(np.sum(g, axis=2, keepdims=True), 1e-12)
         gv = g * vals[:, None, :]
         r = np.sum(gv * (carrier - c), axis=2)                        # (N, 2)
         # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
         wgt = gv * (carrier - c)
-        dr = (np.einsum("ndp,nda->nda", wgt * du / su ** 2, u) + np.einsum("ndp,nda->nda", wgt * dv / sv ** 2, v)
+        dr = (np.sum(wgt * du, axis=2)[..., None] / su ** 2 * u + np.sum(wgt * dv, axis=2)[..., None] / sv ** 2 * v
               + 1j * k * np.sum(gv * carrier, axis=2)[..., None])     # (N, 2, 2)
         # Local wave vector measured by the tuned kernel: ∇ψ = Im(conj(R) ∇R) / |R|².
         kk = np.imag(np.conj(r)[..., None] * dr) / np.maximum(np.abs(r) ** 2, 1e-30)[..., None]

@@ -49,7 +49,7 @@ class ThinPlateSpline:
 
     @classmethod
     def fit(cls, src: np.ndarray, dst: np.ndarray, lam: float = 0.0, weights: np.ndarray | None = None,
-            lam_affine: float = 0.0, kernel: np.ndarray | None = None) -> "ThinPlateSpline":
+            lam_affine: float = 0.0, kernel: np.ndarray | None = None, basis=None) -> "ThinPlateSpline":
         """Regularised, weighted TPS with ``f(src) ≈ dst``.
 
         Minimises ``Σ_a w_a |dst_a − f(src_a)|² + lam·cᵀKc + lam_affine·|A − I|²_F`` (``A`` the
@@ -68,7 +68,9 @@ class ThinPlateSpline:
             Weight pulling the linear part toward the identity (keeps early, very soft
             correspondences from collapsing the point set).
         kernel : ndarray, shape (K, K), optional
-            Precomputed ``U(|src_a − src_b|)`` (reused across RPM iterations).
+            Precomputed ``U(|src_a − src_b|)``.
+        basis : tuple, optional
+            Precomputed :meth:`basis` of ``src`` (reused across RPM iterations).
 
         Returns
         -------
@@ -91,12 +93,13 @@ class ThinPlateSpline:
             a = p.T @ (w[:, None] * p) + s_aff
             b = p.T @ (w[:, None] * dst) + s_aff @ d_id
             return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.linalg.lstsq(a, b, rcond=None)[0])
-        kmat = _tps_kernel(src, src) if kernel is None else kernel
-        q, _ = np.linalg.qr(p, mode="complete")
-        q2 = q[:, 3:]
-        kq = kmat @ q2                                      # (K, K−3)
+        if basis is not None:
+            q2, kq, q2kq = basis
+        else:
+            kmat = _tps_kernel(src, src) if kernel is None else kernel
+            q2, kq, q2kq = cls.basis(src, kmat)
         wkq = w[:, None] * kq
-        a11 = kq.T @ wkq + lam * (q2.T @ kq)
+        a11 = kq.T @ wkq + lam * q2kq
         a12 = wkq.T @ p
         a22 = p.T @ (w[:, None] * p) + s_aff
         lhs = np.block([[a11, a12], [a12.T, a22]])
@@ -106,6 +109,17 @@ class ThinPlateSpline:
         except np.linalg.LinAlgError:
             sol = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
         return cls(src.copy(), q2 @ sol[:k - 3], sol[k - 3:])
+
+    @staticmethod
+    def basis(src: np.ndarray, kernel: np.ndarray | None = None):
+        """Constraint-free basis reused by :meth:`fit` for a fixed ``src`` (shape (K, 2), K ≥ 4):
+        ``(Q₂, K Q₂, Q₂ᵀ K Q₂)`` with ``Q₂`` spanning the null space of ``[1, src]ᵀ``."""
+        src = np.asarray(src, float)
+        kmat = _tps_kernel(src, src) if kernel is None else kernel
+        q, _ = np.linalg.qr(np.hstack([np.ones((len(src), 1)), src]), mode="complete")
+        q2 = q[:, 3:]
+        kq = kmat @ q2
+        return q2, kq, q2.T @ kq
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Warp points ``x``, shape (N, 2) → (N, 2)."""
@@ -228,6 +242,7 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
     od2 = (outlier_distance / s) ** 2
     f = None
     kv = _tps_kernel(vn, vn)
+    basis = ThinPlateSpline.basis(vn, kv) if k >= 4 else None
     m = np.zeros((k + 1, n + 1))
     steps = 0
     t = tn
@@ -245,7 +260,7 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
             tgt = np.where(w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn)
             lam = k * max(lam_init * t / tn, lam_final)
             f = ThinPlateSpline.fit(vn, tgt, lam=lam, weights=np.maximum(w, 1e-3),
-                                    lam_affine=k * lam_affine_init * t / tn, kernel=kv)
+                                    lam_affine=k * lam_affine_init * t / tn, kernel=kv, basis=basis)
             yn = f.affine[0] + vn @ f.affine[1:] + (kv @ f.coef if len(f.centres) else 0.0)
         steps += 1
         if t <= tfn * (1 + 1e-9):

@@ -157,19 +157,20 @@ class SliceTracker:
         lo = np.floor(pred.min(0) - 2 * sp)
         hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
+        two_pass = mask is None and region is not None
         det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
-                                   **self.detect_kwargs)
+                                   **{**self.detect_kwargs, **({"tuned": False} if two_pass else {})})
         self.last_detection = det
         if not det.ok or len(det) == 0:
             self._coast(live, pred, pred)
             return self._result(frame, None, None, None, note + f"phase {frame.phase_index}: {det.reason}")
         res = tps_rpm(pred, det.pixel_rc, t_init=(self.rpm_t_init * sp) ** 2, t_final=(self.rpm_t_final * sp) ** 2,
-                      anneal=0.85, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
+                      anneal=0.75, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
                       gate=self.gate * sp)
         hit = res.match >= 0
         new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
         conf = det.confidence[np.maximum(res.match, 0)]
-        if mask is None and region is not None and hit.sum() >= 4:
+        if two_pass and hit.sum() >= 4:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
             # leaking blood or static background tags into the phase near the wall's border.
