@@ -1,0 +1,18 @@
+"""ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7;
+paper §2.1 model initialisation, §3.2 registration, Fig. 7). Pure numpy/scipy/OpenCV.
+
+Typical use (the ROS ``registration`` node)::
+
+    from mlv_ros.core.registration import register_ed
+    res = register_ed(ed_frames, num_particles=5000)       # list[Frame], SA + LA, phase 0
+    model = MeshlessModel(res.particles, res.frame)         # ready for tracking
+    for r in res.slice_reports: print(r.view, r.slice_index, r.ok, r.reason)
+
+Modules: :mod:`.segment` (tag-energy segmentation), :mod:`.landmarks` (contours, curvature,
+landmarks), :mod:`.initialise` (3-D reconstruction, particles, polar frame), :mod:`.register`
+(:func:`register_ed`), :mod:`.nifti` (user label masks).
+"""
+
+from mlv_ros.core.registration.register import (  # noqa: F401
+    MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed,
+)

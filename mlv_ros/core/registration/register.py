@@ -1,0 +1,436 @@
+"""End-diastolic registration of the meshless LV model to tagged SA/LA images (paper §2.1, §3.2).
+
+Pipeline of :func:`register_ed`:
+
+1. long axis from the plane geometry (:func:`mlv_ros.core.io.dicom.estimate_long_axis`: LA
+   planes' common line, else the SA normal; oriented apex → base);
+2. per-slice myocardium: user label masks (:mod:`.nifti`) where given, else the automatic
+   tag-energy segmentation (:mod:`.segment`); a slice that fails gets a reason and is dropped;
+3. 3-D myocardium reconstructed from all SA/LA contour points (:mod:`.initialise`), particles
+   sampled inside it, polar model frame (c, R, a0..a3, τ, per-particle α, β, w);
+4. registration (Fig. 7): on every slice, 50 landmarks (SA: 25 endo + 25 epi; LA: 25 per wall)
+   are picked on the image contours by local curvature (:mod:`.landmarks`) and matched to the
+   model's contour on the same slice along the same ray from the long axis; the pairs are
+   in-plane external forces ``(I − n nᵀ)(t − x)`` for :meth:`MeshlessModel.fit`, which moves
+   the global parameters first and then the local deformation. The registered particle cloud
+   becomes the rest (ED) configuration for tracking.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mlv_ros.core.io.dicom import estimate_long_axis
+from mlv_ros.core.meshless import MeshlessModel, ModelFrame
+from mlv_ros.core.registration import segment as seg
+from mlv_ros.core.registration.initialise import (AxisFrame, LVShape, default_reference, model_frame,
+                                                  reconstruct_shape, sample_particles)
+from mlv_ros.core.registration.landmarks import LANDMARKS_PER_SA_SLICE, curvature_landmarks
+from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame, ModelState
+
+#: Fewest usable SA slices for a 3-D reconstruction.
+MIN_SA_SLICES = 3
+_VIEW = {VIEW_SA: "SA", VIEW_LA: "LA"}
+
+
+@dataclass
+class SliceReport:
+    """Outcome for one slice: ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or
+    ``"mask"``; ``landmarks`` used in the registration; ``residual_mm`` RMS in-plane landmark
+    distance after registration (NaN if none)."""
+
+    view: int
+    slice_index: int
+    ok: bool
+    reason: str = ""
+    source: str = "auto"
+    landmarks: int = 0
+    residual_mm: float = float("nan")
+
+
+@dataclass
+class RegistrationResult:
+    """Registered ED model.
+
+    Attributes
+    ----------
+    particles : ndarray, shape (N, 3)
+        Registered particle cloud, patient coordinates (LPS), mm — the rest configuration for
+        :class:`~mlv_ros.core.meshless.MeshlessModel`.
+    frame : ModelFrame
+        Polar model frame of ``particles`` (rest parameters c, R, a0..a3, τ = 0 and each
+        particle's α, β, w); ``MeshlessModel(particles, frame)`` builds the tracking model.
+    polar : dict
+        ``alpha``, ``beta`` (rad), ``w`` (eq. 1 radial fraction, 1 on the fitted epicardial
+        ellipsoid) and ``transmural`` (0 endo → 1 epi), each shape (N,).
+    state : ModelState
+        Rest global parameters plus the registration's iterations / residual / convergence.
+    shape : LVShape
+        The reconstructed myocardium (before registration).
+    slice_reports : list of SliceReport
+    warnings : list of str
+    axis_point, axis_direction : ndarray, shape (3,)
+        Long axis used (mm; unit vector apex → base).
+    masks : dict
+        ``(view, slice_index) -> bool (rows, cols)`` myocardium used for each usable slice.
+    surfaces : dict
+        ``"endo"``, ``"epi"``: registered wall-surface samples, (M, 3) mm.
+    timings : dict
+        Seconds per stage.
+    """
+
+    particles: np.ndarray
+    frame: ModelFrame
+    polar: dict
+    state: ModelState
+    shape: LVShape
+    slice_reports: list
+    warnings: list
+    axis_point: np.ndarray
+    axis_direction: np.ndarray
+    masks: dict = field(default_factory=dict)
+    surfaces: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- helpers
+def _fov_centre(f: Frame) -> np.ndarray:
+    r, c = np.asarray(f.image).shape[:2]
+    return f.geometry.pixel_to_patient(np.array([(r - 1) / 2.0, (c - 1) / 2.0]))
+
+
+def _axis_in_plane(g, point, direction):
+    """Intersection of the axis line with a (SA) plane, or None when nearly parallel."""
+    n = g.normal
+    den = float(direction @ n)
+    if abs(den) < 0.2:
+        return None
+    t = float((g.image_position - point) @ n) / den
+    return point + t * direction
+
+
+def _ray_points(s: seg.SliceSegmentation, g, which: str) -> tuple[np.ndarray, np.ndarray]:
+    """3-D points of the endo/epi radii of a segmentation; returns (points (K, 3), ray index)."""
+    r = s.endo if which == "endo" else s.epi
+    ok = np.isfinite(r) & (r > 0.5)
+    idx = np.flatnonzero(ok)
+    rc = s.centre_rc[None] + r[idx, None] * np.stack([np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1)
+    return g.pixel_to_patient(rc), idx
+
+
+def _model_radii(shape: LVShape, g, centre_rc, angles, which: str, max_mm: float = 90.0) -> np.ndarray:
+    """Radius (px) along each in-plane ray where the reconstructed wall ``which`` is first
+    crossed from inside (the model's contour on this slice); NaN where it is not crossed."""
+    step_mm = 0.25
+    t = np.arange(0.0, max_mm, step_mm)
+    sp = g.row_spacing
+    dirs = np.stack([np.sin(angles), np.cos(angles)], 1)
+    rc = centre_rc[None, None] + (t / sp)[None, :, None] * dirs[:, None, :]
+    x = g.pixel_to_patient(rc.reshape(-1, 2))
+    r, th, z = shape.frame.to_cylindrical(x)
+    surf = shape.endo if which == "endo" else shape.epi
+    gval = (r * r - surf.r2(z, th)).reshape(len(angles), -1)
+    if which == "epi":   # beyond the base or below the apex counts as outside
+        zz = z.reshape(len(angles), -1)
+        gval = np.where((zz > shape.z_base) | (zz < shape.z_apex_epi), np.abs(gval) + 1.0, gval)
+    else:
+        zz = z.reshape(len(angles), -1)
+        gval = np.where(zz > shape.z_base, np.abs(gval) + 1.0, gval)
+    out = np.full(len(angles), np.nan)
+    neg = gval < 0
+    cross = neg[:, :-1] & ~neg[:, 1:]
+    has = cross.any(axis=1) & neg[:, 0]
+    i = np.argmax(cross, axis=1)
+    rows = np.flatnonzero(has)
+    g0, g1 = gval[rows, i[rows]], gval[rows, i[rows] + 1]
+    out[rows] = (t[i[rows]] + step_mm * g0 / (g0 - g1)) / sp
+    return out
+
+
+def _contour_landmarks(s: seg.SliceSegmentation, which: str, n: int) -> np.ndarray:
+    """Ray indices of ``n`` curvature landmarks on one wall contour of a segmentation."""
+    r = s.endo if which == "endo" else s.epi
+    idx = np.flatnonzero(np.isfinite(r) & (r > 0.5))
+    if idx.size < max(n, 5):
+        return np.zeros(0, np.int64)
+    closed = idx.size == r.size
+    if not closed:   # LA arc: order the rays along the horseshoe (it may wrap past ±π)
+        gaps = np.flatnonzero(np.diff(idx) > 1)
+        if gaps.size:
+            idx = np.roll(idx, -(gaps[0] + 1))
+    rc = s.centre_rc[None] + r[idx, None] * np.stack([np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1)
+    return idx[curvature_landmarks(rc, min(n, idx.size), closed=closed)]
+
+
+# --------------------------------------------------------------------------- main
+def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int = 0, *,
+                landmarks_per_sa_slice: int = LANDMARKS_PER_SA_SLICE, max_iterations: int = 20,
+                local_iterations: int = 2, data_weight: float = 100.0, reference_direction=None) -> RegistrationResult:
+    """Register the meshless LV model to the end-diastolic SA and LA tagged images.
+
+    Parameters
+    ----------
+    frames : list of Frame
+        ED frames (one per slice; if several phases of a slice are given the lowest
+        ``phase_index`` is used), SA and LA together.
+    num_particles : int
+        Particles of the model (≥ 100; paper-scale default 5000).
+    masks : optional
+        User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict, or the result
+        of :func:`mlv_ros.core.registration.nifti.masks_for_frames`. Slices with a mask skip the
+        automatic segmentation; a mask whose shape differs from its image is rejected (reason).
+    seed : int
+        Particle-sampling seed (deterministic output).
+    landmarks_per_sa_slice : int
+        Paper: 50 (split evenly endo/epi; LA planes get the same number).
+    max_iterations : int
+        Cap on global-stage iterations of the meshless fit.
+    local_iterations : int
+        Cap on global+local iterations after the global stage (0: global deformation only).
+    data_weight : float
+        External-force weight of :meth:`MeshlessModel.fit`.
+    reference_direction : array_like, shape (3,), optional
+        β = 0 direction (patient); default :func:`~.initialise.default_reference`.
+
+    Returns
+    -------
+    RegistrationResult
+
+    Raises
+    ------
+    ValueError
+        No frames, no SA view, fewer than :data:`MIN_SA_SLICES` usable SA slices (the message
+        lists each slice's reason), or a reconstruction that fails.
+    """
+    t0 = time.perf_counter()
+    timings: dict = {}
+    warnings: list[str] = []
+    reports: list[SliceReport] = []
+    if frames is None or len(frames) == 0:
+        raise ValueError("register_ed needs the ED frames of the SA (and LA) slices; got none")
+    by_key: dict = {}
+    for f in frames:
+        if not isinstance(f, Frame):
+            raise ValueError(f"frames must be Frame records, got {type(f).__name__}")
+        k = (int(f.view), int(f.slice_index))
+        if k not in by_key or f.phase_index < by_key[k].phase_index:
+            by_key[k] = f
+    if any(f.phase_index != 0 for f in by_key.values()):
+        warnings.append("some slices have no phase-0 (ED) frame; their earliest phase was used")
+    sa_keys = sorted(k for k in by_key if k[0] == VIEW_SA)
+    la_keys = sorted(k for k in by_key if k[0] == VIEW_LA)
+    if not sa_keys:
+        raise ValueError("no SA frames: the registration needs a short-axis stack")
+    if not la_keys:
+        warnings.append("no LA views: apex and base are extrapolated from the SA stack")
+    elif len(la_keys) < 2:
+        warnings.append("only one LA view: the long axis comes from the SA normal")
+
+    est = estimate_long_axis([by_key[k].geometry for k in sa_keys], [by_key[k].geometry for k in la_keys],
+                             np.array([_fov_centre(by_key[k]) for k in sa_keys]))
+    axis_pt, axis_dir = est.point, est.direction
+    ref = default_reference(axis_dir) if reference_direction is None else np.asarray(reference_direction, float)
+    frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
+
+    user = masks or {}
+    segs: dict = {}
+    ts = time.perf_counter()
+    for k in sa_keys + la_keys:
+        f = by_key[k]
+        g = f.geometry
+        img = np.asarray(f.image)
+        sp = g.row_spacing
+        if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
+            reports.append(SliceReport(*k, False, "anisotropic pixel spacing is not supported"))
+            continue
+        if k[0] == VIEW_SA:
+            x = _axis_in_plane(g, axis_pt, axis_dir)
+            if x is None:
+                reports.append(SliceReport(*k, False, "SA plane is nearly parallel to the long axis"))
+                continue
+            centre_rc = g.patient_to_pixel(x)[0]
+        else:
+            centre_rc, off = g.patient_to_pixel(axis_pt)
+            axis_rc = np.array([axis_dir @ g.column_direction, axis_dir @ g.row_direction])
+            if abs(off) > 10.0 or np.linalg.norm(axis_rc) < 0.9:
+                reports.append(SliceReport(*k, False, f"LA plane does not contain the long axis "
+                                                      f"({abs(off):.1f} mm off, in-plane cos {np.linalg.norm(axis_rc):.2f})"))
+                continue
+        if k in user:
+            s = _from_mask(user[k], img.shape, k[0], centre_rc, sp, None if k[0] == VIEW_SA else axis_rc)
+            source = "mask"
+        elif k[0] == VIEW_SA:
+            s = seg.segment_sa(img, centre_rc, sp)
+            source = "auto"
+        else:
+            s = seg.segment_la(img, centre_rc, axis_rc, sp)
+            source = "auto"
+        s.source = source
+        if not s.ok:
+            reports.append(SliceReport(*k, False, s.reason, source))
+            continue
+        segs[k] = s
+        reports.append(SliceReport(*k, True, "", source))
+    timings["segmentation"] = time.perf_counter() - ts
+
+    usable_sa = [k for k in sa_keys if k in segs]
+    if len(usable_sa) < MIN_SA_SLICES:
+        why = "; ".join(f"{_VIEW[r.view]} {r.slice_index}: {r.reason}" for r in reports if not r.ok)
+        raise ValueError(f"only {len(usable_sa)} usable SA slices (need >= {MIN_SA_SLICES}): {why or 'none given'}")
+    failed = [r for r in reports if not r.ok]
+    if failed:
+        warnings.append(f"registered from {len(segs)} of {len(sa_keys) + len(la_keys)} slices; dropped: "
+                        + ", ".join(f"{_VIEW[r.view]} {r.slice_index}" for r in failed))
+    usable_la = [k for k in la_keys if k in segs]
+    if la_keys and not usable_la:
+        warnings.append("no usable LA view: apex and base are extrapolated from the SA stack")
+
+    # ---- 3-D reconstruction (§2.1)
+    ts = time.perf_counter()
+    endo_pts, epi_pts, we, wn = [], [], [], []
+    z_bases = []
+    for k, s in segs.items():
+        g = by_key[k].geometry
+        pe, _ = _ray_points(s, g, "epi")
+        pn, _ = _ray_points(s, g, "endo")
+        if k[0] == VIEW_LA:
+            base_pt = g.pixel_to_patient(s.centre_rc + s.base_level * s.axis_rc)
+            zb = float((base_pt - axis_pt) @ axis_dir)
+            z_bases.append(zb)
+            # Ray ends at the base cut are not wall points.
+            pe = pe[(pe - axis_pt) @ axis_dir < zb - 3.0]
+            pn = pn[(pn - axis_pt) @ axis_dir < zb - 3.0]
+            w = 2.0   # LA rays are sparser per unit surface than the SA stack's
+        else:
+            w = 1.0
+        epi_pts.append(pe)
+        endo_pts.append(pn)
+        we.append(np.full(len(pe), w))
+        wn.append(np.full(len(pn), w))
+    if z_bases:
+        z_base = float(np.median(z_bases))
+    else:
+        zs = [float((by_key[k].geometry.image_position - axis_pt) @ axis_dir) for k in usable_sa]
+        z_sa = [float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir) for k in usable_sa]
+        del zs
+        z_base = max(z_sa) + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
+    shape = reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
+    particles0 = sample_particles(shape, int(num_particles), seed)
+    mframe, polar = model_frame(shape, particles0)
+    timings["initialisation"] = time.perf_counter() - ts
+
+    # ---- landmark registration (§3.2, Fig. 7)
+    ts = time.perf_counter()
+    ctrl_rest, targets, normals, owner = [], [], [], []
+    for k, s in segs.items():
+        g = by_key[k].geometry
+        walls = ("endo", "epi")
+        n_each = landmarks_per_sa_slice // 2
+        for which in walls:
+            lm = _contour_landmarks(s, which, n_each)
+            if lm.size == 0:
+                continue
+            model_r = _model_radii(shape, g, s.centre_rc, s.angles[lm], which)
+            img_r = (s.endo if which == "endo" else s.epi)[lm]
+            ok = np.isfinite(model_r) & np.isfinite(img_r)
+            if k[0] == VIEW_LA:   # keep clear of the base cut
+                ok &= (s.angles[lm] * 0 + 1).astype(bool)
+            d = np.stack([np.sin(s.angles[lm]), np.cos(s.angles[lm])], 1)
+            src = g.pixel_to_patient(s.centre_rc[None] + model_r[:, None] * d)
+            dst = g.pixel_to_patient(s.centre_rc[None] + img_r[:, None] * d)
+            if k[0] == VIEW_LA:
+                zb = shape.z_base - 3.0
+                ok &= ((src - axis_pt) @ axis_dir < zb) & ((dst - axis_pt) @ axis_dir < zb)
+            ctrl_rest.append(src[ok])
+            targets.append(dst[ok])
+            normals.append(np.tile(g.normal, (int(ok.sum()), 1)))
+            owner += [k] * int(ok.sum())
+    particles = particles0
+    state_kw = dict(iterations=0, residual=0.0, converged=False, num_control_points=0)
+    if ctrl_rest and sum(len(c) for c in ctrl_rest) >= 12:
+        src = np.concatenate(ctrl_rest)
+        dst = np.concatenate(targets)
+        nrm = np.concatenate(normals)
+        try:
+            model = MeshlessModel(particles0, mframe)
+            ctrl = model.attach(src)
+            # Global stage first (rigid + scale + twist, eq. 9-15), then a bounded local stage:
+            # the reconstruction already sits within ~1 mm, so a few local steps suffice.
+            model.fit(ctrl, dst, plane_normals=nrm, max_iterations=max_iterations, local=False,
+                      tol=1e-3)
+            fit = model.fit(ctrl, dst, plane_normals=nrm, max_iterations=local_iterations,
+                            data_weight=data_weight, cg_maxiter=25, refresh_every=0, tol=1e-2,
+                            local_start=np.inf)
+            moved = ctrl.weights @ fit.positions
+            proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
+            res = np.linalg.norm(np.einsum("mab,mb->ma", proj, dst - moved), axis=1)
+            res0 = np.linalg.norm(np.einsum("mab,mb->ma", proj, dst - src), axis=1)
+            if np.all(np.isfinite(fit.positions)) and np.sqrt(np.mean(res ** 2)) <= np.sqrt(np.mean(res0 ** 2)):
+                particles = fit.positions
+                owner_arr = np.array(owner)
+                for r in reports:
+                    sel = np.all(owner_arr == (r.view, r.slice_index), axis=1) if len(owner_arr) else np.zeros(0, bool)
+                    r.landmarks = int(sel.sum())
+                    if sel.any():
+                        r.residual_mm = float(np.sqrt(np.mean(res[sel] ** 2)))
+                state_kw = dict(iterations=fit.iterations, residual=float(np.sqrt(np.mean(res ** 2))),
+                                converged=bool(fit.converged), num_control_points=len(src))
+                surf_model = model
+            else:
+                warnings.append("landmark registration did not reduce the contour distance; "
+                                "kept the reconstructed model")
+                surf_model = None
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            warnings.append(f"landmark registration failed ({exc}); kept the reconstructed model")
+            surf_model = None
+    else:
+        warnings.append("too few landmarks for registration; kept the reconstructed model")
+        surf_model = None
+    timings["registration"] = time.perf_counter() - ts
+
+    if particles is not particles0:
+        mframe, polar = model_frame(shape, particles)
+    polar["transmural"] = shape.transmural(particles0)
+    surfaces = {}
+    for which in ("endo", "epi"):
+        sp_ = shape.surface_points(which)
+        if surf_model is not None:
+            try:
+                sp_ = surf_model.attach(sp_).weights @ particles
+            except ValueError:
+                pass
+        surfaces[which] = sp_
+    p = mframe.params
+    state = ModelState(phase_index=0, num_phases=int(next(iter(by_key.values())).num_phases),
+                       translation=p.translation.copy(), rotation=p.rotation.copy(), a0=float(p.a[0]),
+                       a1=float(p.a[1]), a2=float(p.a[2]), a3=float(p.a[3]), tau=float(p.tau),
+                       num_particles=len(particles), **state_kw)
+    timings["total"] = time.perf_counter() - t0
+    return RegistrationResult(particles, mframe, polar, state, shape, reports, warnings, axis_pt, axis_dir,
+                              {k: s.mask for k, s in segs.items()}, surfaces, timings)
+
+
+def _perp(v, axis) -> np.ndarray:
+    v = np.asarray(v, float).reshape(3)
+    v = v - (v @ axis) * axis
+    n = np.linalg.norm(v)
+    if n < 1e-6:
+        raise ValueError("reference_direction is parallel to the long axis")
+    return v / n
+
+
+def _from_mask(mask, shape, view, centre_rc, spacing, axis_rc) -> seg.SliceSegmentation:
+    """Polar contours of a user mask (same ray machinery as the automatic segmentation)."""
+    m = np.asarray(mask)
+    name = _VIEW[view]
+    if m.shape != tuple(shape):
+        return seg.SliceSegmentation(False, f"user mask shape {m.shape} does not match the image {tuple(shape)}",
+                                     np.zeros(shape, bool), view=name)
+    m = m.astype(bool)
+    if m.sum() < 20:
+        return seg.SliceSegmentation(False, f"user mask has only {int(m.sum())} myocardium pixels",
+                                     np.zeros(shape, bool), view=name)
+    return seg.segment_from_mask(m, centre_rc, spacing, axis_rc)
