@@ -50,7 +50,9 @@ class SliceTracker:
         restrict and normalise detection when :meth:`update` gets no mask.
     mask_erosion_px : int
         Erode the mask propagated through the matched points by this radius before the final
-        (second) detection pass, px (its border is uncertain by ~1 px).
+        (second) detection pass, px (negative dilates).
+    confirm_px : float
+        A first-pass match counts only if the second pass finds a point within this distance, px.
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -62,7 +64,8 @@ class SliceTracker:
 
     def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
                  gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
-                 propagate_mask: bool = True, mask_erosion_px: int = 0, **detect_kwargs):
+                 propagate_mask: bool = True, mask_erosion_px: int = 0, confirm_px: float = 0.5,
+                 **detect_kwargs):
         self.geometry = geometry
         self.spacing_px = spacing_px
         self.angles = angles
@@ -72,6 +75,7 @@ class SliceTracker:
         self.rpm_t_final = float(rpm_t_final)
         self.propagate_mask = bool(propagate_mask)
         self.mask_erosion_px = int(mask_erosion_px)
+        self.confirm_px = float(confirm_px)
         self.detect_kwargs = detect_kwargs
         self.reset()
 
@@ -179,12 +183,12 @@ class SliceTracker:
             if region2 is not None:
                 det2 = detect_intersections(image, mask=region2, params=self.params, roi=roi,
                                             accept_mask=accept2, **self.detect_kwargs)
-                # Only points the second pass confirms (within 0.5 px) count as detected: a first-
+                # Only points the second pass confirms (within confirm_px) count as detected: a first-
                 # pass point that came from tags just outside the predicted border is not one.
                 found = np.zeros(int(hit.sum()), bool)
                 j2 = np.zeros(int(hit.sum()), int)
                 if det2.ok and len(det2):
-                    d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=0.5)
+                    d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=self.confirm_px)
                     found = np.isfinite(d2)
                 idx = np.nonzero(hit)[0]
                 new[idx[found]] = det2.pixel_rc[j2[found]]
@@ -272,7 +276,8 @@ class SliceTracker:
         acc_w = cv2.dilate(warped, disk(dilate)) if dilate > 0 else warped
         # The propagated border is uncertain: static background tags or blood just outside it
         # bias the phase more than a lost rim of myocardium does, hence the erosion.
-        filt_w = cv2.erode(warped, disk(erode)) if erode > 0 else warped
+        filt_w = (cv2.erode(warped, disk(erode)) if erode > 0
+                  else cv2.dilate(warped, disk(-erode)) if erode < 0 else warped)
         if not filt_w.any():
             filt_w = warped
         accept = np.zeros(shape, bool)
