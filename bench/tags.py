@@ -37,6 +37,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -72,8 +73,6 @@ def run_slice(study, key, spacing_mm, overlay=None):
     motion = study.motion
     es = int(motion.es_phase)
     truth = truth_intersections(geom, mask.shape, spacing_mm, mask)
-    dil = np.zeros_like(mask)
-    import cv2
     dil = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     truth_wide = truth_intersections(geom, mask.shape, spacing_mm, dil)
     lam_px = spacing_mm / geom.row_spacing

@@ -7,16 +7,20 @@ Public API
     (unless given), filters with a complex Gabor bank (3 orientations × 3 spacings per direction,
     zero-mean kernels, FFT), takes per pixel the strongest response, and returns the points where
     both directions' phases are ≡ π (dark tag centres), refined to sub-pixel accuracy by Newton's
-    method on the two wrapped phases, with a confidence (response over local contrast) and grid
-    labels (k1, k2). Bad input (constant image, NaN pixels, no tags, < 16×16 px …) gives an empty
+    method on the two wrapped phases and then with kernels tuned to each point's local wave
+    vectors (the bank's quantised tuning biases points next to the wall's border), with a
+    confidence (response over local contrast) and grid labels (k1, k2). With a mask, the image is
+    zero-meaned locally inside it and zeroed outside first (removes the blood-pool edge bias). Bad input (constant image, NaN pixels, no tags, < 16×16 px …) gives an empty
     :class:`Detection` whose ``reason`` says why; it never raises for image content.
 
 ``SliceTracker(geometry=None, *, spacing_px=None, angles=None, max_gap=1, gate=0.4, ...)``
     Stateful, one per (view, slice). ``tracker.update(frame, mask=None) -> TagPointSet`` once per
     phase in phase order (phase 0 = ED starts a cine and assigns track ids; pass the ED
-    myocardium mask there). Later phases: prediction by the previous displacement, detection
-    near it, TPS-RPM matching; undetected points are dropped (after ``max_gap`` coasting phases),
-    never invented. Points carry patient coordinates (mm) from the slice geometry. Never raises:
+    myocardium mask there: without it every tagged tissue, static chest wall included, is
+    tracked). Later phases: prediction by the previous displacement, the ED mask carried along
+    by a TPS through the tracks, detection near the prediction, TPS-RPM matching, then a second
+    detection with the mask carried through the matched points that must confirm each match;
+    undetected points are dropped (after ``max_gap`` coasting phases), never invented. Points carry patient coordinates (mm) from the slice geometry. Never raises:
     problems come back as an empty (or partial) set with ``status`` set.
 
 ``harp_track(images, start_rc, params) -> HarpTrack``

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from .gabor import TagParameters, validate_image, TagInputError
-from .phase import PhaseField, solve_phase, wrap
+from .phase import PhaseField, solve_phase
 
 
 def harmonic_phase(image, params: TagParameters, bandwidth: float = 0.35) -> PhaseField:
