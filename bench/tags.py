@@ -23,10 +23,11 @@ within 0.3·λ), ``precision`` (detections within 0.3·λ of a true intersection
 is in the mask, dilated by 1 px to forgive border rounding), ``recall`` (truth inside the mask
 found), ``track_error_mm`` (in-plane distance to truth over all phases > 0, median / p90 / p99),
 ``harp_error_mm`` on the same points and ``gabor_over_harp`` (median ratio, < 1 = better than
-HARP), ``kept_to_es`` (fraction of ED tracks still reported at ES), ``ms_per_image``
-(detect + track, 256² frames; and ED detection with spectrum estimation).
+HARP), ``kept_to_es`` (fraction of ED tracks still reported at ES), ``ms_per_image_tracking``
+(one tracker update: two detections on the heart's window + RPM), ED detection with spectrum
+estimation, and stateless detection on a whole 256² frame. Wall-clock on a shared machine.
 
-Usage: ``mlv-ros bench tags [--quick] [--out DIR] [--presets normal,hypertrophic] [--snr inf,20,10]``
+Usage: ``mlv-ros bench tags [-- --quick --out DIR --presets normal,hypertrophic --snr inf,20,10]``
 """
 
 from __future__ import annotations
@@ -86,7 +87,12 @@ def run_slice(study, key, spacing_mm, overlay=None):
     t0 = time.perf_counter()
     detect_intersections(frames[0].image, mask)
     t_ed = time.perf_counter() - t0
-    out = {"t_track": t_track, "t_ed": t_ed, "n_truth": len(truth)}
+    # Stateless detection on a whole frame (no mask, no crop, parameters known): the
+    # worst case per image for a caller that does not track.
+    t0 = time.perf_counter()
+    detect_intersections(frames[es].image, params=tracker.params)
+    t_full = time.perf_counter() - t0
+    out = {"t_track": t_track, "t_ed": t_ed, "t_full": t_full, "n_truth": len(truth)}
     ed = sets[0]
     if len(ed) == 0 or len(truth_wide) == 0:
         out.update(n_det=0, tp=0, found=0, ed_err=np.zeros(0), trk=np.zeros(0), harp=np.zeros(0), pair_g=np.zeros(0),
@@ -186,6 +192,7 @@ def summarise(rows):
         "kept_to_es": float(np.mean(kept)) if kept else None,
         "ms_per_image_tracking": {"median": q(tt * 1e3, 50), "p90": q(tt * 1e3, 90)},
         "ms_ed_detection_with_estimation": q(np.array([r["t_ed"] for r in rows]) * 1e3, 50),
+        "ms_detection_whole_frame_no_mask": q(np.array([r["t_full"] for r in rows]) * 1e3, 50),
     }
 
 

@@ -112,3 +112,19 @@ def test_no_mask_uses_tag_energy_to_skip_the_blood_pool():
     r = np.linalg.norm(det.pixel_rc - scene.centre, axis=1)
     assert det.ok and len(det) > 20
     assert np.all(r > 15.0) and np.all(r < 37.0)
+
+
+def test_kernels_have_no_dc_and_ignore_smooth_anatomy():
+    from mlv_ros.core.tags import TagParameters, gabor_filter_bank, kernel_bank
+    params = TagParameters(spacing_px=np.array([6.0, 6.0]), angles=np.array([0.0, np.pi / 2]))
+    for d in range(2):
+        bank = kernel_bank((64, 64), params, d)
+        assert np.all(np.abs(bank[:, 0, 0]) < 1e-6)          # zero mean: no DC response
+        assert np.allclose(np.abs(bank).max(axis=(1, 2)), 1.0, atol=0.02)  # unit gain at the tuning
+    # A smooth intensity ramp (anatomy, coil shading) gives ~no response next to a tag grid's.
+    rr, cc = np.mgrid[0:96, 0:96]
+    ramp = 0.5 + 0.004 * rr + 0.002 * cc
+    tags, _, _ = _grid((96, 96), 6.0, np.array([0.0, np.pi / 2]))
+    m_ramp = gabor_filter_bank(ramp, params).magnitude[:, 20:-20, 20:-20]
+    m_tags = gabor_filter_bank(tags, params).magnitude[:, 20:-20, 20:-20]
+    assert m_ramp.max() < 0.01 * np.median(m_tags)

@@ -207,22 +207,26 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
         q = np.rint(x).astype(int)
         p = q[:, None, :] + off[None]                                  # (N, P, 2)
         inside = (p[..., 0] >= 0) & (p[..., 0] < h) & (p[..., 1] >= 0) & (p[..., 1] < w)
-        vals = img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside
-        dlt = p - x[:, None, :]                                        # δ = p − y, (N, P, 2)
+        vals = (img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside).astype(np.float32)
+        # Single precision for the (N, 2, P) work arrays (positions stay float64; the sums are
+        # over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level).
+        dlt = (p - x[:, None, :]).astype(np.float32)                   # δ = p − y, (N, P, 2)
         dt = np.swapaxes(dlt, 1, 2)                                    # (N, 2, P)
-        du = np.matmul(u, dt)                                          # (N, 2 directions, P)
-        dv = np.matmul(v, dt)
-        g = np.exp(-0.5 * (du / su) ** 2 - 0.5 * (dv / sv) ** 2) * inside[:, None, :]
+        du = np.matmul(u.astype(np.float32), dt)                       # (N, 2 directions, P)
+        dv = np.matmul(v.astype(np.float32), dt)
+        g = np.exp(-0.5 * (du / su.astype(np.float32)) ** 2 - 0.5 * (dv / sv.astype(np.float32)) ** 2)
+        g *= inside[:, None, :]
         # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
-        carrier = np.exp(-1j * np.matmul(k, dt))
+        carrier = np.exp(-1j * np.matmul(k.astype(np.float32), dt))
         c = np.sum(g * carrier, axis=2, keepdims=True) / np.maximum(np.sum(g, axis=2, keepdims=True), 1e-12)
         gv = g * vals[:, None, :]
-        r = np.sum(gv * (carrier - c), axis=2)                        # (N, 2)
+        r = np.sum(gv * (carrier - c), axis=2).astype(np.complex128)  # (N, 2)
         # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
         wgt = gv * (carrier - c)
         dr = (np.sum(wgt * du, axis=2)[..., None] / su ** 2 * u + np.sum(wgt * dv, axis=2)[..., None] / sv ** 2 * v
               + 1j * k * np.sum(gv * carrier, axis=2)[..., None])     # (N, 2, 2)
         # Local wave vector measured by the tuned kernel: ∇ψ = Im(conj(R) ∇R) / |R|².
+        dr = dr.astype(np.complex128)
         kk = np.imag(np.conj(r)[..., None] * dr) / np.maximum(np.abs(r) ** 2, 1e-30)[..., None]
         good = _sane_wavevectors(kk) & np.all(np.abs(np.log(np.linalg.norm(kk, axis=2)
                                                                 / np.linalg.norm(k0, axis=2))) < 0.5, axis=1)
@@ -247,7 +251,7 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
                          min_confidence: float = 0.4, min_energy_fraction: float = 0.1,
                          orientations_deg=(-12.0, 0.0, 12.0), spacing_factors=(0.8, 1.0, 1.25),
                          sigma_u: float = 0.5, sigma_v: float = 0.6, max_residual: float = 0.3,
-                         roi=None, accept_mask=None, normalise: bool = True, tuned: bool = True,
+                         roi=None, accept_mask=None, normalise: bool = True, tuned: bool | None = None,
                          keep_maps: bool = False) -> Detection:
     """Find tag-grid intersections with sub-pixel accuracy (stateless; never raises on bad images).
 
@@ -284,8 +288,11 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     normalise : bool
         With a mask, filter ``mask·(I − masked local mean)`` instead of ``I``
         (see :func:`masked_normalise`); removes the blood-pool edge bias.
-    tuned : bool
+    tuned : bool, optional
         Finish with :func:`refine_tuned` (kernels tuned to each point's local wave vectors).
+        Default: only with a mask, whose border truncates the tags and makes the bank's
+        quantised tuning matter; on an untruncated grid the bank's phase is already unbiased
+        and tuning every point of a whole frame would cost ~0.2 ms per point.
     keep_maps : bool
         Attach the :class:`GaborMaps` (of the filtered window) to the result.
 
@@ -388,6 +395,8 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     keep = ok & inside & (res <= max_residual)
     keep &= valid[q[:, 0], q[:, 1]]
     x, res, q = x[keep], res[keep], q[keep]
+    if tuned is None:
+        tuned = mask is not None
     if tuned and len(x):
         kloc = np.moveaxis(field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0)  # (N, 2, 2) local wave vectors
         xt, _, okt = refine_tuned(img, x, kloc, sigma_u, sigma_v)
