@@ -10,7 +10,7 @@ Typical use (the ROS ``registration`` node)::
 
 Modules: :mod:`.segment` (tag-energy segmentation), :mod:`.landmarks` (contours, curvature,
 landmarks), :mod:`.initialise` (3-D reconstruction, particles, polar frame), :mod:`.register`
-(:func:`register_ed`), :mod:`.nifti` (user label masks).
+(:func:`register_ed`). User masks are per-slice boolean arrays (NIfTI reader: not yet).
 """
 
 from mlv_ros.core.registration.register import (  # noqa: F401

@@ -195,12 +195,15 @@ class LVShape:
     z_apex_endo: float
     z_base: float
 
-    def inside(self, x: np.ndarray) -> np.ndarray:
-        """Whether patient points (N, 3) lie in the reconstructed myocardium."""
+    def inside(self, x: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Whether patient points (N, 3) lie in the reconstructed myocardium, at least ``margin``
+        mm (radially, and axially at the apex and base) inside its walls."""
         r, th, z = self.frame.to_cylindrical(x)
-        r2 = r * r
-        ok = (z >= self.z_apex_epi) & (z <= self.z_base)
-        return ok & (r2 <= self.epi.r2(z, th)) & (r2 >= np.maximum(self.endo.r2(z, th), 0.0))
+        ok = (z >= self.z_apex_epi + margin) & (z <= self.z_base - margin)
+        r_epi = np.sqrt(np.clip(self.epi.r2(z, th), 0.0, None))
+        r2_endo = self.endo.r2(z, th)
+        r_endo = np.where(r2_endo > 0, np.sqrt(np.clip(r2_endo, 0.0, None)) + margin, 0.0)
+        return ok & (r <= r_epi - margin) & (r >= r_endo)
 
     def surface_points(self, which: str, n_z: int = 40, n_theta: int = 72) -> np.ndarray:
         """Samples of the ``"endo"`` or ``"epi"`` surface, (n_z·n_theta, 3) mm, between its apex
@@ -286,7 +289,7 @@ def reconstruct_shape(frame: AxisFrame, endo_pts: list[np.ndarray], epi_pts: lis
     return LVShape(frame, endo, epi, float(z_apex_epi), float(z_apex_endo), float(z_base))
 
 
-def sample_particles(shape: LVShape, n: int, seed: int = 0) -> np.ndarray:
+def sample_particles(shape: LVShape, n: int, seed: int = 0, margin_fraction: float = 0.25) -> np.ndarray:
     """``n`` particles filling the reconstructed myocardium: a jittered cubic lattice.
 
     A lattice (spacing from the estimated volume) gives even phyxels; jitter of ±0.25 spacing
@@ -298,6 +301,10 @@ def sample_particles(shape: LVShape, n: int, seed: int = 0) -> np.ndarray:
     n : int
         Number of particles (≥ 100).
     seed : int
+    margin_fraction : float
+        Particles keep ``margin_fraction × spacing`` mm from the reconstructed walls: a particle
+        stands for a cell of that spacing, and the margin absorbs sub-millimetre wall error so
+        that particles stay inside the true myocardium.
 
     Returns
     -------
@@ -323,13 +330,13 @@ def sample_particles(shape: LVShape, n: int, seed: int = 0) -> np.ndarray:
     if frac <= 0:
         raise ValueError("reconstructed myocardium is empty")
     vol = frac * np.prod(box_hi - box_lo)
-    for factor in (1.15, 1.4, 1.8):
+    for factor in (1.5, 1.9, 2.5):
         h = (vol / (factor * n)) ** (1.0 / 3.0)
         axes = [np.arange(lo + 0.5 * h, hi, h) for lo, hi in zip(box_lo, box_hi)]
         g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         g = g + rng.uniform(-0.25 * h, 0.25 * h, g.shape)
         x = shape.frame.origin + g @ shape.frame.matrix.T
-        x = x[shape.inside(x)]
+        x = x[shape.inside(x, margin_fraction * h)]
         if len(x) >= n:
             return x[np.sort(rng.choice(len(x), n, replace=False))]
     raise ValueError(f"could not place {n} particles in the reconstructed myocardium")

@@ -59,8 +59,9 @@ def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
 def curvature(points, closed: bool = True, sigma: float = 2.0) -> np.ndarray:
     """Signed curvature κ = (x′y″ − y′x″)/(x′² + y′²)^{3/2} of a polyline.
 
-    Derivatives are Gaussian derivative filters of width ``sigma`` vertices (periodic when
-    ``closed``), so the input should be roughly evenly spaced (see :func:`resample_contour`).
+    The curve is Gaussian-smoothed (``sigma`` vertices, periodic when ``closed``) and then
+    differentiated by central differences (exact ratio of first/second derivative scales), so
+    the input should be roughly evenly spaced (see :func:`resample_contour`).
 
     Returns
     -------
@@ -70,8 +71,14 @@ def curvature(points, closed: bool = True, sigma: float = 2.0) -> np.ndarray:
     """
     p = _as_curve(points)
     mode = "wrap" if closed else "nearest"
-    d1 = np.stack([ndi.gaussian_filter1d(p[:, i], sigma, order=1, mode=mode) for i in (0, 1)], 1)
-    d2 = np.stack([ndi.gaussian_filter1d(p[:, i], sigma, order=2, mode=mode) for i in (0, 1)], 1)
+    sm = np.stack([ndi.gaussian_filter1d(p[:, i], sigma, mode=mode) for i in (0, 1)], 1)
+    if closed:
+        fwd, bwd = np.roll(sm, -1, axis=0), np.roll(sm, 1, axis=0)
+    else:
+        fwd = np.vstack([sm[1:], 2 * sm[-1:] - sm[-2:-1]])
+        bwd = np.vstack([2 * sm[:1] - sm[1:2], sm[:-1]])
+    d1 = 0.5 * (fwd - bwd)
+    d2 = fwd - 2 * sm + bwd
     num = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
     den = np.maximum(np.sum(d1 ** 2, axis=1), 1e-24) ** 1.5
     return num / den

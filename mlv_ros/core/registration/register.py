@@ -4,7 +4,7 @@ Pipeline of :func:`register_ed`:
 
 1. long axis from the plane geometry (:func:`mlv_ros.core.io.dicom.estimate_long_axis`: LA
    planes' common line, else the SA normal; oriented apex → base);
-2. per-slice myocardium: user label masks (:mod:`.nifti`) where given, else the automatic
+2. per-slice myocardium: user masks (per-slice boolean arrays) where given, else the automatic
    tag-energy segmentation (:mod:`.segment`); a slice that fails gets a reason and is dropped;
 3. 3-D myocardium reconstructed from all SA/LA contour points (:mod:`.initialise`), particles
    sampled inside it, polar model frame (c, R, a0..a3, τ, per-particle α, β, w);
@@ -168,7 +168,7 @@ def _contour_landmarks(s: seg.SliceSegmentation, which: str, n: int) -> np.ndarr
 # --------------------------------------------------------------------------- main
 def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int = 0, *,
                 landmarks_per_sa_slice: int = LANDMARKS_PER_SA_SLICE, max_iterations: int = 20,
-                local_iterations: int = 2, data_weight: float = 100.0, reference_direction=None) -> RegistrationResult:
+                local_iterations: int = 0, data_weight: float = 100.0, reference_direction=None) -> RegistrationResult:
     """Register the meshless LV model to the end-diastolic SA and LA tagged images.
 
     Parameters
@@ -179,8 +179,8 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     num_particles : int
         Particles of the model (≥ 100; paper-scale default 5000).
     masks : optional
-        User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict, or the result
-        of :func:`mlv_ros.core.registration.nifti.masks_for_frames`. Slices with a mask skip the
+        User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict (NIfTI loading
+        is not implemented yet). Slices with a mask skip the
         automatic segmentation; a mask whose shape differs from its image is rejected (reason).
     seed : int
         Particle-sampling seed (deterministic output).
@@ -189,7 +189,9 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     max_iterations : int
         Cap on global-stage iterations of the meshless fit.
     local_iterations : int
-        Cap on global+local iterations after the global stage (0: global deformation only).
+        Cap on global+local iterations after the global stage. Default 0 (global deformation
+        only): on the simulator a time-boxed local stage (truncated CG) moved interior particles
+        off and lowered the inside fraction from 98 % to 93 %.
     data_weight : float
         External-force weight of :meth:`MeshlessModel.fit`.
     reference_direction : array_like, shape (3,), optional
@@ -206,6 +208,8 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         lists each slice's reason), or a reconstruction that fails.
     """
     t0 = time.perf_counter()
+    if landmarks_per_sa_slice < 2:
+        raise ValueError(f"landmarks_per_sa_slice must be >= 2 (endo + epi), got {landmarks_per_sa_slice}")
     timings: dict = {}
     warnings: list[str] = []
     reports: list[SliceReport] = []

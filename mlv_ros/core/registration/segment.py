@@ -242,13 +242,20 @@ def myocardium_score(feat: TagFeatures, lv: _Levels) -> np.ndarray:
 
 # --------------------------------------------------------------------------- rays
 def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
-              min_wall_px: float, max_gap_px: float) -> tuple[np.ndarray, np.ndarray]:
+              min_wall_px: float, max_gap_px: float, blur_px: float | None = None,
+              threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """First myocardial run (score > 0.5) along each ray from ``centre_rc``.
+
+    With ``blur_px`` (the feature smoothing σ), the myocardial plateau is re-estimated: a wall of
+    width w blurred by σ peaks at only ``2Φ(w/2σ) − 1`` of its plateau, so class levels taken
+    from the blurred image under-estimate it and a fixed 0.5 threshold thickens thin walls.
+    Each ray's peak over that factor estimates the plateau; the threshold becomes half the
+    median plateau and the runs are found again (two passes).
 
     Returns
     -------
     endo, epi : ndarray, shape (K,)
-        Sub-pixel radii (linear interpolation of the 0.5 crossing), px; NaN where a ray has no
+        Sub-pixel radii (linear interpolation of the half-plateau crossing), px; NaN where a ray has no
         run of at least ``min_wall_px``. Runs separated by gaps < ``max_gap_px`` are merged
         (noise). ``endo = 0`` when the run starts at the centre.
     """
@@ -256,15 +263,42 @@ def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_
     dirs = np.stack([np.sin(angles), np.cos(angles)], 1)
     pts = centre_rc[None, None, :] + radii[None, :, None] * dirs[:, None, :]
     s = ndi.map_coordinates(score, [pts[..., 0], pts[..., 1]], order=1, mode="constant", cval=0.0)
-    inside = s > 0.5
+    endo, epi = _runs_at(s, radii, threshold, min_wall_px, max_gap_px)
+    if blur_px is None:
+        return endo, epi
+    for _ in range(2):
+        ok = np.isfinite(epi)
+        if ok.sum() < 5:
+            break
+        width = (epi - np.nan_to_num(endo))[ok]
+        lo = np.searchsorted(radii, np.nan_to_num(endo)[ok])
+        hi = np.searchsorted(radii, epi[ok])
+        peak = np.array([s[i, a:max(b, a + 1)].max() for i, a, b in zip(np.flatnonzero(ok), lo, hi)])
+        # Walls starting at the centre (no cavity) are blurred on one side only.
+        half = np.where(np.nan_to_num(endo)[ok] == 0, width, 0.5 * width)
+        factor = np.clip(2.0 * _phi(half / blur_px) - 1.0, 0.3, 1.0)
+        plateau = float(np.median(peak / factor))
+        endo, epi = _runs_at(s, radii, 0.5 * plateau, min_wall_px, max_gap_px)
+    return endo, epi
+
+
+def _phi(x):
+    from scipy.special import ndtr
+    return ndtr(x)
+
+
+def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
+    """First run of ``s > thr`` per row of ray samples ``s`` (K, R); see :func:`_ray_runs`."""
+    inside = s > thr
     k, n = inside.shape
+    step = radii[1] - radii[0]
     # Close short gaps: a pixel is "in" if an "in" sample lies within max_gap/2 on both sides.
-    g = max(int(round(max_gap_px / RADIAL_STEP_PX)), 1)
+    g = max(int(round(max_gap_px / step)), 1)
     closed = ndi.binary_closing(inside, structure=np.ones((1, g + 1), bool)) | inside
     closed[:, :g] |= inside[:, :g]
     endo = np.full(k, np.nan)
     epi = np.full(k, np.nan)
-    min_len = int(np.ceil(min_wall_px / RADIAL_STEP_PX))
+    min_len = int(np.ceil(min_wall_px / step))
     padded = np.concatenate([np.zeros((k, 1), bool), closed, np.zeros((k, 1), bool)], 1)
     d = np.diff(padded.astype(np.int8), axis=1)
     for i in range(k):  # ≤ a few runs per ray; K = 180
@@ -278,11 +312,11 @@ def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_
         if a == 0:
             endo[i] = 0.0
         else:
-            endo[i] = radii[a - 1] + RADIAL_STEP_PX * (0.5 - si[a - 1]) / max(si[a] - si[a - 1], 1e-9)
+            endo[i] = radii[a - 1] + step * (thr - si[a - 1]) / max(si[a] - si[a - 1], 1e-9)
         if b >= n:
             epi[i] = radii[-1]
         else:
-            epi[i] = radii[b - 1] + RADIAL_STEP_PX * (si[b - 1] - 0.5) / max(si[b - 1] - si[b], 1e-9)
+            epi[i] = radii[b - 1] + step * (si[b - 1] - thr) / max(si[b - 1] - si[b], 1e-9)
     return endo, epi
 
 
@@ -378,14 +412,15 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
     if lv is None:
         return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "SA")
     return _sa_from_score(myocardium_score(feat, lv), c, pixel_spacing_mm, max_radius_mm, min_wall_mm,
-                          max_invalid_fraction)
+                          max_invalid_fraction, 0.5 * feat.wavelength_px)
 
 
-def _sa_from_score(score, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction):
+def _sa_from_score(score, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction, blur_px=None):
     img = score
     rmax = max_radius_mm / pixel_spacing_mm
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm,
+                          blur_px)
     bad = ~np.isfinite(epi)
     if bad.mean() > max_invalid_fraction:
         return _fail(img.shape, f"no myocardial annulus: {100 * bad.mean():.0f}% of rays from the long axis "
@@ -448,14 +483,15 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     if not lv.has_blood:
         return _fail(img.shape, "no untagged blood pool on the long axis", "LA")
     return _la_from_score(myocardium_score(feat, lv), c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm,
-                          min_arc_deg)
+                          min_arc_deg, 0.5 * feat.wavelength_px)
 
 
-def _la_from_score(score, c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm, min_arc_deg):
+def _la_from_score(score, c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm, min_arc_deg, blur_px=None):
     img = score
     rmax = max_radius_mm / pixel_spacing_mm
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm,
+                          blur_px)
     valid = np.isfinite(epi) & (epi < rmax - 1)
     # The horseshoe is the longest circular run of valid rays; it must not include the base
     # direction (the atrium side is open).
