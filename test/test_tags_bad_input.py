@@ -74,3 +74,19 @@ def test_harp_with_bad_frames_reports_instead_of_raising():
     assert res.valid[0].all() and not res.valid[1].any()
     res = harp_track([np.zeros((64, 64))], det.pixel_rc, det.params)
     assert "constant" in res.reason
+
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from hypothesis.extra.numpy import arrays  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@given(arrays(np.float64, st.tuples(st.integers(1, 48), st.integers(1, 48)),
+              elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32),
+                                 st.just(0.0))))
+def test_arbitrary_arrays_never_raise(img):
+    det = detect_intersections(img)
+    # Either points and no reason, or no points and a reason.
+    assert (len(det) > 0) != bool(det.reason)
+    out = SliceTracker(GEOM).update(Frame(img, GEOM, 0, 0, 0, 2))
+    assert len(out) > 0 or out.status
