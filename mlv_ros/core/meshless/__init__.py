@@ -1,0 +1,28 @@
+"""Meshless deformable model (paper §2): kernel/phyxels, MLS gradient, St Venant–Kirchhoff
+elasticity, global parametric deformation and the fitting scheme. Pure numpy/scipy.
+
+Typical use::
+
+    frame = polar_frame(points, centre, long_axis, ref_direction)      # or cylindrical_frame
+    model = MeshlessModel(points, frame)
+    ctrl = model.attach(tag_positions_at_ed)                           # (M, 3) mm, or indices
+    for phase in phases:                                               # warm start by default
+        result = model.fit(ctrl, targets[phase], plane_normals=normals)
+        x, state = result.positions, result.state
+        strain = model.green_lagrange_strain()                         # (N, 3, 3), vs ED
+"""
+
+from mlv_ros.core.meshless.elastic import (  # noqa: F401
+    green_lagrange, internal_forces, lame_parameters, linear_stiffness_apply, strain_energy,
+    svk_stress,
+)
+from mlv_ros.core.meshless.globals import (  # noqa: F401
+    GlobalParameters, ModelCoordinates, ModelFrame, cylindrical_frame, global_shape,
+    matrix_to_quat, model_jacobian, polar_frame, quat_from_axis_angle, quat_to_matrix,
+    rotation_jacobian, shape_jacobian,
+)
+from mlv_ros.core.meshless.kernel import Phyxels, build_phyxels, poly6  # noqa: F401
+from mlv_ros.core.meshless.mls import MLSOperator  # noqa: F401
+from mlv_ros.core.meshless.solver import (  # noqa: F401
+    ControlPoints, FitResult, MeshlessModel, attach_control_points, plane_projectors,
+)

@@ -1,0 +1,101 @@
+"""Moving-least-squares displacement gradient as a precomputed sparse operator (eq. 16–17).
+
+For phyxel ``i`` with members ``j``: ``∇u_i = A_i⁻¹ Σ_j (u_j − u_i) x_ij w_ij``. Writing
+``d_ij = A_i⁻¹ x_ij w_ij`` and ``d_ii = −Σ_j d_ij`` this is ``Σ_j u_j ⊗ d_ij`` (j over members
+and ``i`` itself) — linear in u and identical for the three displacement components. The
+operator is therefore stored once as a sparse ``D`` of shape (3N, N) with ``D[3i+b, j] = d_ij[b]``;
+the full 9N × 3N operator of the notes is ``D ⊗ I₃`` up to a row permutation (see
+:meth:`MLSOperator.full_matrix`). One gradient evaluation is one sparse product ``D @ U`` with
+``U`` of shape (N, 3).
+
+Convention used throughout this package: ``H[i, a, b] = ∂u_a/∂x_b`` (the paper's ``∇uᵀ``), so the
+deformation gradient is ``J = I + H`` (eq. 18).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from mlv_ros.core.meshless.kernel import Phyxels
+
+
+class MLSOperator:
+    """Sparse MLS gradient operator on a fixed (rest) configuration.
+
+    Parameters
+    ----------
+    phyxels : Phyxels
+        Neighbourhoods, weights and inverse moment matrices of the rest configuration.
+
+    Attributes
+    ----------
+    matrix : scipy.sparse.csr_matrix, shape (3N, N)
+        ``D[3i+b, j] = d_ij[b]`` in mm⁻¹; every row sums to zero (so constant fields have zero
+        gradient and internal forces sum to zero).
+    matrix_t : scipy.sparse.csr_matrix, shape (N, 3N)
+        ``Dᵀ`` kept in CSR form for fast adjoint products (force assembly, eq. 22–23).
+    """
+
+    def __init__(self, phyxels: Phyxels):
+        n = phyxels.num_particles
+        pi, pj = phyxels.pair_i, phyxels.pair_j
+        dij = np.einsum("pab,pb->pa", phyxels.moment_inv[pi], phyxels.xij) * phyxels.wij[:, None]
+        dii = -np.stack([np.bincount(pi, weights=dij[:, b], minlength=n) for b in range(3)], axis=1)
+        ar = np.arange(n)
+        rows = np.concatenate([(3 * pi[:, None] + np.arange(3)).ravel(),
+                               (3 * ar[:, None] + np.arange(3)).ravel()])
+        cols = np.concatenate([np.repeat(pj, 3), np.repeat(ar, 3)])
+        vals = np.concatenate([dij.ravel(), dii.ravel()])
+        self.n = n
+        self.matrix = sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, n))
+        self.matrix.sum_duplicates()
+        self.matrix_t = self.matrix.T.tocsr()
+        self.phyxels = phyxels
+
+    def gradient(self, u: np.ndarray) -> np.ndarray:
+        """Displacement gradient at every particle.
+
+        Parameters
+        ----------
+        u : ndarray, shape (N, 3)
+            Displacements of the particles from the rest configuration, mm.
+
+        Returns
+        -------
+        ndarray, shape (N, 3, 3)
+            ``H[i, a, b] = ∂u_a/∂x_b`` (dimensionless); exact for affine ``u``.
+        """
+        u = np.asarray(u, dtype=np.float64)
+        if u.shape != (self.n, 3):
+            raise ValueError(f"displacement must have shape ({self.n}, 3), got {u.shape}")
+        return (self.matrix @ u).reshape(self.n, 3, 3).transpose(0, 2, 1)
+
+    def adjoint(self, p: np.ndarray) -> np.ndarray:
+        """Adjoint of :meth:`gradient`: ``f[j, a] = Σ_i Σ_b p[i, a, b] d_ij[b]``.
+
+        Parameters
+        ----------
+        p : ndarray, shape (N, 3, 3)
+            Per-phyxel tensor (e.g. ``v_i`` × first Piola stress).
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            ``∂/∂u_j`` of ``Σ_i p_i : H_i``.
+        """
+        return self.matrix_t @ np.ascontiguousarray(p.transpose(0, 2, 1)).reshape(3 * self.n, 3)
+
+    def full_matrix(self) -> sp.csr_matrix:
+        """The 9N × 3N operator ``G`` with ``vec(H) = G vec(u)``.
+
+        Row ``9i + 3a + b`` holds ``∂u_a/∂x_b`` at particle ``i``; column ``3j + a`` is ``u_j[a]``.
+        Built on demand (it has 3× the non-zeros of :attr:`matrix`).
+        """
+        coo = self.matrix.tocoo()
+        i, b = np.divmod(coo.row, 3)
+        a = np.arange(3)
+        rows = (9 * i[:, None] + 3 * a + b[:, None]).ravel()
+        cols = (3 * coo.col[:, None] + a).ravel()
+        vals = np.repeat(coo.data, 3)
+        return sp.csr_matrix((vals, (rows, cols)), shape=(9 * self.n, 3 * self.n))

@@ -1,0 +1,539 @@
+"""The meshless deformable model and its fitting scheme (paper §2, eq. 5–15 and 22–23).
+
+A :class:`MeshlessModel` holds the rest (end-diastolic) particle cloud, its phyxels and MLS
+operator, the model frame (material coordinates + rest global parameters) and the current state:
+global parameters ``q_g = (c, θ, a0..a3, τ)`` and the local deformation ``d``. World positions
+are ``x = c + R (s(q_s) + d)``.
+
+:meth:`MeshlessModel.fit` alternates the two stages of the paper:
+
+1. **Global stage** — eq. 15, ``q ← q + D⁻¹ f_q`` with the generalised force
+   ``f_q = Σ_k L_kᵀ f_k`` (eq. 9–14; the force ``f_k = P_k (t_k − x_k)`` at control point k is
+   spread to particles with kernel weights, so ``L_k = Σ_j φ_kj L_j``). The default damping
+   metric is ``D = Σ_k L_kᵀ P_k L_k`` with Levenberg–Marquardt regularisation, i.e. one
+   Gauss–Newton step per iteration (``global_update="gauss-newton"``); the paper's constant
+   diagonal ``D`` with step ``dt`` is available as ``global_update="explicit"``.
+2. **Local stage** — eq. 6, ``D ḋ = f_ext + f_int`` for the local deformation. The default
+   (``local_update="solve"``) takes the step to equilibrium at once: it minimises
+   ``½ κ Σ_k |P_k (t_k − x_k)|² + ½ δᵀ K δ`` with the St Venant–Kirchhoff stiffness ``K``
+   linearised at rest, by Jacobi-preconditioned conjugate gradients on the matrix-free sparse
+   operators (warm-started). ``local_update="explicit"`` is the paper-literal explicit step
+   ``δ ← δ + dt D⁻¹ (f_ext + f_int(δ))`` with the full non-linear internal force and diagonal
+   damping ``D = diag(κ ΦᵀPΦ + K)``.
+
+The internal force acts on the local deformation only (the paper: "the internal force is only
+considered in local deformation"): the elastic energy is that of the displacement field ``δ``
+(``d = d_rest + R₀ᵀ δ``, δ expressed in the rest world frame) on the rest configuration.
+
+**Convergence criterion**: an iteration is the global step followed (once the global stage has
+settled, i.e. its step moved control points by < ``local_start`` mm RMS) by the local step. The
+fit stops when, after a local step (or with the local stage disabled), the RMS change of all
+particle positions in that iteration is below ``tol`` mm, or when the control residual RMS
+is below ``residual_tol`` mm.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from mlv_ros.core.meshless import elastic
+from mlv_ros.core.meshless.globals import (
+    NUM_GLOBAL, NUM_TANGENT, GlobalParameters, ModelCoordinates, ModelFrame, global_shape,
+    model_jacobian, reduce_rotation,
+)
+from mlv_ros.core.meshless.kernel import (
+    NUM_NEIGHBOURS, SUPPORT_FACTOR, build_phyxels, poly6, validate_points,
+)
+from mlv_ros.core.meshless.mls import MLSOperator
+from mlv_ros.core.types import ModelState
+
+
+# --------------------------------------------------------------------------- control points
+@dataclass
+class ControlPoints:
+    """Control points attached to particles by kernel weights.
+
+    Attributes
+    ----------
+    weights : scipy.sparse.csr_matrix, shape (M, N)
+        ``φ_kj``: a control point moves as ``x_k = Σ_j φ_kj x_j``. Rows sum to 1. For control
+        points given as particle indices the row is the unit vector of that particle; for
+        positions it holds linear-MLS shape functions (poly6 weights, support ``3 r̄`` from the 10
+        nearest particles), which reproduce any affine motion exactly.
+    rest_positions : ndarray, shape (M, 3)
+        Positions at rest (ED), mm.
+    indices : ndarray of int or None
+        Particle indices when the control points are particles.
+    shepard : ndarray of bool, shape (M,)
+        Control points whose MLS moment matrix was degenerate (e.g. all nearby particles
+        coplanar); they fall back to normalised kernel (Shepard) weights.
+    """
+
+    weights: sp.csr_matrix
+    rest_positions: np.ndarray
+    indices: np.ndarray | None = None
+    shepard: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def __len__(self) -> int:
+        return int(self.weights.shape[0])
+
+
+def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = None,
+                          k: int = NUM_NEIGHBOURS, support_factor: float = SUPPORT_FACTOR) -> ControlPoints:
+    """Attach control points to the particle cloud.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Rest particle positions, mm.
+    control : array_like
+        Either integer particle indices, shape (M,), or rest positions, shape (M, 3), mm.
+    tree : cKDTree, optional
+        Tree on ``points``.
+
+    Returns
+    -------
+    ControlPoints
+
+    Raises
+    ------
+    ValueError
+        No control points; indices out of range; non-finite positions; a position with no
+        particle within its kernel support (outside the particle cloud).
+    """
+    n = points.shape[0]
+    c = np.asarray(control)
+    if c.size == 0:
+        raise ValueError("no control points: at least one control point (index or position) is required")
+    if c.ndim == 1 and np.issubdtype(c.dtype, np.integer):
+        idx = c.astype(np.int64)
+        if idx.min() < 0 or idx.max() >= n:
+            raise ValueError(f"control point indices must lie in [0, {n}), got range [{idx.min()}, {idx.max()}]")
+        m = idx.size
+        w = sp.csr_matrix((np.ones(m), (np.arange(m), idx)), shape=(m, n))
+        return ControlPoints(w, points[idx].copy(), idx, np.zeros(m, dtype=bool))
+    y = validate_points(c, "control point positions")
+    m = y.shape[0]
+    tree = cKDTree(points) if tree is None else tree
+    kk = min(k, n)
+    dist, _ = tree.query(y, k=kk)
+    h = support_factor * dist.reshape(m, -1).mean(axis=1)
+    lists = tree.query_ball_point(y, r=h, return_sorted=False)
+    counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
+    if np.any(counts == 0):
+        bad = int(np.flatnonzero(counts == 0)[0])
+        raise ValueError(f"control point {bad} at {y[bad].tolist()} has no particle within {h[bad]:.3g} mm")
+    pj = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists])
+    pk = np.repeat(np.arange(m), counts)
+    rel = points[pj] - y[pk]
+    wk = poly6(np.linalg.norm(rel, axis=1), h[pk])
+    # Linear MLS shape functions φ_j = w_j p_jᵀ M⁻¹ p(y), p = (1, x − y): reproduce affine fields.
+    basis = np.concatenate([np.ones((pj.size, 1)), rel / h[pk, None]], axis=1)
+    mom = np.zeros((m, 4, 4))
+    np.add.at(mom, pk, wk[:, None, None] * basis[:, :, None] * basis[:, None, :])
+    sv = np.linalg.svd(mom, compute_uv=False)
+    shepard = ~(sv[:, 3] > 1e-8 * sv[:, 0])
+    rhs = np.zeros((m, 4, 1))
+    rhs[:, 0, 0] = 1.0
+    coef = np.zeros((m, 4))
+    ok = ~shepard
+    if ok.any():
+        coef[ok] = np.linalg.solve(mom[ok], rhs[ok])[:, :, 0]
+    phi = wk * np.einsum("pa,pa->p", basis, coef[pk])
+    wsum = np.bincount(pk, weights=wk, minlength=m)
+    phi = np.where(shepard[pk], wk / wsum[pk], phi)
+    w = sp.csr_matrix((phi, (pk, pj)), shape=(m, n))
+    return ControlPoints(w, y.copy(), None, shepard)
+
+
+def plane_projectors(normals, m: int) -> np.ndarray:
+    """In-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3); identity if ``normals`` is None.
+
+    Parameters
+    ----------
+    normals : array_like, shape (M, 3) or (3,), or None
+        Plane normals (any length > 0; normalised here). A row of NaN is not allowed; to
+        constrain a point fully pass ``normals=None`` or use separate calls.
+    """
+    if normals is None:
+        return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    nrm = np.asarray(normals, dtype=np.float64)
+    if nrm.shape == (3,):
+        nrm = np.broadcast_to(nrm, (m, 3))
+    if nrm.shape != (m, 3):
+        raise ValueError(f"plane_normals must have shape ({m}, 3) or (3,), got {nrm.shape}")
+    if not np.all(np.isfinite(nrm)):
+        raise ValueError("plane_normals contain NaN/inf")
+    ln = np.linalg.norm(nrm, axis=1)
+    if np.any(ln < 1e-12):
+        raise ValueError(f"plane normal {int(np.argmin(ln))} has zero length")
+    nrm = nrm / ln[:, None]
+    return np.eye(3) - nrm[:, :, None] * nrm[:, None, :]
+
+
+# --------------------------------------------------------------------------- result
+@dataclass
+class FitResult:
+    """Outcome of :meth:`MeshlessModel.fit`.
+
+    Attributes
+    ----------
+    positions : ndarray, shape (N, 3)
+        Current particle positions, mm (world).
+    state : ModelState
+        Global parameters and convergence record.
+    iterations : int
+    residual : float
+        RMS over control points of the (in-plane projected) residual ``|P_k (t_k − x_k)|``, mm.
+    converged : bool
+    history : list of dict
+        Per iteration: ``iteration``, ``residual`` (mm), ``global_step`` and ``local_step``
+        (RMS position change, mm), ``local`` (whether the local stage ran), ``cg_iterations``.
+    wall_time : float
+        Seconds spent in the fit.
+    """
+
+    positions: np.ndarray
+    state: ModelState
+    iterations: int
+    residual: float
+    converged: bool
+    history: list = field(default_factory=list)
+    wall_time: float = 0.0
+
+
+# --------------------------------------------------------------------------- model
+class MeshlessModel:
+    """Meshless deformable model on a rest particle cloud.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        Rest (ED) particle positions, mm (world / patient).
+    frame : ModelFrame
+        Rest global parameters and material coordinates of each particle (see
+        :func:`~mlv_ros.core.meshless.globals.polar_frame`,
+        :func:`~mlv_ros.core.meshless.globals.cylindrical_frame`). Any mismatch between the
+        frame's rest shape and ``points`` is kept as a constant ``d_rest``.
+    youngs_modulus, poisson_ratio : float
+        Material (eq. 20). Only the ratio to ``data_weight`` matters for the fit.
+    k, support_factor, cond_max :
+        Phyxel parameters (:func:`~mlv_ros.core.meshless.kernel.build_phyxels`).
+
+    Raises
+    ------
+    ValueError
+        Bad points (shape, NaN/inf, duplicates, < 5), frame size mismatch, bad material.
+    """
+
+    def __init__(self, points, frame: ModelFrame, youngs_modulus: float = 1.0,
+                 poisson_ratio: float = 0.45, *, k: int = NUM_NEIGHBOURS,
+                 support_factor: float = SUPPORT_FACTOR, cond_max: float = 1.0e4):
+        self.rest_points = validate_points(points, "particle positions", min_count=5)
+        n = self.rest_points.shape[0]
+        if not isinstance(frame, ModelFrame):
+            raise ValueError("frame must be a ModelFrame (see polar_frame / cylindrical_frame)")
+        if len(frame.coords) != n:
+            raise ValueError(f"frame has {len(frame.coords)} particles, points has {n}")
+        self.lam, self.mu = elastic.lame_parameters(youngs_modulus, poisson_ratio)
+        self._k, self._support_factor, self._cond_max = k, support_factor, cond_max
+        self.coords: ModelCoordinates = frame.coords
+        self.rest_params: GlobalParameters = frame.params.copy()
+        s_rest = global_shape(self.coords, self.rest_params.a, self.rest_params.tau)
+        self.d_rest = (self.rest_points - self.rest_params.translation) @ self.rest_params.matrix - s_rest
+        self._tree = cKDTree(self.rest_points)
+        self._build_phyxels(None)
+        self.params = self.rest_params.copy()
+        self.delta = np.zeros((n, 3))
+        self._controls_cache: tuple | None = None
+
+    # ---------------------------------------------------------------- structure
+    def _build_phyxels(self, h):
+        self.phyxels = build_phyxels(self.rest_points, self._k, self._support_factor,
+                                     self._cond_max, h=h)
+        self.operator = MLSOperator(self.phyxels)
+        self._kdiag = elastic.stiffness_diagonal(self.operator, self.phyxels.volume, self.lam, self.mu)
+        # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
+        # parameters and δ unique (K is blind to rigid δ, which c and R already express).
+        self._eps_delta = 1e-4 * float(np.median(self._kdiag))
+
+    @property
+    def num_particles(self) -> int:
+        return int(self.rest_points.shape[0])
+
+    def refresh_support(self, tol: float = 0.25) -> bool:
+        """Re-estimate ``h_i = 3 r̄_i`` on the current local configuration (paper: every five
+        iterations) and rebuild the phyxels if any ``h_i`` changed by more than ``tol``
+        (relative). Strain stays Lagrangian: the MLS gradient is always taken on rest positions.
+
+        Returns
+        -------
+        bool
+            Whether the phyxels were rebuilt.
+        """
+        cur = self.rest_points + self.delta
+        knn = self.phyxels.knn
+        rbar = np.linalg.norm(cur[knn] - cur[:, None, :], axis=2).mean(axis=1)
+        h_new = self._support_factor * rbar
+        h_old = self._support_factor * self.phyxels.rbar
+        if np.max(np.abs(h_new / h_old - 1.0)) <= tol:
+            return False
+        self._build_phyxels(self.phyxels.h * (h_new / h_old))  # keeps regrouped enlargements
+        return True
+
+    # ---------------------------------------------------------------- state
+    def reset(self) -> None:
+        """Back to the rest configuration (global parameters = rest, no local deformation)."""
+        self.params = self.rest_params.copy()
+        self.delta[:] = 0.0
+
+    @property
+    def local_deformation(self) -> np.ndarray:
+        """``d`` in the model-centred frame, shape (N, 3), mm."""
+        return self.d_rest + self.delta @ self.rest_params.matrix
+
+    def positions(self) -> np.ndarray:
+        """Current world positions ``x = c + R (s + d)``, shape (N, 3), mm."""
+        p = global_shape(self.coords, self.params.a, self.params.tau) + self.local_deformation
+        return self.params.translation + p @ self.params.matrix.T
+
+    def displacement(self) -> np.ndarray:
+        """``x − x_rest``, shape (N, 3), mm."""
+        return self.positions() - self.rest_points
+
+    def displacement_gradient(self) -> np.ndarray:
+        """MLS displacement gradient relative to the rest (ED) configuration.
+
+        Returns
+        -------
+        ndarray, shape (N, 3, 3)
+            ``H[i, a, b] = ∂u_a/∂X_b`` in world axes; ``J = I + H`` (eq. 18).
+        """
+        return self.operator.gradient(self.displacement())
+
+    def green_lagrange_strain(self) -> np.ndarray:
+        """Lagrangian strain ``E = ½(JᵀJ − I)`` relative to rest (½ convention), shape (N, 3, 3),
+        world axes. Project onto a local cardiac frame ``(e_r, e_c, e_l)`` as ``eᵀ E e``."""
+        return elastic.green_lagrange(self.displacement_gradient())
+
+    def state(self, **kw) -> ModelState:
+        """The current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
+        p = self.params
+        return ModelState(translation=p.translation.copy(), rotation=p.rotation.copy(),
+                          a0=float(p.a[0]), a1=float(p.a[1]), a2=float(p.a[2]), a3=float(p.a[3]),
+                          tau=float(p.tau), num_particles=self.num_particles, **kw)
+
+    def attach(self, control) -> ControlPoints:
+        """Attach control points (particle indices or rest positions); see
+        :func:`attach_control_points`. Reuse the result across phases to skip the kernel work."""
+        return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor)
+
+    # ---------------------------------------------------------------- fitting
+    def _local_metric(self, proj, phi, kappa):
+        """``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
+        stage ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3)."""
+        q = self.params.matrix @ self.rest_params.matrix.T
+        pq = np.einsum("ba,mbc,cd->mad", q, proj, q)
+        diag_data = (phi.multiply(phi)).T @ np.einsum("maa->ma", pq)
+        prec = kappa * diag_data + self._kdiag + self._eps_delta
+        return q, pq, prec
+
+    def _lm_step(self, dmat, fq, res, mu_lm, residual_fn):
+        """One Levenberg–Marquardt step ``Δ = (D + μ)⁻¹ f_q`` in Jacobi-scaled coordinates.
+
+        Directions the data cannot see (the a0 ↔ a1..a3 gauge; parameters left unconstrained by
+        too few or in-plane-only control points) are dropped instead of inverted. μ shrinks
+        after a step that lowers the residual and grows (up to 12 tries) otherwise.
+        """
+        cost = float(np.einsum("ma,ma->", res, res))
+        scale = np.sqrt(np.diag(dmat))
+        scale = np.where(scale > 1e-12 * max(scale.max(), 1e-300), scale, np.inf)
+        evals, evecs = np.linalg.eigh(dmat / np.outer(scale, scale))
+        keep = evals > 1e-10 * max(evals.max(), 1e-300)
+        fn = evecs.T @ (fq / scale)
+        for _ in range(12):
+            step = (evecs[:, keep] @ (fn[keep] / (evals[keep] + mu_lm))) / scale
+            res_t = residual_fn(self.params.stepped(step))
+            if float(np.einsum("ma,ma->", res_t, res_t)) <= cost:
+                return step, max(mu_lm / 3.0, 1e-9)
+            mu_lm *= 4.0
+        return np.zeros_like(fq), mu_lm
+
+    def fit(self, control, targets, plane_normals=None, *, max_iterations: int = 200,
+            tol: float = 5e-4, residual_tol: float = 0.0, warm_start: bool = True,
+            local: bool = True, data_weight: float = 100.0,
+            global_update: str = "gauss-newton", local_update: str = "solve",
+            dt: float = 1.0, local_start: float = 1e-3, cg_maxiter: int = 100,
+            cg_rtol: float = 1e-3, refresh_every: int = 5,
+            callback: Callable[[int, "MeshlessModel"], None] | None = None) -> FitResult:
+        """Fit the model to control-point targets (one cardiac phase).
+
+        Parameters
+        ----------
+        control : ControlPoints or array_like
+            From :meth:`attach`, or integer particle indices (M,), or rest positions (M, 3), mm.
+        targets : array_like, shape (M, 3)
+            Target world positions of the control points, mm.
+        plane_normals : array_like, shape (M, 3) or (3,), optional
+            If given, only the in-plane part ``(I − n nᵀ)(t − x)`` of each residual acts (a 2D
+            image measures in-plane motion only).
+        max_iterations : int
+            Upper bound on iterations (global step + local step).
+        tol : float
+            Convergence: RMS change of all particle positions in one iteration, mm.
+        residual_tol : float
+            Also stop when the control residual RMS falls below this, mm (0 = off).
+        warm_start : bool
+            Start from the current state (previous phase) instead of the rest state.
+        local : bool
+            Enable the local stage (off: global parameters only, ``d = d_rest``).
+        data_weight : float
+            Spring constant of the external forces relative to the median diagonal of the
+            stiffness: larger follows the data more closely, smaller smooths more.
+        global_update : {"gauss-newton", "explicit"}
+            Damping metric of eq. 15: ``D = LᵀPL`` (+ LM) or the paper's constant diagonal
+            (``dt`` step).
+        local_update : {"solve", "explicit"}
+            Equilibrium solve (PCG, linearised stiffness) or paper-literal explicit step.
+        dt : float
+            Step of the explicit updates.
+        local_start : float
+            The local stage starts once a global step moves control points < this, mm RMS.
+        cg_maxiter, cg_rtol :
+            Limits of the Jacobi-preconditioned CG per local step (inexact solves; δ accumulates
+            over iterations).
+        refresh_every : int
+            Re-estimate the kernel support every this many iterations (0 = never).
+        callback : callable, optional
+            ``callback(iteration, model)`` after every iteration.
+
+        Returns
+        -------
+        FitResult
+
+        Raises
+        ------
+        ValueError
+            No control points, target/normal shape mismatch, NaN/inf targets or normals, unknown
+            update scheme.
+        """
+        t0 = time.perf_counter()
+        ctrl = control if isinstance(control, ControlPoints) else self.attach(control)
+        m = len(ctrl)
+        tgt = np.asarray(targets, dtype=np.float64)
+        if tgt.shape != (m, 3):
+            raise ValueError(f"targets must have shape ({m}, 3) to match the control points, got {tgt.shape}")
+        if not np.all(np.isfinite(tgt)):
+            raise ValueError(f"targets contain NaN/inf (first bad row {int(np.flatnonzero(~np.isfinite(tgt).all(1))[0])})")
+        proj = plane_projectors(plane_normals, m)
+        if global_update not in ("gauss-newton", "explicit"):
+            raise ValueError(f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}")
+        if local_update not in ("solve", "explicit"):
+            raise ValueError(f"local_update must be 'solve' or 'explicit', got {local_update!r}")
+        if not warm_start:
+            self.reset()
+
+        phi = ctrl.weights
+        support = np.unique(phi.indices)
+        phi_s = phi[:, support].tocsr()
+        coords_s = self.coords.subset(support)
+        phi_t = phi.T.tocsr()
+        kappa = data_weight * float(np.median(self._kdiag))
+        vol = self.phyxels.volume
+
+        def ctrl_positions(params, d_s):
+            p = global_shape(coords_s, params.a, params.tau) + d_s
+            return phi_s @ (params.translation + p @ params.matrix.T)
+
+        def residual(params, d_s):
+            return np.einsum("mab,mb->ma", proj, tgt - ctrl_positions(params, d_s))
+
+        mu_lm = 1e-3
+        d_diag_const = None
+        history = []
+        converged = False
+        local_active = not local
+        it = 0
+        d_s = self.local_deformation[support]
+        res = residual(self.params, d_s)
+        n = self.num_particles
+        for it in range(1, max_iterations + 1):
+            lmat = model_jacobian(self.params, coords_s, d_s)
+            lk = (phi_s @ lmat.reshape(len(support), 3 * NUM_GLOBAL)).reshape(m, 3, NUM_GLOBAL)
+            lk = reduce_rotation(lk, self.params.rotation)          # L_k = Σ_j φ_kj L_j (eq. 14)
+            plk = np.einsum("mab,mbk->mak", proj, lk)
+            dmat = np.einsum("mak,mal->kl", plk, plk)                # D = Σ L_kᵀ P_k L_k
+            fq = np.einsum("mak,ma->k", plk, res)                   # f_q = Σ L_kᵀ f_k (eq. 10–13)
+            g_step = l_step = 0.0
+            x_prev = self.positions() if (local and local_active) else None
+            cg_its, ran_local = 0, False
+            # ---- global stage (eq. 15)
+            if global_update == "gauss-newton":
+                step, mu_lm = self._lm_step(dmat, fq, res, mu_lm, lambda p: residual(p, d_s))
+            else:
+                if d_diag_const is None:  # paper: D diagonal and constant over time
+                    dd = np.diag(dmat)
+                    d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
+                step = dt * fq / d_diag_const
+            g_step = float(np.sqrt(np.mean(np.sum(np.einsum("mak,k->ma", lk, step) ** 2, axis=1))))
+            self.params = self.params.stepped(step)
+            res = residual(self.params, d_s)
+            if local and not local_active and g_step < local_start:
+                local_active = True
+            elif local and local_active:
+                # ---- local stage (eq. 6, 22–23) with the global parameters held
+                ran_local = True
+                q, pq, prec = self._local_metric(proj, phi, kappa)
+                force = kappa * (phi_t @ (res @ q))                 # f_ext spread by the kernel
+                if local_update == "explicit":
+                    fint = elastic.internal_forces(self.operator, self.delta, vol, self.lam, self.mu)
+                    dx = dt * (force + fint - self._eps_delta * self.delta) / prec
+                else:
+                    # Equilibrium of D ḋ = f_ext + f_int in one step: solve
+                    # (κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ by PCG.
+                    rhs = force - elastic.linear_stiffness_apply(
+                        self.operator, self.delta, vol, self.lam, self.mu) - self._eps_delta * self.delta
+
+                    def matvec(v):
+                        v = v.reshape(n, 3)
+                        data = phi_t @ np.einsum("mab,mb->ma", pq, phi @ v)
+                        return (kappa * data + elastic.linear_stiffness_apply(
+                            self.operator, v, vol, self.lam, self.mu) + self._eps_delta * v).ravel()
+
+                    op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
+                    precond = spla.LinearOperator((3 * n, 3 * n), matvec=lambda v: v / prec.ravel(),
+                                                  dtype=np.float64)
+                    counter = [0]
+                    dx, _ = spla.cg(op, rhs.ravel(), rtol=cg_rtol, atol=1e-9 * kappa * np.sqrt(m),
+                                    maxiter=cg_maxiter, M=precond,
+                                    callback=lambda _x: counter.__setitem__(0, counter[0] + 1))
+                    dx = dx.reshape(n, 3)
+                    cg_its = counter[0]
+                if np.all(np.isfinite(dx)):
+                    self.delta += dx
+            if ran_local:
+                # Step measure of a local iteration: RMS change of ALL particle positions (δ
+                # alone can trade rigid modes with c and R without moving anything).
+                l_step = float(np.sqrt(np.mean(np.sum((self.positions() - x_prev) ** 2, axis=1))))
+                d_s = self.local_deformation[support]
+                res = residual(self.params, d_s)
+                if refresh_every and it % refresh_every == 0 and self.refresh_support():
+                    vol = self.phyxels.volume
+            rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+            history.append({"iteration": it, "residual": rms, "global_step": g_step,
+                            "local_step": l_step, "local": ran_local, "cg_iterations": cg_its})
+            if callback is not None:
+                callback(it, self)
+            if rms < residual_tol or (ran_local and l_step < tol) or (not local and g_step < tol):
+                converged = True
+                break
+        rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        state = self.state(iterations=it, residual=rms, converged=converged, num_control_points=m)
+        return FitResult(self.positions(), state, it, rms, converged, history, time.perf_counter() - t0)
