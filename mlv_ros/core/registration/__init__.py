@@ -16,3 +16,4 @@ landmarks), :mod:`.initialise` (3-D reconstruction, particles, polar frame), :mo
 from mlv_ros.core.registration.register import (  # noqa: F401
     MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed,
 )
+from mlv_ros.core.registration.streaming import StreamingMasker  # noqa: F401,E402
