@@ -403,6 +403,7 @@ METRIC_LEVEL_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudi
 METRIC_SCALAR_FIELDS = ("time_fraction", "la_radius_mm", "torsion_deg_per_cm", "cavity_volume_ml",
                         "ejection_fraction")
 METRIC_SEGMENT_FIELDS = ("segment_err", "segment_ecc", "segment_ell")
+METRIC_COUNT_FIELDS = ("level_count", "segment_count")  # optional in the input (default empty)
 
 
 def _metrics_value(metrics, name):
@@ -435,6 +436,16 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         v = float(_metrics_value(metrics, name))
         _require_finite(name, np.array([v]))
         setattr(msg, name, v)
+    for name, want in zip(METRIC_COUNT_FIELDS, (lengths.pop() if lengths else 0, 17)):
+        try:
+            v = np.asarray(_metrics_value(metrics, name)).reshape(-1)
+        except (KeyError, AttributeError):
+            v = np.zeros(0)
+        if v.size not in (0, want):
+            raise ValueError(f"{name} must have 0 or {want} entries, got {v.size}")
+        if v.size and (np.any(v < 0) or not np.all(np.isfinite(v))):
+            raise ValueError(f"{name} must hold non-negative counts")
+        setattr(msg, name, _fast_array("I", v, np.uint32))
     return msg
 
 
@@ -453,4 +464,6 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
             raise ValueError(f"{name} must have 0 or 17 entries, got {out[name].size}")
     for name in METRIC_SCALAR_FIELDS:
         out[name] = float(getattr(msg, name))
+    for name in METRIC_COUNT_FIELDS:
+        out[name] = np.frombuffer(getattr(msg, name), dtype=np.uint32).astype(np.int64)
     return out

@@ -75,10 +75,14 @@ class GraphNode(Node):
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
         self._status = status
         self._publish(status)
-        extra = " ".join(f"{k}={v}" for k, v in values.items())
-        log = {OK: self.get_logger().info, WARN: self.get_logger().warning}.get(level, self.get_logger().error)
-        log(f"{message} {extra}".strip())
-
+        text = f"{message} " + " ".join(f"{k}={v}" for k, v in values.items())
+        # rclpy ties a severity to each call site, so each level needs its own line.
+        if level == OK:
+            self.get_logger().info(text.strip())
+        elif level == WARN:
+            self.get_logger().warning(text.strip())
+        else:
+            self.get_logger().error(text.strip())
 
     def _publish(self, status: DiagnosticStatus) -> None:
         arr = DiagnosticArray(status=[status])

@@ -36,6 +36,18 @@ def read_bag_frames(path) -> list[Frame]:
             for m in bagio.read_bag(path, topics=[qos.FRAMES])]
 
 
+def count_slices(frames: list[Frame]) -> list[Frame]:
+    """Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
+    know when a phase is complete)."""
+    from mlv_ros.core.types import VIEW_LA, VIEW_SA
+
+    sa = len({f.slice_index for f in frames if f.view == VIEW_SA})
+    la = len({f.slice_index for f in frames if f.view == VIEW_LA})
+    for f in frames:
+        f.num_sa_slices, f.num_la_slices = sa, la
+    return frames
+
+
 class FrameSource(GraphNode):
     def __init__(self, **node_kwargs):
         super().__init__("frame_source", **node_kwargs)
@@ -52,7 +64,7 @@ class FrameSource(GraphNode):
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting for subscribers after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop the node once every frame is acknowledged")
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.stream_qos())
-        self.frames = order_frames(self._load(), self.order)
+        self.frames = order_frames(count_slices(self._load()), self.order)
         self.published = 0
         self._t0 = time.monotonic()
         self._started = None

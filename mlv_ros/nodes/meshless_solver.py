@@ -1,17 +1,163 @@
-"""meshless_solver: solves each phase's dense motion from tag constraints (→ /lv/motion, /lv/model_state).
+"""meshless_solver: dense LV motion phase by phase (``/mlv/tag_points`` + the registered model →
+``/lv/motion``, ``/lv/model_state``).
 
-Not implemented yet: the node starts, declares its interface, reports on /diagnostics and spins.
+Tag point sets are assembled per phase as slices arrive, in any order (a duplicate replaces its
+earlier copy). Phase t is solved as soon as every slice's set is in — warm-started from t−1 —
+or, when a slice never comes, once a later phase is complete or no input has arrived for
+``incomplete_timeout_s`` (with a warning naming what is missing). ``/lv/motion`` carries, per
+particle: ``x, y, z`` position at this phase (patient mm), ``dx, dy, dz`` displacement from ED
+(mm) and Green–Lagrange strain components ``err, ecc, ell`` (radial, circumferential,
+longitudinal, relative to ED).
 """
 
 from __future__ import annotations
 
-from mlv_ros.nodes.common import WARN, GraphNode, run_node
+import time
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2
+
+from mlv_msgs.msg import ModelState as ModelStateMsg
+from mlv_msgs.msg import TagPoints
+from mlv_ros import conversions, qos
+from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
+from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+
+MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
 
 
 class MeshlessSolver(GraphNode):
     def __init__(self, **node_kwargs):
         super().__init__("meshless_solver", **node_kwargs)
-        self.report(WARN, "meshless_solver is a placeholder in this version; it only spins")
+        self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
+        self.hourglass_weight = self.param("hourglass_weight", 1.0e3, "MLS fit-error (zero-energy mode) stiffness relative to elasticity", min_value=0.0, max_value=1e9)
+        self.slice_following = self.param("slice_following", 2, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
+        self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
+        self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
+        self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.stream_qos())
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.MODEL_STATE, qos.stream_qos())
+        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_cloud, qos.latched_qos())
+        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_state, qos.latched_qos())
+        self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points, qos.stream_qos())
+        self.assembler = PhaseAssembler()
+        self.cloud = None
+        self.rest_state = None
+        self.tracker = None
+        self.next_phase = 0
+        self.num_phases = 0
+        self.last_input = time.monotonic()
+        self.phases_published = 0
+        self.messages_handled = 0
+        self.create_timer(0.2, self._on_timer)
+        self.report(OK, "waiting for the registered model")
+
+    # ------------------------------------------------------------------ inputs
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        try:
+            self.cloud = conversions.msg_to_cloud(msg, required=("x", "y", "z", "alpha", "beta", "w"))
+        except ValueError as exc:
+            self.report(ERROR, "bad registered cloud", reason=str(exc))
+            return
+        self._build()
+
+    def _on_state(self, msg: ModelStateMsg) -> None:
+        try:
+            self.rest_state = conversions.msg_to_model_state(msg)
+        except ValueError as exc:
+            self.report(ERROR, "bad registered state", reason=str(exc))
+            return
+        self._build()
+
+    def _build(self) -> None:
+        if self.cloud is None or self.rest_state is None or self.tracker is not None:
+            return
+        c, s = self.cloud, self.rest_state
+        pts = conversions.xyz(c)
+        try:
+            self.tracker = MotionTracker(
+                pts, s.translation, s.rotation, polar=(c["alpha"], c["beta"], c["w"]),
+                shape=(s.a0, s.a1, s.a2, s.a3, s.tau), data_weight=self.data_weight, hourglass_weight=self.hourglass_weight,
+                slice_following=self.slice_following, max_iterations=self.max_iterations)
+        except ValueError as exc:
+            self.report(ERROR, "cannot build the model from the registration", reason=str(exc))
+            return
+        apex, base, ref = lv_frame_axes(pts, s.rotation)
+        self.cardiac = cardiac_coordinates(pts, LVFrame(apex, base, ref))
+        self.report(OK, "model ready", particles=len(pts))
+        self._advance()
+
+    def _on_points(self, msg: TagPoints) -> None:
+        self.messages_handled += 1
+        self.last_input = time.monotonic()
+        try:
+            points = conversions.msg_to_tagpoints(msg)
+        except ValueError as exc:
+            self.report(ERROR, "bad tag points dropped", view=msg.view, slice=msg.slice_index,
+                        phase=msg.phase_index, reason=str(exc))
+            return
+        self.num_phases = max(self.num_phases, points.num_phases)
+        if points.phase_index < self.next_phase:
+            self.report(WARN, "tag points for an already solved phase ignored", view=points.view,
+                        slice=points.slice_index, phase=points.phase_index)
+            return
+        if self.assembler.add(points):
+            self.report(WARN, "duplicate tag points replace the earlier set", view=points.view,
+                        slice=points.slice_index, phase=points.phase_index)
+        self._advance()
+
+    def _on_timer(self) -> None:
+        if self.tracker is None or self.next_phase >= max(self.num_phases, 1):
+            return
+        if self.assembler.sets(self.next_phase) and time.monotonic() - self.last_input > self.incomplete_timeout_s:
+            self._advance(force=True)
+
+    # ------------------------------------------------------------------ solving
+    def _advance(self, force: bool = False) -> None:
+        """Solve every phase that is ready, in order."""
+        if self.tracker is None:
+            return
+        while self.num_phases and self.next_phase < self.num_phases:
+            p = self.next_phase
+            later_complete = any(self.assembler.complete(q) for q in self.assembler.phases if q > p)
+            if not (self.assembler.complete(p) or later_complete or force):
+                return
+            force = False
+            sets = self.assembler.sets(p)
+            if not self.assembler.complete(p):
+                self.report(WARN, "solving an incomplete phase", phase=p, slices=len(sets),
+                            expected=self.assembler.expected_slices)
+            self._solve(p, sets)
+            self.assembler.phases.pop(p, None)
+            self.next_phase = p + 1
+
+    def _solve(self, phase: int, sets: dict) -> None:
+        t0 = time.monotonic()
+        tr = self.tracker
+        if phase == 0:
+            used = sum(tr.set_reference(pts) for pts in sets.values())
+            x, E = tr.rest, np.zeros((tr.num_particles, 3, 3))
+            state = self.rest_state
+            state.phase_index, state.num_phases, state.num_control_points = 0, self.num_phases, used
+            state.converged = True
+        else:
+            try:
+                sol = tr.solve(phase, sets, self.num_phases)
+            except ValueError as exc:
+                self.report(ERROR, "phase not solved", phase=phase, reason=str(exc))
+                return
+            x, E, state = sol.positions, sol.strain, sol.state
+        strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
+        d = x - tr.rest
+        cloud = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2],
+                 "err": strain["rr"], "ecc": strain["cc"], "ell": strain["ll"]}
+        stamp = self.get_clock().now().to_msg()
+        self.motion_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp)))
+        self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
+        self.phases_published += 1
+        self.report(OK, "phase solved", phase=phase, control_points=state.num_control_points,
+                    residual_mm=round(float(state.residual), 3), iterations=state.iterations,
+                    seconds=round(time.monotonic() - t0, 3))
 
 
 def main(args=None):

@@ -1,17 +1,110 @@
-"""motion_analyzer: per-phase motion metrics from /lv/motion (→ /lv/metrics).
+"""motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
+``/lv/metrics``, ``mlv_msgs/MotionMetrics``).
 
-Not implemented yet: the node starts, declares its interface, reports on /diagnostics and spins.
+Each motion cloud is paired with the model state of identical header stamp (the solver stamps
+both alike; the state carries the phase index), as message_filters' exact-time synchroniser
+does. The LV frame (apex, base, circumferential reference) comes from the registered ED model;
+strain is estimated by MLS from the positions (:class:`~mlv_ros.core.analysis.LVAnalyzer`).
 """
 
 from __future__ import annotations
 
-from mlv_ros.nodes.common import WARN, GraphNode, run_node
+import numpy as np
+from sensor_msgs.msg import PointCloud2
+
+from mlv_msgs.msg import ModelState as ModelStateMsg
+from mlv_msgs.msg import MotionMetrics
+from mlv_ros import conversions, qos
+from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+from mlv_ros.core.tracking import lv_frame_axes
+from mlv_ros.nodes.common import ERROR, OK, GraphNode, run_node
+
+
+def _key(stamp) -> tuple:
+    return (stamp.sec, stamp.nanosec)
 
 
 class MotionAnalyzer(GraphNode):
     def __init__(self, **node_kwargs):
         super().__init__("motion_analyzer", **node_kwargs)
-        self.report(WARN, "motion_analyzer is a placeholder in this version; it only spins")
+        self.levels = self.param("levels", 10, "level bins apex → base", min_value=2, max_value=100)
+        self.endo_fraction = self.param("endo_fraction", 0.2, "transmural depth counted as endocardium (cavity volume)", min_value=0.01, max_value=1.0)
+        self.pub = self.create_publisher(MotionMetrics, qos.METRICS, qos.stream_qos())
+        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_registered_cloud, qos.latched_qos())
+        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_registered_state, qos.latched_qos())
+        self.create_subscription(PointCloud2, qos.MOTION, self._on_motion, qos.stream_qos())
+        self.create_subscription(ModelStateMsg, qos.MODEL_STATE, self._on_state, qos.stream_qos())
+        self.reg_cloud = self.reg_state = self.analyzer = None
+        self.clouds: dict = {}
+        self.states: dict = {}
+        self.published = 0
+        self.messages_handled = 0
+        self.report(OK, "waiting for the registered model")
+
+    def _on_registered_cloud(self, msg):
+        try:
+            self.reg_cloud = conversions.msg_to_cloud(msg, required=("x", "y", "z"))
+        except ValueError as exc:
+            self.report(ERROR, "bad registered cloud", reason=str(exc))
+        self._build()
+
+    def _on_registered_state(self, msg):
+        try:
+            self.reg_state = conversions.msg_to_model_state(msg)
+        except ValueError as exc:
+            self.report(ERROR, "bad registered state", reason=str(exc))
+        self._build()
+
+    def _build(self):
+        if self.analyzer is not None or self.reg_cloud is None or self.reg_state is None:
+            return
+        X = conversions.xyz(self.reg_cloud)
+        apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
+        endo = None
+        if "transmural" in self.reg_cloud.dtype.names:
+            endo = self.reg_cloud["transmural"] <= self.endo_fraction
+            endo = endo if endo.sum() >= 20 else None
+        try:
+            self.analyzer = LVAnalyzer(X, LVFrame(apex, base, ref), levels=self.levels, endo_mask=endo)
+        except ValueError as exc:
+            self.report(ERROR, "cannot analyse this model", reason=str(exc))
+            return
+        self.report(OK, "analyzer ready", particles=len(X), edv_ml=round(self.analyzer.edv_ml, 1))
+        self._pair()
+
+    def _on_motion(self, msg: PointCloud2):
+        self.messages_handled += 1
+        try:
+            self.clouds[_key(msg.header.stamp)] = conversions.xyz(conversions.msg_to_cloud(msg, required=("x", "y", "z")))
+        except ValueError as exc:
+            self.report(ERROR, "bad motion cloud dropped", reason=str(exc))
+            return
+        self._pair()
+
+    def _on_state(self, msg: ModelStateMsg):
+        self.messages_handled += 1
+        self.states[_key(msg.header.stamp)] = msg
+        self._pair()
+
+    def _pair(self):
+        if self.analyzer is None:
+            return
+        for key in [k for k in self.clouds if k in self.states]:
+            x, state = self.clouds.pop(key), self.states.pop(key)
+            if x.shape[0] != self.analyzer.X.shape[0]:
+                self.report(ERROR, "motion cloud does not match the registered model", phase=state.phase_index,
+                            points=x.shape[0], expected=self.analyzer.X.shape[0])
+                continue
+            try:
+                metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases)
+                out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
+            except ValueError as exc:
+                self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
+                continue
+            self.pub.publish(out)
+            self.published += 1
+            self.report(OK, "metrics", phase=state.phase_index, volume_ml=round(metrics.cavity_volume_ml, 1),
+                        twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
 
 
 def main(args=None):

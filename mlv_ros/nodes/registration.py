@@ -1,17 +1,104 @@
-"""registration: registers the meshless model to the ED images (→ /mlv/registered_cloud, /mlv/registered_state).
+"""registration: registers the meshless model to the end-diastolic images
+(``/mlv/frames`` → ``/mlv/registered_cloud``, ``/mlv/registered_state``, both latched).
 
-Not implemented yet: the node starts, declares its interface, reports on /diagnostics and spins.
+Collects the ED frame (phase 0) of every slice; once all ``num_sa_slices + num_la_slices`` are
+in, or ``ed_timeout_s`` after the first one with at least ``min_sa_slices``, segments them,
+reconstructs the myocardium, samples particles and registers the model (paper §3.2, Fig. 7).
+The cloud carries each particle's position and its polar model coordinates (α, β, w) and
+transmural depth, so the solver rebuilds exactly the same model.
 """
 
 from __future__ import annotations
 
-from mlv_ros.nodes.common import WARN, GraphNode, run_node
+import time
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2
+
+from mlv_msgs.msg import ModelState as ModelStateMsg
+from mlv_msgs.msg import TaggedFrame
+from mlv_ros import conversions, qos
+from mlv_ros.core.types import VIEW_SA
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+
+CLOUD_FIELDS = ("x", "y", "z", "alpha", "beta", "w", "transmural")
 
 
 class Registration(GraphNode):
     def __init__(self, **node_kwargs):
         super().__init__("registration", **node_kwargs)
-        self.report(WARN, "registration is a placeholder in this version; it only spins")
+        self.num_particles = self.param("num_particles", 3000, "model particles", min_value=100, max_value=200000)
+        self.seed = self.param("seed", 0, "particle sampling seed", min_value=0, max_value=2**31 - 1)
+        self.ed_timeout_s = self.param("ed_timeout_s", 5.0, "register with the ED slices present this long after the first", min_value=0.1, max_value=3600.0)
+        self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
+        self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.latched_qos())
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.latched_qos())
+        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.stream_qos())
+        self.ed_frames: dict = {}
+        self.expected = 0
+        self.first_at = None
+        self.registered = False
+        self.result = None
+        self.messages_handled = 0
+        self.create_timer(0.25, self._check_timeout)
+        self.report(OK, "waiting for ED frames")
+
+    def _on_frame(self, msg: TaggedFrame) -> None:
+        self.messages_handled += 1
+        if msg.phase_index != 0 or self.registered:
+            return
+        try:
+            frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
+        except ValueError as exc:
+            self.report(ERROR, "bad ED frame ignored", view=msg.view, slice=msg.slice_index, reason=str(exc))
+            return
+        key = (frame.view, frame.slice_index)
+        if key in self.ed_frames:
+            self.report(WARN, "duplicate ED frame replaces the earlier one", view=key[0], slice=key[1])
+        self.ed_frames[key] = frame
+        self.expected = max(self.expected, frame.num_sa_slices + frame.num_la_slices)
+        self.first_at = self.first_at or time.monotonic()
+        if self.expected and len(self.ed_frames) >= self.expected:
+            self._register()
+
+    def _check_timeout(self) -> None:
+        if self.registered or self.first_at is None:
+            return
+        if time.monotonic() - self.first_at < self.ed_timeout_s:
+            return
+        sa = sum(1 for v, _ in self.ed_frames if v == VIEW_SA)
+        if sa >= self.min_sa_slices:
+            self.report(WARN, "registering without every ED slice", have=len(self.ed_frames), expected=self.expected)
+            self._register()
+
+    def _register(self) -> None:
+        from mlv_ros.core.registration import register_ed
+
+        self.registered = True
+        t0 = time.monotonic()
+        try:
+            res = register_ed(list(self.ed_frames.values()), num_particles=self.num_particles, seed=self.seed)
+        except ValueError as exc:
+            self.report(ERROR, "registration failed", reason=str(exc), slices=len(self.ed_frames))
+            return
+        for rep in res.slice_reports:
+            if not rep.ok:
+                self.report(WARN, "slice not used for registration", view=rep.view, slice=rep.slice_index, reason=rep.reason)
+        for w in res.warnings:
+            self.report(WARN, "registration", warning=w)
+        self.result = res
+        coords = res.frame.coords
+        cloud = {"x": res.particles[:, 0], "y": res.particles[:, 1], "z": res.particles[:, 2],
+                 "alpha": res.polar["alpha"], "beta": res.polar["beta"], "w": res.polar["w"],
+                 "transmural": res.polar.get("transmural", np.zeros(len(coords)))}
+        stamp = self.get_clock().now().to_msg()
+        self.cloud_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud, np.float64),
+                                                        conversions.make_header(stamp)))
+        state = res.state
+        state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
+        self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
+        self.report(OK, "registered", particles=len(res.particles), slices=len(self.ed_frames),
+                    seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3))
 
 
 def main(args=None):

@@ -1,0 +1,367 @@
+"""Phase-by-phase dense motion from tracked tag points: the solver node's core (no rclpy).
+
+Tag intersections give sparse 2D constraints: a track seen at ED at 3D position ``p0`` (in its
+image plane) and at phase t at ``m_t`` (in the same, fixed plane). SPAMM tag planes run through
+the slab, so the intersection seen at phase t is the material *line* ``p0 + s·n`` (n = slice
+normal) where it crosses the plane now — with through-plane motion (the base descends ≈ 12 mm)
+that is not the material point ``p0``. Each control point is therefore attached at
+``p0 + s·n`` with ``s`` chosen so that the model puts it back in the plane ("slice following"),
+re-estimated between fits, and only its in-plane residual acts (paper §2.2, method notes).
+
+Classes
+-------
+PhaseAssembler
+    Collects :class:`~mlv_ros.core.types.TagPointSet` per phase as slices arrive in any order
+    (duplicates replace earlier copies) and says when a phase is complete.
+MotionTracker
+    Holds the meshless model built from the registered ED cloud and solves phases in order,
+    warm-starting each from the previous one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
+                                   polar_frame, quat_to_matrix)
+from mlv_ros.core.types import ModelState, TagPointSet
+
+SliceKey = tuple  # (view, slice_index)
+
+
+# --------------------------------------------------------------------------- assembling
+@dataclass
+class PhaseAssembler:
+    """Per-phase buffer of tag point sets.
+
+    Parameters
+    ----------
+    expected_slices : int
+        Slices (SA + LA) whose sets make a phase complete; 0 = unknown yet (taken from the sets'
+        ``num_sa_slices + num_la_slices``).
+    """
+
+    expected_slices: int = 0
+    phases: dict = field(default_factory=dict)  # phase → {(view, slice): TagPointSet}
+    duplicates: int = 0
+
+    def add(self, points: TagPointSet) -> bool:
+        """Store a set; returns True if it replaced one already held (a duplicate)."""
+        if not self.expected_slices and (points.num_sa_slices or points.num_la_slices):
+            self.expected_slices = int(points.num_sa_slices + points.num_la_slices)
+        slot = self.phases.setdefault(int(points.phase_index), {})
+        key = (int(points.view), int(points.slice_index))
+        dup = key in slot
+        slot[key] = points
+        self.duplicates += dup
+        return dup
+
+    def complete(self, phase: int) -> bool:
+        return bool(self.expected_slices) and len(self.phases.get(phase, {})) >= self.expected_slices
+
+    def sets(self, phase: int) -> dict:
+        return self.phases.get(phase, {})
+
+    def missing(self, phase: int, all_keys) -> list:
+        """Slice keys of ``all_keys`` with no set at ``phase``."""
+        have = self.phases.get(phase, {})
+        return [k for k in all_keys if k not in have]
+
+
+# --------------------------------------------------------------------------- solving
+@dataclass
+class PhaseSolution:
+    """Dense motion at one phase.
+
+    Attributes
+    ----------
+    positions : ndarray, shape (N, 3)
+        Particle positions, mm (patient).
+    displacement : ndarray, shape (N, 3)
+        From ED, mm.
+    strain : ndarray, shape (N, 3, 3)
+        Green–Lagrange strain ``E = ½(FᵀF − I)`` relative to ED (patient axes).
+    state : ModelState
+        Global parameters and convergence record.
+    num_constraints : int
+        Control points used.
+    """
+
+    phase_index: int
+    positions: np.ndarray
+    displacement: np.ndarray
+    strain: np.ndarray
+    state: ModelState
+    num_constraints: int
+
+
+class MotionTracker:
+    """Dense LV motion through the cycle from tracked tag points.
+
+    Parameters
+    ----------
+    particles : array_like, shape (N, 3)
+        Registered ED particles, mm (patient).
+    centre : array_like, shape (3,)
+        Model origin c, mm.
+    rotation : array_like, shape (4,)
+        Unit quaternion (w, x, y, z) of R: its z axis is the long axis (apex → base), its x axis
+        the β = 0 reference.
+    a0 : float, optional
+        Model scale, mm (default from the particles).
+    polar : tuple of ndarray (alpha, beta, w), each shape (N,), optional
+        The registration's polar model coordinates; with ``shape`` they rebuild its model
+        frame exactly. Default: :func:`~mlv_ros.core.meshless.polar_frame` of the particles.
+    shape : sequence (a0, a1, a2, a3, tau), optional
+        Rest global shape parameters that go with ``polar``.
+    data_weight : float
+        External-force stiffness relative to the elastic stiffness (larger follows the tags
+        more closely).
+    slice_following : int
+        Re-attachment passes per phase that keep each control point on its image plane.
+    max_attach_mm : float
+        Tag points farther than this from every particle (outside the model) are not used.
+    """
+
+    def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
+                 data_weight: float = 1.0e4, slice_following: int = 2, max_attach_mm: float = 3.0,
+                 max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
+                 hourglass_weight: float = 1.0e3):
+        pts = np.asarray(particles, dtype=np.float64)
+        R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
+        if polar is not None:
+            a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
+            params = GlobalParameters(np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4])
+            frame = ModelFrame(params, ModelCoordinates.polar(*polar))
+        else:
+            frame = polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
+        self.model = MeshlessModel(pts, frame)
+        self.rest = self.model.rest_points
+        self._tree = cKDTree(self.rest)
+        self.data_weight = float(data_weight)
+        self.slice_following = int(slice_following)
+        self.max_attach_mm = float(max_attach_mm)
+        self.max_iterations = int(max_iterations)
+        self.tol = float(tol)
+        self.local = bool(local)
+        self.cg_rtol, self.cg_maxiter = 1e-6, 2000
+        self.delta = None
+        self._kdiag = None
+        self._hourglass = None
+        self.outlier_mm = 3.0
+        self.rejected = 0
+        self.hourglass_weight = hourglass_weight
+        self.positions = self.rest.copy()
+        self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
+        self.normals: dict = {}    # (view, slice) → (normal (3,), point on plane (3,))
+        self.offsets: dict = {}    # (view, slice, track_id) → s, mm along the normal
+        self.last_phase = 0
+
+    @property
+    def num_particles(self) -> int:
+        return self.rest.shape[0]
+
+    def set_reference(self, points: TagPointSet) -> int:
+        """Record a slice's ED tag points (phase 0); returns how many lie inside the model."""
+        key = (int(points.view), int(points.slice_index))
+        if len(points) == 0:
+            self.reference[key] = {}
+            return 0
+        dist, _ = self._tree.query(points.position)
+        keep = (dist <= self.max_attach_mm) & (points.track_id >= 0)
+        self.reference[key] = {int(t): p for t, p in zip(points.track_id[keep], points.position[keep])}
+        self.normals[key] = (points.geometry.normal, points.geometry.image_position)
+        return int(keep.sum())
+
+    def _constraints(self, sets: dict):
+        """ED positions, targets, normals and keys of every track seen at this phase."""
+        keys, rest, targets, normals = [], [], [], []
+        for key, pts in sets.items():
+            ref = self.reference.get(key)
+            if not ref or len(pts) == 0:
+                continue
+            n = pts.geometry.normal
+            for tid, pos in zip(pts.track_id, pts.position):
+                p0 = ref.get(int(tid))
+                if p0 is None:
+                    continue
+                keys.append((*key, int(tid)))
+                rest.append(p0)
+                targets.append(pos)
+                normals.append(n)
+        if not keys:
+            return keys, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+        return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals)
+
+    def _attach(self, rest, normals, offsets):
+        pos = rest + offsets[:, None] * normals
+        dist, _ = self._tree.query(pos)
+        inside = dist <= self.max_attach_mm
+        return pos, inside
+
+    def solve(self, phase_index: int, sets: dict, num_phases: int = 0) -> PhaseSolution:
+        """Fit the model to one phase's tag points (``sets``: (view, slice) → TagPointSet).
+
+        Raises
+        ------
+        ValueError
+            No usable constraint at this phase (nothing inside the model, or no reference).
+        """
+        keys, rest, targets, normals = self._constraints(sets)
+        if not keys:
+            raise ValueError(f"phase {phase_index}: no tag point matches an ED reference inside the model")
+        offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
+        for _ in range(max(1, self.slice_following + 1)):
+            pos, inside = self._attach(rest, normals, offsets)
+            if inside.sum() < 4:
+                raise ValueError(f"phase {phase_index}: only {int(inside.sum())} tag points lie inside the model")
+            ctrl = self.model.attach(pos[inside])
+            result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
+                                    tol=self.tol, local=False)
+            # Robustness: a track that swapped identity or drifted leaves a residual far beyond
+            # what the global fit leaves elsewhere; drop such points and refit.
+            outlier = self._outliers(ctrl.weights @ self.model.positions(), targets[inside], normals[inside])
+            if outlier.any() and (~outlier).sum() >= 4:
+                keep = np.flatnonzero(inside)[~outlier]
+                inside = np.zeros_like(inside)
+                inside[keep] = True
+                self.rejected += int(outlier.sum())
+                ctrl = self.model.attach(pos[inside])
+                result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
+                                        tol=self.tol, local=False)
+            x_global = self.model.positions()
+            self.positions = x_global
+            if self.local:
+                self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global)
+                self.positions = x_global + self.delta
+            offsets = self._follow_slices(offsets, rest, normals, targets, inside)
+        for k, s in zip(keys, offsets):
+            self.offsets[k] = float(s)
+        x = self.positions
+        H = self.model.operator.gradient(x - self.rest)  # H[i, a, b] = ∂u_a/∂X_b
+        F = np.eye(3) + H
+        E = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
+        P = np.eye(3) - np.einsum("ka,kb->kab", normals[inside], normals[inside])
+        res = np.einsum("kab,kb->ka", P, targets[inside] - ctrl.weights @ x)
+        state = result.state
+        state.residual = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        state.phase_index, state.num_phases = int(phase_index), int(num_phases)
+        state.num_control_points = int(inside.sum())
+        self.last_phase = phase_index
+        return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
+
+    def _local_solve(self, phi, targets, normals, x_global):
+        """Local deformation δ (paper: internal forces act on the local part only) at elastic
+        equilibrium under the in-plane tag forces: minimise
+        ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)``, a sparse SPD
+        system solved by Jacobi-preconditioned CG (linear elasticity of the small local part;
+        the large motion is in the global parameters), warm-started from the previous phase."""
+        from scipy.sparse.linalg import LinearOperator, cg
+
+        op, vol = self.model.operator, self.model.phyxels.volume
+        lam, mu = self.model.lam, self.model.mu
+        n = self.num_particles
+        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        phi_t = phi.T.tocsr()
+        if self._kdiag is None:
+            dsq = op.matrix.multiply(op.matrix)  # (3N, N): d_ij[b]²
+            w = np.repeat(vol, 3)
+            self._kdiag = np.asarray(dsq.T @ w).ravel() * (mu + (mu + lam) / 3.0)
+        kappa = self.data_weight * float(np.median(self._kdiag))
+        eps = 1e-6 * kappa
+
+        if self._hourglass is None:
+            self._hourglass = self._hourglass_matrix()
+        L = self._hourglass
+        alpha = self.hourglass_weight * float(np.median(self._kdiag)) / max(float(np.median(L.diagonal())), 1e-300)
+
+        def apply(v):
+            d = v.reshape(n, 3)
+            H = op.gradient(d)
+            tr = np.trace(H, axis1=1, axis2=2)
+            S = vol[:, None, None] * (mu * (H + np.swapaxes(H, 1, 2)) + lam * tr[:, None, None] * np.eye(3))
+            data = phi_t @ np.einsum("kab,kb->ka", P, phi @ d)
+            return (op.adjoint(S) + alpha * (L @ d) + kappa * data + eps * d).ravel()
+
+        r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
+        rhs = (kappa * (phi_t @ r)).ravel()
+        diag_data = np.asarray(phi.multiply(phi).T @ np.ones(phi.shape[0])).ravel()
+        prec = 1.0 / np.repeat(self._kdiag + alpha * L.diagonal() + kappa * diag_data + eps, 3)
+        A = LinearOperator((3 * n, 3 * n), matvec=apply, dtype=np.float64)
+        M = LinearOperator((3 * n, 3 * n), matvec=lambda v: prec * v, dtype=np.float64)
+        x0 = self.delta.ravel() if self.delta is not None else None
+        sol, _info = cg(A, rhs, x0=x0, rtol=self.cg_rtol, maxiter=self.cg_maxiter, M=M)
+        return sol.reshape(n, 3)
+
+    def _outliers(self, x, targets, normals) -> np.ndarray:
+        """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
+        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        r = np.linalg.norm(np.einsum("kab,kb->ka", P, targets - x), axis=1)
+        med = float(np.median(r))
+        sigma = 1.4826 * float(np.median(np.abs(r - med)))
+        return r > max(self.outlier_mm, med + 5.0 * sigma)
+
+    def _hourglass_matrix(self):
+        """``Bᵀ W B`` of the MLS fit error (paper eq. 16): ``e_ij = δ_j − δ_i − ∇δ_i x_ij`` per
+        phyxel pair, weighted by w_ij. It vanishes for affine fields and penalises exactly the
+        zig-zag modes that the MLS gradient cannot see (zero-energy modes of the strain energy).
+        One (N, N) matrix serves all three displacement components."""
+        import scipy.sparse as sp
+
+        ph, D = self.model.phyxels, self.model.operator.matrix  # D: (3N, N)
+        n, p = self.num_particles, ph.pair_i.shape[0]
+        rows = np.arange(p)
+        Ej = sp.csr_matrix((np.ones(p), (rows, ph.pair_j)), shape=(p, n))
+        Ei = sp.csr_matrix((np.ones(p), (rows, ph.pair_i)), shape=(p, n))
+        X = sp.csr_matrix((ph.xij.ravel(), (np.repeat(rows, 3), (3 * ph.pair_i[:, None] + np.arange(3)).ravel())),
+                          shape=(p, 3 * n))
+        B = (Ej - Ei - X @ D).tocsr()
+        return (B.T @ sp.diags(ph.wij / ph.wij.max()) @ B).tocsr()
+
+    def _follow_slices(self, offsets, rest, normals, targets, inside):
+        """Newton step on s per control point: bring the model position of the material line
+        ``p0 + s n`` back onto the image plane (the plane through the measured target)."""
+        new = offsets.copy()
+        idx = np.flatnonzero(inside)
+        if idx.size == 0:
+            return new
+        n = normals[idx]
+        base = rest[idx] + offsets[idx, None] * n
+        probe = base + n  # +1 mm along the normal
+
+        def model_positions(pos):
+            ok = self._tree.query(pos)[0] <= self.max_attach_mm
+            out = np.full(pos.shape, np.nan)
+            if ok.any():
+                out[ok] = self.model.attach(pos[ok]).weights @ self.positions
+            return out
+
+        x0, x1 = model_positions(base), model_positions(probe)
+        f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
+        df = np.einsum("ij,ij->i", x1 - x0, n)
+        good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
+        step = np.zeros(idx.size)
+        step[good] = -f0[good] / df[good]
+        new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
+        return new
+
+
+def lv_frame_axes(particles, rotation):
+    """Apex, base centre and reference of the LV from a registered model (ED).
+
+    The long axis is R's z column (apex → base) through the particles' centroid; apex and base
+    are the extreme projections of the particles on it; the reference is R's x column.
+
+    Returns
+    -------
+    apex, base, reference : ndarray, shape (3,)
+    """
+    pts = np.asarray(particles, dtype=np.float64)
+    R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
+    axis, ref = R[:, 2], R[:, 0]
+    c = pts.mean(axis=0)
+    t = (pts - c) @ axis
+    return c + t.min() * axis, c + t.max() * axis, ref
