@@ -108,3 +108,25 @@ def test_bad_input(studies):
     # Still usable afterwards.
     mask, why = m.ed_mask(sa0)
     assert mask is not None, why
+
+
+def test_slice_off_the_axis(studies):
+    """A slice whose cavity is far from the axis of the earlier slices is still found."""
+    st = studies["normal"]
+    ed = {f.slice_index: f for f in st.frames if f.view == VIEW_SA and f.phase_index == 0}
+    m = StreamingMasker()
+    for i in range(4):
+        assert m.ed_mask(ed[i])[0] is not None
+    shift = (14, 12)
+    g = dataclasses.replace(ed[4], image=np.roll(ed[4].image, shift, axis=(0, 1)))
+    mask, why = m.ed_mask(g)
+    assert mask is not None, why
+    assert dice(mask, np.roll(st.ed_masks[(VIEW_SA, 4)], shift, axis=(0, 1))) >= MIN_DICE
+    # The misplaced centre does not bend the axis for the slices after it.
+    for i in range(5, 8):
+        mask, why = m.ed_mask(ed[i])
+        assert mask is not None and why == "", (i, why)
+        assert dice(mask, st.ed_masks[(VIEW_SA, i)]) >= MIN_DICE
+    la = next(f for f in st.frames if f.view == VIEW_LA and f.phase_index == 0)
+    mask, why = m.ed_mask(la)
+    assert mask is not None and dice(mask, st.ed_masks[(VIEW_LA, la.slice_index)]) >= MIN_DICE

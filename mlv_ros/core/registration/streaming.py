@@ -155,6 +155,9 @@ class StreamingMasker:
         Largest tilt of the fitted centre line from the SA normal; beyond it the fit is
         clipped (centres from a few slices are noisy, and SA stacks are planned roughly
         perpendicular to the long axis).
+    max_axis_jump_mm : float
+        SA: when the cavity found from the axis intersection lies farther than this from it,
+        the image-based blood-pool centres are tried first (that result is the fallback).
 
     Examples
     --------
@@ -164,8 +167,10 @@ class StreamingMasker:
     ...     mask, why = masker.ed_mask(f) if f.phase_index == 0 else (None, "")
     """
 
-    def __init__(self, *, max_plane_offset_mm: float = 15.0, axis_tilt_max_deg: float = 25.0):
+    def __init__(self, *, max_plane_offset_mm: float = 15.0, axis_tilt_max_deg: float = 25.0,
+                 max_axis_jump_mm: float = 12.0):
         self.max_plane_offset_mm = float(max_plane_offset_mm)
+        self.max_axis_jump_mm = float(max_axis_jump_mm)
         self.axis_tilt_max_deg = float(axis_tilt_max_deg)
         self._sa_geom: dict = {}      # slice_index -> SliceGeometry
         self._la_geom: dict = {}
@@ -229,24 +234,36 @@ class StreamingMasker:
         z = P @ d
         zc = float(np.mean([g.image_position @ d for g in self._sa_geom.values()]))
         if len(idx) >= 2 and np.ptp(z) > 1.0:
-            # In-plane offset linear in z: x⊥(z) = a + b (z − z̄); ridge toward b = 0 keeps a
-            # two-slice fit from swinging the axis.
-            zm = z.mean()
-            Q = P - np.outer(z, d)
-            A = np.stack([np.ones_like(z), z - zm], 1)
-            lam = np.diag([0.0, 0.1 * len(z) * 25.0])  # ~ one 5-mm slice worth of prior
-            coef = np.linalg.solve(A.T @ A + lam, A.T @ Q)
-            a, b = coef[0], coef[1]
-            b = b - (b @ d) * d
-            tmax = np.tan(np.radians(self.axis_tilt_max_deg))
-            if np.linalg.norm(b) > tmax:
-                b = b * tmax / np.linalg.norm(b)
+            keep = np.ones(len(z), bool)
+            for _ in range(2):
+                a, b, zm = self._fit_line(P[keep], z[keep], d)
+                # One misplaced centre (a cavity far off the others) must not bend the axis.
+                res = np.linalg.norm(P - np.outer(z, d) - a - np.outer(z - zm, b), axis=1)
+                new = res <= max(self.max_axis_jump_mm, 2.0 * float(np.median(res)))
+                if keep.sum() < 3 or new.sum() < 2 or np.array_equal(new, keep):
+                    break
+                keep = new
             direction = _unit(d + b)
             point = a + b * (zc - zm) + zc * d
         else:
             direction = d
             point = P.mean(axis=0) + (zc - float(P.mean(axis=0) @ d)) * d
         return point, direction, known
+
+    def _fit_line(self, P: np.ndarray, z: np.ndarray, d: np.ndarray):
+        """In-plane offset linear in z: x⊥(z) = a + b (z − z̄); a ridge toward b = 0 keeps a
+        two-slice fit from swinging the axis, and the tilt is clipped."""
+        zm = float(z.mean())
+        Q = P - np.outer(z, d)
+        A = np.stack([np.ones_like(z), z - zm], 1)
+        lam = np.diag([0.0, 0.1 * len(z) * 25.0])  # ~ one 5-mm slice worth of prior
+        coef = np.linalg.solve(A.T @ A + lam, A.T @ Q)
+        a, b = coef[0], coef[1]
+        b = b - (b @ d) * d
+        tmax = np.tan(np.radians(self.axis_tilt_max_deg))
+        if np.linalg.norm(b) > tmax:
+            b = b * tmax / np.linalg.norm(b)
+        return a, b, zm
 
     # ------------------------------------------------------------------ masks
     def ed_mask(self, frame: Frame) -> tuple[np.ndarray | None, str]:
@@ -300,7 +317,8 @@ class StreamingMasker:
         cands += [("blood pool", c) for c in blood_pool_candidates(feat, sp)]
         rows, cols = img.shape
         cands.append(("image centre", np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])))
-        reasons = []
+        reasons: list[str] = []
+        fallback = None
         for how, c in cands:
             s = seg.segment_sa(img, c, sp, features=feat)
             if not s.ok:
@@ -318,8 +336,17 @@ class StreamingMasker:
             if cc is None or not s.mask.any():
                 reasons.append(f"{how}: empty myocardium")
                 continue
+            if how == "long axis" and np.linalg.norm(cc - c) * sp > self.max_axis_jump_mm:
+                # The axis extrapolated from other slices missed this cavity: prefer an
+                # image-based centre, keep this result as a fallback.
+                fallback = fallback or (s, cc)
+                reasons.append(f"{how}: cavity {np.linalg.norm(cc - c) * sp:.0f} mm from the axis")
+                continue
             self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(cc)
             return s.mask, ""
+        if fallback is not None:
+            self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(fallback[1])
+            return fallback[0].mask, "cavity far from the long axis of the other slices"
         return None, "no SA myocardial annulus found (" + "; ".join(reasons) + ")"
 
     def _la(self, frame: Frame, img: np.ndarray, sp: float):
