@@ -105,8 +105,8 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     Raises
     ------
     ValueError
-        No control points; indices out of range; non-finite positions; a position with no
-        particle within its kernel support (outside the particle cloud).
+        No control points; indices out of range; non-finite positions; a position outside the
+        particle cloud (farther from its nearest particle than that particle's support radius).
     """
     n = points.shape[0]
     c = np.asarray(control)
@@ -123,13 +123,20 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     m = y.shape[0]
     tree = cKDTree(points) if tree is None else tree
     kk = min(k, n)
-    dist, _ = tree.query(y, k=kk)
-    h = support_factor * dist.reshape(m, -1).mean(axis=1)
+    dist, nn = tree.query(y, k=kk)
+    dist, nn = dist.reshape(m, -1), nn.reshape(m, -1)
+    h = support_factor * dist.mean(axis=1)
+    # Outside the cloud: farther from its nearest particle than that particle's own support
+    # radius (3 × its mean 10-NN spacing).
+    d_pp, _ = tree.query(points[nn[:, 0]], k=min(k + 1, n))
+    h_near = support_factor * d_pp.reshape(m, -1)[:, 1:].mean(axis=1)
+    far = dist[:, 0] > h_near
+    if far.any():
+        bad = int(np.flatnonzero(far)[0])
+        raise ValueError(f"control point {bad} at {y[bad].tolist()} lies outside the particle cloud: "
+                         f"no particle within {h_near[bad]:.3g} mm (nearest {dist[bad, 0]:.3g} mm)")
     lists = tree.query_ball_point(y, r=h, return_sorted=False)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
-    if np.any(counts == 0):
-        bad = int(np.flatnonzero(counts == 0)[0])
-        raise ValueError(f"control point {bad} at {y[bad].tolist()} has no particle within {h[bad]:.3g} mm")
     pj = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists])
     pk = np.repeat(np.arange(m), counts)
     rel = points[pj] - y[pk]

@@ -1,0 +1,103 @@
+"""Global deformation: shape (eq. 1–3), Jacobians B and J (eq. 7–8, 13) by finite differences."""
+
+import numpy as np
+import pytest
+
+from mlv_ros.core.meshless.globals import (
+    GlobalParameters, ModelCoordinates, cylindrical_frame, global_shape, matrix_to_quat,
+    model_jacobian, polar_frame, quat_from_axis_angle, quat_normalize, quat_to_matrix,
+    reduce_rotation, rotation_jacobian, shape_jacobian, world_positions,
+)
+
+RNG = np.random.default_rng(7)
+N = 40
+ALPHA = RNG.uniform(-np.pi / 2, np.pi / 4, N)
+BETA = RNG.uniform(-np.pi, np.pi, N)
+W = RNG.uniform(0.3, 1.0, N)
+ZETA = RNG.uniform(-1, 1, N)
+COORDS = [ModelCoordinates.polar(ALPHA, BETA, W), ModelCoordinates.cylindrical(BETA, W, ZETA)]
+A = np.array([30.0, 0.9, 1.1, 1.3])
+TAU = 0.07
+
+
+def test_polar_shape_matches_eq_1_2():
+    s = global_shape(COORDS[0], A, TAU)
+    e = W[:, None] * A[0] * np.stack([A[1] * np.cos(ALPHA) * np.cos(BETA),
+                                      A[2] * np.cos(ALPHA) * np.sin(BETA), A[3] * np.sin(ALPHA)], 1)
+    phi = np.pi * TAU * np.sin(ALPHA)
+    ref = np.stack([e[:, 0] * np.cos(phi) - e[:, 1] * np.sin(phi),
+                    e[:, 0] * np.sin(phi) + e[:, 1] * np.cos(phi), e[:, 2]], 1)
+    np.testing.assert_allclose(s, ref, rtol=1e-13, atol=1e-12)
+
+
+@pytest.mark.parametrize("coords", COORDS, ids=["polar", "cylindrical"])
+def test_shape_jacobian_matches_finite_differences(coords):
+    jac = shape_jacobian(coords, A, TAU)
+    qs = np.concatenate([A, [TAU]])
+    for k in range(5):
+        h = 1e-6 * max(1.0, abs(qs[k]))
+        qp, qm = qs.copy(), qs.copy()
+        qp[k] += h
+        qm[k] -= h
+        fd = (global_shape(coords, qp[:4], qp[4]) - global_shape(coords, qm[:4], qm[4])) / (2 * h)
+        np.testing.assert_allclose(jac[:, :, k], fd, rtol=1e-6, atol=1e-7)
+
+
+def test_rotation_jacobian_matches_finite_differences():
+    q = quat_from_axis_angle([0.3, -1.0, 0.5], 1.1)
+    p = RNG.normal(size=(N, 3)) * 10
+    b = rotation_jacobian(q, p)
+    for k in range(4):
+        h = 1e-6
+        qp, qm = q.copy(), q.copy()
+        qp[k] += h
+        qm[k] -= h
+        # R(q/|q|): B is the derivative on the unit sphere, and B q = 0
+        fd = (p @ quat_to_matrix(qp).T - p @ quat_to_matrix(qm).T) / (2 * h)
+        np.testing.assert_allclose(b[:, :, k], fd, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(b @ q, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("coords", COORDS, ids=["polar", "cylindrical"])
+def test_model_jacobian_and_tangent_step(coords):
+    params = GlobalParameters([1.0, -2.0, 3.0], quat_from_axis_angle([1, 1, 0], 0.4), A, TAU)
+    d = RNG.normal(size=(N, 3)) * 0.5
+    lmat = reduce_rotation(model_jacobian(params, coords, d), params.rotation)
+    x0 = world_positions(params, coords, d)
+    for k in range(11):
+        h = 1e-6
+        step = np.zeros(11)
+        step[k] = h
+        fd = (world_positions(params.stepped(step), coords, d)
+              - world_positions(params.stepped(-step), coords, d)) / (2 * h)
+        np.testing.assert_allclose(lmat[:, :, k], fd, rtol=1e-5, atol=1e-6)
+    assert np.all(np.isfinite(x0))
+
+
+def test_quaternion_roundtrip_and_validation():
+    for axis, ang in [([0, 0, 1], 0.3), ([1, 2, 3], 2.9), ([1, 0, 0], np.pi)]:
+        q = quat_from_axis_angle(axis, ang)
+        r = quat_to_matrix(q)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
+        np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(r)), r, atol=1e-12)
+    with pytest.raises(ValueError, match="non-zero"):
+        quat_normalize([0, 0, 0, 0])
+    with pytest.raises(ValueError, match="orthonormal"):
+        matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
+
+
+@pytest.mark.parametrize("maker", ["polar", "cylindrical"])
+def test_frames_reproduce_rest_positions(maker):
+    pts = RNG.normal(size=(200, 3)) * [10, 8, 20] + [5, -3, 40]
+    centre, axis, ref = [5, -3, 40], [0.2, 0.1, 1.0], [1, 0, 0]
+    if maker == "polar":
+        frame = polar_frame(pts, centre, axis, ref)
+        assert np.linalg.norm(frame.coords.basis, axis=1).max() == pytest.approx(1.0)  # w ∈ [0, 1]
+    else:
+        frame = cylindrical_frame(pts, centre, axis, ref)
+    x = world_positions(frame.params, frame.coords, np.zeros((200, 3)))
+    np.testing.assert_allclose(x, pts, atol=1e-10)
+    with pytest.raises(ValueError, match="axis"):
+        polar_frame(pts, centre, [0, 0, 0])
+    with pytest.raises(ValueError, match="parallel"):
+        cylindrical_frame(pts, centre, axis, ref_direction=axis)
