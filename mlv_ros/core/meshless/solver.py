@@ -202,7 +202,8 @@ class FitResult:
     converged : bool
     history : list of dict
         Per iteration: ``iteration``, ``residual`` (mm), ``global_step`` and ``local_step``
-        (RMS position change, mm), ``local`` (whether the local stage ran), ``cg_iterations``.
+        (RMS position change, mm), ``local`` (whether the local stage ran), ``cg_iterations``,
+        ``seconds`` (wall time of the iteration).
     wall_time : float
         Seconds spent in the fit.
     """
@@ -472,6 +473,7 @@ class MeshlessModel:
         res = residual(self.params, d_s)
         n = self.num_particles
         for it in range(1, max_iterations + 1):
+            t_it = time.perf_counter()
             lmat = model_jacobian(self.params, coords_s, d_s)
             lk = (phi_s @ lmat.reshape(len(support), 3 * NUM_GLOBAL)).reshape(m, 3, NUM_GLOBAL)
             lk = reduce_rotation(lk, self.params.rotation)          # L_k = Σ_j φ_kj L_j (eq. 14)
@@ -535,7 +537,8 @@ class MeshlessModel:
                     vol = self.phyxels.volume
             rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
             history.append({"iteration": it, "residual": rms, "global_step": g_step,
-                            "local_step": l_step, "local": ran_local, "cg_iterations": cg_its})
+                            "local_step": l_step, "local": ran_local, "cg_iterations": cg_its,
+                            "seconds": time.perf_counter() - t_it})
             if callback is not None:
                 callback(it, self)
             if rms < residual_tol or (ran_local and l_step < tol) or (not local and g_step < tol):
