@@ -130,6 +130,7 @@ class MeshlessSolver(GraphNode):
             self._solve(p, sets)
             self.assembler.phases.pop(p, None)
             self.next_phase = p + 1
+            self.last_input = time.monotonic()  # our own solving time is not input silence
 
     def _solve(self, phase: int, sets: dict) -> None:
         t0 = time.monotonic()

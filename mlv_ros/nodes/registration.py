@@ -29,7 +29,7 @@ class Registration(GraphNode):
         super().__init__("registration", **node_kwargs)
         self.num_particles = self.param("num_particles", 3000, "model particles", min_value=100, max_value=200000)
         self.seed = self.param("seed", 0, "particle sampling seed", min_value=0, max_value=2**31 - 1)
-        self.ed_timeout_s = self.param("ed_timeout_s", 5.0, "register with the ED slices present this long after the first", min_value=0.1, max_value=3600.0)
+        self.ed_timeout_s = self.param("ed_timeout_s", 5.0, "register with the ED slices present once frames stop arriving for this long", min_value=0.1, max_value=3600.0)
         self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
         self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.latched_qos())
         self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.latched_qos())
@@ -37,6 +37,7 @@ class Registration(GraphNode):
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
+        self.last_frame_at = time.monotonic()
         self.registered = False
         self.result = None
         self.messages_handled = 0
@@ -45,6 +46,7 @@ class Registration(GraphNode):
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
+        self.last_frame_at = time.monotonic()
         if msg.phase_index != 0 or self.registered:
             return
         try:
@@ -64,7 +66,9 @@ class Registration(GraphNode):
     def _check_timeout(self) -> None:
         if self.registered or self.first_at is None:
             return
-        if time.monotonic() - self.first_at < self.ed_timeout_s:
+        # Slices stream one cine at a time, so later slices' ED frames can be far apart: only
+        # silence on the frame stream means the missing ones are not coming.
+        if time.monotonic() - self.last_frame_at < self.ed_timeout_s:
             return
         sa = sum(1 for v, _ in self.ed_frames if v == VIEW_SA)
         if sa >= self.min_sa_slices:

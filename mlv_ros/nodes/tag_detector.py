@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
+from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.types import TagPointSet
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
@@ -27,6 +28,7 @@ class TagDetector(GraphNode):
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest image accepted (rows × cols)", min_value=64, max_value=16384 * 16384)
         self.pub = self.create_publisher(TagPoints, qos.TAG_POINTS, qos.stream_qos())
         self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.stream_qos())
+        self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
         self.trackers: dict = {}   # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
         self.pending: dict = {}    # (view, slice) → {phase: (frame, stamp)}
@@ -47,6 +49,7 @@ class TagDetector(GraphNode):
             self.report(ERROR, "bad frame", frame=where, reason=str(exc))
             return self._publish_empty(msg, f"bad frame: {exc}")
         key = (frame.view, frame.slice_index)
+        self.masker.observe_geometry(frame)
         nxt = self.next_phase.setdefault(key, 0)
         waiting = self.pending.setdefault(key, {})
         if frame.phase_index < nxt or frame.phase_index in waiting:
@@ -71,9 +74,14 @@ class TagDetector(GraphNode):
 
     def _process(self, key, frame, stamp) -> None:
         tracker = self.trackers.get(key)
+        mask = None
         if tracker is None or frame.phase_index == 0:
             tracker = self.trackers[key] = SliceTracker(frame.geometry, spacing_px=self.spacing_px or None)
-        points = tracker.update(frame)
+            mask, why = self.masker.ed_mask(frame)
+            if mask is None:
+                self.report(WARN, "no ED myocardium mask; detecting on tag energy alone", view=key[0],
+                            slice=key[1], reason=why)
+        points = tracker.update(frame, mask=mask)
         points.num_sa_slices, points.num_la_slices = frame.num_sa_slices, frame.num_la_slices
         if points.status:
             self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index,

@@ -1,0 +1,125 @@
+"""The whole graph end to end: in one process on a simulated phantom (accuracy against the
+analytic ground truth; the recording read back by rosbags), and across processes started from
+the console scripts."""
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from conftest import console_script, spin_until
+from mlv_ros import bagio, qos
+from mlv_ros.tools.run import phantom_accuracy, read_run, run_graph
+
+# A reduced acquisition that runs in about a minute on 2 cores (the default study is
+# 256² × 25 phases; `mlv-ros bench pipeline` measures that one).
+PHANTOM = {"source": "phantom", "preset": "normal", "snr": 20.0, "size": 192, "num_phases": 16}
+PARTICLES = {"registration": {"num_particles": 2000}}
+
+
+@pytest.fixture(scope="module")
+def phantom_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    summary = run_graph(PHANTOM, out, overrides=PARTICLES, timeout=400, progress=lambda *_: None)
+    return out, summary
+
+
+def test_graph_completes_every_phase(phantom_run):
+    _, s = phantom_run
+    assert s["complete"], s
+    assert s["frames_published"] == 11 * 16
+    assert s["tag_sets_published"] == s["frames_published"]
+    assert s["phases_solved"] == s["metrics_published"] == 16
+
+
+def test_end_to_end_accuracy_against_ground_truth(phantom_run):
+    out, s = phantom_run
+    acc = phantom_accuracy(out / "run.mcap", "normal", 16)
+    es = acc["es"]
+    # Issue acceptance (default study): median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist ≤ 2°.
+    assert acc["inside_myocardium"] >= 0.95
+    assert es["median_mm"] <= 1.0, es
+    assert es["p95_mm"] <= 2.5, es
+    assert es["twist_error_deg"] <= 2.0, es
+    worst = max(r["median_mm"] for r in acc["per_phase"])
+    assert worst <= 1.5, acc["per_phase"]
+
+
+def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
+    out, s = phantom_run
+    counts = {}
+    with AnyReader([out / "run.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _t, raw in reader.messages():
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+            if conn.topic == qos.MOTION and counts[conn.topic] == 1:
+                cloud = reader.deserialize(raw, conn.msgtype)
+                assert [f.name for f in cloud.fields][:6] == ["x", "y", "z", "dx", "dy", "dz"]
+                assert cloud.header.frame_id == "patient"
+    assert counts[qos.FRAMES] == s["frames_published"]
+    assert counts[qos.TAG_POINTS] == s["tag_sets_published"]
+    assert counts[qos.MOTION] == counts[qos.MODEL_STATE] == counts[qos.METRICS] == 16
+    assert counts[qos.REGISTERED_CLOUD] == counts[qos.REGISTERED_STATE] == 1
+    assert counts[qos.DIAGNOSTICS] >= 1
+    assert sum(counts.values()) == s["recorded_messages"]
+    run = read_run(out / "run.mcap")
+    assert sorted(run["positions"]) == list(range(16))
+    np.testing.assert_allclose(run["positions"][0], run["ed"], atol=1e-4)  # phase 0 = ED
+
+
+def test_report_from_the_recording(phantom_run, tmp_path):
+    from mlv_ros.tools.report import build
+
+    out, _ = phantom_run
+    index = build(out / "run.mcap", tmp_path / "report")
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    assert index.exists() and "<img" in index.read_text()
+    assert (tmp_path / "report" / "level_curves.png").stat().st_size > 10_000
+    assert summary
+
+
+def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
+    """frame_source → tag_detector → registration/solver/analyzer → recorder, each its own process."""
+    from rclpy.node import Node
+
+    from mlv_msgs.msg import TagPoints
+
+    diags, points = [], []
+    watcher = Node("watcher", context=ros_context)
+    watcher.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, diags.append, qos.diagnostics_qos())
+    watcher.create_subscription(TagPoints, qos.TAG_POINTS, points.append, qos.stream_qos())
+    executor.add_node(watcher)
+    mcap = tmp_path / "run.mcap"
+    procs = [subprocess.Popen([console_script(n), "--ros-args", *args], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+             for n, args in [("recorder", ["-p", f"output:={mcap}"]), ("tag_detector", []),
+                             ("registration", ["-p", "ed_timeout_s:=2.0"]), ("meshless_solver", []),
+                             ("motion_analyzer", [])]]
+    try:
+        def up(name):
+            return any(st.hardware_id == name for d in diags for st in d.status)
+        assert spin_until(executor, lambda: all(up(n) for n in ("recorder", "tag_detector", "registration",
+                                                                 "meshless_solver", "motion_analyzer")), 60)
+        src = subprocess.run([console_script("frame_source"), "--ros-args", "-p", "source:=pattern",
+                              "-p", "num_phases:=3", "-p", "wait_for_subscribers:=3"],
+                             capture_output=True, text=True, timeout=120)
+        assert src.returncode == 0, src.stderr
+        assert spin_until(executor, lambda: len(points) == 6, 60), f"{len(points)} tag point sets"
+        # The pattern has no heart: registration must say so on /diagnostics, not crash.
+        assert spin_until(executor, lambda: any(st.hardware_id == "registration" and st.level == 2
+                                                for d in diags for st in d.status), 30)
+    finally:
+        for p in procs:
+            p.send_signal(2)
+        for p in procs:
+            try:
+                assert p.wait(timeout=30) == 0
+            finally:
+                if p.poll() is None:
+                    p.kill()
+    topics = bagio.bag_topics(mcap)
+    assert topics[qos.FRAMES]["count"] == 6
+    assert topics[qos.TAG_POINTS]["count"] == 6
