@@ -157,3 +157,24 @@ def test_ill_shaped_phyxel_is_regrouped():
     assert ph.regrouped[len(g):].all() and not ph.regrouped[:len(g)].any()
     assert not ph.pinv.any() and np.all(ph.cond <= 1e4)
     assert np.all(ph.h[len(g):] > 3.0 * ph.rbar[len(g):])
+
+
+def test_stabilisation_penalty_is_zero_on_affine_and_exact_gradient(cloud):
+    x, ph, op = cloud
+    c = elastic.stabilisation_weights(op, ph.volume)
+    rng = np.random.default_rng(4)
+    assert np.abs(elastic.stabilisation_apply(op, x @ rng.normal(size=(3, 3)).T + 2.0, c)).max() < 1e-12
+    u = rng.normal(size=x.shape)
+
+    def penalty(v):
+        h = op.gradient(v)
+        r = v[ph.pair_j] - v[ph.pair_i] - np.einsum("pab,pb->pa", h[ph.pair_i], ph.xij)
+        return 0.5 * np.sum(c * np.sum(r ** 2, axis=1))
+
+    g = elastic.stabilisation_apply(op, u, c)
+    eps = 1e-6
+    for j, a in [(7, 1), (300, 2)]:
+        up, um = u.copy(), u.copy()
+        up[j, a] += eps
+        um[j, a] -= eps
+        assert g[j, a] == pytest.approx((penalty(up) - penalty(um)) / (2 * eps), rel=1e-6)

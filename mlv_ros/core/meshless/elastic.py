@@ -130,3 +130,53 @@ def stiffness_diagonal(op: MLSOperator, volume: np.ndarray, lam: float, mu: floa
     dsq = np.einsum("pa,pa->p", d, d)
     per = v[:, None] * (lam * d ** 2 + mu * (dsq[:, None] + d ** 2))
     return np.stack([np.bincount(jj, weights=per[:, a], minlength=op.n) for a in range(3)], axis=1)
+
+
+def stabilisation_weights(op: MLSOperator, volume: np.ndarray) -> np.ndarray:
+    """Per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`, shape (P,),
+    with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights)."""
+    ph = op.phyxels
+    wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
+    return volume[ph.pair_i] * ph.wij / wsum[ph.pair_i] / ph.h[ph.pair_i] ** 2
+
+
+def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Gradient of the zero-energy-mode penalty ``½ Σ_ij c_ij |u_j − u_i − H_i x_ij|²``.
+
+    The MLS gradient of a phyxel averages ~100 neighbours, so displacing single particles away
+    from the local affine fit costs almost no strain energy (nodal-integration zero-energy
+    modes): with sparse control points the free particles would not follow their neighbours.
+    This penalises exactly the MLS fitting error of eq. 16 (it vanishes for affine fields, so it
+    adds no stiffness to rigid motion, uniform strain or the global deformation).
+
+    Parameters
+    ----------
+    op : MLSOperator
+    u : ndarray, shape (N, 3)
+    coef : ndarray, shape (P,)
+        From :func:`stabilisation_weights` (times a modulus).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        ``∂/∂u`` of the penalty (a symmetric positive semi-definite linear map of u).
+    """
+    ph = op.phyxels
+    n = ph.num_particles
+    h = op.gradient(u)
+    r = u[ph.pair_j] - u[ph.pair_i] - np.einsum("pab,pb->pa", h[ph.pair_i], ph.xij)
+    cr = coef[:, None] * r
+    g = np.stack([np.bincount(ph.pair_j, weights=cr[:, a], minlength=n)
+                  - np.bincount(ph.pair_i, weights=cr[:, a], minlength=n) for a in range(3)], axis=1)
+    # through H_i: ∂/∂H_i[a, b] of the penalty is −Σ_j c_ij r_ij[a] x_ij[b]
+    gh = np.stack([np.bincount(ph.pair_i, weights=-cr[:, a] * ph.xij[:, b], minlength=n)
+                   for a in range(3) for b in range(3)], axis=1).reshape(n, 3, 3)
+    return g + op.adjoint(gh)
+
+
+def stabilisation_diagonal(op: MLSOperator, coef: np.ndarray) -> np.ndarray:
+    """Approximate diagonal of :func:`stabilisation_apply` (the direct ``u_j − u_i`` terms),
+    shape (N,); used in the Jacobi preconditioner."""
+    ph = op.phyxels
+    n = ph.num_particles
+    return np.bincount(ph.pair_j, weights=coef, minlength=n) + np.bincount(ph.pair_i, weights=coef, minlength=n)

@@ -15,11 +15,13 @@ are ``x = c + R (s(q_s) + d)``.
    diagonal ``D`` with step ``dt`` is available as ``global_update="explicit"``.
 2. **Local stage** — eq. 6, ``D ḋ = f_ext + f_int`` for the local deformation. The default
    (``local_update="solve"``) takes the step to equilibrium at once: it minimises
-   ``½ κ Σ_k |P_k (t_k − x_k)|² + ½ δᵀ K δ`` with the St Venant–Kirchhoff stiffness ``K``
-   linearised at rest, by Jacobi-preconditioned conjugate gradients on the matrix-free sparse
-   operators (warm-started). ``local_update="explicit"`` is the paper-literal explicit step
+   ``½ κ Σ_k |P_k (t_k − x_k)|² + ½ δᵀ K δ + ½ ε |δ|²`` over δ with the St Venant–Kirchhoff
+   stiffness ``K`` linearised at rest, by Jacobi-preconditioned conjugate gradients on the
+   matrix-free sparse operators (inexact, ``cg_rtol``; δ accumulates over iterations). ε = 1e-4 ×
+   median diag(K) only removes the rigid-mode ambiguity between δ and (c, R).
+   ``local_update="explicit"`` is the paper-literal explicit step
    ``δ ← δ + dt D⁻¹ (f_ext + f_int(δ))`` with the full non-linear internal force and diagonal
-   damping ``D = diag(κ ΦᵀPΦ + K)``.
+   damping ``D = diag(κ ΦᵀQᵀPQΦ + K + ε)``.
 
 The internal force acts on the local deformation only (the paper: "the internal force is only
 considered in local deformation"): the elastic energy is that of the displacement field ``δ``
@@ -27,9 +29,9 @@ considered in local deformation"): the elastic energy is that of the displacemen
 
 **Convergence criterion**: an iteration is the global step followed (once the global stage has
 settled, i.e. its step moved control points by < ``local_start`` mm RMS) by the local step. The
-fit stops when, after a local step (or with the local stage disabled), the RMS change of all
-particle positions in that iteration is below ``tol`` mm, or when the control residual RMS
-is below ``residual_tol`` mm.
+fit stops when, after a local step, the RMS change of all particle positions in that iteration
+is below ``tol`` mm (with the local stage disabled: when the global step moved control points by
+less than ``tol`` mm RMS), or when the control residual RMS is below ``residual_tol`` mm.
 """
 
 from __future__ import annotations
@@ -234,6 +236,11 @@ class MeshlessModel:
         Material (eq. 20). Only the ratio to ``data_weight`` matters for the fit.
     k, support_factor, cond_max :
         Phyxel parameters (:func:`~mlv_ros.core.meshless.kernel.build_phyxels`).
+    stabilisation : float
+        Weight (× μ) of the zero-energy-mode penalty
+        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`) added to the local stage's
+        stiffness; 0 = pure St Venant–Kirchhoff. Without it particles without a control point
+        do not follow their neighbours.
 
     Raises
     ------
@@ -243,7 +250,8 @@ class MeshlessModel:
 
     def __init__(self, points, frame: ModelFrame, youngs_modulus: float = 1.0,
                  poisson_ratio: float = 0.45, *, k: int = NUM_NEIGHBOURS,
-                 support_factor: float = SUPPORT_FACTOR, cond_max: float = 1.0e4):
+                 support_factor: float = SUPPORT_FACTOR, cond_max: float = 1.0e4,
+                 stabilisation: float = 1000.0):
         self.rest_points = validate_points(points, "particle positions", min_count=5)
         n = self.rest_points.shape[0]
         if not isinstance(frame, ModelFrame):
@@ -251,6 +259,9 @@ class MeshlessModel:
         if len(frame.coords) != n:
             raise ValueError(f"frame has {len(frame.coords)} particles, points has {n}")
         self.lam, self.mu = elastic.lame_parameters(youngs_modulus, poisson_ratio)
+        self.stabilisation = float(stabilisation)
+        if not np.isfinite(self.stabilisation) or self.stabilisation < 0:
+            raise ValueError(f"stabilisation must be finite and >= 0, got {stabilisation}")
         self._k, self._support_factor, self._cond_max = k, support_factor, cond_max
         self.coords: ModelCoordinates = frame.coords
         self.rest_params: GlobalParameters = frame.params.copy()
@@ -268,6 +279,8 @@ class MeshlessModel:
                                      self._cond_max, h=h)
         self.operator = MLSOperator(self.phyxels)
         self._kdiag = elastic.stiffness_diagonal(self.operator, self.phyxels.volume, self.lam, self.mu)
+        self._stab_coef = self.stabilisation * self.mu * elastic.stabilisation_weights(self.operator, self.phyxels.volume)
+        self._kdiag = self._kdiag + elastic.stabilisation_diagonal(self.operator, self._stab_coef)[:, None]
         # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
         # parameters and δ unique (K is blind to rigid δ, which c and R already express).
         self._eps_delta = 1e-4 * float(np.median(self._kdiag))
@@ -344,6 +357,13 @@ class MeshlessModel:
         return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor)
 
     # ---------------------------------------------------------------- fitting
+    def _stiffness(self, v):
+        """Linearised SVK stiffness plus the zero-energy-mode penalty applied to v (N, 3)."""
+        out = elastic.linear_stiffness_apply(self.operator, v, self.phyxels.volume, self.lam, self.mu)
+        if self.stabilisation:
+            out = out + elastic.stabilisation_apply(self.operator, v, self._stab_coef)
+        return out
+
     def _local_metric(self, proj, phi, kappa):
         """``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
         stage ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3)."""
@@ -503,18 +523,18 @@ class MeshlessModel:
                 force = kappa * (phi_t @ (res @ q))                 # f_ext spread by the kernel
                 if local_update == "explicit":
                     fint = elastic.internal_forces(self.operator, self.delta, vol, self.lam, self.mu)
+                    if self.stabilisation:
+                        fint = fint - elastic.stabilisation_apply(self.operator, self.delta, self._stab_coef)
                     dx = dt * (force + fint - self._eps_delta * self.delta) / prec
                 else:
                     # Equilibrium of D ḋ = f_ext + f_int in one step: solve
                     # (κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ by PCG.
-                    rhs = force - elastic.linear_stiffness_apply(
-                        self.operator, self.delta, vol, self.lam, self.mu) - self._eps_delta * self.delta
+                    rhs = force - self._stiffness(self.delta) - self._eps_delta * self.delta
 
                     def matvec(v):
                         v = v.reshape(n, 3)
                         data = phi_t @ np.einsum("mab,mb->ma", pq, phi @ v)
-                        return (kappa * data + elastic.linear_stiffness_apply(
-                            self.operator, v, vol, self.lam, self.mu) + self._eps_delta * v).ravel()
+                        return (kappa * data + self._stiffness(v) + self._eps_delta * v).ravel()
 
                     op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
                     precond = spla.LinearOperator((3 * n, 3 * n), matvec=lambda v: v / prec.ravel(),
