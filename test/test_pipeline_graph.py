@@ -7,7 +7,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
@@ -109,7 +109,7 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
         assert src.returncode == 0, src.stderr
         assert spin_until(executor, lambda: len(points) == 6, 60), f"{len(points)} tag point sets"
         # The pattern has no heart: registration must say so on /diagnostics, not crash.
-        assert spin_until(executor, lambda: any(st.hardware_id == "registration" and st.level == 2
+        assert spin_until(executor, lambda: any(st.hardware_id == "registration" and st.level == DiagnosticStatus.ERROR
                                                 for d in diags for st in d.status), 30)
     finally:
         for p in procs:
