@@ -147,7 +147,7 @@ class MotionTracker:
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.local = bool(local)
-        self.cg_rtol, self.cg_maxiter = 1e-6, 2000
+        self.cg_rtol, self.cg_maxiter = 1e-5, 400  # warm-started; tighter bought no accuracy
         self.delta = None
         self._kdiag = None
         self._hourglass = None
