@@ -1,42 +1,27 @@
 """Shared test harness: ROS isolation and bounded spinning.
 
-Each pytest process claims its own ROS_DOMAIN_ID (an flock on a per-id file, so concurrent test
-runs on one machine never share a domain) and restricts discovery to localhost, before rclpy is
+Each pytest process claims its own ROS_DOMAIN_ID (``mlv_ros.domain``: an flock on a per-id file,
+so concurrent test runs on one machine never share a domain) and restricts discovery to localhost, before rclpy is
 used anywhere. Tests get a fresh rclpy Context and executor per test and wait on conditions with
 ``spin_until`` — never a bare sleep.
 """
 
 from __future__ import annotations
 
-import fcntl
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
+from mlv_ros.domain import claim_domain_id
+
 REPO = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)
 
 
-def _claim_domain_id() -> int:
-    lock_dir = Path(tempfile.gettempdir()) / "mlv_ros_domains"
-    lock_dir.mkdir(exist_ok=True)
-    for domain in [*range(101, 233), *range(1, 101)]:  # valid Fast DDS domain ids are 0..232
-        fh = open(lock_dir / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            continue
-        globals()["_DOMAIN_LOCK"] = fh  # held for the life of this process
-        return domain
-    raise RuntimeError("no free ROS_DOMAIN_ID for this test process")
-
-
-os.environ["ROS_DOMAIN_ID"] = str(_claim_domain_id())
+os.environ["ROS_DOMAIN_ID"] = str(claim_domain_id())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("AMENT_PREFIX_PATH", str(VENV))
 os.environ.setdefault("MPLBACKEND", "Agg")

@@ -33,6 +33,8 @@ def add_arguments(parser):
     parser.add_argument("--particles", type=int, default=None, help="model particles")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
     parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS domain to run on (default: $ROS_DOMAIN_ID if set, else a free private one)")
 
 
 def node_parameters(params_file: Path, overrides: dict) -> dict:
@@ -49,9 +51,12 @@ def node_parameters(params_file: Path, overrides: dict) -> dict:
 
 
 def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
-              timeout: float = 600.0, progress=print) -> dict:
+              timeout: float = 600.0, progress=print, domain_id: int | None = None) -> dict:
     """Run the graph on ``source`` ({"source": "phantom"|"dicom"|"bag"|"pattern", ...frame_source
-    parameters}) and record to ``out_dir/run.mcap``. Returns the summary dict."""
+    parameters}) and record to ``out_dir/run.mcap``. Returns the summary dict.
+
+    ``domain_id``: the ROS domain the graph talks on; default ``ROS_DOMAIN_ID`` when the caller
+    set it, else a private one claimed for this process (so parallel runs never mix)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -61,6 +66,7 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     from mlv_ros.nodes.recorder import Recorder
     from mlv_ros.nodes.registration import Registration
     from mlv_ros.nodes.tag_detector import TagDetector
+    from mlv_ros.domain import claim_domain_id
     from mlv_ros.resources import config_file
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -74,8 +80,10 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     params = node_parameters(Path(params_file) if params_file else config_file("graph.yaml"), overrides)
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
+    if domain_id is None:
+        domain_id = int(os.environ["ROS_DOMAIN_ID"]) if os.environ.get("ROS_DOMAIN_ID") else claim_domain_id()
     ctx = rclpy.Context()
-    rclpy.init(context=ctx)
+    rclpy.init(context=ctx, domain_id=domain_id)
     t0 = time.monotonic()
     nodes = {}
     try:
@@ -85,7 +93,7 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
             ex.add_node(nodes[name])
         src, solver, analyzer, rec = nodes["frame_source"], nodes["meshless_solver"], nodes["motion_analyzer"], nodes["recorder"]
         num_phases = max((f.num_phases for f in src.frames), default=0)
-        progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap}")
+        progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id})")
         seen = 0
         while time.monotonic() - t0 < timeout:
             ex.spin_once(timeout_sec=0.05)
@@ -105,7 +113,8 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         rec.finish()
         elapsed = time.monotonic() - t0
         summary = {
-            "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "seconds": round(elapsed, 2),
+            "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
+            "seconds": round(elapsed, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
             "num_phases": num_phases, "recorded_messages": rec.writer.message_count,
@@ -185,7 +194,8 @@ def run(args) -> int:
     overrides = {"registration": {"num_particles": args.particles}} if args.particles else {}
     try:
         summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
-                            progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)))
+                            progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
+                            domain_id=args.domain_id)
     except (FileExistsError, FileNotFoundError, ValueError) as exc:
         print(f"mlv-ros run: {exc}", file=sys.stderr)
         return 2
