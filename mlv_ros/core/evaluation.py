@@ -47,6 +47,14 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
                 row["twist_error_deg"] = float(np.max(np.abs(got.twist_deg - true.twist_deg)))
                 row["radius_error_mm"] = float(np.max(np.abs(got.sa_radius_mm - true.sa_radius_mm)))
                 row["true_twist_range_deg"] = float(np.ptp(true.twist_deg))
+            if got.segment_ecc.size == true.segment_ecc.size == 17:
+                # Regional strain: AHA segments with data in both (Ecc, Err, Ell; Green–Lagrange).
+                ok = (got.segment_count > 0) & (true.segment_count > 0)
+                for name in ("ecc", "err", "ell"):
+                    g, t = getattr(got, f"segment_{name}")[ok], getattr(true, f"segment_{name}")[ok]
+                    row[f"{name}_segment_error"] = float(np.max(np.abs(g - t)))
+                    row[f"{name}_global_error"] = float(abs(np.mean(g) - np.mean(t)))
+                    row[f"true_{name}_global"] = float(np.mean(t))
         out["per_phase"].append(row)
     es = int(round(motion.es_phase))
     out["es_phase"] = es

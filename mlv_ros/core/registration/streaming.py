@@ -37,17 +37,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _otsu(values: np.ndarray) -> float:
-    hist, edges = np.histogram(values, bins=256)
-    mids = 0.5 * (edges[1:] + edges[:-1])
-    w0 = np.cumsum(hist)
-    w1 = w0[-1] - w0
-    m0 = np.cumsum(hist * mids)
-    mu0 = m0 / np.maximum(w0, 1)
-    mu1 = (m0[-1] - m0) / np.maximum(w1, 1)
-    return float(mids[int(np.argmax(w0 * w1 * (mu0 - mu1) ** 2))])
-
-
 def _disk(radius_px: float) -> np.ndarray:
     r = max(int(round(radius_px)), 1)
     y, x = np.mgrid[-r:r + 1, -r:r + 1]
@@ -99,7 +88,7 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
     ok = np.isfinite(e) & np.isfinite(m)
     if ok.sum() < 100:
         return []
-    thr = _otsu(e[ok])
+    thr = seg._otsu(e[ok])
     hi = ok & (e > thr)
     if hi.sum() < 20:
         return []
