@@ -31,6 +31,8 @@ class Registration(GraphNode):
         self.seed = self.param("seed", 0, "particle sampling seed", min_value=0, max_value=2**31 - 1)
         self.ed_timeout_s = self.param("ed_timeout_s", 5.0, "register with the ED slices present once frames stop arriving for this long", min_value=0.1, max_value=3600.0)
         self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
+        self.mask_path = self.param("mask_path", "", "optional NIfTI label image of the ED myocardium (empty = automatic segmentation)")
+        self.mask_label = self.param("mask_label", 2, "myocardium label in mask_path (ACDC: 2)", min_value=0, max_value=65535)
         self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.latched_qos())
         self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.latched_qos())
         self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.stream_qos())
@@ -80,8 +82,20 @@ class Registration(GraphNode):
 
         self.registered = True
         t0 = time.monotonic()
+        frames = list(self.ed_frames.values())
+        masks = None
+        if self.mask_path:
+            from mlv_ros.core.registration.nifti import masks_for_frames
+
+            try:
+                masks, reasons = masks_for_frames(self.mask_path, frames, label=self.mask_label)
+            except ValueError as exc:
+                self.report(ERROR, "user mask unusable; segmenting automatically", path=self.mask_path, reason=str(exc))
+            else:
+                for (view, idx), why in reasons.items():
+                    self.report(WARN, "no user mask for slice; segmenting it automatically", view=view, slice=idx, reason=why)
         try:
-            res = register_ed(list(self.ed_frames.values()), num_particles=self.num_particles, seed=self.seed)
+            res = register_ed(frames, num_particles=self.num_particles, seed=self.seed, masks=masks)
         except ValueError as exc:
             self.report(ERROR, "registration failed", reason=str(exc), slices=len(self.ed_frames))
             return

@@ -31,6 +31,7 @@ def add_arguments(parser):
     parser.add_argument("--phases", type=int, default=None, help="phantom phases per cycle")
     parser.add_argument("--order", choices=("slice_major", "phase_major"), default=None)
     parser.add_argument("--particles", type=int, default=None, help="model particles")
+    parser.add_argument("--masks", default=None, help="NIfTI label image of the ED myocardium (label 2) instead of automatic segmentation")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
     parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
     parser.add_argument("--domain-id", type=int, default=None,
@@ -191,7 +192,11 @@ def run(args) -> int:
         source = {"source": "bag", "path": str(Path(args.bag).resolve())}
     if args.order:
         source["order"] = args.order
-    overrides = {"registration": {"num_particles": args.particles}} if args.particles else {}
+    overrides = {"registration": {}}
+    if args.particles:
+        overrides["registration"]["num_particles"] = args.particles
+    if args.masks:
+        overrides["registration"]["mask_path"] = str(Path(args.masks).resolve())
     try:
         summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
                             progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
