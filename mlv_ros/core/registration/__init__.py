@@ -17,3 +17,4 @@ from mlv_ros.core.registration.register import (  # noqa: F401
     MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed,
 )
 from mlv_ros.core.registration.streaming import StreamingMasker  # noqa: F401,E402
+from mlv_ros.core.registration.nifti import masks_for_frames  # noqa: F401,E402
