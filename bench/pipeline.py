@@ -15,7 +15,7 @@ from pathlib import Path
 
 from rclpy.serialization import deserialize_message
 
-from mlv_msgs.msg import ModelState, TaggedFrame, TagPoints
+from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, qos
 from mlv_ros.tools.run import phantom_accuracy, run_graph
 
@@ -34,14 +34,14 @@ def stage_latencies(mcap: Path) -> dict:
         elif m.topic == qos.MODEL_STATE:
             motion_t[deserialize_message(m.data, ModelState).phase_index] = m.log_time_ns
         else:
-            metrics_t[len(metrics_t)] = m.log_time_ns
+            metrics_t[deserialize_message(m.data, MotionMetrics).phase_index] = m.log_time_ns
     tag_ms = [(tag_t[k] - frame_t[k]) / 1e6 for k in tag_t if k in frame_t]
     solve_ms = []
     for ph, t in motion_t.items():
         last_tag = max((v for k, v in tag_t.items() if k[2] == ph), default=None)
         if last_tag is not None and ph > 0:
             solve_ms.append((t - last_tag) / 1e6)
-    analyse_ms = [(metrics_t[i] - t) / 1e6 for i, t in enumerate(sorted(motion_t.values())) if i in metrics_t]
+    analyse_ms = [(metrics_t[ph] - t) / 1e6 for ph, t in motion_t.items() if ph in metrics_t]
 
     def stats(v):
         return {"median": round(statistics.median(v), 1), "max": round(max(v), 1), "n": len(v)} if v else {}
