@@ -179,8 +179,8 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     num_particles : int
         Particles of the model (≥ 100; paper-scale default 5000).
     masks : optional
-        User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict (NIfTI loading
-        is not implemented yet). Slices with a mask skip the
+        User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict, e.g. the
+        first result of :func:`mlv_ros.core.registration.nifti.masks_for_frames` (NIfTI labels). Slices with a mask skip the
         automatic segmentation; a mask whose shape differs from its image is rejected (reason).
     seed : int
         Particle-sampling seed (deterministic output).
