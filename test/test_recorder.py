@@ -151,3 +151,31 @@ def test_frame_source_plays_frames_from_a_bag(ros_context, executor, tmp_path):
 def test_replay_without_path_is_a_clear_error():
     out = subprocess.run([console_script("replay")], capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "parameter path is required" in out.stderr
+
+
+def test_recorder_sigkill_leaves_completed_chunks_that_recover_rewrites(ros_context, executor, tmp_path):
+    out = tmp_path / "run.mcap"
+    rec = subprocess.Popen([console_script("recorder"), "--ros-args", "-p", f"output:={out}",
+                            "-p", f"topics:=['{qos.FRAMES}']", "-p", "chunk_size_kib:=64",
+                            "-p", "flush_period_s:=0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    src = FrameSource(context=ros_context, parameter_overrides=[
+        Parameter("source", value="pattern"), Parameter("num_phases", value=30)])
+    executor.add_node(src)
+    try:
+        assert spin_until(executor, lambda: src.done, timeout=60)
+        size = lambda: out.stat().st_size if out.exists() else 0  # noqa: E731
+        assert spin_until(executor, lambda: size() > 200_000, timeout=10)  # chunks reached the disk
+        rec.kill()  # SIGKILL: no summary, no footer
+        rec.wait(timeout=10)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    with pytest.raises(ValueError):
+        bagio.bag_topics(out)  # the damaged file has no summary
+    fixed = tmp_path / "recovered.mcap"
+    result = bagio.recover(out, fixed)
+    n = result["topics"][qos.FRAMES]
+    # each 64 KiB chunk holds ~7 frames of 8 KiB; all but the one being filled survive
+    assert 60 - 10 <= n <= 60, result
+    assert sum(1 for t, _, _ in read_with_rosbags(fixed) if t == qos.FRAMES) == n
+    assert bagio.bag_topics(fixed)[qos.FRAMES]["count"] == n
