@@ -37,7 +37,7 @@ def test_recorder_in_process_and_rosbags_reads_it(ros_context, executor, tmp_pat
     executor.add_node(rec)
     executor.add_node(src)
     assert spin_until(executor, lambda: src.done, timeout=30)
-    assert spin_until(executor, lambda: rec.messages_handled >= 6, timeout=10)
+    assert spin_until(executor, lambda: rec.writer.topics[qos.FRAMES].count >= 6, timeout=10)
     rec.finish()
 
     expected = pattern_frames(num_phases=3)
@@ -109,7 +109,7 @@ def record_pattern(ros_context, executor, path, num_phases=3):
         Parameter("source", value="pattern"), Parameter("num_phases", value=num_phases)])
     executor.add_node(rec)
     executor.add_node(src)
-    assert spin_until(executor, lambda: src.done and rec.messages_handled >= src.published, timeout=30)
+    assert spin_until(executor, lambda: src.done and rec.writer.topics[qos.FRAMES].count >= src.published, timeout=30)
     rec.finish()
     for node in (rec, src):
         executor.remove_node(node)
