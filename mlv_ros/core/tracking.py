@@ -124,12 +124,19 @@ class MotionTracker:
         Re-attachment passes per phase that keep each control point on its image plane.
     max_attach_mm : float
         Tag points farther than this from every particle (outside the model) are not used.
+    hourglass_weight : float
+        Stiffness of the MLS fit-error penalty (paper eq. 16) that removes the zero-energy modes
+        of the local strain energy, relative to the elastic stiffness.
+    volume_weight : float
+        Near-incompressibility: penalty on the linearised volume change of the whole deformation,
+        in units of μ (0 = off). Myocardium keeps its volume to a few percent; with tags spaced
+        like the wall is thick this is what recovers radial thickening (Err).
     """
 
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
                  data_weight: float = 1.0e4, slice_following: int = 2, max_attach_mm: float = 3.0,
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
-                 hourglass_weight: float = 1.0e3):
+                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3):
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
         if polar is not None:
@@ -154,6 +161,7 @@ class MotionTracker:
         self.outlier_mm = 3.0
         self.rejected = 0
         self.hourglass_weight = hourglass_weight
+        self.volume_weight = float(volume_weight)
         self.positions = self.rest.copy()
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self.normals: dict = {}    # (view, slice) → (normal (3,), point on plane (3,))
@@ -278,18 +286,33 @@ class MotionTracker:
         L = self._hourglass
         alpha = self.hourglass_weight * float(np.median(self._kdiag)) / max(float(np.median(L.diagonal())), 1e-300)
 
+        # Near-incompressibility of the whole deformation (myocardium keeps its volume): the
+        # linearised volume change of F = F_g + ∇δ, J_g (1 + F_g⁻ᵀ : ∇δ) − 1, is penalised.
+        Fg = np.eye(3) + op.gradient(x_global - self.rest)
+        Jg = np.linalg.det(Fg)
+        ok = np.abs(Jg) > 1e-6
+        C = np.zeros_like(Fg)
+        C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
+        kv = self.volume_weight * mu
+
         def apply(v):
             d = v.reshape(n, 3)
             H = op.gradient(d)
             tr = np.trace(H, axis1=1, axis2=2)
             S = vol[:, None, None] * (mu * (H + np.swapaxes(H, 1, 2)) + lam * tr[:, None, None] * np.eye(3))
+            if kv:
+                S = S + (kv * vol * np.einsum("iab,iab->i", C, H))[:, None, None] * C
             data = phi_t @ np.einsum("kab,kb->ka", P, phi @ d)
             return (op.adjoint(S) + alpha * (L @ d) + kappa * data + eps * d).ravel()
 
         r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
-        rhs = (kappa * (phi_t @ r)).ravel()
+        rhs = kappa * (phi_t @ r)
+        if kv:
+            rhs = rhs - op.adjoint((kv * vol * (Jg - 1.0))[:, None, None] * C)
+        rhs = rhs.ravel()
         diag_data = np.asarray(phi.multiply(phi).T @ np.ones(phi.shape[0])).ravel()
-        prec = 1.0 / np.repeat(self._kdiag + alpha * L.diagonal() + kappa * diag_data + eps, 3)
+        vdiag = self._kdiag * kv / (mu + (mu + lam) / 3.0)
+        prec = 1.0 / np.repeat(self._kdiag + vdiag + alpha * L.diagonal() + kappa * diag_data + eps, 3)
         A = LinearOperator((3 * n, 3 * n), matvec=apply, dtype=np.float64)
         M = LinearOperator((3 * n, 3 * n), matvec=lambda v: prec * v, dtype=np.float64)
         x0 = self.delta.ravel() if self.delta is not None else None
