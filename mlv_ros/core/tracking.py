@@ -134,7 +134,7 @@ class MotionTracker:
     """
 
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
-                 data_weight: float = 1.0e4, slice_following: int = 2, max_attach_mm: float = 3.0,
+                 data_weight: float = 1.0e4, slice_following: int = 1, max_attach_mm: float = 3.0,
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
                  hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3):
         pts = np.asarray(particles, dtype=np.float64)

@@ -33,7 +33,7 @@ class MeshlessSolver(GraphNode):
         self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
         self.hourglass_weight = self.param("hourglass_weight", 1.0e3, "MLS fit-error (zero-energy mode) stiffness relative to elasticity", min_value=0.0, max_value=1e9)
         self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
-        self.slice_following = self.param("slice_following", 2, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
+        self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
         self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
         self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.stream_qos())
