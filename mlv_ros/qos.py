@@ -1,8 +1,9 @@
 """Topic names and QoS profiles of the graph, in one place (as image_pipeline does).
 
 Every stream that carries acquisition data or results is RELIABLE with a deep KEEP_LAST queue,
-so a whole study (25 phases × 11 slices = 275 frames) fits in flight without a drop. Results
-that late joiners need (the registered model, the ED reference) are also TRANSIENT_LOCAL.
+so a whole study (25 phases × 11 slices = 275 frames) fits in flight without a drop. What late
+joiners need is also TRANSIENT_LOCAL: the registered model (latched, depth 1) and the frames and
+tag points (the whole study's history), so a node restarted mid-run catches up.
 """
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -29,6 +30,9 @@ TOPIC_TYPES = {
     DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
 }
 LATCHED_TOPICS = (REGISTERED_CLOUD, REGISTERED_STATE)
+# Inputs a restarted node must be able to catch up on: their publishers keep the whole study
+# (TRANSIENT_LOCAL, KEEP_LAST(STREAM_DEPTH)), so a node that (re)joins late receives the history.
+HISTORY_TOPICS = (FRAMES, TAG_POINTS)
 
 STREAM_DEPTH = 1000
 
@@ -50,9 +54,28 @@ def diagnostics_qos() -> QoSProfile:
     return stream_qos(100)
 
 
+def history_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
+    """RELIABLE, TRANSIENT_LOCAL, KEEP_LAST(depth): a stream whose history late joiners get."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def topic_qos(topic: str) -> QoSProfile:
-    """The profile a graph topic is published with (latched for the registration results)."""
-    return latched_qos() if topic in LATCHED_TOPICS else stream_qos()
+    """The profile a graph topic is published with: latched for the registration results, with
+    history for frames and tag points, a deep RELIABLE stream otherwise."""
+    if topic in LATCHED_TOPICS:
+        return latched_qos()
+    return history_qos() if topic in HISTORY_TOPICS else stream_qos()
+
+
+def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
+    """The profile to subscribe with. VOLATILE matches any RELIABLE publisher (a bag player,
+    another tool); ``catch_up`` asks for the publisher's history (TRANSIENT_LOCAL, which only a
+    TRANSIENT_LOCAL publisher can serve) — the solver does so for tag points, so that a restarted
+    solver rebuilds the run."""
+    if topic in LATCHED_TOPICS:
+        return latched_qos()
+    return history_qos() if catch_up and topic in HISTORY_TOPICS else stream_qos()
 
 
 def qos_dict(profile: QoSProfile) -> dict:

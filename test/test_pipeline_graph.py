@@ -123,3 +123,43 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
     topics = bagio.bag_topics(mcap)
     assert topics[qos.FRAMES]["count"] == 6
     assert topics[qos.TAG_POINTS]["count"] == 6
+
+
+def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, executor, tmp_path):
+    """SIGKILL the solver after a few phases; a new solver process gets the latched registration
+    and the tag-point history (TRANSIENT_LOCAL) and solves every phase."""
+    from rclpy.node import Node
+
+    from mlv_msgs.msg import ModelState
+
+    states = []
+    watcher = Node("watcher2", context=ros_context)
+    watcher.create_subscription(ModelState, qos.MODEL_STATE, states.append, qos.stream_qos())
+    executor.add_node(watcher)
+    phases = 8
+    common = ["--ros-args", "--params-file", "config/graph.yaml"]
+    procs = {n: subprocess.Popen([console_script(n), *common, *extra], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+             for n, extra in [("tag_detector", []), ("registration", ["-p", "num_particles:=1500"]),
+                              ("meshless_solver", [])]}
+    src = subprocess.Popen([console_script("frame_source"), *common, "-p", "size:=128", "-p", f"num_phases:={phases}",
+                            "-p", "wait_for_subscribers:=2", "-p", "exit_when_done:=false"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= 3, 240), \
+            f"phases before the kill: {sorted({s.phase_index for s in states})}"
+        procs["meshless_solver"].kill()
+        procs["meshless_solver"].wait(timeout=10)
+        before = len(states)
+        procs["meshless_solver"] = subprocess.Popen([console_script("meshless_solver"), *common],
+                                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        assert spin_until(executor, lambda: {s.phase_index for s in states[before:]} == set(range(phases)), 300), \
+            f"after restart: {sorted({s.phase_index for s in states[before:]})}"
+    finally:
+        for p in [*procs.values(), src]:
+            p.send_signal(2)
+        for p in [*procs.values(), src]:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()

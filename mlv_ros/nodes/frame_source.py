@@ -63,7 +63,7 @@ class FrameSource(GraphNode):
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers to wait for before publishing", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting for subscribers after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop the node once every frame is acknowledged")
-        self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.stream_qos())
+        self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.published = 0
         self._t0 = time.monotonic()

@@ -36,11 +36,12 @@ class MeshlessSolver(GraphNode):
         self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
         self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
-        self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.stream_qos())
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.MODEL_STATE, qos.stream_qos())
-        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_cloud, qos.latched_qos())
-        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_state, qos.latched_qos())
-        self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points, qos.stream_qos())
+        self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.topic_qos(qos.MOTION))
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.MODEL_STATE, qos.topic_qos(qos.MODEL_STATE))
+        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
+        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_state, qos.subscription_qos(qos.REGISTERED_STATE))
+        self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points,
+                                 qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
         self.assembler = PhaseAssembler()
         self.cloud = None
         self.rest_state = None

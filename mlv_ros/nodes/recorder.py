@@ -38,10 +38,10 @@ class Recorder(GraphNode):
         self.messages_handled = 0
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
-            profile = qos.topic_qos(topic)
-            self.writer.add_topic(topic, type_name, [qos.qos_dict(profile)])
+            self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
             self.create_subscription(message_class(type_name), topic,
-                                     lambda data, topic=topic: self._on_message(topic, data), profile, raw=True)
+                                     lambda data, topic=topic: self._on_message(topic, data),
+                                     qos.subscription_qos(topic), raw=True)
         self.create_timer(self.flush_period_s, self.writer.flush)
         self.report(OK, "recording", output=self.output, topics=len(topics))
 

@@ -33,9 +33,9 @@ class Registration(GraphNode):
         self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
         self.mask_path = self.param("mask_path", "", "optional NIfTI label image of the ED myocardium (empty = automatic segmentation)")
         self.mask_label = self.param("mask_label", 2, "myocardium label in mask_path (ACDC: 2)", min_value=0, max_value=65535)
-        self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.latched_qos())
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.latched_qos())
-        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.stream_qos())
+        self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.topic_qos(qos.REGISTERED_CLOUD))
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.topic_qos(qos.REGISTERED_STATE))
+        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES))
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
