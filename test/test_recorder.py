@@ -179,3 +179,12 @@ def test_recorder_sigkill_leaves_completed_chunks_that_recover_rewrites(ros_cont
     assert 60 - 10 <= n <= 60, result
     assert sum(1 for t, _, _ in read_with_rosbags(fixed) if t == qos.FRAMES) == n
     assert bagio.bag_topics(fixed)[qos.FRAMES]["count"] == n
+
+
+def test_recorder_refuses_to_overwrite_with_a_clear_error(tmp_path):
+    out = tmp_path / "run.mcap"
+    out.write_bytes(b"precious")
+    res = subprocess.run([console_script("recorder"), "--ros-args", "-p", f"output:={out}"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "refusing to overwrite" in res.stderr
+    assert out.read_bytes() == b"precious"

@@ -108,7 +108,7 @@ def run_node(factory: Callable[..., Node], args=None) -> int:
     try:
         try:
             node = factory()
-        except (ValueError, ParameterException) as exc:  # bad parameters: say so, exit non-zero
+        except (ValueError, ParameterException, OSError) as exc:  # bad parameters or paths: say so, exit 2
             print(f"error: {exc}", file=sys.stderr)
             return 2
         executor.add_node(node)
