@@ -369,6 +369,17 @@ def _fail(shape, reason: str, view: str) -> SliceSegmentation:
     return SliceSegmentation(False, reason, np.zeros(shape, bool), view=view)
 
 
+def _checked_image(image, view: str):
+    """``(float image, None)`` for a usable slice, else ``(None, failed SliceSegmentation)``."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2 or min(img.shape) < 16 or not np.all(np.isfinite(img)):
+        return None, _fail(np.shape(img)[:2] if img.ndim >= 2 else (0, 0),
+                           "image must be a finite 2-D array of at least 16x16 pixels", view)
+    if float(img.std()) == 0.0:
+        return None, _fail(img.shape, "image is constant (no signal)", view)
+    return img, None
+
+
 def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_radius_mm: float = 60.0,
                min_wall_mm: float = 2.0, max_invalid_fraction: float = 0.25,
                features: TagFeatures | None = None) -> SliceSegmentation:
@@ -397,12 +408,9 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
         ``ok=False`` with a reason when the slice holds no recognisable annulus (no tags, no
         tagged ring around the centre, implausible wall).
     """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2 or min(img.shape) < 16 or not np.all(np.isfinite(img)):
-        return _fail(np.shape(img)[:2] if img.ndim >= 2 else (0, 0),
-                     "image must be a finite 2-D array of at least 16x16 pixels", "SA")
-    if float(img.std()) == 0.0:
-        return _fail(img.shape, "image is constant (no signal)", "SA")
+    img, failed = _checked_image(image, "SA")
+    if failed is not None:
+        return failed
     c = np.asarray(centre_rc, dtype=np.float64)
     feat = features or tag_features(img)
     rmax = max_radius_mm / pixel_spacing_mm
@@ -464,12 +472,9 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     SliceSegmentation
         With ``base_level`` (px along ``axis_rc`` from the centre) where the horseshoe is cut.
     """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2 or min(img.shape) < 16 or not np.all(np.isfinite(img)):
-        return _fail(np.shape(img)[:2] if img.ndim >= 2 else (0, 0),
-                     "image must be a finite 2-D array of at least 16x16 pixels", "LA")
-    if float(img.std()) == 0.0:
-        return _fail(img.shape, "image is constant (no signal)", "LA")
+    img, failed = _checked_image(image, "LA")
+    if failed is not None:
+        return failed
     c = np.asarray(centre_rc, dtype=np.float64)
     ax = np.asarray(axis_rc, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
