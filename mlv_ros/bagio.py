@@ -196,15 +196,18 @@ class BagWriter:
             metadata={"offered_qos_profiles": qos, "topic_type_hash": thash})
         self.topics[topic] = _Topic(topic, type_name, cid, qos, thash)
 
-    def write(self, topic: str, data: bytes, log_time_ns: int) -> None:
-        """Append one CDR-serialised message received at ``log_time_ns`` (ns since the epoch)."""
+    def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        """Append one CDR-serialised message received at ``log_time_ns`` and sent at
+        ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
+        receive time), both in ns since the epoch."""
         if self.closed:
             raise ValueError(f"recording {self.path} is closed")
         t = self.topics.get(topic)
         if t is None:
             raise ValueError(f"topic {topic!r} was not added to the recording")
         self._writer.add_message(channel_id=t.channel_id, log_time=log_time_ns, data=bytes(data),
-                                 publish_time=log_time_ns, sequence=0)
+                                 publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
+                                 sequence=0)
         t.count += 1
         self.start_ns = log_time_ns if self.start_ns is None else min(self.start_ns, log_time_ns)
         self.end_ns = max(self.end_ns, log_time_ns)

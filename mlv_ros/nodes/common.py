@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import inspect
 import signal
 import sys
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 import rclpy
@@ -22,8 +24,21 @@ from mlv_ros import qos
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
 
+@dataclass
+class StreamCount:
+    """What one subscription has seen: messages received, and messages its publisher sent that
+    never arrived (sequence-number gaps) or were sent before it matched (``missed``)."""
+
+    received: int = 0
+    lost: int = 0
+    missed: int = 0
+    last_sequence: int | None = None
+    publisher_restarts: int = 0
+
+
 class GraphNode(Node):
-    """A Node with typed parameter declaration and a /diagnostics publisher."""
+    """A Node with typed parameter declaration, a /diagnostics publisher, and loss accounting on
+    every subscription."""
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
@@ -33,7 +48,8 @@ class GraphNode(Node):
         # monitor that joins late still sees it; events are also published the moment they occur.
         self._status = DiagnosticStatus(level=OK, name=self.get_fully_qualified_name(),
                                         message="starting", hardware_id=self.get_name())
-        self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._status))
+        self.streams: dict[str, StreamCount] = {}
+        self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._with_counts(self._status)))
         self.finished = Future()  # completed when the node's job is over (run_node then exits)
 
     @property
@@ -66,6 +82,64 @@ class GraphNode(Node):
         if choices and value not in choices:
             raise ValueError(f"parameter {name}={value!r} must be one of {choices}")
         return value
+
+    def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
+        """``Node.create_subscription`` that also accounts for loss on ``topic``.
+
+        DDS does not tell a subscriber that its own queue overflowed or that a KEEP_LAST writer
+        dropped samples it had not delivered; the writer's sequence numbers do: a gap between two
+        consecutive messages is that many messages lost, reported on /diagnostics at once and
+        counted in every heartbeat (``received``/``lost``/``missed`` per topic). rclpy does not
+        expose the writer's GUID, so sequences are only checked while the topic has a single
+        publisher (every graph stream has one); a sequence number going back means a new
+        (restarted) publisher.
+        ``callback`` may take ``(msg)`` or ``(msg, message_info)``, as with rclpy.
+        """
+        count = self.streams.setdefault(topic, StreamCount())
+        try:
+            inspect.signature(callback).bind(object())
+            wants_info = False
+        except TypeError:
+            wants_info = True
+
+        def counted(msg, info):
+            self._account(topic, count, info.get("publication_sequence_number"))
+            return callback(msg, info) if wants_info else callback(msg)
+
+        return super().create_subscription(msg_type, topic, counted, qos_profile, **kwargs)
+
+    def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:
+        count.received += 1
+        # No sequence numbers from the rmw, or several publishers whose sequences interleave
+        # (rclpy does not say which one sent a message), or /diagnostics (a report about it would
+        # feed back into it): count only.
+        if not seq or topic == qos.DIAGNOSTICS or self.count_publishers(topic) > 1:
+            return
+        last, count.last_sequence = count.last_sequence, seq
+        if last is None:
+            if seq > 1:
+                count.missed += seq - 1
+                self.report(WARN, "messages published before this node subscribed were not received",
+                            topic=topic, missed=seq - 1, first_sequence=seq)
+        elif seq <= last:
+            count.publisher_restarts += 1
+            count.missed += seq - 1
+            self.report(WARN if seq > 1 else OK, "a new publisher started on the topic",
+                        topic=topic, sequence=seq, previous_sequence=last)
+        elif seq > last + 1:
+            count.lost += seq - last - 1
+            self.report(ERROR, "messages lost", topic=topic, lost=seq - last - 1, total_lost=count.lost,
+                        after_sequence=last, received=count.received)
+
+    def _with_counts(self, status: DiagnosticStatus) -> DiagnosticStatus:
+        """``status`` plus the per-topic counts, as the heartbeat publishes it."""
+        extra = []
+        for topic, c in self.streams.items():
+            extra += [KeyValue(key=f"received {topic}", value=str(c.received)),
+                      KeyValue(key=f"lost {topic}", value=str(c.lost)),
+                      KeyValue(key=f"missed {topic}", value=str(c.missed))]
+        return DiagnosticStatus(level=status.level, name=status.name, message=status.message,
+                                hardware_id=status.hardware_id, values=list(status.values) + extra)
 
     def report(self, level: int, message: str, **values) -> None:
         """Publish one DiagnosticStatus (name = node, hardware_id = node name) now, make it the

@@ -101,11 +101,17 @@ class FrameSource(GraphNode):
         if self._started is None:
             matched = self.pub.get_subscription_count()
             if matched < self.wait_for_subscribers:
-                if time.monotonic() - self._t0 > self.wait_timeout_s:
+                if time.monotonic() - self._t0 <= self.wait_timeout_s:
+                    return
+                if matched == 0:
                     self.report(ERROR, "no subscriber appeared; not publishing", waited_s=self.wait_timeout_s)
                     self.timer.cancel()
                     self.stop()
-                return
+                    return
+                # Frames are kept for late joiners (TRANSIENT_LOCAL), but a VOLATILE subscriber
+                # that appears later misses them: say so rather than wait for ever.
+                self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
+                            expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
             self._started = time.monotonic()
             self._next_at = self._started
         if self.published < len(self.frames):

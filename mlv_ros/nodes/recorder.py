@@ -40,13 +40,13 @@ class Recorder(GraphNode):
             type_name = qos.TOPIC_TYPES[topic]
             self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
             self.create_subscription(message_class(type_name), topic,
-                                     lambda data, topic=topic: self._on_message(topic, data),
+                                     lambda data, info, topic=topic: self._on_message(topic, data, info),
                                      qos.subscription_qos(topic), raw=True)
         self.create_timer(self.flush_period_s, self.writer.flush)
         self.report(OK, "recording", output=self.output, topics=len(topics))
 
-    def _on_message(self, topic: str, data: bytes) -> None:
-        self.writer.write(topic, data, time.time_ns())
+    def _on_message(self, topic: str, data: bytes, info: dict) -> None:
+        self.writer.write(topic, data, time.time_ns(), info.get("source_timestamp") or None)
         self.messages_handled += 1
 
     def finish(self) -> None:

@@ -1,0 +1,95 @@
+"""Loss is never silent: a subscriber that cannot keep up, or joins late, says on /diagnostics
+how many messages it did not get (publisher sequence-number gaps), and its heartbeat carries
+received/lost/missed counts per topic, so frames in = frames out + frames reported lost.
+
+The recorder is the subscriber here because it is the one node where a silent loss would cost a
+user data. The overflow is real: 1100 frames are published before the recorder's executor runs,
+into a RELIABLE KEEP_LAST(1000) subscription queue."""
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from conftest import spin_until
+from mlv_msgs.msg import TaggedFrame
+from mlv_ros import bagio, conversions, qos
+from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.nodes.common import ERROR
+from mlv_ros.nodes.recorder import Recorder
+
+BURST = qos.STREAM_DEPTH + 100
+
+
+class Monitor(Node):
+    def __init__(self, context):
+        super().__init__("loss_monitor", context=context)
+        self.statuses = []
+        self.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, lambda m: self.statuses.extend(m.status),
+                                 qos.diagnostics_qos())
+
+    def events(self, message):
+        return [{kv.key: kv.value for kv in s.values} | {"level": s.level}
+                for s in self.statuses if s.hardware_id == "recorder" and s.message == message]
+
+    def last_counts(self, topic):
+        for s in reversed(self.statuses):
+            values = {kv.key: kv.value for kv in s.values}
+            if s.hardware_id == "recorder" and f"received {topic}" in values:
+                return {k: int(values[f"{k} {topic}"]) for k in ("received", "lost", "missed")}
+        return None
+
+
+def test_overflow_late_join_and_restart_are_reported(ros_context, executor, tmp_path):
+    out = tmp_path / "run.mcap"
+    rec = Recorder(context=ros_context, parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("topics", value=[qos.FRAMES])])
+    mon = Monitor(ros_context)
+    src = Node("burst_source", context=ros_context)
+    frame = conversions.frame_to_msg(pattern_frames(num_phases=1, size=32)[0])
+    # TRANSIENT_LOCAL like the frame source, so the late-join case below is a real one.
+    pub = src.create_publisher(TaggedFrame, qos.FRAMES, qos.history_qos())
+    for n in (rec, mon, src):
+        executor.add_node(n)
+    assert spin_until(executor, lambda: pub.get_subscription_count() >= 1 and
+                      mon.count_publishers(qos.DIAGNOSTICS) >= 1, 20)
+
+    published = 0
+    for _ in range(10):
+        pub.publish(frame)
+        published += 1
+    assert spin_until(executor, lambda: rec.writer.topics[qos.FRAMES].count == 10, 10)
+    for _ in range(BURST):  # nobody spins meanwhile: the recorder's queue overflows
+        pub.publish(frame)
+        published += 1
+    assert spin_until(executor, lambda: bool(mon.events("messages lost")) and
+                      rec.writer.topics[qos.FRAMES].count + rec.streams[qos.FRAMES].lost == published, 20)
+    recorded = rec.writer.topics[qos.FRAMES].count
+    lost = rec.streams[qos.FRAMES].lost
+    assert lost > 0 and recorded + lost == published, (recorded, lost, published)
+    (event,) = mon.events("messages lost")
+    assert event["level"] == ERROR and event["topic"] == qos.FRAMES and int(event["lost"]) == lost
+    # the heartbeat carries the same accounting
+    assert spin_until(executor, lambda: (mon.last_counts(qos.FRAMES) or {}).get("lost") == lost, 5)
+    assert mon.last_counts(qos.FRAMES) == {"received": recorded, "lost": lost, "missed": 0}
+
+    # A second (VOLATILE) subscriber joining now misses everything published so far, and says so.
+    late = Recorder(context=ros_context, parameter_overrides=[
+        Parameter("output", value=str(tmp_path / "late.mcap")), Parameter("topics", value=[qos.FRAMES])])
+    executor.add_node(late)
+    assert spin_until(executor, lambda: pub.get_subscription_count() >= 2, 10)
+    pub.publish(frame)
+    published += 1
+    assert spin_until(executor, lambda: late.streams[qos.FRAMES].received == 1, 10)
+    assert late.streams[qos.FRAMES].missed == published - 1
+
+    # A restarted publisher starts its sequence again: noted, not counted as loss.
+    src.destroy_publisher(pub)
+    pub = src.create_publisher(TaggedFrame, qos.FRAMES, qos.history_qos())
+    assert spin_until(executor, lambda: pub.get_subscription_count() >= 2, 10)
+    pub.publish(frame)
+    assert spin_until(executor, lambda: bool(mon.events("a new publisher started on the topic")), 10)
+    assert rec.streams[qos.FRAMES].publisher_restarts == 1 and rec.streams[qos.FRAMES].lost == lost
+
+    rec.finish()
+    late.finish()
+    assert bagio.bag_topics(out)[qos.FRAMES]["count"] == recorded + 2  # + the late-join and restart frames
