@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 export AMENT_PREFIX_PATH := $(CURDIR)/.venv
 
-.PHONY: bootstrap demo test bench colcon clean
+.PHONY: bootstrap demo test bench fuzz colcon clean
 bootstrap:
 	@scripts/bootstrap.sh
 
@@ -15,6 +15,13 @@ test: bootstrap
 
 bench: bootstrap
 	@.venv/bin/mlv-ros bench all
+
+# Not part of `make test`: atheris (requirements/fuzz.txt) on the DICOM reader and the message
+# decoders for FUZZ_SECONDS per target; prints a JSON summary, fails if a crash was found.
+FUZZ_SECONDS ?= 60
+fuzz: bootstrap
+	@$(PY) -m pip install --disable-pip-version-check -q -r requirements/fuzz.txt
+	@$(PY) fuzz/run.py --seconds $(FUZZ_SECONDS)
 
 clean:
 	rm -rf build install log .venv

