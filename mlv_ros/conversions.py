@@ -50,6 +50,9 @@ _POINTFIELD_DTYPES = {
 }
 _DTYPE_TO_POINTFIELD = {v: k for k, v in _POINTFIELD_DTYPES.items()}
 
+# A tag position may differ from its pixel placed by the slice geometry by float rounding only.
+TAG_POSITION_TOL_MM = 1e-3
+
 
 # --------------------------------------------------------------------------- time / header
 def to_time(seconds: float) -> Time:
@@ -63,6 +66,11 @@ def to_time(seconds: float) -> Time:
 def from_time(t: Time) -> float:
     """``builtin_interfaces/Time`` → float seconds."""
     return t.sec + t.nanosec * 1e-9
+
+
+def stamp_text(t: Time) -> str:
+    """A stamp as exact ``sec.nanosec`` text (diagnostics name the offending message by it)."""
+    return f"{t.sec}.{t.nanosec:09d}"
 
 
 def make_header(stamp: float | Time = 0.0, frame_id: str = PATIENT_FRAME) -> Header:
@@ -142,6 +150,8 @@ def msg_to_image(msg: Image, allow_nonfinite: bool = False) -> np.ndarray:
         raise ValueError(f"image step {step} is not a multiple of the pixel size {dtype.itemsize}")
     if len(msg.data) != h * step:
         raise ValueError(f"image data has {len(msg.data)} bytes, expected height·step = {h * step}")
+    if msg.is_bigendian not in (0, 1):
+        raise ValueError(f"image is_bigendian must be 0 or 1, got {msg.is_bigendian}")
     if msg.is_bigendian:
         dtype = dtype.newbyteorder(">")
     buf = np.frombuffer(msg.data, dtype=np.uint8)
@@ -199,7 +209,7 @@ def cloud_to_msg(points: np.ndarray | Mapping[str, np.ndarray], header: Header |
     return msg
 
 
-def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = ()) -> np.ndarray:
+def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = (), finite: Iterable[str] = ()) -> np.ndarray:
     """``sensor_msgs/PointCloud2`` → structured array, shape (height·width,).
 
     Parameters
@@ -207,15 +217,20 @@ def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = ()) -> np.ndarray:
     msg : PointCloud2
     required : iterable of str
         Field names that must be present (e.g. ``("x", "y", "z")``).
+    finite : iterable of str
+        Field names that must be present, floating point (FLOAT32/FLOAT64) and finite
+        (positions: an integer or NaN coordinate is garbage, not a point).
 
     Raises
     ------
     ValueError
         Missing required fields, unknown datatypes, ``count != 1``, overlapping or out-of-record
-        fields, or ``data`` whose length differs from ``row_step · height``.
+        fields, ``data`` whose length differs from ``row_step · height``, or a ``finite`` field
+        that is not floating point or holds NaN/inf.
     """
     names = [f.name for f in msg.fields]
-    missing = [r for r in required if r not in names]
+    finite = tuple(finite)
+    missing = [r for r in (*required, *finite) if r not in names]
     if missing:
         raise ValueError(f"point cloud lacks field(s) {missing}; has {names}")
     if len(set(names)) != len(names):
@@ -234,10 +249,15 @@ def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = ()) -> np.ndarray:
         spec["names"].append(f.name)
         spec["formats"].append(dt.newbyteorder(order))
         spec["offsets"].append(f.offset)
+    # numpy accepts overlapping fields (aliased bytes): refuse them here.
+    spans = sorted((f.offset, f.offset + _POINTFIELD_DTYPES[f.datatype].itemsize, f.name) for f in msg.fields)
+    for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
+        if start < end:
+            raise ValueError(f"point cloud fields {a!r} and {b!r} overlap")
     try:
         dtype = np.dtype(spec)
     except ValueError as exc:
-        raise ValueError(f"point cloud fields overlap or are malformed: {exc}") from None
+        raise ValueError(f"point cloud fields are malformed: {exc}") from None
     if int(msg.row_step) < width * point_step:
         raise ValueError(f"row_step {msg.row_step} is smaller than width·point_step = {width * point_step}")
     if len(msg.data) != int(msg.row_step) * height:
@@ -246,6 +266,10 @@ def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = ()) -> np.ndarray:
     pts = np.ascontiguousarray(buf).view(dtype).reshape(-1)
     if msg.is_bigendian != int(_HOST_BIG_ENDIAN):
         pts = pts.astype(pts.dtype.newbyteorder("="))
+    for name in finite:
+        if pts.dtype[name].kind != "f":
+            raise ValueError(f"point field {name!r} must be FLOAT32 or FLOAT64, got {pts.dtype[name]}")
+        _require_finite(f"point field {name!r}", pts[name])
     return pts
 
 
@@ -298,10 +322,18 @@ def _check_phase(phase_index: int, num_phases: int) -> None:
         raise ValueError(f"phase_index {phase_index} outside [0, {num_phases})")
 
 
+def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices: int) -> None:
+    """A slice index must lie within its view's declared slice count (0 = count unknown)."""
+    count, name = (num_sa_slices, "num_sa_slices") if view == VIEW_SA else (num_la_slices, "num_la_slices")
+    if count and not 0 <= slice_index < count:
+        raise ValueError(f"slice_index {slice_index} outside [0, {name} = {count}) for view {view}")
+
+
 def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
     """:class:`Frame` → ``mlv_msgs/TaggedFrame``; ``stamp`` goes to both headers."""
     _check_view(frame.view)
     _check_phase(frame.phase_index, frame.num_phases)
+    _check_slice(frame.view, frame.slice_index, frame.num_sa_slices, frame.num_la_slices)
     header = make_header(stamp)
     return TaggedFrame(
         header=header, image=image_to_msg(frame.image, header=header),
@@ -315,6 +347,7 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
     """``mlv_msgs/TaggedFrame`` → :class:`Frame` (image, geometry, indices validated)."""
     _check_view(msg.view)
     _check_phase(msg.phase_index, msg.num_phases)
+    _check_slice(msg.view, msg.slice_index, msg.num_sa_slices, msg.num_la_slices)
     return Frame(
         image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite), geometry=msg_to_geometry(msg.geometry),
         view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
@@ -336,6 +369,7 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
     _require_finite("tag confidence", conf)
     _check_view(points.view)
     _check_phase(points.phase_index, points.num_phases)
+    _check_slice(points.view, points.slice_index, points.num_sa_slices, points.num_la_slices)
     return TagPoints(
         header=make_header(points.stamp if stamp is None else stamp), view=points.view,
         slice_index=points.slice_index, phase_index=points.phase_index, num_phases=points.num_phases,
@@ -346,22 +380,35 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
 
 
 def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
-    """``mlv_msgs/TagPoints`` → :class:`TagPointSet`; array lengths must agree (2N, 3N, N, N)."""
+    """``mlv_msgs/TagPoints`` → :class:`TagPointSet`.
+
+    Array lengths must agree (2N, 3N, N, N), values be finite, confidences lie in [0, 1], and each
+    position be its ``pixel_rc`` placed by ``geometry`` (within ``TAG_POSITION_TOL_MM``): a point
+    off its own slice plane is garbage, not a measurement.
+    """
     n = len(msg.track_id)
     if len(msg.pixel_rc) != 2 * n or len(msg.position) != 3 * n or len(msg.confidence) != n:
         raise ValueError(f"TagPoints arrays disagree: track_id {n}, pixel_rc {len(msg.pixel_rc)} (want {2 * n}), "
                          f"position {len(msg.position)} (want {3 * n}), confidence {len(msg.confidence)} (want {n})")
     _check_view(msg.view)
     _check_phase(msg.phase_index, msg.num_phases)
+    _check_slice(msg.view, msg.slice_index, msg.num_sa_slices, msg.num_la_slices)
+    geometry = msg_to_geometry(msg.geometry)
     rc = np.frombuffer(msg.pixel_rc, dtype=np.float64).reshape(n, 2).copy()
     pos = np.frombuffer(msg.position, dtype=np.float64).reshape(n, 3).copy()
     conf = np.frombuffer(msg.confidence, dtype=np.float32).copy()
     _require_finite("tag pixel_rc", rc)
     _require_finite("tag position", pos)
     _require_finite("tag confidence", conf)
+    if n and (conf.min() < 0 or conf.max() > 1):
+        raise ValueError(f"tag confidence must lie in [0, 1], got [{conf.min():g}, {conf.max():g}]")
+    off = np.linalg.norm(pos - geometry.pixel_to_patient(rc), axis=1) if n else np.zeros(0)
+    if np.any(off > TAG_POSITION_TOL_MM):
+        raise ValueError(f"{int(np.count_nonzero(off > TAG_POSITION_TOL_MM))} tag position(s) disagree with "
+                         f"pixel_rc placed by the geometry (up to {off.max():.3g} mm off)")
     return TagPointSet(
         view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
-        num_phases=msg.num_phases, geometry=msg_to_geometry(msg.geometry), pixel_rc=rc, position=pos,
+        num_phases=msg.num_phases, geometry=geometry, pixel_rc=rc, position=pos,
         track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(), confidence=conf, status=msg.status,
         stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
 
@@ -386,14 +433,18 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
-    """``mlv_msgs/ModelState`` → :class:`ModelState`."""
+    """``mlv_msgs/ModelState`` → :class:`ModelState` (finite, unit quaternion, phase in range)."""
     state = ModelState(
         phase_index=msg.phase_index, num_phases=msg.num_phases, translation=np.array(msg.translation),
         rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
         num_particles=msg.num_particles, num_control_points=msg.num_control_points)
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
-                                                   [state.a0, state.a1, state.a2, state.a3, state.tau]]))
+                                                   [state.a0, state.a1, state.a2, state.a3, state.tau,
+                                                    state.residual]]))
+    if abs(np.linalg.norm(state.rotation) - 1.0) > 1e-6:
+        raise ValueError(f"model rotation must be a unit quaternion (norm {np.linalg.norm(state.rotation):.6g})")
+    _check_phase(state.phase_index, state.num_phases)
     return state
 
 

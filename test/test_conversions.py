@@ -226,8 +226,9 @@ def test_frame_bad_indices():
 
 
 def make_points(n=50):
-    return TagPointSet(view=0, slice_index=3, phase_index=4, num_phases=20, geometry=oblique_geometry(),
-                       pixel_rc=RNG.uniform(0, 256, (n, 2)), position=RNG.normal(size=(n, 3)) * 40,
+    g, rc = oblique_geometry(), RNG.uniform(0, 256, (n, 2))
+    return TagPointSet(view=0, slice_index=3, phase_index=4, num_phases=20, geometry=g,
+                       pixel_rc=rc, position=g.pixel_to_patient(rc),
                        track_id=np.arange(n, dtype=np.int32)[::-1].copy(),
                        confidence=RNG.uniform(0, 1, n).astype(np.float32), status="", stamp=3.5,
                        num_sa_slices=8, num_la_slices=3)

@@ -113,3 +113,33 @@ class ModelState:
     converged: bool = False
     num_particles: int = 0
     num_control_points: int = 0
+
+
+@dataclass
+class StudyShape:
+    """An acquisition's dimensions as its messages declare them; every message must agree.
+
+    Each dimension is taken from the first message that declares it (slice counts of 0 mean
+    unknown); a later message declaring a different value contradicts the study and is refused,
+    so one corrupt message cannot make a consumer wait for phases or slices that do not exist.
+    """
+
+    num_phases: int = 0
+    num_sa_slices: int = 0
+    num_la_slices: int = 0
+
+    def check(self, item) -> None:
+        """Adopt or verify the dimensions of ``item`` (a :class:`Frame` or :class:`TagPointSet`).
+
+        Raises
+        ------
+        ValueError
+            ``item`` declares a dimension different from the one already known.
+        """
+        clash = [f"{name} {getattr(item, name)} (study: {getattr(self, name)})"
+                 for name in ("num_phases", "num_sa_slices", "num_la_slices")
+                 if getattr(self, name) and getattr(item, name) and getattr(item, name) != getattr(self, name)]
+        if clash:
+            raise ValueError("inconsistent with the study: " + ", ".join(clash))
+        for name in ("num_phases", "num_sa_slices", "num_la_slices"):
+            setattr(self, name, getattr(self, name) or int(getattr(item, name)))

@@ -22,7 +22,9 @@ from mlv_msgs.msg import TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
+from mlv_ros.core.types import StudyShape
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
 MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
 
@@ -43,6 +45,7 @@ class MeshlessSolver(GraphNode):
         self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points,
                                  qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
         self.assembler = PhaseAssembler()
+        self.study = StudyShape()
         self.cloud = None
         self.rest_state = None
         self.tracker = None
@@ -57,9 +60,9 @@ class MeshlessSolver(GraphNode):
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:
-            self.cloud = conversions.msg_to_cloud(msg, required=("x", "y", "z", "alpha", "beta", "w"))
+            self.cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
         except ValueError as exc:
-            self.report(ERROR, "bad registered cloud", reason=str(exc))
+            self.report(ERROR, "bad registered cloud", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
         self._build()
 
@@ -67,7 +70,7 @@ class MeshlessSolver(GraphNode):
         try:
             self.rest_state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad registered state", reason=str(exc))
+            self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
         self._build()
 
@@ -95,18 +98,19 @@ class MeshlessSolver(GraphNode):
         self.last_input = time.monotonic()
         try:
             points = conversions.msg_to_tagpoints(msg)
+            self.study.check(points)
         except ValueError as exc:
             self.report(ERROR, "bad tag points dropped", view=msg.view, slice=msg.slice_index,
-                        phase=msg.phase_index, reason=str(exc))
+                        phase=msg.phase_index, stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
         self.num_phases = max(self.num_phases, points.num_phases)
         if points.phase_index < self.next_phase:
             self.report(WARN, "tag points for an already solved phase ignored", view=points.view,
-                        slice=points.slice_index, phase=points.phase_index)
+                        slice=points.slice_index, phase=points.phase_index, stamp=conversions.stamp_text(msg.header.stamp))
             return
         if self.assembler.add(points):
             self.report(WARN, "duplicate tag points replace the earlier set", view=points.view,
-                        slice=points.slice_index, phase=points.phase_index)
+                        slice=points.slice_index, phase=points.phase_index, stamp=conversions.stamp_text(msg.header.stamp))
         self._advance()
 
     def _on_timer(self) -> None:

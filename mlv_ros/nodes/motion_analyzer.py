@@ -5,6 +5,9 @@ Each motion cloud is paired with the model state of identical header stamp (the 
 both alike; the state carries the phase index), as message_filters' exact-time synchroniser
 does. The LV frame (apex, base, circumferential reference) comes from the registered ED model;
 strain is estimated by MLS from the positions (:class:`~mlv_ros.core.analysis.LVAnalyzer`).
+Clouds and states are validated on arrival (finite float positions, point count of the model
+once it is known; finite state, unit rotation, phase in range) and refused with a report naming
+their stamp, so nothing unusable waits for a partner.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVAnalyzer, LVFrame
 from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.nodes.common import ERROR, OK, GraphNode, run_node
+from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
 
 def _key(stamp) -> tuple:
@@ -43,16 +47,16 @@ class MotionAnalyzer(GraphNode):
 
     def _on_registered_cloud(self, msg):
         try:
-            self.reg_cloud = conversions.msg_to_cloud(msg, required=("x", "y", "z"))
+            self.reg_cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
         except ValueError as exc:
-            self.report(ERROR, "bad registered cloud", reason=str(exc))
+            self.report(ERROR, "bad registered cloud", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
         self._build()
 
     def _on_registered_state(self, msg):
         try:
             self.reg_state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad registered state", reason=str(exc))
+            self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
         self._build()
 
     def _build(self):
@@ -74,15 +78,27 @@ class MotionAnalyzer(GraphNode):
 
     def _on_motion(self, msg: PointCloud2):
         self.messages_handled += 1
+        stamp = conversions.stamp_text(msg.header.stamp)
         try:
-            self.clouds[_key(msg.header.stamp)] = conversions.xyz(conversions.msg_to_cloud(msg, required=("x", "y", "z")))
+            x = conversions.xyz(conversions.msg_to_cloud(msg, finite=("x", "y", "z")))
         except ValueError as exc:
-            self.report(ERROR, "bad motion cloud dropped", reason=str(exc))
+            self.report(ERROR, "bad motion cloud dropped", stamp=stamp, reason=str(exc))
             return
+        if self.analyzer is not None and x.shape[0] != self.analyzer.X.shape[0]:
+            self.report(ERROR, "motion cloud does not match the registered model", stamp=stamp,
+                        points=x.shape[0], expected=self.analyzer.X.shape[0])
+            return
+        self.clouds[_key(msg.header.stamp)] = x
         self._pair()
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
+        try:
+            conversions.msg_to_model_state(msg)
+        except ValueError as exc:
+            self.report(ERROR, "bad model state dropped", phase=msg.phase_index,
+                        stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            return
         self.states[_key(msg.header.stamp)] = msg
         self._pair()
 
@@ -93,7 +109,8 @@ class MotionAnalyzer(GraphNode):
             x, state = self.clouds.pop(key), self.states.pop(key)
             if x.shape[0] != self.analyzer.X.shape[0]:
                 self.report(ERROR, "motion cloud does not match the registered model", phase=state.phase_index,
-                            points=x.shape[0], expected=self.analyzer.X.shape[0])
+                            stamp=conversions.stamp_text(state.header.stamp), points=x.shape[0],
+                            expected=self.analyzer.X.shape[0])
                 continue
             try:
                 metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases)

@@ -18,10 +18,13 @@ from sensor_msgs.msg import PointCloud2
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.types import VIEW_SA
+from mlv_ros.core.types import VIEW_SA, StudyShape
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 
 CLOUD_FIELDS = ("x", "y", "z", "alpha", "beta", "w", "transmural")
+# What consumers need of the cloud (finite, floating point): position and polar model coordinates;
+# ``transmural`` is optional.
+REQUIRED_CLOUD_FIELDS = CLOUD_FIELDS[:6]
 
 
 class Registration(GraphNode):
@@ -37,6 +40,7 @@ class Registration(GraphNode):
         self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.topic_qos(qos.REGISTERED_STATE))
         self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES))
         self.ed_frames: dict = {}
+        self.study = StudyShape()
         self.expected = 0
         self.first_at = None
         self.last_frame_at = time.monotonic()
@@ -53,8 +57,10 @@ class Registration(GraphNode):
             return
         try:
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
+            self.study.check(frame)
         except ValueError as exc:
-            self.report(ERROR, "bad ED frame ignored", view=msg.view, slice=msg.slice_index, reason=str(exc))
+            self.report(ERROR, "bad ED frame ignored", view=msg.view, slice=msg.slice_index,
+                        stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
         key = (frame.view, frame.slice_index)
         if key in self.ed_frames:

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import Frame, TagPointSet
 
-from .gabor import TagParameters
+from .gabor import TagInputError, TagParameters, validate_image
 from .intersections import Detection, detect_intersections
 from .rpm import ThinPlateSpline, tps_rpm
 
@@ -148,6 +148,11 @@ class SliceTracker:
         self.last_phase = frame.phase_index
         live = np.nonzero(~self._dead)[0]
         if live.size == 0:
+            # Nothing left to track, but an unusable image is still worth naming.
+            try:
+                validate_image(image)
+            except TagInputError as exc:
+                note += f"phase {frame.phase_index}: {exc}; "
             return self._result(frame, None, None, None, note + "all tracks lost")
         pred = self._pos[live] + self._step[live]
         sp = float(np.mean(self.params.spacing_px))
