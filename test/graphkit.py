@@ -1,0 +1,219 @@
+"""The in-process graph as tests and benchmarks drive it: the four processing nodes (and
+optionally the recorder) over real Fast DDS, and a probe node that publishes on any graph topic
+and collects every output.
+
+Usable outside pytest (``bench/reliability.py``: ``sys.path.insert(0, "test")``); importing it
+imports ``conftest``, which claims a private ROS domain for the process.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+
+from conftest import spin_until
+from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
+from mlv_ros import bagio, conversions, qos
+from mlv_ros.core.types import Frame
+from mlv_ros.nodes.frame_source import count_slices, order_frames
+from mlv_ros.nodes.meshless_solver import MeshlessSolver
+from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
+from mlv_ros.nodes.recorder import Recorder
+from mlv_ros.nodes.registration import Registration
+from mlv_ros.nodes.tag_detector import TagDetector
+
+# What the probe collects: key → (type, topic).
+OUTPUTS = {"diag": (DiagnosticArray, qos.DIAGNOSTICS), "points": (TagPoints, qos.TAG_POINTS),
+           "motion": (PointCloud2, qos.MOTION), "state": (ModelState, qos.MODEL_STATE),
+           "metrics": (MotionMetrics, qos.METRICS)}
+TOPIC_MSG = {qos.FRAMES: TaggedFrame, qos.TAG_POINTS: TagPoints, qos.REGISTERED_CLOUD: PointCloud2,
+             qos.REGISTERED_STATE: ModelState, qos.MOTION: PointCloud2, qos.MODEL_STATE: ModelState}
+
+
+class Probe(Node):
+    """Publishes on any graph topic with the QoS the graph's own publisher offers there (so every
+    consumer matches it, TRANSIENT_LOCAL ones included) and collects every graph output."""
+
+    def __init__(self, context, name: str = "probe"):
+        super().__init__(name, context=context)
+        self.pubs = {t: self.create_publisher(m, t, qos.topic_qos(t)) for t, m in TOPIC_MSG.items()}
+        self.out = {k: [] for k in OUTPUTS}
+        self.sent: set = set()  # (topic, stamp) of what the probe published itself
+        # Deep RELIABLE queues on every output, /diagnostics included: a burst of reports (one per
+        # bad message) must not push unread ones out of a KEEP_LAST(100) reader.
+        for key, (typ, topic) in OUTPUTS.items():
+            self.create_subscription(typ, topic, self.out[key].append, qos.stream_qos())
+
+    def publish(self, topic: str, msg) -> None:
+        self.sent.add((topic, conversions.stamp_text(msg.header.stamp)))
+        self.pubs[topic].publish(msg)
+
+    def received(self, key: str) -> list:
+        """What the graph published on output ``key`` (the probe's own messages left out)."""
+        topic = OUTPUTS[key][1]
+        return [m for m in self.out[key] if (topic, conversions.stamp_text(m.header.stamp)) not in self.sent]
+
+    def statuses(self) -> list[tuple[str, int, str, dict]]:
+        """Every DiagnosticStatus received: (node name, level, message, values)."""
+        return [(s.hardware_id, s.level, s.message, {kv.key: kv.value for kv in s.values})
+                for d in self.out["diag"] for s in d.status]
+
+
+def graph_nodes(context, *, max_pixels: int = 1024 * 1024, num_particles: int = 1500,
+                timeout_s: float = 2.0, record_to: Path | None = None) -> dict[str, Node]:
+    """The processing graph in one process: name → node.
+
+    Parameters
+    ----------
+    context : rclpy Context
+    max_pixels : int
+        ``tag_detector.max_pixels``.
+    num_particles : int
+        ``registration.num_particles``.
+    timeout_s : float
+        ``registration.ed_timeout_s`` and ``meshless_solver.incomplete_timeout_s``.
+    record_to : Path, optional
+        Also run a recorder writing every graph topic to this MCAP file.
+    """
+    nodes = {
+        "tag_detector": TagDetector(context=context, parameter_overrides=[Parameter("max_pixels", value=max_pixels)]),
+        "registration": Registration(context=context, parameter_overrides=[
+            Parameter("num_particles", value=num_particles), Parameter("ed_timeout_s", value=timeout_s)]),
+        "meshless_solver": MeshlessSolver(context=context, parameter_overrides=[
+            Parameter("incomplete_timeout_s", value=timeout_s)]),
+        "motion_analyzer": MotionAnalyzer(context=context),
+    }
+    if record_to is not None:
+        nodes["recorder"] = Recorder(context=context, parameter_overrides=[Parameter("output", value=str(record_to))])
+    return nodes
+
+
+def wait_matched(executor, probe: Probe, counts: dict[str, int], timeout: float = 30.0) -> None:
+    """Spin until each topic's probe publisher has at least ``counts[topic]`` subscribers."""
+    ok = spin_until(executor, lambda: all(probe.pubs[t].get_subscription_count() >= n for t, n in counts.items()),
+                    timeout)
+    if not ok:
+        have = {t: probe.pubs[t].get_subscription_count() for t in counts}
+        raise TimeoutError(f"subscribers not matched within {timeout} s: want {counts}, have {have}")
+
+
+@dataclass
+class LoadReport:
+    """Frames in vs out of one whole-study burst through the graph (counts are messages).
+
+    ``published`` frames were sent; ``detector_received`` reached the tag detector;
+    ``tag_sets`` it published; ``recorded_frames`` / ``recorded_tag_sets`` are in the recording;
+    ``phases_solved`` / ``phases_analysed`` are motion clouds and metrics received of
+    ``num_phases``. Seconds: ``publish_s`` for the burst, ``total_s`` until the last metrics.
+    """
+
+    published: int
+    detector_received: int
+    tag_sets: int
+    recorded_frames: int
+    recorded_tag_sets: int
+    phases_solved: int
+    phases_analysed: int
+    num_phases: int
+    publish_s: float
+    total_s: float
+
+    @property
+    def frames_lost(self) -> int:
+        """Frames that did not make it through every stage (0 when nothing was lost)."""
+        return self.published - min(self.detector_received, self.tag_sets, self.recorded_frames, self.recorded_tag_sets)
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "frames_lost": self.frames_lost}
+
+
+def spin_until_stalled(executor, progress, done: tuple, timeout: float, stall_s: float) -> bool:
+    """Spin until ``progress()`` reaches ``done`` (element-wise ≥), has not changed for
+    ``stall_s`` seconds, or ``timeout`` passes; returns whether it reached ``done``."""
+    deadline = time.monotonic() + timeout
+    last, changed_at = progress(), time.monotonic()
+    while time.monotonic() < deadline and time.monotonic() - changed_at < stall_s:
+        now = progress()
+        if all(a >= b for a, b in zip(now, done)):
+            return True
+        if now != last:
+            last, changed_at = now, time.monotonic()
+        executor.spin_once(timeout_sec=0.05)
+    return all(a >= b for a, b in zip(progress(), done))
+
+
+def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", timeout: float = 300.0,
+             stall_s: float = 30.0, num_particles: int = 1500) -> LoadReport:
+    """Publish a whole study at once, as fast as possible, into the graph plus a recorder, and
+    count frames in vs out at every stage.
+
+    Parameters
+    ----------
+    frames : list of Frame
+        The study (slice counts are filled in here).
+    out_dir : Path
+        Where the recording goes (``out_dir/load.mcap``; must not exist yet).
+    order : str
+        ``slice_major`` (as acquired) or ``phase_major``.
+    timeout : float
+        Seconds to wait for the last phase's metrics and for the recorder to catch up.
+    stall_s : float
+        Give up earlier when no stage has made progress for this long.
+    num_particles : int
+        Model size (solver cost).
+
+    Returns
+    -------
+    LoadReport
+        Also when the run timed out (then the counts show where messages stopped).
+    """
+    frames = order_frames(count_slices(list(frames)), order)
+    num_phases = frames[0].num_phases
+    msgs = [conversions.frame_to_msg(f, stamp=1.0 + i) for i, f in enumerate(frames)]
+    path = Path(out_dir) / "load.mcap"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    nodes = graph_nodes(context, num_particles=num_particles, record_to=path)
+    probe = Probe(context)
+    try:
+        for n in (*nodes.values(), probe):
+            executor.add_node(n)
+        # frames: tag detector, registration, recorder; tag points: solver, recorder
+        wait_matched(executor, probe, {qos.FRAMES: 3, qos.TAG_POINTS: 2})
+        t0 = time.monotonic()
+        for m in msgs:
+            probe.publish(qos.FRAMES, m)
+        publish_s = time.monotonic() - t0
+        det, rec = nodes["tag_detector"], nodes["recorder"]
+
+        def progress():
+            return (det.messages_handled, det.frames_out, rec.writer.topics[qos.FRAMES].count,
+                    rec.writer.topics[qos.TAG_POINTS].count, len(probe.received("motion")), len(probe.received("metrics")))
+
+        done = (len(msgs), len(msgs), len(msgs), len(msgs), num_phases, num_phases)
+        spin_until_stalled(executor, progress, done, timeout, stall_s)
+        total_s = time.monotonic() - t0
+        rec.finish()
+        counts = {qos.FRAMES: 0, qos.TAG_POINTS: 0}
+        for m in bagio.read_bag(path, topics=list(counts)):
+            counts[m.topic] += 1
+        return LoadReport(published=len(msgs), detector_received=det.messages_handled, tag_sets=det.frames_out,
+                          recorded_frames=counts[qos.FRAMES], recorded_tag_sets=counts[qos.TAG_POINTS],
+                          phases_solved=len(probe.received("motion")), phases_analysed=len(probe.received("metrics")),
+                          num_phases=num_phases, publish_s=round(publish_s, 3), total_s=round(total_s, 3))
+    finally:
+        for n in (*nodes.values(), probe):
+            executor.remove_node(n)
+            n.destroy_node()
+        executor.shutdown()
+        context.try_shutdown()
+
