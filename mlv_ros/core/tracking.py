@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
                                    polar_frame, quat_to_matrix)
-from mlv_ros.core.types import ModelState, TagPointSet
+from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 
 SliceKey = tuple  # (view, slice_index)
 
@@ -131,12 +131,22 @@ class MotionTracker:
         Near-incompressibility: penalty on the linearised volume change of the whole deformation,
         in units of μ (0 = off). Myocardium keeps its volume to a few percent; with tags spaced
         like the wall is thick this is what recovers radial thickening (Err).
+    twist_knots : int
+        Knots (uniform in height, apex to base) of the twist parameter function fitted after the
+        global stage; 0 = the paper's single twist factor τ only. The LV twists non-linearly
+        along its axis, and below the last SA slice only the LA planes see the wall, which do
+        not measure circumferential motion: there the twist is extrapolated by this function
+        (linearly, by its curvature penalty) instead of being left to the local elasticity,
+        which would continue it as a rigid rotation.
+    twist_smoothing : float
+        Curvature penalty of the twist function relative to its data term (dimensionless).
     """
 
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
                  data_weight: float = 1.0e4, slice_following: int = 1, max_attach_mm: float = 3.0,
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
-                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3):
+                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3, twist_knots: int = 11,
+                 twist_smoothing: float = 0.3):
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
         if polar is not None:
@@ -162,6 +172,13 @@ class MotionTracker:
         self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
+        if int(twist_knots) not in (0, *range(3, 101)) or not 0.0 < twist_smoothing < 1e6:
+            raise ValueError(f"twist_knots must be 0 or 3..100 and twist_smoothing in (0, 1e6); "
+                             f"got {twist_knots}, {twist_smoothing}")
+        self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
+        self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
+        t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
+        self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
         self.positions = self.rest.copy()
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self.normals: dict = {}    # (view, slice) → (normal (3,), point on plane (3,))
@@ -241,6 +258,9 @@ class MotionTracker:
                 result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                         tol=self.tol, local=False)
             x_global = self.model.positions()
+            sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
+            if self.twist_knots and len(sa_slices) >= 2:  # two SA levels fix at least a gradient
+                x_global = self._twist_function(ctrl.weights, targets[inside], normals[inside], x_global)
             self.positions = x_global
             if self.local:
                 self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global)
@@ -318,6 +338,47 @@ class MotionTracker:
         x0 = self.delta.ravel() if self.delta is not None else None
         sol, _info = cg(A, rhs, x0=x0, rtol=self.cg_rtol, maxiter=self.cg_maxiter, M=M)
         return sol.reshape(n, 3)
+
+    def _twist_function(self, phi, targets, normals, x):
+        """Twist as a parameter function of height (the parameter functions of Park et al., which
+        the paper's model builds on): rotate each particle about the model's long axis by
+        ``Δφ(h)``, piecewise linear between ``twist_knots`` uniform knots in the material height
+        h, fitted to the in-plane tag residuals of the global fit by penalised least squares
+        (second differences of the knot values, a P-spline): it follows the data where SA slices
+        are, and continues linearly beyond them.
+
+        Parameters
+        ----------
+        phi : sparse (K, N)
+            Control-point interpolation weights.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        x : ndarray, shape (N, 3)
+            Global-model particle positions, mm.
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            ``x`` with the fitted twist applied, mm.
+        """
+        R = quat_to_matrix(self.model.params.rotation)
+        axis, centre = R[:, 2], self.model.params.translation
+        tang = np.cross(axis, x - centre)  # ∂x/∂φ, mm/rad
+        m = self.twist_knots
+        knots = np.linspace(0.0, 1.0, m)
+        hat = np.clip(1.0 - np.abs(self._height[:, None] - knots) * (m - 1), 0.0, None)  # (N, m)
+        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        J = np.stack([np.einsum("kab,kb->ka", P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)], axis=1)
+        r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
+        JtJ = J.T @ J
+        D2 = np.diff(np.eye(m), 2, axis=0)
+        lam = self.twist_smoothing * np.trace(JtJ) / m
+        self.twist_coefficients = np.linalg.solve(JtJ + lam * D2.T @ D2, J.T @ r)
+        angle = hat @ self.twist_coefficients
+        v = x - centre
+        along = (v @ axis)[:, None] * axis
+        perp = v - along
+        return centre + along + perp * np.cos(angle)[:, None] + np.cross(axis, perp) * np.sin(angle)[:, None]
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
