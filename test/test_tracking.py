@@ -56,15 +56,20 @@ def make_tracker(study, n=2000, **kw):
     return X, MotionTracker(X, X.mean(0), matrix_to_quat(R), **kw)
 
 
-def es_error(study, slice_following):
+def solve_es(study, **tracker_options):
+    """ED particles and the solution at ES from exact in-plane tags."""
     m = study.motion
-    X, tr = make_tracker(study, slice_following=slice_following)
+    X, tr = make_tracker(study, **tracker_options)
     refs = grid_tags(study)
     for key, g in study.geometries.items():
         tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
     es = int(round(m.es_phase))
-    sol = tr.solve(es, observed(study, refs, es), m.num_phases)
-    return np.linalg.norm(sol.positions - m.position(X, es), axis=1), sol
+    return X, tr.solve(es, observed(study, refs, es), m.num_phases)
+
+
+def es_error(study, slice_following):
+    X, sol = solve_es(study, slice_following=slice_following)
+    return np.linalg.norm(sol.positions - study.motion.position(X, int(round(study.motion.es_phase))), axis=1), sol
 
 
 def test_dense_motion_at_end_systole_from_exact_in_plane_tags(study):
@@ -111,12 +116,8 @@ def apical_twist_error(study, twist_knots):
     from mlv_ros.core.tracking import lv_frame_axes
 
     m = study.motion
-    X, tr = make_tracker(study, twist_knots=twist_knots)
-    refs = grid_tags(study)
-    for key, g in study.geometries.items():
-        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
-    es = int(round(m.es_phase))
-    x = tr.solve(es, observed(study, refs, es), m.num_phases).positions
+    X, sol = solve_es(study, twist_knots=twist_knots)
+    x, es = sol.positions, int(round(m.es_phase))
     fr = m.frame
     R = np.stack([fr.septum, np.cross(fr.long_axis, fr.septum), fr.long_axis], axis=1)
     analyzer = LVAnalyzer(X, LVFrame(*lv_frame_axes(X, matrix_to_quat(R))))
