@@ -172,8 +172,8 @@ class MotionTracker:
         self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
-        if int(twist_knots) not in (0, *range(3, 101)) or not 0.0 < twist_smoothing < 1e6:
-            raise ValueError(f"twist_knots must be 0 or 3..100 and twist_smoothing in (0, 1e6); "
+        if int(twist_knots) not in (0, *range(2, 101)) or not 0.0 < twist_smoothing < 1e6:
+            raise ValueError(f"twist_knots must be 0 or 2..100 and twist_smoothing in (0, 1e6); "
                              f"got {twist_knots}, {twist_smoothing}")
         self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved

@@ -35,6 +35,8 @@ class MeshlessSolver(GraphNode):
         self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
         self.hourglass_weight = self.param("hourglass_weight", 1.0e3, "MLS fit-error (zero-energy mode) stiffness relative to elasticity", min_value=0.0, max_value=1e9)
         self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
+        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100)
+        self.twist_smoothing = self.param("twist_smoothing", 0.3, "curvature penalty of the twist function", min_value=1e-6, max_value=1e5)
         self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
         self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
@@ -83,7 +85,7 @@ class MeshlessSolver(GraphNode):
             self.tracker = MotionTracker(
                 pts, s.translation, s.rotation, polar=(c["alpha"], c["beta"], c["w"]),
                 shape=(s.a0, s.a1, s.a2, s.a3, s.tau), data_weight=self.data_weight, hourglass_weight=self.hourglass_weight,
-                volume_weight=self.volume_weight,
+                volume_weight=self.volume_weight, twist_knots=self.twist_knots, twist_smoothing=self.twist_smoothing,
                 slice_following=self.slice_following, max_iterations=self.max_iterations)
         except ValueError as exc:
             self.report(ERROR, "cannot build the model from the registration", reason=str(exc))
