@@ -4,8 +4,9 @@
 Public API
 ----------
 write_study_dicom(study, out_dir) -> list[Path]
-read_dicom_dir(path) -> DicomReadResult   (``frames, problems = read_dicom_dir(path)``;
-    also ``.series`` and ``.long_axis``; raises DicomReadError when nothing is usable)
+read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS) -> DicomReadResult
+    (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series`` and
+    ``.long_axis``; raises DicomReadError when nothing is usable)
 write_groundtruth(study, out_dir) -> (json_path, npz_path)
 load_groundtruth(path) -> GroundTruth
 """
