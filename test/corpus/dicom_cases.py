@@ -275,6 +275,12 @@ def _missing_tags(w: _Writer) -> None:
         ds = w.fresh(case)
         delattr(ds, tag)
         w.ds_case(case, ds, f"missing image tag(s): {tag.lower()}", "missing_tag")
+    # Implicit VR: pydicom resolves PixelData's VR (OB/OW) from these, and failed to (fuzz finding).
+    for tag in ("BitsAllocated", "PixelRepresentation"):
+        case = f"missing_{tag}_implicit_vr"
+        ds = w.fresh(case)
+        delattr(ds, tag)
+        w.ds_case(case, ds, f"missing image tag(s): {tag.lower()}", "missing_tag", syntax=ImplicitVRLittleEndian)
     # SliceThickness is type 2 in MR: absent = unknown, the in-plane spacing stands in.
     case = "missing_SliceThickness"
     ds = w.fresh(case)

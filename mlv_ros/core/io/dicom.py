@@ -362,7 +362,7 @@ def _no_pixels_reason(ds) -> str:
     return f"no pixel data (non-image DICOM: {name})"
 
 
-def _check_encoding(ds, pixel_tag: str, ts: pydicom.uid.UID) -> tuple[int, int]:
+def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     """Validate the Image Pixel module; returns (rows, columns)."""
     required = ["Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation", "BitsAllocated"]
     if pixel_tag == "PixelData":
@@ -438,14 +438,18 @@ def _load_image(path: str, max_pixels: int) -> _Image:
     tag = present[0]
     if not ts.is_transfer_syntax:
         raise _Skip(f"unknown transfer syntax {ts}")
-    raw = ds.get_item(tag)
+    # The Image Pixel module first: pydicom resolves the pixel element's VR (OB or OW) from it.
+    rows, cols = _check_encoding(ds, tag)
+    try:
+        raw = ds.get_item(tag)
+    except Exception as exc:  # pydicom resolves the VR and may convert the value here
+        raise _Skip(f"{tag} element unreadable ({type(exc).__name__}: {exc})") from None
     encapsulated = getattr(raw, "length", None) == _UNDEFINED_LENGTH or bool(getattr(raw, "is_undefined_length", False))
     if ts.is_compressed and not encapsulated:
         raise _Skip(f"transfer syntax {ts.name} declares compressed (encapsulated) pixel data, "
                     f"but {tag} is stored uncompressed")
     if encapsulated and not ts.is_compressed:
         raise _Skip(f"{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed")
-    rows, cols = _check_encoding(ds, tag, ts)
     if rows * cols > max_pixels:
         raise _Skip(f"image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = {max_pixels}")
     geom = _geometry(ds)
