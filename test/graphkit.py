@@ -217,3 +217,119 @@ def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", 
         executor.shutdown()
         context.try_shutdown()
 
+
+
+@dataclass
+class CorpusReport:
+    """What the graph made of a message corpus fed among a valid study.
+
+    ``failures``: one line per case whose report is missing or wrong (or legal stand-in not
+    processed); ``crashes``: exceptions that escaped a node callback into the executor;
+    ``nodes_down``: nodes with no heartbeat after the corpus; ``false_alarms``: errors reported
+    against valid frames; ``phases_analysed`` of ``num_phases``.
+    """
+
+    cases: int
+    reported: int
+    failures: list
+    crashes: list
+    nodes_down: list
+    false_alarms: list
+    phases_analysed: int
+    num_phases: int
+    tag_sets: int
+    seconds: float
+
+
+def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, timeout: float = 120.0) -> CorpusReport:
+    """Send ``valid`` frames with every corpus case interleaved and judge each case.
+
+    Corrupt frames go right after the frame they were copied from, stand-ins in place of the
+    frame whose slot they take, corrupt tag points among the frames (after the first genuine set
+    fixed the study's dimensions); once solver and analyzer hold the model, corrupt outputs go in,
+    and latched-topic cases one at a time (a KEEP_LAST(1) reader would otherwise drop the genuine
+    model for them). A case passes if its consumer reports it, naming its stamp, with its
+    ``expect`` fragment at WARN (``frame/content``) or ERROR; a legal stand-in passes if it comes
+    out as a non-empty tag set with no error against it.
+    """
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from corpus.message_cases import _slot
+
+    t0 = time.monotonic()
+    crashes: list = []
+
+    def spin(pred, limit):
+        deadline = time.monotonic() + limit
+        while time.monotonic() < deadline and not pred():
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception as exc:  # a callback raised: the crash the corpus must not cause
+                crashes.append(f"{type(exc).__name__}: {exc}")
+        return pred()
+
+    frames = [c for c in cases if c.topic == qos.FRAMES]
+    points = [c for c in cases if c.topic == qos.TAG_POINTS]
+    outputs = [c for c in cases if c.topic in (qos.MOTION, qos.MODEL_STATE)]
+    latched = [c for c in cases if c.topic in qos.LATCHED_TOPICS]
+    stand_ins = {c.replaces: c for c in frames if c.replaces}
+    after: dict = {}
+    for c in frames:
+        if c.after:
+            after.setdefault(c.after, []).append(c)
+    solver, analyzer = nodes["meshless_solver"], nodes["motion_analyzer"]
+    num_phases = valid[0].num_phases
+    pending_points = list(points)
+    for i, m in enumerate(valid):
+        probe.publish(qos.FRAMES, stand_ins[_slot(m)].msg if _slot(m) in stand_ins else m)
+        for c in after.get(_slot(m), []):
+            probe.publish(qos.FRAMES, c.msg)
+        if i == 0:
+            spin(lambda: solver.messages_handled >= 1, 30)
+        elif pending_points:
+            probe.publish(qos.TAG_POINTS, pending_points.pop().msg)
+    for c in pending_points:
+        probe.publish(qos.TAG_POINTS, c.msg)
+    spin(lambda: solver.tracker is not None and analyzer.analyzer is not None, 60)
+    for c in outputs:
+        probe.publish(c.topic, c.msg)
+
+    def reports(case):
+        return [(lvl, f"{msg} {vals}".lower()) for node, lvl, msg, vals in probe.statuses()
+                if node == case.node and vals.get("stamp") == case.stamp]
+
+    for c in latched:
+        probe.publish(c.topic, c.msg)
+        spin(lambda c=c: reports(c), 60)
+
+    def stamps_out():
+        return {conversions.stamp_text(p.header.stamp) for p in probe.received("points")}
+
+    legal = [c for c in cases if not c.expect]
+    spin(lambda: len(probe.received("metrics")) >= num_phases and all(reports(c) for c in cases if c.expect)
+         and {c.stamp for c in legal} <= stamps_out(), timeout)
+
+    warn, error = DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+    failures = []
+    for c in cases:
+        got = reports(c)
+        if c.expect:
+            want = warn if c.category == "frame/content" else error
+            if not any(lvl == want and c.expect in text for lvl, text in got):
+                failures.append(f"{c.name}: want level {want} with {c.expect!r}, got {got}")
+        else:
+            out = [p for p in probe.received("points") if conversions.stamp_text(p.header.stamp) == c.stamp]
+            if any(lvl == error for lvl, _ in got) or not (len(out) == 1 and len(out[0].track_id) > 0):
+                failures.append(f"{c.name}: legal frame not processed: {got}, {[p.status for p in out]}")
+    valid_stamps = {conversions.stamp_text(m.header.stamp) for m in valid}
+    false_alarms = [s for s in probe.statuses() if s[1] == error and s[3].get("stamp") in valid_stamps]
+    seen = len(probe.out["diag"])
+
+    def alive():
+        return {s.hardware_id for d in probe.out["diag"][seen:] for s in d.status}
+
+    spin(lambda: alive() >= set(nodes), 5)
+    return CorpusReport(cases=len(cases), reported=len(cases) - len(failures), failures=failures, crashes=crashes,
+                        nodes_down=sorted(set(nodes) - alive()), false_alarms=false_alarms,
+                        phases_analysed=len({m.phase_index for m in probe.received("metrics")}), num_phases=num_phases,
+                        tag_sets=nodes["tag_detector"].frames_out, seconds=round(time.monotonic() - t0, 2))

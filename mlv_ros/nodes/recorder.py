@@ -54,7 +54,10 @@ class Recorder(GraphNode):
             return
         try:
             self.writer.close()
-            self.report(OK, "recording closed", output=self.output, messages=self.writer.message_count)
+            received = sum(c.received for c in self.streams.values())
+            lost = sum(c.lost for c in self.streams.values())
+            self.report(OK if received == self.writer.message_count and not lost else ERROR, "recording closed",
+                        output=self.output, messages=self.writer.message_count, received=received, lost=lost)
         except OSError as exc:
             self.report(ERROR, "could not finalise the recording", output=self.output, reason=str(exc))
 
