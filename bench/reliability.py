@@ -155,26 +155,32 @@ def slow_subscriber(tmp: Path) -> dict:
         ctx.try_shutdown()
 
 
-def _recorder_process(out: Path, extra: list[str]) -> subprocess.Popen:
+def _interrupted_recording(out: Path, min_bytes: int, sig: int) -> tuple[int, str]:
+    """Record /mlv/frames in a recorder process while a frame_source process streams the test
+    pattern at a steady rate, and send ``sig`` to the recorder once ``out`` holds ``min_bytes``
+    (mid-stream). Returns the recorder's exit code and its log."""
     from mlv_ros import qos
 
-    return subprocess.Popen([_script("recorder"), "--ros-args", "-p", f"output:={out}",
-                             "-p", f"topics:=['{qos.FRAMES}']", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def _stream_until(recording: Path, min_bytes: int, num_phases: int, timeout: float = 60.0) -> subprocess.Popen:
-    """A frame_source process streaming the test pattern at a steady rate (so a signal lands
-    mid-stream) once ``recording`` has ``min_bytes`` on disk; returns it still running."""
-    src = subprocess.Popen([_script("frame_source"), "--ros-args", "-p", "source:=pattern",
-                            "-p", f"num_phases:={num_phases}", "-p", "rate_factor:=0.1",
-                            "-p", "wait_for_subscribers:=1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and (not recording.exists() or recording.stat().st_size < min_bytes):
-        if src.poll() is not None:
-            break
-        time.sleep(0.05)  # polling a file the other process writes: nothing to spin here
-    return src
+    rec = subprocess.Popen([_script("recorder"), "--ros-args", "-p", f"output:={out}",
+                            "-p", f"topics:=['{qos.FRAMES}']", "-p", "flush_period_s:=0.1", "-p", "chunk_size_kib:=64"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    src = subprocess.Popen([_script("frame_source"), "--ros-args", "-p", "source:=pattern", "-p", "num_phases:=200",
+                            "-p", "rate_factor:=0.1", "-p", "wait_for_subscribers:=1"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < min_bytes):
+            if src.poll() is not None or rec.poll() is not None:
+                break
+            time.sleep(0.05)  # polling a file the other process writes: nothing to spin here
+        rec.send_signal(sig)
+        code = rec.wait(timeout=30)
+    finally:
+        for p in (rec, src):
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=10)
+    return code, rec.stdout.read()
 
 
 def sigterm(tmp: Path) -> dict:
@@ -185,17 +191,7 @@ def sigterm(tmp: Path) -> dict:
     from mlv_ros import bagio, qos
 
     out = tmp / "sigterm.mcap"
-    rec = _recorder_process(out, ["-p", "flush_period_s:=0.1", "-p", "chunk_size_kib:=64"])
-    src = _stream_until(out, 500_000, num_phases=200)
-    try:
-        rec.send_signal(signal.SIGTERM)
-        code = rec.wait(timeout=30)
-    finally:
-        for p in (rec, src):
-            if p.poll() is None:
-                p.kill()
-            p.wait(timeout=10)
-    log = rec.stdout.read()
+    code, log = _interrupted_recording(out, 500_000, signal.SIGTERM)
     m = re.search(r"recording closed .*messages=(\d+) received=(\d+) lost=(\d+)", log)
     recorded = bagio.bag_topics(out)[qos.FRAMES]["count"]
     with AnyReader([out]) as reader:
@@ -212,16 +208,7 @@ def sigkill(tmp: Path) -> dict:
     from mlv_ros import bagio, qos
 
     out = tmp / "sigkill.mcap"
-    rec = _recorder_process(out, ["-p", "flush_period_s:=0.1", "-p", "chunk_size_kib:=64"])
-    src = _stream_until(out, 300_000, num_phases=200)
-    try:
-        rec.send_signal(signal.SIGKILL)
-        rec.wait(timeout=10)
-    finally:
-        for p in (rec, src):
-            if p.poll() is None:
-                p.kill()
-            p.wait(timeout=10)
+    _interrupted_recording(out, 300_000, signal.SIGKILL)
     try:
         bagio.bag_topics(out)
         summary_readable = True

@@ -50,8 +50,9 @@ def latched_qos(depth: int = 1) -> QoSProfile:
 
 
 def diagnostics_qos() -> QoSProfile:
-    """As diagnostic_updater publishes /diagnostics: RELIABLE, KEEP_LAST(100)."""
-    return stream_qos(100)
+    """RELIABLE, KEEP_LAST(1000): deeper than diagnostic_updater's 100, because a burst of bad
+    input gives one report per message and a monitor must not lose them."""
+    return stream_qos(STREAM_DEPTH)
 
 
 def history_qos(depth: int = STREAM_DEPTH) -> QoSProfile:

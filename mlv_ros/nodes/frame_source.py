@@ -127,7 +127,8 @@ class FrameSource(GraphNode):
             self._started = time.monotonic()
             self._next_at = self._started
         if self._reports:
-            # One per tick, so that a KEEP_LAST(100) /diagnostics reader keeps up with hundreds.
+            # One per tick, so that a /diagnostics reader keeps up with hundreds (ours keep 1000,
+            # diagnostic_updater's tools 100).
             message, values = self._reports.pop(0)
             self.report(WARN, message, **values)
             return
