@@ -20,7 +20,7 @@ from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVAnalyzer, LVFrame
 from mlv_ros.core.tracking import lv_frame_axes
-from mlv_ros.nodes.common import ERROR, OK, GraphNode, run_node
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
 
@@ -33,6 +33,7 @@ class MotionAnalyzer(GraphNode):
         super().__init__("motion_analyzer", **node_kwargs)
         self.levels = self.param("levels", 10, "level bins apex → base", min_value=2, max_value=100)
         self.endo_fraction = self.param("endo_fraction", 0.2, "transmural depth counted as endocardium (cavity volume)", min_value=0.01, max_value=1.0)
+        self.max_unpaired = self.param("max_unpaired", 200, "motion clouds / model states held while waiting for their pair", min_value=1, max_value=100000)
         self.pub = self.create_publisher(MotionMetrics, qos.METRICS, qos.topic_qos(qos.METRICS))
         self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_registered_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
         self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_registered_state, qos.subscription_qos(qos.REGISTERED_STATE))
@@ -88,8 +89,7 @@ class MotionAnalyzer(GraphNode):
             self.report(ERROR, "motion cloud does not match the registered model", stamp=stamp,
                         points=x.shape[0], expected=self.analyzer.X.shape[0])
             return
-        self.clouds[_key(msg.header.stamp)] = x
-        self._pair()
+        self._hold(self.clouds, "motion cloud", msg.header.stamp, x)
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
@@ -99,8 +99,17 @@ class MotionAnalyzer(GraphNode):
             self.report(ERROR, "bad model state dropped", phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
-        self.states[_key(msg.header.stamp)] = msg
+        self._hold(self.states, "model state", msg.header.stamp, msg)
+
+    def _hold(self, held: dict, what: str, stamp, item) -> None:
+        """Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
+        (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so."""
+        held[_key(stamp)] = item
         self._pair()
+        while len(held) > self.max_unpaired:
+            sec, nanosec = next(iter(held))
+            held.pop((sec, nanosec))
+            self.report(WARN, f"unpaired {what} dropped", stamp=f"{sec}.{nanosec:09d}", held=len(held))
 
     def _pair(self):
         if self.analyzer is None:
