@@ -30,6 +30,9 @@ from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordin
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 
 SliceKey = tuple  # (view, slice_index)
+# The twist function of height (MotionTracker._twist_function): fitted only from this many SA
+# slices spanning this fraction of the LV's height, and extrapolated this far beyond them.
+TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
 
 
 # --------------------------------------------------------------------------- assembling
@@ -258,9 +261,11 @@ class MotionTracker:
                 result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                         tol=self.tol, local=False)
             x_global = self.model.positions()
-            sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
-            if self.twist_knots and len(sa_slices) >= 2:  # two SA levels fix at least a gradient
-                x_global = self._twist_function(ctrl.weights, targets[inside], normals[inside], x_global)
+            if self.twist_knots:
+                sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
+                sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
+                x_global = self._twist_function(ctrl.weights, targets[inside], normals[inside], x_global,
+                                                sa, len(sa_slices))
             self.positions = x_global
             if self.local:
                 self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global)
@@ -339,13 +344,16 @@ class MotionTracker:
         sol, _info = cg(A, rhs, x0=x0, rtol=self.cg_rtol, maxiter=self.cg_maxiter, M=M)
         return sol.reshape(n, 3)
 
-    def _twist_function(self, phi, targets, normals, x):
+    def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices):
         """Twist as a parameter function of height (the parameter functions of Park et al., which
         the paper's model builds on): rotate each particle about the model's long axis by
         ``Δφ(h)``, piecewise linear between ``twist_knots`` uniform knots in the material height
         h, fitted to the in-plane tag residuals of the global fit by penalised least squares
         (second differences of the knot values, a P-spline): it follows the data where SA slices
-        are, and continues linearly beyond them.
+        are, and continues linearly beyond them — for at most ``TWIST_REACH`` of the LV's height
+        (then it stays constant), and only when at least ``TWIST_MIN_SA`` SA slices spanning
+        ``TWIST_MIN_SPAN`` of the height measure it: from two close slices a gradient extrapolated
+        to the apex is noise times a lever (measured: 60° apical twist, p95 error 10 mm).
 
         Parameters
         ----------
@@ -355,12 +363,20 @@ class MotionTracker:
             Measured positions (mm) and their image-plane normals.
         x : ndarray, shape (N, 3)
             Global-model particle positions, mm.
+        sa : ndarray of bool, shape (K,)
+            Which control points lie on SA slices (the ones that measure circumferential motion).
+        num_sa_slices : int
+            Distinct SA slices among them.
 
         Returns
         -------
         ndarray, shape (N, 3)
-            ``x`` with the fitted twist applied, mm.
+            ``x`` with the fitted twist applied (``x`` itself when the SA data cannot support it), mm.
         """
+        h_sa = np.asarray(phi[np.flatnonzero(sa)] @ self._height).ravel()
+        if num_sa_slices < TWIST_MIN_SA or np.ptp(h_sa) < TWIST_MIN_SPAN:
+            self.twist_coefficients = np.zeros(0)
+            return x
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
         tang = np.cross(axis, x - centre)  # ∂x/∂φ, mm/rad
@@ -370,11 +386,13 @@ class MotionTracker:
         P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
         J = np.stack([np.einsum("kab,kb->ka", P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)], axis=1)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
-        JtJ = J.T @ J
         D2 = np.diff(np.eye(m), 2, axis=0)
-        lam = self.twist_smoothing * np.trace(JtJ) / m
-        self.twist_coefficients = np.linalg.solve(JtJ + lam * D2.T @ D2, J.T @ r)
-        angle = hat @ self.twist_coefficients
+        lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
+        # Least squares on the stacked system: never singular-fails (e.g. all SA points at one level).
+        self.twist_coefficients, *_ = np.linalg.lstsq(np.vstack([J, np.sqrt(lam) * D2]),
+                                                      np.concatenate([r, np.zeros(m - 2)]), rcond=None)
+        h = np.clip(self._height, h_sa.min() - TWIST_REACH, h_sa.max() + TWIST_REACH)
+        angle = np.clip(1.0 - np.abs(h[:, None] - knots) * (m - 1), 0.0, None) @ self.twist_coefficients
         v = x - centre
         along = (v @ axis)[:, None] * axis
         perp = v - along
