@@ -167,7 +167,10 @@ class MotionTracker:
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.local = bool(local)
-        self.cg_rtol, self.cg_maxiter = 1e-5, 400  # warm-started; tighter bought no accuracy
+        # Warm-started from the previous phase. Measured over whole cycles (normal, hypertrophic,
+        # infarct; worst median, p95, twist and radius error over the phases): 1e-3 matches 1e-5
+        # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase).
+        self.cg_rtol, self.cg_maxiter = 1e-3, 400
         self.delta = None
         self._kdiag = None
         self._hourglass = None
