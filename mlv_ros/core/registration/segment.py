@@ -195,6 +195,14 @@ class _Levels:
     has_blood: bool
 
 
+def _levels_around(img, centre_rc, radius_px: float, features=None):
+    """Tag features of ``img`` and the tissue class levels within ``radius_px`` of the long-axis
+    point ``centre_rc`` (None when the tag energy there is flat)."""
+    feat = features or tag_features(img)
+    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    return feat, _class_levels(feat, np.hypot(rr - centre_rc[0], cc - centre_rc[1]) < radius_px)
+
+
 def _class_levels(feat: TagFeatures, region: np.ndarray) -> _Levels | None:
     """Class levels of myocardium / blood / background inside ``region`` (bool mask).
 
@@ -412,11 +420,7 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
     if failed is not None:
         return failed
     c = np.asarray(centre_rc, dtype=np.float64)
-    feat = features or tag_features(img)
-    rmax = max_radius_mm / pixel_spacing_mm
-    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
-    region = np.hypot(rr - c[0], cc - c[1]) < rmax
-    lv = _class_levels(feat, region)
+    feat, lv = _levels_around(img, c, max_radius_mm / pixel_spacing_mm, features)
     if lv is None:
         return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "SA")
     return _sa_from_score(myocardium_score(feat, lv), c, pixel_spacing_mm, max_radius_mm, min_wall_mm,
@@ -478,11 +482,7 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     c = np.asarray(centre_rc, dtype=np.float64)
     ax = np.asarray(axis_rc, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
-    feat = features or tag_features(img)
-    rmax = max_radius_mm / pixel_spacing_mm
-    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
-    region = np.hypot(rr - c[0], cc - c[1]) < rmax
-    lv = _class_levels(feat, region)
+    feat, lv = _levels_around(img, c, max_radius_mm / pixel_spacing_mm, features)
     if lv is None:
         return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "LA")
     if not lv.has_blood:
