@@ -33,7 +33,7 @@ def test_tag_detector_refuses_oversized_frames_before_converting(ros_context, ex
     got = []
     sink = rclpy.create_node("sink", context=ros_context)
     sink.create_subscription(TagPoints, qos.TAG_POINTS, got.append, qos.stream_qos())
-    pub = sink.create_publisher(TaggedFrame, qos.FRAMES, qos.stream_qos())
+    pub = sink.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
     executor.add_node(node)
     executor.add_node(sink)
     frame = simulate_study("normal", quick=True, num_phases=2).frames[0]

@@ -33,7 +33,7 @@ class Harness(Node):
 
     def __init__(self, context):
         super().__init__("harness", context=context)
-        self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.stream_qos())
+        self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.out = {k: [] for k in ("diag", "points", "motion", "state", "metrics")}
         for key, typ, topic in (("diag", DiagnosticArray, qos.DIAGNOSTICS), ("points", TagPoints, qos.TAG_POINTS),
                                 ("motion", PointCloud2, qos.MOTION), ("state", ModelState, qos.MODEL_STATE),

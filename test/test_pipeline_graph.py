@@ -125,36 +125,47 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
     assert topics[qos.TAG_POINTS]["count"] == 6
 
 
-def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, executor, tmp_path):
-    """SIGKILL the solver after a few phases; a new solver process gets the latched registration
-    and the tag-point history (TRANSIENT_LOCAL) and solves every phase."""
+def restart_mid_run(ros_context, executor, victim: str, phases: int = 8):
+    """Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
+    ``victim`` after three phases are solved, start it again, and return the model states and
+    tag sets published after the restart (the run must then complete)."""
     from rclpy.node import Node
 
-    from mlv_msgs.msg import ModelState
+    from mlv_msgs.msg import ModelState, TagPoints
 
-    states = []
-    watcher = Node("watcher2", context=ros_context)
+    states, tag_sets = [], []
+    watcher = Node("restart_watcher", context=ros_context)
     watcher.create_subscription(ModelState, qos.MODEL_STATE, states.append, qos.stream_qos())
+    # with history: a restarted tag detector publishes at once, before a VOLATILE reader matches it
+    watcher.create_subscription(TagPoints, qos.TAG_POINTS, tag_sets.append,
+                                qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
     executor.add_node(watcher)
-    phases = 8
     common = ["--ros-args", "--params-file", "config/graph.yaml"]
-    procs = {n: subprocess.Popen([console_script(n), *common, *extra], stdout=subprocess.DEVNULL,
+    # the watcher is the solver's one subscriber here (no analyzer, no recorder)
+    extra = {"registration": ["-p", "num_particles:=1500"], "meshless_solver": ["-p", "wait_for_subscribers:=1"]}
+    procs = {n: subprocess.Popen([console_script(n), *common, *extra.get(n, [])], stdout=subprocess.DEVNULL,
                                  stderr=subprocess.DEVNULL)
-             for n, extra in [("tag_detector", []), ("registration", ["-p", "num_particles:=1500"]),
-                              ("meshless_solver", [])]}
+             for n in ("tag_detector", "registration", "meshless_solver")}
     src = subprocess.Popen([console_script("frame_source"), *common, "-p", "size:=128", "-p", f"num_phases:={phases}",
                             "-p", "wait_for_subscribers:=2", "-p", "exit_when_done:=false"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= 3, 240), \
             f"phases before the kill: {sorted({s.phase_index for s in states})}"
-        procs["meshless_solver"].kill()
-        procs["meshless_solver"].wait(timeout=10)
-        before = len(states)
-        procs["meshless_solver"] = subprocess.Popen([console_script("meshless_solver"), *common],
-                                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        assert spin_until(executor, lambda: {s.phase_index for s in states[before:]} == set(range(phases)), 300), \
+        procs[victim].kill()
+        procs[victim].wait(timeout=10)
+        before, sets_before = len(states), len(tag_sets)
+        procs[victim] = subprocess.Popen([console_script(victim), *common, *extra.get(victim, [])],
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        done = set(range(phases))
+        assert spin_until(executor, lambda: {s.phase_index for s in states} == done and
+                          (victim != "meshless_solver" or {s.phase_index for s in states[before:]} == done), 300), \
             f"after restart: {sorted({s.phase_index for s in states[before:]})}"
+        if victim == "tag_detector":  # every frame again, from the frame publisher's history
+            per_study = phases * (tag_sets[0].num_sa_slices + tag_sets[0].num_la_slices)
+            assert spin_until(executor, lambda: len(tag_sets) - sets_before >= per_study, 120), \
+                f"{len(tag_sets) - sets_before} of {per_study} tag sets after the restart"
+        return states[before:], tag_sets[sets_before:]
     finally:
         for p in [*procs.values(), src]:
             p.send_signal(2)
@@ -163,3 +174,15 @@ def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, exec
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
+    """A new solver process gets the latched registration and the tag-point history
+    (TRANSIENT_LOCAL) and solves every phase again."""
+    restart_mid_run(ros_context, executor, "meshless_solver")
+
+
+def test_tag_detector_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
+    """A new tag detector takes the frames' history (catch_up) and republishes every tag set;
+    the solver, still running, completes the phases it had not solved."""
+    restart_mid_run(ros_context, executor, "tag_detector")

@@ -93,3 +93,23 @@ def test_overflow_late_join_and_restart_are_reported(ros_context, executor, tmp_
     rec.finish()
     late.finish()
     assert bagio.bag_topics(out)[qos.FRAMES]["count"] == recorded + 2  # + the late-join and restart frames
+
+
+def test_a_publisher_that_cannot_reach_a_subscription_is_reported(ros_context, executor):
+    # The tag detector takes frames with their history (catch_up); a VOLATILE publisher cannot
+    # serve that, never connects, and would otherwise be silently ignored.
+    from mlv_ros.nodes.tag_detector import TagDetector
+
+    mon = Monitor(ros_context)
+    det = TagDetector(context=ros_context)
+    src = Node("volatile_source", context=ros_context)
+    for n in (mon, det, src):
+        executor.add_node(n)
+    src.create_publisher(TaggedFrame, qos.FRAMES, qos.stream_qos())
+
+    def reports():
+        return [{kv.key: kv.value for kv in s.values} for s in mon.statuses
+                if s.hardware_id == "tag_detector" and "incompatible" in s.message]
+
+    assert spin_until(executor, lambda: bool(reports()), 20)
+    assert reports()[0]["topic"] == qos.FRAMES and reports()[0]["policy"] == "DURABILITY"

@@ -14,7 +14,9 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSPolicyKind
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.task import Future
@@ -106,6 +108,11 @@ class GraphNode(Node):
             self._account(topic, count, info.get("publication_sequence_number"))
             return callback(msg, info) if wants_info else callback(msg)
 
+        # A publisher whose QoS cannot serve this subscription (e.g. VOLATILE where history is
+        # asked for) never connects: nothing would arrive, so say why.
+        kwargs.setdefault("event_callbacks", SubscriptionEventCallbacks(incompatible_qos=lambda event: self.report(
+            ERROR, "a publisher's QoS is incompatible with this subscription: its messages cannot arrive",
+            topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
         return super().create_subscription(msg_type, topic, counted, qos_profile, **kwargs)
 
     def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:

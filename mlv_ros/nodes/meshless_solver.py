@@ -40,6 +40,9 @@ class MeshlessSolver(GraphNode):
         self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
         self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
+        self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers of the motion and state topics to wait for before publishing", min_value=0, max_value=100)
+        self.wait_timeout_s = self.param("wait_timeout_s", 10.0, "then publish to those present, with a warning", min_value=0.0, max_value=3600.0)
+        self._waiting_since = None
         self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.topic_qos(qos.MOTION))
         self.state_pub = self.create_publisher(ModelStateMsg, qos.MODEL_STATE, qos.topic_qos(qos.MODEL_STATE))
         self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
@@ -120,11 +123,30 @@ class MeshlessSolver(GraphNode):
             return
         if self.assembler.sets(self.next_phase) and time.monotonic() - self.last_input > self.incomplete_timeout_s:
             self._advance(force=True)
+        elif self._waiting_since is not None:
+            self._advance()
+
+    def _outputs_ready(self) -> bool:
+        """Whether the results may go out: outputs are VOLATILE streams, so a phase published
+        before a subscriber has matched (e.g. by a solver restarted mid-run, which solves its
+        first phases at once) never reaches it."""
+        matched = min(self.motion_pub.get_subscription_count(), self.state_pub.get_subscription_count())
+        if matched >= self.wait_for_subscribers:
+            self._waiting_since = None
+            return True
+        if self._waiting_since is None:
+            self._waiting_since = time.monotonic()
+        if time.monotonic() - self._waiting_since < self.wait_timeout_s:
+            return False
+        self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
+                    expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
+        self.wait_for_subscribers = matched  # once: do not wait again for the same absentees
+        return True
 
     # ------------------------------------------------------------------ solving
     def _advance(self, force: bool = False) -> None:
         """Solve every phase that is ready, in order."""
-        if self.tracker is None:
+        if self.tracker is None or not self._outputs_ready():
             return
         while self.num_phases and self.next_phase < self.num_phases:
             p = self.next_phase

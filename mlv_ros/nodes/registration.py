@@ -36,9 +36,11 @@ class Registration(GraphNode):
         self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
         self.mask_path = self.param("mask_path", "", "optional NIfTI label image of the ED myocardium (empty = automatic segmentation)")
         self.mask_label = self.param("mask_label", 2, "myocardium label in mask_path (ACDC: 2)", min_value=0, max_value=65535)
+        self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
+                                   "gets the frames already sent; false for a publisher without history")
         self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.topic_qos(qos.REGISTERED_CLOUD))
         self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.topic_qos(qos.REGISTERED_STATE))
-        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES))
+        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.ed_frames: dict = {}
         self.study = StudyShape()
         self.expected = 0

@@ -30,8 +30,10 @@ class TagDetector(GraphNode):
         self.spacing_px = self.param("spacing_px", 0.0, "tag spacing override, pixels (0 = estimate from the ED spectrum)", min_value=0.0, max_value=100.0)
         self.max_pending = self.param("max_pending", 3, "later phases allowed to wait for a missing one", min_value=1, max_value=100)
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest image accepted (rows × cols)", min_value=64, max_value=16384 * 16384)
+        self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
+                                   "gets the frames already sent; false for a publisher without history")
         self.pub = self.create_publisher(TagPoints, qos.TAG_POINTS, qos.topic_qos(qos.TAG_POINTS))
-        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES))
+        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
         self.trackers: dict = {}   # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
