@@ -254,7 +254,7 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
     """
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from corpus.message_cases import _slot
+    from corpus.message_cases import frames_with_cases
 
     t0 = time.monotonic()
     crashes: list = []
@@ -272,17 +272,12 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
     points = [c for c in cases if c.topic == qos.TAG_POINTS]
     outputs = [c for c in cases if c.topic in (qos.MOTION, qos.MODEL_STATE)]
     latched = [c for c in cases if c.topic in qos.LATCHED_TOPICS]
-    stand_ins = {c.replaces: c for c in frames if c.replaces}
-    after: dict = {}
-    for c in frames:
-        if c.after:
-            after.setdefault(c.after, []).append(c)
     solver, analyzer = nodes["meshless_solver"], nodes["motion_analyzer"]
     num_phases = valid[0].num_phases
     pending_points = list(points)
-    for i, m in enumerate(valid):
-        probe.publish(qos.FRAMES, stand_ins[_slot(m)].msg if _slot(m) in stand_ins else m)
-        for c in after.get(_slot(m), []):
+    for i, (frame, derived) in enumerate(frames_with_cases(valid, frames)):
+        probe.publish(qos.FRAMES, frame)
+        for c in derived:
             probe.publish(qos.FRAMES, c.msg)
         if i == 0:
             spin(lambda: solver.messages_handled >= 1, 30)

@@ -29,19 +29,13 @@ from corpus.message_cases import message_cases  # noqa: E402
 def interleave(valid: list, cases: list) -> list:
     """(topic, msg) in sending order: each stand-in replaces its valid frame, each derived case
     follows its source frame, and the other cases come after the study."""
-    from corpus.message_cases import _slot
+    from corpus.message_cases import frames_with_cases
     from mlv_ros import qos
 
-    replaces = {c.replaces: c for c in cases if c.replaces is not None}
-    after: dict = {}
-    for c in cases:
-        if c.after is not None:
-            after.setdefault(c.after, []).append(c)
     out = []
-    for m in valid:
-        slot = _slot(m)
-        out.append((replaces[slot].topic, replaces[slot].msg) if slot in replaces else (qos.FRAMES, m))
-        out += [(c.topic, c.msg) for c in after.get(slot, [])]
+    for frame, derived in frames_with_cases(valid, cases):
+        out.append((qos.FRAMES, frame))
+        out += [(c.topic, c.msg) for c in derived]
     placed = {id(c) for c in cases if c.replaces is not None or c.after is not None}
     out += [(c.topic, c.msg) for c in cases if id(c) not in placed]
     return out

@@ -126,6 +126,18 @@ def _slot(msg: TaggedFrame) -> tuple:
     return (msg.view, msg.slice_index, msg.phase_index)
 
 
+def frames_with_cases(valid: list[TaggedFrame], cases: list[MessageCase]) -> list[tuple[TaggedFrame, list]]:
+    """The study in sending order with the frame cases placed: for each valid frame, the frame to
+    send in its slot (a stand-in where one ``replaces`` it) and the cases derived from it
+    (``after``), to send right behind it. Cases placed neither way are not included."""
+    stand_ins = {c.replaces: c.msg for c in cases if c.replaces is not None}
+    after: dict = {}
+    for c in cases:
+        if c.after is not None:
+            after.setdefault(c.after, []).append(c)
+    return [(stand_ins.get(_slot(m), m), after.get(_slot(m), [])) for m in valid]
+
+
 def _image(img: np.ndarray, encoding: str, *, big_endian: bool = False, pad: int = 0) -> Image:
     """An Image holding ``img`` under ``encoding``, optionally byte-swapped and row-padded."""
     img = np.ascontiguousarray(img, dtype=np.dtype(DTYPES[encoding]).newbyteorder(">" if big_endian else "<"))
