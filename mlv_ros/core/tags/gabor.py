@@ -25,6 +25,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 import scipy.fft as sfft
+from scipy import ndimage as ndi
 
 # Spacing search range, px: below 3 px the tags are not resolved (Nyquist is 2 px); clinical
 # grids are 5–10 mm at 1–2 mm pixels, and longer periods collide with anatomy (wall, cavity).
@@ -33,6 +34,11 @@ MAX_SPACING_PX = 24.0
 # A spectral peak must stand this many times above the median spectral magnitude of the search
 # annulus; white noise alone tops out near 4–5 for a 256² image.
 MIN_PEAK_RATIO = 8.0
+# The same against the median of the peak's own frequency ring: the maximum of ~10³ Rayleigh
+# magnitudes over their median is ≈ 3.5 (measured on noise: ≤ 2.7 for 48²–400² images).
+MIN_WHITENED_PEAK_RATIO = 4.5
+# Largest ratio of the two directions' periods in one grid.
+MAX_PERIOD_RATIO = 1.3
 # Second direction must differ from the first by at least this angle (rad); harmonics of the
 # first direction lie on its own axis.
 MIN_DIRECTION_SEPARATION = np.deg2rad(30.0)
@@ -94,12 +100,19 @@ def _fold_angle(theta):
 
 def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACING_PX,
                             max_spacing_px: float = MAX_SPACING_PX,
-                            min_peak_ratio: float = MIN_PEAK_RATIO) -> TagParameters:
+                            min_peak_ratio: float | None = None, whiten: bool = False) -> TagParameters:
     """Estimate the two tag directions and spacings from the spectrum of an (ED) image.
 
-    The two strongest peaks of the Hann-windowed magnitude spectrum inside the annulus
-    ``1/max_spacing ≤ |f| ≤ 1/min_spacing`` that are at least 30° apart are the two fundamental
-    tag frequencies; each is refined to sub-bin accuracy by a parabola through the log magnitude.
+    The two strongest peaks of the magnitude spectrum (Hann window, or the tapered region when
+    ``mask`` is given) inside the annulus ``1/max_spacing ≤ |f| ≤ 1/min_spacing`` that are at least
+    30° apart are the two fundamental tag frequencies (any angle, any period in the range); each is
+    refined to sub-bin accuracy by a parabola through the log magnitude. A peak is measured against
+    the median magnitude of the whole annulus, or with ``whiten`` against the median of its own
+    ring ``|f| = const``: anatomy (the wall's, cavity's and body's edges) falls off steeply with
+    ``|f|``, so unwhitened a strong edge at low frequency can outrank faint tags, while whitened a
+    thin tagged wall (whose tag peak is spread over much of its ring) can sink below its ring.
+    Neither is right for every image; :func:`mlv_ros.core.tags.estimate_grid` tries both and lets
+    the image's Gabor responses decide.
 
     Parameters
     ----------
@@ -109,12 +122,17 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         Region whose spectrum is analysed (e.g. myocardium dilated); default the whole image.
     min_spacing_px, max_spacing_px : float
         Search range for the spacing, px.
-    min_peak_ratio : float
-        Each peak must exceed this multiple of the annulus' median magnitude.
+    min_peak_ratio : float, optional
+        Each peak must exceed this multiple of its reference median (scale-free: the image's own
+        spectrum is the reference). Default :data:`MIN_PEAK_RATIO`, or
+        :data:`MIN_WHITENED_PEAK_RATIO` with ``whiten``.
+    whiten : bool
+        Measure each frequency against its own ring (see above).
 
     Returns
     -------
     TagParameters
+        ``peak_ratio`` holds each direction's peak height over its reference median.
 
     Raises
     ------
@@ -123,7 +141,8 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
     """
     img = validate_image(image)
     h, w = img.shape
-    work = img - img.mean()
+    if min_peak_ratio is None:
+        min_peak_ratio = MIN_WHITENED_PEAK_RATIO if whiten else MIN_PEAK_RATIO
     if mask is not None:
         m = np.asarray(mask, bool)
         if m.shape != img.shape:
@@ -139,8 +158,13 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         taper = cv2.GaussianBlur(mf, (0, 0), 0.25 * min_spacing_px + 1.0)
         work = (img - local) * taper
     else:
-        work = work * np.outer(np.hanning(h), np.hanning(w))
+        work = (img - img.mean()) * np.outer(np.hanning(h), np.hanning(w))
     spec = np.abs(sfft.fft2(work))
+    if not whiten:
+        # Power averaged over neighbouring bins (σ = 1 bin): a tag peak is at least that wide (the
+        # window's or the region's own spectrum) while noise averages down. (Whitened, the ring
+        # median would rise with a spread peak instead.)
+        spec = np.sqrt(ndi.gaussian_filter(spec ** 2, 1.0, mode="wrap"))
     fr = sfft.fftfreq(h)[:, None]
     fc = sfft.fftfreq(w)[None, :]
     rad = np.hypot(fr, fc)
@@ -149,31 +173,71 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
     annulus = half & (rad >= 1.0 / max_spacing_px) & (rad <= 1.0 / min_spacing_px)
     if not annulus.any():
         raise TagInputError(f"image {h}x{w} too small to resolve tag spacings up to {max_spacing_px} px")
-    med = float(np.median(spec[annulus]))
-    if med <= 0:
-        raise TagInputError("image spectrum is empty in the tag frequency band")
-    score = np.where(annulus, spec, 0.0)
+    if whiten:
+        # Rings one frequency bin wide (of the longer side); each frequency over its ring's median.
+        labels = np.where(annulus, np.rint(rad * max(h, w)).astype(np.int64) + 1, 0)
+        ids = np.unique(labels[annulus])
+        med = np.zeros(int(labels.max()) + 1)
+        med[ids] = ndi.median(spec, labels, ids)
+        if not np.all(med[ids] > 0):
+            raise TagInputError("image spectrum is empty in the tag frequency band")
+        score = np.where(annulus, spec / np.where(med[labels] > 0, med[labels], np.inf), 0.0)
+    else:
+        med = float(np.median(spec[annulus]))
+        if med <= 0:
+            raise TagInputError("image spectrum is empty in the tag frequency band")
+        score = np.where(annulus, spec / med, 0.0)
+    ang = np.arctan2(fr, fc)
     peaks = []
     for _ in range(2):
         idx = np.unravel_index(int(np.argmax(score)), score.shape)
-        ratio = score[idx] / med
+        ratio = float(score[idx])
         if ratio < min_peak_ratio:
             which = "first" if not peaks else "second"
-            raise TagInputError(f"no {which} tag direction: strongest spectral peak is {ratio:.1f}x the median "
-                                f"(need ≥ {min_peak_ratio:g}); no tags, faded tags or noise only")
+            ref = "its ring's" if whiten else "the band's"
+            raise TagInputError(f"no {which} tag direction: strongest spectral peak is {ratio:.1f}x {ref} "
+                                f"median (need ≥ {min_peak_ratio:g}); no tags, faded tags or noise only")
         f = np.array([_subbin(spec, idx, 0) / h, _subbin(spec, idx, 1) / w])
         f = np.array([(f[0] + 0.5) % 1.0 - 0.5, (f[1] + 0.5) % 1.0 - 0.5])  # back to [-0.5, 0.5)
+        if mask is not None:
+            f = _refine_peak(work, f)
         peaks.append((f, ratio))
-        # Suppress everything within 30° of this direction (its harmonics too).
-        ang = np.arctan2(fr, fc)
+        # Suppress everything within 30° of this direction (its harmonics too), and periods far
+        # from this one: a SPAMM grid's two directions share (nearly) one period, while a second
+        # peak at another period is anatomy (e.g. a thin wall's own edges).
         theta = np.arctan2(f[0], f[1])
         diff = np.abs(np.angle(np.exp(1j * 2 * (ang - theta)))) / 2  # axial distance in [0, π/2]
-        score = np.where(diff < MIN_DIRECTION_SEPARATION, 0.0, score)
+        f_abs = np.hypot(*f)
+        score = np.where((diff < MIN_DIRECTION_SEPARATION) | (rad < f_abs / MAX_PERIOD_RATIO)
+                         | (rad > f_abs * MAX_PERIOD_RATIO), 0.0, score)
     spacing = np.array([1.0 / np.hypot(*p[0]) for p in peaks])
     angles = _fold_angle(np.array([np.arctan2(p[0][0], p[0][1]) for p in peaks]))
     order = np.argsort(angles)
     return TagParameters(spacing_px=spacing[order], angles=angles[order],
                          peak_ratio=np.array([p[1] for p in peaks])[order], source="spectrum")
+
+
+def _refine_peak(work: np.ndarray, f: np.ndarray, steps: int = 9) -> np.ndarray:
+    """Frequency (cycles/px, (row, col)) maximising ``|Σ work(x) e^{−2πi f·x}|`` within ±1 bin of ``f``.
+
+    A thin tagged region spreads its tag peak over many bins and the parabola through three of
+    them is then biased by the neighbouring copies; the region's own transform still peaks at the
+    tag frequency, so the DFT evaluated off the bin lattice finds it (separable: two small matrix
+    products per candidate row).
+    """
+    h, w = work.shape
+    rows, cols = np.arange(h), np.arange(w)
+    best, best_f = -1.0, f
+    for _ in range(2):  # coarse ±1 bin, then ±1/4 bin around the best
+        span = (1.0 if best < 0 else 0.25)
+        fr = best_f[0] + np.linspace(-span, span, steps) / h
+        fc = best_f[1] + np.linspace(-span, span, steps) / w
+        er = np.exp(-2j * np.pi * np.outer(fr, rows))      # (steps, h)
+        ec = np.exp(-2j * np.pi * np.outer(cols, fc))      # (w, steps)
+        mag = np.abs(er @ work @ ec)                        # (steps, steps)
+        i, j = np.unravel_index(int(np.argmax(mag)), mag.shape)
+        best, best_f = float(mag[i, j]), np.array([fr[i], fc[j]])
+    return best_f
 
 
 def _subbin(spec, idx, axis):
@@ -192,7 +256,7 @@ def _subbin(spec, idx, axis):
     return si + float(np.clip(off, -0.5, 0.5))
 
 
-def resolve_parameters(image, mask=None, spacing_px=None, angles=None) -> TagParameters:
+def resolve_parameters(image, mask=None, spacing_px=None, angles=None, estimate=None) -> TagParameters:
     """Tag parameters from overrides, completing missing ones from the spectrum.
 
     Parameters
@@ -205,11 +269,14 @@ def resolve_parameters(image, mask=None, spacing_px=None, angles=None) -> TagPar
         Tag spacing, px (one value for both directions, or one per direction).
     angles : array_like of 2 floats, optional
         Wave-vector angles, rad (module conventions).
+    estimate : callable, optional
+        ``estimate(image, mask) -> TagParameters`` (default :func:`estimate_tag_parameters`).
 
     Returns
     -------
     TagParameters
     """
+    estimate = estimate or estimate_tag_parameters
     if spacing_px is not None and angles is not None:
         sp = np.broadcast_to(np.asarray(spacing_px, float), (2,)).copy()
         an = _fold_angle(np.asarray(angles, float).reshape(2))
@@ -219,11 +286,11 @@ def resolve_parameters(image, mask=None, spacing_px=None, angles=None) -> TagPar
             raise TagInputError(f"tag angle override must be finite, got {an}")
         return TagParameters(spacing_px=sp, angles=an, source="override")
     try:
-        est = estimate_tag_parameters(image, mask)
+        est = estimate(image, mask)
     except TagInputError:
         if mask is None:
             raise
-        est = estimate_tag_parameters(image)  # small or odd regions: the whole image's grid
+        est = estimate(image, None)  # small or odd regions: the whole image's grid
     if spacing_px is None and angles is None:
         return est
     sp = est.spacing_px if spacing_px is None else np.broadcast_to(np.asarray(spacing_px, float), (2,)).copy()

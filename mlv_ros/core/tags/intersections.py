@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .gabor import (GaborMaps, TagInputError, TagParameters, gabor_filter_bank, resolve_parameters,
-                    validate_image)
+from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, GaborMaps, TagInputError, TagParameters,
+                    estimate_tag_parameters, gabor_filter_bank, resolve_parameters, validate_image)
 from .phase import PhaseField, solve_phase
 
 # |R_d| / σ_local for an ideal 1-1 SPAMM grid: each direction is a cosine of amplitude 1/4
@@ -115,6 +115,105 @@ def confidence_map(image: np.ndarray, maps: GaborMaps, params: TagParameters, st
     floor = 1e-6 * float(np.ptp(image)) + 1e-30
     r = maps.magnitude / (IDEAL_CONTRAST_RATIO * np.maximum(sig, floor))[None]
     return np.sqrt(np.clip(r[0], 0, 1) * np.clip(r[1], 0, 1)).astype(np.float32)
+
+
+def _same_grid(a: TagParameters, b: TagParameters) -> bool:
+    """Both directions within 2° and 3 % of spacing (in either order)."""
+    for perm in ((0, 1), (1, 0)):
+        da = np.abs(np.angle(np.exp(2j * (a.angles - b.angles[list(perm)])))) / 2
+        ds = np.abs(a.spacing_px / b.spacing_px[list(perm)] - 1)
+        if np.all(da < np.deg2rad(2.0)) and np.all(ds < 0.03):
+            return True
+    return False
+
+
+def grid_support(image, params: TagParameters, region=None) -> float:
+    """How well a tag grid explains an image: mean tag confidence (0..1) over ``region``.
+
+    The confidence (see :class:`Detection`) is the Gabor bank's response at the grid's two
+    directions over the local contrast; it is high only where the image really carries that grid,
+    whatever the intensity scale, so it ranks candidate grids on the image's own terms.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+    params : TagParameters
+    region : ndarray of bool, shape (H, W), optional
+        Where tags are expected (the myocardium); default the whole image.
+
+    Returns
+    -------
+    float
+    """
+    img = np.asarray(image, np.float64)
+    if region is not None and np.any(region):
+        rows, cols = np.nonzero(region)
+        pad = int(np.ceil(2 * float(np.max(params.spacing_px)))) + 2
+        r0, r1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, img.shape[0])
+        c0, c1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, img.shape[1])
+        img, reg = img[r0:r1, c0:c1], np.asarray(region, bool)[r0:r1, c0:c1]
+        work, std = masked_normalise(img, reg, float(np.mean(params.spacing_px)))
+    else:
+        reg, work, std = None, img, None
+    conf = confidence_map(work, gabor_filter_bank(work, params), params, std)
+    return float(np.mean(conf[reg] if reg is not None else conf))
+
+
+def estimate_grid(image, mask=None, score_region=None) -> TagParameters:
+    """Tag spacing and directions of one image, chosen by the image's own Gabor responses.
+
+    Candidates come from the spectrum of the region (``mask``) and of the whole image, each
+    measured against the tag band's median and against its own frequency ring
+    (:func:`~mlv_ros.core.tags.gabor.estimate_tag_parameters` with and without ``whiten``): on a
+    thin tagged wall the tag peak is spread over its ring, on a high-contrast background the
+    anatomy's edges dominate low frequencies, and a thin region's own shape can outrank its tags.
+    The candidate with the highest :func:`grid_support` over ``score_region`` wins.
+
+    Parameters
+    ----------
+    image : array_like, shape (H, W)
+    mask : array_like of bool, shape (H, W), optional
+        Region for the regional spectrum (e.g. the myocardium dilated).
+    score_region : array_like of bool, shape (H, W), optional
+        Where candidates are scored (e.g. the myocardium); default ``mask``, else the whole image.
+
+    Returns
+    -------
+    TagParameters
+
+    Raises
+    ------
+    TagInputError
+        No spectrum gives a pair of tag peaks (the first reason is given).
+    """
+    img = validate_image(image)
+    cands: list[TagParameters] = []
+    reasons = []
+    for region in ((mask, None) if mask is not None else (None,)):
+        for whiten in (False, True):
+            try:
+                p = estimate_tag_parameters(img, region, whiten=whiten)
+            except TagInputError as exc:
+                reasons.append(str(exc))
+                continue
+            # A grid's cross terms k1 ± k2 are peaks too (at 45° and 1/√2 of the period); if
+            # they were taken for the grid, half their sum and difference is the grid.
+            k = p.wavevectors / (2 * np.pi)
+            derived = [(k[0] + k[1]) / 2, (k[0] - k[1]) / 2]
+            q = TagParameters(spacing_px=np.array([1.0 / np.hypot(*d) for d in derived]),
+                              angles=np.mod([np.arctan2(d[0], d[1]) for d in derived], np.pi),
+                              peak_ratio=p.peak_ratio, source="spectrum")
+            for c in (p, q):
+                if (np.all(c.spacing_px >= MIN_SPACING_PX) and np.all(c.spacing_px <= MAX_SPACING_PX)
+                        and not any(_same_grid(c, o) for o in cands)):
+                    cands.append(c)
+    if not cands:
+        raise TagInputError(reasons[0])
+    if len(cands) == 1:
+        return cands[0]
+    region = score_region if score_region is not None else mask
+    scores = [grid_support(img, p, region) for p in cands]
+    return cands[int(np.argmax(scores))]
 
 
 def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None) -> np.ndarray:
@@ -316,7 +415,8 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
                 return Detection(reason="mask is empty")
         if params is None:
             est_mask = None if m is None else cv2.dilate(m.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
-            params = resolve_parameters(img, est_mask, spacing_px, angles)
+            params = resolve_parameters(img, est_mask, spacing_px, angles,
+                                        estimate=lambda im, mk: estimate_grid(im, mk, score_region=m))
     except TagInputError as exc:
         return Detection(reason=str(exc))
     if np.any(params.spacing_px < 4.0 / max(spacing_factors)) or np.any(params.spacing_px > min(img.shape) / 2):

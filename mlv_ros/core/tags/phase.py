@@ -4,8 +4,9 @@ Both the Gabor intersection finder and the HARP baseline need the wrapped phase 
 complex fields at sub-pixel positions and its Jacobian. Interpolating a complex exponential
 bilinearly biases its phase (≈ 0.02 px at 5 px tag spacing), so instead the phase at ``x`` is
 extrapolated from the nearest pixel ``q``: ``ψ(x) ≈ ψ(q) + J(q)(x − q)``, exact for locally linear
-phase, with ``J`` from wrapped central differences (exact for linear phase while ``|∇ψ| < π/2``
-rad/px, i.e. spacing > 4 px; a derivative of the complex field would shrink it by sin(k)/k).
+phase, with ``J`` the mean of the wrapped forward and backward differences (exact for linear phase while
+``|∇ψ| < π`` rad/px, i.e. spacing > 2 px; a wrapped central difference would fold already at
+spacing 4 px, and a derivative of the complex field would shrink it by sin(k)/k).
 """
 
 from __future__ import annotations
@@ -37,9 +38,12 @@ class PhaseField:
         z = np.asarray(z)
         psi = np.angle(z).astype(np.float32)
         jac = np.zeros((2, 2) + z.shape[1:], np.float32)
-        # angle(z(x+1) conj z(x−1)) / 2: wrapped central difference, no unwrapping needed.
-        jac[:, 0, 1:-1, :] = np.angle(z[:, 2:, :] * np.conj(z[:, :-2, :])) / 2
-        jac[:, 1, :, 1:-1] = np.angle(z[:, :, 2:] * np.conj(z[:, :, :-2])) / 2
+        # Mean of the wrapped one-pixel differences: each is unambiguous up to |∇ψ| < π rad/px
+        # (tag spacing > 2 px), where angle(z(x+1) conj z(x−1)) would fold beyond π/2 (4 px).
+        d0 = np.angle(z[:, 1:, :] * np.conj(z[:, :-1, :]))
+        d1 = np.angle(z[:, :, 1:] * np.conj(z[:, :, :-1]))
+        jac[:, 0, 1:-1, :] = (d0[:, 1:, :] + d0[:, :-1, :]) / 2
+        jac[:, 1, :, 1:-1] = (d1[:, :, 1:] + d1[:, :, :-1]) / 2
         jac[:, :, 0, :] = 0
         jac[:, :, -1, :] = 0
         jac[:, :, :, 0] = 0
