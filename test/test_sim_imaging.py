@@ -172,7 +172,7 @@ def test_rician_noise_and_determinism():
 
 
 def test_presets_simulate(tmp_path):
-    for name in ("hypertrophic", "infarct", "cylinder"):
+    for name in ("hypertrophic", "dilated", "infarct", "cylinder"):
         s = simulate_study(name, snr=10.0, size=64, num_phases=3, subplanes=1)
         assert len(s.frames) == 33
         assert all(np.isfinite(f.image).all() for f in s.frames)

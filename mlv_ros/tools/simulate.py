@@ -1,4 +1,9 @@
-"""``mlv-ros simulate``: write a simulated tagged-MRI study (DICOM + ground truth)."""
+"""``mlv-ros simulate``: write a simulated tagged-MRI study (DICOM + ground truth).
+
+``--random SEED`` draws an acquisition protocol (:mod:`mlv_ros.core.sim.protocol`), ``--protocol
+FILE`` fixes any of its items (alone: the items it lacks take the preset's values); either way
+``OUT/protocol.yaml`` records every item.
+"""
 
 from __future__ import annotations
 
@@ -7,20 +12,55 @@ from pathlib import Path
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default="normal",
-                        help="normal | hypertrophic | infarct | cylinder, or a preset YAML path")
+    parser.add_argument("--preset", default=None,
+                        help="normal | hypertrophic | dilated | infarct | cylinder, or a preset YAML "
+                             "path (default normal); with --random/--protocol it fixes the shape")
     parser.add_argument("--out", required=True, type=Path,
                         help="output directory (DICOM under OUT/dicom, ground truth in OUT)")
+    parser.add_argument("--random", type=int, default=None, metavar="SEED",
+                        help="draw every acquisition item from its documented range (README, "
+                             "'Random protocols'); writes OUT/protocol.yaml")
+    parser.add_argument("--protocol", type=Path, default=None, metavar="FILE",
+                        help="protocol YAML fixing any items (with --random the rest are drawn, "
+                             "alone they take the preset's values)")
     parser.add_argument("--snr", type=float, default=None,
                         help="myocardium / noise sigma (default: the preset's, 20); 0 = noiseless")
     parser.add_argument("--size", type=int, default=None, help="rows = columns (default 256)")
     parser.add_argument("--phases", type=int, default=None, help="phases per cycle (default 25)")
     parser.add_argument("--subplanes", type=int, default=None,
                         help="through-slice sub-planes (default 5)")
-    parser.add_argument("--seed", type=int, default=0, help="noise and UID seed")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="noise, UID and file-name seed (default: the --random SEED, else 0)")
     parser.add_argument("--points", type=int, default=2000,
                         help="material points with stored trajectories")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _fail(msg) -> int:
+    print(f"mlv-ros simulate: {msg}", file=sys.stderr)
+    return 2
+
+
+def _protocol(args):
+    """(protocol, preset) from --random/--protocol and the overriding options; raises ValueError."""
+    from mlv_ros.core.sim.protocol import (SHAPES, check_items, complete_protocol, draw_protocol,
+                                           load_protocol, protocol_preset)
+
+    fixed = load_protocol(args.protocol) if args.protocol else {}
+    if args.preset is not None:
+        if args.preset not in SHAPES:
+            raise ValueError(f"with --random/--protocol, --preset names the shape: one of "
+                             f"{', '.join(SHAPES)} (got {args.preset!r})")
+        fixed["shape"] = args.preset
+    if args.size is not None:
+        fixed["size"] = args.size
+    if args.phases is not None:
+        fixed["num_phases"] = args.phases
+    if args.snr is not None:
+        fixed["snr"] = None if args.snr == 0 else args.snr
+    fixed = check_items(fixed)
+    protocol = draw_protocol(args.random, fixed) if args.random is not None else complete_protocol(fixed)
+    return protocol, protocol_preset(protocol)
 
 
 def run(args) -> int:
@@ -29,13 +69,23 @@ def run(args) -> int:
     from mlv_ros.core.io import write_groundtruth, write_study_dicom
     from mlv_ros.core.sim import load_preset, simulate_study
 
+    randomised = args.random is not None or args.protocol is not None
+    if args.random is not None and args.random < 0:
+        return _fail(f"--random SEED must be >= 0, got {args.random}")
+    seed = args.seed if args.seed is not None else (args.random if args.random is not None else 0)
+    protocol = None
     try:
-        preset = load_preset(args.preset)
+        if randomised:
+            protocol, preset = _protocol(args)
+        else:
+            preset = load_preset(args.preset or "normal")
     except (FileNotFoundError, ValueError) as exc:
-        print(f"mlv-ros simulate: {exc}", file=sys.stderr)
-        return 2
-    snr = preset["imaging"]["snr"] if args.snr is None else args.snr
-    snr = None if snr == 0 else snr
+        return _fail(exc)
+    if protocol is not None:
+        snr = protocol["snr"]
+    else:
+        snr = preset["imaging"]["snr"] if args.snr is None else args.snr
+        snr = None if snr == 0 else snr
     bar = tqdm(total=1, unit="img", desc=f"simulate {preset['name']}", disable=args.no_progress)
 
     def progress(done, total):
@@ -43,18 +93,35 @@ def run(args) -> int:
         bar.update(done - bar.n)
 
     try:
-        study = simulate_study(preset, snr=snr, size=args.size, num_phases=args.phases,
-                               seed=args.seed, subplanes=args.subplanes, progress=progress)
+        if protocol is not None:  # size and phases are protocol items
+            study = simulate_study(preset, snr=snr, seed=seed, subplanes=args.subplanes,
+                                   progress=progress)
+        else:
+            study = simulate_study(preset, snr=snr, size=args.size, num_phases=args.phases,
+                                   seed=seed, subplanes=args.subplanes, progress=progress)
     except ValueError as exc:
         bar.close()
-        print(f"mlv-ros simulate: {exc}", file=sys.stderr)
-        return 2
+        return _fail(exc)
     bar.close()
     out = Path(args.out)
+    extra, options = None, {}
+    if protocol is not None:
+        from mlv_ros.core.sim.protocol import dicom_options, save_protocol
+        options = dicom_options(protocol, study, names_seed=seed)
+        extra = {"protocol": protocol, "dicom": options}
     wbar = tqdm(total=len(study.frames), unit="file", desc="write DICOM", disable=args.no_progress)
     files = write_study_dicom(study, out / "dicom",
-                              progress=lambda done, total: wbar.update(done - wbar.n))
+                              progress=lambda done, total: wbar.update(done - wbar.n), **options)
     wbar.close()
-    jpath, npath = write_groundtruth(study, out, n_points=args.points)
-    print(f"wrote {len(files)} DICOM files to {out / 'dicom'}; ground truth {jpath.name}, {npath.name}")
+    jpath, npath = write_groundtruth(study, out, n_points=args.points, extra=extra)
+    msg = f"wrote {len(files)} DICOM files to {out / 'dicom'}; ground truth {jpath.name}, {npath.name}"
+    if protocol is not None:
+        how = f"--random {args.random}" if args.random is not None else f"--protocol {args.protocol}"
+        sub = f" --subplanes {args.subplanes}" if args.subplanes is not None else ""
+        save_protocol(protocol, out / "protocol.yaml", header=(
+            f"Acquisition protocol of this study (mlv-ros simulate {how}; noise seed {seed}).\n"
+            f"Reproduce: mlv-ros simulate --protocol protocol.yaml --seed {seed}{sub} --out DIR\n"
+            f"Items and ranges: README.md, 'Random protocols'."))
+        msg += ", protocol.yaml"
+    print(msg)
     return 0

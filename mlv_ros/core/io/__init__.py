@@ -3,21 +3,25 @@
 
 Public API
 ----------
-write_study_dicom(study, out_dir) -> list[Path]
+write_study_dicom(study, out_dir, pixel_scale=1000, progress=None, *, bits_stored=16,
+                  rescale=True, rescale_intercept=0.0, sa_series="per_slice",
+                  instance_numbers="per_slice", file_names="ordered", names_seed=0) -> list[Path]
 read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS) -> DicomReadResult
     (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series`` and
     ``.long_axis``; raises DicomReadError when nothing is usable)
-write_groundtruth(study, out_dir) -> (json_path, npz_path)
+write_groundtruth(study, out_dir, extra=None) -> (json_path, npz_path)
 load_groundtruth(path) -> GroundTruth
+motion_from_groundtruth(path) -> LVMotion (the exact motion, rebuilt from the JSON)
 """
 
 from mlv_ros.core.io.dicom import (DicomReadError, DicomReadResult, LongAxisEstimate, SeriesInfo,
                                    estimate_long_axis, frame_to_dataset, read_dicom_dir,
                                    write_study_dicom)
-from mlv_ros.core.io.groundtruth import GroundTruth, load_groundtruth, write_groundtruth
+from mlv_ros.core.io.groundtruth import (GroundTruth, load_groundtruth, motion_from_groundtruth,
+                                         write_groundtruth)
 
 __all__ = [
     "DicomReadError", "DicomReadResult", "GroundTruth", "LongAxisEstimate", "SeriesInfo",
-    "estimate_long_axis", "frame_to_dataset", "load_groundtruth", "read_dicom_dir",
-    "write_groundtruth", "write_study_dicom",
+    "estimate_long_axis", "frame_to_dataset", "load_groundtruth", "motion_from_groundtruth",
+    "read_dicom_dir", "write_groundtruth", "write_study_dicom",
 ]

@@ -4,7 +4,9 @@ Writing (:func:`write_study_dicom`): MR Image Storage, Explicit VR Little Endian
 with ``RescaleSlope`` mapping back to the simulator's float intensities, and the geometry,
 timing and identification attributes listed in the issue (IPP/IOP/PixelSpacing/SliceThickness,
 TriggerTime in ms, CardiacNumberOfImages, NominalInterval, InstanceNumber = phase + 1,
-SeriesDescription naming SA/LA).
+SeriesDescription naming SA/LA). Keyword options vary what scanners vary: 8/12/16 stored bits,
+any RescaleSlope/RescaleIntercept or none, the SA stack in one multi-slice series, InstanceNumber
+running across slices, random file names in nested folders.
 
 Reading (:func:`read_dicom_dir`): every file under a directory (recursive, any name) is tried;
 per-file problems are collected as ``(path, reason)`` while everything valid loads. Each file is
@@ -67,10 +69,38 @@ def _ds(v: float) -> DSfloat:
     return DSfloat(float(v), auto_format=True)
 
 
-def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress=None) -> list[Path]:
+#: ``write_study_dicom`` choices: how SA slices map to series, how InstanceNumber runs, file names.
+SA_SERIES = ("per_slice", "single")
+INSTANCE_NUMBERS = ("per_slice", "across_slices")
+FILE_NAMES = ("ordered", "random")
+BITS_STORED = (8, 12, 16)
+
+
+def _random_paths(out: Path, n: int, seed: int) -> list[Path]:
+    """``n`` distinct random file paths 1–3 folders deep under ``out`` (hex names, mixed suffixes)."""
+    rng = np.random.default_rng(seed)
+    pools = [[f"{rng.integers(1 << 24):06x}" for _ in range(3)] for _ in range(3)]
+    paths: list[Path] = []
+    seen: set[Path] = set()
+    while len(paths) < n:
+        depth = int(rng.integers(1, 4))
+        folder = out.joinpath(*(pools[k][int(rng.integers(3))] for k in range(depth)))
+        name = f"{int(rng.integers(1 << 62)):016x}" + ("", ".dcm", ".IMA")[int(rng.integers(3))]
+        path = folder / name  # never a folder's name: those have 6 hex digits, files 16
+        if path not in seen:
+            seen.add(path)
+            paths.append(path)
+    return paths
+
+
+def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress=None, *,
+                      bits_stored: int = 16, rescale: bool = True, rescale_intercept: float = 0.0,
+                      sa_series: str = "per_slice", instance_numbers: str = "per_slice",
+                      file_names: str = "ordered", names_seed: int = 0) -> list[Path]:
     """Write every frame of a simulated study as one DICOM file.
 
-    Layout: ``out_dir/<SA|LA>_<index>/IM_<phase+1>.dcm``; any layout reads back the same way.
+    Default layout: ``out_dir/<SA|LA>_<index>/IM_<phase+1>.dcm``, one series per slice location,
+    InstanceNumber = phase + 1; any layout reads back the same way (:func:`read_dicom_dir`).
 
     Parameters
     ----------
@@ -79,31 +109,91 @@ def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress
     out_dir : str or Path
         Created if needed.
     pixel_scale : float
-        Stored uint16 = round(intensity · pixel_scale), clipped to 0..65535.
+        Stored units per intensity unit: stored = round((intensity − rescale_intercept) ·
+        pixel_scale), clipped to the stored range ``0 .. 2**bits_stored − 1``.
     progress : callable, optional
         ``progress(done, total)`` after each file.
+    bits_stored : {8, 12, 16}
+        BitsStored (8 → BitsAllocated 8, else 16), unsigned.
+    rescale : bool
+        Write RescaleSlope = 1/pixel_scale and RescaleIntercept = rescale_intercept (the reader
+        then returns intensities); False writes neither, the stored values being the image
+        (``rescale_intercept`` must then be 0).
+    rescale_intercept : float
+        Intensity of stored value 0 (intensity units, ≤ 0 keeps every intensity ≥ 0 in range).
+    sa_series : {"per_slice", "single"}
+        One series per SA slice, or the whole SA stack in one multi-slice series (one
+        SeriesInstanceUID/SeriesNumber, description ``"tagged SA stack"``). LA planes are always
+        one series each. Series are numbered in ``study.keys`` order.
+    instance_numbers : {"per_slice", "across_slices"}
+        InstanceNumber = phase + 1 in every slice, or running on across the slices (slice k of
+        a multi-slice series, or of the whole study when every slice is its own series, gets
+        ``k · num_phases + phase + 1``).
+    file_names : {"ordered", "random"}
+        The default layout, or random hex names 1–3 random folders deep (``names_seed``).
+    names_seed : int
+        Seeds the random names.
 
     Returns
     -------
     list of Path
         The written files, in frame order.
+
+    Raises
+    ------
+    ValueError
+        An option outside its choices, a non-positive ``pixel_scale``, or an intercept without
+        a rescale.
     """
+    if bits_stored not in BITS_STORED:
+        raise ValueError(f"bits_stored must be one of {BITS_STORED}, got {bits_stored!r}")
+    for name, v, choices in (("sa_series", sa_series, SA_SERIES),
+                             ("instance_numbers", instance_numbers, INSTANCE_NUMBERS),
+                             ("file_names", file_names, FILE_NAMES)):
+        if v not in choices:
+            raise ValueError(f"{name} must be one of {choices}, got {v!r}")
+    if not (np.isfinite(pixel_scale) and pixel_scale > 0):
+        raise ValueError(f"pixel_scale must be a positive number of stored units per intensity "
+                         f"unit, got {pixel_scale}")
+    if not np.isfinite(rescale_intercept) or (not rescale and rescale_intercept != 0.0):
+        raise ValueError(f"rescale_intercept must be finite, and 0 without a rescale; "
+                         f"got {rescale_intercept}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    series_number = {key: i + 1 for i, key in enumerate(study.keys)}
-    paths = []
+    keys = study.keys
+    series_number = {key: i + 1 for i, key in enumerate(keys)}
+    series_uid: dict = {}
+    descriptions = {key: study.descriptions.get(key, f"tagged {VIEW_NAMES[key[0]]} {key[1]}") for key in keys}
+    position = {key: i for i, key in enumerate(keys)}  # slice's place in its series' numbering
+    if sa_series == "single":
+        sa_keys = [k for k in keys if k[0] == VIEW_SA]
+        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, "SA stack"])
+        others = [k for k in keys if k[0] != VIEW_SA]
+        series_number = {k: 1 for k in sa_keys} | {k: i + 2 for i, k in enumerate(others)}
+        series_uid = {k: stack_uid for k in sa_keys}
+        descriptions.update({k: "tagged SA stack" for k in sa_keys})
+        position = {k: i for i, k in enumerate(sa_keys)} | {k: 0 for k in others}
     total = len(study.frames)
+    names = _random_paths(out, total, names_seed) if file_names == "random" else None
+    paths = []
     for n, fr in enumerate(study.frames):
         key = (fr.view, fr.slice_index)
+        instance = None
+        if instance_numbers == "across_slices":
+            instance = position[key] * int(fr.num_phases) + int(fr.phase_index) + 1
         ds = frame_to_dataset(
             fr, pixel_scale=pixel_scale, study_uid=study.study_uid,
             frame_of_reference_uid=study.frame_of_reference_uid,
-            series_number=series_number[key],
-            description=study.descriptions.get(key, f"tagged {VIEW_NAMES[fr.view]} {fr.slice_index}"),
-            patient_name=f"MLV^{study.preset['name']}")
-        d = out / f"{VIEW_NAMES[fr.view]}_{fr.slice_index:02d}"
-        d.mkdir(exist_ok=True)
-        path = d / f"IM_{fr.phase_index + 1:04d}.dcm"
+            series_number=series_number[key], description=descriptions[key],
+            patient_name=f"MLV^{study.preset['name']}", bits_stored=bits_stored, rescale=rescale,
+            rescale_intercept=rescale_intercept, instance_number=instance,
+            series_uid=series_uid.get(key))
+        if names is None:
+            d = out / f"{VIEW_NAMES[fr.view]}_{fr.slice_index:02d}"
+            path = d / f"IM_{fr.phase_index + 1:04d}.dcm"
+        else:
+            path = names[n]
+        path.parent.mkdir(parents=True, exist_ok=True)
         ds.save_as(path, enforce_file_format=True)
         paths.append(path)
         if progress is not None:
@@ -113,20 +203,40 @@ def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress
 
 def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: str = "",
                      frame_of_reference_uid: str = "", series_number: int = 1,
-                     description: str = "", patient_name: str = "MLV^Phantom") -> Dataset:
+                     description: str = "", patient_name: str = "MLV^Phantom", *,
+                     bits_stored: int = 16, rescale: bool = True, rescale_intercept: float = 0.0,
+                     instance_number: int | None = None, series_uid: str | None = None) -> Dataset:
     """DICOM dataset (MR Image Storage) of one frame; see the module docstring for the tags.
 
-    Float images are stored as ``round(image · pixel_scale)`` with ``RescaleSlope =
-    1/pixel_scale``; uint16 images are stored as they are (slope 1).
+    Float images are stored as ``round((image − rescale_intercept) · pixel_scale)``, clipped to
+    ``0 .. 2**bits_stored − 1`` (uint8 for 8 bits, else uint16), with ``RescaleSlope =
+    1/pixel_scale`` and ``RescaleIntercept = rescale_intercept`` unless ``rescale`` is False;
+    integer images of the stored type (uint8 for 8 bits, else uint16) are stored as they are
+    (slope 1). ``instance_number`` defaults to
+    phase + 1, ``series_uid`` to the frame's.
+
+    Raises
+    ------
+    ValueError
+        Not a 2-D image, an unsupported ``bits_stored``, or integer pixels that do not fit it.
     """
     img = np.asarray(frame.image)
     if img.ndim != 2:
         raise ValueError(f"frame image must be 2-D, got shape {img.shape}")
-    if img.dtype == np.uint16:
-        stored, slope = img, 1.0
+    if bits_stored not in BITS_STORED:
+        raise ValueError(f"bits_stored must be one of {BITS_STORED}, got {bits_stored!r}")
+    top = (1 << bits_stored) - 1
+    dtype = np.uint8 if bits_stored == 8 else np.uint16
+    if img.dtype == dtype:
+        if img.size and int(img.max()) > top:
+            raise ValueError(f"integer pixels up to {int(img.max())} do not fit in {bits_stored} bits")
+        stored, slope, inter = img, 1.0, 0.0
     else:
-        stored = np.clip(np.rint(img.astype(np.float64) * pixel_scale), 0, 65535).astype(np.uint16)
-        slope = 1.0 / pixel_scale
+        x = img.astype(np.float64)
+        if rescale_intercept:
+            x = x - float(rescale_intercept)
+        stored = np.clip(np.rint(x * pixel_scale), 0, top).astype(dtype)
+        slope, inter = 1.0 / pixel_scale, float(rescale_intercept)
     g = frame.geometry
     sop_uid = pydicom.uid.generate_uid(
         entropy_srcs=[frame.series_uid, str(frame.phase_index), str(frame.slice_index)])
@@ -139,7 +249,7 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     ds.SOPClassUID = MRImageStorage
     ds.SOPInstanceUID = sop_uid
     ds.StudyInstanceUID = study_uid or pydicom.uid.generate_uid()
-    ds.SeriesInstanceUID = frame.series_uid or pydicom.uid.generate_uid()
+    ds.SeriesInstanceUID = series_uid or frame.series_uid or pydicom.uid.generate_uid()
     ds.FrameOfReferenceUID = frame_of_reference_uid or pydicom.uid.generate_uid()
     ds.Modality = "MR"
     ds.Manufacturer = "mlv_ros simulator"
@@ -148,13 +258,13 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     ds.StudyDescription = "Simulated tagged cine MR (SPAMM)"
     ds.SeriesDescription = description
     ds.SeriesNumber = int(series_number)
-    ds.InstanceNumber = int(frame.phase_index) + 1
+    ds.InstanceNumber = int(frame.phase_index) + 1 if instance_number is None else int(instance_number)
     ds.ImageType = ["DERIVED", "PRIMARY", "TAGGING"]
     ds.ScanningSequence = "GR"
     ds.SequenceVariant = "SP"
     ds.MRAcquisitionType = "2D"
     ds.TriggerTime = _ds(frame.trigger_time * 1000.0)
-    ds.NominalInterval = _ds(frame.cycle_duration * 1000.0)
+    ds.NominalInterval = int(round(frame.cycle_duration * 1000.0))  # IS: whole ms
     ds.CardiacNumberOfImages = int(frame.num_phases)
     ds.ImagePositionPatient = [_ds(v) for v in g.image_position]
     ds.ImageOrientationPatient = [_ds(v) for v in np.concatenate([g.row_direction, g.column_direction])]
@@ -164,13 +274,14 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     ds.Rows, ds.Columns = stored.shape
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
-    ds.BitsAllocated = 16
-    ds.BitsStored = 16
-    ds.HighBit = 15
+    ds.BitsAllocated = 8 if bits_stored == 8 else 16
+    ds.BitsStored = bits_stored
+    ds.HighBit = bits_stored - 1
     ds.PixelRepresentation = 0
-    ds.RescaleIntercept = _ds(0.0)
-    ds.RescaleSlope = _ds(slope)
-    ds.RescaleType = "US"
+    if rescale:
+        ds.RescaleIntercept = _ds(inter)
+        ds.RescaleSlope = _ds(slope)
+        ds.RescaleType = "US"
     ds.WindowCenter = _ds(0.6 * pixel_scale)
     ds.WindowWidth = _ds(1.2 * pixel_scale)
     ds.PixelData = np.ascontiguousarray(stored).tobytes()

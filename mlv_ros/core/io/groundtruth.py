@@ -4,12 +4,16 @@ Format (version 1)
 ------------------
 ``groundtruth.json`` (UTF-8):
     ``format`` = "mlv_ros.groundtruth", ``version`` = 1, ``preset`` (the full preset dict
-    used), ``num_phases``, ``cycle_duration_s``, ``times_s`` (list), ``es_phase`` (fractional),
-    ``snr`` (null = noiseless), ``seed``, ``frame`` (``apex``, ``base_centre``, ``long_axis``
-    apex → base, ``septum`` (θ = 0), ``e2``, ``length_mm``; LPS mm), ``slices`` (one entry per
+    used: with the motion's ``num_phases`` it rebuilds the exact motion, see
+    :func:`motion_from_groundtruth`; a drawn protocol's preset also holds every imaging option
+    and the protocol itself), ``num_phases``, ``cycle_duration_s``, ``times_s`` (list),
+    ``es_phase`` (fractional), ``snr`` (null = noiseless), ``seed``, ``frame`` (``apex``,
+    ``base_centre``, ``long_axis`` apex → base, ``septum`` (θ = 0), ``e2``, ``length_mm``; LPS mm), ``slices`` (one entry per
     slice in the npz order: ``view`` "SA"/"LA", ``slice_index``, ``series_uid``, ``description``,
     ``rows``, ``columns``, ``geometry`` = ImagePositionPatient / ImageOrientationPatient /
-    PixelSpacing / SliceThickness), ``conventions`` (text) and ``arrays`` (what each npz array is).
+    PixelSpacing / SliceThickness), ``conventions`` (text), ``arrays`` (what each npz array is),
+    and whatever the writer's ``extra`` adds (``mlv-ros simulate --random``: ``protocol`` and
+    ``dicom``, the writer's options).
 ``groundtruth.npz``:
     ``ed_masks`` bool (S, rows, cols) — ED myocardium per slice (slab fraction ≥ 0.5);
     ``material_points`` float64 (N, 3) — ED positions of uniformly sampled myocardium, mm;
@@ -59,7 +63,8 @@ class GroundTruth:
         return int(self.meta["num_phases"])
 
 
-def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None) -> tuple[Path, Path]:
+def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
+                      extra: dict | None = None) -> tuple[Path, Path]:
     """Write ``groundtruth.json`` and ``groundtruth.npz`` for a simulated study.
 
     Parameters
@@ -71,6 +76,9 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None) -> tupl
         Number of material points whose trajectories are stored.
     levels : array_like, optional
         Levels of the per-level curves (default 0, 0.05, …, 1).
+    extra : dict, optional
+        JSON-serialisable entries added to ``groundtruth.json`` (they may not replace one of
+        its own keys).
 
     Returns
     -------
@@ -114,6 +122,10 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None) -> tupl
             **{k: "(P, K)" for k in _CURVES},
             "base_descent_mm": "(P,): base-plane displacement toward the apex, mm"},
     }
+    for k, v in (extra or {}).items():
+        if k in meta:
+            raise ValueError(f"extra key {k!r} would replace the ground truth's own entry")
+        meta[k] = v
     jpath, npath = out / JSON_NAME, out / NPZ_NAME
     with open(jpath, "w", encoding="utf-8") as fh:
         json.dump(meta, fh, indent=1)
@@ -157,3 +169,35 @@ def load_groundtruth(path) -> GroundTruth:
     return GroundTruth(meta=meta, ed_masks=masks, geometries=geoms,
                        material_points=arrays["material_points"],
                        trajectories=arrays["trajectories"], curves=curves)
+
+
+def motion_from_groundtruth(path):
+    """Rebuild the exact ground-truth motion of a study from its ``groundtruth.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Ground-truth directory or the path of its JSON file.
+
+    Returns
+    -------
+    mlv_ros.core.sim.LVMotion
+        The motion the study was simulated with (same preset, phase count and orientation):
+        ``motion.position(X, phase)`` equals the stored trajectories.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        As :func:`load_groundtruth` (the JSON is read the same way; the npz is not needed).
+    """
+    from mlv_ros.core.sim.motion import LVMotion  # io does not otherwise depend on sim
+
+    p = Path(path)
+    j = p if p.suffix == ".json" else p / JSON_NAME
+    with open(j, encoding="utf-8") as fh:
+        meta = json.load(fh)
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{j}: not a {FORMAT} file (format={meta.get('format')!r})")
+    if meta.get("version") != VERSION:
+        raise ValueError(f"{j}: unsupported version {meta.get('version')} (need {VERSION})")
+    return LVMotion(meta["preset"], num_phases=int(meta["num_phases"]))

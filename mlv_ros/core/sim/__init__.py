@@ -6,7 +6,7 @@ in DICOM patient coordinates (LPS).
 Public API
 ----------
 load_preset(name_or_path) -> dict
-    Read ``config/phantoms/<name>.yaml`` (``normal``, ``hypertrophic``, ``infarct``,
+    Read ``config/phantoms/<name>.yaml`` (``normal``, ``hypertrophic``, ``dilated``, ``infarct``,
     ``cylinder``) or any YAML path with the same layout; validated.
 make_motion(preset, num_phases=None) -> LVMotion
     Ground truth. ``motion.position(X_ed (N,3), phase)``, ``motion.inverse(x (N,3), phase)``,
@@ -26,6 +26,11 @@ simulate_study(preset="normal", snr=20.0, size=None, num_phases=None, seed=0, su
     ``quick=True`` → 128², 10 phases, 3 sub-planes (a few seconds).
 plan_slices, ImageSynthesizer, tag_pattern, slab_profile
     The image-formation pieces (see :mod:`mlv_ros.core.sim.imaging`).
+draw_protocol(seed, fixed=None) -> dict, protocol_preset(protocol) -> dict
+    Randomised acquisition protocols (:mod:`mlv_ros.core.sim.protocol`): draw every item
+    (shape, orientation, grid, matrix, slices, timing, contrast, order, DICOM encoding) and
+    turn a protocol into a preset for ``simulate_study``; ``dicom_options(protocol, study)``
+    gives the matching ``write_study_dicom`` options.
 
 Example
 -------
@@ -40,10 +45,12 @@ from mlv_ros.core.sim.imaging import (ImageSynthesizer, PlannedSlice, plan_slice
 from mlv_ros.core.sim.motion import (AHA_LEVELS, CardiacFrame, LVMotion, aha_segment_window,
                                      make_motion)
 from mlv_ros.core.sim.presets import PRESET_NAMES, available_presets, load_preset
+from mlv_ros.core.sim.protocol import dicom_options, draw_protocol, protocol_preset
 from mlv_ros.core.sim.study import QUICK, Study, simulate_study
 
 __all__ = [
     "AHA_LEVELS", "CardiacFrame", "ImageSynthesizer", "LVMotion", "PRESET_NAMES", "PlannedSlice",
-    "QUICK", "Study", "aha_segment_window", "available_presets", "load_preset", "make_motion",
-    "plan_slices", "simulate_study", "slab_profile", "tag_pattern",
+    "QUICK", "Study", "aha_segment_window", "available_presets", "dicom_options", "draw_protocol",
+    "load_preset", "make_motion", "plan_slices", "protocol_preset", "simulate_study",
+    "slab_profile", "tag_pattern",
 ]

@@ -6,16 +6,18 @@ Signal model (per sample point ``x`` of an image at trigger time ``t``)
 
 * myocardium (``X`` inside the ED wall): ``M_myo · (E P(X) + 1 − E)``;
 * blood (``X`` in the cavity or atrium): ``M_blood`` — flow washes the tags out;
-* background tissue (static, inside a sphere around the LV): ``M_bg · (E P(x) + 1 − E)``; air 0.
+* background tissue (static, inside a sphere around the LV): ``M_bg · (E P(x) + 1 − E)``, or
+  ``M_bg`` untagged with ``imaging.background_tagged: false``; air 0.
 
 ``P(X) = sin²(π a / λ) · sin²(π b / λ)`` is the 1-1 SPAMM grid at 45° flips (method notes,
 "Tags"): ``a, b`` are the in-plane coordinates of ``X`` along the image's row and column
-directions measured from the image centre, λ the tag spacing, so dark tag planes ⟂ the image lie
-at ``a, b ∈ λℤ``. ``E = exp(−t / T1)`` fades the tags. The slab is integrated over sub-planes at
-offsets ``±0.75·thickness`` along the normal with Gaussian weights (FWHM = thickness); each
-sub-plane point is mapped back on its own, so through-plane motion is real. A Gaussian in-plane
-PSF (``psf_sigma_px``) stands in for the finite k-space window, then Rician noise
-``|S + σ(n₁ + i n₂)|`` with ``σ = M_myo / SNR`` is added.
+directions (turned by ``imaging.tag_angle_deg``, default 0) measured from the image centre, λ
+the tag spacing, so dark tag planes ⟂ the image lie at ``a, b ∈ λℤ``. ``E = exp(−t / T1)``
+fades the tags. The slab is integrated over sub-planes at offsets ``±0.75·thickness`` along the
+normal with Gaussian weights (FWHM = thickness); each sub-plane point is mapped back on its
+own, so through-plane motion is real. A Gaussian in-plane PSF (``psf_sigma_px``) stands in for
+the finite k-space window, then Rician noise ``|S + σ(n₁ + i n₂)|`` with ``σ = M_myo / SNR`` is
+added.
 """
 
 from __future__ import annotations
@@ -39,7 +41,8 @@ class PlannedSlice:
     view : int
         ``VIEW_SA`` or ``VIEW_LA``.
     index : int
-        Index within its view (SA 0 = most basal; LA k at ``k · la_angle_step`` from the septum).
+        Index within its view (SA 0 = most basal, or most apical with ``sa_order: apex_first``;
+        LA k = the k-th angle of :func:`la_plane_angles`).
     geometry : SliceGeometry
         Plane, pixel grid and slab thickness.
     description : str
@@ -62,16 +65,79 @@ def _geometry(centre, row_dir, col_dir, size, spacing, thickness) -> SliceGeomet
     return SliceGeometry(ipp, row_dir, col_dir, spacing, spacing, thickness)
 
 
+SA_ORDERS = ("base_first", "apex_first")
+SA_NORMALS = ("base_to_apex", "apex_to_base")
+
+
+def _rotate_in_plane(row, col, angle_deg: float):
+    """Row/column directions turned by ``angle_deg`` about their normal (row toward column)."""
+    if not angle_deg:
+        return row, col
+    a = np.radians(float(angle_deg))
+    return np.cos(a) * row + np.sin(a) * col, -np.sin(a) * row + np.cos(a) * col
+
+
+def _shift(imaging: dict, key: str) -> tuple[float, float]:
+    v = imaging.get(key) or (0.0, 0.0)
+    if len(v) != 2:
+        raise ValueError(f"imaging.{key} must be two numbers (mm along rows, columns), got {v!r}")
+    return float(v[0]), float(v[1])
+
+
+def la_plane_angles(imaging: dict) -> tuple[list[float], list[bool]]:
+    """Angles (deg) and normal flips of the LA planes of an ``imaging`` section.
+
+    ``imaging.la_angles_deg`` (a list, one angle per plane, from the septum, counter-clockwise
+    seen from the apex) wins over ``la_planes`` × ``la_angle_step_deg`` (planes at
+    ``0, step, 2·step, …``); ``imaging.la_flip`` (one bool per plane, default all False)
+    reverses a plane's normal by mirroring its row direction.
+
+    Raises
+    ------
+    ValueError
+        ``la_flip`` has a different length than the angles.
+    """
+    angles = imaging.get("la_angles_deg")
+    if angles is None:
+        step = float(imaging["la_angle_step_deg"])
+        angles = [k * step for k in range(int(imaging["la_planes"]))]
+    else:
+        angles = [float(a) for a in angles]
+    flips = imaging.get("la_flip")
+    flips = [False] * len(angles) if flips is None else [bool(f) for f in flips]
+    if len(flips) != len(angles):
+        raise ValueError(f"imaging.la_flip has {len(flips)} entries for {len(angles)} LA planes")
+    return angles, flips
+
+
 def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
                 pixel_spacing: float | None = None) -> list[PlannedSlice]:
-    """SA stack base → apex plus LA planes through the long axis (paper Fig. 6).
+    """SA stack plus LA planes through the long axis (paper Fig. 6).
 
     Parameters
     ----------
     motion : LVMotion
         Supplies the long-axis frame and length.
     imaging : dict
-        The preset's ``imaging`` section.
+        The preset's ``imaging`` section. Besides the required keys it reads these optional
+        ones (defaults = the original fixed protocol):
+
+        ``sa_order`` : ``"base_first"`` (default) or ``"apex_first"``
+            Which end of the stack gets SA index 0.
+        ``sa_normal`` : ``"base_to_apex"`` (default) or ``"apex_to_base"``
+            Sign of the SA normal ``row × column``; ``apex_to_base`` negates the column
+            direction (the image is mirrored top–bottom).
+        ``sa_inplane_deg`` : float, default 0
+            SA row direction turned this far (deg, toward the column direction) from the
+            septum.
+        ``la_angles_deg``, ``la_flip`` : list, optional
+            See :func:`la_plane_angles`.
+        ``la_inplane_deg`` : float, default 0
+            LA row/column directions turned this far (deg) about the plane normal; 0 puts the
+            base at the top of the image.
+        ``sa_fov_shift_mm``, ``la_fov_shift_mm`` : [float, float], default [0, 0]
+            Image centre moved off the long axis along the image's row and column directions,
+            mm (the heart then sits off-centre by the opposite amount).
     size : int, optional
         Rows = columns (default ``imaging.size``).
     pixel_spacing : float, optional
@@ -80,7 +146,13 @@ def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
     Returns
     -------
     list of PlannedSlice
-        SA slices first (index 0 most basal), then LA planes.
+        SA slices first (index 0 the most basal, or the most apical with ``apex_first``),
+        then LA planes in ``la_angles_deg`` order.
+
+    Raises
+    ------
+    ValueError
+        The stack does not fit between base and apex, or an optional key has a bad value.
     """
     f = motion.frame
     L = motion.length
@@ -92,22 +164,45 @@ def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
     n_sa = int(imaging["sa_slices"])
     if not z_bot < z_top:
         raise ValueError("imaging.sa_base_gap_mm + sa_apex_gap_mm must be less than the LV length")
+    order = imaging.get("sa_order", "base_first")
+    sa_normal = imaging.get("sa_normal", "base_to_apex")
+    if order not in SA_ORDERS:
+        raise ValueError(f"imaging.sa_order must be one of {SA_ORDERS}, got {order!r}")
+    if sa_normal not in SA_NORMALS:
+        raise ValueError(f"imaging.sa_normal must be one of {SA_NORMALS}, got {sa_normal!r}")
     out = []
-    # SA: rows run along e_2, columns along the septal direction; the normal is base → apex.
+    # SA: rows run along e_2, columns along the septal direction; the normal is base → apex
+    # (by default: sa_inplane_deg turns both, apex_to_base mirrors the column direction).
     row = f.septum
     col = np.cross(-f.long_axis, row)
-    for k, z in enumerate(np.linspace(z_top, z_bot, n_sa)):
-        g = _geometry(f.apex + z * f.long_axis, row, col, n, dx, th)
+    row, col = _rotate_in_plane(row, col, imaging.get("sa_inplane_deg", 0.0))
+    if sa_normal == "apex_to_base":
+        col = -col
+    s_row, s_col = _shift(imaging, "sa_fov_shift_mm")
+    heights = np.linspace(z_top, z_bot, n_sa)
+    if order == "apex_first":
+        heights = heights[::-1]  # the same planes, numbered from the apex
+    for k, z in enumerate(heights):
+        centre = f.apex + z * f.long_axis
+        if s_row or s_col:
+            centre = centre + s_row * row + s_col * col
+        g = _geometry(centre, row, col, n, dx, th)
         out.append(PlannedSlice(VIEW_SA, k, g, f"tagged SA {k}", float(z / L)))
     # LA: columns along the radial direction at angle β, rows from base (top) to apex (bottom).
-    step = float(imaging["la_angle_step_deg"])
+    angles, flips = la_plane_angles(imaging)
     extra = motion.atrium_height
     centre_z = 0.5 * (L + min(extra, 20.0))
-    for k in range(int(imaging["la_planes"])):
-        beta = np.radians(k * step)
+    l_row, l_col = _shift(imaging, "la_fov_shift_mm")
+    la_rot = imaging.get("la_inplane_deg", 0.0)
+    for k, (beta_deg, flip) in enumerate(zip(angles, flips)):
+        beta = np.radians(beta_deg)
         radial = np.cos(beta) * f.septum + np.sin(beta) * f.e2
-        g = _geometry(f.apex + centre_z * f.long_axis, radial, -f.long_axis, n, dx, th)
-        out.append(PlannedSlice(VIEW_LA, k, g, f"tagged LA {k * step:g}deg", float(k * step)))
+        row, col = _rotate_in_plane(-radial if flip else radial, -f.long_axis, la_rot)
+        centre = f.apex + centre_z * f.long_axis
+        if l_row or l_col:
+            centre = centre + l_row * row + l_col * col
+        g = _geometry(centre, row, col, n, dx, th)
+        out.append(PlannedSlice(VIEW_LA, k, g, f"tagged LA {beta_deg:g}deg", float(beta_deg)))
     return out
 
 
@@ -139,7 +234,7 @@ def plane_centre(geometry: SliceGeometry, shape: tuple[int, int]) -> np.ndarray:
 
 
 def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, int],
-                spacing: float) -> np.ndarray:
+                spacing: float, angle_deg: float = 0.0) -> np.ndarray:
     """1-1 SPAMM grid ``P = sin²(π a/λ) sin²(π b/λ)`` of one image plane, in [0, 1].
 
     Parameters
@@ -153,6 +248,9 @@ def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, i
         Image rows, columns (locates the centre).
     spacing : float
         Tag period λ, mm.
+    angle_deg : float
+        In-plane rotation of the grid from the image axes, degrees (scanners lay the grid at any
+        angle; 0 puts the tag planes ⟂ the row and column directions).
 
     Returns
     -------
@@ -160,8 +258,11 @@ def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, i
         0 on tag planes, 1 midway between them in both directions.
     """
     d = np.asarray(points, dtype=np.float64) - plane_centre(geometry, shape)
-    a = d @ geometry.row_direction
-    b = d @ geometry.column_direction
+    ca, sa = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    u = ca * geometry.row_direction + sa * geometry.column_direction
+    v = -sa * geometry.row_direction + ca * geometry.column_direction
+    a = d @ u
+    b = d @ v
     return (np.sin(np.pi * a / spacing) * np.sin(np.pi * b / spacing)) ** 2
 
 
@@ -190,6 +291,7 @@ class ImageSynthesizer:
         self.im = imaging
         g = plane.geometry
         self.spacing = float(imaging["tag_spacing_mm"])
+        self.tag_angle = float(imaging.get("tag_angle_deg", 0.0))
         self.offsets, self.weights = slab_profile(g.slice_thickness,
                                                   int(subplanes or imaging["subplanes"]))
         rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
@@ -199,7 +301,8 @@ class ImageSynthesizer:
         heart_c = f.apex + 0.5 * motion.length * f.long_axis
         body = np.linalg.norm(self.pix - heart_c, axis=1) < float(imaging["body_radius_mm"])
         self.bg_m0 = np.where(body, float(imaging["background_m0"]), 0.0)
-        self.bg_tags = self._tags(self.pix)
+        self.bg_tagged = bool(imaging.get("background_tagged", True))
+        self.bg_tags = self._tags(self.pix) if self.bg_tagged else None
         # Pixels whose slab can meet the LV at any phase: the LV stays inside the cylinder of
         # radius ~1.15 max ED radius (the apical cap widens by 1/sqrt(λ)) up to the atrium top.
         r, _, z = f.to_local(self.pix)
@@ -210,7 +313,7 @@ class ImageSynthesizer:
         self.normal = g.normal
 
     def _tags(self, pts):
-        return tag_pattern(pts, self.plane.geometry, (self.size, self.size), self.spacing)
+        return tag_pattern(pts, self.plane.geometry, (self.size, self.size), self.spacing, self.tag_angle)
 
     def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:
         """Slab-weighted myocardium and blood fractions at ``phase``, each (rows, cols) in [0, 1]."""
@@ -230,7 +333,10 @@ class ImageSynthesizer:
         """
         im = self.im
         E = np.exp(-time_s / float(im["t1_s"]))
-        sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
+        if self.bg_tagged:
+            sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
+        else:
+            sig = self.bg_m0.copy()
         base = self.pix[self.cand]
         acc = np.zeros(base.shape[0])
         m_myo, m_blood = float(im["myocardium_m0"]), float(im["blood_m0"])

@@ -13,7 +13,7 @@ import yaml
 
 from mlv_ros.resources import config_dir, config_file
 
-PRESET_NAMES = ("normal", "hypertrophic", "infarct", "cylinder")
+PRESET_NAMES = ("normal", "hypertrophic", "dilated", "infarct", "cylinder")
 
 _REQUIRED = {
     "geometry": ("kind", "length_mm"),
@@ -44,8 +44,9 @@ def load_preset(name_or_path: str | Path | dict) -> dict:
     Parameters
     ----------
     name_or_path : str, Path or dict
-        A preset name (``normal``, ``hypertrophic``, ``infarct``, ``cylinder``), a path to a YAML
-        file with the same layout, or an already loaded dict (deep-copied and validated).
+        A preset name (``normal``, ``hypertrophic``, ``dilated``, ``infarct``, ``cylinder``), a
+        path to a YAML file with the same layout, or an already loaded dict (deep-copied and
+        validated).
 
     Returns
     -------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -33,12 +34,13 @@ class Study:
     Attributes
     ----------
     frames : list of Frame
-        All slices × phases, slice-major (SA base → apex, then LA), float32 images with
+        All slices × phases, slice-major (SA in index order, then LA), float32 images with
         ``myocardium_m0 = 1`` (untagged myocardium) as the intensity unit.
     motion : LVMotion
         The ground truth.
     preset : dict
-        The preset used (with overrides applied).
+        The preset used (with overrides applied; a drawn protocol's preset carries it under
+        ``"protocol"``, see :mod:`mlv_ros.core.sim.protocol`).
     slices : list of PlannedSlice
         Planned planes in frame order.
     geometries : dict
@@ -92,7 +94,8 @@ def simulate_study(preset="normal", snr: float | None = 20.0, size: int | None =
     Parameters
     ----------
     preset : str, Path or dict
-        Preset name (``normal``, ``hypertrophic``, ``infarct``, ``cylinder``), YAML path or dict.
+        Preset name (``normal``, ``hypertrophic``, ``dilated``, ``infarct``, ``cylinder``), YAML
+        path or dict.
     snr : float or None
         ``myocardium_m0 / σ`` of the Rician noise; ``None`` or ``inf`` → noiseless.
     size : int, optional
@@ -134,7 +137,9 @@ def simulate_study(preset="normal", snr: float | None = 20.0, size: int | None =
     motion = LVMotion(p)
     slices = plan_slices(motion, im, n)
     rng = np.random.default_rng(seed)
-    study_uid = _uid("study", p["name"], seed, n, motion.num_phases)
+    # A drawn protocol (sim.protocol) joins the UID's parts, so two protocols never share one.
+    extra = (json.dumps(p["protocol"], sort_keys=True),) if p.get("protocol") else ()
+    study_uid = _uid("study", p["name"], seed, n, motion.num_phases, *extra)
     for_uid = _uid("for", p["name"], seed)
     total = len(slices) * motion.num_phases
     frames, masks, uids, geoms, desc = [], {}, {}, {}, {}
