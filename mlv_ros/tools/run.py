@@ -21,7 +21,7 @@ GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_
 
 def add_arguments(parser):
     src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--phantom", metavar="PRESET", help="simulate a preset (normal, hypertrophic, infarct, cylinder)")
+    src.add_argument("--phantom", metavar="PRESET", help="simulate a preset (normal, hypertrophic, dilated, infarct, cylinder)")
     src.add_argument("--dicom", metavar="DIR", help="read a DICOM directory")
     src.add_argument("--bag", metavar="FILE", help="replay the frames of a recorded MCAP")
     parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (must not hold a run.mcap)")
@@ -166,18 +166,41 @@ def read_run(mcap: Path) -> dict:
 
 def phantom_accuracy(mcap: Path, preset: str, num_phases: int) -> dict:
     """Accuracy of a recorded phantom run against the preset's analytic motion."""
-    from mlv_ros.core.analysis import LVAnalyzer, LVFrame
-    from mlv_ros.core.evaluation import evaluate_run
     from mlv_ros.core.sim import load_preset, make_motion
-    from mlv_ros.core.tracking import lv_frame_axes
 
     run = read_run(mcap)
     if run["ed"] is None or not run["positions"]:
         return {"error": "the run has no registered model or no motion to evaluate"}
-    motion = make_motion(load_preset(preset), num_phases=num_phases)
+    return _accuracy(run, make_motion(load_preset(preset), num_phases=num_phases))
+
+
+def _accuracy(run: dict, motion) -> dict:
+    from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+    from mlv_ros.core.evaluation import evaluate_run
+    from mlv_ros.core.tracking import lv_frame_axes
+
     apex, base, ref = lv_frame_axes(run["ed"], run["rotation"])
     analyzer = LVAnalyzer(run["ed"], LVFrame(apex, base, ref))
     return evaluate_run(run["ed"], run["positions"], motion, analyzer)
+
+
+def groundtruth_accuracy(mcap: Path, groundtruth: Path) -> dict:
+    """Accuracy of a recorded run against a simulated study's ``groundtruth.json`` (its directory
+    or the file), as :func:`phantom_accuracy` does for a preset."""
+    from mlv_ros.core.io.groundtruth import motion_from_groundtruth
+
+    run = read_run(mcap)
+    if run["ed"] is None or not run["positions"]:
+        return {"error": "the run has no registered model or no motion to evaluate"}
+    return _accuracy(run, motion_from_groundtruth(groundtruth))
+
+
+def find_groundtruth(dicom_dir: Path) -> Path | None:
+    """``groundtruth.json`` of a simulated study: in the DICOM directory or its parent."""
+    for d in (dicom_dir, dicom_dir.parent):
+        if (d / "groundtruth.json").is_file():
+            return d / "groundtruth.json"
+    return None
 
 
 def run(args) -> int:
@@ -204,8 +227,10 @@ def run(args) -> int:
     except (FileExistsError, FileNotFoundError, ValueError) as exc:
         print(f"mlv-ros run: {exc}", file=sys.stderr)
         return 2
-    if args.phantom and summary["complete"]:
-        acc = phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"])
+    truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
+    if (args.phantom or truth) and summary["complete"]:
+        acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
+               else groundtruth_accuracy(Path(summary["mcap"]), truth))
         summary["accuracy"] = {"es_phase": acc.get("es_phase"), "es": acc.get("es"),
                                "inside_myocardium": acc.get("inside_myocardium"),
                                "per_phase": acc.get("per_phase")}
