@@ -12,7 +12,7 @@ slice (ED and fewest over the cycle), seconds, and whether the issue's must-crit
 (ES median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist error ≤ 2°, every phase solved). The summary gives the
 worst and the median of each measure and the number of cases passing.
 
-    mlv-ros bench robustness [-- --cases 16 --seed 1000 --out DIR --keep]
+    mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep]
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
 """
@@ -28,6 +28,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import yaml
@@ -113,18 +114,23 @@ def main():
     ap.add_argument("--out", default=None, help="keep studies and runs here (default: a temporary directory)")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
     ap.add_argument("--timeout", type=float, default=900.0, help="per-run limit, seconds")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run at once (each run claims its own ROS domain)")
     args = ap.parse_args()
     if args.cases < 1:
         ap.error("--cases must be >= 1")
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="mlv-bench-robustness-"))
     cases = []
+
+    def one(seed):
+        case = run_case(seed, root / f"case-{seed}", args.timeout)
+        print(json.dumps({k: case.get(k) for k in ("seed", "pass", "es", "phases_solved", "num_phases",
+                                                   "run_seconds", "error") if k in case}),
+              file=sys.stderr, flush=True)
+        return case
+
     try:
-        for seed in range(args.seed, args.seed + args.cases):
-            case = run_case(seed, root / f"case-{seed}", args.timeout)
-            cases.append(case)
-            print(json.dumps({k: case.get(k) for k in ("seed", "pass", "es", "phases_solved", "num_phases",
-                                                       "run_seconds", "error") if k in case}),
-                  file=sys.stderr, flush=True)
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            cases = list(pool.map(one, range(args.seed, args.seed + args.cases)))
     finally:
         if not args.out and not args.keep:
             shutil.rmtree(root, ignore_errors=True)

@@ -13,13 +13,13 @@ GEOM = SliceGeometry(np.array([10.0, -5.0, 3.0]), np.array([1.0, 0, 0]), np.arra
 PHASES = 10
 
 
-def _run(scene, blank_from=None):
-    tr = SliceTracker(GEOM)
+def _run(scene, blank_from=None, blank_to=PHASES, **tracker_kwargs):
+    tr = SliceTracker(GEOM, **tracker_kwargs)
     out, images = [], []
     for p in range(PHASES):
         t = p / PHASES
         img = scene.render(t, seed=p)
-        if blank_from is not None and p >= blank_from:
+        if blank_from is not None and blank_from <= p < blank_to:
             # Tags vanish from the left half of the wall (as when material leaves the slab).
             left = scene.myocardium_mask(t) & (np.indices(img.shape)[1] < scene.centre[1])
             img[left] = scene.myocardium + scene.noise_sigma * np.random.default_rng(p).standard_normal(left.sum())
@@ -69,6 +69,26 @@ def test_points_whose_tags_vanish_are_dropped_not_invented():
         assert out[p].status  # partial set is flagged
     # The other half is still tracked.
     assert np.mean(np.isin(right_ids, out[-1].track_id)) > 0.8
+
+
+def test_dropped_tracks_are_found_again_when_their_tags_return():
+    """Tags invisible on half the wall for two phases (dropped: max_gap 1), back from phase 6: the
+    same material lines are recognised where the live tracks' warp puts them, with their ED ids."""
+    scene = TagScene(shape=(128, 128), ring=(19.8, 31.5), noise_sigma=0.02)
+    _, out, _ = _run(scene, blank_from=4, blank_to=6)
+    _, kept_dead, _ = _run(scene, blank_from=4, blank_to=6, revive=False)
+    X, _ = scene.intersections(margin=-1.0)
+    d, i = cKDTree(X).query(out[0].pixel_rc)
+    ed_truth = X[i]
+    left_ids = out[0].track_id[out[0].pixel_rc[:, 1] < scene.centre[1] - 8]
+    assert not np.any(np.isin(out[5].track_id, left_ids))  # gone while invisible
+    for p in range(7, PHASES):
+        back = np.isin(out[p].track_id, left_ids)
+        assert back.sum() >= 0.7 * len(left_ids), (p, back.sum(), len(left_ids))
+        truth = scene.forward(ed_truth[out[p].track_id[back]], p / PHASES)
+        # The right identity: a wrong one would be a whole spacing (6 px) off.
+        assert np.max(np.linalg.norm(out[p].pixel_rc[back] - truth, axis=1)) < 1.0, p
+        assert not np.any(np.isin(kept_dead[p].track_id, left_ids))
 
 
 def test_new_ed_frame_restarts_tracking():

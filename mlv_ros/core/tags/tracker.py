@@ -53,6 +53,9 @@ class SliceTracker:
         (second) detection pass, px (negative dilates).
     confirm_px : float
         A first-pass match counts only if the second pass finds a point within this distance, px.
+    revive : bool
+        Offer dropped tracks again at the position the live tracks' warp predicts for them; a
+        detection matching it (within ``gate``) resumes the track.
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -65,7 +68,7 @@ class SliceTracker:
     def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
                  gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
                  propagate_mask: bool = True, mask_erosion_px: int = 0, confirm_px: float = 0.5,
-                 **detect_kwargs):
+                 revive: bool = True, **detect_kwargs):
         self.geometry = geometry
         self.spacing_px = spacing_px
         self.angles = angles
@@ -76,6 +79,7 @@ class SliceTracker:
         self.propagate_mask = bool(propagate_mask)
         self.mask_erosion_px = int(mask_erosion_px)
         self.confirm_px = float(confirm_px)
+        self.revive = bool(revive)
         self.detect_kwargs = detect_kwargs
         self.reset()
 
@@ -155,6 +159,18 @@ class SliceTracker:
                 note += f"phase {frame.phase_index}: {exc}; "
             return self._result(frame, None, None, None, note + "all tracks lost")
         pred = self._pos[live] + self._step[live]
+        # Tracks dropped earlier are offered again where the live ones say they must be: an
+        # intersection of two tag planes ⟂ the ED image is one material line however the heart
+        # moves through the slab, so a detection matching its prediction (within the RPM gate, a
+        # fraction of a spacing) is that line seen again, e.g. once the tags stand out of the
+        # noise again or the line is back in the slab.
+        lost = np.nonzero(self._dead)[0] if self.revive else np.zeros(0, int)
+        if lost.size and live.size >= 6:
+            warp = ThinPlateSpline.fit(self.ed_rc[live], pred, lam=300.0)
+            cand = np.concatenate([live, lost])
+            pred = np.concatenate([pred, warp(self.ed_rc[lost])])
+        else:
+            cand = live
         sp = float(np.mean(self.params.spacing_px))
         region = accept = None
         if mask is not None:
@@ -162,16 +178,16 @@ class SliceTracker:
         elif self.propagate_mask and self.ed_mask is not None:
             # First pass, for matching only: the mask from the prediction is ~0.5 px uncertain, so
             # filter with it as is and accept points up to 2 px beyond it.
-            region, accept = self._propagated_mask(pred, live, np.shape(image), erode=0, dilate=2)
-        lo = np.floor(pred.min(0) - 2 * sp)
-        hi = np.ceil(pred.max(0) + 2 * sp) + 1
+            region, accept = self._propagated_mask(pred[:live.size], live, np.shape(image), erode=0, dilate=2)
+        lo = np.floor(pred[:live.size].min(0) - 2 * sp)
+        hi = np.ceil(pred[:live.size].max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
         det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
                                    **{**self.detect_kwargs, **({"tuned": False} if two_pass else {})})
         self.last_detection = det
         if not det.ok or len(det) == 0:
-            self._coast(live, pred, pred)
+            self._coast(live, pred[:live.size], pred[:live.size])
             return self._result(frame, None, None, None, note + f"phase {frame.phase_index}: {det.reason}")
         res = tps_rpm(pred, det.pixel_rc, t_init=(self.rpm_t_init * sp) ** 2, t_final=(self.rpm_t_final * sp) ** 2,
                       anneal=0.75, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
@@ -183,7 +199,7 @@ class SliceTracker:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
             # leaking blood or static background tags into the phase near the wall's border.
-            region2, accept2 = self._propagated_mask(new[hit], live[hit], np.shape(image),
+            region2, accept2 = self._propagated_mask(new[hit], cand[hit], np.shape(image),
                                                      erode=self.mask_erosion_px, dilate=0)
             if region2 is not None:
                 det2 = detect_intersections(image, mask=region2, params=self.params, roi=roi,
@@ -200,17 +216,23 @@ class SliceTracker:
                 conf[idx[found]] = det2.confidence[j2[found]]
                 new[idx[~found]] = res.warped[idx[~found]]
                 hit[idx[~found]] = False
-        self._coast(live[~hit], pred[~hit], new[~hit])
-        prev = self._pos[live[hit]]
-        self._step[live[hit]] = new[hit] - prev
-        self._pos[live[hit]] = new[hit]
-        self._gap[live[hit]] = 0
+        n_live = live.size
+        self._coast(live[~hit[:n_live]], pred[:n_live][~hit[:n_live]], new[:n_live][~hit[:n_live]])
+        back = cand[n_live:][hit[n_live:]]
+        self._dead[back] = False
+        # A revived track's velocity is unknown; the warp's prediction stands in for its last place.
+        self._pos[back] = pred[n_live:][hit[n_live:]]
+        prev = self._pos[cand[hit]]
+        self._step[cand[hit]] = new[hit] - prev
+        self._pos[cand[hit]] = new[hit]
+        self._gap[cand[hit]] = 0
+        live, hit = cand, hit
         n_ed = len(self.track_id)
         n_out = int(hit.sum())
         status = note
         if n_out < n_ed:
-            status += (f"{n_out} of {n_ed} ED tracks reported: {int(np.sum(~hit))} undetected at this phase, "
-                       f"{int(self._dead.sum())} dropped (faded or through-plane)")
+            status += (f"{n_out} of {n_ed} ED tracks reported; {int(self._dead.sum())} dropped "
+                       f"(faded or through-plane; {len(back)} found again at this phase)")
         if not hit.any():
             status = note + "no detection matched any track"
         return self._result(frame, new[hit], self.track_id[live[hit]], conf[hit], status)
