@@ -59,12 +59,12 @@ Osman, N. F., Kerwin, W. S., McVeigh, E. R., Prince, J. L. Magn. Reson. Med. 42:
 from .gabor import (GaborMaps, TagInputError, TagParameters, estimate_tag_parameters, gabor_filter_bank,
                     kernel_bank)
 from .harp import HarpTrack, harmonic_phase, harp_track
-from .intersections import Detection, detect_intersections, estimate_grid, grid_labels, grid_support
+from .intersections import Detection, detect_intersections, estimate_grid, grid_coherence, grid_labels
 from .rpm import RPMResult, ThinPlateSpline, tps_rpm
 from .tracker import SliceTracker
 
 __all__ = [
     "Detection", "GaborMaps", "HarpTrack", "RPMResult", "SliceTracker", "TagInputError", "TagParameters",
-    "ThinPlateSpline", "detect_intersections", "estimate_grid", "estimate_tag_parameters", "grid_support", "gabor_filter_bank", "grid_labels",
+    "ThinPlateSpline", "detect_intersections", "estimate_grid", "estimate_tag_parameters", "grid_coherence", "gabor_filter_bank", "grid_labels",
     "harmonic_phase", "harp_track", "kernel_bank", "tps_rpm",
 ]

@@ -23,9 +23,21 @@ from scipy.spatial import cKDTree
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import Frame, TagPointSet
 
-from .gabor import TagInputError, TagParameters, validate_image
+from .gabor import MAX_SPACING_PX, MIN_SPACING_PX, TagInputError, TagParameters, validate_image
 from .intersections import Detection, detect_intersections
 from .rpm import ThinPlateSpline, tps_rpm
+
+
+# SPAMM/CSPAMM grid periods in use across vendors and field strengths, mm: finer grids are not
+# resolved by cine matrices, coarser ones leave too few intersections across a wall.
+TAG_PERIOD_RANGE_MM = (3.0, 16.0)
+
+
+def tag_period_range_px(pixel_mm: float) -> tuple[float, float]:
+    """Tag periods worth searching in an image of ``pixel_mm`` pixels, px (within the spectrum
+    estimate's own limits)."""
+    lo, hi = TAG_PERIOD_RANGE_MM
+    return max(MIN_SPACING_PX, lo / pixel_mm), max(min(MAX_SPACING_PX, hi / pixel_mm), MIN_SPACING_PX + 1.0)
 
 
 class SliceTracker:
@@ -159,18 +171,6 @@ class SliceTracker:
                 note += f"phase {frame.phase_index}: {exc}; "
             return self._result(frame, None, None, None, note + "all tracks lost")
         pred = self._pos[live] + self._step[live]
-        # Tracks dropped earlier are offered again where the live ones say they must be: an
-        # intersection of two tag planes ⟂ the ED image is one material line however the heart
-        # moves through the slab, so a detection matching its prediction (within the RPM gate, a
-        # fraction of a spacing) is that line seen again, e.g. once the tags stand out of the
-        # noise again or the line is back in the slab.
-        lost = np.nonzero(self._dead)[0] if self.revive else np.zeros(0, int)
-        if lost.size and live.size >= 6:
-            warp = ThinPlateSpline.fit(self.ed_rc[live], pred, lam=300.0)
-            cand = np.concatenate([live, lost])
-            pred = np.concatenate([pred, warp(self.ed_rc[lost])])
-        else:
-            cand = live
         sp = float(np.mean(self.params.spacing_px))
         region = accept = None
         if mask is not None:
@@ -178,31 +178,32 @@ class SliceTracker:
         elif self.propagate_mask and self.ed_mask is not None:
             # First pass, for matching only: the mask from the prediction is ~0.5 px uncertain, so
             # filter with it as is and accept points up to 2 px beyond it.
-            region, accept = self._propagated_mask(pred[:live.size], live, np.shape(image), erode=0, dilate=2)
-        lo = np.floor(pred[:live.size].min(0) - 2 * sp)
-        hi = np.ceil(pred[:live.size].max(0) + 2 * sp) + 1
+            region, accept = self._propagated_mask(pred, live, np.shape(image), erode=0, dilate=2)
+        lo = np.floor(pred.min(0) - 2 * sp)
+        hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
         det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
                                    **{**self.detect_kwargs, **({"tuned": False} if two_pass else {})})
         self.last_detection = det
         if not det.ok or len(det) == 0:
-            self._coast(live, pred[:live.size], pred[:live.size])
+            self._coast(live, pred, pred)
             return self._result(frame, None, None, None, note + f"phase {frame.phase_index}: {det.reason}")
         res = tps_rpm(pred, det.pixel_rc, t_init=(self.rpm_t_init * sp) ** 2, t_final=(self.rpm_t_final * sp) ** 2,
                       anneal=0.75, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
                       gate=self.gate * sp)
         hit = res.match >= 0
+        final = det
         new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
         conf = det.confidence[np.maximum(res.match, 0)]
         if two_pass and hit.sum() >= 4:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
             # leaking blood or static background tags into the phase near the wall's border.
-            region2, accept2 = self._propagated_mask(new[hit], cand[hit], np.shape(image),
+            region2, accept2 = self._propagated_mask(new[hit], live[hit], np.shape(image),
                                                      erode=self.mask_erosion_px, dilate=0)
             if region2 is not None:
-                det2 = detect_intersections(image, mask=region2, params=self.params, roi=roi,
+                det2 = final = detect_intersections(image, mask=region2, params=self.params, roi=roi,
                                             accept_mask=accept2, **self.detect_kwargs)
                 # Only points the second pass confirms (within confirm_px) count as detected: a first-
                 # pass point that came from tags just outside the predicted border is not one.
@@ -216,26 +217,63 @@ class SliceTracker:
                 conf[idx[found]] = det2.confidence[j2[found]]
                 new[idx[~found]] = res.warped[idx[~found]]
                 hit[idx[~found]] = False
-        n_live = live.size
-        self._coast(live[~hit[:n_live]], pred[:n_live][~hit[:n_live]], new[:n_live][~hit[:n_live]])
-        back = cand[n_live:][hit[n_live:]]
-        self._dead[back] = False
-        # A revived track's velocity is unknown; the warp's prediction stands in for its last place.
-        self._pos[back] = pred[n_live:][hit[n_live:]]
-        prev = self._pos[cand[hit]]
-        self._step[cand[hit]] = new[hit] - prev
-        self._pos[cand[hit]] = new[hit]
-        self._gap[cand[hit]] = 0
-        live, hit = cand, hit
+        self._coast(live[~hit], pred[~hit], new[~hit])
+        prev = self._pos[live[hit]]
+        self._step[live[hit]] = new[hit] - prev
+        self._pos[live[hit]] = new[hit]
+        self._gap[live[hit]] = 0
+        back = self._revive(live[hit], new[hit], final, sp)
         n_ed = len(self.track_id)
-        n_out = int(hit.sum())
+        n_out = int(hit.sum()) + len(back[0])
         status = note
         if n_out < n_ed:
             status += (f"{n_out} of {n_ed} ED tracks reported; {int(self._dead.sum())} dropped "
-                       f"(faded or through-plane; {len(back)} found again at this phase)")
-        if not hit.any():
+                       f"(faded or through-plane; {len(back[0])} found again at this phase)")
+        if n_out == 0:
             status = note + "no detection matched any track"
-        return self._result(frame, new[hit], self.track_id[live[hit]], conf[hit], status)
+        ids = np.concatenate([self.track_id[live[hit]], self.track_id[back[0]]])
+        pts = np.concatenate([new[hit], back[1]])
+        cf = np.concatenate([conf[hit], back[2]])
+        return self._result(frame, pts, ids, cf, status)
+
+    def _revive(self, matched, positions, det: Detection, spacing: float):
+        """Dropped tracks seen again: detections no live track claimed, within a quarter spacing of
+        where the matched tracks' warp (ED → now) puts a dropped track. An intersection of two tag
+        planes ⟂ the ED image is one material line however the heart moves through the slab, so
+        that detection is the same line (a wrong one would be a whole spacing away). Returns
+        ``(indices, positions, confidences)`` of the revived tracks (already updated)."""
+        lost = np.nonzero(self._dead)[0]
+        none = (np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, np.float32))
+        if not self.revive or lost.size == 0 or len(matched) < 6 or not det.ok or len(det) == 0:
+            return none
+        free = np.ones(len(det), bool)
+        d, _ = cKDTree(positions).query(det.pixel_rc)
+        free &= d > self.confirm_px
+        if not free.any():
+            return none
+        pred = ThinPlateSpline.fit(self.ed_rc[matched], positions, lam=300.0)(self.ed_rc[lost])
+        cand = np.nonzero(free)[0]
+        dist, j = cKDTree(det.pixel_rc[cand]).query(pred, distance_upper_bound=0.25 * spacing)
+        ok = np.isfinite(dist)
+        order = np.argsort(np.where(ok, dist, np.inf))
+        taken, idx, pos, conf = set(), [], [], []
+        for k in order[:int(ok.sum())]:  # nearest first, one detection per track
+            if j[k] in taken:
+                continue
+            taken.add(j[k])
+            idx.append(lost[k])
+            pos.append(det.pixel_rc[cand[j[k]]])
+            conf.append(det.confidence[cand[j[k]]])
+        if not idx:
+            return none
+        idx, pos = np.array(idx), np.array(pos)
+        self._dead[idx] = False
+        self._gap[idx] = 0
+        # Its own velocity is unknown: take its nearest matched neighbour's (in ED position).
+        _, nb = cKDTree(self.ed_rc[matched]).query(self.ed_rc[idx])
+        self._step[idx] = self._step[matched[nb]]
+        self._pos[idx] = pos
+        return idx, pos, np.array(conf, np.float32)
 
     def _coast(self, idx, pred, warped):
         """Unmatched tracks: keep an internal prediction, count the gap, drop after max_gap."""
@@ -250,8 +288,12 @@ class SliceTracker:
         self.reset()
         self._started = True
         self.last_phase = frame.phase_index
+        kwargs = dict(self.detect_kwargs)
+        geom = self.geometry if self.geometry is not None else getattr(frame, "geometry", None)
+        if geom is not None and "spacing_range_px" not in kwargs:
+            kwargs["spacing_range_px"] = tag_period_range_px(min(geom.row_spacing, geom.column_spacing))
         det = detect_intersections(frame.image, mask=mask, spacing_px=self.spacing_px, angles=self.angles,
-                                   **self.detect_kwargs)
+                                   **kwargs)
         self.last_detection = det
         note = "" if frame.phase_index == 0 else f"no ED frame: started at phase {frame.phase_index}; "
         if not det.ok:
