@@ -29,8 +29,9 @@ from .phase import PhaseField, solve_phase
 IDEAL_CONTRAST_RATIO = 1.0 / np.sqrt(5.0)
 # A region's tag grid must explain at least this much of its contrast coherently
 # (:func:`grid_coherence`; an ideal grid gives IDEAL_CONTRAST_RATIO ≈ 0.45, tagged ED walls at
-# SNR 12 measured 0.40–0.43, untagged anatomy and noise ≤ 0.11).
-MIN_GRID_COHERENCE = 0.2
+# SNR 12 measured 0.40–0.43 in their true outline, untagged anatomy and noise ≤ 0.11). Below it
+# the region is not taken as tagged wall and the whole image's grid is used instead.
+MIN_GRID_COHERENCE = 0.15
 # Spectral peak heights that make a candidate when a region's coherence has the last word
 # (noise alone reaches ≈ 2.7 band / 4.3 whitened: some noise candidates are expected and rejected).
 PERMISSIVE_PEAK_RATIO = 3.0
@@ -475,8 +476,9 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         if params is None:
             est_mask = None if m is None else cv2.dilate(m.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
             params = resolve_parameters(img, est_mask, spacing_px, angles,
-                                        estimate=lambda im, mk: estimate_grid(im, mk, score_region=m,
-                                                                              spacing_range_px=spacing_range_px))
+                                        estimate=lambda im, mk: estimate_grid(
+                                            im, mk, score_region=None if mk is None else m,
+                                            spacing_range_px=spacing_range_px))
     except TagInputError as exc:
         return Detection(reason=str(exc))
     if np.any(params.spacing_px < 4.0 / max(spacing_factors)) or np.any(params.spacing_px > min(img.shape) / 2):
