@@ -1,24 +1,38 @@
 """Automatic end-diastolic LV myocardium segmentation on tagged SA and LA images.
 
 Why tag energy: SPAMM tags are laid down at end-diastole in all tissue, but flowing blood carries
-them out of the slice within tens of milliseconds, so at ED the myocardium is *tagged and
-bright*, the blood pool is *untagged*, and static background is tagged but dimmer. Two local
-features separate the three classes (pixel units throughout):
+them out of the slice within tens of milliseconds, so at ED the myocardium is *tagged*, the
+blood pool is *untagged*, and the surroundings are either tagged (static tissue, more weakly
+than the wall) or dark (studies that tag only the heart, air, lung). Neither intensity order nor
+grid orientation is assumed: blood may be brighter or darker than the tagged wall's mean, the
+grid may lie at any angle, and every level is taken from the image itself (no absolute
+intensity anywhere, so scaling an image changes nothing). Two local features (pixel units):
 
-* ``energy`` E — summed magnitude of the complex Gabor (demodulated band-pass) responses at the
-  two tag wave vectors found in the spectrum; the envelope σ = λ/2 suppresses the tag
-  harmonics and cross terms by ≈ e^{-2π²σ²/λ²} ≈ 0.7 %, so E is the local tag amplitude;
-* ``mean`` M — the intensity smoothed with the same Gaussian, i.e. the tag-free local mean.
+* ``energy`` E — the tag amplitude. The two tag wave vectors come from the spectrum (peaks in
+  the band of plausible periods); the tag-free mean (below) is subtracted and a complex Gabor
+  filter (Gaussian envelope σ = λ/2, which passes the grid's other harmonics at ≈ 0.7 %) is
+  demodulated at each. At ED the grid is undeformed, so the tags have one phase per
+  direction over the whole image: E is the sum of the responses projected on those phases.
+  That keeps the tags' amplitude, linear in the tagged fraction of a pixel, while most of the
+  response to intensity steps — a bright blood pool's edge has spectral content in the tag
+  band — has the phase of the edge's position and cancels;
+* ``mean`` M — the average over one cell of the tag lattice (its transfer function vanishes on
+  every harmonic of the grid): the tag-free local mean, linear in the tissue fractions.
 
-Both are linear in the tissue fractions of a pixel, so the 50 % crossing between two class
-levels sits on the partial-volume boundary (fraction 0.5, the ground-truth convention).
+Walls along rays (:func:`_wall_runs`): from a point in the cavity, each ray's first energy run
+is the wall; the cavity and outside levels come from the samples before and beyond it. A first
+estimate thresholds each ray's energy profile where the edges of a Gaussian-blurred wall of the
+width it shows lie (½ of the peak for a thick wall, more for a thin one); then both features
+are fitted together by least squares (:func:`_fit_walls`), each as cavity level, wall plateau
+and outside level blurred at the two edges: the mean is sharper and untouched by steps, the
+energy carries the wall wherever blood and wall have the same mean. Edges are the partial-volume
+boundary (fraction 0.5, the ground-truth convention).
 
 Shape prior (paper §3.2 relies on a segmentation of both views; we use a geometric prior
 instead of the paper's learned one):
 
 * SA — a star-shaped annulus around the blood pool found at the long axis: rays from the axis
-  point, one myocardial run per ray (endo = blood→myocardium crossing, epi =
-  myocardium→background crossing), radii smoothed over angle.
+  point, one wall per ray, radii smoothed over angle.
 * LA — the horseshoe: rays from a point on the long axis inside the cavity; rays toward the base
   find no myocardium (atrium), the contiguous arc that does is the horseshoe, cut flat at the
   base level perpendicular to the axis.
@@ -26,15 +40,42 @@ instead of the paper's learned one):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.special import ndtr
 
 #: Rays per slice (2° apart).
 NUM_RAYS = 180
 #: Radial sampling step along a ray, px.
 RADIAL_STEP_PX = 0.25
+#: LA: gaps in the horseshoe up to this wide are bridged, deg (the atrium's opening is wider).
+LA_MAX_GAP_DEG = 10.0
+#: Plausible SPAMM tag periods, mm (spectral search band when the pixel spacing is known).
+TAG_PERIOD_RANGE_MM = (3.0, 16.0)
+#: Shortest tag period resolved, px.
+MIN_TAG_PERIOD_PX = 2.5
+#: Gaussian envelope of the tag-energy filter, in tag periods: σ = λ/2 passes the grid's
+#: neighbouring harmonics (one period⁻¹ away) at e^{-π²/2} ≈ 0.7 %.
+ENERGY_SIGMA_PERIODS = 0.5
+#: Blur of the wall's edges in the energy, in filter σ: the demodulated tag amplitude of a wall
+#: not much thicker than a period also carries the response to the wall's own mean (its edges
+#: are intensity steps), which widens it. Measured on the simulator (walls 6–17 mm, periods
+#: 5–10 mm): 1.3 σ against σ, mean SA / LA Dice: normal LV 0.939 / 0.921 → 0.949 / 0.936,
+#: 6 mm wall 0.891 / 0.873 → 0.918 / 0.908, 17 mm wall 0.976 / 0.947 → 0.973 / 0.944.
+ENERGY_EDGE_BLUR = 1.3
+#: The wall's tag energy must exceed the cavity's and the surroundings' by this factor, and by
+#: this many times the energy's noise (:attr:`TagFeatures.noise`). Measured: pure noise images
+#: (white, smoothed, Rician) reach at most 3.6; the simulated walls at least 6.7 (a 6 mm wall
+#: under a 9.4 mm grid in surroundings tagged at 0.45), 12 for a normal LV at SNR 10.
+MIN_ENERGY_CONTRAST = 1.3
+MIN_WALL_SNR = 4.5
+#: Wall refinement (:func:`_fit_walls`): iterations, and how far each edge may move per
+#: iteration, px.
+REFINE_ITERATIONS = 3
+REFINE_REACH_PX = 3.0
 
 
 @dataclass
@@ -44,19 +85,27 @@ class TagFeatures:
     Attributes
     ----------
     energy : ndarray, shape (rows, cols)
-        Local tag amplitude E (image intensity units).
+        Local tag amplitude E (image intensity units): the two directions' demodulated Gabor
+        responses projected on their phases, summed (module docstring).
     mean : ndarray, shape (rows, cols)
-        Tag-free local mean intensity M.
+        Tag-free local mean intensity M (average over one cell of the tag lattice).
     wavelength_px : float
-        Tag period λ of the strongest direction, px.
+        Tag period λ (mean of the two directions), px.
     wavevectors : ndarray, shape (2, 2)
         (row, col) spatial frequencies of the two tag directions, cycles / px.
+    blur_px : float
+        Gaussian σ of the energy filter, px: the blur of an edge in ``energy``.
+    noise : float
+        Standard deviation of the noise in ``energy`` (robust spread of the quadrature part,
+        which holds no tags), energy units.
     """
 
     energy: np.ndarray
     mean: np.ndarray
     wavelength_px: float
     wavevectors: np.ndarray
+    blur_px: float = 0.0
+    noise: float = 0.0
 
 
 @dataclass
@@ -101,7 +150,19 @@ class SliceSegmentation:
 
 
 # --------------------------------------------------------------------------- features
-def tag_wavevectors(image: np.ndarray, min_period_px: float = 2.5,
+def tag_period_band_px(pixel_spacing_mm: float | None) -> tuple[float, float]:
+    """Search band of tag periods for :func:`tag_wavevectors`, px.
+
+    With a pixel spacing: :data:`TAG_PERIOD_RANGE_MM` in pixels (never below
+    :data:`MIN_TAG_PERIOD_PX`); without one: 2.5–30 px.
+    """
+    if pixel_spacing_mm is None or not np.isfinite(pixel_spacing_mm) or pixel_spacing_mm <= 0:
+        return MIN_TAG_PERIOD_PX, 30.0
+    lo = max(MIN_TAG_PERIOD_PX, TAG_PERIOD_RANGE_MM[0] / pixel_spacing_mm)
+    return lo, max(TAG_PERIOD_RANGE_MM[1] / pixel_spacing_mm, lo + 1.0)
+
+
+def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
                     max_period_px: float = 30.0) -> np.ndarray:
     """The two dominant tag wave vectors from the windowed magnitude spectrum.
 
@@ -109,7 +170,9 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = 2.5,
     ----------
     image : ndarray, shape (rows, cols)
     min_period_px, max_period_px : float
-        Search band of tag periods, px.
+        Search band of tag periods, px. Keep the upper end near the longest plausible period
+        (:func:`tag_period_band_px`): below it, the spectrum of a bright blood pool's outline
+        (which falls off as 1/frequency) can out-weigh the tags.
 
     Returns
     -------
@@ -147,7 +210,8 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = 2.5,
     return np.array(out)
 
 
-def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None) -> TagFeatures:
+def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
+                 pixel_spacing_mm: float | None = None) -> TagFeatures:
     """Tag energy and tag-free mean of an image (module docstring).
 
     Parameters
@@ -155,21 +219,64 @@ def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None) -> Ta
     image : ndarray, shape (rows, cols)
     wavevectors : ndarray, shape (2, 2), optional
         (row, col) tag frequencies, cycles / px; estimated from the spectrum by default.
+    pixel_spacing_mm : float, optional
+        Narrows the spectral search to plausible tag periods (:func:`tag_period_band_px`).
 
     Returns
     -------
     TagFeatures
     """
     img = np.asarray(image, dtype=np.float64)
-    kv = tag_wavevectors(img) if wavevectors is None else np.asarray(wavevectors, dtype=np.float64)
-    lam = 1.0 / float(np.linalg.norm(kv[0]))
-    sigma = 0.5 * lam
-    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
-    energy = np.zeros_like(img)
+    kv = (tag_wavevectors(img, *tag_period_band_px(pixel_spacing_mm)) if wavevectors is None
+          else np.asarray(wavevectors, dtype=np.float64))
+    lam = float(np.mean(1.0 / np.linalg.norm(kv, axis=1)))
+    sigma = ENERGY_SIGMA_PERIODS * lam
+    # Reflect-pad by two periods: the circular FFT filters then see a continuous border.
+    pad = int(np.ceil(2.0 * lam)) + 1
+    big = np.pad(img, pad, mode="reflect")
+    spec = np.fft.fft2(big)
+    fy = np.fft.fftfreq(big.shape[0])[:, None]
+    fx = np.fft.fftfreq(big.shape[1])[None, :]
+    inner = (slice(pad, pad + img.shape[0]), slice(pad, pad + img.shape[1]))
+    # Tag-free mean: the average over one cell of the tag lattice, whose transfer function
+    # sinc(f·a1) sinc(f·a2) (a1, a2 the cell's edge vectors, a_i·k_j = δ_ij) vanishes on every
+    # harmonic n1 k1 + n2 k2 of the grid.
+    cell = np.linalg.pinv(kv)
+    box = np.sinc(fy * cell[0, 0] + fx * cell[1, 0]) * np.sinc(fy * cell[0, 1] + fx * cell[1, 1])
+    mean = np.real(np.fft.ifft2(spec * box))
+    # Complex Gabor response of the mean-free image at each wave vector (Gaussian envelope σ),
+    # demodulated: at ED the grid is undeformed, so the tags have one phase per direction all
+    # over the image. Projecting on it keeps the tags' linear amplitude, while the response
+    # to an intensity step (a bright blood pool's edge, whose spectrum reaches the tag band)
+    # has the phase of the edge's position and mostly cancels.
+    resid = np.fft.fft2(big - mean)
+    rr = np.arange(big.shape[0])[:, None]
+    cc = np.arange(big.shape[1])[None, :]
+    energy = np.zeros(img.shape)
+    quadrature = np.zeros(img.shape)
     for k in kv:
-        z = img * np.exp(-2j * np.pi * (k[0] * rr + k[1] * cc))
-        energy += np.hypot(ndi.gaussian_filter(z.real, sigma), ndi.gaussian_filter(z.imag, sigma))
-    return TagFeatures(energy, ndi.gaussian_filter(img, sigma), lam, kv)
+        g = np.exp(-2.0 * np.pi ** 2 * sigma ** 2 * ((fy - k[0]) ** 2 + (fx - k[1]) ** 2))
+        z = (np.fft.ifft2(resid * g) * np.exp(-2j * np.pi * (k[0] * rr + k[1] * cc)))[inner]
+        z = z * np.exp(-1j * _dominant_phase(z))
+        energy += z.real
+        quadrature += z.imag
+    # The quadrature part holds no tags, only noise and, where the wave vector is a little off,
+    # a slow phase ramp times the tag amplitude: its spread above scale 2λ is the noise.
+    quadrature -= ndi.gaussian_filter(quadrature, 2.0 * lam)
+    noise = 1.4826 * float(np.median(np.abs(quadrature - np.median(quadrature))))
+    return TagFeatures(energy, mean[inner], lam, kv, sigma, noise)
+
+
+def _dominant_phase(z: np.ndarray) -> float:
+    """Mode of the phase of ``z``, weighted by |z|² (72 bins, smoothed circularly), rad."""
+    h, edges = np.histogram(np.angle(z), bins=72, range=(-np.pi, np.pi), weights=np.abs(z) ** 2)
+    h = ndi.gaussian_filter1d(h, 1.5, mode="wrap")
+    i = int(np.argmax(h))
+    # Parabolic refinement of the peak bin.
+    ym, y0, yp = h[i - 1], h[i], h[(i + 1) % h.size]
+    den = ym - 2 * y0 + yp
+    frac = 0.5 * (ym - yp) / den if den < 0 else 0.0
+    return float(edges[0] + (i + 0.5 + frac) * (edges[1] - edges[0]))
 
 
 def _otsu(values: np.ndarray) -> float:
@@ -184,115 +291,324 @@ def _otsu(values: np.ndarray) -> float:
     return float(mids[int(np.argmax(w0 * w1 * (mu0 - mu1) ** 2))])
 
 
-@dataclass
-class _Levels:
-    e_myo: float
-    m_myo: float
-    e_blood: float
-    m_blood: float
-    e_bg: float
-    m_bg: float
-    has_blood: bool
-
-
-def _levels_around(img, centre_rc, radius_px: float, features=None):
-    """Tag features of ``img`` and the tissue class levels within ``radius_px`` of the long-axis
-    point ``centre_rc`` (None when the tag energy there is flat)."""
-    feat = features or tag_features(img)
-    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
-    return feat, _class_levels(feat, np.hypot(rr - centre_rc[0], cc - centre_rc[1]) < radius_px)
-
-
-def _class_levels(feat: TagFeatures, region: np.ndarray) -> _Levels | None:
-    """Class levels of myocardium / blood / background inside ``region`` (bool mask).
-
-    Myocardium is the high class of an Otsu split of E; blood is untagged (E < ¼ E_myo) and
-    brighter than the myocardial mean; background is the rest. None when the region holds no
-    tagged tissue at all.
-    """
-    e, m = feat.energy[region], feat.mean[region]
-    if e.size < 50 or not np.all(np.isfinite(e)):
-        return None
-    thr = _otsu(e)
-    hi = e > thr
-    if hi.sum() < 20:
-        return None
-    e_myo, m_myo = float(np.median(e[hi])), float(np.median(m[hi]))
-    blood = (e < 0.25 * e_myo) & (m > m_myo)
-    # Too few untagged bright pixels: no cavity (apical slice) – blood levels are then unused.
-    has_blood = int(blood.sum()) >= 10
-    e_blood = float(np.median(e[blood])) if has_blood else 0.0
-    m_blood = float(np.median(m[blood])) if has_blood else m_myo + 1.0
-    rest = ~hi & ~blood & (e < 0.8 * e_myo)
-    e_bg = float(np.median(e[rest])) if rest.sum() >= 10 else 0.0
-    m_bg = float(np.median(m[rest])) if rest.sum() >= 10 else 0.0
-    if e_myo <= max(e_bg, e_blood) * 1.2:
-        return None
-    return _Levels(e_myo, m_myo, e_blood, m_blood, e_bg, m_bg, has_blood)
-
-
-def myocardium_score(feat: TagFeatures, lv: _Levels) -> np.ndarray:
-    """Per-pixel myocardium score ``min(u, v)``: ≈1 in myocardium, ≈0 in blood and background.
-
-    ``v`` separates myocardium from blood (tag energy up, mean down), ``u`` myocardium from
-    background (tag energy and mean both up); each is the average of two normalised linear
-    features, so 0.5 is the partial-volume midpoint.
-    """
-    e, m = feat.energy, feat.mean
-    u = 0.5 * (e - lv.e_bg) / (lv.e_myo - lv.e_bg) + 0.5 * (m - lv.m_bg) / max(lv.m_myo - lv.m_bg, 1e-6)
-    if lv.has_blood:
-        v = 0.5 * (e - lv.e_blood) / (lv.e_myo - lv.e_blood) \
-            + 0.5 * (lv.m_blood - m) / max(lv.m_blood - lv.m_myo, 1e-6)
-    else:
-        v = (e - lv.e_bg) / (lv.e_myo - lv.e_bg)
-    return np.minimum(u, v)
-
-
 # --------------------------------------------------------------------------- rays
-def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
-              min_wall_px: float, max_gap_px: float, blur_px: float | None = None,
-              threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """First myocardial run (score > 0.5) along each ray from ``centre_rc``.
-
-    With ``blur_px`` (the feature smoothing σ), the myocardial plateau is re-estimated: a wall of
-    width w blurred by σ peaks at only ``2Φ(w/2σ) − 1`` of its plateau, so class levels taken
-    from the blurred image under-estimate it and a fixed 0.5 threshold thickens thin walls.
-    Each ray's peak over that factor estimates the plateau; the threshold becomes half the
-    median plateau and the runs are found again (two passes).
+def _sample_rays(values: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray,
+                 max_radius_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear samples of ``values`` along rays from ``centre_rc``.
 
     Returns
     -------
-    endo, epi : ndarray, shape (K,)
-        Sub-pixel radii (linear interpolation of the half-plateau crossing), px; NaN where a ray has no
-        run of at least ``min_wall_px``. Runs separated by gaps < ``max_gap_px`` are merged
-        (noise). ``endo = 0`` when the run starts at the centre.
+    radii : ndarray, shape (R,)
+        Sample radii, px (step :data:`RADIAL_STEP_PX`).
+    s : ndarray, shape (K, R)
+        Samples (0 outside the image).
+    inside : ndarray of bool, shape (K, R)
+        Whether each sample lies inside the image.
     """
     radii = np.arange(0.0, max_radius_px, RADIAL_STEP_PX)
     dirs = np.stack([np.sin(angles), np.cos(angles)], 1)
     pts = centre_rc[None, None, :] + radii[None, :, None] * dirs[:, None, :]
-    s = ndi.map_coordinates(score, [pts[..., 0], pts[..., 1]], order=1, mode="constant", cval=0.0)
-    endo, epi = _runs_at(s, radii, threshold, min_wall_px, max_gap_px)
-    if blur_px is None:
-        return endo, epi
-    for _ in range(2):
+    s = ndi.map_coordinates(values, [pts[..., 0], pts[..., 1]], order=1, mode="constant", cval=0.0)
+    rows, cols = np.shape(values)
+    inside = ((pts[..., 0] >= 0) & (pts[..., 0] <= rows - 1) & (pts[..., 1] >= 0)
+              & (pts[..., 1] <= cols - 1))
+    return radii, s, inside
+
+
+def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
+              min_wall_px: float, max_gap_px: float, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """First run of ``score > threshold`` along each ray from ``centre_rc`` (user masks).
+
+    Returns
+    -------
+    endo, epi : ndarray, shape (K,)
+        Sub-pixel radii (linear interpolation of the crossing), px; NaN where a ray has no run
+        of at least ``min_wall_px``. Runs separated by gaps < ``max_gap_px`` are merged
+        (noise). ``endo = 0`` when the run starts at the centre.
+    """
+    radii, s, _ = _sample_rays(score, centre_rc, angles, max_radius_px)
+    return _runs_at(s, radii, threshold, min_wall_px, max_gap_px)
+
+
+@dataclass
+class WallLevels:
+    """Tag-energy levels found along the rays of one slice (energy units).
+
+    Attributes
+    ----------
+    peak : float
+        Median peak of the wall over the rays.
+    cavity : float
+        Blood pool inside the wall (untagged: ~0); equals ``outside`` when the rays start in
+        the wall (apical slices).
+    outside : float
+        Just beyond the epicardium: ~0 for dark surroundings, a fraction of the wall's level
+        where the surroundings are tagged.
+    blur_px : float
+        Blur of the wall's edges in the energy (Gaussian σ), px.
+    """
+
+    peak: float
+    cavity: float
+    outside: float
+    blur_px: float
+
+
+def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
+               min_wall_px: float, max_gap_px: float):
+    """Myocardial wall along each ray from ``centre_rc``.
+
+    Every level comes from the rays themselves, so nothing depends on the intensity scale, on
+    how bright blood or surroundings are, or on the wall's thickness against the blur:
+
+    1. detection on the tag energy: the first run above the midpoint between the rays' typical
+       peak and the higher of the cavity and outside levels (0 at first; three rounds);
+    2. levels: the cavity from the samples ≥ 2σ before each run, the outside from one period
+       of samples ≥ 2σ beyond it (or the end of rays whose run did not end: tagged
+       surroundings above the first threshold);
+    3. first walls: each ray's width at half its peak's excess over the two levels gives the
+       width of a blurred wall with that profile, whose edges lie at the fraction
+       :func:`_edge_fraction` of the excess (a thin wall's edges sit higher than half-way);
+    4. least-squares refinement (:func:`_fit_walls`) on the energy and the tag-free mean
+       together: the mean is linear in the tissue fractions and sharper, and where blood is
+       bright its step carries the endocardium that the energy alone would blur.
+
+    Returns
+    -------
+    endo, epi : ndarray, shape (K,)
+        As :func:`_ray_runs` (NaN: no wall on that ray).
+    levels : WallLevels or None
+        None when the energy is flat (no wall stands out).
+    """
+    radii, s, inside = _sample_rays(feat.energy, centre_rc, angles, max_radius_px)
+    sig = ENERGY_EDGE_BLUR * max(float(feat.blur_px), RADIAL_STEP_PX)
+    lam = float(feat.wavelength_px)
+    n_rays, n = s.shape
+    nan = np.full(n_rays, np.nan)
+    peaks = np.where(inside, s, -np.inf).max(axis=1)
+    if np.isfinite(peaks).sum() < n_rays // 2:
+        return nan, nan, None
+    top = float(np.percentile(peaks[np.isfinite(peaks)], 70))
+    if not top > 0:
+        return nan, nan, None
+    idx = np.arange(n)
+    last = np.where(inside.any(axis=1), n - 1 - np.argmax(inside[:, ::-1], axis=1), 0)
+    span = max(int(round(lam / RADIAL_STEP_PX)), 4)
+    off = int(round(2.0 * sig / RADIAL_STEP_PX))
+    cavity = outside = 0.0
+    endo = epi = nan
+    ok = np.zeros(n_rays, bool)
+    cav = out = np.zeros_like(inside)
+    for _ in range(3):
+        endo, epi = _runs_at(s, radii, 0.5 * (top + max(cavity, outside)), min_wall_px, max_gap_px)
         ok = np.isfinite(epi)
         if ok.sum() < 5:
-            break
-        width = (epi - np.nan_to_num(endo))[ok]
-        lo = np.searchsorted(radii, np.nan_to_num(endo)[ok])
-        hi = np.searchsorted(radii, epi[ok])
-        peak = np.array([s[i, a:max(b, a + 1)].max() for i, a, b in zip(np.flatnonzero(ok), lo, hi)])
-        # Walls starting at the centre (no cavity) are blurred on one side only.
-        half = np.where(np.nan_to_num(endo)[ok] == 0, width, 0.5 * width)
-        factor = np.clip(2.0 * _phi(half / blur_px) - 1.0, 0.3, 1.0)
-        plateau = float(np.median(peak / factor))
-        endo, epi = _runs_at(s, radii, 0.5 * plateau, min_wall_px, max_gap_px)
-    return endo, epi
+            return nan, nan, None
+        a = np.searchsorted(radii, np.nan_to_num(endo))
+        b = np.minimum(np.searchsorted(radii, np.nan_to_num(epi)), last)
+        # A small cavity (apical slices) is sampled up to half its radius.
+        cav = ok[:, None] & (idx[None, :] < np.minimum(a - off, a // 2)[:, None]) & inside
+        lo_out = np.where(b + off + span <= last, b + off, last - span)
+        out = ok[:, None] & (idx[None, :] >= lo_out[:, None]) & (idx[None, :] <= (lo_out + span)[:, None]) & inside
+        outside = float(np.median(s[out])) if out.sum() >= 20 else 0.0
+        has_cavity = cav.any(axis=1).sum() >= 0.25 * ok.sum() and cav.sum() >= 20
+        cavity = float(np.median(s[cav])) if has_cavity else outside
+        if not has_cavity:
+            cav = np.zeros_like(cav)
+        top = float(np.median([s[i, a[i]:max(b[i], a[i] + 1)].max() for i in np.flatnonzero(ok)]))
+    levels = WallLevels(top, cavity, outside, sig)
+    noise = float(feat.noise)
+    if not (top > MIN_ENERGY_CONTRAST * max(cavity, outside, 0.0)
+            and top - max(cavity, outside) > MIN_WALL_SNR * noise):
+        return endo, epi, None
+    rows = np.flatnonzero(ok)
+    a = np.searchsorted(radii, np.nan_to_num(endo[rows]))
+    b = np.searchsorted(radii, epi[rows])
+    sub = s[rows]
+    core = np.array([ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)])
+    pk = sub[np.arange(rows.size), core]
+    l, r = _crossings(sub, radii, core, cavity + 0.5 * (pk - cavity), outside + 0.5 * (pk - outside))
+    sig0 = max(float(feat.blur_px), RADIAL_STEP_PX)
+    w_tab, half_tab = _half_width_table()
+    w = np.interp((r - l) / sig0, half_tab, w_tab) * sig0
+    rho = np.where(l <= 0.0, 0.5, _edge_fraction(w / sig0))   # from the ray origin: one edge only
+    e, q = _crossings(sub, radii, core, cavity + rho * (pk - cavity), outside + rho * (pk - outside))
+    thin = (q - e) < np.maximum(min_wall_px, 0.5 * (r - l))
+    e, q = np.where(thin, l, e), np.where(thin, r, q)
+    # Cavity samples again from these walls: a small cavity (apical slices) may sit above the
+    # detection threshold, blurred by the wall around it, yet be a cavity.
+    ei = (e / RADIAL_STEP_PX).astype(int)
+    cav_rows = (idx[None, :] < np.minimum(ei - int(round(2.0 * sig0 / RADIAL_STEP_PX)), ei // 2)[:, None]) & inside[rows]
+    if cav_rows.any(axis=1).sum() >= 0.25 * rows.size and cav_rows.sum() >= 20:
+        cav = np.zeros_like(cav)
+        cav[rows] = cav_rows
+    _, sm, _ = _sample_rays(feat.mean, centre_rc, angles, max_radius_px)
+    e, q = _fit_walls(((sub, sig, float(feat.blur_px)),
+                       (sm[rows], lam / np.sqrt(12.0), lam / np.sqrt(12.0))),
+                      radii, e, q, cav[rows], out[rows], min_wall_px)
+    endo = np.full(n_rays, np.nan)
+    epi = np.full(n_rays, np.nan)
+    good = (q - e) >= min_wall_px
+    endo[rows[good]] = e[good]
+    epi[rows[good]] = q[good]
+    return endo, epi, levels
+
+
+def _crossings(s, radii, core, t_in, t_out):
+    """Where each ray's profile, followed from its ``core`` sample, falls to ``t_in`` inward and
+    to ``t_out`` outward (linear interpolation), px. Inward: 0 when it never does (the wall
+    starts at the ray origin); outward: the last radius. Both equal ``radii[core]`` when the
+    core itself is not above the level."""
+    k, n = s.shape
+    rows = np.arange(k)
+    idx = np.arange(n)[None, :]
+    step = radii[1] - radii[0]
+    t_in = np.broadcast_to(np.asarray(t_in, dtype=np.float64), (k,))
+    t_out = np.broadcast_to(np.asarray(t_out, dtype=np.float64), (k,))
+    below = (idx <= core[:, None]) & (s <= t_in[:, None])
+    has = below.any(axis=1)
+    jl = np.where(has, n - 1 - np.argmax(below[:, ::-1], axis=1), 0)
+    jl1 = np.minimum(jl + 1, n - 1)
+    den = s[rows, jl1] - s[rows, jl]
+    frac = np.clip((t_in - s[rows, jl]) / np.where(den > 0, den, np.inf), 0.0, 1.0)
+    left = np.where(has, radii[jl] + step * frac, 0.0)
+    below = (idx >= core[:, None]) & (s <= t_out[:, None])
+    has = below.any(axis=1)
+    jr = np.where(has, np.argmax(below, axis=1), n - 1)
+    jr0 = np.maximum(jr - 1, 0)
+    den = s[rows, jr0] - s[rows, jr]
+    frac = np.clip((s[rows, jr0] - t_out) / np.where(den > 0, den, np.inf), 0.0, 1.0)
+    right = np.where(has, radii[jr0] + step * frac, radii[-1])
+    dead = (s[rows, core] <= t_in) | (s[rows, core] <= t_out)
+    left = np.where(dead, radii[core], left)
+    right = np.where(dead, radii[core], np.maximum(right, left))
+    return left, right
+
+
+def _edge_fraction(u):
+    """Fraction of a blurred wall's peak excess found at its edges, wall width ``u`` σ.
+
+    A wall of width w under a Gaussian blur σ peaks at ``2Φ(w/2σ) − 1`` of its plateau and
+    reads ``½ − Φ(−w/σ)`` of it at its edges: ½ of the peak for a thick wall, more for a thin one.
+    """
+    u = np.maximum(np.asarray(u, dtype=np.float64), 1e-6)
+    return (0.5 - _phi(-u)) / (2.0 * _phi(0.5 * u) - 1.0)
+
+
+@functools.lru_cache(maxsize=1)
+def _half_width_table():
+    """(w/σ, width at half peak/σ) of a Gaussian-blurred wall, both increasing (interpolation)."""
+    u = np.concatenate([np.linspace(0.02, 2.0, 100), np.linspace(2.05, 60.0, 200)])
+    x = np.linspace(0.0, 80.0, 16001)
+    out = []
+    for w in u:
+        prof = _phi(x + 0.5 * w) - _phi(x - 0.5 * w)
+        half = 0.5 * prof[0]
+        j = int(np.argmax(prof <= half))
+        out.append(2.0 * (x[j - 1] + (x[j] - x[j - 1]) * (prof[j - 1] - half) / (prof[j - 1] - prof[j])))
+    return u, np.array(out)
 
 
 def _phi(x):
-    from scipy.special import ndtr
+    """Standard normal CDF."""
     return ndtr(x)
+
+
+
+def _bent(r, sigma):
+    """Where a circular edge of radius ``r`` around the ray origin appears after a Gaussian blur
+    σ: its half level moves σ²/2r toward the centre of curvature (first order; r ≥ 2σ)."""
+    r = np.asarray(r, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.where(r > 0, r - sigma * sigma / (2.0 * np.maximum(np.abs(r), 2.0 * sigma)), r)
+
+
+def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
+    """Least-squares walls [a, b] on several ray channels at once.
+
+    Each channel ``(samples (K, R), blur σ, curvature σ)`` is modelled along a ray as its cavity
+    level, a wall plateau and its outside level, the steps blurred by a Gaussian σ at the
+    edges bent by :func:`_bent`: ``c + (P − c) Φ((r − a')/σ) + (o − P) Φ((r − b')/σ)``. The
+    levels c, o are the channel's medians over the ``cav`` / ``out`` samples; the plateau P
+    (linear least squares) and the noise variance (residuals) are common to all rays; each
+    ray's a, b are the best of a grid of ±:data:`REFINE_REACH_PX` around the current ones
+    (rays without a cavity keep a = −∞). :data:`REFINE_ITERATIONS` rounds.
+
+    Returns
+    -------
+    endo, epi : ndarray, shape (K,)
+        px (``endo = 0`` without a cavity).
+    """
+    k, n = channels[0][0].shape
+    step = radii[1] - radii[0]
+    nd = int(round(REFINE_REACH_PX / step))
+    d = np.arange(-nd, nd + 1) * step
+    chans = []
+    for samples, sigma, curv in channels:
+        o = float(np.median(samples[out])) if out.sum() >= 20 else float(np.median(samples[:, -1]))
+        c = float(np.median(samples[cav])) if cav.sum() >= 20 else o
+        chans.append({"s": samples, "sig": float(sigma), "curv": float(curv), "c": c, "o": o})
+    a = np.where(a0 > 0, a0, -np.inf)
+    b = np.asarray(b0, dtype=np.float64).copy()
+    span = 3.0 * max(ch["sig"] for ch in chans) + REFINE_REACH_PX
+    rows = np.arange(k)
+    for _ in range(REFINE_ITERATIONS):
+        # Each ray's own window [a − span, b + span], gathered into a (K, L) block.
+        start = np.clip(((np.maximum(a, 0.0) - span) / step).astype(int), 0, n - 1)
+        stop = np.clip(((b + span) / step).astype(int) + 1, start + 1, n)
+        length = int(np.max(stop - start))
+        j = np.arange(length)[None, :]
+        cols = start[:, None] + j
+        win = (cols < stop[:, None]).astype(np.float64)
+        cols = np.minimum(cols, n - 1)
+        # Shifted profiles come from one evaluation on each window extended by the reach.
+        r_ext = (start[:, None] + np.arange(-nd, length + nd)[None, :]) * step
+        tot = 0.0
+        for ch in chans:
+            sig, c, o = ch["sig"], ch["c"], ch["o"]
+            y = np.take_along_axis(ch["s"], cols, axis=1)
+            fa = _phi((r_ext - _bent(a, ch["curv"])[:, None]) / sig)
+            fb = _phi((r_ext - _bent(b, ch["curv"])[:, None]) / sig)
+            pa, pb = fa[:, nd:nd + length], fb[:, nd:nd + length]
+            g = (pa - pb) * win
+            yy = (y - c * (1.0 - pa) - o * pb) * win
+            p = float(np.sum(g * yy) / max(float(np.sum(g * g)), 1e-300))
+            var = max(float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
+                      (1e-3 * max(abs(p - c), abs(p - o), 1e-300)) ** 2)
+            # Window m of the extended grid holds the profile shifted by (nd − m) samples.
+            sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
+            sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
+            ya = (y[:, None, :] - c - (p - c) * sa) * win[:, None, :]
+            bb = (o - p) * sb * win[:, None, :]
+            ss = (np.sum(ya * ya, axis=2)[:, :, None] - 2.0 * np.einsum("kar,kbr->kab", ya, bb)
+                  + np.sum(bb * bb, axis=2)[:, None, :])
+            tot = tot + ss / var
+        av = np.where(np.isfinite(a)[:, None], a[:, None] + d[None, :], -np.inf)
+        bv = b[:, None] + d[None, :]
+        tot = np.where(bv[:, None, :] - np.maximum(av, 0.0)[:, :, None] >= min_wall_px, tot, np.inf)
+        flat = tot.reshape(k, -1)
+        jm = np.argmin(flat, axis=1)
+        fin = np.isfinite(flat[rows, jm])
+        ia, ib = np.unravel_index(jm, tot.shape[1:])
+        # Sub-step: a parabola through the minimum and its neighbours along each edge (the
+        # walls then move continuously with the image).
+        m = tot.shape[1] - 1
+        fa_ = _parabola_offset(tot[rows, np.maximum(ia - 1, 0), ib], tot[rows, ia, ib], tot[rows, np.minimum(ia + 1, m), ib])
+        fb_ = _parabola_offset(tot[rows, ia, np.maximum(ib - 1, 0)], tot[rows, ia, ib], tot[rows, ia, np.minimum(ib + 1, m)])
+        fa_ = np.where((ia > 0) & (ia < m), fa_, 0.0)
+        fb_ = np.where((ib > 0) & (ib < m), fb_, 0.0)
+        a = np.where(fin, av[rows, ia] + fa_ * (d[1] - d[0]), a)
+        b = np.where(fin, bv[rows, ib] + fb_ * (d[1] - d[0]), b)
+    return np.maximum(a, 0.0), b
+
+
+def _parabola_offset(ym, y0, yp):
+    """Offset of the vertex of the parabola through (−1, ym), (0, y0), (1, yp), in [−½, ½]
+    (0 where the three are not convex or not finite)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = ym - 2.0 * y0 + yp
+        off = np.where(np.isfinite(den) & (den > 0), 0.5 * (ym - yp) / den, 0.0)
+    return np.clip(np.nan_to_num(off), -0.5, 0.5)
 
 
 def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
@@ -320,11 +636,11 @@ def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
         if a == 0:
             endo[i] = 0.0
         else:
-            endo[i] = radii[a - 1] + step * (thr - si[a - 1]) / max(si[a] - si[a - 1], 1e-9)
+            endo[i] = radii[a - 1] + step * (thr - si[a - 1]) / max(si[a] - si[a - 1], 1e-300)
         if b >= n:
             epi[i] = radii[-1]
         else:
-            epi[i] = radii[b - 1] + step * (si[b - 1] - thr) / max(si[b - 1] - si[b], 1e-9)
+            epi[i] = radii[b - 1] + step * (si[b - 1] - thr) / max(si[b - 1] - si[b], 1e-300)
     return endo, epi
 
 
@@ -420,34 +736,34 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
     if failed is not None:
         return failed
     c = np.asarray(centre_rc, dtype=np.float64)
-    feat, lv = _levels_around(img, c, max_radius_mm / pixel_spacing_mm, features)
-    if lv is None:
-        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "SA")
-    return _sa_from_score(myocardium_score(feat, lv), c, pixel_spacing_mm, max_radius_mm, min_wall_mm,
-                          max_invalid_fraction, 0.5 * feat.wavelength_px)
-
-
-def _sa_from_score(score, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction, blur_px=None):
-    img = score
+    feat = features if features is not None else tag_features(img, pixel_spacing_mm=pixel_spacing_mm)
     rmax = max_radius_mm / pixel_spacing_mm
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm,
-                          blur_px)
+    endo, epi, lv = _wall_runs(feat, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+    if lv is None:
+        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "SA")
+    return _sa_from_runs(img.shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm,
+                         max_invalid_fraction)
+
+
+def _sa_from_runs(shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction):
+    """Checks, smoothing over angle and rasterisation of the SA rays' wall runs."""
+    rmax = max_radius_mm / pixel_spacing_mm
     bad = ~np.isfinite(epi)
     if bad.mean() > max_invalid_fraction:
-        return _fail(img.shape, f"no myocardial annulus: {100 * bad.mean():.0f}% of rays from the long axis "
-                                f"find no tagged wall within {max_radius_mm:g} mm", "SA")
+        return _fail(shape, f"no myocardial annulus: {100 * bad.mean():.0f}% of rays from the long axis "
+                            f"find no tagged wall within {max_radius_mm:g} mm", "SA")
     if np.mean(epi[~bad] >= rmax - 1) > 0.1:
-        return _fail(img.shape, f"tagged region extends beyond {max_radius_mm:g} mm from the long axis "
-                                "(no closed epicardium)", "SA")
+        return _fail(shape, f"tagged region extends beyond {max_radius_mm:g} mm from the long axis "
+                            "(no closed epicardium)", "SA")
     endo_s = _circular_smooth(_robust_fill(endo), 2.0)
     epi_s = _circular_smooth(_robust_fill(epi), 2.0)
     endo_s = np.clip(endo_s, 0.0, None)
     wall = (epi_s - endo_s) * pixel_spacing_mm
     if np.median(wall) < min_wall_mm or np.median(wall) > 35.0:
-        return _fail(img.shape, f"implausible wall thickness {np.median(wall):.1f} mm", "SA")
+        return _fail(shape, f"implausible wall thickness {np.median(wall):.1f} mm", "SA")
     epi_s = np.maximum(epi_s, endo_s + 0.5)
-    mask = polar_mask(img.shape, c, angles, endo_s, epi_s)
+    mask = polar_mask(shape, c, angles, endo_s, epi_s)
     return SliceSegmentation(True, "", mask, c, angles, endo_s, epi_s, view="SA")
 
 
@@ -482,26 +798,34 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     c = np.asarray(centre_rc, dtype=np.float64)
     ax = np.asarray(axis_rc, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
-    feat, lv = _levels_around(img, c, max_radius_mm / pixel_spacing_mm, features)
-    if lv is None:
-        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "LA")
-    if not lv.has_blood:
-        return _fail(img.shape, "no untagged blood pool on the long axis", "LA")
-    return _la_from_score(myocardium_score(feat, lv), c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm,
-                          min_arc_deg, 0.5 * feat.wavelength_px)
-
-
-def _la_from_score(score, c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm, min_arc_deg, blur_px=None):
-    img = score
+    feat = features if features is not None else tag_features(img, pixel_spacing_mm=pixel_spacing_mm)
     rmax = max_radius_mm / pixel_spacing_mm
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi = _ray_runs(score, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm,
-                          blur_px)
+    endo, epi, lv = _wall_runs(feat, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+    if lv is None:
+        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "LA")
+    return _la_from_runs(img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg)
+
+
+def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
+    """Horseshoe arc, base cut and rasterisation of the LA rays' wall runs."""
     valid = np.isfinite(epi) & (epi < rmax - 1)
+    # Bridge gaps of a few rays (noise, a wall locally thinner than the smallest run): the
+    # atrium's opening is tens of degrees wide.
+    gap = int(round(LA_MAX_GAP_DEG * NUM_RAYS / 360.0))
+    if valid.any() and not valid.all():
+        closed = ndi.binary_closing(np.concatenate([valid] * 3), structure=np.ones(gap + 1, bool))[NUM_RAYS:2 * NUM_RAYS]
+        fill = closed & ~valid
+        if fill.any():
+            endo, epi = endo.copy(), epi.copy()
+            idx = np.arange(NUM_RAYS)
+            for r in (endo, epi):
+                r[fill] = np.interp(idx[fill], idx[valid], r[valid], period=NUM_RAYS)
+            valid = closed
     # The horseshoe is the longest circular run of valid rays; it must not include the base
     # direction (the atrium side is open).
     if valid.all() or not valid.any():
-        return _fail(img.shape, "no horseshoe: the myocardium found is "
+        return _fail(shape, "no horseshoe: the myocardium found is "
                      + ("closed around the axis point" if valid.any() else "absent"), "LA")
     start = int(np.flatnonzero(~valid)[0])
     rolled = np.roll(valid, -start)
@@ -512,18 +836,20 @@ def _la_from_score(score, c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm, m
     arc = (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
     arc_deg = arc.size * 360.0 / NUM_RAYS
     if arc_deg < min_arc_deg:
-        return _fail(img.shape, f"horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})", "LA")
+        return _fail(shape, f"horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})", "LA")
     base_dir = np.arctan2(ax[0], ax[1])
     mid_arc = angles[arc[arc.size // 2]]
     if np.cos(mid_arc - base_dir) > 0:
-        return _fail(img.shape, "horseshoe opens toward the apex (long-axis orientation inconsistent)", "LA")
+        return _fail(shape, "horseshoe opens toward the apex (long-axis orientation inconsistent)", "LA")
     e_arc = _circular_smooth(endo[arc], 1.5, median=5, closed=False)
     p_arc = _circular_smooth(epi[arc], 1.5, median=5, closed=False)
     # Base level: mid-wall axial coordinate of the two arc ends (each end ray stops at the
-    # base plane, where the wall leaves the image plane's myocardium).
+    # base plane, where the wall leaves the image plane's myocardium). The wall ends somewhere
+    # between the last ray that meets it and the next: half a ray spacing beyond the last.
     ends = []
-    for k in (0, arc.size - 1):
-        th = angles[arc[k]]
+    half_step = 0.5 * (angles[1] - angles[0])
+    for k, side in ((0, -1.0), (arc.size - 1, 1.0)):
+        th = angles[arc[k]] + side * half_step
         rmid = 0.5 * (e_arc[k] + p_arc[k])
         ends.append(rmid * (np.sin(th) * ax[0] + np.cos(th) * ax[1]))
     base_level = float(np.mean(ends))
@@ -538,7 +864,7 @@ def _la_from_score(score, c, ax, pixel_spacing_mm, max_radius_mm, min_wall_mm, m
         for src, dst in ((arc[0], (arc[0] - k) % NUM_RAYS), (arc[-1], (arc[-1] + k) % NUM_RAYS)):
             if not np.isfinite(epi_full[dst]):
                 endo_full[dst], epi_full[dst] = endo_full[src], epi_full[src]
-    mask = polar_mask(img.shape, c, angles, endo_full, epi_full, ax, base_level)
+    mask = polar_mask(shape, c, angles, endo_full, epi_full, ax, base_level)
     return SliceSegmentation(True, "", mask, c, angles, endo_full, epi_full, view="LA",
                              base_level=base_level, axis_rc=ax)
 
@@ -566,11 +892,14 @@ def segment_from_mask(mask: np.ndarray, centre_rc, pixel_spacing_mm: float, axis
     m = np.asarray(mask, bool)
     score = ndi.gaussian_filter(m.astype(np.float64), 0.7)
     c = np.asarray(centre_rc, dtype=np.float64)
+    rmax_mm = max_radius_mm or (60.0 if axis_rc is None else 80.0)
+    angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
+    endo, epi = _ray_runs(score, c, angles, rmax_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
     if axis_rc is None:
-        out = _sa_from_score(score, c, pixel_spacing_mm, max_radius_mm or 60.0, 1.0, 0.25)
+        out = _sa_from_runs(m.shape, c, angles, endo, epi, pixel_spacing_mm, rmax_mm, 1.0, 0.25)
     else:
         ax = np.asarray(axis_rc, dtype=np.float64)
-        out = _la_from_score(score, c, ax / np.linalg.norm(ax), pixel_spacing_mm, max_radius_mm or 80.0, 1.0, 150.0)
+        out = _la_from_runs(m.shape, c, ax / np.linalg.norm(ax), angles, endo, epi, rmax_mm / pixel_spacing_mm, 150.0)
     if out.ok:
         out.mask = m
     out.source = "mask"

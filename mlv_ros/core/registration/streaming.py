@@ -11,15 +11,19 @@ slices first) is not available. :class:`StreamingMasker` keeps what it has seen 
   the long axis.
 
 An SA ED frame is segmented (:func:`.segment.segment_sa`) around the axis intersection when an
-axis exists, else around the untagged bright blood pool found in the image itself (at ED blood
-has lost its tags by flow and is bright; myocardium is tagged). An LA ED frame needs the long
+axis exists, else around the untagged blood pool found in the image itself (at ED blood has
+lost its tags by flow; myocardium is tagged and encloses it). An LA ED frame needs the long
 axis: a mid-stack axis point projected into the plane and the axis direction projected into it
-(:func:`.segment.segment_la`); without any SA centre it returns ``(None, reason)``.
+(:func:`.segment.segment_la`); without any SA centre it returns ``(None, reason)``. Each slice's
+result is kept: asking again for the same frame returns it (and its reason, given once, the
+candidates that failed alike grouped) until a new SA centre changes the axis.
 
 Pure numpy/scipy; never raises on image content.
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -67,10 +71,12 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
                           max_candidates: int = 3) -> list[np.ndarray]:
     """Likely LV blood-pool centres of an ED tagged image, best first, (row, col) px.
 
-    Blood is untagged (low tag energy) and brighter than tagged tissue at ED. Components of
-    that class are ranked by how much of a ring just outside them is tagged (the myocardium
-    encloses the LV cavity; air and lung are dark and excluded by intensity), by a plausible
-    area, and by closeness to the field-of-view centre (where the heart is planned).
+    Blood is untagged (low tag energy) at ED, whatever its brightness. Untagged components are
+    ranked by how much of a ring just outside them is tagged (the myocardium encloses the LV
+    cavity), by a plausible area, by closeness to the field-of-view centre (where the heart is
+    planned) and by a mean intensity above the darkest untagged tissue (air and lung are near
+    the noise floor; blood is not). Components touching the image border are not cavities (the
+    dark surroundings of a study that tags only the heart, air outside the body).
 
     Parameters
     ----------
@@ -88,17 +94,23 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
     ok = np.isfinite(e) & np.isfinite(m)
     if ok.sum() < 100:
         return []
-    thr = seg._otsu(e[ok])
-    hi = ok & (e > thr)
+    pos = ok & (e > 0)
+    if pos.sum() < 20:
+        return []
+    thr = seg._otsu(e[pos])
+    hi = pos & (e > thr)
     if hi.sum() < 20:
         return []
     e_tag, m_tag = float(np.median(e[hi])), float(np.median(m[hi]))
-    blood = ok & (e < 0.25 * e_tag) & (m > m_tag)
-    # Opening removes untagged speckle between tag lines in noisy background.
-    blood = ndi.binary_opening(blood, structure=_disk(2.0 / pixel_spacing_mm))
+    untagged = ok & (e < 0.25 * e_tag)
+    # Opening removes untagged speckle between tag lines in noisy tissue.
+    blood = ndi.binary_opening(untagged, structure=_disk(2.0 / pixel_spacing_mm))
     lab, n = ndi.label(blood)
     if n == 0:
         return []
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    # Darkest untagged level: the noise floor where there is air, else the darkest tissue.
+    m_dark = float(np.percentile(m[untagged], 5)) if untagged.sum() >= 20 else 0.0
     px_area = pixel_spacing_mm ** 2
     rows, cols = e.shape
     fov_c = np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])
@@ -108,6 +120,8 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
     far = _disk(6.0 / pixel_spacing_mm)
     scored = []
     for i, sl in enumerate(ndi.find_objects(lab), start=1):
+        if i in border:
+            continue
         area_mm2 = float(np.sum(lab[sl] == i)) * px_area
         # LV cavity at ED: ~ 10 mm² (apex) to ~ 5000 mm² (dilated base); reject specks and
         # anything as large as the background.
@@ -122,9 +136,20 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
         enclosed = float(tagged[box][ring].mean())
         c = np.array(ndi.center_of_mass(comp)) + np.array([b.start for b in box])
         dist = np.linalg.norm(c - fov_c) / fov_r
-        scored.append((enclosed * np.exp(-0.5 * (dist / 0.5) ** 2), c))
+        # Blood stands above the darkest untagged tissue by a fair share of the tagged mean.
+        m_comp = float(np.median(m[box][comp]))
+        bright = float(np.clip((m_comp - m_dark) / max(0.5 * abs(m_tag - m_dark), 1e-300), 0.0, 1.0))
+        scored.append((enclosed * bright * np.exp(-0.5 * (dist / 0.5) ** 2), c))
     scored.sort(key=lambda t: -t[0])
     return [c for s, c in scored[:max_candidates] if s > 0.05]
+
+
+def _grouped(reasons: list[tuple[str, str]]) -> str:
+    """``"a, b: why; c: other"`` from ``[(a, why), (b, why), (c, other)]``: each reason once."""
+    by_reason: dict = {}
+    for how, why in reasons:
+        by_reason.setdefault(why, []).append(how)
+    return "; ".join(f"{', '.join(dict.fromkeys(hows))}: {why}" for why, hows in by_reason.items())
 
 
 class StreamingMasker:
@@ -164,6 +189,8 @@ class StreamingMasker:
         self._sa_geom: dict = {}      # slice_index -> SliceGeometry
         self._la_geom: dict = {}
         self._sa_centre: dict = {}    # slice_index -> blood-pool centre, patient mm (3,)
+        self._results: dict = {}      # (view, slice_index) -> (fingerprint, mask or None, reason)
+        self._failures: dict = {}     # (view, slice_index) -> reason of its latest failure
 
     # ------------------------------------------------------------------ state
     def observe_geometry(self, frame: Frame) -> None:
@@ -258,6 +285,11 @@ class StreamingMasker:
     def ed_mask(self, frame: Frame) -> tuple[np.ndarray | None, str]:
         """Myocardium mask of an ED frame from what has been observed so far.
 
+        The result is kept per slice: the same frame asked for again, while no SA centre has
+        been added since, returns it without segmenting again (a copy of the mask), so a slice
+        that cannot be segmented gives its reason once, not once per request. :attr:`failures`
+        holds the reasons of the slices whose latest ED frame failed.
+
         Parameters
         ----------
         frame : Frame
@@ -271,28 +303,62 @@ class StreamingMasker:
         """
         try:
             self.observe_geometry(frame)
-            img = np.asarray(frame.image, dtype=np.float64)
-            if img.ndim != 2 or min(img.shape) < 16:
-                return None, f"image must be 2-D and at least 16x16 pixels, got shape {img.shape}"
-            if not np.all(np.isfinite(img)):
-                return None, "image has non-finite (NaN/inf) pixels"
-            if float(img.std()) == 0.0:
-                return None, "image is constant (no signal)"
-            g = frame.geometry
-            sp = float(g.row_spacing)
-            if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
-                return None, "anisotropic pixel spacing is not supported"
-            if int(frame.view) == VIEW_SA:
-                return self._sa(frame, img, sp)
-            if int(frame.view) == VIEW_LA:
-                return self._la(frame, img, sp)
-            return None, f"unknown view {frame.view!r}"
+            key = (int(frame.view), int(frame.slice_index))
+            stamp = self._fingerprint(frame)
+            cached = self._results.get(key)
+            if cached is not None and stamp is not None and cached[0] == stamp:
+                mask, why = cached[1], cached[2]
+                return (None if mask is None else mask.copy()), why
+            mask, why = self._ed_mask(frame)
+            self._results[key] = (stamp, mask, why)
+            if mask is None:
+                self._failures[key] = why
+            else:
+                self._failures.pop(key, None)
+            return (None if mask is None else mask.copy()), why
         except Exception as exc:  # never let one image stop the detector
             return None, f"segmentation failed ({type(exc).__name__}: {exc})"
 
+    @property
+    def failures(self) -> dict:
+        """``{(view, slice_index): reason}`` of the slices whose latest ED frame gave no mask."""
+        return dict(self._failures)
+
+    def _fingerprint(self, frame: Frame):
+        """What the result of :meth:`ed_mask` depends on: the frame (indices, geometry, image
+        bytes) and the SA centres found so far; None when the frame cannot be hashed."""
+        try:
+            img = np.ascontiguousarray(frame.image)
+            g = frame.geometry
+            digest = hashlib.blake2b(img.tobytes(), digest_size=16).hexdigest()
+            geo = np.concatenate([np.ravel(g.image_position), np.ravel(g.row_direction),
+                                  np.ravel(g.column_direction), [g.row_spacing, g.column_spacing]])
+            centres = tuple((i, tuple(np.round(c, 6))) for i, c in sorted(self._sa_centre.items()))
+            return (int(frame.phase_index), img.shape, str(img.dtype), digest, tuple(np.round(geo, 9)), centres)
+        except Exception:  # malformed record: no caching
+            return None
+
+    def _ed_mask(self, frame: Frame) -> tuple[np.ndarray | None, str]:
+        img = np.asarray(frame.image, dtype=np.float64)
+        if img.ndim != 2 or min(img.shape) < 16:
+            return None, f"image must be 2-D and at least 16x16 pixels, got shape {img.shape}"
+        if not np.all(np.isfinite(img)):
+            return None, "image has non-finite (NaN/inf) pixels"
+        if float(img.std()) == 0.0:
+            return None, "image is constant (no signal)"
+        g = frame.geometry
+        sp = float(g.row_spacing)
+        if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
+            return None, "anisotropic pixel spacing is not supported"
+        if int(frame.view) == VIEW_SA:
+            return self._sa(frame, img, sp)
+        if int(frame.view) == VIEW_LA:
+            return self._la(frame, img, sp)
+        return None, f"unknown view {frame.view!r}"
+
     def _sa(self, frame: Frame, img: np.ndarray, sp: float):
         g = frame.geometry
-        feat = seg.tag_features(img)
+        feat = seg.tag_features(img, pixel_spacing_mm=sp)
         if not np.all(np.isfinite(feat.energy)) or not np.isfinite(feat.wavelength_px):
             return None, "no tag pattern found (tag features not finite)"
         cands: list[tuple[str, np.ndarray]] = []
@@ -306,12 +372,12 @@ class StreamingMasker:
         cands += [("blood pool", c) for c in blood_pool_candidates(feat, sp)]
         rows, cols = img.shape
         cands.append(("image centre", np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])))
-        reasons: list[str] = []
+        reasons: list[tuple[str, str]] = []
         fallback = None
         for how, c in cands:
             s = seg.segment_sa(img, c, sp, features=feat)
             if not s.ok:
-                reasons.append(f"{how}: {s.reason}")
+                reasons.append((how, s.reason))
                 continue
             # Re-centre on the cavity: rays from the middle of the annulus meet the wall
             # square-on, and the centre feeds the long-axis estimate.
@@ -323,20 +389,20 @@ class StreamingMasker:
                     cc2 = cavity_centre(s2)
                     cc = cc2 if cc2 is not None else cc
             if cc is None or not s.mask.any():
-                reasons.append(f"{how}: empty myocardium")
+                reasons.append((how, "empty myocardium"))
                 continue
             if how == "long axis" and np.linalg.norm(cc - c) * sp > self.max_axis_jump_mm:
                 # The axis extrapolated from other slices missed this cavity: prefer an
                 # image-based centre, keep this result as a fallback.
                 fallback = fallback or (s, cc)
-                reasons.append(f"{how}: cavity {np.linalg.norm(cc - c) * sp:.0f} mm from the axis")
+                reasons.append((how, f"cavity {np.linalg.norm(cc - c) * sp:.0f} mm from the axis"))
                 continue
             self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(cc)
             return s.mask, ""
         if fallback is not None:
             self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(fallback[1])
             return fallback[0].mask, "cavity far from the long axis of the other slices"
-        return None, "no SA myocardial annulus found (" + "; ".join(reasons) + ")"
+        return None, "no SA myocardial annulus found (" + _grouped(reasons) + ")"
 
     def _la(self, frame: Frame, img: np.ndarray, sp: float):
         ax = self.long_axis()
@@ -352,7 +418,7 @@ class StreamingMasker:
         centre_rc, off = g.patient_to_pixel(p)
         if abs(float(off)) > self.max_plane_offset_mm:
             return None, f"LA plane is {abs(float(off)):.1f} mm from the long axis"
-        feat = seg.tag_features(img)
+        feat = seg.tag_features(img, pixel_spacing_mm=sp)
         if not np.all(np.isfinite(feat.energy)) or not np.isfinite(feat.wavelength_px):
             return None, "no tag pattern found (tag features not finite)"
         # Axis point: mid stack first; then toward the apex (a basal point can sit in the
@@ -366,5 +432,6 @@ class StreamingMasker:
                 s = seg.segment_la(img, c, a_rc, sp, features=feat)
                 if s.ok and s.mask.any():
                     return s.mask, ""
-                reasons.append(s.reason or "empty mask")
-        return None, "no LA horseshoe found (" + "; ".join(dict.fromkeys(reasons)) + ")"
+                where = f"axis point {shift_mm:+g} mm" + ("" if known else f" (axis sign {sgn:+g})")
+                reasons.append((where, s.reason or "empty mask"))
+        return None, "no LA horseshoe found (" + _grouped(reasons) + ")"
