@@ -73,7 +73,8 @@ def test_points_whose_tags_vanish_are_dropped_not_invented():
 
 def test_dropped_tracks_are_found_again_when_their_tags_return():
     """Tags invisible on half the wall for two phases (dropped: max_gap 1), back from phase 6: the
-    same material lines are recognised where the live tracks' warp puts them, with their ED ids."""
+    slice is starved (fewer than half its tracks alive), so the same material lines are recognised
+    where the live tracks' warp puts them, with their ED ids, until half are alive again."""
     scene = TagScene(shape=(128, 128), ring=(19.8, 31.5), noise_sigma=0.02)
     _, out, _ = _run(scene, blank_from=4, blank_to=6)
     _, kept_dead, _ = _run(scene, blank_from=4, blank_to=6, revive=False)
@@ -82,9 +83,11 @@ def test_dropped_tracks_are_found_again_when_their_tags_return():
     ed_truth = X[i]
     left_ids = out[0].track_id[out[0].pixel_rc[:, 1] < scene.centre[1] - 8]
     assert not np.any(np.isin(out[5].track_id, left_ids))  # gone while invisible
+    assert len(out[5]) < 0.5 * len(out[0])
     for p in range(7, PHASES):
         back = np.isin(out[p].track_id, left_ids)
-        assert back.sum() >= 0.7 * len(left_ids), (p, back.sum(), len(left_ids))
+        assert back.sum() >= 0.2 * len(left_ids), (p, back.sum(), len(left_ids))
+        assert len(out[p]) >= 0.5 * len(out[0])
         truth = scene.forward(ed_truth[out[p].track_id[back]], p / PHASES)
         # The right identity: a wrong one would be a whole spacing (6 px) off.
         assert np.max(np.linalg.norm(out[p].pixel_rc[back] - truth, axis=1)) < 1.0, p
