@@ -47,14 +47,14 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.special import ndtr
 
+from mlv_ros.core.tags.gabor import TAG_PERIOD_RANGE_MM  # plausible SPAMM periods, mm
+
 #: Rays per slice (2° apart).
 NUM_RAYS = 180
 #: Radial sampling step along a ray, px.
 RADIAL_STEP_PX = 0.25
 #: LA: gaps in the horseshoe up to this wide are bridged, deg (the atrium's opening is wider).
 LA_MAX_GAP_DEG = 10.0
-#: Plausible SPAMM tag periods, mm (spectral search band when the pixel spacing is known).
-TAG_PERIOD_RANGE_MM = (3.0, 16.0)
 #: Shortest tag period resolved, px.
 MIN_TAG_PERIOD_PX = 2.5
 #: Gaussian envelope of the tag-energy filter, in tag periods: σ = λ/2 passes the grid's

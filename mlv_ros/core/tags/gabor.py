@@ -34,6 +34,10 @@ MAX_SPACING_PX = 24.0
 # A spectral peak must stand this many times above the median spectral magnitude of the search
 # annulus; white noise alone tops out near 4–5 for a 256² image.
 MIN_PEAK_RATIO = 8.0
+# SPAMM/CSPAMM grid periods in use across vendors and field strengths, mm: finer grids are not
+# resolved by cine matrices, coarser ones leave too few intersections across a wall. The tag
+# detector and the ED segmentation both search this band.
+TAG_PERIOD_RANGE_MM = (3.0, 16.0)
 # The same against the median of the peak's own frequency ring: the maximum of ~10³ Rayleigh
 # magnitudes over their median is ≈ 3.5 (measured on noise: ≤ 2.7 for 48²–400² images).
 MIN_WHITENED_PEAK_RATIO = 4.5

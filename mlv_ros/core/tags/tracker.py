@@ -23,7 +23,8 @@ from scipy.spatial import cKDTree
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import Frame, TagPointSet
 
-from .gabor import MAX_SPACING_PX, MIN_SPACING_PX, TagInputError, TagParameters, validate_image
+from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, TAG_PERIOD_RANGE_MM, TagInputError, TagParameters,
+                    validate_image)
 from .intersections import Detection, detect_intersections
 from .rpm import ThinPlateSpline, tps_rpm
 
@@ -32,10 +33,6 @@ from .rpm import ThinPlateSpline, tps_rpm
 # spacings (a different intersection is ≥ 1 spacing away; the warp's prediction is ~0.1 off).
 REVIVE_GATE = 0.25
 REVIVE_BELOW = 0.5
-
-# SPAMM/CSPAMM grid periods in use across vendors and field strengths, mm: finer grids are not
-# resolved by cine matrices, coarser ones leave too few intersections across a wall.
-TAG_PERIOD_RANGE_MM = (3.0, 16.0)
 
 
 def tag_period_range_px(pixel_mm: float) -> tuple[float, float]:
