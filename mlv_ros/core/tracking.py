@@ -134,6 +134,14 @@ class MotionTracker:
         Near-incompressibility: penalty on the linearised volume change of the whole deformation,
         in units of μ (0 = off). Myocardium keeps its volume to a few percent; with tags spaced
         like the wall is thick this is what recovers radial thickening (Err).
+    longitudinal_weight : float
+        Stiffness against local stretch along the long axis, in units of μ (0 = off). The global
+        stage carries the longitudinal shortening (axial scale and translation); only LA tag
+        points measure its local variation, SA points see none of it. Without this term the
+        incompressibility penalty turns any in-plane area error into axial stretch wherever no
+        LA track constrains it: at the free basal end above the last SA slice the wall was
+        pushed up to 20 mm toward the atria (randomized protocols whose LA tracks faded on one
+        side). With it, the volume is kept by thickening, as the myocardium keeps it.
     twist_knots : int
         Knots (uniform in height, apex to base) of the twist parameter function fitted after the
         global stage; 0 = the paper's single twist factor τ only. The LV twists non-linearly
@@ -148,7 +156,8 @@ class MotionTracker:
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
                  data_weight: float = 1.0e4, slice_following: int = 1, max_attach_mm: float = 3.0,
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
-                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3, twist_knots: int = 11,
+                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
+                 longitudinal_weight: float = 3.0e3, twist_knots: int = 11,
                  twist_smoothing: float = 0.3):
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
@@ -178,6 +187,9 @@ class MotionTracker:
         self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
+        if not 0.0 <= longitudinal_weight < 1e12:
+            raise ValueError(f"longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}")
+        self.longitudinal_weight = float(longitudinal_weight)
         if int(twist_knots) not in (0, *range(2, 101)) or not 0.0 < twist_smoothing < 1e6:
             raise ValueError(f"twist_knots must be 0 or 2..100 and twist_smoothing in (0, 1e6); "
                              f"got {twist_knots}, {twist_smoothing}")
@@ -322,6 +334,10 @@ class MotionTracker:
         C = np.zeros_like(Fg)
         C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
         kv = self.volume_weight * mu
+        # Local longitudinal stretch (along the fitted long axis) costs kl; see longitudinal_weight.
+        kl = self.longitudinal_weight * mu
+        ax = quat_to_matrix(self.model.params.rotation)[:, 2]
+        aa = np.outer(ax, ax)
 
         def apply(v):
             d = v.reshape(n, 3)
@@ -330,6 +346,8 @@ class MotionTracker:
             S = vol[:, None, None] * (mu * (H + np.swapaxes(H, 1, 2)) + lam * tr[:, None, None] * np.eye(3))
             if kv:
                 S = S + (kv * vol * np.einsum("iab,iab->i", C, H))[:, None, None] * C
+            if kl:
+                S = S + (kl * vol * np.einsum("a,iab,b->i", ax, H, ax))[:, None, None] * aa
             data = phi_t @ np.einsum("kab,kb->ka", P, phi @ d)
             return (op.adjoint(S) + alpha * (L @ d) + kappa * data + eps * d).ravel()
 
@@ -340,7 +358,12 @@ class MotionTracker:
         rhs = rhs.ravel()
         diag_data = np.asarray(phi.multiply(phi).T @ np.ones(phi.shape[0])).ravel()
         vdiag = self._kdiag * kv / (mu + (mu + lam) / 3.0)
-        prec = 1.0 / np.repeat(self._kdiag + vdiag + alpha * L.diagonal() + kappa * diag_data + eps, 3)
+        diag = np.repeat((self._kdiag + vdiag + alpha * L.diagonal() + kappa * diag_data + eps)[:, None], 3, axis=1)
+        if kl:  # exact diagonal of the axial term: kl Σ_i v_i G_ij² a_c², G_ij = Σ_b a_b d_ij[b]
+            D = op.matrix.tocsr()
+            G = D[0::3] * ax[0] + D[1::3] * ax[1] + D[2::3] * ax[2]
+            diag = diag + kl * np.asarray(G.multiply(G).T @ vol).ravel()[:, None] * (ax * ax)[None, :]
+        prec = 1.0 / diag.ravel()
         A = LinearOperator((3 * n, 3 * n), matvec=apply, dtype=np.float64)
         M = LinearOperator((3 * n, 3 * n), matvec=lambda v: prec * v, dtype=np.float64)
         x0 = self.delta.ravel() if self.delta is not None else None
