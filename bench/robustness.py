@@ -7,10 +7,12 @@ rescale, series layout), writes the DICOM study and its ground truth, runs the w
 files (``mlv-ros run --dicom``) and compares the recorded motion with the analytic truth.
 
 Per case (JSON): the drawn protocol, exit codes, phases solved, ES median / p95 3D error (mm), the
-largest twist error over levels at ES (deg), particles inside the true myocardium, tag points per
-slice (ED and fewest over the cycle), seconds, and whether the issue's must-criteria hold
-(ES median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist error ≤ 2°, every phase solved). The summary gives the
-worst and the median of each measure and the number of cases passing.
+largest twist error over levels at ES (deg), particles inside the true myocardium, the fraction of
+the true myocardium the model covers, tag points per slice (ED and fewest over the cycle),
+seconds, and whether the issue's must-criteria hold (ES median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist
+error ≤ 2°, every phase solved) with the model covering ≥ 90 % of the true myocardium (errors are
+measured on the particles, so a model short of the base would pass on what it has). The summary
+gives the worst and the median of each measure and the number of cases passing.
 
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep]
 
@@ -39,6 +41,9 @@ from mlv_ros import bagio, qos
 from mlv_ros.tools.run import groundtruth_accuracy
 
 MUST = {"median_mm": 1.0, "p95_mm": 2.5, "twist_error_deg": 2.0}
+# Errors are measured on the model's particles: a model that misses the base scores well on what
+# it has. Passing also needs the model to cover this much of the true myocardium.
+MIN_COVERAGE = 0.9
 GOAL_MEDIAN_MM = 0.5
 BIN = Path(sys.executable).parent
 
@@ -82,9 +87,11 @@ def run_case(seed: int, out: Path, timeout: float) -> dict:
     case["es"] = {k: round(es[k], 3) for k in ("median_mm", "p95_mm", "twist_error_deg", "radius_error_mm")
                   if k in es}
     case["inside_myocardium"] = round(acc["inside_myocardium"], 3)
+    case["coverage"] = round(acc["coverage"], 3)
     case["worst_phase_median_mm"] = round(max(r["median_mm"] for r in acc["per_phase"]), 3)
     every_phase = case["phases_solved"] is not None and case["phases_solved"] == case["num_phases"]
-    case["pass"] = bool(every_phase and all(case["es"].get(k, float("inf")) <= v for k, v in MUST.items()))
+    case["pass"] = bool(every_phase and case["coverage"] >= MIN_COVERAGE
+                        and all(case["es"].get(k, float("inf")) <= v for k, v in MUST.items()))
     return case
 
 
@@ -99,9 +106,10 @@ def summarise(cases: list[dict]) -> dict:
         v = col(key)
         if v:
             out[key] = {"worst": max(v), "median": round(statistics.median(v), 3)}
-    ins = [c["inside_myocardium"] for c in cases if "inside_myocardium" in c]
-    if ins:
-        out["inside_myocardium"] = {"worst": min(ins), "median": round(statistics.median(ins), 3)}
+    for key in ("inside_myocardium", "coverage"):
+        v = [c[key] for c in cases if key in c]
+        if v:
+            out[key] = {"worst": min(v), "median": round(statistics.median(v), 3)}
     out["at_goal_median"] = sum(c.get("es", {}).get("median_mm", 9e9) <= GOAL_MEDIAN_MM for c in cases)
     out["failing_seeds"] = [c["seed"] for c in cases if not c["pass"]]
     return out
@@ -134,7 +142,7 @@ def main():
     finally:
         if not args.out and not args.keep:
             shutil.rmtree(root, ignore_errors=True)
-    print(json.dumps({"summary": summarise(cases), "must": MUST, "cases": cases,
+    print(json.dumps({"summary": summarise(cases), "must": MUST | {"coverage": MIN_COVERAGE}, "cases": cases,
                       "out": str(root) if (args.out or args.keep) else None}, indent=1))
     return 0  # the verdict is in the JSON (summary.passing_must); other benches still run
 

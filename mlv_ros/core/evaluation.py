@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from scipy.spatial import cKDTree
+
 from mlv_ros.core.analysis import LVAnalyzer
 
 
@@ -32,10 +34,13 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
     dict
         ``per_phase``: list of {phase, median_mm, p95_mm, max_mm, rms_mm}; ``es``: the same at
         end-systole plus ``twist_error_deg`` (max over levels) and ``radius_error_mm`` when an
-        analyzer is given; ``inside_myocardium``: fraction of ED particles inside the truth.
+        analyzer is given; ``inside_myocardium``: fraction of ED particles inside the truth;
+        ``coverage``: :func:`myocardium_coverage` (errors are measured on the particles, so a
+        model that misses the base scores well on what it has: this says what it misses).
     """
     X = np.asarray(X_ed, dtype=np.float64)
-    out = {"per_phase": [], "inside_myocardium": float(np.mean(motion.inside_myocardium(X)))}
+    out = {"per_phase": [], "inside_myocardium": float(np.mean(motion.inside_myocardium(X))),
+           "coverage": myocardium_coverage(X, motion)}
     for phase in sorted(positions):
         err = np.linalg.norm(np.asarray(positions[phase]) - motion.position(X, phase), axis=1)
         row = {"phase": int(phase), "median_mm": float(np.median(err)), "p95_mm": float(np.percentile(err, 95)),
@@ -60,3 +65,30 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
     out["es_phase"] = es
     out["es"] = next((r for r in out["per_phase"] if r["phase"] == es), None)
     return out
+
+
+def myocardium_coverage(X_ed: np.ndarray, motion, n: int = 4000, seed: int = 0) -> float:
+    """Fraction of the true ED myocardium that the model covers.
+
+    A uniform sample of the truth's myocardium counts as covered where a particle lies within
+    twice the particles' median nearest-neighbour spacing.
+
+    Parameters
+    ----------
+    X_ed : ndarray, shape (N, 3)
+        Registered ED particles, mm.
+    motion : LVMotion
+        Ground truth (``sample_myocardium``).
+    n, seed : int
+        Sample size and its seed.
+
+    Returns
+    -------
+    float
+        0..1.
+    """
+    X = np.asarray(X_ed, dtype=np.float64)
+    tree = cKDTree(X)
+    spacing = float(np.median(tree.query(X, k=2)[0][:, 1]))
+    dist, _ = tree.query(motion.sample_myocardium(n, seed=seed))
+    return float(np.mean(dist <= 2.0 * spacing))

@@ -45,6 +45,7 @@ def run(args) -> int:
             "max_radius_error_mm": round(es.get("radius_error_mm", float("nan")), 2)},
         "worst_phase_median_mm": round(max(r["median_mm"] for r in acc["per_phase"]), 3),
         "particles_inside_true_myocardium": round(acc["inside_myocardium"], 4),
+        "true_myocardium_covered": round(acc["coverage"], 4),
     }
     (out / "accuracy.json").write_text(json.dumps(acc, indent=2))
     print(json.dumps(result, indent=2))

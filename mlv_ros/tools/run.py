@@ -233,6 +233,7 @@ def run(args) -> int:
                else groundtruth_accuracy(Path(summary["mcap"]), truth))
         summary["accuracy"] = {"es_phase": acc.get("es_phase"), "es": acc.get("es"),
                                "inside_myocardium": acc.get("inside_myocardium"),
+                               "coverage": acc.get("coverage"),
                                "per_phase": acc.get("per_phase")}
         Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (

@@ -315,13 +315,19 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         endo_pts.append(pn)
         we.append(np.full(len(pe), w))
         wn.append(np.full(len(pn), w))
+    # Where the long axis crosses each segmented SA slice: myocardium reaches at least the most
+    # basal of them.
+    z_sa_top = max(float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir)
+                   for k in usable_sa)
     if z_bases:
         z_base = float(np.median(z_bases))
+        if z_base < z_sa_top:
+            # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice above it.
+            warnings.append(f"LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA slice; "
+                            "the base is taken at that slice")
+            z_base = z_sa_top
     else:
-        zs = [float((by_key[k].geometry.image_position - axis_pt) @ axis_dir) for k in usable_sa]
-        z_sa = [float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir) for k in usable_sa]
-        del zs
-        z_base = max(z_sa) + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
+        z_base = z_sa_top + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
     shape = reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
     particles0 = sample_particles(shape, int(num_particles), seed)
     mframe, polar = model_frame(shape, particles0)
