@@ -35,6 +35,7 @@ class MeshlessSolver(GraphNode):
         self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
         self.hourglass_weight = self.param("hourglass_weight", 1.0e3, "MLS fit-error (zero-energy mode) stiffness relative to elasticity", min_value=0.0, max_value=1e9)
         self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
+        self.global_prior = self.param("global_prior", 1.0, "prior holding the global parameters at the previous phase, counted like this many control points (0 = off)", min_value=0.0, max_value=1e5)
         self.longitudinal_weight = self.param("longitudinal_weight", 3.0e3, "stiffness against local stretch along the long axis, in units of the shear modulus (0 = off): only LA tags measure it", min_value=0.0, max_value=1e9)
         self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100)
         self.twist_smoothing = self.param("twist_smoothing", 0.3, "curvature penalty of the twist function", min_value=1e-6, max_value=1e5)
@@ -89,7 +90,7 @@ class MeshlessSolver(GraphNode):
             self.tracker = MotionTracker(
                 pts, s.translation, s.rotation, polar=(c["alpha"], c["beta"], c["w"]),
                 shape=(s.a0, s.a1, s.a2, s.a3, s.tau), data_weight=self.data_weight, hourglass_weight=self.hourglass_weight,
-                volume_weight=self.volume_weight, longitudinal_weight=self.longitudinal_weight, twist_knots=self.twist_knots, twist_smoothing=self.twist_smoothing,
+                volume_weight=self.volume_weight, longitudinal_weight=self.longitudinal_weight, global_prior=self.global_prior, twist_knots=self.twist_knots, twist_smoothing=self.twist_smoothing,
                 slice_following=self.slice_following, max_iterations=self.max_iterations)
         except ValueError as exc:
             self.report(ERROR, "cannot build the model from the registration", reason=str(exc))

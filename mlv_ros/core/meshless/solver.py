@@ -373,14 +373,20 @@ class MeshlessModel:
         prec = kappa * diag_data + self._kdiag + self._eps_delta
         return q, pq, prec
 
-    def _lm_step(self, dmat, fq, res, mu_lm, residual_fn):
+    def _lm_step(self, dmat, fq, res, mu_lm, residual_fn, prior=None):
         """One Levenberg–Marquardt step ``Δ = (D + μ)⁻¹ f_q`` in Jacobi-scaled coordinates.
 
         Directions the data cannot see (the a0 ↔ a1..a3 gauge; parameters left unconstrained by
         too few or in-plane-only control points) are dropped instead of inverted. μ shrinks
-        after a step that lowers the residual and grows (up to 12 tries) otherwise.
+        after a step that lowers the residual and grows (up to 12 tries) otherwise. ``prior``
+        ``(G, s)`` adds ``(s + Δ)ᵀ G (s + Δ)`` to the cost (``s``: the steps taken so far).
         """
-        cost = float(np.einsum("ma,ma->", res, res))
+        def prior_cost(step):
+            return 0.0 if prior is None else float((prior[1] + step) @ prior[0] @ (prior[1] + step))
+
+        if prior is not None:
+            dmat, fq = dmat + prior[0], fq - prior[0] @ prior[1]
+        cost = float(np.einsum("ma,ma->", res, res)) + prior_cost(np.zeros_like(fq))
         scale = np.sqrt(np.diag(dmat))
         scale = np.where(scale > 1e-12 * max(scale.max(), 1e-300), scale, np.inf)
         evals, evecs = np.linalg.eigh(dmat / np.outer(scale, scale))
@@ -389,7 +395,7 @@ class MeshlessModel:
         for _ in range(12):
             step = (evecs[:, keep] @ (fn[keep] / (evals[keep] + mu_lm))) / scale
             res_t = residual_fn(self.params.stepped(step))
-            if float(np.einsum("ma,ma->", res_t, res_t)) <= cost:
+            if float(np.einsum("ma,ma->", res_t, res_t)) + prior_cost(step) <= cost:
                 return step, max(mu_lm / 3.0, 1e-9)
             mu_lm *= 4.0
         return np.zeros_like(fq), mu_lm
@@ -399,7 +405,7 @@ class MeshlessModel:
             local: bool = True, data_weight: float = 100.0,
             global_update: str = "gauss-newton", local_update: str = "solve",
             dt: float = 1.0, local_start: float = 1e-3, cg_maxiter: int = 100,
-            cg_rtol: float = 1e-3, refresh_every: int = 5,
+            cg_rtol: float = 1e-3, refresh_every: int = 5, global_prior: float = 0.0,
             callback: Callable[[int, "MeshlessModel"], None] | None = None) -> FitResult:
         """Fit the model to control-point targets (one cardiac phase).
 
@@ -439,6 +445,13 @@ class MeshlessModel:
             over iterations).
         refresh_every : int
             Re-estimate the kernel support every this many iterations (0 = never).
+        global_prior : float
+            Gauss–Newton only: weight of a prior holding the global parameters where the fit
+            started (the previous phase when warm-started): the mean squared particle motion
+            their change causes, counted like this many control points' squared residuals
+            (0 = off). Directions many control points constrain barely feel it; directions few
+            or none see (axial scale from SA-only points, a rotation from points on one side)
+            stay put instead of wandering to whatever fits the in-plane residuals a hair better.
         callback : callable, optional
             ``callback(iteration, model)`` after every iteration.
 
@@ -475,6 +488,12 @@ class MeshlessModel:
         phi_t = phi.T.tocsr()
         kappa = data_weight * float(np.median(self._kdiag))
         vol = self.phyxels.volume
+        prior = None
+        if global_prior > 0.0 and global_update == "gauss-newton":
+            lall = reduce_rotation(model_jacobian(self.params, self.coords, self.local_deformation),
+                                   self.params.rotation)
+            gmat = float(global_prior) * np.einsum("nak,nal->kl", lall, lall) / lall.shape[0]
+            prior = (gmat, np.zeros(gmat.shape[0]))
 
         def ctrl_positions(params, d_s):
             p = global_shape(coords_s, params.a, params.tau) + d_s
@@ -505,7 +524,9 @@ class MeshlessModel:
             cg_its, ran_local = 0, False
             # ---- global stage (eq. 15)
             if global_update == "gauss-newton":
-                step, mu_lm = self._lm_step(dmat, fq, res, mu_lm, lambda p: residual(p, d_s))
+                step, mu_lm = self._lm_step(dmat, fq, res, mu_lm, lambda p: residual(p, d_s), prior)
+                if prior is not None:
+                    prior = (prior[0], prior[1] + step)
             else:
                 if d_diag_const is None:  # paper: D diagonal and constant over time
                     dd = np.diag(dmat)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, GaborMaps, TagInputError, TagParameters,
@@ -210,7 +211,8 @@ def estimate_grid(image, mask=None, score_region=None,
                   spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX)) -> TagParameters:
     """Tag spacing and directions of one image, chosen by the image's own Gabor responses.
 
-    Candidates come from the spectrum of the region (``mask``) and of the whole image, each
+    Candidates come from the spectrum of the region (``mask``), of the whole image and of the
+    whole image less its running median (a bright region's outline removed), each
     measured against the tag band's median and against its own frequency ring
     (:func:`~mlv_ros.core.tags.gabor.estimate_tag_parameters` with and without ``whiten``): on a
     thin tagged wall the tag peak is spread over its ring, on a high-contrast background the
@@ -246,11 +248,22 @@ def estimate_grid(image, mask=None, score_region=None,
     thresholds = {False: PERMISSIVE_PEAK_RATIO, True: PERMISSIVE_WHITENED_PEAK_RATIO} if region is not None else {}
     cands: list[TagParameters] = []
     reasons = []
-    for spec_region in ((mask, None) if mask is not None else (None,)):
+    # Also the image less its running median over the longest period: the median follows a
+    # uniform region brighter than the tagged wall (a bright blood pool, an LA cavity with its
+    # flat basal cut) edge and all, so its outline, whose spectrum falls off as 1/frequency and
+    # out-weighed a thin wall's tags in LA views (15 mm "grids" found for 9 mm tags), leaves the
+    # tag band, while the tags, finer than the window, stay (as segment.tag_wavevectors does).
+    # Only where a region can score the extra candidates.
+    sources = [(img, mask)] if mask is not None else []
+    sources.append((img, None))
+    if region is not None:
+        size = int(np.ceil(spacing_range_px[1])) | 1
+        sources.append((img - ndi.median_filter(img, size=size, mode="reflect"), None))
+    for source, spec_region in sources:
         for whiten in (False, True):
             try:
-                p = estimate_tag_parameters(img, spec_region, *spacing_range_px, min_peak_ratio=thresholds.get(whiten),
-                                            whiten=whiten)
+                p = estimate_tag_parameters(source, spec_region, *spacing_range_px,
+                                            min_peak_ratio=thresholds.get(whiten), whiten=whiten)
             except TagInputError as exc:
                 reasons.append(str(exc))
                 continue
