@@ -35,7 +35,8 @@ instead of the paper's learned one):
   point, one wall per ray, radii smoothed over angle.
 * LA — the horseshoe: rays from a point on the long axis inside the cavity; rays toward the base
   find no myocardium (atrium), the contiguous arc that does is the horseshoe, cut flat at the
-  base level perpendicular to the axis.
+  base level perpendicular to the axis. Stretches of wall too faint for the energy (tagged
+  surroundings) are bridged where the geometry rules out the opening (:func:`_la_from_runs`).
 """
 
 from __future__ import annotations
@@ -820,14 +821,118 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     return _la_from_runs(img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg)
 
 
+def _enclosed_gaps(valid: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Gaps between valid rays that lie wholly among ``allowed`` rays.
+
+    Parameters
+    ----------
+    valid, allowed : ndarray of bool, shape (K,)
+        Per ray, circular.
+
+    Returns
+    -------
+    ndarray of bool, shape (K,)
+        The rays of every circular run of ``~valid`` that is all ``allowed``.
+    """
+    out = np.zeros(valid.size, bool)
+    if not valid.any():
+        return out
+    start = int(np.flatnonzero(valid)[0])
+    v, a = np.roll(valid, -start), np.roll(allowed, -start)
+    d = np.diff(np.concatenate([[0], (~v).astype(np.int8), [0]]))
+    for s0, e0 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+        if a[s0:e0].all():
+            out[s0:e0] = True
+    return np.roll(out, start)
+
+
+def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
+    """Carry the lower end of the horseshoe across gaps up to the level of the other end.
+
+    The LA plane contains the long axis and the base plane is perpendicular to it, so the
+    two ends of the horseshoe lie at one level along the axis. When one end stops more than a
+    wall thickness below the other, its side wall was lost over a stretch (too faint for the
+    energy; the wall around the cavity is one cup, so rays between the cup's rim and the apex
+    all meet it): the next stretch of wall beyond that gap, on the same side of the base
+    direction, continues the horseshoe as long as it does not rise more than a wall thickness
+    above the other end (beyond the base lie the atrium's edges, not the LV wall). Gaps
+    crossed are filled by linear interpolation of the radii. A wall thickness (median over the
+    arc) is the tolerance: an end stops where the blurred wall's run fades under the threshold,
+    within about a wall's width of the base, and an axis estimated a few degrees off tilts
+    the two ends by less across the cavity. Both ends low (both sides lost) is left as it is.
+
+    Parameters
+    ----------
+    arc : ndarray of int
+        Rays of the horseshoe in increasing circular order.
+    valid : ndarray of bool, shape (K,)
+    endo, epi : ndarray, shape (K,)
+    angles : ndarray, shape (K,)
+    ax : ndarray, shape (2,)
+        Unit axis direction apex → base, (row, col).
+    base_dir : float
+        Its angle, rad.
+
+    Returns
+    -------
+    arc, endo, epi
+    """
+    k = valid.size
+    phi = (angles - base_dir + np.pi) % (2.0 * np.pi) - np.pi     # 0: toward the base
+    endo, epi = endo.copy(), epi.copy()
+    arc = [int(i) for i in arc]
+
+    def level(i):
+        return 0.5 * (max(endo[i], 0.0) + epi[i]) * np.cos(phi[i])
+
+    while len(arc) < k:
+        tol = float(np.median(epi[arc] - np.maximum(endo[arc], 0.0)))
+        za, zb = level(arc[0]), level(arc[-1])
+        if abs(za - zb) <= tol:
+            break
+        end, step = (arc[0], -1) if za < zb else (arc[-1], 1)
+        side = np.sign(phi[end])
+        gap, i = [], (end + step) % k
+        while not valid[i] and np.sign(phi[i]) == side and len(gap) < k:
+            gap.append(i)
+            i = (i + step) % k
+        stretch = []
+        while valid[i] and np.sign(phi[i]) == side and i not in arc:
+            stretch.append(i)
+            i = (i + step) % k
+        if not gap or not stretch or level(stretch[-1]) > max(za, zb) + tol:
+            break
+        for n, g in enumerate(gap, 1):
+            w = n / (len(gap) + 1.0)
+            endo[g] = (1.0 - w) * endo[end] + w * endo[stretch[0]]
+            epi[g] = (1.0 - w) * epi[end] + w * epi[stretch[0]]
+        arc = arc + gap + stretch if step > 0 else stretch[::-1] + gap[::-1] + arc
+    return np.array(arc), endo, epi
+
+
 def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
-    """Horseshoe arc, base cut and rasterisation of the LA rays' wall runs."""
+    """Horseshoe arc, base cut and rasterisation of the LA rays' wall runs.
+
+    The horseshoe is the arc of rays that meet the wall, the atrium's opening the rest. A
+    stretch of wall the runs miss (where the surroundings are tagged, the wall's tag energy
+    stands only a little above theirs, and a side wall can fall under the detection threshold
+    over tens of degrees) would otherwise end the arc there, and the base be cut that much too
+    low: gaps that cannot be the opening are bridged (rays pointing apically of the axis point;
+    :func:`_level_ends` for the side walls).
+    """
     valid = np.isfinite(epi) & (epi < rmax - 1)
+    base_dir = np.arctan2(ax[0], ax[1])
     # Bridge gaps of a few rays (noise, a wall locally thinner than the smallest run): the
     # atrium's opening is tens of degrees wide.
     gap = int(round(LA_MAX_GAP_DEG * NUM_RAYS / 360.0))
+    met = valid
     if valid.any() and not valid.all():
         closed = ndi.binary_closing(np.concatenate([valid] * 3), structure=np.ones(gap + 1, bool))[NUM_RAYS:2 * NUM_RAYS]
+        met = closed.copy()
+        # Gaps of any width among the rays that point apically of the axis point: the point
+        # lies in the cavity, below the base plane, so those rays never reach the opening and
+        # each meets the wall.
+        closed |= _enclosed_gaps(valid, np.cos(angles - base_dir) < 0)
         fill = closed & ~valid
         if fill.any():
             endo, epi = endo.copy(), epi.copy()
@@ -847,10 +952,12 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     s_idx, e_idx = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
     j = int(np.argmax(e_idx - s_idx))
     arc = (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
-    arc_deg = arc.size * 360.0 / NUM_RAYS
+    if np.cos(angles[arc[arc.size // 2]] - base_dir) < 0:
+        arc, endo, epi = _level_ends(arc, valid, endo, epi, angles, ax, base_dir)
+    # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
+    arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
     if arc_deg < min_arc_deg:
         return _fail(shape, f"horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})", "LA")
-    base_dir = np.arctan2(ax[0], ax[1])
     mid_arc = angles[arc[arc.size // 2]]
     if np.cos(mid_arc - base_dir) > 0:
         return _fail(shape, "horseshoe opens toward the apex (long-axis orientation inconsistent)", "LA")
