@@ -160,3 +160,29 @@ def test_twist_function_needs_enough_sa_slices(study):
     assert spread.twist_coefficients.size == 11
     assert np.percentile(spread_err, 95) < np.percentile(tau_err, 95) + 0.1, (np.percentile(spread_err, 95),
                                                                               np.percentile(tau_err, 95))
+
+
+@pytest.mark.parametrize("prescreen", [False, True])
+def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
+    """30 % of the tracks slip by one tag period (8 mm) at phase 4: screened against the previous
+    phase's motion they are dropped before they drag the fit (without the screen the global fit
+    follows them: median 2.4 mm)."""
+    m = study.motion
+    X, tr = make_tracker(study)
+    tr.prescreen = prescreen
+    refs = grid_tags(study)
+    for key, g in study.geometries.items():
+        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    rng = np.random.default_rng(0)
+    for phase in range(1, 5):
+        sets = observed(study, refs, phase)
+        if phase == 4:
+            for key, s in sets.items():
+                slipped = rng.random(len(s.track_id)) < 0.3
+                s.position = s.position + slipped[:, None] * 8.0 * study.geometries[key].row_direction
+        sol = tr.solve(phase, sets, m.num_phases)
+    err = np.linalg.norm(sol.positions - m.position(X, 4), axis=1)
+    if prescreen:
+        assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (np.median(err), np.percentile(err, 95))
+    else:  # the premise
+        assert np.median(err) > 1.0, np.median(err)

@@ -189,6 +189,7 @@ class MotionTracker:
         self._kdiag = None
         self._hourglass = None
         self.outlier_mm = 3.0
+        self.prescreen = True
         self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
@@ -270,6 +271,17 @@ class MotionTracker:
             if inside.sum() < 4:
                 raise ValueError(f"phase {phase_index}: only {int(inside.sum())} tag points lie inside the model")
             ctrl = self.model.attach(pos[inside])
+            if self.prescreen:
+                # A track that slipped by a tag period sits a period away from where the previous
+                # phase's motion puts it, while its neighbours sit within the phase-to-phase
+                # motion: screen against that prediction before the first fit can be dragged.
+                pre = self._outliers(ctrl.weights @ self.positions, targets[inside], normals[inside])
+                if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
+                    keep = np.flatnonzero(inside)[~pre]
+                    inside = np.zeros_like(inside)
+                    inside[keep] = True
+                    self.rejected += int(pre.sum())
+                    ctrl = self.model.attach(pos[inside])
             result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                     tol=self.tol, local=False, global_prior=self.global_prior)
             # Robustness: a track that swapped identity or drifted leaves a residual far beyond
