@@ -15,7 +15,8 @@ from scipy.spatial import cKDTree
 from mlv_ros.core.analysis import LVAnalyzer
 
 
-def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer | None = None) -> dict:
+def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer | None = None,
+                 sa_span=None) -> dict:
     """Errors of tracked positions against the ground-truth motion.
 
     Parameters
@@ -28,6 +29,11 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
         Ground truth (:func:`mlv_ros.core.sim.make_motion`).
     analyzer : LVAnalyzer, optional
         For per-level twist / radius errors.
+    sa_span : (float, float), optional
+        Lowest and highest SA slice as level positions (0 apex … 1 base): adds
+        ``twist_error_measured_deg``, the twist error over the levels the SA stack spans (beyond
+        it SA tags, the only ones that see circumferential motion, are absent and twist is
+        extrapolated).
 
     Returns
     -------
@@ -50,6 +56,13 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
             true = analyzer.phase(motion.position(X, phase), phase_index=phase, num_phases=motion.num_phases)
             if got.twist_deg.size == true.twist_deg.size and got.twist_deg.size:
                 row["twist_error_deg"] = float(np.max(np.abs(got.twist_deg - true.twist_deg)))
+                if sa_span is not None:
+                    pos = np.asarray(got.level_position)
+                    half = 0.5 / max(pos.size, 1)
+                    inside = (pos >= sa_span[0] - half) & (pos <= sa_span[1] + half)
+                    if inside.any():
+                        row["twist_error_measured_deg"] = float(
+                            np.max(np.abs(got.twist_deg - true.twist_deg)[inside]))
                 row["radius_error_mm"] = float(np.max(np.abs(got.sa_radius_mm - true.sa_radius_mm)))
                 row["true_twist_range_deg"] = float(np.ptp(true.twist_deg))
             if got.segment_ecc.size == true.segment_ecc.size == 17:

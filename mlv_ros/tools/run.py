@@ -135,10 +135,11 @@ def read_run(mcap: Path) -> dict:
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import PointCloud2
 
-    from mlv_msgs.msg import ModelState, MotionMetrics
+    from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
     from mlv_ros import bagio, conversions, qos
 
-    run = {"positions": {}, "states": {}, "metrics": {}, "ed": None, "rotation": None, "frames": 0}
+    run = {"positions": {}, "states": {}, "metrics": {}, "ed": None, "rotation": None, "frames": 0,
+           "sa_planes": []}  # (point, normal) of every SA plane with ED tag points
     stamps = {}
     clouds = {}
     for m in bagio.read_bag(mcap):
@@ -158,6 +159,11 @@ def read_run(mcap: Path) -> dict:
             run["metrics"][d["phase_index"]] = d
         elif m.topic == qos.FRAMES:
             run["frames"] += 1
+        elif m.topic == qos.TAG_POINTS:
+            msg = deserialize_message(m.data, TagPoints)
+            if msg.view == TaggedFrame.VIEW_SA and msg.phase_index == 0 and len(msg.track_id):
+                g = conversions.msg_to_geometry(msg.geometry)
+                run["sa_planes"].append((g.image_position, g.normal))
     for key, x in clouds.items():
         if key in stamps:
             run["positions"][stamps[key]] = x
@@ -181,7 +187,12 @@ def _accuracy(run: dict, motion) -> dict:
 
     apex, base, ref = lv_frame_axes(run["ed"], run["rotation"])
     analyzer = LVAnalyzer(run["ed"], LVFrame(apex, base, ref))
-    return evaluate_run(run["ed"], run["positions"], motion, analyzer)
+    span = None
+    if run.get("sa_planes"):
+        axis = base - apex
+        h = [float((p - apex) @ n / (axis @ n)) for p, n in run["sa_planes"] if abs(axis @ n) > 1e-6]
+        span = (min(h), max(h)) if h else None
+    return evaluate_run(run["ed"], run["positions"], motion, analyzer, sa_span=span)
 
 
 def groundtruth_accuracy(mcap: Path, groundtruth: Path) -> dict:
