@@ -24,9 +24,8 @@ import time
 
 import numpy as np
 
-from mlv_ros.core.io.dicom import estimate_long_axis
 from mlv_ros.core.registration import segment as seg
-from mlv_ros.core.registration.register import _axis_in_plane, _fov_centre
+from mlv_ros.core.registration import segment_around_axis
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices
 from mlv_ros.core.sim.motion import LVMotion
@@ -127,26 +126,6 @@ def stream_masks(frames: list) -> dict:
     return {(f.view, f.slice_index): m.ed_mask(f) for f in frames}
 
 
-def batch_masks(frames: list) -> dict:
-    """``{key: (mask or None, reason)}`` around the geometric long axis, as :func:`register_ed`."""
-    sa = [f for f in frames if f.view == VIEW_SA]
-    la = [f for f in frames if f.view == VIEW_LA]
-    est = estimate_long_axis([f.geometry for f in sa], [f.geometry for f in la],
-                             np.array([_fov_centre(f) for f in sa]))
-    out = {}
-    for f in frames:
-        g, sp = f.geometry, f.geometry.row_spacing
-        if f.view == VIEW_SA:
-            x = _axis_in_plane(g, est.point, est.direction)
-            s = seg.segment_sa(f.image, g.patient_to_pixel(x)[0], sp)
-        else:
-            c, _ = g.patient_to_pixel(est.point)
-            ax = np.array([est.direction @ g.column_direction, est.direction @ g.row_direction])
-            s = seg.segment_la(f.image, c, ax, sp)
-        out[(f.view, f.slice_index)] = (s.mask if s.ok else None, s.reason)
-    return out
-
-
 def score(masks: dict, truth: dict) -> dict:
     """Per-view Dice summary; a failed slice scores 0 and its reason is kept."""
     out = {}
@@ -176,7 +155,7 @@ def main():
         row = {"case": name, "spec": spec, "size": int(frames[0].image.shape[0])}
         for path in a.paths:
             t0 = time.perf_counter()
-            masks = stream_masks(frames) if path == "stream" else batch_masks(frames)
+            masks = stream_masks(frames) if path == "stream" else segment_around_axis(frames)
             row[path] = score(masks, truth)
             row[path]["seconds"] = round(time.perf_counter() - t0, 2)
         results.append(row)

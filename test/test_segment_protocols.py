@@ -14,9 +14,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mlv_ros.core.io.dicom import estimate_long_axis
 from mlv_ros.core.registration import segment as seg
-from mlv_ros.core.registration.register import _axis_in_plane, _fov_centre
+from mlv_ros.core.registration import segment_around_axis
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices
 from mlv_ros.core.sim.motion import LVMotion
@@ -68,24 +67,6 @@ def rendered():
     return {name: render_ed(spec) for name, spec in CASES.items()}
 
 
-def _axis_masks(frames):
-    """Masks around the geometric long axis, as register_ed segments."""
-    sa = [f for f in frames if f.view == VIEW_SA]
-    la = [f for f in frames if f.view == VIEW_LA]
-    est = estimate_long_axis([f.geometry for f in sa], [f.geometry for f in la],
-                             np.array([_fov_centre(f) for f in sa]))
-    out = {}
-    for f in frames:
-        g, sp = f.geometry, f.geometry.row_spacing
-        if f.view == VIEW_SA:
-            s = seg.segment_sa(f.image, g.patient_to_pixel(_axis_in_plane(g, est.point, est.direction))[0], sp)
-        else:
-            ax = np.array([est.direction @ g.column_direction, est.direction @ g.row_direction])
-            s = seg.segment_la(f.image, g.patient_to_pixel(est.point)[0], ax, sp)
-        out[(f.view, f.slice_index)] = (s.mask if s.ok else None, s.reason)
-    return out
-
-
 def _check(masks, truth):
     for k, (mask, why) in masks.items():
         assert mask is not None, f"{k}: {why}"
@@ -104,7 +85,7 @@ def test_streaming_masker(rendered, case):
 @pytest.mark.parametrize("case", ["grid45_dark", "px1.9_period10"])
 def test_around_the_geometric_axis(rendered, case):
     frames, truth = rendered[case]
-    _check(_axis_masks(frames), truth)
+    _check(segment_around_axis(frames), truth)
 
 
 def test_intensity_scale_changes_nothing(rendered):
@@ -113,7 +94,7 @@ def test_intensity_scale_changes_nothing(rendered):
         masks = [StreamingMasker().ed_mask(dataclasses.replace(f, image=f.image * s))[0]
                  for s in (1.0, 0.01, 1000.0)]
         if f.view == VIEW_LA:   # LA needs the axis from SA centres: use the axis path
-            masks = [_axis_masks([g for g in frames if g.view == VIEW_SA]
+            masks = [segment_around_axis([g for g in frames if g.view == VIEW_SA]
                                  + [dataclasses.replace(f, image=f.image * s)])[(f.view, f.slice_index)][0]
                      for s in (1.0, 0.01, 1000.0)]
         assert masks[0] is not None

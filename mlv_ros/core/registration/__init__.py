@@ -14,7 +14,7 @@ landmarks), :mod:`.initialise` (3-D reconstruction, particles, polar frame), :mo
 """
 
 from mlv_ros.core.registration.register import (  # noqa: F401
-    MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed,
+    MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed, segment_around_axis,
 )
 from mlv_ros.core.registration.streaming import StreamingMasker  # noqa: F401,E402
 from mlv_ros.core.registration.nifti import masks_for_frames  # noqa: F401,E402

@@ -167,6 +167,40 @@ def _contour_landmarks(s: seg.SliceSegmentation, which: str, n: int) -> np.ndarr
 
 
 # --------------------------------------------------------------------------- main
+def segment_around_axis(frames: list) -> dict:
+    """Automatic ED segmentation of every frame around the geometric long axis, as
+    :func:`register_ed` segments (the batch counterpart of :class:`StreamingMasker`).
+
+    Parameters
+    ----------
+    frames : list of Frame
+        ED frames of one study (SA and LA).
+
+    Returns
+    -------
+    dict
+        ``{(view, slice_index): (mask or None, reason)}``; ``reason`` is empty on success.
+    """
+    sa = [f for f in frames if f.view == VIEW_SA]
+    la = [f for f in frames if f.view != VIEW_SA]
+    est = estimate_long_axis([f.geometry for f in sa], [f.geometry for f in la],
+                             np.array([_fov_centre(f) for f in sa]))
+    out = {}
+    for f in frames:
+        g, sp = f.geometry, f.geometry.row_spacing
+        if f.view == VIEW_SA:
+            x = _axis_in_plane(g, est.point, est.direction)
+            if x is None:
+                out[(f.view, f.slice_index)] = (None, "SA plane is nearly parallel to the long axis")
+                continue
+            s = seg.segment_sa(f.image, g.patient_to_pixel(x)[0], sp)
+        else:
+            axis_rc = np.array([est.direction @ g.column_direction, est.direction @ g.row_direction])
+            s = seg.segment_la(f.image, g.patient_to_pixel(est.point)[0], axis_rc, sp)
+        out[(f.view, f.slice_index)] = (s.mask if s.ok else None, s.reason)
+    return out
+
+
 def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int = 0, *,
                 landmarks_per_sa_slice: int = LANDMARKS_PER_SA_SLICE, max_iterations: int = 20,
                 local_iterations: int = 0, data_weight: float = 100.0, reference_direction=None) -> RegistrationResult:
