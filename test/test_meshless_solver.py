@@ -181,3 +181,10 @@ def test_global_prior_holds_what_the_points_cannot_see():
         axial[prior] = float(np.percentile(np.abs(model.positions()[:, 2] - x[:, 2]), 95))
     assert axial[0.0] > 10.0, axial      # the premise: unseen directions do wander
     assert axial[1.0] < 3.0, axial
+
+
+@pytest.mark.parametrize("prior", [-1.0, float("nan")])
+def test_bad_global_prior_is_a_clear_error(phantom, prior):
+    x, model = phantom
+    with pytest.raises(ValueError, match="global_prior"):
+        model.fit(np.arange(10), x[:10], global_prior=prior)

@@ -186,3 +186,10 @@ def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
         assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (np.median(err), np.percentile(err, 95))
     else:  # the premise
         assert np.median(err) > 1.0, np.median(err)
+
+
+@pytest.mark.parametrize("option", [{"longitudinal_weight": -1.0}, {"longitudinal_weight": float("nan")},
+                                    {"global_prior": -0.5}, {"global_prior": float("inf")}])
+def test_bad_solver_weights_are_clear_errors(study, option):
+    with pytest.raises(ValueError, match=next(iter(option))):
+        make_tracker(study, n=300, **option)

@@ -463,7 +463,7 @@ class MeshlessModel:
         ------
         ValueError
             No control points, target/normal shape mismatch, NaN/inf targets or normals, unknown
-            update scheme.
+            update scheme, negative or non-finite ``global_prior``.
         """
         t0 = time.perf_counter()
         ctrl = control if isinstance(control, ControlPoints) else self.attach(control)
@@ -478,6 +478,8 @@ class MeshlessModel:
             raise ValueError(f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}")
         if local_update not in ("solve", "explicit"):
             raise ValueError(f"local_update must be 'solve' or 'explicit', got {local_update!r}")
+        if not (np.isfinite(global_prior) and global_prior >= 0.0):
+            raise ValueError(f"global_prior must be finite and >= 0, got {global_prior}")
         if not warm_start:
             self.reset()
 
