@@ -74,7 +74,8 @@ def test_overflow_late_join_and_restart_are_reported(ros_context, executor, tmp_
 
     # A second (VOLATILE) subscriber joining now misses everything published so far, and says so.
     late = Recorder(context=ros_context, parameter_overrides=[
-        Parameter("output", value=str(tmp_path / "late.mcap")), Parameter("topics", value=[qos.FRAMES])])
+        Parameter("output", value=str(tmp_path / "late.mcap")), Parameter("topics", value=[qos.FRAMES]),
+        Parameter("catch_up", value=False)])
     executor.add_node(late)
     assert spin_until(executor, lambda: pub.get_subscription_count() >= 2, 10)
     pub.publish(frame)
@@ -93,6 +94,25 @@ def test_overflow_late_join_and_restart_are_reported(ros_context, executor, tmp_
     rec.finish()
     late.finish()
     assert bagio.bag_topics(out)[qos.FRAMES]["count"] == recorded + 2  # + the late-join and restart frames
+
+
+def test_a_recorder_that_joins_late_takes_the_history(ros_context, executor, tmp_path):
+    """Across a network the recorder may match the tag detector only after its first sets went
+    out; with ``catch_up`` (the default) it takes them from the publisher's history."""
+    src = Node("early_source", context=ros_context)
+    frame = conversions.frame_to_msg(pattern_frames(num_phases=1, size=32)[0])
+    pub = src.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
+    executor.add_node(src)
+    for _ in range(5):
+        pub.publish(frame)
+    out = tmp_path / "late.mcap"
+    rec = Recorder(context=ros_context, parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("topics", value=[qos.FRAMES])])
+    executor.add_node(rec)
+    assert spin_until(executor, lambda: rec.streams[qos.FRAMES].received == 5, 10), rec.streams[qos.FRAMES]
+    assert rec.streams[qos.FRAMES].missed == 0
+    rec.finish()
+    assert bagio.bag_topics(out)[qos.FRAMES]["count"] == 5
 
 
 def test_a_publisher_that_cannot_reach_a_subscription_is_reported(ros_context, executor):

@@ -31,6 +31,10 @@ class Recorder(GraphNode):
         self.flush_period_s = self.param("flush_period_s", 1.0, "push completed chunks to disk this often", min_value=0.05, max_value=60.0)
         chunk_kib = self.param("chunk_size_kib", 1024, "MCAP chunk size, KiB", min_value=16, max_value=65536)
         compression = self.param("compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"))
+        # A recorder that matches a publisher late (across a network, discovery takes a moment)
+        # would miss what was sent before; frames and tag points keep their history for it.
+        catch_up = self.param("catch_up", True, "take frames and tag points with their history (TRANSIENT_LOCAL); "
+                              "false for a publisher without history")
         unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
         if unknown:
             raise ValueError(f"cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}")
@@ -41,7 +45,7 @@ class Recorder(GraphNode):
             self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
             self.create_subscription(message_class(type_name), topic,
                                      lambda data, info, topic=topic: self._on_message(topic, data, info),
-                                     qos.subscription_qos(topic), raw=True)
+                                     qos.subscription_qos(topic, catch_up=catch_up), raw=True)
         self.create_timer(self.flush_period_s, self.writer.flush)
         self.report(OK, "recording", output=self.output, topics=len(topics))
 
