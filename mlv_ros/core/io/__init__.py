@@ -9,13 +9,16 @@ write_study_dicom(study, out_dir, pixel_scale=1000, progress=None, *, bits_store
 read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS) -> DicomReadResult
     (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series`` and
     ``.long_axis``; raises DicomReadError when nothing is usable)
+WORKING_DTYPES
+    The frames' pixel types (uint8/uint16 stored without a rescale, float32 otherwise), each
+    publishable as a sensor_msgs/Image
 write_groundtruth(study, out_dir, extra=None) -> (json_path, npz_path)
 load_groundtruth(path) -> GroundTruth
 motion_from_groundtruth(path) -> LVMotion (the exact motion, rebuilt from the JSON)
 """
 
-from mlv_ros.core.io.dicom import (DicomReadError, DicomReadResult, LongAxisEstimate, SeriesInfo,
-                                   estimate_long_axis, frame_to_dataset, read_dicom_dir,
+from mlv_ros.core.io.dicom import (WORKING_DTYPES, DicomReadError, DicomReadResult, LongAxisEstimate,
+                                   SeriesInfo, estimate_long_axis, frame_to_dataset, read_dicom_dir,
                                    write_study_dicom)
 from mlv_ros.core.io.groundtruth import (GroundTruth, load_groundtruth, motion_from_groundtruth,
                                          write_groundtruth)
@@ -23,5 +26,5 @@ from mlv_ros.core.io.groundtruth import (GroundTruth, load_groundtruth, motion_f
 __all__ = [
     "DicomReadError", "DicomReadResult", "GroundTruth", "LongAxisEstimate", "SeriesInfo",
     "estimate_long_axis", "frame_to_dataset", "load_groundtruth", "motion_from_groundtruth",
-    "read_dicom_dir", "write_groundtruth", "write_study_dicom",
+    "read_dicom_dir", "write_groundtruth", "write_study_dicom", "WORKING_DTYPES",
 ]

@@ -8,20 +8,26 @@ SeriesDescription naming SA/LA). Keyword options vary what scanners vary: 8/12/1
 any RescaleSlope/RescaleIntercept or none, the SA stack in one multi-slice series, InstanceNumber
 running across slices, random file names in nested folders.
 
-Reading (:func:`read_dicom_dir`): every file under a directory (recursive, any name) is tried;
-per-file problems are collected as ``(path, reason)`` while everything valid loads. Each file is
-checked before its pixels are read: a Part 10 header that is complete, a transfer syntax that
-matches how the pixels are stored, one greyscale frame of at most ``max_pixels`` with consistent
-Rows/Columns/BitsAllocated/BitsStored/HighBit/PixelRepresentation and a pixel data length to
-match, and plane geometry that is finite, unit, orthogonal and positive (contradictions are
-refused, not repaired); then float pixels must be finite and the rescale usable. Duplicate
-instances are skipped, and a cine missing phases (fewer images than CardiacNumberOfImages)
-keeps its phase indices and is reported in ``warnings``. Images
-are grouped by series and plane, phases ordered by TriggerTime then InstanceNumber, and each
-plane is classified from geometry alone: the largest group of parallel planes at distinct
-positions is the short-axis stack, every other plane is long-axis. The long axis is estimated
-from the LA planes' common line (or the SA normal), oriented apex → base with the anatomical
-prior that the base lies right-posterior-superior of the apex (LPS ``(−1, 1, 1)`` side).
+Reading (:func:`read_dicom_dir`): every file under a directory (recursive, any name; directory
+symlinks followed, each folder once, so a link loop ends; hidden and system files skipped) is
+tried; per-file problems are collected as ``(path, reason)`` while everything valid loads. Each
+file is checked before its pixels are read: a Part 10 header that is complete and not a DICOMDIR
+(an index: ignored with a reason, its files being read directly), a transfer syntax that matches
+how the pixels are stored and that an installed plugin decodes (otherwise the reason names the
+package), one greyscale frame (colour refused, planar configuration included in the reason) of at
+most ``max_pixels`` with consistent Rows/Columns/BitsAllocated/BitsStored/HighBit/
+PixelRepresentation and a pixel data length to match, and plane geometry that is finite, unit,
+orthogonal and positive (contradictions are refused, not repaired); then float pixels must be
+finite and the rescale usable. Pixels of any stored type (u)int8/16/32, float32/64 are converted
+once to the working type (:data:`WORKING_DTYPES`): MONOCHROME1 inverted, rescale applied, uint8/
+uint16 kept when there is no rescale, float32 otherwise. Duplicate instances are skipped, and a
+cine missing phases (fewer images than CardiacNumberOfImages) keeps its phase indices and is
+reported in ``warnings``. Images are grouped by series and plane, phases ordered by TriggerTime
+then InstanceNumber, and each plane is classified from geometry alone: the largest group of
+parallel planes at distinct positions is the short-axis stack, every other plane is long-axis.
+The long axis is estimated from the LA planes' common line (or the SA normal), oriented apex →
+base with the anatomical prior that the base lies right-posterior-superior of the apex (LPS
+``(−1, 1, 1)`` side).
 """
 
 from __future__ import annotations
@@ -54,6 +60,46 @@ _DEFER_BYTES = 256 * 1024  # values larger than this stay on disk until the head
 _UNDEFINED_LENGTH = 0xFFFFFFFF
 _PARALLEL_COS = np.cos(np.radians(5.0))
 _BASE_SIDE = np.array([-1.0, 1.0, 1.0]) / np.sqrt(3.0)
+
+
+#: Pixel types of :func:`read_dicom_dir`'s frames, each publishable as a sensor_msgs/Image
+#: (mono8, mono16, 32FC1): unsigned 8/16-bit stored values without a rescale stay as they are,
+#: everything else (signed, 32-bit, float, or any rescale) is float32 (see ``_working_pixels``).
+WORKING_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+_KEPT_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+_COLOUR_PHOTOMETRIC = ("RGB", "PALETTE COLOR", "YBR_FULL", "YBR_FULL_422", "YBR_PARTIAL_420", "YBR_PARTIAL_422",
+                       "YBR_ICT", "YBR_RCT", "ARGB", "CMYK", "HSV")
+_LIBJPEG = "pylibjpeg with pylibjpeg-libjpeg"
+_OPENJPEG = "pylibjpeg with pylibjpeg-openjpeg"
+# The PyPI packages that give pydicom a decoder for each compressed syntax (versions pinned in
+# requirements/base.txt).
+_DECODER_PACKAGES = {
+    pydicom.uid.JPEGBaseline8Bit: f"{_LIBJPEG} (or Pillow)",
+    pydicom.uid.JPEGExtended12Bit: f"{_LIBJPEG} (Pillow decodes 8-bit samples only)",
+    pydicom.uid.JPEGLossless: _LIBJPEG,
+    pydicom.uid.JPEGLosslessSV1: _LIBJPEG,
+    pydicom.uid.JPEGLSLossless: f"pyjpegls (or {_LIBJPEG})",
+    pydicom.uid.JPEGLSNearLossless: f"pyjpegls (or {_LIBJPEG})",
+    pydicom.uid.JPEG2000Lossless: f"{_OPENJPEG} (or Pillow built with OpenJPEG)",
+    pydicom.uid.JPEG2000: f"{_OPENJPEG} (or Pillow built with OpenJPEG)",
+    pydicom.uid.HTJ2KLossless: _OPENJPEG,
+    pydicom.uid.HTJ2KLosslessRPCL: _OPENJPEG,
+    pydicom.uid.HTJ2K: _OPENJPEG,
+    pydicom.uid.RLELossless: "numpy (pydicom's own decoder), or pylibjpeg with pylibjpeg-rle",
+}
+# Syntaxes no pydicom plugin decodes: what to do instead (matched on the UID's name).
+_NO_DECODER_HINTS = (
+    ("JPEG 2000 Part 2", "no PyPI plugin decodes it for pydicom: convert the files first (e.g. GDCM "
+                         "gdcmconv --raw)"),
+    ("JPIP", "the pixels are not in the file (a JPIP server reference): retrieve the images themselves"),
+    ("MPEG", "a video, not images: export the series as images"),
+    ("HEVC", "a video, not images: export the series as images"),
+    ("SMPTE", "a video or audio stream, not images: export the series as images"),
+)
+#: Names skipped without a report (operating-system and file-manager droppings); so is every
+#: name starting with "." (hidden files and folders, macOS "._*" resource forks).
+_SYSTEM_NAMES = frozenset({"thumbs.db", "ehthumbs.db", "desktop.ini", "__macosx", "$recycle.bin",
+                           "system volume information", "lost+found"})
 
 
 class DicomReadError(ValueError):
@@ -488,9 +534,26 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     if nframes not in (None, "") and _required_int(ds, "NumberOfFrames") != 1:
         raise _Skip(f"NumberOfFrames {nframes}: one 2-D frame per file expected")
     spp = _required_int(ds, "SamplesPerPixel")
-    if spp != 1:
-        raise _Skip(f"SamplesPerPixel {spp}: greyscale images (1 sample per pixel) expected")
     photometric = str(_get(ds, "PhotometricInterpretation")).strip()
+    if spp < 1:
+        raise _Skip(f"SamplesPerPixel {spp}: greyscale images (1 sample per pixel) expected")
+    if spp > 1:
+        # PlanarConfiguration (type 1 with several samples) is checked so the reason is exact;
+        # either way the image is refused: tagged MR is greyscale, and a colour rendering's
+        # grey levels are not the scanner's intensities. (With 1 sample per pixel it has no
+        # meaning, and is ignored.)
+        planar = _get(ds, "PlanarConfiguration")
+        if planar in (None, ""):
+            layout = "PlanarConfiguration missing (required with more than 1 sample per pixel)"
+        elif _required_int(ds, "PlanarConfiguration") not in (0, 1):
+            layout = f"PlanarConfiguration {planar} invalid (0 or 1)"
+        else:
+            layout = f"PlanarConfiguration {planar} = {('colour-by-pixel', 'colour-by-plane')[int(planar)]}"
+        raise _Skip(f"colour image (SamplesPerPixel {spp}, PhotometricInterpretation {photometric!r}, {layout}): "
+                    f"greyscale images (1 sample per pixel) expected; export the series as MONOCHROME2")
+    if photometric in _COLOUR_PHOTOMETRIC:
+        raise _Skip(f"colour image (PhotometricInterpretation {photometric!r} with SamplesPerPixel 1): greyscale "
+                    f"MONOCHROME1/2 expected; export the series as MONOCHROME2")
     if photometric not in ("MONOCHROME1", "MONOCHROME2"):
         raise _Skip(f"PhotometricInterpretation {photometric!r}: greyscale MONOCHROME1/2 expected")
     bits = _required_int(ds, "BitsAllocated")
@@ -510,6 +573,79 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     if sign not in (0, 1):
         raise _Skip(f"PixelRepresentation {sign}: 0 (unsigned) or 1 (signed) expected")
     return rows, cols
+
+
+def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
+    """Stored pixel values → the working type (:data:`WORKING_DTYPES`), in one conversion.
+
+    MONOCHROME1 (minimum = white) is inverted within the stored range (BitsStored and
+    PixelRepresentation; a float image within its own min..max) so that, as in MONOCHROME2,
+    bright means high signal; a reflection commutes with the linear rescale, so this equals
+    inverting the rescaled values. Then ``RescaleSlope``/``RescaleIntercept`` apply. Unsigned
+    8/16-bit values without a rescale keep their type; everything else becomes float32 (exact
+    for every integer up to 2**24 in magnitude, so for all 8/16-bit types; 32-bit integers and
+    float64 round to float32's 24-bit mantissa).
+    """
+    pixels = pixels.astype(pixels.dtype.newbyteorder("="), copy=False)  # big endian → native
+    if pixels.dtype.kind == "f":
+        bad = pixels.size - int(np.count_nonzero(np.isfinite(pixels)))
+        if bad:
+            raise _Skip(f"{tag} has {bad} non-finite value(s) (NaN/inf)")
+    elif pixels.dtype.kind not in "iu":
+        raise _Skip(f"pixel data decodes to {pixels.dtype}, not integer or float grey levels")
+    stored = pixels.dtype
+    if str(_get(ds, "PhotometricInterpretation")).strip() == "MONOCHROME1":
+        if stored.kind == "f":
+            pixels = (float(pixels.min()) + float(pixels.max())) - pixels.astype(np.float64)
+        else:
+            bits = _required_int(ds, "BitsStored")
+            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if stored.kind == "i" else (0, (1 << bits) - 1)
+            pixels = (lo + hi) - pixels.astype(np.int64)
+    slope = _numbers(ds, "RescaleSlope", 1)[0] if _get(ds, "RescaleSlope") not in (None, "") else 1.0
+    inter = _numbers(ds, "RescaleIntercept", 1)[0] if _get(ds, "RescaleIntercept") not in (None, "") else 0.0
+    if slope == 0:
+        raise _Skip("RescaleSlope is 0: every pixel would map to the intercept")
+    if stored in _KEPT_DTYPES and slope == 1.0 and inter == 0.0:
+        # Still inside the stored range after an inversion (pydicom masks to BitsStored).
+        if pixels.size == 0 or (pixels.min() >= 0 and pixels.max() <= np.iinfo(stored).max):
+            return pixels.astype(stored, copy=False)
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = (pixels.astype(np.float64) * slope + inter).astype(np.float32)
+    if not np.all(np.isfinite(out)):
+        raise _Skip("pixel values are not finite as float32 (overflow in the rescale or the float conversion)")
+    return out
+
+
+def _decoder_missing(ts) -> str | None:
+    """Why pydicom cannot decode compressed pixel data of transfer syntax ``ts`` here, naming
+    what would decode it; None when a decoder plugin is installed."""
+    try:
+        decoder = pydicom.pixels.get_decoder(ts)
+    except NotImplementedError:
+        hint = next((h for prefix, h in _NO_DECODER_HINTS if ts.name.startswith(prefix)),
+                    "convert the files to an uncompressed transfer syntax (e.g. dcmtk dcmdjpeg, "
+                    "gdcmconv --raw)")
+        return f"transfer syntax {ts.name} ({ts}): pydicom {pydicom.__version__} has no decoder for it; {hint}"
+    if decoder.is_available:
+        return None
+    need = _DECODER_PACKAGES.get(ts, "a pydicom decoder plugin")
+    return (f"transfer syntax {ts.name} ({ts}): no decoder plugin installed; install {need}, "
+            f"versions as pinned in requirements/base.txt")
+
+
+def _dicomdir_reason(path: str, ds) -> str:
+    """Reason a DICOMDIR is ignored: an index of files, which the reader finds by walking the folder."""
+    try:
+        records = list(ds.get("DirectoryRecordSequence") or [])
+        ids = [r.ReferencedFileID for r in records
+               if str(r.get("DirectoryRecordType", "")).strip() == "IMAGE" and r.get("ReferencedFileID")]
+        parts = [[str(i)] if isinstance(i, str) else [str(x) for x in i] for i in ids]
+        missing = sum(not os.path.isfile(os.path.join(os.path.dirname(path), *q)) for q in parts)
+        listed = f"; it lists {len(parts)} image file(s)" + (f", {missing} of them missing" if missing else "")
+    except Exception:  # a damaged index changes nothing: the folder is walked anyway
+        listed = ""
+    return (f"DICOMDIR (media storage directory) ignored: every file under the folder is read "
+            f"directly{listed}")
 
 
 def _load_image(path: str, max_pixels: int) -> _Image:
@@ -532,6 +668,9 @@ def _load_image(path: str, max_pixels: int) -> _Image:
     cut = _truncated_meta(path, meta)
     if cut:
         raise _Skip(cut)
+    sop = _optional(meta, "MediaStorageSOPClassUID", str) or _optional(ds, "SOPClassUID", str)
+    if sop == pydicom.uid.MediaStorageDirectoryStorage:
+        raise _Skip(_dicomdir_reason(path, ds))
     ts = _optional(meta, "TransferSyntaxUID", str)
     if not ts:
         raise _Skip("no TransferSyntaxUID in the file meta information: damaged or truncated header")
@@ -574,27 +713,17 @@ def _load_image(path: str, max_pixels: int) -> _Image:
         if have > want + 1:  # one byte of padding to an even length is legal
             raise _Skip(f"pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8 = {want} "
                         f"(wrong Rows, Columns or BitsAllocated?)")
+    if encapsulated:
+        missing = _decoder_missing(ts)
+        if missing:
+            raise _Skip(missing)
     try:
         pixels = ds.pixel_array
     except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
         raise _Skip(f"pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})") from None
     if pixels.shape != (rows, cols):
         raise _Skip(f"pixel data decodes to shape {pixels.shape}, header says {rows}x{cols}")
-    if pixels.dtype.kind == "f":
-        bad = pixels.size - int(np.count_nonzero(np.isfinite(pixels)))
-        if bad:
-            raise _Skip(f"{tag} has {bad} non-finite value(s) (NaN/inf)")
-        with np.errstate(over="ignore"):
-            pixels = pixels.astype(np.float32)
-    slope = _numbers(ds, "RescaleSlope", 1)[0] if _get(ds, "RescaleSlope") not in (None, "") else 1.0
-    inter = _numbers(ds, "RescaleIntercept", 1)[0] if _get(ds, "RescaleIntercept") not in (None, "") else 0.0
-    if slope == 0:
-        raise _Skip("RescaleSlope is 0: every pixel would map to the intercept")
-    if slope != 1.0 or inter != 0.0:
-        with np.errstate(over="ignore", invalid="ignore"):
-            pixels = (pixels.astype(np.float64) * slope + inter).astype(np.float32)
-    if pixels.dtype.kind == "f" and not np.all(np.isfinite(pixels)):
-        raise _Skip("pixel values are not finite as float32 (overflow in the rescale or the float conversion)")
+    pixels = _working_pixels(ds, pixels, tag)
     return _Image(
         path=path, pixels=pixels, geometry=geom,
         series_uid=_optional(ds, "SeriesInstanceUID", str) or "",
@@ -692,13 +821,68 @@ def _fov_centre(img: _Image) -> np.ndarray:
     return img.geometry.pixel_to_patient(np.array([(rows - 1) / 2.0, (cols - 1) / 2.0]))
 
 
+def _list_files(root: Path) -> tuple[list[str], list[tuple[str, str]]]:
+    """Every file under ``root`` in sorted path order, and ``(path, reason)`` for what is not read.
+
+    Directory symlinks are followed and every real folder is walked once: the folders reached
+    without a link first, then each linked folder in the order met, so a link to a folder already
+    walked (a second way in, or one of its own ancestors: a loop) is reported, not walked again.
+    Hidden names (starting with ".") and :data:`_SYSTEM_NAMES` are skipped silently; broken
+    links, unreadable folders and special files (a FIFO would block the read) are reported.
+    """
+    files: list[str] = []
+    problems: list[tuple[str, str]] = []
+    walked: dict[tuple[int, int], str] = {}  # (st_dev, st_ino) of each folder walked → its path
+    real, links = [str(root)], []
+    while real or links:
+        d = real.pop() if real else links.pop(0)
+        try:
+            st = os.stat(d)
+            key = (st.st_dev, st.st_ino)
+            if key in walked:
+                target = os.path.realpath(d)
+                parent = os.path.realpath(os.path.dirname(d))
+                if parent == target or parent.startswith(target.rstrip(os.sep) + os.sep):
+                    problems.append((d, f"directory symlink loop: leads back to {walked[key]}, its own "
+                                        f"ancestor; not followed"))
+                else:
+                    what = "directory symlink to a folder" if os.path.islink(d) else "folder"
+                    problems.append((d, f"{what} already read as {walked[key]}; not read twice"))
+                continue
+            walked[key] = d
+            entries = sorted(os.scandir(d), key=lambda e: e.name)
+        except OSError as exc:
+            problems.append((d, f"folder unreadable ({type(exc).__name__}: {exc.strerror or exc})"))
+            continue
+        subdirs = []
+        for e in entries:
+            if e.name.startswith(".") or e.name.lower() in _SYSTEM_NAMES:
+                continue
+            try:
+                if e.is_dir():  # follows links
+                    (links if e.is_symlink() else subdirs).append(e.path)
+                elif e.is_file():
+                    files.append(e.path)
+                elif e.is_symlink():
+                    problems.append((e.path, f"broken symbolic link (target {os.readlink(e.path)!r} "
+                                             f"does not exist)"))
+                else:
+                    problems.append((e.path, "not a regular file (FIFO, socket or device): not read"))
+            except OSError as exc:
+                problems.append((e.path, f"unreadable ({type(exc).__name__}: {exc.strerror or exc})"))
+        real += subdirs[::-1]  # a stack: popped in name order
+    return sorted(files), problems
+
+
 def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResult:
     """Load every tagged cine image under a directory.
 
     Parameters
     ----------
     path : str or Path
-        Directory, searched recursively; file names do not matter.
+        Directory, searched recursively (directory symlinks followed, each folder once); file
+        names do not matter, hidden (``.*``) and system files (``Thumbs.db``, ``__MACOSX``, ...)
+        are skipped.
     max_pixels : int
         Largest image accepted (Rows × Columns); a file declaring more is reported and skipped
         before its pixel data is read.
@@ -706,9 +890,10 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResul
     Returns
     -------
     DicomReadResult
-        ``frames`` (float32 if the files carry a rescale or float pixels, else the stored dtype),
-        ``problems`` (``(path, reason)``), ``warnings``, ``series`` and ``long_axis``. Unpacks
-        as ``frames, problems``.
+        ``frames`` (images in a :data:`WORKING_DTYPES` type: uint8/uint16 for unsigned 8/16-bit
+        pixels without a rescale, float32 for every other stored type or with a rescale),
+        ``problems`` (``(path, reason)``: skipped files, DICOMDIRs, links not followed),
+        ``warnings``, ``series`` and ``long_axis``. Unpacks as ``frames, problems``.
 
     Raises
     ------
@@ -730,10 +915,9 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResul
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"DICOM directory not found: {root}")
-    files = sorted(str(Path(dp) / f) for dp, _, fs in os.walk(root) for f in fs)
+    files, problems = _list_files(root)
     if not files:
-        raise DicomReadError(f"no files under {root}: nothing to read")
-    problems: list[tuple[str, str]] = []
+        raise DicomReadError(f"no files under {root}: nothing to read", problems)
     warned: list[tuple[str, str]] = []
     images: list[_Image] = []
     first_with_uid: dict[str, str] = {}
