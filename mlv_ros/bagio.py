@@ -1,15 +1,29 @@
 """MCAP recordings the way rosbag2 writes them, without rosbag2 (not on PyPI).
 
-What ``ros2 bag record -s mcap`` produces and what we reproduce:
+What ``ros2 bag record -s mcap`` (ROS 2 Jazzy) produces and what we reproduce, following
+rosbag2's ``jazzy`` branch (github.com/ros2/rosbag2, commit 64717ee8):
 
 * MCAP profile ``ros2``; one schema per message type, named ``pkg/msg/Type``, encoding
   ``ros2msg``: the type's ``.msg`` text followed, for every type it depends on (depth first, each
   once), by a line of 80 ``=``, a line ``MSG: pkg/Type`` and that type's ``.msg`` text;
-* one channel per topic, message encoding ``cdr``, metadata ``offered_qos_profiles`` (YAML list
-  of the publishers' QoS, rosbag2's Jazzy spelling) and ``topic_type_hash`` (``RIHS01_…``);
-* messages with ``log_time = publish_time =`` receive time (ns since the epoch), sequence 0;
-* zstd-compressed chunks; a ``metadata.yaml`` (rosbag2 bag metadata, version 9) next to the
-  ``.mcap`` when the file is closed, so the directory is a rosbag2 bag too.
+* one channel per topic, message encoding ``cdr``, metadata ``offered_qos_profiles`` (the
+  publishers' QoS as a YAML text: a sequence of QoS maps) and ``topic_type_hash`` (``RIHS01_…``)
+  (``rosbag2_storage_mcap/src/mcap_storage.cpp``, ``MCAPStorage::create_topic``);
+* messages with ``log_time`` = receive time and ``publish_time`` = the publisher's send time (ns
+  since the epoch), sequence 0 (``MCAPStorage::write``);
+* a ``rosbag2`` MCAP metadata record with one key, ``serialized_metadata``: the bag metadata as
+  YAML, written when the file is opened and again, final, before it is closed
+  (``MCAPStorage::update_metadata``, called by ``rosbag2_cpp/src/rosbag2_cpp/writers/
+  sequential_writer.cpp`` in ``open`` and ``close``);
+* zstd-compressed chunks; a ``metadata.yaml`` next to the ``.mcap`` when the file is closed
+  (``rosbag2_storage/src/rosbag2_storage/metadata_io.cpp``), so the directory is a rosbag2 bag.
+
+The bag metadata is version 9 as ``rosbag2_storage/include/rosbag2_storage/yaml.hpp`` encodes it:
+bag and file times as ``{nanoseconds}`` / ``{nanoseconds_since_epoch}``; each topic's
+``offered_qos_profiles`` a *sequence of maps* (``rosbag2_storage/src/rosbag2_storage/qos.cpp``:
+policies by name, ``deadline``/``lifespan``/``liveliness_lease_duration`` as ``{sec, nsec}``).
+Versions before 9 stored that sequence as one YAML string; rosbag2 Jazzy reads a version-9 file
+only in the sequence form.
 
 This module needs no rclpy: payloads are CDR bytes; message definitions come from the installed
 ``share/<pkg>/msg/*.msg`` files (the ament index).
@@ -117,23 +131,104 @@ def type_hash(type_name: str) -> str:
     raise ValueError(f"no type hash for {full} in its .json")
 
 
-def qos_yaml(profiles: list[dict]) -> str:
-    """``offered_qos_profiles`` metadata: a YAML list, rosbag2 Jazzy spelling.
+# rmw's RMW_DURATION_INFINITE, which rosbag2 writes for a publisher's unset deadline, lifespan
+# and liveliness lease duration.
+INFINITE_DURATION = {"sec": 9223372036, "nsec": 854775807}
+# rosbag2 starts a bag's and a file's starting_time at std::chrono::nanoseconds::max() and lowers
+# it with each message (sequential_writer.cpp, init_metadata/write): an empty bag keeps it.
+_NO_MESSAGE_TIME = 2**63 - 1
+# Keys of one QoS profile, in the order qos.cpp's convert<rclcpp::QoS>::encode writes them.
+QOS_KEYS = ("history", "depth", "reliability", "durability", "deadline", "lifespan", "liveliness",
+            "liveliness_lease_duration", "avoid_ros_namespace_conventions")
 
-    Each profile is a dict with ``history`` (keep_last | keep_all), ``depth``, ``reliability``
-    (reliable | best_effort), ``durability`` (volatile | transient_local); durations default to
-    rosbag2's "infinite" (sec 9223372036, nsec 854775807) and liveliness to automatic.
+
+class _RosbagYamlDumper(yaml.SafeDumper):
+    """Block YAML laid out as yaml-cpp emits it (what rosbag2 writes).
+
+    yaml-cpp indents a sequence under its key and writes an empty string as ``""`` and an empty
+    node as ``~``; PyYAML's defaults differ only in layout, not in content.
     """
-    infinite = {"sec": 9223372036, "nsec": 854775807}
+
+    def increase_indent(self, flow=False, indentless=False):
+        return super().increase_indent(flow, False)
+
+    def ignore_aliases(self, data):
+        return True  # yaml-cpp writes repeated values out, never as anchors
+
+
+_RosbagYamlDumper.add_representer(
+    str, lambda d, s: d.represent_scalar("tag:yaml.org,2002:str", s, style='"') if s == "" else d.represent_str(s))
+_RosbagYamlDumper.add_representer(type(None), lambda d, _: d.represent_scalar("tag:yaml.org,2002:null", "~"))
+
+
+def rosbag2_yaml(data) -> str:
+    """``data`` as YAML text the way rosbag2 serialises it (``YAML::Dump``: no final newline)."""
+    return yaml.dump(data, Dumper=_RosbagYamlDumper, sort_keys=False, default_flow_style=False,
+                     width=1 << 30, allow_unicode=True).rstrip("\n")
+
+
+def offered_qos(profiles: list[dict]) -> list[dict]:
+    """``offered_qos_profiles`` as rosbag2 Jazzy writes them: one map per publisher.
+
+    Parameters
+    ----------
+    profiles : list of dict
+        Each with ``history`` (keep_last | keep_all), ``depth``, ``reliability`` (reliable |
+        best_effort) and ``durability`` (volatile | transient_local); a missing key takes
+        RELIABLE, VOLATILE, KEEP_LAST(10).
+
+    Returns
+    -------
+    list of dict
+        Maps with the keys of :data:`QOS_KEYS`, in that order: the durations infinite
+        (``{sec, nsec}``), liveliness automatic, as rmw reports a publisher that sets none.
+    """
+    return [{
+        "history": p.get("history", "keep_last"), "depth": int(p.get("depth", 10)),
+        "reliability": p.get("reliability", "reliable"), "durability": p.get("durability", "volatile"),
+        "deadline": dict(INFINITE_DURATION), "lifespan": dict(INFINITE_DURATION), "liveliness": "automatic",
+        "liveliness_lease_duration": dict(INFINITE_DURATION), "avoid_ros_namespace_conventions": False,
+    } for p in profiles]
+
+
+def qos_yaml(profiles: list[dict]) -> str:
+    """The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
+    (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp)."""
+    return rosbag2_yaml(offered_qos(profiles))
+
+
+# Policies as rosbag2 wrote them before version 9: rmw's enum values (rmw/types.h).
+_POLICY_NUMBERS = {
+    "history": {0: "system_default", 1: "keep_last", 2: "keep_all", 3: "unknown"},
+    "reliability": {0: "system_default", 1: "reliable", 2: "best_effort", 3: "unknown", 4: "best_available"},
+    "durability": {0: "system_default", 1: "transient_local", 2: "volatile", 3: "unknown", 4: "best_available"},
+    "liveliness": {0: "system_default", 1: "automatic", 3: "manual_by_topic", 4: "unknown", 5: "best_available"},
+}
+
+
+def parse_offered_qos(value) -> list[dict]:
+    """Recorded ``offered_qos_profiles`` as a list of maps with policies by name.
+
+    Accepts the version-9 sequence, the YAML string of MCAP channel metadata and of metadata.yaml
+    before version 9 (our runs before the fix wrote the string form in version 9 too), and empty
+    values; policies written as numbers (rosbag2 before version 9) are turned into their names.
+    """
+    if isinstance(value, str):
+        try:
+            value = yaml.safe_load(value) if value.strip() else []
+        except yaml.YAMLError:
+            return []
+    if not isinstance(value, list):
+        return []
     out = []
-    for p in profiles:
-        out.append({
-            "history": p.get("history", "keep_last"), "depth": int(p.get("depth", 10)),
-            "reliability": p.get("reliability", "reliable"), "durability": p.get("durability", "volatile"),
-            "deadline": dict(infinite), "lifespan": dict(infinite), "liveliness": "automatic",
-            "liveliness_lease_duration": dict(infinite), "avoid_ros_namespace_conventions": False,
-        })
-    return yaml.safe_dump(out, sort_keys=False)
+    for p in value:
+        if isinstance(p, dict):
+            p = dict(p)
+            for key, names in _POLICY_NUMBERS.items():
+                if isinstance(p.get(key), int) and not isinstance(p[key], bool):
+                    p[key] = names.get(p[key], "unknown")
+            out.append(p)
+    return out
 
 
 # --------------------------------------------------------------------------- writing
@@ -142,9 +237,62 @@ class _Topic:
     name: str
     type_name: str
     channel_id: int
-    qos: str
+    qos: list  # offered_qos_profiles, version-9 maps
     type_hash: str
     count: int = 0
+
+
+def bag_metadata(file_name: str, topics, start_ns: int | None, end_ns: int,
+                 custom_data: dict[str, str] | None = None) -> dict:
+    """rosbag2 bag metadata, version 9, of a single-file MCAP bag.
+
+    Keys and their order are those of ``convert<BagMetadata>::encode`` in rosbag2_storage's
+    ``yaml.hpp`` (``jazzy``); it is what goes under ``rosbag2_bagfile_information`` in
+    ``metadata.yaml`` and, serialised, into the ``rosbag2`` MCAP metadata record.
+
+    Parameters
+    ----------
+    file_name : str
+        The ``.mcap`` file's name, relative to the bag directory.
+    topics : iterable
+        Objects with ``name``, ``type_name``, ``qos`` (version-9 QoS maps), ``type_hash`` and
+        ``count``, in channel order (every registered topic, messages or not, as rosbag2 does).
+    start_ns, end_ns : int
+        Receive times of the first and last message; ``start_ns`` None for a bag without
+        messages (rosbag2 then leaves starting_time at its initial maximum).
+    custom_data : dict of str to str, optional
+    """
+    topics = list(topics)
+    start = _NO_MESSAGE_TIME if start_ns is None else start_ns
+    duration = 0 if start_ns is None else max(0, end_ns - start_ns)
+    count = sum(t.count for t in topics)
+    return {
+        "version": 9,
+        "storage_identifier": "mcap",
+        "duration": {"nanoseconds": duration},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": count,
+        "topics_with_message_count": [
+            {"topic_metadata": {"name": t.name, "type": t.type_name, "serialization_format": "cdr",
+                                "offered_qos_profiles": [dict(q) for q in t.qos],
+                                "type_description_hash": t.type_hash},
+             "message_count": t.count}
+            for t in topics],
+        # MCAP compresses whole chunks inside the storage plugin: rosbag2 leaves these empty.
+        "compression_format": "",
+        "compression_mode": "",
+        "relative_file_paths": [file_name],
+        "files": [{"path": file_name, "starting_time": {"nanoseconds_since_epoch": start},
+                   "duration": {"nanoseconds": duration}, "message_count": count}],
+        # yaml-cpp writes an empty map as a null node (``custom_data: ~``).
+        "custom_data": dict(custom_data) if custom_data else None,
+        "ros_distro": ROS_DISTRO,
+    }
+
+
+def write_rosbag2_record(writer: Writer, metadata: dict) -> None:
+    """Add the ``rosbag2`` MCAP metadata record (``MCAPStorage::update_metadata``)."""
+    writer.add_metadata("rosbag2", {"serialized_metadata": rosbag2_yaml(metadata)})
 
 
 @dataclass
@@ -181,20 +329,32 @@ class BagWriter:
         self.start_ns: int | None = None
         self.end_ns = 0
         self.closed = False
+        # rosbag2 writes the (still empty) bag metadata when it opens a file, so even a file whose
+        # writer was killed carries its version, distro and custom data.
+        write_rosbag2_record(self._writer, self.metadata())
 
     def add_topic(self, topic: str, type_name: str, qos_profiles: list[dict] | None = None) -> None:
-        """Register a topic (idempotent). ``type_name`` is ``pkg/msg/Type``."""
+        """Register a topic (idempotent).
+
+        Parameters
+        ----------
+        topic : str
+        type_name : str
+            ``pkg/msg/Type``.
+        qos_profiles : list of dict, optional
+            The publishers' QoS (see :func:`offered_qos`); one default profile if omitted.
+        """
         if topic in self.topics:
             return
         if type_name not in self._schemas:
             self._schemas[type_name] = self._writer.register_schema(
                 name=type_name, encoding="ros2msg", data=message_definition(type_name).encode())
-        qos = qos_yaml(qos_profiles or [{}])
+        offered = offered_qos(qos_profiles or [{}])
         thash = type_hash(type_name)
         cid = self._writer.register_channel(
             topic=topic, message_encoding="cdr", schema_id=self._schemas[type_name],
-            metadata={"offered_qos_profiles": qos, "topic_type_hash": thash})
-        self.topics[topic] = _Topic(topic, type_name, cid, qos, thash)
+            metadata={"offered_qos_profiles": rosbag2_yaml(offered), "topic_type_hash": thash})
+        self.topics[topic] = _Topic(topic, type_name, cid, offered, thash)
 
     def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
         """Append one CDR-serialised message received at ``log_time_ns`` and sent at
@@ -220,10 +380,17 @@ class BagWriter:
     def message_count(self) -> int:
         return sum(t.count for t in self.topics.values())
 
+    def metadata(self) -> dict:
+        """The bag metadata (version 9) of what has been written so far."""
+        return bag_metadata(self.path.name, self.topics.values(), self.start_ns, self.end_ns,
+                            {"recorded_by": f"mlv_ros {__version__}"})
+
     def close(self) -> None:
-        """Finish the file (summary, statistics, indexes) and write ``metadata.yaml`` beside it."""
+        """Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
+        ``metadata.yaml`` beside it."""
         if self.closed:
             return
+        write_rosbag2_record(self._writer, self.metadata())
         self._writer.finish()
         self._fh.close()
         self.closed = True
@@ -232,30 +399,23 @@ class BagWriter:
 
 def write_bag_metadata(mcap_path: Path, writer: BagWriter) -> Path:
     """rosbag2 ``metadata.yaml`` (version 9) for a single-file MCAP bag; returns its path."""
-    start = writer.start_ns or 0
-    info = {
-        "version": 9,
-        "storage_identifier": "mcap",
-        "duration": {"nanoseconds": max(0, writer.end_ns - start)},
-        "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": writer.message_count,
-        "topics_with_message_count": [
-            {"topic_metadata": {"name": t.name, "type": t.type_name, "serialization_format": "cdr",
-                                "offered_qos_profiles": t.qos, "type_description_hash": t.type_hash},
-             "message_count": t.count}
-            for t in writer.topics.values()],
-        "compression_format": "",
-        "compression_mode": "",
-        "relative_file_paths": [mcap_path.name],
-        "files": [{"path": mcap_path.name, "starting_time": {"nanoseconds_since_epoch": start},
-                   "duration": {"nanoseconds": max(0, writer.end_ns - start)},
-                   "message_count": writer.message_count}],
-        "custom_data": {"recorded_by": f"mlv_ros {__version__}"},
-        "ros_distro": ROS_DISTRO,
-    }
-    path = mcap_path.parent / "metadata.yaml"
-    path.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
+    path = Path(mcap_path).parent / "metadata.yaml"
+    path.write_text(rosbag2_yaml({"rosbag2_bagfile_information": writer.metadata()}))
     return path
+
+
+def read_bag_metadata(directory) -> dict:
+    """``rosbag2_bagfile_information`` of a bag directory's ``metadata.yaml``, any version.
+
+    Each topic's ``offered_qos_profiles`` comes back as a list of maps, whether the file stores
+    the version-9 sequence or the older YAML string (our runs before this format fix, or rosbag2
+    before version 9).
+    """
+    info = yaml.safe_load((Path(directory) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    for entry in info.get("topics_with_message_count") or []:
+        meta = entry.get("topic_metadata", {})
+        meta["offered_qos_profiles"] = parse_offered_qos(meta.get("offered_qos_profiles", []))
+    return info
 
 
 # --------------------------------------------------------------------------- reading
@@ -311,10 +471,9 @@ def bag_topics(path) -> dict[str, dict]:
 
 
 def _bag_file_in_dir(directory: Path) -> Path:
-    meta = directory / "metadata.yaml"
-    if meta.is_file():
-        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
-        return directory / info["relative_file_paths"][0]
+    if (directory / "metadata.yaml").is_file():
+        # rosbag2 may store the path with the bag directory in front (older versions did).
+        return directory / Path(read_bag_metadata(directory)["relative_file_paths"][0]).name
     files = sorted(directory.glob("*.mcap"))
     if not files:
         raise ValueError(f"no .mcap file in {directory}")
@@ -328,10 +487,13 @@ def recover(damaged, out) -> dict:
     Reads the file record by record from the start (no summary or index needed) and keeps every
     message of every chunk that is complete; reading stops at the first truncated or corrupt
     record. Schemas, channels (with their QoS and type-hash metadata) and message times are
-    kept as recorded. Returns ``{"messages": n, "topics": {topic: n}, "stopped_at": reason}``.
+    kept as recorded; a final ``rosbag2`` metadata record describes what was recovered (the
+    damaged file has only the one written when it was opened). Returns ``{"messages": n,
+    "topics": {topic: n}, "stopped_at": reason}``.
     """
     from mcap.records import Channel as ChannelRec
     from mcap.records import Message as MessageRec
+    from mcap.records import Metadata as MetadataRec
     from mcap.records import Schema as SchemaRec
     from mcap.stream_reader import StreamReader
 
@@ -339,6 +501,9 @@ def recover(damaged, out) -> dict:
     if out.exists():
         raise FileExistsError(f"refusing to overwrite {out}")
     schemas, channels, counts = {}, {}, {}
+    topics: dict[int, _Topic] = {}
+    custom_data = None
+    start_ns, end_ns = None, 0
     stopped = "end of file"
     with open(damaged, "rb") as fh, open(out, "wb") as oh:
         writer = Writer(oh, compression=CompressionType.ZSTD)
@@ -353,14 +518,28 @@ def recover(damaged, out) -> dict:
                     cid_map[rec.id] = writer.register_channel(rec.topic, rec.message_encoding,
                                                               sid_map.get(rec.schema_id, 0), rec.metadata)
                     channels[rec.id] = rec.topic
+                    topics[rec.id] = _Topic(
+                        rec.topic, schemas.get(rec.schema_id, ""), cid_map[rec.id],
+                        parse_offered_qos(rec.metadata.get("offered_qos_profiles", "")),
+                        rec.metadata.get("topic_type_hash", ""))
+                elif isinstance(rec, MetadataRec) and rec.name == "rosbag2":
+                    try:
+                        custom_data = yaml.safe_load(rec.metadata.get("serialized_metadata", "")).get("custom_data")
+                    except (yaml.YAMLError, AttributeError):
+                        pass
                 elif isinstance(rec, MessageRec) and rec.channel_id in cid_map:
                     writer.add_message(cid_map[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
                                        rec.sequence)
                     topic = channels[rec.channel_id]
                     counts[topic] = counts.get(topic, 0) + 1
+                    topics[rec.channel_id].count += 1
+                    start_ns = rec.log_time if start_ns is None else min(start_ns, rec.log_time)
+                    end_ns = max(end_ns, rec.log_time)
         except Exception as exc:  # truncated or corrupt tail: keep what came before it
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             stopped = f"{type(exc).__name__}: {exc}"
+        write_rosbag2_record(writer, bag_metadata(out.name, topics.values(), start_ns, end_ns,
+                                                  custom_data if isinstance(custom_data, dict) else None))
         writer.finish()
     return {"messages": sum(counts.values()), "topics": counts, "stopped_at": stopped}

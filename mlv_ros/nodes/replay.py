@@ -3,27 +3,37 @@ timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate: 0`
 
 Messages are republished as the recorded CDR bytes (never deserialised), each topic with the QoS
 it was recorded with (``offered_qos_profiles``), so latched topics stay latched.
+
+The recorded ``/diagnostics`` stay in the recording unless ``republish_diagnostics`` is true:
+replayed, old statuses of nodes that are not running would mix with the live graph's on the
+same topic. With ``publish_clock`` the node publishes ``/clock`` (rosgraph_msgs/Clock) carrying
+each message's recorded receive time just before the message, so nodes started with
+``use_sim_time:=true`` see the time of the recording.
 """
 
 from __future__ import annotations
 
 import time
 
-import yaml
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 
-from mlv_ros import bagio
+from mlv_ros import bagio, qos
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 from mlv_ros.nodes.recorder import message_class
 
 
-def recorded_qos(text: str) -> QoSProfile:
-    """The first offered QoS profile of a recorded topic (RELIABLE KEEP_LAST(1000) if absent)."""
-    try:
-        p = (yaml.safe_load(text) or [{}])[0]
-    except (yaml.YAMLError, IndexError, TypeError):
-        p = {}
+CLOCK_TOPIC = "/clock"
+
+
+def recorded_qos(offered) -> QoSProfile:
+    """The first offered QoS profile of a recorded topic (RELIABLE KEEP_LAST(1000) if absent).
+
+    ``offered`` is the recorded ``offered_qos_profiles`` in any of rosbag2's spellings (YAML text
+    or a list of maps, see :func:`mlv_ros.bagio.parse_offered_qos`).
+    """
+    p = (bagio.parse_offered_qos(offered) or [{}])[0]
     return QoSProfile(
         history=HistoryPolicy.KEEP_ALL if p.get("history") == "keep_all" else HistoryPolicy.KEEP_LAST,
         depth=max(int(p.get("depth", 1000) or 1000), 1),
@@ -40,6 +50,14 @@ class Replay(GraphNode):
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers (on any topic) to wait for", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop once everything is played and acknowledged")
+        self.republish_diagnostics = self.param(
+            "republish_diagnostics", False,
+            f"also play the recorded {qos.DIAGNOSTICS} onto the live topic (off: old statuses of nodes that "
+            "are not running would mix with the live ones)")
+        self.publish_clock = self.param(
+            "publish_clock", False,
+            f"publish {CLOCK_TOPIC} (rosgraph_msgs/Clock) with each message's recorded time, before the "
+            "message, for nodes running with use_sim_time")
         if not self.path:
             raise ValueError("parameter path is required: the MCAP file to play")
         wanted = [t for t in only if t]
@@ -51,12 +69,21 @@ class Replay(GraphNode):
         for topic, info in recorded.items():
             if wanted and topic not in wanted:
                 continue
+            if topic == qos.DIAGNOSTICS and not self.republish_diagnostics:
+                if topic in wanted:
+                    self.report(WARN, "recorded diagnostics are not republished unless asked",
+                                topic=topic, set="republish_diagnostics:=true")
+                continue
             try:
                 cls = message_class(info["type"])
             except (ImportError, AttributeError, ValueError):
                 self.report(WARN, "skipping topic of unknown type", topic=topic, type=info["type"])
                 continue
             self.pubs[topic] = self.create_publisher(cls, topic, recorded_qos(info["qos"]))
+        # RELIABLE with a deep queue: a subscriber that wants every recorded time (a recorder, a
+        # test) gets it; rclpy's time source subscribes BEST_EFFORT, depth 1, and matches too.
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos.stream_qos()) if self.publish_clock else None
+        self.clocks_published = 0
         self.messages = iter(bagio.read_bag(self.path, topics=list(self.pubs)))
         self.published = 0
         self._t0 = time.monotonic()
@@ -80,16 +107,25 @@ class Replay(GraphNode):
                 due = self._start[0] + (self._next.log_time_ns - self._start[1]) * 1e-9 / self.rate
                 if time.monotonic() < due:
                     return
+            if self.clock_pub is not None:
+                t = self._next.log_time_ns
+                msg = Clock()
+                msg.clock.sec, msg.clock.nanosec = t // 1_000_000_000, t % 1_000_000_000
+                self.clock_pub.publish(msg)
+                self.clocks_published += 1
             self.pubs[self._next.topic].publish(self._next.data)  # raw CDR bytes
             self.published += 1
             self._next = next(self.messages, None)
             if self.rate <= 0:
                 return  # one per tick: lets the executor serve other callbacks in one process
         self.timer.cancel()
-        for topic, pub in self.pubs.items():
+        pubs = dict(self.pubs)
+        if self.clock_pub is not None:
+            pubs[CLOCK_TOPIC] = self.clock_pub
+        for topic, pub in pubs.items():
             if not pub.wait_for_all_acked(Duration(seconds=self.wait_timeout_s)):
                 self.report(WARN, "not every message was acknowledged", topic=topic)
-        self.report(OK, "replay finished", messages=self.published)
+        self.report(OK, "replay finished", messages=self.published, clocks=self.clocks_published)
         if self.exit_when_done:
             self.stop()
 
