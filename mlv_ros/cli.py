@@ -3,12 +3,19 @@
 Each subcommand lives in ``mlv_ros.tools.<name>`` and exposes ``add_arguments(parser)`` and
 ``run(args) -> int``; modules are imported only when their subcommand runs, so a broken or slow
 import in one never affects another.
+
+Errors reach the user as one line on stderr, saying what to change, with a non-zero exit: the
+argument parser's own (usage goes to ``--help``), each tool's known mistakes, and, as a last
+resort, anything a tool let through (``MLV_ROS_TRACEBACK=1`` shows the traceback).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import math
+import os
 import sys
 
 SUBCOMMANDS = {
@@ -21,8 +28,58 @@ SUBCOMMANDS = {
 }
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are one line: the usage block it normally prints is ``--help``'s job."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def number(kind=float, min_value=None, max_value=None, *, above=None):
+    """An argparse ``type`` for a finite int/float within bounds (``above``: strictly greater).
+
+    ``nan``, ``inf`` and out-of-range values are refused with the allowed range, so they never
+    reach code that would fail far from the option that caused it."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if isinstance(value, float) and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+        if above is not None and not value > above:
+            raise argparse.ArgumentTypeError(f"must be > {above:g}, got {text}")
+        if min_value is not None and value < min_value:
+            raise argparse.ArgumentTypeError(f"must be >= {min_value:g}, got {text}")
+        if max_value is not None and value > max_value:
+            raise argparse.ArgumentTypeError(f"must be <= {max_value:g}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def one_line(text) -> str:
+    """``text`` on a single line (exception messages may span several)."""
+    return " ".join(str(text).split())
+
+
+def describe_os_error(exc: OSError) -> str:
+    """An OSError as what happened to which path, and what to do about it."""
+    where = exc.filename if exc.filename is not None else ""
+    what = exc.strerror or str(exc)
+    fix = {errno.ENOENT: "check the path", errno.EACCES: "choose a place you may write to",
+           errno.EPERM: "choose a place you may write to", errno.EROFS: "the disk is read-only: choose another place",
+           errno.ENOSPC: "the disk is full: free space or choose another place",
+           errno.EISDIR: "give a file, not a directory", errno.ENOTDIR: "a part of the path is a file, not a directory",
+           errno.EEXIST: "choose a new name"}.get(exc.errno)
+    text = f"{where}: {what}" if where else what
+    return one_line(f"{text} ({fix})" if fix else text)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mlv-ros", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="mlv-ros", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module, help_text) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -38,10 +95,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    prog = f"mlv-ros {args.command}"
     if getattr(args, "_missing", False):
-        print(f"mlv-ros {args.command}: not available in this version", file=sys.stderr)
+        print(f"{prog}: not available in this version", file=sys.stderr)
         return 2
-    return int(importlib.import_module(args._module).run(args) or 0)
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:  # a path the tool did not check: say which and what to do
+        if os.environ.get("MLV_ROS_TRACEBACK"):
+            raise
+        print(f"{prog}: {describe_os_error(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug or a case no tool foresaw: one line, traceback on request
+        if os.environ.get("MLV_ROS_TRACEBACK"):
+            raise
+        print(f"{prog}: unexpected {type(exc).__name__}: {one_line(exc)} "
+              "(set MLV_ROS_TRACEBACK=1 to see where, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

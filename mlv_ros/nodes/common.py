@@ -53,15 +53,32 @@ class GraphNode(Node):
         self.streams: dict[str, StreamCount] = {}
         self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._with_counts(self._status)))
         self.finished = Future()  # completed when the node's job is over (run_node then exits)
+        self.last_error: DiagnosticStatus | None = None  # the latest ERROR reported
+        self.failure: str | None = None  # why the node gave up (see fail)
 
     @property
     def done(self) -> bool:
         return self.finished.done()
 
+    @property
+    def status(self) -> DiagnosticStatus:
+        """The node's current status (the last one reported)."""
+        return self._status
+
     def stop(self) -> None:
         """Declare the node's job over; ``run_node`` returns once the executor sees it."""
         if not self.finished.done():
             self.finished.set_result(True)
+
+    def fail(self, message: str, **values) -> None:
+        """Give up: report ``message`` as an ERROR, keep it as :attr:`failure` and stop.
+
+        For what the node cannot go on from (not for a bad message it can skip): ``run_node``
+        then exits 1, and ``mlv-ros run`` ends the run at once with this reason.
+        """
+        self.report(ERROR, message, **values)
+        self.failure = status_text(self._status)
+        self.stop()
 
     def param(self, name: str, default, description: str, *, min_value=None, max_value=None,
               choices: tuple | None = None, read_only: bool = True):
@@ -155,6 +172,8 @@ class GraphNode(Node):
                                   message=message, hardware_id=self.get_name())
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
         self._status = status
+        if level == ERROR:
+            self.last_error = status
         self._publish(status)
         text = f"{message} " + " ".join(f"{k}={v}" for k, v in values.items())
         # rclpy ties a severity to each call site, so each level needs its own line.
@@ -172,9 +191,16 @@ class GraphNode(Node):
         self.diagnostics_sent += 1
 
 
+def status_text(status: DiagnosticStatus) -> str:
+    """One line for people: ``message (key: value, ...)``."""
+    values = ", ".join(f"{kv.key}: {kv.value}" for kv in status.values)
+    return f"{status.message} ({values})" if values else status.message
+
+
 def run_node(factory: Callable[..., Node], args=None) -> int:
     """Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
-    then drain what has already arrived and shut down cleanly.
+    then drain what has already arrived and shut down cleanly. Returns 0, 2 for a node that
+    could not start (bad parameters or paths), 1 for one that gave up (:meth:`GraphNode.fail`).
 
     rclpy's own signal handlers are replaced by ours: a signal only sets a flag, so the context
     stays valid while the node takes every message still queued (a recorder must not lose what
@@ -210,4 +236,4 @@ def run_node(factory: Callable[..., Node], args=None) -> int:
             node.destroy_node()
         executor.shutdown()
         rclpy.try_shutdown()
-    return 0
+    return 1 if getattr(node, "failure", None) else 0

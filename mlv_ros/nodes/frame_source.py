@@ -59,7 +59,8 @@ class FrameSource(GraphNode):
         self.preset = self.param("preset", "normal", "simulator preset (source: phantom)")
         self.snr = self.param("snr", 20.0, "simulated SNR; 0 = noise-free (source: phantom)", min_value=0.0, max_value=1000.0)
         self.size = self.param("size", 256, "simulated image size, pixels (source: phantom)", min_value=32, max_value=1024)
-        self.num_phases = self.param("num_phases", 25, "simulated phases per cycle (source: phantom, pattern)", min_value=1, max_value=200)
+        # 2..200: what the simulator accepts (one phase has no motion to track)
+        self.num_phases = self.param("num_phases", 25, "simulated phases per cycle (source: phantom, pattern)", min_value=2, max_value=200)
         self.seed = self.param("seed", 0, "simulator noise seed", min_value=0, max_value=2**31 - 1)
         self.path = self.param("path", "", "DICOM directory (source: dicom) or MCAP file (source: bag)")
         self.order = self.param("order", "slice_major", "publication order", choices=ORDERS)
@@ -72,6 +73,7 @@ class FrameSource(GraphNode):
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.published = 0
+        self.halted: str | None = None  # why publishing was stopped early (see halt)
         self._t0 = time.monotonic()
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
@@ -98,6 +100,16 @@ class FrameSource(GraphNode):
                               for path, reason in res.warnings]
             return res.frames
         return read_bag_frames(self.path)
+
+    def halt(self, reason: str) -> None:
+        """Stop publishing now (a run being interrupted): frames already sent stay sent, the
+        rest never go out, and the node's job is over."""
+        if self.done:
+            return
+        self.timer.cancel()
+        self.halted = reason
+        self.report(OK, "input stopped", reason=reason, frames_published=self.published, frames=len(self.frames))
+        self.stop()
 
     def _frame_interval(self, frame: Frame) -> float:
         if self.rate_factor <= 0 or frame.num_phases == 0:

@@ -2,13 +2,19 @@
 
 Subscriptions are raw (the CDR bytes are written as received, never deserialised), RELIABLE and
 as deep as the publishers' queues. SIGINT/SIGTERM: the node first takes every message already
-queued, then finalises the file (summary, indexes, ``metadata.yaml``). Completed chunks are
-flushed to the OS every ``flush_period_s``, so a SIGKILL loses at most the chunk being filled
-(``mlv-ros recover`` rewrites a valid file from what is on disk).
+queued, then finalises the file (summary, indexes, ``metadata.yaml``). Completed chunks go to
+the OS as they are written, so a SIGKILL loses at most the chunk being filled (``mlv-ros
+recover`` rewrites a valid file from what is on disk).
+
+A write that fails (disk full, file size limit, I/O error) stops the recording: an ERROR on
+/diagnostics says so, the file is cut back to its last whole record and closed, later messages
+are counted as ``dropped``, ``metadata.yaml`` counts what the file holds, and the node stops
+(:meth:`GraphNode.fail`: exit 1 on its own, the end of the run under ``mlv-ros run``).
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import time
 from pathlib import Path
@@ -40,6 +46,7 @@ class Recorder(GraphNode):
             raise ValueError(f"cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}")
         self.writer = bagio.BagWriter(Path(self.output), chunk_size=chunk_kib * 1024, compression=compression)
         self.messages_handled = 0
+        self.dropped = 0  # messages received after the recording stopped on a write error
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
             self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
@@ -50,14 +57,40 @@ class Recorder(GraphNode):
         self.report(OK, "recording", output=self.output, topics=len(topics))
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
-        self.writer.write(topic, data, time.time_ns(), info.get("source_timestamp") or None)
         self.messages_handled += 1
+        if self.writer.error is not None or self.writer.closed:
+            self.dropped += 1
+            return
+        try:
+            self.writer.write(topic, data, time.time_ns(), info.get("source_timestamp") or None)
+        except OSError as exc:
+            self.dropped += 1
+            self._write_failed(exc)
+
+    def _write_failed(self, exc: OSError) -> None:
+        """The file cannot take more: close what it has and stop."""
+        code = errno.errorcode.get(exc.errno, str(exc.errno))
+        try:
+            self.writer.close()  # metadata.yaml for the messages in the file
+            kept = "metadata.yaml written"
+        except OSError as again:
+            kept = f"metadata.yaml not written: {again.strerror or again}"
+        fix = {errno.ENOSPC: "free space on that disk", errno.EDQUOT: "free space within your disk quota",
+               errno.EFBIG: "raise the file size limit (ulimit -f)"}.get(exc.errno, "check that disk")
+        self.fail(f"recording stopped: {exc.strerror or exc} ({code}); the file keeps the "
+                  f"{self.writer.message_count} messages written before, {kept}", output=self.output,
+                  fix=f"{fix}; `mlv-ros recover` adds the missing index to this file")
 
     def finish(self) -> None:
+        """Close the recording (every message already taken is in it) and report the counts."""
         if self.writer.closed:
             return
         try:
             self.writer.close()
+            if self.writer.error is not None:  # failed while finishing: the file has what it could take
+                self.fail(f"recording stopped: {self.writer.error.strerror or self.writer.error}",
+                          output=self.output, messages_in_file=self.writer.message_count)
+                return
             received = sum(c.received for c in self.streams.values())
             lost = sum(c.lost for c in self.streams.values())
             self.report(OK if received == self.writer.message_count and not lost else ERROR, "recording closed",

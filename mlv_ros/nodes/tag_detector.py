@@ -5,23 +5,51 @@ One :class:`~mlv_ros.core.tags.SliceTracker` per (view, slice). Frames may arriv
 (slice-major, phase-major, interleaved); each slice's frames are processed in phase order, later
 phases waiting until their predecessor arrives. A phase that has not arrived while
 ``max_pending`` later ones wait is declared missing (reported on /diagnostics) and skipped.
-Duplicates are dropped with a warning. A frame that cannot be used, when it is the next one its
-slice expects, still yields a TagPoints message (empty, ``status`` = reason), so downstream knows
-the slice was seen; an unusable frame for a slot already filled or still open further on is only
-reported (a corrupt copy must not replace or pre-empt the real frame). The first usable frame
-fixes the study's dimensions (phases, slice counts); a frame contradicting them is refused.
-Every report about a frame names it: view, slice, phase and header stamp.
+Duplicates are dropped (a different image for a filled slot with a warning). A frame that cannot
+be used, when it is the next one its slice expects, still yields a TagPoints message (empty,
+``status`` = reason), so downstream knows the slice was seen; an unusable frame for a slot already
+filled or still open further on is only reported (a corrupt copy must not replace or pre-empt the
+real frame). The first usable frame fixes the study's dimensions (phases, slice counts); a frame
+contradicting them is refused. Every report about a frame names it: view, slice, phase and header
+stamp.
+
+What is said how loud: tags fade over the cycle and lines leave the slab, so tracks ending and
+frames with few or no points are routine; they are DEBUG lines and counts in the 1 Hz heartbeat
+(``frames_with_ended_tracks``, ``frames_without_points``, ``tracks_alive``...). WARN/ERROR only
+for what a user must look at: a refused or unusable frame, a slice whose ED detection failed (said
+once; its later frames are counted), an ED frame that could not be segmented, a frame that never
+came, a different image for a filled slot. The heartbeat's level and message keep naming those
+until the run ends.
 """
 
 from __future__ import annotations
 
+import hashlib
+from collections import Counter
+
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.tags import SliceTracker
+from mlv_ros.core.tags.gabor import TagInputError, validate_image
 from mlv_ros.core.types import StudyShape, TagPointSet
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+
+VIEW_NAME = {TaggedFrame.VIEW_SA: "SA", TaggedFrame.VIEW_LA: "LA"}
+
+
+def _slice_name(key) -> str:
+    return f"{VIEW_NAME.get(key[0], key[0])} {key[1]}"
+
+
+def _digest(msg: TaggedFrame) -> bytes:
+    """What tells a re-sent frame from a different one in the same slot."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(f"{msg.image.encoding} {msg.image.height}x{msg.image.width}".encode())
+    h.update(bytes(msg.image.data))
+    return h.digest()
 
 
 class TagDetector(GraphNode):
@@ -41,13 +69,23 @@ class TagDetector(GraphNode):
         self.study = StudyShape()
         self.messages_handled = 0
         self.frames_out = 0
+        self.digests: dict = {}    # (view, slice, phase) → image digest of the frame taken
+        self.counts = Counter()    # routine and notable events, carried by the heartbeat
+        self.no_tags: dict = {}    # (view, slice) → why its ED detection failed
         self.report(OK, "ready")
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
         where = f"view {msg.view} slice {msg.slice_index} phase {msg.phase_index}"
         stamp = conversions.stamp_text(msg.header.stamp)
+        try:
+            self._take(msg, where, stamp)
+        finally:
+            self._update_status()
+
+    def _take(self, msg: TaggedFrame, where: str, stamp: str) -> None:
         if msg.image.height * msg.image.width > self.max_pixels:
+            self.counts["frames_refused"] += 1
             self.report(ERROR, "frame refused: image too large", frame=where, stamp=stamp,
                         size=f"{msg.image.height}x{msg.image.width}", limit=self.max_pixels)
             return self._publish_empty(msg, "image too large")
@@ -55,17 +93,43 @@ class TagDetector(GraphNode):
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
             self.study.check(frame)
         except ValueError as exc:
+            self.counts["frames_refused"] += 1
             self.report(ERROR, "bad frame", frame=where, stamp=stamp, reason=str(exc))
             return self._publish_empty(msg, f"bad frame: {exc}")
         key = (frame.view, frame.slice_index)
         self.masker.observe_geometry(frame)
         nxt = self.next_phase.setdefault(key, 0)
         waiting = self.pending.setdefault(key, {})
+        slot = (*key, frame.phase_index)
+        digest = _digest(msg)
         if frame.phase_index < nxt or frame.phase_index in waiting:
-            self.report(WARN, "duplicate frame dropped", frame=where, stamp=stamp)
+            self._duplicate(slot, digest, where, stamp)
             return
+        self.digests[slot] = digest
         waiting[frame.phase_index] = (frame, msg.header.stamp)
         self._drain(key)
+
+    def _duplicate(self, slot, digest: bytes, where: str, stamp: str) -> None:
+        known = self.digests.get(slot)
+        if known is None:
+            # Its slot was given up (skipped as missing, or filled in for a refused frame).
+            self.counts["late_frames_dropped"] += 1
+            self.report(WARN, "frame came after its slot was given up; dropped", frame=where, stamp=stamp)
+            return
+        if known != digest:
+            # Same slot, other pixels: a second study on this ROS domain, or a source sending
+            # two acquisitions as one. The first frame stays; the user must find out why.
+            self.counts["conflicting_frames"] += 1
+            self.report(WARN, "a different frame for a slot already taken; dropped (another study on "
+                        "this ROS_DOMAIN_ID?)", frame=where, stamp=stamp)
+            return
+        # A re-sent copy (a restarted source replays its history) changes nothing: said once.
+        self.counts["duplicates_dropped"] += 1
+        if self.counts["duplicates_dropped"] == 1:
+            self.report(OK, "duplicate frame dropped (further ones are counted in the heartbeat)",
+                        frame=where, stamp=stamp)
+        else:
+            self.get_logger().debug(f"duplicate frame dropped frame={where} stamp={stamp}")
 
     def _drain(self, key) -> None:
         waiting = self.pending[key]
@@ -74,6 +138,7 @@ class TagDetector(GraphNode):
             if nxt not in waiting:
                 if len(waiting) < self.max_pending:
                     return
+                self.counts["frames_missing"] += 1
                 self.report(WARN, "frame missing; skipped", view=key[0], slice=key[1], phase=nxt)
                 self.next_phase[key] = nxt + 1
                 continue
@@ -84,19 +149,89 @@ class TagDetector(GraphNode):
     def _process(self, key, frame, stamp) -> None:
         tracker = self.trackers.get(key)
         mask = None
-        if tracker is None or frame.phase_index == 0:
+        started = tracker is None or frame.phase_index == 0
+        if started:
             tracker = self.trackers[key] = SliceTracker(frame.geometry, spacing_px=self.spacing_px or None)
+            self.no_tags.pop(key, None)
             mask, why = self.masker.ed_mask(frame)
-            if mask is None:
-                self.report(WARN, "no ED myocardium mask; detecting on tag energy alone", view=key[0],
-                            slice=key[1], reason=why)
         points = tracker.update(frame, mask=mask)
         points.num_sa_slices, points.num_la_slices = frame.num_sa_slices, frame.num_la_slices
-        if points.status:
-            self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index,
-                        stamp=conversions.stamp_text(stamp), points=len(points), status=points.status)
+        if started and mask is None and tracker.params is not None:
+            # Its tag points may include blood or background: worth a look, once. (Without a
+            # grid at ED the slice gives no points at all, and that is what _judge says.)
+            self.counts["slices_without_mask"] += 1
+            self.report(WARN, "no ED myocardium mask; detecting on tag energy alone", view=key[0],
+                        slice=key[1], reason=why)
+        self._judge(key, frame, points, started, conversions.stamp_text(stamp))
         self.pub.publish(conversions.tagpoints_to_msg(points, stamp=stamp))
         self.frames_out += 1
+
+    def _judge(self, key, frame, points: TagPointSet, started: bool, stamp: str) -> None:
+        """Say what a user must act on at WARN; count and DEBUG-log what tags do anyway."""
+        n_ed = len(points) if started else len(self.trackers[key].track_id)
+        if started and self.trackers[key].params is None:
+            # No grid read at ED: this slice gives no tag points for the whole cine.
+            self.no_tags[key] = points.status
+            self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index, stamp=stamp,
+                        points=0, status=points.status + "; this slice gives no tag points")
+            return
+        if key in self.no_tags:  # already said once; its later frames cannot add tag points
+            self.counts["frames_in_slices_without_tags"] += 1
+            self.get_logger().debug(f"tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} "
+                                    f"stamp={stamp} status={points.status}")
+            return
+        unusable = ""
+        if points.status and not started:
+            try:
+                validate_image(frame.image)
+            except TagInputError as exc:
+                unusable = str(exc)
+        if unusable or points.status.startswith("tag tracker error"):
+            self.counts["unusable_frames"] += 1
+            self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index, stamp=stamp,
+                        points=len(points), status=points.status)
+            return
+        if len(points) == 0:
+            self.counts["frames_without_points"] += 1
+        elif len(points) < n_ed:
+            self.counts["frames_with_ended_tracks"] += 1
+        if points.status:
+            self.get_logger().debug(f"tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} "
+                                    f"stamp={stamp} points={len(points)} status={points.status}")
+
+    def _update_status(self) -> None:
+        """The heartbeat's status: the counts, at OK unless something needs the user's eye.
+
+        Set without publishing or logging (the heartbeat republishes it every second); events
+        that need saying were already reported when they happened."""
+        c = self.counts
+        problems = []
+        lost = sum(s.lost for s in self.streams.values())
+        if lost:
+            problems.append(f"{lost} message(s) lost in transport")
+        if c["frames_refused"]:
+            problems.append(f"{c['frames_refused']} frame(s) refused")
+        level = ERROR if problems else OK
+        if self.no_tags:
+            problems.append(f"no tag points from {', '.join(map(_slice_name, sorted(self.no_tags)))} "
+                            "(ED detection failed)")
+        for name, what in (("unusable_frames", "unusable frame(s)"), ("frames_missing", "frame(s) never came"),
+                           ("conflicting_frames", "different frame(s) for a taken slot"),
+                           ("late_frames_dropped", "frame(s) too late for their slot"),
+                           ("slices_without_mask", "slice(s) without an ED myocardium mask")):
+            if c[name]:
+                problems.append(f"{c[name]} {what}")
+        level = max(level, WARN) if problems else OK
+        ed_tracks = sum(len(t.track_id) for t in self.trackers.values())
+        alive = sum(len(t.alive) for t in self.trackers.values())
+        values = {"frames": self.frames_out, "slices": len(self.trackers), "tracks_at_ed": ed_tracks,
+                  "tracks_alive": alive, **{k: v for k, v in sorted(c.items())}}
+        message = "; ".join(problems) if problems else f"tracking: {self.frames_out} frames, {len(self.trackers)} slices"
+        status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(), message=message,
+                                  hardware_id=self.get_name())
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        # GraphNode's heartbeat republishes _status (with the per-topic stream counts) at 1 Hz.
+        self._status = status
 
     def _publish_empty(self, msg: TaggedFrame, reason: str) -> None:
         """An empty set standing in for a frame that could not be used, if its indices are usable

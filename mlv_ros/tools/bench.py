@@ -22,8 +22,9 @@ def run(args) -> int:
     names = available() if args.name == "all" else [args.name]
     for name in names:
         path = BENCH_DIR / f"{name}.py"
-        if not path.exists():
-            print(f"mlv-ros bench: no benchmark {name!r}; have: {', '.join(available())}", file=sys.stderr)
+        if name not in available():  # a name, never a path: "../x" must not run another script
+            print(f"mlv-ros bench: no benchmark {name!r}; choose one of: all, {', '.join(available())}",
+                  file=sys.stderr)
             return 2
         sys.argv = [str(path), *args.extra]
         try:

@@ -8,6 +8,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from mlv_ros.cli import describe_os_error, one_line
+
 
 def add_arguments(parser):
     parser.add_argument("mcap", help="recorded run (RUN_DIR/run.mcap or the run directory)")
@@ -17,8 +19,37 @@ def add_arguments(parser):
     parser.add_argument("--compare-label", default=None, help="name of the comparison run")
 
 
+def check_recording(path: Path) -> None:
+    """Raise FileNotFoundError / ValueError, with the fix, for a path that is not a run's recording:
+    missing, or holding another message type on a topic the report reads (deserialising it would
+    fail deep inside rclpy)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist: give RUN_DIR/run.mcap (or RUN_DIR) of a recorded run")
+    if path.is_dir() and not any(path.glob("*.mcap")):
+        raise ValueError(f"{path} holds no .mcap file: give RUN_DIR/run.mcap (or RUN_DIR) of a recorded run")
+    if path.is_file():
+        with open(path, "rb") as fh:
+            if fh.read(5) != b"\x89MCAP":
+                raise ValueError(f"{path} is not an MCAP file: give RUN_DIR/run.mcap (or RUN_DIR) of a recorded run")
+    from mlv_ros import bagio, qos  # (after the quick checks: rclpy takes a second to import)
+
+    try:
+        topics = bagio.bag_topics(path)
+    except ValueError:
+        return  # no summary (a killed recorder) or not MCAP: reading it says which
+    read = (qos.REGISTERED_CLOUD, qos.REGISTERED_STATE, qos.MOTION, qos.MODEL_STATE, qos.METRICS,
+            qos.FRAMES, qos.TAG_POINTS)  # what read_run deserialises
+    wrong = [f"{t} holds {topics[t]['type'] or 'an untyped channel'}, not {qos.TOPIC_TYPES[t]}"
+             for t in read if t in topics and topics[t]["type"] != qos.TOPIC_TYPES[t]]
+    if wrong:
+        raise ValueError(f"{path} is not an mlv-ros recording: {'; '.join(wrong)} "
+                         "(give the run.mcap that `mlv-ros run` or `mlv-ros demo` wrote)")
+
+
 def load_run_data(path: Path, label: str):
-    """RunData (per-phase metrics, ED and per-phase positions, LV frame) from a recording."""
+    """RunData (per-phase metrics, ED and per-phase positions, LV frame) from a recording
+    (checked with :func:`check_recording` first: :func:`build` does)."""
     from mlv_ros.core.analysis import LVFrame, PhaseMetrics
     from mlv_ros.core.report.summary import RunData
     from mlv_ros.core.tracking import lv_frame_axes
@@ -34,6 +65,8 @@ def load_run_data(path: Path, label: str):
 
 def build(mcap: Path, out: Path | None = None, compare: Path | None = None, label: str | None = None,
           compare_label: str | None = None) -> Path:
+    for path in (mcap, compare) if compare else (mcap,):
+        check_recording(path)  # a mistake in either is said before seconds of imports and reading
     from mlv_ros.core.report import build_report
 
     mcap = Path(mcap)
@@ -62,7 +95,11 @@ def run(args) -> int:
         index = build(Path(args.mcap), Path(args.out) if args.out else None,
                       Path(args.compare) if args.compare else None, args.label, args.compare_label)
     except (FileNotFoundError, ValueError) as exc:
-        print(f"mlv-ros report: {exc}", file=sys.stderr)
+        print(f"mlv-ros report: {one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # mostly --out: unwritable, read-only, full
+        print(f"mlv-ros report: cannot write the report: {describe_os_error(exc)}; "
+              "choose another --out", file=sys.stderr)
         return 2
     print(index)
     return 0

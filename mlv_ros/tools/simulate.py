@@ -10,6 +10,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from mlv_ros.cli import describe_os_error, number, one_line
+
 
 def add_arguments(parser):
     parser.add_argument("--preset", default=None,
@@ -17,27 +19,27 @@ def add_arguments(parser):
                              "path (default normal); with --random/--protocol it fixes the shape")
     parser.add_argument("--out", required=True, type=Path,
                         help="output directory (DICOM under OUT/dicom, ground truth in OUT)")
-    parser.add_argument("--random", type=int, default=None, metavar="SEED",
+    parser.add_argument("--random", type=number(int, 0), default=None, metavar="SEED",
                         help="draw every acquisition item from its documented range (README, "
                              "'Random protocols'); writes OUT/protocol.yaml")
     parser.add_argument("--protocol", type=Path, default=None, metavar="FILE",
                         help="protocol YAML fixing any items (with --random the rest are drawn, "
                              "alone they take the preset's values)")
-    parser.add_argument("--snr", type=float, default=None,
+    parser.add_argument("--snr", type=number(float, 0.0), default=None,
                         help="myocardium / noise sigma (default: the preset's, 20); 0 = noiseless")
-    parser.add_argument("--size", type=int, default=None, help="rows = columns (default 256)")
-    parser.add_argument("--phases", type=int, default=None, help="phases per cycle (default 25)")
-    parser.add_argument("--subplanes", type=int, default=None,
+    parser.add_argument("--size", type=number(int, 16), default=None, help="rows = columns (default 256)")
+    parser.add_argument("--phases", type=number(int, 2), default=None, help="phases per cycle (default 25)")
+    parser.add_argument("--subplanes", type=number(int, 1), default=None,
                         help="through-slice sub-planes (default 5)")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--seed", type=number(int, 0), default=None,
                         help="noise, UID and file-name seed (default: the --random SEED, else 0)")
-    parser.add_argument("--points", type=int, default=2000,
+    parser.add_argument("--points", type=number(int, 0), default=2000,
                         help="material points with stored trajectories")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
 def _fail(msg) -> int:
-    print(f"mlv-ros simulate: {msg}", file=sys.stderr)
+    print(f"mlv-ros simulate: {one_line(msg)}", file=sys.stderr)
     return 2
 
 
@@ -70,8 +72,6 @@ def run(args) -> int:
     from mlv_ros.core.sim import load_preset, simulate_study
 
     randomised = args.random is not None or args.protocol is not None
-    if args.random is not None and args.random < 0:
-        return _fail(f"--random SEED must be >= 0, got {args.random}")
     seed = args.seed if args.seed is not None else (args.random if args.random is not None else 0)
     protocol = None
     try:
@@ -81,6 +81,10 @@ def run(args) -> int:
             preset = load_preset(args.preset or "normal")
     except (FileNotFoundError, ValueError) as exc:
         return _fail(exc)
+    try:  # before the simulation: an --out that cannot be written fails now, not minutes later
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return _fail(f"cannot write --out: {describe_os_error(exc)}")
     if protocol is not None:
         snr = protocol["snr"]
     else:
@@ -110,10 +114,15 @@ def run(args) -> int:
         options = dicom_options(protocol, study, names_seed=seed)
         extra = {"protocol": protocol, "dicom": options}
     wbar = tqdm(total=len(study.frames), unit="file", desc="write DICOM", disable=args.no_progress)
-    files = write_study_dicom(study, out / "dicom",
-                              progress=lambda done, total: wbar.update(done - wbar.n), **options)
-    wbar.close()
-    jpath, npath = write_groundtruth(study, out, n_points=args.points, extra=extra)
+    try:
+        files = write_study_dicom(study, out / "dicom",
+                                  progress=lambda done, total: wbar.update(done - wbar.n), **options)
+        jpath, npath = write_groundtruth(study, out, n_points=args.points, extra=extra)
+    except OSError as exc:  # e.g. the disk filled up while writing
+        wbar.close()
+        return _fail(f"writing the study failed: {describe_os_error(exc)}")
+    finally:
+        wbar.close()
     msg = f"wrote {len(files)} DICOM files to {out / 'dicom'}; ground truth {jpath.name}, {npath.name}"
     if protocol is not None:
         how = f"--random {args.random}" if args.random is not None else f"--protocol {args.protocol}"

@@ -1,0 +1,267 @@
+"""``mlv-ros run`` as a user meets it, in real processes on real ROS: SIGINT/SIGTERM keep what was
+done (exit 130/143, the recording closed, read back by rosbags, marked incomplete), a node that
+cannot start or gives up ends the run at once with its reason, a write error stops the recording
+cleanly, and command-line mistakes are one line without a traceback.
+
+Each run claims its own ROS domain (ROS_DOMAIN_ID is taken out of its environment) and uses a
+small phantom (96², 300 particles). Waits are on what the run prints, never on sleeps alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import resource
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from conftest import console_script
+from mlv_ros import bagio, qos
+
+SMALL = ["--phantom", "normal", "--size", "96", "--particles", "300"]
+
+
+def run_env() -> dict:
+    env = dict(os.environ)
+    env.pop("ROS_DOMAIN_ID", None)  # each run claims a free private domain
+    return env
+
+
+class Run:
+    """An ``mlv-ros run`` process whose stderr lines are read as they come (with their time)."""
+
+    def __init__(self, args: list[str], preexec_fn=None):
+        self.t0 = time.monotonic()
+        self.proc = subprocess.Popen([console_script("mlv-ros"), "run", *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env=run_env(), preexec_fn=preexec_fn)
+        self.lines: list[str] = []
+        self._new: queue.Queue = queue.Queue()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self):
+        for line in self.proc.stderr:
+            self._new.put((time.monotonic(), line.rstrip("\n")))
+        self._new.put(None)
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> float:
+        """Block until a stderr line contains ``text``; returns when it came."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            try:
+                item = self._new.get(timeout=max(0.01, end - time.monotonic()))
+            except queue.Empty:
+                break
+            if item is None:
+                break
+            self.lines.append(item[1])
+            if text in item[1]:
+                return item[0]
+        self.proc.kill()
+        pytest.fail(f"no {text!r} in the run's output:\n" + "\n".join(self.lines[-30:]))
+
+    def finish(self, timeout: float = 60.0) -> tuple[int, str, list[str]]:
+        """Exit status, stdout, and every stderr line."""
+        try:
+            self.proc.wait(timeout=timeout)
+            out = self.proc.stdout.read()  # the JSON summary: far below a pipe's capacity
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+        self._reader.join(timeout=10)
+        while True:
+            try:
+                item = self._new.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                self.lines.append(item[1])
+        return self.proc.returncode, out, self.lines
+
+
+def our_lines(lines: list[str]) -> list[str]:
+    """What ``mlv-ros run`` itself says (not the nodes' logs)."""
+    return [line for line in lines if line.startswith("mlv-ros run:")]
+
+
+def assert_one_line_reason(lines: list[str], *words: str) -> str:
+    assert not any("Traceback" in line for line in lines), "\n".join(lines)
+    said = our_lines(lines)
+    assert len(said) == 1, "\n".join(lines[-20:])
+    for w in words:
+        assert w in said[0], said[0]
+    return said[0]
+
+
+def params_file(tmp_path: Path, data: dict) -> str:
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump({node: {"ros__parameters": p} for node, p in data.items()}))
+    return str(path)
+
+
+def read_recording(run_dir: Path) -> dict:
+    """Topic → messages, read by rosbags alone."""
+    out: dict = {}
+    with AnyReader([run_dir / "run.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _t, raw in reader.messages():
+            out.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+    return out
+
+
+def check_interrupted(run_dir: Path, rc: int, lines: list[str], name: str, code: int) -> dict:
+    assert rc == code, "\n".join(lines[-20:])
+    assert_one_line_reason(lines, f"interrupted by {name}", "marked incomplete")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["complete"] is False and summary["interrupted"] == name, summary
+    meta = bagio.read_bag_metadata(run_dir)
+    assert meta["custom_data"]["interrupted"] == name and meta["custom_data"]["complete"] == "false"
+    assert meta["message_count"] == summary["recorded_messages"] > 0
+    return summary
+
+
+# ---------------------------------------------------------------------------------- signals
+def test_sigint_mid_run_keeps_every_solved_phase(tmp_path):
+    run_dir = tmp_path / "run"
+    # Phase-major at twice real time: phases are solved while frames still stream in.
+    params = params_file(tmp_path, {"frame_source": {"order": "phase_major", "rate_factor": 2.0}})
+    run = Run([*SMALL, "--phases", "6", "--params", params, "--out", str(run_dir)])
+    run.wait_for("[mlv-ros] phase 2/6 analysed")  # phase 1, the first one actually solved
+    sent = time.monotonic()
+    run.proc.send_signal(signal.SIGINT)
+    rc, _, lines = run.finish()
+    assert time.monotonic() - sent < 15  # the grace (10 s) bounds the wait for phases in flight
+    summary = check_interrupted(run_dir, rc, lines, "SIGINT", 130)
+    assert 2 <= summary["phases_solved"] < 6 and summary["frames_published"] < 66, summary
+    rec = read_recording(run_dir)
+    # Every phase solved before the end is in the recording, motion, state and metrics.
+    assert len(rec[qos.MOTION]) == len(rec[qos.MODEL_STATE]) == summary["phases_solved"]
+    assert sorted(m.phase_index for m in rec[qos.MODEL_STATE]) == list(range(summary["phases_solved"]))
+    assert len(rec[qos.METRICS]) == summary["metrics_published"] >= 2
+    assert len(rec[qos.FRAMES]) == summary["frames_published"]
+
+
+def test_sigterm_mid_run_closes_the_recording(tmp_path):
+    run_dir = tmp_path / "run"
+    run = Run([*SMALL, "--phases", "4", "--out", str(run_dir)])
+    run.wait_for("[mlv-ros] 44 frames, 4 phases")  # the graph is running
+    run.proc.send_signal(signal.SIGTERM)
+    rc, _, lines = run.finish()
+    check_interrupted(run_dir, rc, lines, "SIGTERM", 143)
+    rec = read_recording(run_dir)
+    assert rec[qos.DIAGNOSTICS]  # closed and readable: the index and summary are there
+
+
+def test_signal_while_starting_leaves_nothing(tmp_path):
+    run_dir = tmp_path / "run"
+    # The full-size phantom takes seconds to simulate: the signal comes while it is loading.
+    run = Run(["--phantom", "normal", "--out", str(run_dir)])
+    run.wait_for("[recorder]: recording")
+    run.proc.send_signal(signal.SIGINT)
+    rc, _, lines = run.finish(timeout=30)
+    assert rc == 130
+    assert_one_line_reason(lines, "interrupted by SIGINT while starting", "nothing recorded")
+    assert not run_dir.exists()
+
+
+# ---------------------------------------------------------------------------------- failures
+def test_bad_parameter_ends_the_start_at_once_and_leaves_nothing(tmp_path):
+    run_dir = tmp_path / "new" / "run"
+    params = params_file(tmp_path, {"meshless_solver": {"twist_knots": 200}})
+    run = Run([*SMALL, "--phases", "4", "--params", params, "--out", str(run_dir)])
+    rc, _, lines = run.finish(timeout=30)
+    assert rc == 2 and time.monotonic() - run.t0 < 15
+    assert_one_line_reason(lines, "meshless_solver could not start", "twist_knots", "out of range")
+    assert not (tmp_path / "new").exists()  # the directories it made are gone too
+
+
+def test_foreign_bag_ends_at_once_with_the_reason(tmp_path):
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    foreign = tmp_path / "foreign" / "other.mcap"
+    w = bagio.BagWriter(foreign)
+    w.add_topic("/chatter", "std_msgs/msg/String")
+    w.write("/chatter", serialize_message(String(data="hello")), 1_000_000_000)
+    w.close()
+    run = Run(["--bag", str(foreign), "--out", str(tmp_path / "run")])
+    rc, _, lines = run.finish(timeout=30)
+    assert rc == 2 and time.monotonic() - run.t0 < 15
+    assert_one_line_reason(lines, f"has no {qos.FRAMES} messages", "/chatter")
+    assert not (tmp_path / "run").exists()
+
+
+def test_node_that_cannot_build_its_model_ends_the_run_at_once(tmp_path):
+    """twist_knots 1 is inside the solver's declared range (0..100) but the model refuses it
+    once the registration arrives: the run ends then, with that reason (it used to wait 600 s)."""
+    run_dir = tmp_path / "run"
+    params = params_file(tmp_path, {"meshless_solver": {"twist_knots": 1}, "frame_source": {"order": "phase_major"}})
+    run = Run([*SMALL, "--phases", "4", "--params", params, "--out", str(run_dir)])
+    failed_at = run.wait_for("[meshless_solver]: cannot build the model")
+    rc, _, lines = run.finish()
+    exit_latency = time.monotonic() - failed_at
+    assert rc == 1 and exit_latency < 5, (rc, exit_latency)
+    assert_one_line_reason(lines, "meshless_solver: cannot build the model", "twist_knots must be 0 or 2..100")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert not summary["complete"] and "twist_knots" in summary["failed"]
+    assert "twist_knots" in bagio.read_bag_metadata(run_dir)["custom_data"]["failed"]
+
+
+def test_write_error_stops_the_recording_cleanly(tmp_path):
+    """A file size limit (RLIMIT_FSIZE: EFBIG) stands in for a full disk (ENOSPC needs a small
+    filesystem, i.e. root): the same OSError path in the recorder."""
+    run_dir = tmp_path / "run"
+    params = params_file(tmp_path, {"recorder": {"chunk_size_kib": 64}})
+
+    def limit_file_size():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of being killed
+        resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000))
+
+    run = Run([*SMALL, "--phases", "4", "--params", params, "--out", str(run_dir)], preexec_fn=limit_file_size)
+    rc, _, lines = run.finish()
+    assert rc == 1
+    assert any("[ERROR]" in line and "[recorder]: recording stopped: File too large (EFBIG)" in line for line in lines)
+    assert_one_line_reason(lines, "recorder: recording stopped", "EFBIG", "mlv-ros recover")
+    # The file ends on a whole record and metadata.yaml counts exactly what it holds.
+    meta = bagio.read_bag_metadata(run_dir)
+    recovered = bagio.recover(run_dir / "run.mcap", tmp_path / "recovered.mcap")
+    assert meta["message_count"] == recovered["messages"] > 0
+    assert recovered["stopped_at"].startswith("EndOfFile")
+    assert json.loads((run_dir / "summary.json").read_text())["failed"].startswith("recorder: ")
+
+
+# ---------------------------------------------------------------------------------- CLI
+def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
+    not_mcap = tmp_path / "notes.txt"
+    not_mcap.write_text("not a recording\n")
+    done = tmp_path / "done"
+    done.mkdir()
+    (done / "run.mcap").write_bytes(b"")
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    return [
+        (["--phantom", "normal", "--snr", "nan", "--out", str(tmp_path / "r1")], "--snr must be from 0 to 1000"),
+        (["--phantom", "normal", "--phases", "1", "--out", str(tmp_path / "r2")], "--phases must be from 2 to 200"),
+        (["--bag", str(not_mcap), "--out", str(tmp_path / "r3")], "is not an MCAP recording"),
+        (["--phantom", "normal", "--out", str(done)], "already holds a run"),
+        (["--phantom", "normal", "--out", str(a_file / "run")], "cannot write in --out"),  # unwritable
+        (["--phantom", "normal", "--out", "/proc/mlv_ros_run"], "cannot write in --out"),
+    ]
+
+
+def test_cli_mistakes_are_one_line_without_traceback(tmp_path):
+    for args, words in cli_cases(tmp_path):
+        p = subprocess.run([console_script("mlv-ros"), "run", *args], capture_output=True, text=True,
+                           env=run_env(), timeout=60)
+        lines = p.stderr.splitlines()
+        assert p.returncode == 2, (args, p.stderr)
+        assert_one_line_reason(lines, words)
+        assert not (tmp_path / "r1").exists() and not (tmp_path / "r3").exists()
