@@ -46,6 +46,8 @@ MUST = {"median_mm": 1.0, "p95_mm": 2.5, "twist_error_deg": 2.0}
 # it has. Passing also needs the model to cover this much of the true myocardium.
 MIN_COVERAGE = 0.9
 GOAL_MEDIAN_MM = 0.5
+# A phase more than this far off (median 3D error, mm) must not be delivered with verdict ok.
+SILENT_MM = 2.0
 BIN = Path(sys.executable).parent
 
 
@@ -90,6 +92,13 @@ def run_case(seed: int, out: Path, timeout: float) -> dict:
     case["inside_myocardium"] = round(acc["inside_myocardium"], 3)
     case["coverage"] = round(acc["coverage"], 3)
     case["worst_phase_median_mm"] = round(max(r["median_mm"] for r in acc["per_phase"]), 3)
+    # Verdicts (mlv_ros.core.verdict): which phases the run flagged, and the wrong answers it did
+    # not flag (median more than SILENT_MM off, delivered as ok) — the failure that must not be.
+    flagged = {int(p) for key in ("phases_degraded", "phases_failed") for p in summary.get(key) or {}}
+    case["phases_degraded"] = sorted(int(p) for p in summary.get("phases_degraded") or {})
+    case["phases_failed"] = sorted(int(p) for p in summary.get("phases_failed") or {})
+    case["silent_wrong_phases"] = [r["phase"] for r in acc["per_phase"]
+                                   if r["median_mm"] > SILENT_MM and r["phase"] not in flagged]
     every_phase = case["phases_solved"] is not None and case["phases_solved"] == case["num_phases"]
     case["pass"] = bool(every_phase and case["coverage"] >= MIN_COVERAGE
                         and all(case["es"].get(k, float("inf")) <= v for k, v in MUST.items()))
@@ -113,6 +122,8 @@ def summarise(cases: list[dict]) -> dict:
             out[key] = {"worst": min(v), "median": round(statistics.median(v), 3)}
     out["at_goal_median"] = sum(c.get("es", {}).get("median_mm", 9e9) <= GOAL_MEDIAN_MM for c in cases)
     out["failing_seeds"] = [c["seed"] for c in cases if not c["pass"]]
+    out["phases_flagged"] = sum(len(c.get("phases_degraded", [])) + len(c.get("phases_failed", [])) for c in cases)
+    out["silent_wrong_phases"] = {c["seed"]: c["silent_wrong_phases"] for c in cases if c.get("silent_wrong_phases")}
     return out
 
 

@@ -295,6 +295,44 @@ def write_rosbag2_record(writer: Writer, metadata: dict) -> None:
     writer.add_metadata("rosbag2", {"serialized_metadata": rosbag2_yaml(metadata)})
 
 
+class _DiskFile:
+    """The MCAP writer's output: unbuffered, so it knows what reached the file.
+
+    Every ``write`` goes straight to the OS. When one fails (disk full ``ENOSPC``, file size limit
+    ``EFBIG``, ``EIO``) everything written before it is in the file, and the record that failed
+    can be cut off with :meth:`truncate`, leaving a file that ends on a whole record.
+    """
+
+    def __init__(self, path: Path):
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
+        self._pos = 0
+        self.closed = False
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        while view:
+            n = os.write(self._fd, view)
+            self._pos += n
+            view = view[n:]
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        """Nothing to do: every write is already with the OS."""
+
+    def truncate(self, size: int) -> None:
+        os.ftruncate(self._fd, size)
+        os.lseek(self._fd, size, os.SEEK_SET)
+        self._pos = size
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            os.close(self._fd)
+
+
 @dataclass
 class BagWriter:
     """Write a rosbag2-compatible MCAP file.
@@ -307,31 +345,64 @@ class BagWriter:
         Bytes per chunk before it is compressed and written (a SIGKILL loses at most the chunk
         being filled; every completed chunk is on disk).
     compression : {"zstd", "lz4", "none"}
+
+    Attributes
+    ----------
+    error : OSError or None
+        The write error that stopped the recording (disk full, file too large, I/O error). The
+        file then ends after the last record written whole; :meth:`write` refuses more, and
+        :meth:`close` writes ``metadata.yaml`` for the messages in the file, without an MCAP
+        summary (``mlv-ros recover`` rewrites a complete file from it).
+    custom_data : dict of str to str
+        Extra ``custom_data`` of the bag metadata (``recorded_by`` is always there).
     """
 
     path: Path
     chunk_size: int = 1 << 20
     compression: str = "zstd"
     topics: dict = field(default_factory=dict)
+    custom_data: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.path = Path(self.path)
-        if self.path.exists():
-            raise FileExistsError(f"refusing to overwrite existing recording {self.path}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "wb")
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if self.compression not in comp:
             raise ValueError(f"compression must be one of {sorted(comp)}, got {self.compression!r}")
-        self._writer = Writer(self._fh, chunk_size=self.chunk_size, compression=comp[self.compression])
-        self._writer.start(profile="ros2", library=f"mlv_ros {__version__}")
+        if self.path.exists():
+            raise FileExistsError(f"refusing to overwrite existing recording {self.path}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = _DiskFile(self.path)
         self._schemas: dict[str, int] = {}
         self.start_ns: int | None = None
         self.end_ns = 0
         self.closed = False
-        # rosbag2 writes the (still empty) bag metadata when it opens a file, so even a file whose
-        # writer was killed carries its version, distro and custom data.
-        write_rosbag2_record(self._writer, self.metadata())
+        self.error: OSError | None = None
+        try:
+            self._writer = Writer(self._fh, chunk_size=self.chunk_size, compression=comp[self.compression])
+            self._writer.start(profile="ros2", library=f"mlv_ros {__version__}")
+            # rosbag2 writes the (still empty) bag metadata when it opens a file, so even a file
+            # whose writer was killed carries its version, distro and custom data.
+            write_rosbag2_record(self._writer, self.metadata())
+        except OSError:
+            self.discard()  # not even the header fits: leave nothing behind
+            raise
+
+    def _guarded(self, op, *args, **kwargs):
+        """Run one writer operation; on a write error cut the file back to where the operation
+        began (a whole record), close it and remember the error."""
+        if self.error is not None:
+            raise ValueError(f"recording {self.path} stopped after a write error: {self.error}")
+        mark = self._fh.tell()
+        try:
+            return op(*args, **kwargs)
+        except OSError as exc:
+            self.error = exc
+            try:
+                self._fh.truncate(mark)
+            except OSError:
+                pass  # the reader then stops at the cut record; what came before stays readable
+            self._fh.close()
+            raise
 
     def add_topic(self, topic: str, type_name: str, qos_profiles: list[dict] | None = None) -> None:
         """Register a topic (idempotent).
@@ -347,34 +418,40 @@ class BagWriter:
         if topic in self.topics:
             return
         if type_name not in self._schemas:
-            self._schemas[type_name] = self._writer.register_schema(
-                name=type_name, encoding="ros2msg", data=message_definition(type_name).encode())
+            self._schemas[type_name] = self._guarded(
+                self._writer.register_schema, name=type_name, encoding="ros2msg",
+                data=message_definition(type_name).encode())
         offered = offered_qos(qos_profiles or [{}])
         thash = type_hash(type_name)
-        cid = self._writer.register_channel(
-            topic=topic, message_encoding="cdr", schema_id=self._schemas[type_name],
+        cid = self._guarded(
+            self._writer.register_channel, topic=topic, message_encoding="cdr", schema_id=self._schemas[type_name],
             metadata={"offered_qos_profiles": rosbag2_yaml(offered), "topic_type_hash": thash})
         self.topics[topic] = _Topic(topic, type_name, cid, offered, thash)
 
     def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
         """Append one CDR-serialised message received at ``log_time_ns`` and sent at
         ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
-        receive time), both in ns since the epoch."""
+        receive time), both in ns since the epoch.
+
+        Raises ``OSError`` when the file cannot take it (see :attr:`error`: the recording stops
+        there) and ``ValueError`` once it has stopped or is closed.
+        """
         if self.closed:
             raise ValueError(f"recording {self.path} is closed")
         t = self.topics.get(topic)
         if t is None:
             raise ValueError(f"topic {topic!r} was not added to the recording")
-        self._writer.add_message(channel_id=t.channel_id, log_time=log_time_ns, data=bytes(data),
-                                 publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
-                                 sequence=0)
+        self._guarded(self._writer.add_message, channel_id=t.channel_id, log_time=log_time_ns, data=bytes(data),
+                      publish_time=log_time_ns if publish_time_ns is None else publish_time_ns, sequence=0)
         t.count += 1
         self.start_ns = log_time_ns if self.start_ns is None else min(self.start_ns, log_time_ns)
         self.end_ns = max(self.end_ns, log_time_ns)
 
     def flush(self) -> None:
-        """Push written chunks to the OS (does not close the current chunk)."""
-        self._fh.flush()
+        """Push written chunks to the OS (does not close the current chunk; chunks are written
+        unbuffered, so this is only kept for callers that flush)."""
+        if self.error is None and not self.closed:
+            self._fh.flush()
 
     @property
     def message_count(self) -> int:
@@ -383,24 +460,67 @@ class BagWriter:
     def metadata(self) -> dict:
         """The bag metadata (version 9) of what has been written so far."""
         return bag_metadata(self.path.name, self.topics.values(), self.start_ns, self.end_ns,
-                            {"recorded_by": f"mlv_ros {__version__}"})
+                            {"recorded_by": f"mlv_ros {__version__}", **self.custom_data})
 
     def close(self) -> None:
         """Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
-        ``metadata.yaml`` beside it."""
+        ``metadata.yaml`` beside it.
+
+        After a write error (:attr:`error`, or one while finishing) the file keeps the records
+        written whole and no summary; ``metadata.yaml`` then counts the messages in it. Raises
+        ``OSError`` if ``metadata.yaml`` cannot be written.
+        """
         if self.closed:
             return
-        write_rosbag2_record(self._writer, self.metadata())
-        self._writer.finish()
+        if self.error is None:
+            try:
+                self._guarded(write_rosbag2_record, self._writer, self.metadata())
+                self._guarded(self._writer.finish)
+            except OSError:
+                pass  # self.error says why; the file ends on the last whole record
         self._fh.close()
         self.closed = True
+        if self.error is not None:
+            self._count_written()
         write_bag_metadata(self.path, self)
+
+    def discard(self) -> None:
+        """Close without finishing and delete the file (a start that failed before recording)."""
+        self._fh.close()
+        self.closed = True
+        self.path.unlink(missing_ok=True)
+
+    def _count_written(self) -> None:
+        """Set the topics' counts and the times to the messages that are in the file: those of
+        the chunks written whole, read from their message indexes (nothing is decompressed)."""
+        from mcap.records import MessageIndex
+        from mcap.stream_reader import StreamReader
+
+        by_channel = {t.channel_id: t for t in self.topics.values()}
+        for t in by_channel.values():
+            t.count = 0
+        self.start_ns, self.end_ns = None, 0
+        with open(self.path, "rb") as fh:
+            try:
+                for rec in StreamReader(fh, emit_chunks=True).records:
+                    if isinstance(rec, MessageIndex) and rec.channel_id in by_channel and rec.records:
+                        by_channel[rec.channel_id].count += len(rec.records)
+                        times = [t for t, _ in rec.records]
+                        self.start_ns = min(times) if self.start_ns is None else min(self.start_ns, *times)
+                        self.end_ns = max(self.end_ns, *times)
+            except Exception as exc:  # the file has no footer: reading ends at its last record
+                if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                    raise
 
 
 def write_bag_metadata(mcap_path: Path, writer: BagWriter) -> Path:
     """rosbag2 ``metadata.yaml`` (version 9) for a single-file MCAP bag; returns its path."""
     path = Path(mcap_path).parent / "metadata.yaml"
-    path.write_text(rosbag2_yaml({"rosbag2_bagfile_information": writer.metadata()}))
+    try:
+        path.write_text(rosbag2_yaml({"rosbag2_bagfile_information": writer.metadata()}))
+    except OSError:
+        path.unlink(missing_ok=True)  # a half-written file would pass for the bag's metadata
+        raise
     return path
 
 
@@ -446,6 +566,57 @@ def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             raise ValueError(f"cannot read {path} as MCAP: {exc}") from exc
+
+
+# Fields appended to our messages after recordings were made with the older definition
+# (type name → CDR of their defaults, appended in order): such a recording stays readable.
+_APPENDED_FIELDS = {
+    # verdict (uint8 0 = ok), verdict_reasons (string "")
+    "mlv_msgs/msg/ModelState": (("uint8", 0), ("string", "")),
+    "mlv_msgs/msg/MotionMetrics": (("uint8", 0), ("string", "")),
+}
+
+
+def _cdr_defaults(data: bytes, fields) -> bytes:
+    """``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` appended,
+    aligned as CDR aligns them (relative to the end of the header)."""
+    little = data[1] & 1  # representation id 0x0001 = CDR little endian, 0x0000 big endian
+    order = "little" if little else "big"
+    out = bytearray(data)
+    for kind, value in fields:
+        if kind == "uint8":
+            out += int(value).to_bytes(1, order)
+        elif kind == "string":
+            raw = str(value).encode() + b"\0"
+            out += b"\0" * (-(len(out) - 4) % 4)
+            out += len(raw).to_bytes(4, order) + raw
+        else:  # pragma: no cover - only the kinds above are ever appended
+            raise ValueError(f"no CDR default for {kind}")
+    return bytes(out)
+
+
+def deserialize(data: bytes, msg_class):
+    """rclpy deserialisation of a recorded message, also of recordings made before fields were
+    appended to our message definitions (:data:`_APPENDED_FIELDS`: they read as their defaults).
+
+    Raises
+    ------
+    ValueError
+        The bytes are not a ``msg_class`` message under either definition.
+    """
+    from rclpy.serialization import deserialize_message
+
+    try:
+        return deserialize_message(data, msg_class)
+    except Exception as exc:  # rclpy raises its private RMWError
+        module = msg_class.__module__.split(".")[0]
+        appended = _APPENDED_FIELDS.get(f"{module}/msg/{msg_class.__name__}")
+        if appended is None or len(data) < 4:
+            raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+        try:
+            return deserialize_message(_cdr_defaults(data, appended), msg_class)
+        except Exception:
+            raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
 
 
 def bag_topics(path) -> dict[str, dict]:

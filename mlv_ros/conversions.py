@@ -429,7 +429,15 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         translation=c, rotation=q, a0=float(state.a0), a1=float(state.a1), a2=float(state.a2),
         a3=float(state.a3), tau=float(state.tau), iterations=int(state.iterations),
         residual=float(state.residual), converged=bool(state.converged),
-        num_particles=int(state.num_particles), num_control_points=int(state.num_control_points))
+        num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
+        verdict=_verdict_level(state.verdict), verdict_reasons=str(state.verdict_reasons))
+
+
+def _verdict_level(level) -> int:
+    """0 ok, 1 degraded, 2 failed (:mod:`mlv_ros.core.verdict`); anything else is refused."""
+    if int(level) not in (0, 1, 2):
+        raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
+    return int(level)
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
@@ -438,7 +446,8 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         phase_index=msg.phase_index, num_phases=msg.num_phases, translation=np.array(msg.translation),
         rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
-        num_particles=msg.num_particles, num_control_points=msg.num_control_points)
+        num_particles=msg.num_particles, num_control_points=msg.num_control_points,
+        verdict=_verdict_level(msg.verdict), verdict_reasons=msg.verdict_reasons)
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
                                                    [state.a0, state.a1, state.a2, state.a3, state.tau,
                                                     state.residual]]))
@@ -497,6 +506,13 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         if v.size and (np.any(v < 0) or not np.all(np.isfinite(v))):
             raise ValueError(f"{name} must hold non-negative counts")
         setattr(msg, name, _fast_array("I", v, np.uint32))
+    # Optional in the input: metrics without a verdict are ok with no reasons.
+    for name, default in (("verdict", 0), ("verdict_reasons", "")):
+        try:
+            value = _metrics_value(metrics, name)
+        except (KeyError, AttributeError):
+            value = default
+        setattr(msg, name, _verdict_level(value) if name == "verdict" else str(value))
     return msg
 
 
@@ -517,4 +533,6 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
         out[name] = float(getattr(msg, name))
     for name in METRIC_COUNT_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.uint32).astype(np.int64)
+    out["verdict"] = _verdict_level(msg.verdict)
+    out["verdict_reasons"] = msg.verdict_reasons
     return out

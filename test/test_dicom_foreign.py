@@ -27,7 +27,7 @@ from pydicom.uid import (DeflatedExplicitVRLittleEndian, ExplicitVRBigEndian, JP
                          JPEG2000MCLossless, JPEGBaseline8Bit, JPEGLSLossless, RLELossless, generate_uid)
 from pydicom.valuerep import DSfloat
 
-from corpus.dicom_cases import frames_by_path
+from corpus.dicom_cases import frames_by_path, set_float_pixels
 from mlv_ros import conversions
 from mlv_ros.core.io import WORKING_DTYPES, read_dicom_dir, write_study_dicom
 from mlv_ros.core.sim import simulate_study
@@ -92,17 +92,6 @@ def _set_stored(ds, values: np.ndarray, dtype, slope=None, intercept=None) -> No
         ds.RescaleIntercept = DSfloat(intercept, auto_format=True)
 
 
-def _set_float(ds, values: np.ndarray, double: bool) -> None:
-    del ds.PixelData
-    for tag in ("BitsStored", "HighBit", "PixelRepresentation", *RESCALE_TAGS):
-        delattr(ds, tag)
-    ds.BitsAllocated = 64 if double else 32
-    if double:
-        ds.DoubleFloatPixelData = np.asarray(values, "<f8").tobytes()
-    else:
-        ds.FloatPixelData = np.asarray(values, "<f4").tobytes()
-
-
 def _expected(path: Path) -> np.ndarray:
     """What a file holds, rescaled in float64 and rounded once to float32 (the working type)."""
     ds = pydicom.dcmread(path)
@@ -147,7 +136,7 @@ def test_every_stored_type_with_a_rescale_reads_as_the_same_frames(study):
                        for f, p in _sources(study, files))
     for name, double in (("float32", False), ("float64", True)):
         out = study.root / f"type_{name}"
-        files = _rewrite(study, out, lambda ds: _set_float(ds, _stored(ds) * 0.001, double))
+        files = _rewrite(study, out, lambda ds: set_float_pixels(ds, _stored(ds) * 0.001, double))
         res = read_dicom_dir(out)
         assert res.problems == [] and len(res.frames) == 33, name
         got = frames_by_path(res)

@@ -47,6 +47,13 @@ def test_end_to_end_accuracy_against_ground_truth(phantom_run):
     assert es["twist_error_deg"] <= 2.0, es
     worst = max(r["median_mm"] for r in acc["per_phase"])
     assert worst <= 1.5, acc["per_phase"]
+    # Every phase within 1.5 mm of the truth: none may be marked failed, and end-systole is ok;
+    # anything not ok says why (mlv_ros.core.verdict).
+    metrics = read_run(out / "run.mcap")["metrics"]
+    assert sorted(metrics) == list(range(16))
+    assert all(m["verdict"] < 2 for m in metrics.values()), {p: m["verdict_reasons"] for p, m in metrics.items()}
+    assert metrics[acc["es_phase"]]["verdict"] == 0, metrics[acc["es_phase"]]["verdict_reasons"]
+    assert all((m["verdict"] == 0) == (m["verdict_reasons"] == "") for m in metrics.values())
 
 
 def test_recording_opens_with_rosbags_with_every_topic(phantom_run):

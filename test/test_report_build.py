@@ -142,3 +142,25 @@ def test_bullseye_layout_anterior_top_septum_left():
     assert centre[5] == pytest.approx(330) and centre[16] == pytest.approx(0)
     rings = {seg: ring for seg, ring, _, _ in _aha_wedges()}
     assert rings[1] == 3 and rings[7] == 2 and rings[13] == 1 and len(rings) == 16
+
+
+def test_failed_phases_are_not_plotted_and_flagged_phases_are_named(tmp_path, normal, low_dpi):
+    """Phase 3 (ES) failed with an absurd volume, phase 7 degraded: the failed one enters no
+    curve, peak or table (ES moves to the best remaining phase), both are named with their
+    reasons at the top of the page and in summary.json."""
+    import dataclasses
+
+    phases, pos = normal
+    bad = dataclasses.replace(phases[3], cavity_volume_ml=40605.0, verdict=2,
+                              verdict_reasons="ejection fraction -300.00 outside [-0.3, 0.95]")
+    meh = dataclasses.replace(phases[7], verdict=1, verdict_reasons="2 of 8 SA slices with 3+ tag points")
+    flagged = phases[:3] + [bad] + phases[4:7] + [meh] + phases[8:]
+    index = build_report(tmp_path, flagged, X, pos, meta={"label": "run"}, frame=FR)
+    run = read_summary(tmp_path)["runs"][0]
+    assert run["phases_failed"] == {"3": bad.verdict_reasons}
+    assert run["phases_degraded"] == {"7": meh.verdict_reasons}
+    assert 3 not in run["phases_present"] and 7 in run["phases_present"]
+    assert run["key"]["es_phase_index"] != 3 and run["key"]["ejection_fraction"] < 1  # 40 l never used
+    page = index.read_text()
+    assert "phase 3 failed (not plotted)" in page and "phase 7 degraded" in page
+    assert "2 of 8 SA slices" in page

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
                                    polar_frame, quat_to_matrix)
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
+from mlv_ros.core.verdict import phase_verdict
 
 SliceKey = tuple  # (view, slice_index)
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
@@ -266,8 +267,11 @@ class MotionTracker:
         if not keys:
             raise ValueError(f"phase {phase_index}: no tag point matches an ED reference inside the model")
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
+        worst = (0, 0)  # (rejected, attached) of the pass that rejected the largest share
         for _ in range(max(1, self.slice_following + 1)):
+            rejected_before = self.rejected
             pos, inside = self._attach(rest, normals, offsets)
+            attached = int(inside.sum())
             if inside.sum() < 4:
                 raise ValueError(f"phase {phase_index}: only {int(inside.sum())} tag points lie inside the model")
             ctrl = self.model.attach(pos[inside])
@@ -306,6 +310,8 @@ class MotionTracker:
                 self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global)
                 self.positions = x_global + self.delta
             offsets = self._follow_slices(offsets, rest, normals, targets, inside)
+            if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
+                worst = (self.rejected - rejected_before, attached)
         for k, s in zip(keys, offsets):
             self.offsets[k] = float(s)
         x = self.positions
@@ -318,8 +324,24 @@ class MotionTracker:
         state.residual = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
         state.phase_index, state.num_phases = int(phase_index), int(num_phases)
         state.num_control_points = int(inside.sum())
+        verdict = self._verdict(sets, inside, state.residual, keys, *worst)
+        state.verdict, state.verdict_reasons = verdict.level, verdict.text
         self.last_phase = phase_index
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
+
+    def _verdict(self, sets, inside, residual_mm, keys, rejected, attached):
+        """The phase's data support (:func:`mlv_ros.core.verdict.phase_verdict`)."""
+        used_per_slice: dict = {}
+        for k, ok in zip(keys, inside):
+            if ok:
+                used_per_slice[k[:2]] = used_per_slice.get(k[:2], 0) + 1
+        sa_points = {key[1]: used_per_slice.get(key, 0) for key, ref in self.reference.items()
+                     if key[0] == VIEW_SA and ref}
+        spacing = [min(p.geometry.row_spacing, p.geometry.column_spacing) for p in sets.values()
+                   if getattr(p, "geometry", None) is not None]
+        return phase_verdict(int(inside.sum()), sum(len(r) for r in self.reference.values()), sa_points,
+                             residual_mm, float(np.median(spacing)) if spacing else 0.0,
+                             rejected=int(rejected), candidates=int(attached))
 
     def _local_solve(self, phi, targets, normals, x_global):
         """Local deformation δ (paper: internal forces act on the local part only) at elastic

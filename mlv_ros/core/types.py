@@ -96,7 +96,9 @@ class ModelState:
 
     ``x = c + R p``, ``p = s + d``; ``rotation`` is the unit quaternion (w, x, y, z) of R
     (model-centred → patient); ``translation`` is c in mm; ``a0`` mm; ``a1..a3`` and ``tau``
-    dimensionless (twist φ = π τ sin α).
+    dimensionless (twist φ = π τ sin α). ``verdict`` (0 ok, 1 degraded, 2 failed) and
+    ``verdict_reasons`` ("; "-separated) say how far the data supported this phase
+    (:mod:`mlv_ros.core.verdict`).
     """
 
     phase_index: int = 0
@@ -113,6 +115,8 @@ class ModelState:
     converged: bool = False
     num_particles: int = 0
     num_control_points: int = 0
+    verdict: int = 0
+    verdict_reasons: str = ""
 
 
 @dataclass

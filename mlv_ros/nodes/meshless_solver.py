@@ -189,7 +189,8 @@ class MeshlessSolver(GraphNode):
         self.motion_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp)))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         self.phases_published += 1
-        self.report(OK, "phase solved", phase=phase, control_points=state.num_control_points,
+        self.report(OK, "phase solved", phase=phase, verdict=("ok", "degraded", "failed")[state.verdict],
+                    control_points=state.num_control_points,
                     residual_mm=round(float(state.residual), 3), iterations=state.iterations,
                     seconds=round(time.monotonic() - t0, 3))
 

@@ -20,6 +20,8 @@ from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVAnalyzer, LVFrame
 from mlv_ros.core.tracking import lv_frame_axes
+from mlv_ros.core.verdict import DEGRADED, Verdict
+from mlv_ros.core.verdict import OK as OK_VERDICT
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
@@ -43,6 +45,7 @@ class MotionAnalyzer(GraphNode):
         self.clouds: dict = {}
         self.states: dict = {}
         self.published = 0
+        self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
         self.messages_handled = 0
         self.report(OK, "waiting for the registered model")
 
@@ -123,14 +126,23 @@ class MotionAnalyzer(GraphNode):
                 continue
             try:
                 metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases)
+                # The solver's data support first, then this phase's physiological bounds.
+                verdict = Verdict.from_parts(state.verdict, state.verdict_reasons).merge(
+                    Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
+                metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
                 self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
                 continue
             self.pub.publish(out)
             self.published += 1
-            self.report(OK, "metrics", phase=state.phase_index, volume_ml=round(metrics.cavity_volume_ml, 1),
-                        twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
+            self.verdicts[int(state.phase_index)] = (verdict.level, verdict.text)
+            values = dict(phase=state.phase_index, verdict=verdict.name, volume_ml=round(metrics.cavity_volume_ml, 1),
+                          twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
+            # A result the user must not take at face value is said so (WARN degraded, ERROR
+            # failed), with why.
+            level = {OK_VERDICT: OK, DEGRADED: WARN}.get(verdict.level, ERROR)
+            self.report(level, "metrics", **values, **({"reasons": verdict.text} if verdict.level else {}))
 
 
 def main(args=None):

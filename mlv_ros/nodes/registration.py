@@ -6,6 +6,10 @@ in, or ``ed_timeout_s`` after the first one with at least ``min_sa_slices``, seg
 reconstructs the myocardium, samples particles and registers the model (paper §3.2, Fig. 7).
 The cloud carries each particle's position and its polar model coordinates (α, β, w) and
 transmural depth, so the solver rebuilds exactly the same model.
+
+Registration happens once a run, so what it has to say is said once: the final ``registered``
+status is WARN, with every warning in it, when the model was built with something missing (slices
+that could not be segmented, no LA view...); a re-sent identical ED frame is only a DEBUG line.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import VIEW_SA, StudyShape
+from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 
 CLOUD_FIELDS = ("x", "y", "z", "alpha", "beta", "w", "transmural")
@@ -48,6 +53,7 @@ class Registration(GraphNode):
         self.last_frame_at = time.monotonic()
         self.registered = False
         self.result = None
+        self.verdict = None  # registration_verdict of the ED model, once registered
         self.messages_handled = 0
         self.create_timer(0.25, self._check_timeout)
         self.report(OK, "waiting for ED frames")
@@ -66,7 +72,14 @@ class Registration(GraphNode):
             return
         key = (frame.view, frame.slice_index)
         if key in self.ed_frames:
-            self.report(WARN, "duplicate ED frame replaces the earlier one", view=key[0], slice=key[1])
+            old = self.ed_frames[key]
+            if old.image.shape == frame.image.shape and np.array_equal(old.image, frame.image, equal_nan=True):
+                # A re-sent copy (a restarted source replays its history): nothing changes.
+                self.get_logger().debug(f"identical ED frame received again view={key[0]} slice={key[1]}")
+            else:
+                self.report(WARN, "a different ED frame for a slice already received replaces it (another "
+                            "study on this ROS_DOMAIN_ID?)", view=key[0], slice=key[1],
+                            stamp=conversions.stamp_text(msg.header.stamp))
         self.ed_frames[key] = frame
         self.expected = max(self.expected, frame.num_sa_slices + frame.num_la_slices)
         self.first_at = self.first_at or time.monotonic()
@@ -100,18 +113,18 @@ class Registration(GraphNode):
             except ValueError as exc:
                 self.report(ERROR, "user mask unusable; segmenting automatically", path=self.mask_path, reason=str(exc))
             else:
-                for (view, idx), why in reasons.items():
-                    self.report(WARN, "no user mask for slice; segmenting it automatically", view=view, slice=idx, reason=why)
+                if reasons:  # one line for all of them: the same fix (the mask file) for each
+                    self.report(WARN, "the user mask does not cover every slice; segmenting those automatically",
+                                path=self.mask_path, slices="; ".join(
+                                    f"{'SA' if view == VIEW_SA else 'LA'} {idx}: {why}"
+                                    for (view, idx), why in sorted(reasons.items())))
         try:
             res = register_ed(frames, num_particles=self.num_particles, seed=self.seed, masks=masks)
         except ValueError as exc:
             self.report(ERROR, "registration failed", reason=str(exc), slices=len(self.ed_frames))
             return
-        for rep in res.slice_reports:
-            if not rep.ok:
-                self.report(WARN, "slice not used for registration", view=rep.view, slice=rep.slice_index, reason=rep.reason)
-        for w in res.warnings:
-            self.report(WARN, "registration", warning=w)
+        left_out = [f"{'SA' if rep.view == VIEW_SA else 'LA'} {rep.slice_index}: {rep.reason}"
+                    for rep in res.slice_reports if not rep.ok]
         self.result = res
         coords = res.frame.coords
         cloud = {"x": res.particles[:, 0], "y": res.particles[:, 1], "z": res.particles[:, 2],
@@ -122,9 +135,18 @@ class Registration(GraphNode):
                                                         conversions.make_header(stamp)))
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
+        verdict = self.verdict = registration_verdict(res.slice_reports)
+        state.verdict, state.verdict_reasons = verdict.level, verdict.text
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
-        self.report(OK, "registered", particles=len(res.particles), slices=len(self.ed_frames),
-                    seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3))
+        extra = {}
+        if res.warnings:
+            extra["warnings"] = " | ".join(res.warnings)
+        if left_out:
+            extra["not_segmented"] = "; ".join(left_out)
+        if verdict.level:
+            extra["verdict"] = f"{verdict.name}: {verdict.text}"
+        self.report(WARN if extra else OK, "registered", particles=len(res.particles), slices=len(self.ed_frames),
+                    seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3), **extra)
 
 
 def main(args=None):

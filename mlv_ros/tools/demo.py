@@ -6,9 +6,12 @@ truth. About a minute and a half on 2 cores."""
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from pathlib import Path
+
+from mlv_ros.cli import describe_os_error, one_line
 
 
 def add_arguments(parser):
@@ -17,17 +20,41 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    from mlv_ros.core.sim import load_preset
     from mlv_ros.tools.report import build
-    from mlv_ros.tools.run import phantom_accuracy, run_graph
+    from mlv_ros.tools.run import SIGNAL_EXIT, RunInterrupted, phantom_accuracy, run_graph, verdict_line
+
+    def fail(msg) -> int:
+        print(f"mlv-ros demo: {one_line(msg)}", file=sys.stderr)
+        return 2
 
     out = Path(args.out or f"runs/demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    # What can be checked in a moment is, before the graph starts.
+    try:
+        load_preset(args.preset)
+    except (FileNotFoundError, ValueError) as exc:
+        return fail(exc)
+    if (out / "run.mcap").exists():
+        return fail(f"{out} already holds a run: choose a new --out (runs are never overwritten)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return fail(f"cannot write --out: {describe_os_error(exc)}")
     print(f"[demo] simulating the '{args.preset}' phantom and running the graph -> {out}", file=sys.stderr)
     try:
         summary = run_graph({"source": "phantom", "preset": args.preset}, out,
                             progress=lambda s: print(s, file=sys.stderr))
-    except (FileExistsError, ValueError) as exc:
-        print(f"mlv-ros demo: {exc}", file=sys.stderr)
-        return 2
+    except RunInterrupted as exc:
+        print(f"mlv-ros demo: {exc}; nothing recorded", file=sys.stderr)
+        return SIGNAL_EXIT[exc.signum]
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+        return fail(exc)
+    except OSError as exc:
+        return fail(describe_os_error(exc))
+    if summary.get("interrupted"):
+        print(f"mlv-ros demo: interrupted by {summary['interrupted']}; the recording keeps the phases solved "
+              f"({summary['phases_solved']} of {summary['num_phases']}) in {summary['mcap']}", file=sys.stderr)
+        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
     if not summary["complete"]:
         print(json.dumps(summary, indent=2))
         print("mlv-ros demo: the run did not complete; see /diagnostics in the recording", file=sys.stderr)
@@ -44,9 +71,14 @@ def run(args) -> int:
             "p95_3d_error_mm": round(es["p95_mm"], 3), "max_twist_error_deg": round(es.get("twist_error_deg", float("nan")), 2),
             "max_radius_error_mm": round(es.get("radius_error_mm", float("nan")), 2)},
         "worst_phase_median_mm": round(max(r["median_mm"] for r in acc["per_phase"]), 3),
+        "phases_degraded": sorted(int(p) for p in summary.get("phases_degraded") or {}),
+        "phases_failed": sorted(int(p) for p in summary.get("phases_failed") or {}),
         "particles_inside_true_myocardium": round(acc["inside_myocardium"], 4),
         "true_myocardium_covered": round(acc["coverage"], 4),
     }
     (out / "accuracy.json").write_text(json.dumps(acc, indent=2))
     print(json.dumps(result, indent=2))
+    quality = verdict_line(summary)
+    if quality:
+        print(f"mlv-ros demo: {quality}", file=sys.stderr)
     return 0

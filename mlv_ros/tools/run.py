@@ -4,19 +4,90 @@
 
 Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
 ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
+
+The run watches its nodes: one that cannot start, gives up, raises, or leaves the graph with
+nothing to do ends the run at once with that node's reason. SIGINT/SIGTERM stop the input, let
+the phases in flight finish (at most ``--grace`` seconds; a second signal stops waiting), close
+the recording with everything received and mark it incomplete. Exit status: 0 complete, 1 not
+complete (the reason on one line), 2 a mistake in the command or a graph that could not start
+(nothing recorded), 130/143 interrupted by SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
+import signal
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
 import yaml
 
 GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
+EXIT_INCOMPLETE, EXIT_USAGE, EXIT_UNTRACKED = 1, 2, 3
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+QUIET_S = 0.5  # no graph activity for this long: the phases in flight are done
+DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is queued
+
+
+class RunStartError(ValueError):
+    """The graph could not start (a node refused its parameters, the input has no frames, the
+    run directory cannot be written); nothing was recorded and nothing is left behind."""
+
+
+class RunInterrupted(Exception):
+    """SIGINT/SIGTERM while the graph was starting (nothing recorded, nothing left behind)."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+        super().__init__(f"interrupted by {self.name} while starting")
+
+
+class _Signals:
+    """SIGINT/SIGTERM handling for one run.
+
+    While the graph starts the first signal raises :class:`RunInterrupted` (loading a study can
+    take a while, and there is nothing to keep yet). Once it runs a signal only sets a flag,
+    which the run loop turns into a clean stop; the second stops waiting for the phases in
+    flight; the third ends the process at once (the recording is then unfinished: ``mlv-ros
+    recover``).
+    """
+
+    def __init__(self):
+        self.received: list[int] = []
+        self.starting = True
+        self._previous: dict = {}
+
+    def install(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():  # Python allows no other
+            for sig in SIGNAL_EXIT:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+    def _handle(self, signum, _frame) -> None:
+        self.received.append(signum)
+        if self.starting:
+            self.starting = False  # raise once: the clean-up runs with signals only counted
+            raise RunInterrupted(signum)
+        if len(self.received) >= 3:
+            self.restore()
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+
+    @property
+    def first(self) -> str | None:
+        return signal.Signals(self.received[0]).name if self.received else None
 
 
 def add_arguments(parser):
@@ -26,16 +97,18 @@ def add_arguments(parser):
     src.add_argument("--bag", metavar="FILE", help="replay the frames of a recorded MCAP")
     parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (must not hold a run.mcap)")
     parser.add_argument("--params", default=None, help="graph parameters YAML (default config/graph.yaml)")
-    parser.add_argument("--snr", type=float, default=None, help="phantom SNR (default from the params file)")
-    parser.add_argument("--size", type=int, default=None, help="phantom image size, pixels")
-    parser.add_argument("--phases", type=int, default=None, help="phantom phases per cycle")
+    parser.add_argument("--snr", type=float, default=None, help="phantom SNR, 0..1000, 0 = noise-free (default from the params file)")
+    parser.add_argument("--size", type=int, default=None, help="phantom image size, pixels (32..1024)")
+    parser.add_argument("--phases", type=int, default=None, help="phantom phases per cycle (2..200)")
     parser.add_argument("--order", choices=("slice_major", "phase_major"), default=None)
-    parser.add_argument("--particles", type=int, default=None, help="model particles")
+    parser.add_argument("--particles", type=int, default=None, help="model particles (100..200000)")
     parser.add_argument("--masks", default=None, help="NIfTI label image of the ED myocardium (label 2) instead of automatic segmentation")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
+    parser.add_argument("--grace", type=float, default=10.0,
+                        help="on SIGINT/SIGTERM, wait at most this many seconds for the phases in flight (default 10)")
     parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
     parser.add_argument("--domain-id", type=int, default=None,
-                        help="ROS domain to run on (default: $ROS_DOMAIN_ID if set, else a free private one)")
+                        help="ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free private one)")
 
 
 def node_parameters(params_file: Path, overrides: dict) -> dict:
@@ -51,36 +124,227 @@ def node_parameters(params_file: Path, overrides: dict) -> dict:
     return out
 
 
-def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
-              timeout: float = 600.0, progress=print, domain_id: int | None = None) -> dict:
-    """Run the graph on ``source`` ({"source": "phantom"|"dicom"|"bag"|"pattern", ...frame_source
-    parameters}) and record to ``out_dir/run.mcap``. Returns the summary dict.
+def _prepare_out(out_dir: Path) -> list[Path]:
+    """Create the run directory and check it takes files; returns the directories created (the
+    deepest first), for a failed start to remove."""
+    if (out_dir / "run.mcap").exists():
+        raise FileExistsError(f"{out_dir} already holds a run (run.mcap): choose a new --out directory "
+                              "(runs are never overwritten)")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise RunStartError(f"--out {out_dir} is a file, not a directory: choose a new --out directory")
+    missing = [d for d in (out_dir, *out_dir.parents) if not d.exists()]
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out_dir):
+            pass
+    except OSError as exc:
+        _remove_dirs(missing)
+        raise RunStartError(f"cannot write in --out {out_dir}: {exc.strerror or exc}; "
+                            "choose a directory you can write to") from exc
+    return missing
 
-    ``domain_id``: the ROS domain the graph talks on; default ``ROS_DOMAIN_ID`` when the caller
-    set it, else a private one claimed for this process (so parallel runs never mix)."""
+
+def _remove_dirs(created: list[Path]) -> None:
+    for d in created:
+        try:
+            d.rmdir()
+        except OSError:
+            return  # not empty (or not ours to remove): keep it and its parents
+
+
+def _error_text(exc: BaseException) -> str:
+    """An exception as one line: expected errors by their message, anything else (a bug) with
+    its type and where it was raised."""
+    from rclpy.exceptions import InvalidParameterValueException, ParameterException
+
+    if isinstance(exc, InvalidParameterValueException):  # rclpy's text ends in ": <name>"
+        reason = str(exc).partition("Reason: ")[2].rpartition(": ")[0]
+        return f"{reason or exc} (see --params)"
+    if isinstance(exc, (ValueError, OSError, ParameterException)):
+        return str(exc)
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    where = f" (at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno})" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def _raising_node(exc: BaseException, nodes: dict) -> str:
+    """Name of the graph node whose callback raised ``exc`` (the innermost node method)."""
+    found = "a node"
+    tb = exc.__traceback__
+    while tb is not None:
+        owner = tb.tb_frame.f_locals.get("self")
+        for name, node in nodes.items():
+            if owner is node:
+                found = name
+        tb = tb.tb_next
+    return found
+
+
+def _reason(node) -> str:
+    """Why ``node`` is stuck: its latest ERROR, else its current status."""
+    from mlv_ros.nodes.common import status_text
+
+    return status_text(node.last_error or node.status)
+
+
+def _stuck(nodes: dict) -> str | None:
+    """Why the graph cannot go on, when one of its nodes gave up or is left with nothing to do."""
+    for name, node in nodes.items():
+        if getattr(node, "failure", None):
+            return f"{name}: {node.failure}"
+    src = nodes["frame_source"]
+    if src.done and src.halted is None and src.published < len(src.frames):
+        return f"frame_source stopped publishing: {_reason(src)}"
+    reg = nodes["registration"]
+    if reg.registered and reg.result is None:
+        return f"registration: {_reason(reg)}"
+    # A solver or analyzer that has the registered model but could not build on it waits for ever.
+    solver, analyzer = nodes["meshless_solver"], nodes["motion_analyzer"]
+    if (getattr(solver, "cloud", None) is not None and getattr(solver, "rest_state", None) is not None
+            and getattr(solver, "tracker", True) is None):
+        return f"meshless_solver: {_reason(solver)}"
+    if (getattr(analyzer, "reg_cloud", None) is not None and getattr(analyzer, "reg_state", None) is not None
+            and getattr(analyzer, "analyzer", True) is None):
+        return f"motion_analyzer: {_reason(analyzer)}"
+    return None
+
+
+def _activity(nodes: dict) -> int:
+    """A number that grows whenever the graph does something (frames, tag points, phases,
+    messages taken); /diagnostics heartbeats are left out."""
+    from mlv_ros import qos
+
+    total = 0
+    for name, node in nodes.items():
+        if name == "recorder":
+            total += sum(c.received for topic, c in node.streams.items() if topic != qos.DIAGNOSTICS)
+            continue
+        for attr in ("published", "frames_out", "phases_published", "messages_handled"):
+            value = getattr(node, attr, 0)
+            total += value if isinstance(value, int) else 0
+    return total
+
+
+def _taken(node, topic: str) -> int:
+    """Messages ``node`` has taken from ``topic``."""
+    count = node.streams.get(topic)
+    return count.received if count is not None else 0
+
+
+def _statuses(nodes: dict) -> str:
+    """The nodes' latest errors (or, without any, their warnings) on one line."""
+    from mlv_ros.nodes.common import OK, status_text
+
+    said = [f"{name}: {status_text(n.last_error)}" for name, n in nodes.items() if n.last_error is not None]
+    said = said or [f"{name}: {status_text(n.status)}" for name, n in nodes.items() if n.status.level != OK]
+    return "; ".join(said) if said else "no node reported a problem"
+
+
+def _no_frames(src, source: dict) -> str:
+    """Why the input gave no frame, for a start that ends there."""
+    from mlv_ros import bagio, qos
+
+    path = source.get("path", "")
+    if source.get("source") == "bag":
+        try:
+            topics = sorted(bagio.bag_topics(path))
+        except (ValueError, OSError):
+            topics = []
+        has = f" (its topics: {', '.join(topics[:6])}{', ...' if len(topics) > 6 else ''})" if topics else ""
+        return (f"--bag {path} has no {qos.FRAMES} messages{has}: give a recording made by mlv-ros "
+                "(`mlv-ros run` or the recorder)")
+    if source.get("source") == "dicom":
+        problems = getattr(src, "_reports", [])
+        first = f"; first: {problems[0][1].get('file')}: {problems[0][1].get('reason')}" if problems else ""
+        return f"--dicom {path}: no usable tagged cine image ({len(problems)} file(s) skipped{first})"
+    return f"the {source.get('source')} source produced no frames"
+
+
+def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
+              timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
+              handle_signals: bool = True) -> dict:
+    """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
+
+    Parameters
+    ----------
+    source : dict
+        ``{"source": "phantom"|"dicom"|"bag"|"pattern", ...}`` and any other frame_source
+        parameters.
+    out_dir : Path
+        Run directory (created); must not hold a ``run.mcap``.
+    params_file : Path, optional
+        Graph parameters YAML (default ``config/graph.yaml``).
+    overrides : dict, optional
+        ``{node: {parameter: value}}`` over the file's values.
+    timeout : float
+        Give up after this many seconds.
+    progress : callable
+        Called with one line per event worth showing (phases analysed, an interruption).
+    domain_id : int, optional
+        The ROS domain the graph talks on; default ``ROS_DOMAIN_ID`` when the caller set it, else
+        a private one claimed for this process (so parallel runs never mix).
+    grace : float
+        On SIGINT/SIGTERM, seconds to wait at most for the phases in flight.
+    handle_signals : bool
+        Take SIGINT/SIGTERM for a clean stop (only from the main thread).
+
+    Returns
+    -------
+    dict
+        The summary, also written to ``out_dir/summary.json``: counts, ``complete``, and
+        ``interrupted`` (the signal's name) or ``failed`` (the reason) when the run did not end
+        by itself.
+
+    Raises
+    ------
+    FileExistsError
+        ``out_dir`` already holds a run.
+    RunStartError
+        The graph could not start; nothing was recorded and nothing is left behind.
+    RunInterrupted
+        SIGINT/SIGTERM while it was starting (nothing left behind either).
+    """
+    signals = _Signals()
+    if handle_signals:
+        signals.install()
+    try:
+        return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id, grace,
+                          signals)
+    finally:
+        signals.restore()
+
+
+def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
+    from mlv_ros import bagio, qos
+    from mlv_ros.domain import claim_domain_id
     from mlv_ros.nodes.frame_source import FrameSource
     from mlv_ros.nodes.meshless_solver import MeshlessSolver
+    from mlv_ros.nodes.common import status_text
     from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
     from mlv_ros.nodes.recorder import Recorder
     from mlv_ros.nodes.registration import Registration
     from mlv_ros.nodes.tag_detector import TagDetector
-    from mlv_ros.domain import claim_domain_id
     from mlv_ros.resources import config_file
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    out_dir = Path(out_dir)
     mcap = out_dir / "run.mcap"
-    if mcap.exists():
-        raise FileExistsError(f"{mcap} exists: choose a new --out directory (runs are never overwritten)")
     overrides = {k: dict(v) for k, v in (overrides or {}).items()}
     overrides.setdefault("frame_source", {}).update(source)
     overrides.setdefault("recorder", {})["output"] = str(mcap)
-    params = node_parameters(Path(params_file) if params_file else config_file("graph.yaml"), overrides)
+    params_path = Path(params_file) if params_file else config_file("graph.yaml")
+    try:
+        params = node_parameters(params_path, overrides)
+    except (OSError, yaml.YAMLError, AttributeError, TypeError) as exc:
+        raise RunStartError(f"--params {params_path}: {_error_text(exc).splitlines()[0]} "
+                            "(want node: {ros__parameters: {name: value}})") from exc
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
+    created = _prepare_out(out_dir)
     if domain_id is None:
         domain_id = int(os.environ["ROS_DOMAIN_ID"]) if os.environ.get("ROS_DOMAIN_ID") else claim_domain_id()
     ctx = rclpy.Context()
@@ -90,44 +354,195 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     try:
         ex = SingleThreadedExecutor(context=ctx)
         for name in GRAPH:  # downstream first, so every subscriber exists before frames flow
-            nodes[name] = classes[name](context=ctx, parameter_overrides=params[name])
+            try:
+                nodes[name] = classes[name](context=ctx, parameter_overrides=params[name])
+            except RunInterrupted:
+                raise
+            except Exception as exc:
+                raise RunStartError(f"{name} could not start: {_error_text(exc)}") from exc
             ex.add_node(nodes[name])
         src, solver, analyzer, rec = nodes["frame_source"], nodes["meshless_solver"], nodes["motion_analyzer"], nodes["recorder"]
-        num_phases = max((f.num_phases for f in src.frames), default=0)
-        progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id})")
+        if not src.frames:
+            raise RunStartError(_no_frames(src, source))
+        signals.starting = False
+    except (RunStartError, RunInterrupted):
+        # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
+        signals.starting = False
+        if "recorder" in nodes:
+            nodes["recorder"].writer.discard()
+        mcap.unlink(missing_ok=True)  # a signal may have come before the recorder was in `nodes`
+        _remove_dirs(created)
+        for node in nodes.values():
+            node.destroy_node()
+        ctx.try_shutdown()
+        raise
+    num_phases = max((f.num_phases for f in src.frames), default=0)
+    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id})")
+    # Longest a healthy graph stays idle: registration and the solver wait this long for input
+    # that may still come before acting on what they have (the solver also for its subscribers),
+    # and the source, before publishing, for its subscribers.
+    waits = [getattr(nodes["registration"], "ed_timeout_s", 5.0), getattr(solver, "incomplete_timeout_s", 5.0),
+             getattr(solver, "wait_timeout_s", 10.0)]
+    stall_after = {False: 15.0 + max(waits + [getattr(src, "wait_timeout_s", 30.0)]), True: 15.0 + max(waits)}
+    interrupted = failed = None
+    try:
         seen = 0
-        while time.monotonic() - t0 < timeout:
-            ex.spin_once(timeout_sec=0.05)
+        activity, active_at = _activity(nodes), time.monotonic()
+        while True:
+            try:
+                ex.spin_once(timeout_sec=0.05)
+            except Exception as exc:  # a callback raised: that node is gone
+                name = _raising_node(exc, nodes)
+                failed = f"{name} failed: {_error_text(exc)}"
+                break
             if analyzer.published > seen:
                 seen = analyzer.published
                 progress(f"[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)")
+            if signals.received:
+                interrupted = signals.first
+                break
+            failed = _stuck(nodes)
+            if failed:
+                break
             if src.done and num_phases and analyzer.published >= num_phases:
                 break
-            if src.done and num_phases and solver.next_phase >= num_phases and not analyzer.clouds:
+            if (src.done and num_phases and solver.next_phase >= num_phases and not analyzer.clouds
+                    and _taken(analyzer, qos.MOTION) >= solver.phases_published):
                 break  # every phase attempted (some may have failed; diagnostics say which)
-            if nodes["registration"].registered and nodes["registration"].result is None and src.done:
-                break  # registration failed: nothing downstream can happen
-        # let the recorder take what is still queued
-        end = time.monotonic() + 0.5
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            if _activity(nodes) != activity:
+                activity, active_at = _activity(nodes), now
+            elif now - active_at > stall_after[src.done]:
+                waiting = (f"after the last frame, the solver still waiting for phase {solver.next_phase} of "
+                           f"{num_phases} (is the input cut short?)" if src.done else "before the input ended")
+                failed = f"nothing happened for {now - active_at:.0f} s {waiting}; {_statuses(nodes)}"
+                break
+            if now - t0 > timeout:
+                failed = f"timed out after {timeout:g} s (--timeout); {_statuses(nodes)}"
+                break
+        if interrupted:
+            src.halt(f"{interrupted} received")
+            progress(f"[mlv-ros] {interrupted}: input stopped after {src.published} of {len(src.frames)} frames; "
+                     f"finishing the phases in flight (at most {grace:g} s; {interrupted} again stops now)")
+            _settle(ex, nodes, lambda: len(signals.received) > 1, quiet_s=QUIET_S, max_s=grace,
+                    on_phase=lambda n: progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
+                                                f"({time.monotonic() - t0:.1f} s)"))
+        elif failed:
+            src.halt("the run failed")
+        else:  # ended by itself: let the last results reach their subscribers
+            _settle(ex, nodes, lambda: bool(signals.received), quiet_s=QUIET_S, max_s=grace)
+        # Only the recorder from here: it takes what was sent, nothing new is computed.
+        for name, node in nodes.items():
+            if name != "recorder":
+                ex.remove_node(node)
+        _settle(ex, {"recorder": rec}, lambda: False, quiet_s=DRAIN_QUIET_S, max_s=DRAIN_MAX_S,
+                count=lambda: rec.messages_handled)
+        # The bag's metadata (metadata.yaml and the file's rosbag2 record) says how the run
+        # ended, so the recording alone tells an unfinished run.
+        def outcome():
+            why = failed or (f"recorder: {rec.failure}" if rec.failure else None)
+            done = not interrupted and not why and bool(num_phases) and analyzer.published >= num_phases
+            return done, why, {"complete": str(done).lower(), **({"interrupted": interrupted} if interrupted else {}),
+                               **({"failed": why} if why else {})}
+
+        was_closed = rec.writer.closed  # by a write error, before the marks
+        rec.writer.custom_data.update(outcome()[2])
         rec.finish()
-        elapsed = time.monotonic() - t0
+        complete, failed, marks = outcome()
+        if was_closed or marks != {k: rec.writer.custom_data.get(k) for k in marks}:
+            rec.writer.custom_data.update(marks)
+            try:
+                bagio.write_bag_metadata(mcap, rec.writer)
+            except OSError:
+                pass  # a full disk: the recorder reported it, the summary says so
         summary = {
             "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
-            "seconds": round(elapsed, 2),
+            "seconds": round(time.monotonic() - t0, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
             "num_phases": num_phases, "recorded_messages": rec.writer.message_count,
             "diagnostics_sent": sum(n.diagnostics_sent for n in nodes.values()),
-            "complete": bool(num_phases) and analyzer.published >= num_phases,
+            "complete": complete, "interrupted": interrupted, "failed": failed,
+            **verdict_summary(analyzer.verdicts),
+            "registration_verdict": registration_summary(nodes["registration"]),
+            # the latest ERROR of each node that had one: why an incomplete run is incomplete
+            "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
         }
+        if rec.writer.error is not None:
+            summary["recording_error"] = str(rec.writer.error)
+            summary["messages_not_recorded"] = rec.dropped
     finally:
         for node in nodes.values():
             node.destroy_node()
         ctx.try_shutdown()
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_summary(out_dir, summary)
     return summary
+
+
+def _settle(ex, nodes: dict, stop, quiet_s: float, max_s: float, count=None, on_phase=None) -> None:
+    """Spin until nothing has happened for ``quiet_s``, ``max_s`` have passed, or ``stop()``.
+
+    A callback that computes for long (a phase being solved) blocks ``spin_once``, and what it
+    publishes counts as activity as soon as it returns, so a phase in flight is waited for.
+    """
+    count = count or (lambda: _activity(nodes))
+    analyzer = nodes.get("motion_analyzer")
+    seen = analyzer.published if analyzer is not None else 0
+    last, last_at = count(), time.monotonic()
+    end = time.monotonic() + max_s
+    while time.monotonic() < end and time.monotonic() - last_at < quiet_s and not stop():
+        try:
+            ex.spin_once(timeout_sec=0.05)
+        except Exception:
+            return  # a node failing while the run ends: keep what there is
+        if count() != last:
+            last, last_at = count(), time.monotonic()
+        if analyzer is not None and on_phase and analyzer.published > seen:
+            seen = analyzer.published
+            on_phase(seen)
+
+
+def verdict_summary(verdicts: dict) -> dict:
+    """``phases_ok`` and the ``degraded`` / ``failed`` phases with their reasons
+    (:mod:`mlv_ros.core.verdict`) from the analyzer's phase → (level, reasons)."""
+    out = {"phases_ok": sorted(p for p, (v, _) in verdicts.items() if v == 0)}
+    for level, name in ((1, "phases_degraded"), (2, "phases_failed")):
+        out[name] = {str(p): why for p, (v, why) in sorted(verdicts.items()) if v == level}
+    return out
+
+
+def registration_summary(node) -> dict | None:
+    """The ED registration's verdict and reasons (None before it registered)."""
+    v = getattr(node, "verdict", None)
+    return None if v is None else {"verdict": v.name, "reasons": v.text}
+
+
+def verdict_line(summary: dict) -> str | None:
+    """Which phases are not to be taken at face value, in one line (None when all are ok)."""
+    bad = [(name, sorted(int(p) for p in summary.get(key) or {})) for name, key in
+           (("degraded", "phases_degraded"), ("failed", "phases_failed"))]
+    if not any(phases for _, phases in bad):
+        return None
+    parts = [f"{len(phases)} {name} ({', '.join(map(str, phases))})" for name, phases in bad if phases]
+    return (f"of {summary['num_phases']} phases, {' and '.join(parts)}: see phases_degraded / phases_failed in "
+            f"summary.json for why; a failed phase is not a measurement")
+
+
+def untracked(summary: dict) -> bool:
+    """The study could not be tracked: every phase after ED that was analysed failed."""
+    after_ed = [p for p in summary.get("phases_ok", []) if int(p) > 0]
+    after_ed += [p for key in ("phases_degraded", "phases_failed") for p in summary.get(key) or {} if int(p) > 0]
+    failed = [p for p in summary.get("phases_failed") or {} if int(p) > 0]
+    return bool(after_ed) and len(failed) == len(after_ed)
+
+
+def write_summary(out_dir: Path, summary: dict) -> None:
+    """``summary.json`` in the run directory; on a write error (a full disk) the summary says so
+    instead (``summary_error``)."""
+    try:
+        (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2))
+    except OSError as exc:
+        summary["summary_error"] = f"summary.json not written: {exc.strerror or exc}"
 
 
 def read_run(mcap: Path) -> dict:
@@ -146,16 +561,16 @@ def read_run(mcap: Path) -> dict:
         if m.topic == qos.REGISTERED_CLOUD:
             run["ed"] = conversions.xyz(conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2)))
         elif m.topic == qos.REGISTERED_STATE:
-            run["rotation"] = conversions.msg_to_model_state(deserialize_message(m.data, ModelState)).rotation
+            run["rotation"] = conversions.msg_to_model_state(bagio.deserialize(m.data, ModelState)).rotation
         elif m.topic == qos.MOTION:
             msg = deserialize_message(m.data, PointCloud2)
             clouds[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = conversions.xyz(conversions.msg_to_cloud(msg))
         elif m.topic == qos.MODEL_STATE:
-            msg = deserialize_message(m.data, ModelState)
+            msg = bagio.deserialize(m.data, ModelState)
             stamps[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = msg.phase_index
             run["states"][msg.phase_index] = conversions.msg_to_model_state(msg)
         elif m.topic == qos.METRICS:
-            d = conversions.msg_to_metrics(deserialize_message(m.data, MotionMetrics))
+            d = conversions.msg_to_metrics(bagio.deserialize(m.data, MotionMetrics))
             run["metrics"][d["phase_index"]] = d
         elif m.topic == qos.FRAMES:
             run["frames"] += 1
@@ -214,7 +629,83 @@ def find_groundtruth(dicom_dir: Path) -> Path | None:
     return None
 
 
+def _number_error(name: str, value, low, high, what: str = "") -> str | None:
+    """The one-line complaint for an option outside ``low..high`` (or not finite), else None."""
+    if value is None or (math.isfinite(value) and low <= value <= high):
+        return None
+    return f"{name} must be from {low:g} to {high:g}{what}, got {value}"
+
+
+def check_args(args) -> str | None:
+    """The first mistake in ``mlv-ros run``'s arguments as one line with the fix, else None."""
+    problems = [
+        _number_error("--snr", args.snr, 0, 1000, " (0 = noise-free)"),
+        _number_error("--size", args.size, 32, 1024, " pixels"),
+        _number_error("--phases", args.phases, 2, 200),
+        _number_error("--particles", args.particles, 100, 200000),
+        _number_error("--domain-id", args.domain_id, 0, 232),
+        None if math.isfinite(args.timeout) and args.timeout > 0 else f"--timeout must be a positive number of seconds, got {args.timeout}",
+        None if math.isfinite(args.grace) and args.grace >= 0 else f"--grace must be a number of seconds ≥ 0, got {args.grace}",
+    ]
+    out = Path(args.out)
+    if (out / "run.mcap").exists():
+        problems.append(f"{out} already holds a run (run.mcap): choose a new --out directory (runs are never overwritten)")
+    elif out.exists() and not out.is_dir():
+        problems.append(f"--out {out} is a file, not a directory: choose a new --out directory")
+    if args.dicom and not Path(args.dicom).is_dir():
+        problems.append(f"--dicom {args.dicom}: no such directory")
+    if args.bag:
+        problems.append(_bag_error(Path(args.bag)))
+    if args.masks and not Path(args.masks).is_file():
+        problems.append(f"--masks {args.masks}: no such file")
+    if args.params:
+        problems.append(_params_error(Path(args.params)))
+    return next((p for p in problems if p), None)
+
+
+def _bag_error(path: Path) -> str | None:
+    if path.is_dir():  # a rosbag2 directory: its .mcap
+        if not any(path.glob("*.mcap")):
+            return f"--bag {path}: no .mcap file in that directory"
+        return None
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        return f"--bag {path}: {exc.strerror or exc}"
+    if head != MCAP_MAGIC:
+        return (f"--bag {path} is not an MCAP recording; give the run.mcap of an earlier run "
+                "(or a rosbag2 MCAP bag holding /mlv/frames)")
+    return None
+
+
+def _params_error(path: Path) -> str | None:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        return f"--params {path}: {exc.strerror or exc}"
+    except yaml.YAMLError as exc:
+        return f"--params {path} is not valid YAML: {str(exc).splitlines()[0]}"
+    if data is not None and not (isinstance(data, dict) and all(
+            isinstance(v, dict) and isinstance(v.get("ros__parameters", {}), (dict, type(None)))
+            for v in data.values() if v is not None)):
+        return f"--params {path}: want node: {{ros__parameters: {{name: value}}}} (as config/graph.yaml)"
+    return None
+
+
 def run(args) -> int:
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # outside the graph (starting up, or computing the accuracy)
+        print("mlv-ros run: interrupted (SIGINT)", file=sys.stderr)
+        return SIGNAL_EXIT[signal.SIGINT]
+
+
+def _run(args) -> int:
+    mistake = check_args(args)
+    if mistake:
+        print(f"mlv-ros run: {mistake}", file=sys.stderr)
+        return EXIT_USAGE
     if args.phantom:
         source = {"source": "phantom", "preset": args.phantom}
         for key, val in (("snr", args.snr), ("size", args.size), ("num_phases", args.phases)):
@@ -227,17 +718,20 @@ def run(args) -> int:
     if args.order:
         source["order"] = args.order
     overrides = {"registration": {}}
-    if args.particles:
+    if args.particles is not None:
         overrides["registration"]["num_particles"] = args.particles
     if args.masks:
         overrides["registration"]["mask_path"] = str(Path(args.masks).resolve())
     try:
         summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
                             progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
-                            domain_id=args.domain_id)
-    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+                            domain_id=args.domain_id, grace=args.grace)
+    except RunInterrupted as exc:
+        print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
+        return SIGNAL_EXIT[exc.signum]
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RunStartError is a ValueError
         print(f"mlv-ros run: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
     if (args.phantom or truth) and summary["complete"]:
         acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
@@ -246,7 +740,38 @@ def run(args) -> int:
                                "inside_myocardium": acc.get("inside_myocardium"),
                                "coverage": acc.get("coverage"),
                                "per_phase": acc.get("per_phase")}
-        Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
+        write_summary(Path(args.out), summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
         {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
-    return 0 if summary["complete"] else 1
+    line = outcome_line(summary)
+    if line:
+        print(f"mlv-ros run: {line}", file=sys.stderr)
+    quality = verdict_line(summary)
+    if quality:
+        print(f"mlv-ros run: {quality}", file=sys.stderr)
+    if summary["interrupted"]:
+        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
+    if summary["complete"] and untracked(summary):
+        print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
+              "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
+        return EXIT_UNTRACKED
+    return 0 if summary["complete"] else EXIT_INCOMPLETE
+
+
+def outcome_line(summary: dict) -> str | None:
+    """How a run that did not complete ended, in one line (None for a complete run)."""
+    kept = (f"{summary['phases_solved']} of {summary['num_phases']} phases solved, "
+            f"{summary['metrics_published']} analysed; {summary['recorded_messages']} messages in {summary['mcap']}")
+    if summary.get("recording_error") and not str(summary.get("failed")).startswith("recorder:"):
+        kept += f" (recording stopped: {summary['recording_error']})"
+    if summary.get("summary_error"):
+        kept += f" ({summary['summary_error']})"
+    if summary["interrupted"]:
+        return f"interrupted by {summary['interrupted']}: {kept}, marked incomplete"
+    if summary["failed"]:
+        return f"{summary['failed']}. Kept: {kept}"
+    if not summary["complete"]:
+        errors = summary.get("last_errors") or {}
+        why = "; ".join(f"{name}: {text}" for name, text in errors.items())
+        return f"incomplete: {kept}" + (f" (last errors: {why})" if why else "")
+    return None

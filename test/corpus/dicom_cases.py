@@ -377,20 +377,27 @@ def _mixed_sizes(w: _Writer, good: list[Path]) -> None:
         w.ds_case(case, ds, "differs from the rest of its series", "mixed_sizes")
 
 
+def set_float_pixels(ds: Dataset, values: np.ndarray, double: bool) -> None:
+    """Replace an integer image's pixels by (Double)FloatPixelData (its integer and rescale
+    tags removed, as a float image has none)."""
+    del ds.PixelData
+    for tag in ("BitsStored", "HighBit", "PixelRepresentation", "RescaleSlope", "RescaleIntercept",
+                "RescaleType", "WindowCenter", "WindowWidth"):
+        if tag in ds:
+            delattr(ds, tag)
+    ds.BitsAllocated = 64 if double else 32
+    if double:
+        ds.DoubleFloatPixelData = np.asarray(values, "<f8").tobytes()
+    else:
+        ds.FloatPixelData = np.asarray(values, "<f4").tobytes()
+
+
 def _float_pixels(w: _Writer) -> None:
     base = _pixels(w.template).astype(np.float64) * float(w.template.RescaleSlope)
 
     def float_ds(case, values, double):
         ds = w.fresh(case)
-        del ds.PixelData
-        for tag in ("BitsStored", "HighBit", "PixelRepresentation", "RescaleSlope", "RescaleIntercept",
-                    "RescaleType", "WindowCenter", "WindowWidth"):
-            delattr(ds, tag)
-        ds.BitsAllocated = 64 if double else 32
-        if double:
-            ds.DoubleFloatPixelData = np.asarray(values, "<f8").tobytes()
-        else:
-            ds.FloatPixelData = np.asarray(values, "<f4").tobytes()
+        set_float_pixels(ds, values, double)
         return ds
 
     for kind in ("float", "double"):

@@ -21,6 +21,7 @@ import numpy as np
 from mlv_ros.core.analysis.frame import LVFrame, as_points, cardiac_coordinates
 from mlv_ros.core.analysis.motion import CavityModel, LevelBinning, _level_dict, decompose_displacement, torsion
 from mlv_ros.core.analysis.strain import MLSNeighbourhood, aha_segments, cardiac_strain, green_lagrange, segment_means
+from mlv_ros.core.verdict import metrics_verdict
 
 _ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
                  "radial_displacement_mm", "circumferential_displacement_mm",
@@ -67,6 +68,12 @@ class PhaseMetrics:
         Particles per level. Not in MotionMetrics.msg (optional; empty when unknown).
     segment_count : ndarray of int, shape (17,) or (0,)
         Particles with a valid strain per segment. Not in MotionMetrics.msg (optional).
+    verdict : int
+        0 ok, 1 degraded, 2 failed: whether this motion is physiologically possible
+        (:func:`mlv_ros.core.verdict.metrics_verdict`); the analyzer node merges in the
+        solver's data-support verdict.
+    verdict_reasons : str
+        "; "-separated reasons, empty when ok.
     """
 
     phase_index: int = 0
@@ -87,6 +94,8 @@ class PhaseMetrics:
     segment_ell: np.ndarray = field(default_factory=_empty)
     level_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     segment_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    verdict: int = 0
+    verdict_reasons: str = ""
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:
@@ -211,7 +220,11 @@ class LVAnalyzer:
         if st is not None:
             for key, comp in (("segment_err", "rr"), ("segment_ecc", "cc"), ("segment_ell", "ll")):
                 seg[key], seg["segment_count"] = segment_means(st[comp], self.segments)
+        verdict = metrics_verdict(ef, float(np.max(np.linalg.norm(x - self.X, axis=1))), self.frame.length,
+                                  [seg.get(k, ()) for k in ("segment_err", "segment_ecc", "segment_ell")],
+                                  edv_ml=self.edv_ml)
         return PhaseMetrics(
+            verdict=verdict.level, verdict_reasons=verdict.text,
             phase_index=int(phase_index), num_phases=int(num_phases), time_fraction=float(time_fraction),
             level_position=lv["level_position"], twist_deg=lv["twist_deg"],
             sa_radius_mm=lv["sa_radius_mm"],

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -22,6 +23,7 @@ from mlv_ros.core.report.figures import (
     plot_strain_bullseyes,
 )
 from mlv_ros.core.report.summary import RunData, sorted_phases, summarize, write_summary_json
+from mlv_ros.core.verdict import DEGRADED, FAILED
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +115,13 @@ def _html(title: str, meta: dict, summaries: list[dict], figures: list[tuple[str
     figs = "".join(f'<figure><img src="{e(f)}" alt="{e(c)}"><figcaption>{e(c)}</figcaption></figure>'
                    for f, c in figures) or "<p>No figures could be drawn.</p>"
     meta_html = "".join(f"<li><b>{e(str(k))}</b>: {e(str(v))}</li>" for k, v in meta.items())
+    flagged = [f"<li><b>{e(s['label'])} phase {p} {word}</b>: {e(why)}</li>"
+               for s in summaries for key, word in (("phases_failed", "failed (not plotted)"),
+                                                    ("phases_degraded", "degraded (use with care)"))
+               for p, why in sorted((s.get(key) or {}).items())]
+    banner = (f'<div class="verdict"><b>Not every phase is a trustworthy measurement.</b><ul>{"".join(flagged)}'
+              "</ul></div>") if flagged else ""
+
     conv = "".join(f"<li>{e(c)}</li>" for c in CONVENTIONS)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{e(title)}</title>
@@ -124,8 +133,10 @@ td:first-child {{ text-align: left; }}
 figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 figcaption {{ font-size: 0.9em; color: #555; }}
 .missing {{ background: #fff6e0; padding: 0.3em 1em; border-left: 4px solid #e0a000; }}
+.verdict {{ background: #fde8e8; padding: 0.3em 1em; border-left: 4px solid #c00000; }}
 </style></head><body>
 <h1>{e(title)}</h1>
+{banner}
 <ul>{meta_html}</ul>
 <h2>Key numbers</h2>
 <table><tr><th></th>{head}</tr>{rows}</table>
@@ -175,7 +186,15 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
             runs.append(compare)
         else:
             runs.append(RunData(list(compare), label=str(meta.get("compare_label", "comparison"))))
-    summaries = [summarize(r.phases, r.label) for r in runs]
+    # A failed phase is not a measurement: it never enters a curve, a peak or a table; degraded
+    # and failed phases are named at the top of the page with their reasons.
+    verdicts = []
+    for r in runs:
+        verdicts.append({name: {int(p.phase_index): str(getattr(p, "verdict_reasons", "")) for p in r.phases
+                                if int(getattr(p, "verdict", 0)) == level}
+                         for level, name in ((DEGRADED, "phases_degraded"), (FAILED, "phases_failed"))})
+    runs = [replace(r, phases=[p for p in r.phases if int(getattr(p, "verdict", 0)) < FAILED]) for r in runs]
+    summaries = [summarize(r.phases, r.label) | v for r, v in zip(runs, verdicts)]
     figures: list[tuple[str, str]] = []
     skipped: list[str] = []
 

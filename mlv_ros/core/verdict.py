@@ -1,0 +1,206 @@
+"""Quality verdicts: ``ok``, ``degraded`` or ``failed`` for every phase's result, with reasons.
+
+A number delivered as if right when it is not is the worst failure this product can have, so
+each solved phase says how far its data supported it (:func:`phase_verdict`, from the solver)
+and whether the result is physiologically possible at all (:func:`metrics_verdict`, from the
+analyzer). Every threshold is relative (a fraction of the ED tag points, of the SA slices, of
+the LV's size, of a pixel) so that it means the same on any scanner, protocol or heart size.
+
+Calibration (24 randomized-protocol studies of ``mlv-ros bench robustness``, seeds 1000–1015 and
+2000–2007, 673 solved phases, median 3D error against the analytic truth): all 16 phases more
+than 2 mm off are flagged (14 failed, 2 degraded), so are the 7 between 1 and 2 mm (degraded);
+of the 650 within 1 mm, 12 are flagged (11 degraded, 1 failed: 1.8 %, late diastole with faded
+tags). The physiological bounds fired on 4 phases only, all failed by the data already (10–129 mm
+off).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+OK, DEGRADED, FAILED = 0, 1, 2
+LEVEL_NAMES = ("ok", "degraded", "failed")
+
+# Data support (solver).
+#: Below this fraction of the ED tag points still constraining the model: degraded / failed.
+TRACKED_DEGRADED, TRACKED_FAILED = 0.3, 0.1
+#: Below this fraction of the SA slices (those with ED tag points) still holding
+#: MIN_SLICE_POINTS control points: degraded. No SA slice at all: failed (twist and
+#: circumferential motion are measured only in short-axis planes).
+SA_SLICES_DEGRADED = 0.6
+MIN_SLICE_POINTS = 3
+#: RMS in-plane residual at the control points above this, in pixels: degraded (intersections
+#: are localised to ~0.1–0.2 px; a model that cannot come within half a pixel of them is
+#: fighting inconsistent tracks).
+RESIDUAL_DEGRADED_PX = 0.5
+#: More than this fraction of the tag points inside the model rejected as outliers (slipped or
+#: swapped tracks): degraded, the identities of the rest being in doubt.
+REJECTED_DEGRADED = 0.2
+
+# Physiological bounds (analyzer).
+#: Ejection fraction outside these bounds: degraded / failed (the cavity grew by more than 10 %
+#: / 30 % over ED, or shrank beyond what a ventricle does).
+EF_DEGRADED = (-0.1, 0.85)
+EF_FAILED = (-0.3, 0.95)
+#: Largest particle displacement from ED above this fraction of the ED long-axis length: failed
+#: (the whole LV shortens by ~15 %; a wall point never travels half the ventricle).
+DISPLACEMENT_FAILED = 0.5
+#: A segment's mean Green–Lagrange strain beyond this magnitude: degraded.
+STRAIN_DEGRADED = 1.0
+#: ED cavity volume outside the adult human range (small to severely dilated ventricles):
+#: degraded (check pixel spacing and the segmentation); beyond any heart: failed.
+EDV_DEGRADED_ML = (20.0, 700.0)
+EDV_FAILED_ML = (0.01, 2000.0)
+
+# Registration.
+#: Fewer than this share of the SA slices segmented at ED: degraded.
+SA_SEGMENTED_DEGRADED = 0.5
+
+
+@dataclass
+class Verdict:
+    """``level`` (OK / DEGRADED / FAILED) and the reasons for anything but OK."""
+
+    level: int = OK
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return LEVEL_NAMES[self.level]
+
+    def flag(self, level: int, reason: str) -> None:
+        self.level = max(self.level, int(level))
+        self.reasons.append(reason)
+
+    def merge(self, other: "Verdict") -> "Verdict":
+        """The worse of both levels, with both sets of reasons."""
+        return Verdict(max(self.level, other.level), [*self.reasons, *other.reasons])
+
+    @property
+    def text(self) -> str:
+        return "; ".join(self.reasons)
+
+    @classmethod
+    def from_parts(cls, level: int, text: str) -> "Verdict":
+        if int(level) not in (OK, DEGRADED, FAILED):
+            raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
+        return cls(int(level), [r for r in str(text).split("; ") if r])
+
+
+def phase_verdict(tracked: int, tracked_at_ed: int, sa_points: dict, residual_mm: float,
+                  pixel_mm: float, rejected: int = 0, candidates: int = 0) -> Verdict:
+    """How far one phase's tag data supports its solution.
+
+    Parameters
+    ----------
+    tracked : int
+        Control points used at this phase (inside the model, outliers removed).
+    tracked_at_ed : int
+        ED tag points inside the model (the references tracks are matched to).
+    sa_points : dict
+        SA slice index → control points used on it at this phase, for every SA slice that has
+        ED references (0 for a slice whose tracks are all lost).
+    residual_mm : float
+        RMS in-plane residual at the control points, mm.
+    pixel_mm : float
+        In-plane pixel size of the tagged images, mm (the residual is judged in pixels).
+    rejected, candidates : int
+        Tag points rejected as outliers, of the ``candidates`` inside the model (the solver pass
+        that rejected the largest share).
+
+    Returns
+    -------
+    Verdict
+    """
+    v = Verdict()
+    frac = tracked / tracked_at_ed if tracked_at_ed > 0 else 0.0
+    if frac < TRACKED_FAILED:
+        v.flag(FAILED, f"{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < {TRACKED_FAILED:.0%})")
+    elif frac < TRACKED_DEGRADED:
+        v.flag(DEGRADED, f"{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < {TRACKED_DEGRADED:.0%})")
+    if sa_points:
+        live = sorted(k for k, n in sa_points.items() if n >= MIN_SLICE_POINTS)
+        share = len(live) / len(sa_points)
+        if not live:
+            v.flag(FAILED, f"no SA slice with {MIN_SLICE_POINTS}+ tag points (of {len(sa_points)}): twist and "
+                           f"circumferential motion unmeasured")
+        elif share < SA_SLICES_DEGRADED:
+            v.flag(DEGRADED, f"{len(live)} of {len(sa_points)} SA slices with {MIN_SLICE_POINTS}+ tag points "
+                             f"({share:.0%} < {SA_SLICES_DEGRADED:.0%})")
+    else:
+        v.flag(FAILED, "no SA slice has ED tag points: twist and circumferential motion unmeasured")
+    if pixel_mm > 0 and np.isfinite(residual_mm) and residual_mm / pixel_mm > RESIDUAL_DEGRADED_PX:
+        v.flag(DEGRADED, f"fit residual {residual_mm:.2f} mm = {residual_mm / pixel_mm:.2f} px "
+                         f"(> {RESIDUAL_DEGRADED_PX:g} px): tracks and model disagree")
+    if candidates > 0 and rejected / candidates > REJECTED_DEGRADED:
+        v.flag(DEGRADED, f"{rejected} of {candidates} tag points rejected as outliers "
+                         f"(> {REJECTED_DEGRADED:.0%})")
+    return v
+
+
+def metrics_verdict(ejection_fraction: float, max_displacement_mm: float, long_axis_mm: float,
+                    segment_strains=(), edv_ml: float | None = None) -> Verdict:
+    """Whether one phase's motion is physiologically possible.
+
+    Parameters
+    ----------
+    ejection_fraction : float
+        (EDV − V) / EDV at this phase.
+    max_displacement_mm : float
+        Largest particle displacement from ED, mm.
+    long_axis_mm : float
+        ED long-axis length of the model, mm.
+    segment_strains : sequence of ndarray
+        Per-segment mean strains (e.g. E_rr, E_cc, E_ll over the AHA segments), any may be empty.
+    edv_ml : float, optional
+        ED cavity volume of the registered model, ml.
+
+    Returns
+    -------
+    Verdict
+    """
+    v = Verdict()
+    if edv_ml is not None:
+        if not np.isfinite(edv_ml) or not EDV_FAILED_ML[0] <= edv_ml <= EDV_FAILED_ML[1]:
+            v.flag(FAILED, f"ED cavity volume {edv_ml:.4g} ml: not a heart (check pixel spacing and segmentation)")
+        elif not EDV_DEGRADED_ML[0] <= edv_ml <= EDV_DEGRADED_ML[1]:
+            v.flag(DEGRADED, f"ED cavity volume {edv_ml:.4g} ml outside [{EDV_DEGRADED_ML[0]:g}, "
+                             f"{EDV_DEGRADED_ML[1]:g}] ml (check pixel spacing and segmentation)")
+    ef = float(ejection_fraction)
+    if not np.isfinite(ef) or not EF_FAILED[0] <= ef <= EF_FAILED[1]:
+        v.flag(FAILED, f"ejection fraction {ef:.2f} outside [{EF_FAILED[0]:g}, {EF_FAILED[1]:g}]: not a ventricle's volume")
+    elif not EF_DEGRADED[0] <= ef <= EF_DEGRADED[1]:
+        v.flag(DEGRADED, f"ejection fraction {ef:.2f} outside [{EF_DEGRADED[0]:g}, {EF_DEGRADED[1]:g}]")
+    if long_axis_mm > 0 and max_displacement_mm > DISPLACEMENT_FAILED * long_axis_mm:
+        v.flag(FAILED, f"a wall point moved {max_displacement_mm:.1f} mm, more than {DISPLACEMENT_FAILED:.0%} of "
+                       f"the {long_axis_mm:.0f} mm long axis")
+    worst = max((float(np.max(np.abs(s))) for s in segment_strains if np.size(s)), default=0.0)
+    if worst > STRAIN_DEGRADED:
+        v.flag(DEGRADED, f"segment strain {worst:.2f} beyond ±{STRAIN_DEGRADED:g}")
+    return v
+
+
+def registration_verdict(slice_reports) -> Verdict:
+    """How well the ED model is supported by the segmented slices.
+
+    Parameters
+    ----------
+    slice_reports : sequence
+        One per ED slice, with ``view`` (0 SA, 1 LA), ``slice_index``, ``ok`` and ``reason``
+        (:class:`mlv_ros.core.registration.SliceReport`).
+
+    Returns
+    -------
+    Verdict
+    """
+    v = Verdict()
+    sa = [r for r in slice_reports if int(r.view) == 0]
+    la = [r for r in slice_reports if int(r.view) != 0]
+    sa_ok = sum(bool(r.ok) for r in sa)
+    if sa and sa_ok / len(sa) < SA_SEGMENTED_DEGRADED:
+        v.flag(DEGRADED, f"{sa_ok} of {len(sa)} SA slices segmented at ED (< {SA_SEGMENTED_DEGRADED:.0%})")
+    if la and not any(r.ok for r in la):
+        v.flag(DEGRADED, f"none of the {len(la)} LA views segmented at ED: base and apex from the SA stack alone")
+    return v

@@ -1,0 +1,204 @@
+"""Quality verdicts (mlv_ros.core.verdict): each threshold tripped by a study built to trip it,
+and left alone by one that should pass — through the real solver and analyzer."""
+
+import numpy as np
+import pytest
+
+from mlv_ros.core.analysis import LVAnalyzer
+from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
+from mlv_ros.core.sim import simulate_study
+from mlv_ros.core.types import VIEW_SA
+from mlv_ros.core.verdict import DEGRADED, FAILED, OK, Verdict, metrics_verdict, phase_verdict
+from test_tracking import grid_tags, make_tracker, observed, tagset
+
+
+@pytest.fixture(scope="module")
+def study():
+    return simulate_study("normal", snr=20, quick=True)
+
+
+def solve(study, phase, edit=None, **tracker_options):
+    """The solver's verdict at ``phase`` from exact in-plane tags, ``edit(sets)`` applied first."""
+    m = study.motion
+    _, tr = make_tracker(study, n=1000, **tracker_options)
+    refs = grid_tags(study)
+    for key, g in study.geometries.items():
+        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    sets = observed(study, refs, phase)
+    if edit is not None:
+        sets = edit(sets)
+    return tr.solve(phase, sets, m.num_phases).state
+
+
+def keep(sets, fraction, seed=0):
+    rng = np.random.default_rng(seed)
+    for s in sets.values():
+        k = rng.random(len(s.track_id)) < fraction
+        s.position, s.pixel_rc, s.track_id, s.confidence = s.position[k], s.pixel_rc[k], s.track_id[k], s.confidence[k]
+    return sets
+
+
+def test_a_well_tracked_phase_is_ok(study):
+    state = solve(study, int(round(study.motion.es_phase)))
+    assert state.verdict == OK and state.verdict_reasons == ""
+
+
+def test_few_tracked_points_degrade_then_fail(study):
+    es = int(round(study.motion.es_phase))
+    # Every slice keeps ~20 % of its points: each still has 3+, only the total trips.
+    degraded = solve(study, es, lambda s: keep(s, 0.2))
+    assert degraded.verdict == DEGRADED and "ED tag points tracked" in degraded.verdict_reasons
+    failed = solve(study, es, lambda s: keep(s, 0.06))
+    assert failed.verdict == FAILED and "ED tag points tracked" in failed.verdict_reasons
+
+
+def test_sa_slices_without_points_degrade_and_none_fails(study):
+    es = int(round(study.motion.es_phase))
+    sa = sorted(k for k in study.geometries if k[0] == VIEW_SA)
+
+    def drop_sa(n_left):
+        return lambda sets: {k: v for k, v in sets.items() if k[0] != VIEW_SA or k in sa[:n_left]}
+
+    two = solve(study, es, drop_sa(2))  # 2 of 8 SA slices
+    assert two.verdict >= DEGRADED and f"2 of {len(sa)} SA slices" in two.verdict_reasons
+    none = solve(study, es, drop_sa(0))  # long-axis views only
+    assert none.verdict == FAILED and "no SA slice" in none.verdict_reasons
+
+
+def test_a_fit_that_misses_its_tracks_by_half_a_pixel_is_degraded(study):
+    es = int(round(study.motion.es_phase))
+    rng = np.random.default_rng(1)
+
+    def jitter(sets):  # 1 px of independent in-plane noise per point: no smooth motion fits it
+        for key, s in sets.items():
+            g = study.geometries[key]
+            s.position = s.position + rng.standard_normal((len(s.position), 2)) @ np.stack(
+                [g.row_direction * g.row_spacing, g.column_direction * g.column_spacing])
+        return sets
+    state = solve(study, es, jitter)
+    assert state.verdict == DEGRADED and "fit residual" in state.verdict_reasons, state.verdict_reasons
+
+
+def test_many_outliers_degrade(study):
+    m = study.motion
+    _, tr = make_tracker(study, n=1000)
+    refs = grid_tags(study)
+    for key, g in study.geometries.items():
+        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    rng = np.random.default_rng(0)
+    for phase in range(1, 4):
+        sets = observed(study, refs, phase)
+        if phase == 3:  # 30 % of the tracks slip by a tag period (8 mm): screened out, and said
+            for key, s in sets.items():
+                slipped = rng.random(len(s.track_id)) < 0.3
+                s.position = s.position + slipped[:, None] * 8.0 * study.geometries[key].row_direction
+        state = tr.solve(phase, sets, m.num_phases).state
+        assert (state.verdict == OK) == (phase < 3), (phase, state.verdict_reasons)
+    assert "rejected as outliers" in state.verdict_reasons
+
+
+FR = oblique_frame()
+X, ENDO = cylinder_shell(FR, r_in=20, r_out=30, n_r=4, n_theta=36, n_z=12)
+
+
+@pytest.mark.parametrize("motion, level, reason", [
+    (dict(s_r=0.85, s_l=0.9, twist_apex_deg=10, twist_base_deg=-3), OK, ""),
+    (dict(s_r=1.4, s_l=1.0, twist_apex_deg=0, twist_base_deg=0), FAILED, "ejection fraction"),  # cavity ×2
+    (dict(s_r=1.06, s_l=1.0, twist_apex_deg=0, twist_base_deg=0), DEGRADED, "ejection fraction"),  # +12 %
+])
+def test_the_analyzer_marks_a_cavity_no_ventricle_has(motion, level, reason):
+    x, F = cylindrical_motion(FR, X, **motion)
+    m = LVAnalyzer(X, FR, endo_mask=ENDO).phase(x, F, phase_index=3, num_phases=10)
+    assert m.verdict == level and reason in m.verdict_reasons, (m.ejection_fraction, m.verdict_reasons)
+
+
+def test_the_analyzer_marks_a_wall_point_that_travels_half_the_ventricle():
+    x = X.copy()
+    x[0] += 0.6 * FR.length * FR.axis  # one particle flung away
+    m = LVAnalyzer(X, FR, endo_mask=ENDO).phase(x, phase_index=1, num_phases=10)
+    assert m.verdict == FAILED and "wall point moved" in m.verdict_reasons
+
+
+def test_verdict_arithmetic_and_bad_levels():
+    v = phase_verdict(50, 100, {0: 5, 1: 5}, 0.1, 1.0)
+    assert v.level == OK and v.text == ""
+    w = Verdict.from_parts(DEGRADED, "a; b").merge(metrics_verdict(2.0, 1.0, 80.0))
+    assert w.level == FAILED and w.reasons[:2] == ["a", "b"] and "ejection fraction" in w.text
+    with pytest.raises(ValueError, match="verdict must be"):
+        Verdict.from_parts(3, "")
+
+
+def test_recordings_made_before_the_verdict_still_read():
+    """A ModelState / MotionMetrics recorded with the definition before the verdict fields
+    (serialised by an independent writer, rosbags) reads with the verdict ok and every other field
+    intact."""
+    from pathlib import Path
+
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from mlv_msgs.msg import ModelState, MotionMetrics
+    from mlv_ros import bagio
+
+    msgs = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
+    for cls, values in ((ModelState, {"phase_index": 3, "num_phases": 9, "a0": 41.5, "num_control_points": 77}),
+                        (MotionMetrics, {"phase_index": 2, "num_phases": 9, "cavity_volume_ml": 101.25})):
+        text = (msgs / f"{cls.__name__}.msg").read_text()
+        old = text[:text.index("# Quality verdict")]
+        store = get_typestore(Stores.ROS2_JAZZY)
+        name = f"mlv_msgs/msg/{cls.__name__}"
+        store.register(get_types_from_msg(old, name))
+        Old = store.types[name]
+        kwargs = {}
+        for f in Old.__dataclass_fields__:
+            if f.startswith("__"):
+                continue
+            if f == "header":
+                kwargs[f] = store.types["std_msgs/msg/Header"](
+                    stamp=store.types["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="patient")
+            elif f in values:
+                kwargs[f] = values[f]
+            else:
+                default = getattr(cls(), f)
+                kwargs[f] = (np.asarray(default) if not isinstance(default, (int, float, bool, str)) else default)
+                if f in ("translation",):
+                    kwargs[f] = np.zeros(3)
+                if f == "rotation":
+                    kwargs[f] = np.array([1.0, 0, 0, 0])
+        data = bytes(store.serialize_cdr(Old(**kwargs), name))
+        got = bagio.deserialize(data, cls)
+        assert got.verdict == 0 and got.verdict_reasons == ""
+        for k, v in values.items():
+            assert getattr(got, k) == v
+    with pytest.raises(ValueError, match="cannot deserialise"):
+        bagio.deserialize(b"\x00\x01\x00\x00garbage", ModelState)
+
+
+def test_run_summary_names_flagged_phases_and_an_untracked_study():
+    from mlv_ros.tools.run import untracked, verdict_line, verdict_summary
+
+    s = {"num_phases": 5, **verdict_summary({0: (0, ""), 1: (0, ""), 2: (1, "few points"), 3: (2, "no SA slice"),
+                                             4: (0, "")})}
+    assert s["phases_ok"] == [0, 1, 4] and s["phases_degraded"] == {"2": "few points"}
+    assert s["phases_failed"] == {"3": "no SA slice"}
+    line = verdict_line(s)
+    assert "1 degraded (2)" in line and "1 failed (3)" in line and "\n" not in line
+    assert not untracked(s)
+    lost = {"num_phases": 3, **verdict_summary({0: (0, ""), 1: (2, "x"), 2: (2, "y")})}
+    assert untracked(lost) and verdict_line({"num_phases": 2, **verdict_summary({0: (0, ""), 1: (0, "")})}) is None
+
+
+def test_registration_and_ed_volume_verdicts():
+    from types import SimpleNamespace as R
+
+    from mlv_ros.core.verdict import registration_verdict
+
+    ok = [R(view=0, slice_index=i, ok=True, reason="") for i in range(6)] + [R(view=1, slice_index=0, ok=True, reason="")]
+    assert registration_verdict(ok).level == OK
+    few = [R(view=0, slice_index=i, ok=i < 2, reason="") for i in range(6)] + [R(view=1, slice_index=0, ok=False, reason="")]
+    v = registration_verdict(few)
+    assert v.level == DEGRADED and "2 of 6 SA slices" in v.text and "none of the 1 LA views" in v.text
+    # The issue's 40 605 ml EDV is not a heart; 1.2 l is a heart no adult has.
+    assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=40605.0).level == FAILED
+    huge = metrics_verdict(0.3, 5.0, 80.0, edv_ml=1200.0)
+    assert huge.level == DEGRADED and "ED cavity volume" in huge.text
+    assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=140.0).level == OK
