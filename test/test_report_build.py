@@ -161,6 +161,7 @@ def test_failed_phases_are_not_plotted_and_flagged_phases_are_named(tmp_path, no
     assert run["phases_degraded"] == {"7": meh.verdict_reasons}
     assert 3 not in run["phases_present"] and 7 in run["phases_present"]
     assert run["key"]["es_phase_index"] != 3 and run["key"]["ejection_fraction"] < 1  # 40 l never used
+    assert (tmp_path / "level_curves.png").stat().st_size > 1000  # drawn with the degraded band
     page = index.read_text()
     assert "phase 3 failed (not plotted)" in page and "phase 7 degraded" in page
     assert "2 of 8 SA slices" in page

@@ -37,6 +37,20 @@ def _time(phases) -> np.ndarray:
     return np.array([p.time_fraction for p in phases], dtype=np.float64)
 
 
+def _gapped(phases, t, values):
+    """``t`` and ``values`` (first axis = phases) with a NaN row after each missing phase index
+    (a failed phase is left out of the report), so a line breaks there instead of bridging it."""
+    idx = [int(p.phase_index) for p in phases]
+    v = np.asarray(values, dtype=np.float64)
+    cut = [k + 1 for k in range(len(idx) - 1) if idx[k + 1] - idx[k] > 1]
+    if not cut:
+        return t, v
+    gap = np.full((1, *v.shape[1:]), np.nan)
+    return (np.insert(np.asarray(t, np.float64), cut, np.nan),
+            np.concatenate([np.concatenate([piece, gap]) if k < len(cut) else piece
+                            for k, piece in enumerate(np.split(v, cut))]))
+
+
 def plot_displacement_3d(ed_positions, es_positions, frame: LVFrame, path, *, title: str = "",
                          compare: tuple | None = None) -> Path:
     """3D particles at ES coloured by each displacement component (Fig. 9b–d / 10b–d).
@@ -84,6 +98,16 @@ def plot_displacement_3d(ed_positions, es_positions, frame: LVFrame, path, *, ti
     return _save(fig, path)
 
 
+def _shade_degraded(ax, phases, t) -> bool:
+    """Grey bands behind the phases whose verdict is degraded (failed ones are never passed in);
+    True if there were any."""
+    flagged = [k for k, p in enumerate(phases) if int(getattr(p, "verdict", 0)) == 1]
+    half = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.02
+    for k in flagged:
+        ax.axvspan(t[k] - half, t[k] + half, color="0.85", zorder=0, lw=0)
+    return bool(flagged)
+
+
 def plot_level_curves(runs: Sequence[RunData], path) -> Path:
     """Per-level curves over the cycle (Fig. 11–16): average SA radius, long-axis motion and
     twist angle; one column per run, one line per level (apex dark → base light)."""
@@ -98,9 +122,13 @@ def plot_level_curves(runs: Sequence[RunData], path) -> Path:
         for i, (name, ylabel) in enumerate(quantities):
             ax = axes[i, j]
             pos, table = level_table(ph, name)
+            if _shade_degraded(ax, ph, t) and i == 0:
+                ax.text(0.01, 0.98, "grey: degraded phases (use with care)", transform=ax.transAxes,
+                        va="top", fontsize=7, color="0.3")
             cmap = cm.viridis
+            tg, tab = _gapped(ph, t, table) if pos.size else (t, table)
             for k, h in enumerate(pos):
-                ax.plot(t, table[:, k], marker=".", ms=3, color=cmap(h), label=f"{h:.2f}")
+                ax.plot(tg, tab[:, k], marker=".", ms=3, color=cmap(h), label=f"{h:.2f}")
             ax.set_ylabel(ylabel)
             ax.grid(alpha=0.3)
             if i == 0:
@@ -131,11 +159,12 @@ def plot_global_curves(runs: Sequence[RunData], path) -> Path:
         ph, _ = sorted_phases(run.phases)
         t = _time(ph)
         for ax, (name, _) in zip(axes, specs):
+            _shade_degraded(ax, ph, t)
             v = np.array([getattr(p, name) for p in ph], dtype=np.float64)
             lab = run.label
             if name == "cavity_volume_ml" and len(v) and v[0] > 0:
                 lab = f"{run.label} (EF {100 * (v[0] - v.min()) / v[0]:.0f} %)"
-            ax.plot(t, v, style, ms=4, label=lab)
+            ax.plot(*_gapped(ph, t, v), style, ms=4, label=lab)
     for ax, (_, ylabel) in zip(axes, specs):
         ax.set_xlabel("time (fraction of cardiac cycle)")
         ax.set_ylabel(ylabel)
