@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "run": ("mlv_ros.tools.run", "run the graph on DICOM, a phantom preset or a bag"),
     "simulate": ("mlv_ros.tools.simulate", "write a simulated tagged-MRI study (DICOM + ground truth)"),
     "report": ("mlv_ros.tools.report", "build the motion report from a recorded run"),
+    "export": ("mlv_ros.tools.export", "write a recorded run as a ParaView time series (.pvd/.vtu) and strain CSV"),
     "recover": ("mlv_ros.tools.recover", "rewrite a valid MCAP from a damaged one"),
     "bench": ("mlv_ros.tools.bench", "run benchmarks (JSON to stdout)"),
 }

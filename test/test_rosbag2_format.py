@@ -356,6 +356,7 @@ IMPORT_KEYS = {
     "pytest": "python3-pytest", "hypothesis": "python3-hypothesis", "rosbags": "python3-rosbags-pip",
     "catkin_pkg": "python3-catkin-pkg-modules",
     "PIL": "python3-pil",  # Pillow
+    "meshio": "python3-meshio",
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     "pylibjpeg": None, "libjpeg": None, "openjpeg": None, "rle": None, "jpeg_ls": None,
 }
