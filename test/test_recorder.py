@@ -3,6 +3,7 @@ channel and metadata conventions, and loses nothing on SIGINT/SIGTERM."""
 
 import signal
 import subprocess
+import time
 
 import numpy as np
 import rclpy
@@ -165,6 +166,15 @@ def test_recorder_sigkill_leaves_completed_chunks_that_recover_rewrites(ros_cont
         assert spin_until(executor, lambda: src.done, timeout=60)
         size = lambda: out.stat().st_size if out.exists() else 0  # noqa: E731
         assert spin_until(executor, lambda: size() > 200_000, timeout=10)  # chunks reached the disk
+        # Every frame is acknowledged, but a loaded machine may still be writing the recorder's
+        # queue: kill once the file has stopped growing (all but the chunk being filled written).
+        last = [size(), time.monotonic()]
+
+        def settled():
+            if size() != last[0]:
+                last[:] = [size(), time.monotonic()]
+            return time.monotonic() - last[1] > 1.0
+        assert spin_until(executor, settled, timeout=20)
         rec.kill()  # SIGKILL: no summary, no footer
         rec.wait(timeout=10)
     finally:
