@@ -545,6 +545,9 @@ class BagMessage:
     type_name: str
     data: bytes
     log_time_ns: int
+    # Fields of our messages appended after the recording was made (from its schema; None when
+    # the schema does not tell): pass to :func:`deserialize` / :func:`current_cdr`.
+    missing: tuple | None = ()
 
 
 def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
@@ -558,10 +561,15 @@ def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
     with open(path, "rb") as fh:
         try:
             reader = make_reader(fh)
+            missing: dict = {}  # schema id → fields that schema lacks
             for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
                 if channel.message_encoding != "cdr":
                     continue
-                yield BagMessage(channel.topic, schema.name if schema else "", message.data, message.log_time)
+                name = schema.name if schema else ""
+                if channel.schema_id not in missing:
+                    text = schema.data.decode(errors="replace") if schema and schema.encoding == "ros2msg" else ""
+                    missing[channel.schema_id] = fields_missing_from(name, text) if name in _APPENDED_FIELDS else ()
+                yield BagMessage(channel.topic, name, message.data, message.log_time, missing[channel.schema_id])
         except Exception as exc:  # mcap raises several private exception types
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
@@ -569,21 +577,53 @@ def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
 
 
 # Fields appended to our messages after recordings were made with the older definition
-# (type name → CDR of their defaults, appended in order): such a recording stays readable.
+# (type name → (name, CDR kind, default) in the order they were appended): such a recording
+# stays readable. A recording lacks some last part of each tuple (the fields appended after it).
 _APPENDED_FIELDS = {
-    # verdict (uint8 0 = ok), verdict_reasons (string "")
-    "mlv_msgs/msg/ModelState": (("uint8", 0), ("string", "")),
-    "mlv_msgs/msg/MotionMetrics": (("uint8", 0), ("string", "")),
+    # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string "")
+    "mlv_msgs/msg/ModelState": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
+                                ("study_id", "string", "")),
+    "mlv_msgs/msg/MotionMetrics": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
+                                   ("study_id", "string", "")),
+    # study_id (string "")
+    "mlv_msgs/msg/TaggedFrame": (("study_id", "string", ""),),
+    "mlv_msgs/msg/TagPoints": (("study_id", "string", ""),),
 }
 
 
+def _field_names(definition: str) -> list[str]:
+    """Field names of the top-level message of a ``ros2msg`` definition (constants left out)."""
+    names = []
+    for line in definition.split(_SEPARATOR)[0].splitlines():
+        line = line.split("#", 1)[0].strip()
+        parts = line.split()
+        if len(parts) >= 2 and "=" not in parts[1] and "=" not in parts[0]:
+            names.append(parts[1])
+    return names
+
+
+def fields_missing_from(type_name: str, definition: str) -> tuple | None:
+    """The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
+    ``type_name`` lacks: ``()`` for the current definition, ``None`` when it cannot tell (no
+    schema text, or not a known older definition)."""
+    appended = _APPENDED_FIELDS.get(type_name, ())
+    names = _field_names(definition) if definition else []
+    if not names:
+        return None
+    absent = [i for i, (name, _, _) in enumerate(appended) if name not in names]
+    if absent and absent != list(range(absent[0], len(appended))):
+        return None  # not a suffix: not one of our older definitions
+    return appended[absent[0]:] if absent else ()
+
+
 def _cdr_defaults(data: bytes, fields) -> bytes:
-    """``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` appended,
-    aligned as CDR aligns them (relative to the end of the header)."""
+    """``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
+    kind, default) each) appended, aligned as CDR aligns them (relative to the end of the
+    header)."""
     little = data[1] & 1  # representation id 0x0001 = CDR little endian, 0x0000 big endian
     order = "little" if little else "big"
     out = bytearray(data)
-    for kind, value in fields:
+    for _name, kind, value in fields:
         if kind == "uint8":
             out += int(value).to_bytes(1, order)
         elif kind == "string":
@@ -595,28 +635,82 @@ def _cdr_defaults(data: bytes, fields) -> bytes:
     return bytes(out)
 
 
-def deserialize(data: bytes, msg_class):
+def _type_name(msg_class) -> str:
+    return f"{msg_class.__module__.split('.')[0]}/msg/{msg_class.__name__}"
+
+
+def _read_as(data: bytes, msg_class, missing: tuple | None):
+    """(message, the fields that were appended) for ``data``.
+
+    With ``missing`` known (from the recording's schema, :func:`fields_missing_from`) those are
+    appended. Without, the current definition is tried, then the one before the last fields
+    were appended, then the oldest, then those in between. The order matters: under a wrong
+    older definition the bytes can parse (appended strings read as a verdict of 1 and empty
+    reasons), but a message of the oldest definition never parses with only the newest field
+    appended (its last field is 4-aligned, so the defaults run out of bytes), and one of the
+    newest older definition is read right by the first guess.
+    """
+    from rclpy.serialization import deserialize_message
+
+    if missing is not None:
+        return deserialize_message(_cdr_defaults(data, missing) if missing else data, msg_class), missing
+    try:
+        return deserialize_message(data, msg_class), ()
+    except Exception as exc:  # rclpy raises its private RMWError
+        appended = _APPENDED_FIELDS.get(_type_name(msg_class), ())
+        n = len(appended)
+        if len(data) >= 4:
+            for k in dict.fromkeys([1, n, *range(n - 1, 1, -1)]):
+                if not 1 <= k <= n:
+                    continue
+                try:
+                    return deserialize_message(_cdr_defaults(data, appended[-k:]), msg_class), appended[-k:]
+                except Exception:
+                    continue
+        raise exc
+
+
+def deserialize(data: bytes, msg_class, missing: tuple | None = None):
     """rclpy deserialisation of a recorded message, also of recordings made before fields were
     appended to our message definitions (:data:`_APPENDED_FIELDS`: they read as their defaults).
+
+    Parameters
+    ----------
+    data : bytes
+        The recorded CDR.
+    msg_class : type
+        The message class.
+    missing : tuple, optional
+        The fields the recording lacks (:attr:`BagMessage.missing`, from its schema); found by
+        trying when not given.
 
     Raises
     ------
     ValueError
-        The bytes are not a ``msg_class`` message under either definition.
+        The bytes are not a ``msg_class`` message under any of its definitions.
     """
-    from rclpy.serialization import deserialize_message
-
     try:
-        return deserialize_message(data, msg_class)
-    except Exception as exc:  # rclpy raises its private RMWError
-        module = msg_class.__module__.split(".")[0]
-        appended = _APPENDED_FIELDS.get(f"{module}/msg/{msg_class.__name__}")
-        if appended is None or len(data) < 4:
-            raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+        return _read_as(data, msg_class, missing)[0]
+    except Exception as exc:
+        raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+
+
+def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
+    """``data`` as the current definition of ``msg_class`` serialises it: a message recorded
+    before fields were appended gets their defaults appended (what a live subscriber can read);
+    a current one comes back unchanged.
+
+    Raises
+    ------
+    ValueError
+        The bytes are not a ``msg_class`` message under any of its definitions.
+    """
+    if missing is None:
         try:
-            return deserialize_message(_cdr_defaults(data, appended), msg_class)
-        except Exception:
+            missing = _read_as(data, msg_class, None)[1]
+        except Exception as exc:
             raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+    return _cdr_defaults(data, missing) if missing else data
 
 
 def bag_topics(path) -> dict[str, dict]:

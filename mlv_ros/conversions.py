@@ -52,6 +52,8 @@ _DTYPE_TO_POINTFIELD = {v: k for k, v in _POINTFIELD_DTYPES.items()}
 
 # A tag position may differ from its pixel placed by the slice geometry by float rounding only.
 TAG_POSITION_TOL_MM = 1e-3
+# Longest study id accepted (a DICOM UID has at most 64 characters; our hashes are shorter).
+MAX_STUDY_ID = 128
 
 
 # --------------------------------------------------------------------------- time / header
@@ -329,6 +331,17 @@ def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices:
         raise ValueError(f"slice_index {slice_index} outside [0, {name} = {count}) for view {view}")
 
 
+def _check_study_id(study_id) -> str:
+    """A message's ``study_id``: text of printable characters, at most :data:`MAX_STUDY_ID` long
+    (empty = unknown)."""
+    study_id = str(study_id)
+    if len(study_id) > MAX_STUDY_ID:
+        raise ValueError(f"study_id has {len(study_id)} characters, at most {MAX_STUDY_ID} allowed")
+    if not study_id.isprintable():
+        raise ValueError(f"study_id {study_id!r} holds non-printable characters")
+    return study_id
+
+
 def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
     """:class:`Frame` → ``mlv_msgs/TaggedFrame``; ``stamp`` goes to both headers."""
     _check_view(frame.view)
@@ -340,7 +353,8 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
         geometry=geometry_to_msg(frame.geometry), view=frame.view, slice_index=frame.slice_index,
         phase_index=frame.phase_index, num_phases=frame.num_phases,
         trigger_time=float(frame.trigger_time), cycle_duration=float(frame.cycle_duration),
-        series_uid=frame.series_uid, num_sa_slices=frame.num_sa_slices, num_la_slices=frame.num_la_slices)
+        series_uid=frame.series_uid, num_sa_slices=frame.num_sa_slices, num_la_slices=frame.num_la_slices,
+        study_id=_check_study_id(frame.study_id))
 
 
 def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
@@ -352,7 +366,8 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
         image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite), geometry=msg_to_geometry(msg.geometry),
         view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
         num_phases=msg.num_phases, trigger_time=msg.trigger_time, cycle_duration=msg.cycle_duration,
-        series_uid=msg.series_uid, num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
+        series_uid=msg.series_uid, num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
+        study_id=_check_study_id(msg.study_id))
 
 
 def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> TagPoints:
@@ -376,7 +391,8 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
         num_sa_slices=points.num_sa_slices, num_la_slices=points.num_la_slices, geometry=geometry_to_msg(points.geometry), pixel_rc=_fast_array("d", rc, np.float64),
         position=_fast_array("d", pos, np.float64),
         track_id=_fast_array("i", np.asarray(points.track_id).reshape(-1), np.int32),
-        confidence=_fast_array("f", conf, np.float32), status=points.status)
+        confidence=_fast_array("f", conf, np.float32), status=points.status,
+        study_id=_check_study_id(points.study_id))
 
 
 def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
@@ -410,7 +426,8 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
         view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
         num_phases=msg.num_phases, geometry=geometry, pixel_rc=rc, position=pos,
         track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(), confidence=conf, status=msg.status,
-        stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
+        stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
+        study_id=_check_study_id(msg.study_id))
 
 
 def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelStateMsg:
@@ -430,7 +447,8 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         a3=float(state.a3), tau=float(state.tau), iterations=int(state.iterations),
         residual=float(state.residual), converged=bool(state.converged),
         num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
-        verdict=_verdict_level(state.verdict), verdict_reasons=str(state.verdict_reasons))
+        verdict=_verdict_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
+        study_id=_check_study_id(state.study_id))
 
 
 def _verdict_level(level) -> int:
@@ -447,7 +465,8 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
         num_particles=msg.num_particles, num_control_points=msg.num_control_points,
-        verdict=_verdict_level(msg.verdict), verdict_reasons=msg.verdict_reasons)
+        verdict=_verdict_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
+        study_id=_check_study_id(msg.study_id))
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
                                                    [state.a0, state.a1, state.a2, state.a3, state.tau,
                                                     state.residual]]))
@@ -506,13 +525,15 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         if v.size and (np.any(v < 0) or not np.all(np.isfinite(v))):
             raise ValueError(f"{name} must hold non-negative counts")
         setattr(msg, name, _fast_array("I", v, np.uint32))
-    # Optional in the input: metrics without a verdict are ok with no reasons.
-    for name, default in (("verdict", 0), ("verdict_reasons", "")):
+    # Optional in the input: metrics without a verdict are ok with no reasons, without a study
+    # of no known study.
+    for name, default, check in (("verdict", 0, _verdict_level), ("verdict_reasons", "", str),
+                                 ("study_id", "", _check_study_id)):
         try:
             value = _metrics_value(metrics, name)
         except (KeyError, AttributeError):
             value = default
-        setattr(msg, name, _verdict_level(value) if name == "verdict" else str(value))
+        setattr(msg, name, check(value))
     return msg
 
 
@@ -535,4 +556,5 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.uint32).astype(np.int64)
     out["verdict"] = _verdict_level(msg.verdict)
     out["verdict_reasons"] = msg.verdict_reasons
+    out["study_id"] = _check_study_id(msg.study_id)
     return out

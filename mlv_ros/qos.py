@@ -35,6 +35,7 @@ LATCHED_TOPICS = (REGISTERED_CLOUD, REGISTERED_STATE)
 HISTORY_TOPICS = (FRAMES, TAG_POINTS)
 
 STREAM_DEPTH = 1000
+LATCHED_READER_DEPTH = 10  # subscriptions to the latched topics (see subscription_qos)
 
 
 def stream_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
@@ -73,9 +74,11 @@ def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
     """The profile to subscribe with. VOLATILE matches any RELIABLE publisher (a bag player,
     another tool); ``catch_up`` asks for the publisher's history (TRANSIENT_LOCAL, which only a
     TRANSIENT_LOCAL publisher can serve) — the solver does so for tag points, so that a restarted
-    solver rebuilds the run."""
+    solver rebuilds the run. Latched topics are taken with a queue of ``LATCHED_READER_DEPTH``:
+    a publisher keeps only its last model, but a second one on the domain (another graph) must
+    not push ours out of the reader's queue before it is read."""
     if topic in LATCHED_TOPICS:
-        return latched_qos()
+        return latched_qos(LATCHED_READER_DEPTH)
     return history_qos() if catch_up and topic in HISTORY_TOPICS else stream_qos()
 
 

@@ -314,3 +314,31 @@ def test_metrics_bad_input():
     m["sa_radius_mm"][0] = np.nan
     with pytest.raises(ValueError, match="sa_radius_mm has 1 non-finite"):
         cv.metrics_to_msg(m)
+
+
+def test_study_id_round_trip_through_every_message():
+    """Run isolation: every message of a study carries its id, through CDR and back; an id a
+    message cannot carry sensibly is refused."""
+    study = "1.2.826.0.1.3680043.8.498.12345"
+    img = RNG.integers(0, 4096, size=(8, 8)).astype(np.uint16)
+    f = Frame(image=img, geometry=oblique_geometry(), view=VIEW_LA, slice_index=1, phase_index=2, num_phases=5,
+              study_id=study)
+    assert cdr(cv.frame_to_msg(f)).study_id == study and cv.msg_to_frame(cdr(cv.frame_to_msg(f))).study_id == study
+    p = make_points(3)
+    p.study_id = study
+    assert cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(p))).study_id == study
+    s = ModelState(phase_index=1, num_phases=5, study_id=study)
+    assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(s))).study_id == study
+    m = make_metrics()
+    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, "study_id": study})))["study_id"] == study
+    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))["study_id"] == ""  # optional: unknown study
+    assert cv.msg_to_frame(cdr(cv.frame_to_msg(Frame(image=img, geometry=oblique_geometry(), view=0, slice_index=0,
+                                                     phase_index=0, num_phases=2)))).study_id == ""
+    for bad, why in (("x" * (cv.MAX_STUDY_ID + 1), "at most"), ("a\nb", "non-printable")):
+        s.study_id = bad
+        with pytest.raises(ValueError, match=why):
+            cv.model_state_to_msg(s)
+        msg = cv.frame_to_msg(f)
+        msg.study_id = bad
+        with pytest.raises(ValueError, match=why):
+            cv.msg_to_frame(msg)

@@ -132,7 +132,7 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
     assert topics[qos.TAG_POINTS]["count"] == 6
 
 
-def restart_mid_run(ros_context, executor, victim: str, phases: int = 8):
+def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
     """Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
     ``victim`` after three phases are solved, start it again, and return the model states and
     tag sets published after the restart (the run must then complete)."""
@@ -149,7 +149,7 @@ def restart_mid_run(ros_context, executor, victim: str, phases: int = 8):
     executor.add_node(watcher)
     common = ["--ros-args", "--params-file", "config/graph.yaml"]
     # the watcher is the solver's one subscriber here (no analyzer, no recorder)
-    extra = {"registration": ["-p", "num_particles:=1500"], "meshless_solver": ["-p", "wait_for_subscribers:=1"]}
+    extra = {"registration": ["-p", "num_particles:=1000"], "meshless_solver": ["-p", "wait_for_subscribers:=1"]}
     procs = {n: subprocess.Popen([console_script(n), *common, *extra.get(n, [])], stdout=subprocess.DEVNULL,
                                  stderr=subprocess.DEVNULL)
              for n in ("tag_detector", "registration", "meshless_solver")}

@@ -128,47 +128,70 @@ def test_verdict_arithmetic_and_bad_levels():
         Verdict.from_parts(3, "")
 
 
-def test_recordings_made_before_the_verdict_still_read():
-    """A ModelState / MotionMetrics recorded with the definition before the verdict fields
-    (serialised by an independent writer, rosbags) reads with the verdict ok and every other field
-    intact."""
+def _old_cdr(cls, cut: str, values: dict) -> bytes:
+    """A ``cls`` message serialised by an independent writer (rosbags) under the definition that
+    ends before the line starting ``cut`` (the fields appended since left out)."""
     from pathlib import Path
 
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    from mlv_msgs.msg import ModelState, MotionMetrics
+    msgs = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
+    text = (msgs / f"{cls.__name__}.msg").read_text()
+    store = get_typestore(Stores.ROS2_JAZZY)
+    name = f"mlv_msgs/msg/{cls.__name__}"
+    store.register(get_types_from_msg((msgs / "SliceGeometry.msg").read_text(), "mlv_msgs/msg/SliceGeometry"))
+    store.register(get_types_from_msg(text[:text.index(cut)], name))
+    Old, T = store.types[name], store.types
+    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="patient")
+    special = {
+        "header": header, "translation": np.zeros(3), "rotation": np.array([1.0, 0, 0, 0]),
+        "image": T["sensor_msgs/msg/Image"](header=header, height=2, width=3, encoding="mono8", is_bigendian=0,
+                                            step=3, data=np.arange(6, dtype=np.uint8)),
+        "geometry": T["mlv_msgs/msg/SliceGeometry"](
+            image_position=np.zeros(3), row_direction=np.array([1.0, 0, 0]), column_direction=np.array([0, 1.0, 0]),
+            row_spacing=1.0, column_spacing=1.0, slice_thickness=6.0),
+        "pixel_rc": np.zeros(0), "position": np.zeros(0), "track_id": np.zeros(0, np.int32),
+        "confidence": np.zeros(0, np.float32)}
+    kwargs = {}
+    for f in Old.__dataclass_fields__:
+        if f.startswith("__"):
+            continue
+        default = getattr(cls(), f)
+        kwargs[f] = values.get(f, special.get(f, default if isinstance(default, (int, float, bool, str))
+                                                else np.asarray(default)))
+    return bytes(store.serialize_cdr(Old(**kwargs), name))
+
+
+def test_recordings_made_before_the_verdict_still_read():
+    """ModelState / MotionMetrics recorded before the verdict and the study fields, and before the
+    study field alone, TaggedFrame / TagPoints before the study field (serialised by an
+    independent writer, rosbags), read with the verdict ok, no study and every other field intact:
+    the order the fields were appended in decides how (mlv_ros.bagio._APPENDED_FIELDS)."""
+    from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
     from mlv_ros import bagio
 
-    msgs = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
-    for cls, values in ((ModelState, {"phase_index": 3, "num_phases": 9, "a0": 41.5, "num_control_points": 77}),
-                        (MotionMetrics, {"phase_index": 2, "num_phases": 9, "cavity_volume_ml": 101.25})):
-        text = (msgs / f"{cls.__name__}.msg").read_text()
-        old = text[:text.index("# Quality verdict")]
-        store = get_typestore(Stores.ROS2_JAZZY)
+    cases = [
+        (ModelState, "# Quality verdict", {"phase_index": 3, "num_phases": 9, "a0": 41.5, "num_control_points": 77}),
+        (MotionMetrics, "# Quality verdict", {"phase_index": 2, "num_phases": 9, "cavity_volume_ml": 101.25}),
+        (TaggedFrame, "# Run isolation", {"phase_index": 2, "num_phases": 9, "series_uid": "1.2.3"}),
+        (TagPoints, "# Run isolation", {"phase_index": 2, "num_phases": 9, "status": "abc"})]
+    for reasons in ("", "abc", "abcd"):  # every alignment of the end of the older message
+        cases += [(ModelState, "# Run isolation", {"phase_index": 3, "num_phases": 9, "verdict": 2,
+                                                   "verdict_reasons": reasons}),
+                  (MotionMetrics, "# Run isolation", {"phase_index": 2, "verdict": 1, "verdict_reasons": reasons})]
+    for cls, cut, values in cases:
+        data = _old_cdr(cls, cut, values)
         name = f"mlv_msgs/msg/{cls.__name__}"
-        store.register(get_types_from_msg(old, name))
-        Old = store.types[name]
-        kwargs = {}
-        for f in Old.__dataclass_fields__:
-            if f.startswith("__"):
-                continue
-            if f == "header":
-                kwargs[f] = store.types["std_msgs/msg/Header"](
-                    stamp=store.types["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="patient")
-            elif f in values:
-                kwargs[f] = values[f]
-            else:
-                default = getattr(cls(), f)
-                kwargs[f] = (np.asarray(default) if not isinstance(default, (int, float, bool, str)) else default)
-                if f in ("translation",):
-                    kwargs[f] = np.zeros(3)
-                if f == "rotation":
-                    kwargs[f] = np.array([1.0, 0, 0, 0])
-        data = bytes(store.serialize_cdr(Old(**kwargs), name))
-        got = bagio.deserialize(data, cls)
-        assert got.verdict == 0 and got.verdict_reasons == ""
-        for k, v in values.items():
-            assert getattr(got, k) == v
+        text = (bagio._msg_file("mlv_msgs", cls.__name__).read_text())
+        missing = bagio.fields_missing_from(name, text[:text.index(cut)])
+        for got in (bagio.deserialize(data, cls), bagio.deserialize(data, cls, missing)):  # by trying, by schema
+            assert got.study_id == ""
+            if "verdict" not in values and hasattr(got, "verdict"):
+                assert got.verdict == 0 and got.verdict_reasons == ""
+            for k, v in values.items():
+                assert getattr(got, k) == v, (cls.__name__, cut, k)
+        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).study_id == ""  # what replay publishes
+    assert bagio.fields_missing_from("mlv_msgs/msg/ModelState", bagio.message_definition("mlv_msgs/msg/ModelState")) == ()
     with pytest.raises(ValueError, match="cannot deserialise"):
         bagio.deserialize(b"\x00\x01\x00\x00garbage", ModelState)
 

@@ -39,6 +39,9 @@ class Frame:
     num_sa_slices, num_la_slices : int
         Slices per view in the whole acquisition (0 = unknown); lets a consumer tell when all
         slices of a phase have arrived.
+    study_id : str
+        The study the frame belongs to (DICOM StudyInstanceUID or a hash; empty = unknown): a
+        consumer keeps to one study (:class:`StudyShape`).
     """
 
     image: np.ndarray
@@ -52,6 +55,7 @@ class Frame:
     series_uid: str = ""
     num_sa_slices: int = 0
     num_la_slices: int = 0
+    study_id: str = ""
 
 
 @dataclass
@@ -70,6 +74,8 @@ class TagPointSet:
         0..1.
     status : str
         Empty when fine; otherwise why the set is empty or partial.
+    study_id : str
+        As in the source :class:`Frame`.
     """
 
     view: int
@@ -85,6 +91,7 @@ class TagPointSet:
     stamp: float = 0.0  # s, copied from the source frame's header
     num_sa_slices: int = 0  # as in Frame
     num_la_slices: int = 0
+    study_id: str = ""  # as in Frame
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
@@ -98,7 +105,8 @@ class ModelState:
     (model-centred → patient); ``translation`` is c in mm; ``a0`` mm; ``a1..a3`` and ``tau``
     dimensionless (twist φ = π τ sin α). ``verdict`` (0 ok, 1 degraded, 2 failed) and
     ``verdict_reasons`` ("; "-separated) say how far the data supported this phase
-    (:mod:`mlv_ros.core.verdict`).
+    (:mod:`mlv_ros.core.verdict`). ``study_id`` names the study the state was computed from (as
+    in :class:`Frame`).
     """
 
     phase_index: int = 0
@@ -117,33 +125,71 @@ class ModelState:
     num_control_points: int = 0
     verdict: int = 0
     verdict_reasons: str = ""
+    study_id: str = ""
+
+
+class ForeignStudyError(ValueError):
+    """A message of another study than the one a consumer keeps to (see :class:`StudyShape`)."""
+
+    def __init__(self, study_id: str, foreign: str):
+        self.study_id, self.foreign = study_id, foreign
+        super().__init__(f"of another study: {foreign!r} (this node's study: {study_id!r})")
 
 
 @dataclass
 class StudyShape:
-    """An acquisition's dimensions as its messages declare them; every message must agree.
+    """An acquisition's identity and dimensions as its messages declare them; every message must
+    agree.
 
-    Each dimension is taken from the first message that declares it (slice counts of 0 mean
-    unknown); a later message declaring a different value contradicts the study and is refused,
-    so one corrupt message cannot make a consumer wait for phases or slices that do not exist.
+    ``study_id`` and each dimension are taken from the first message that declares them (an
+    empty study id and slice counts of 0 mean unknown); a later message of another study is
+    foreign (:class:`ForeignStudyError`: a second graph on the same ROS domain, to be reported and
+    ignored), and one declaring a different dimension contradicts the study and is refused, so
+    one corrupt message cannot make a consumer wait for phases or slices that do not exist.
     """
 
     num_phases: int = 0
     num_sa_slices: int = 0
     num_la_slices: int = 0
+    study_id: str = ""
 
-    def check(self, item) -> None:
-        """Adopt or verify the dimensions of ``item`` (a :class:`Frame` or :class:`TagPointSet`).
+    def foreign(self, study_id: str) -> bool:
+        """Whether ``study_id`` names another study than the one adopted (an unknown id, on
+        either side, is never foreign)."""
+        return bool(self.study_id and study_id and study_id != self.study_id)
+
+    def adopt(self, study_id: str) -> None:
+        """Keep to ``study_id`` from now on (when none is known yet).
 
         Raises
         ------
+        ForeignStudyError
+            Another study is already adopted.
+        """
+        if self.foreign(study_id):
+            raise ForeignStudyError(self.study_id, study_id)
+        self.study_id = self.study_id or str(study_id or "")
+
+    def check(self, item) -> None:
+        """Adopt or verify the study and dimensions of ``item`` (a :class:`Frame` or
+        :class:`TagPointSet`; any object with these attributes, missing ones unknown).
+
+        Raises
+        ------
+        ForeignStudyError
+            ``item`` belongs to another study (checked first).
         ValueError
             ``item`` declares a dimension different from the one already known.
         """
-        clash = [f"{name} {getattr(item, name)} (study: {getattr(self, name)})"
-                 for name in ("num_phases", "num_sa_slices", "num_la_slices")
-                 if getattr(self, name) and getattr(item, name) and getattr(item, name) != getattr(self, name)]
+        study_id = getattr(item, "study_id", "")
+        if self.foreign(study_id):
+            raise ForeignStudyError(self.study_id, study_id)
+        names = ("num_phases", "num_sa_slices", "num_la_slices")
+        clash = [f"{name} {getattr(item, name, 0)} (study: {getattr(self, name)})"
+                 for name in names
+                 if getattr(self, name) and getattr(item, name, 0) and getattr(item, name, 0) != getattr(self, name)]
         if clash:
             raise ValueError("inconsistent with the study: " + ", ".join(clash))
-        for name in ("num_phases", "num_sa_slices", "num_la_slices"):
-            setattr(self, name, getattr(self, name) or int(getattr(item, name)))
+        for name in names:
+            setattr(self, name, getattr(self, name) or int(getattr(item, name, 0)))
+        self.adopt(study_id)

@@ -1,5 +1,6 @@
-"""What every node shares: declared parameters with descriptors, /diagnostics reporting, and a
-``main()`` runner with clean shutdown on SIGINT/SIGTERM."""
+"""What every node shares: declared parameters with descriptors, /diagnostics reporting, the
+study a node keeps to (messages of another study are reported and ignored), and a ``main()``
+runner with clean shutdown on SIGINT/SIGTERM."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import inspect
 import signal
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
@@ -22,6 +24,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from mlv_ros import qos
+from mlv_ros.core.types import StudyShape
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
@@ -38,9 +41,35 @@ class StreamCount:
     publisher_restarts: int = 0
 
 
+def stamp_key(stamp) -> tuple[int, int]:
+    """A header stamp as a dict key (what pairs a cloud with its model state)."""
+    return (int(stamp.sec), int(stamp.nanosec))
+
+
+class RecentKeys:
+    """The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
+    another study's model states → that study, whose point clouds (which cannot carry a study
+    id) are dropped with them."""
+
+    def __init__(self, size: int = 1000):
+        self.size = size
+        self._keys: dict = {}
+
+    def add(self, key, value=None) -> None:
+        self._keys[key] = value
+        while len(self._keys) > self.size:
+            del self._keys[next(iter(self._keys))]
+
+    def get(self, key, default=None):
+        return self._keys.get(key, default)
+
+    def __contains__(self, key) -> bool:
+        return key in self._keys
+
+
 class GraphNode(Node):
-    """A Node with typed parameter declaration, a /diagnostics publisher, and loss accounting on
-    every subscription."""
+    """A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
+    every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`)."""
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
@@ -55,6 +84,10 @@ class GraphNode(Node):
         self.finished = Future()  # completed when the node's job is over (run_node then exits)
         self.last_error: DiagnosticStatus | None = None  # the latest ERROR reported
         self.failure: str | None = None  # why the node gave up (see fail)
+        # The study this node works on: adopted from the first message it takes (or set by
+        # whoever starts the graph); messages of any other study are reported and ignored.
+        self.study = StudyShape()
+        self.other_studies: Counter = Counter()  # other study id → its messages ignored
 
     @property
     def done(self) -> bool:
@@ -132,6 +165,32 @@ class GraphNode(Node):
             topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
         return super().create_subscription(msg_type, topic, counted, qos_profile, **kwargs)
 
+    def foreign(self, study_id: str, topic: str, **where) -> bool:
+        """Whether a message of ``study_id`` taken from ``topic`` belongs to another study than
+        this node's (:attr:`study`; an empty id, or none adopted yet, is never foreign).
+
+        A foreign message is reported at once as an ERROR on /diagnostics naming both study ids,
+        the topic and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the
+        console gets the first one of each other study (later ones are DEBUG lines). The caller
+        ignores the message.
+        """
+        if not self.study.foreign(study_id):
+            return False
+        first = study_id not in self.other_studies
+        self.other_studies[study_id] += 1
+        self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
+                     {"topic": topic, "study": self.study.study_id, "other_study": study_id, **where}, log=first)
+        return True
+
+    def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
+        """A point cloud taken from ``topic`` whose model state (same stamp) is of ``other_study``:
+        reported on /diagnostics and counted as :meth:`foreign` does (the console has had the
+        state's line); the caller drops it."""
+        self.other_studies[other_study] += 1
+        self._report(ERROR, "point cloud of another study ignored with its model state",
+                     {"topic": topic, "study": self.study.study_id, "other_study": other_study, "stamp": stamp},
+                     log=False)
+
     def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:
         count.received += 1
         # No sequence numbers from the rmw, or several publishers whose sequences interleave
@@ -156,18 +215,31 @@ class GraphNode(Node):
                         after_sequence=last, received=count.received)
 
     def _with_counts(self, status: DiagnosticStatus) -> DiagnosticStatus:
-        """``status`` plus the per-topic counts, as the heartbeat publishes it."""
+        """``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
+        so, once messages of another study were ignored)."""
         extra = []
         for topic, c in self.streams.items():
             extra += [KeyValue(key=f"received {topic}", value=str(c.received)),
                       KeyValue(key=f"lost {topic}", value=str(c.lost)),
                       KeyValue(key=f"missed {topic}", value=str(c.missed))]
-        return DiagnosticStatus(level=status.level, name=status.name, message=status.message,
+        level, message = status.level, status.message
+        if self.other_studies:
+            ignored = sum(self.other_studies.values())
+            level = max(level, ERROR)
+            message = f"{message}; {ignored} message(s) of another study ignored"
+            extra += [KeyValue(key="study", value=self.study.study_id),
+                      KeyValue(key="other studies ignored", value=", ".join(
+                          f"{sid}: {n}" for sid, n in self.other_studies.most_common(5)))]
+        return DiagnosticStatus(level=level, name=status.name, message=message,
                                 hardware_id=status.hardware_id, values=list(status.values) + extra)
 
     def report(self, level: int, message: str, **values) -> None:
         """Publish one DiagnosticStatus (name = node, hardware_id = node name) now, make it the
         node's current status, and log it."""
+        self._report(level, message, values)
+
+    def _report(self, level: int, message: str, values: dict, log: bool = True) -> None:
+        """:meth:`report`; with ``log`` false the console line is DEBUG whatever the level."""
         status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
                                   message=message, hardware_id=self.get_name())
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
@@ -177,7 +249,9 @@ class GraphNode(Node):
         self._publish(status)
         text = f"{message} " + " ".join(f"{k}={v}" for k, v in values.items())
         # rclpy ties a severity to each call site, so each level needs its own line.
-        if level == OK:
+        if not log:
+            self.get_logger().debug(text.strip())
+        elif level == OK:
             self.get_logger().info(text.strip())
         elif level == WARN:
             self.get_logger().warning(text.strip())

@@ -8,11 +8,19 @@ which RELIABLE QoS with a deep queue absorbs without loss.
 A DICOM directory loads whatever is valid in it; each skipped file (and each cine missing phases)
 gets its own /diagnostics entry naming it, published before the frames, one per timer tick, once
 a /diagnostics listener is there (up to ``wait_timeout_s``).
+
+Every frame carries the study it belongs to (``study_id``, see :func:`study_id_for`): the DICOM
+StudyInstanceUID (a hash of the images without one), a hash of the simulation parameters and
+seed, or what a recording's frames carry (a hash of the bag's path for frames recorded before
+the field existed). Downstream nodes keep to that study and ignore any other on the domain.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
+from pathlib import Path
 
 from rclpy.duration import Duration
 
@@ -33,11 +41,55 @@ def order_frames(frames: list[Frame], order: str) -> list[Frame]:
 
 
 def read_bag_frames(path) -> list[Frame]:
-    """Every ``/mlv/frames`` message of a recording, as Frames."""
-    from rclpy.serialization import deserialize_message
-
-    return [conversions.msg_to_frame(deserialize_message(m.data, TaggedFrame))
+    """Every ``/mlv/frames`` message of a recording, as Frames (also of recordings made before
+    fields were appended to TaggedFrame: their ``study_id`` is empty)."""
+    return [conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
             for m in bagio.read_bag(path, topics=[qos.FRAMES])]
+
+
+def _digest(*parts) -> str:
+    h = hashlib.blake2b(digest_size=10)
+    for part in parts:
+        h.update(part if isinstance(part, (bytes, bytearray, memoryview)) else str(part).encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def images_digest(frames: list[Frame]) -> str:
+    """A hash of a study's images: indices, geometry and pixels of every frame, in a fixed order."""
+    parts = []
+    for f in sorted(frames, key=lambda f: (f.view, f.slice_index, f.phase_index)):
+        g = f.geometry
+        parts += [f"{f.view} {f.slice_index} {f.phase_index} {f.num_phases} {f.series_uid}",
+                  g.image_position.tobytes(), g.row_direction.tobytes(), g.column_direction.tobytes(),
+                  str(f.image.dtype), str(f.image.shape), f.image.tobytes()]
+    return _digest(*parts)
+
+
+def study_id_for(source: str, frames: list[Frame], *, params: dict | None = None, path: str = "",
+                 study_uids: dict | None = None) -> str:
+    """The study id of a source's frames (``TaggedFrame.study_id``).
+
+    Parameters
+    ----------
+    source : str
+        ``phantom``, ``pattern``, ``dicom`` or ``bag``.
+    frames : list of Frame
+        What the source loaded.
+    params : dict, optional
+        phantom/pattern: the simulation parameters (preset contents, SNR, size, phases, seed).
+    path : str
+        bag: the recording (its resolved path is hashed when the frames carry no study id).
+    study_uids : dict, optional
+        dicom: StudyInstanceUID → images (the most frequent is the study; a hash of the images
+        when there is none).
+    """
+    if source in ("phantom", "pattern"):
+        return f"{source}-{_digest(json.dumps(params or {}, sort_keys=True, default=str))}"
+    if source == "dicom":
+        return next(iter(study_uids or {}), "") or f"dicom-{images_digest(frames)}"
+    carried = next((f.study_id for f in frames if f.study_id), "")
+    return carried or f"bag-{_digest(Path(path).resolve())}"
 
 
 def count_slices(frames: list[Frame]) -> list[Frame]:
@@ -71,14 +123,36 @@ class FrameSource(GraphNode):
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest DICOM image accepted (rows × cols); larger files are skipped before their pixels are read (source: dicom)", min_value=64, max_value=16384 * 16384)
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
+        self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
         self.frames = order_frames(count_slices(self._load()), self.order)
+        self.study_id = self._study_id()
+        self.study.adopt(self.study_id)
         self.published = 0
         self.halted: str | None = None  # why publishing was stopped early (see halt)
         self._t0 = time.monotonic()
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
         self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order,
-                    problems=len(self._reports))
+                    problems=len(self._reports), study=self.study_id)
+
+    def _study_id(self) -> str:
+        """The study id every frame carries (frames of a recording keep theirs when they have one)."""
+        params = None
+        if self.source == "phantom":
+            from mlv_ros.core.sim import load_preset
+
+            params = {"preset": load_preset(self.preset), "snr": self.snr, "size": self.size,
+                      "num_phases": self.num_phases, "seed": self.seed}
+        elif self.source == "pattern":
+            params = {"pattern": 1, "num_phases": self.num_phases}
+        study_id = study_id_for(self.source, self.frames, params=params, path=self.path, study_uids=self.study_uids)
+        if len(self.study_uids) > 1:
+            self._reports.append(("DICOM files of several studies; published as one", {
+                "study": study_id, "others": ", ".join(list(self.study_uids)[1:4]),
+                "images": ", ".join(map(str, self.study_uids.values()))}))
+        for f in self.frames:
+            f.study_id = f.study_id or study_id
+        return study_id
 
     def _load(self) -> list[Frame]:
         if self.source == "pattern":
@@ -98,6 +172,7 @@ class FrameSource(GraphNode):
             self._reports += [("skipped DICOM file", {"file": path, "reason": reason}) for path, reason in res.problems]
             self._reports += [("incomplete DICOM series", {"file": path, "reason": reason})
                               for path, reason in res.warnings]
+            self.study_uids = dict(res.study_uids)
             return res.frames
         return read_bag_frames(self.path)
 

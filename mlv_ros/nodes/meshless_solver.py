@@ -8,6 +8,12 @@ or, when a slice never comes, once a later phase is complete or no input has arr
 particle: ``x, y, z`` position at this phase (patient mm), ``dx, dy, dz`` displacement from ED
 (mm) and Green–Lagrange strain components ``err, ecc, ell`` (radial, circumferential,
 longitudinal, relative to ED).
+
+Run isolation: the node keeps to the study of the first registered state or tag point set it
+takes (``study_id``), and reports and ignores messages of another. The registered cloud cannot
+carry a study, so it is used with the registered state of the same header stamp (the
+registration stamps both alike); a cloud whose state is of another study is dropped with it.
+Published model states carry the study.
 """
 
 from __future__ import annotations
@@ -22,8 +28,7 @@ from mlv_msgs.msg import TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
-from mlv_ros.core.types import StudyShape
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
 MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
@@ -52,9 +57,11 @@ class MeshlessSolver(GraphNode):
         self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points,
                                  qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
         self.assembler = PhaseAssembler()
-        self.study = StudyShape()
         self.cloud = None
         self.rest_state = None
+        self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
+        self._rest_key = None  # stamp of the registered state taken
+        self._foreign_stamps = RecentKeys()  # stamps of registered states of another study
         self.tracker = None
         self.next_phase = 0
         self.num_phases = 0
@@ -66,24 +73,42 @@ class MeshlessSolver(GraphNode):
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
-        try:
-            self.cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
-        except ValueError as exc:
-            self.report(ERROR, "bad registered cloud", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+        key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
+        if key in self._foreign_stamps:
+            self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, self._foreign_stamps.get(key))
             return
+        try:
+            cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
+        except ValueError as exc:
+            self.report(ERROR, "bad registered cloud", stamp=stamp, reason=str(exc))
+            return
+        self._reg_clouds[key] = cloud
+        while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
+            self._reg_clouds.pop(next(iter(self._reg_clouds)))
         self._build()
 
     def _on_state(self, msg: ModelStateMsg) -> None:
-        try:
-            self.rest_state = conversions.msg_to_model_state(msg)
-        except ValueError as exc:
-            self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+        key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
+        if self.foreign(msg.study_id, qos.REGISTERED_STATE, stamp=stamp):
+            self._foreign_stamps.add(key, msg.study_id)
+            if self._reg_clouds.pop(key, None) is not None:
+                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, msg.study_id)
             return
+        try:
+            state = conversions.msg_to_model_state(msg)
+        except ValueError as exc:
+            self.report(ERROR, "bad registered state", stamp=stamp, reason=str(exc))
+            return
+        self.study.adopt(state.study_id)
+        self.rest_state, self._rest_key = state, key
         self._build()
 
     def _build(self) -> None:
-        if self.cloud is None or self.rest_state is None or self.tracker is not None:
+        if self.rest_state is None or self.tracker is not None:
             return
+        self.cloud = self._reg_clouds.get(self._rest_key)
+        if self.cloud is None:
+            return  # its cloud (same stamp) has not come yet
         c, s = self.cloud, self.rest_state
         pts = conversions.xyz(c)
         try:
@@ -102,6 +127,9 @@ class MeshlessSolver(GraphNode):
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
+        if self.foreign(msg.study_id, qos.TAG_POINTS, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
+                        stamp=conversions.stamp_text(msg.header.stamp)):
+            return  # another graph's tag points (nor are they input to wait on)
         self.last_input = time.monotonic()
         try:
             points = conversions.msg_to_tagpoints(msg)
@@ -181,6 +209,7 @@ class MeshlessSolver(GraphNode):
                 self.report(ERROR, "phase not solved", phase=phase, reason=str(exc))
                 return
             x, E, state = sol.positions, sol.strain, sol.state
+        state.study_id = self.study.study_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
         d = x - tr.rest
         cloud = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2],

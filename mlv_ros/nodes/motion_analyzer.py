@@ -8,6 +8,11 @@ strain is estimated by MLS from the positions (:class:`~mlv_ros.core.analysis.LV
 Clouds and states are validated on arrival (finite float positions, point count of the model
 once it is known; finite state, unit rotation, phase in range) and refused with a report naming
 their stamp, so nothing unusable waits for a partner.
+
+Run isolation: the node keeps to the study of the first model state it takes (``study_id``,
+registered or per phase), and reports and ignores states of another study; the clouds paired
+with them (same stamp: clouds cannot carry a study) are dropped with them. Metrics carry the
+study.
 """
 
 from __future__ import annotations
@@ -22,12 +27,11 @@ from mlv_ros.core.analysis import LVAnalyzer, LVFrame
 from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
 
-def _key(stamp) -> tuple:
-    return (stamp.sec, stamp.nanosec)
+_key = stamp_key
 
 
 class MotionAnalyzer(GraphNode):
@@ -42,6 +46,9 @@ class MotionAnalyzer(GraphNode):
         self.create_subscription(PointCloud2, qos.MOTION, self._on_motion, qos.subscription_qos(qos.MOTION))
         self.create_subscription(ModelStateMsg, qos.MODEL_STATE, self._on_state, qos.subscription_qos(qos.MODEL_STATE))
         self.reg_cloud = self.reg_state = self.analyzer = None
+        self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
+        self._reg_key = None  # stamp of the registered state taken
+        self._foreign_stamps = RecentKeys()  # stamps of model states of another study
         self.clouds: dict = {}
         self.states: dict = {}
         self.published = 0
@@ -49,23 +56,56 @@ class MotionAnalyzer(GraphNode):
         self.messages_handled = 0
         self.report(OK, "waiting for the registered model")
 
+    def _other_study_cloud(self, topic: str, msg) -> bool:
+        """Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
+        dropped with it (reported on /diagnostics, counted)."""
+        key = _key(msg.header.stamp)
+        if key not in self._foreign_stamps:
+            return False
+        self.cloud_of_other_study(topic, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key))
+        return True
+
+    def _state_of_other_study(self, msg, topic: str) -> bool:
+        """Whether the model state ``msg`` is of another study (reported); its cloud goes too."""
+        stamp = conversions.stamp_text(msg.header.stamp)
+        if not self.foreign(msg.study_id, topic, phase=msg.phase_index, stamp=stamp):
+            return False
+        key = _key(msg.header.stamp)
+        self._foreign_stamps.add(key, msg.study_id)
+        for cloud_topic, held in ((qos.REGISTERED_CLOUD, self._reg_clouds), (qos.MOTION, self.clouds)):
+            if held.pop(key, None) is not None:
+                self.cloud_of_other_study(cloud_topic, stamp, msg.study_id)
+        return True
+
     def _on_registered_cloud(self, msg):
+        if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
+            return
         try:
-            self.reg_cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
+            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
         except ValueError as exc:
             self.report(ERROR, "bad registered cloud", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+        while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
+            self._reg_clouds.pop(next(iter(self._reg_clouds)))
         self._build()
 
     def _on_registered_state(self, msg):
+        if self._state_of_other_study(msg, qos.REGISTERED_STATE):
+            return
         try:
-            self.reg_state = conversions.msg_to_model_state(msg)
+            state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
             self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+        else:
+            self.study.adopt(state.study_id)
+            self.reg_state, self._reg_key = state, _key(msg.header.stamp)
         self._build()
 
     def _build(self):
-        if self.analyzer is not None or self.reg_cloud is None or self.reg_state is None:
+        if self.analyzer is not None or self.reg_state is None:
             return
+        self.reg_cloud = self._reg_clouds.get(self._reg_key)
+        if self.reg_cloud is None:
+            return  # its cloud (same stamp) has not come yet
         X = conversions.xyz(self.reg_cloud)
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
         endo = None
@@ -83,6 +123,8 @@ class MotionAnalyzer(GraphNode):
     def _on_motion(self, msg: PointCloud2):
         self.messages_handled += 1
         stamp = conversions.stamp_text(msg.header.stamp)
+        if self._other_study_cloud(qos.MOTION, msg):
+            return
         try:
             x = conversions.xyz(conversions.msg_to_cloud(msg, finite=("x", "y", "z")))
         except ValueError as exc:
@@ -96,12 +138,15 @@ class MotionAnalyzer(GraphNode):
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
+        if self._state_of_other_study(msg, qos.MODEL_STATE):
+            return
         try:
-            conversions.msg_to_model_state(msg)
+            state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
             self.report(ERROR, "bad model state dropped", phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
+        self.study.adopt(state.study_id)
         self._hold(self.states, "model state", msg.header.stamp, msg)
 
     def _hold(self, held: dict, what: str, stamp, item) -> None:
@@ -130,6 +175,7 @@ class MotionAnalyzer(GraphNode):
                 verdict = Verdict.from_parts(state.verdict, state.verdict_reasons).merge(
                     Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
+                metrics.study_id = state.study_id or self.study.study_id
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
                 self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))

@@ -10,6 +10,13 @@ A write that fails (disk full, file size limit, I/O error) stops the recording: 
 /diagnostics says so, the file is cut back to its last whole record and closed, later messages
 are counted as ``dropped``, ``metadata.yaml`` counts what the file holds, and the node stops
 (:meth:`GraphNode.fail`: exit 1 on its own, the end of the run under ``mlv-ros run``).
+
+Run isolation: the recording holds one study. Messages that carry a ``study_id`` (frames, tag
+points, model states, metrics) are read for it (their bytes are still written as received); the
+recorder keeps to the study of the first one (or the one ``mlv-ros run`` gives it) and reports
+and leaves out messages of another. Point clouds cannot carry a study: each is written once its
+model state (same stamp) is in, and left out with a state of another study; a cloud whose state
+never comes is written when the recording closes.
 """
 
 from __future__ import annotations
@@ -19,8 +26,15 @@ import importlib
 import time
 from pathlib import Path
 
-from mlv_ros import bagio, qos
-from mlv_ros.nodes.common import ERROR, OK, GraphNode, run_node
+from rclpy.serialization import deserialize_message
+
+from mlv_ros import bagio, conversions, qos
+from mlv_ros.nodes.common import ERROR, OK, GraphNode, RecentKeys, run_node, stamp_key
+
+# Topics whose messages carry study_id, and the point clouds paired with a model state by stamp.
+STUDY_TOPICS = (qos.FRAMES, qos.TAG_POINTS, qos.REGISTERED_STATE, qos.MODEL_STATE, qos.METRICS)
+CLOUD_STATES = {qos.REGISTERED_CLOUD: qos.REGISTERED_STATE, qos.MOTION: qos.MODEL_STATE}
+MAX_HELD_CLOUDS = 64
 
 
 def message_class(type_name: str):
@@ -47,8 +61,14 @@ class Recorder(GraphNode):
         self.writer = bagio.BagWriter(Path(self.output), chunk_size=chunk_kib * 1024, compression=compression)
         self.messages_handled = 0
         self.dropped = 0  # messages received after the recording stopped on a write error
+        self.ignored = 0  # messages of another study left out
+        self.classes: dict = {}
+        self._held: dict = {}  # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
+        self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
+        self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
+            self.classes[topic] = message_class(type_name)
             self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
             self.create_subscription(message_class(type_name), topic,
                                      lambda data, info, topic=topic: self._on_message(topic, data, info),
@@ -61,8 +81,57 @@ class Recorder(GraphNode):
         if self.writer.error is not None or self.writer.closed:
             self.dropped += 1
             return
+        now, published = time.time_ns(), info.get("source_timestamp") or None
+        if topic in STUDY_TOPICS or topic in CLOUD_STATES:
+            try:
+                msg = deserialize_message(data, self.classes[topic])
+            except Exception:  # rclpy's private errors; not ours to judge: record it as it came
+                msg = None
+            if msg is not None and not self._take(topic, msg, data, now, published):
+                return
+        self._write(topic, data, now, published)
+
+    def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
+        """Whether ``msg`` is written now (False: left out as another study's, or a cloud held
+        until its state is in)."""
+        key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
+        if topic in CLOUD_STATES:
+            pair = (CLOUD_STATES[topic], key)
+            if pair in self._foreign_stamps:
+                self.ignored += 1
+                self.cloud_of_other_study(topic, stamp, self._foreign_stamps.get(pair))
+                return False
+            if pair in self._ours:
+                return True
+            self._held[pair] = (topic, data, now, published)
+            while len(self._held) > MAX_HELD_CLOUDS:  # states that never come: write the oldest
+                self._write(*self._held.pop(next(iter(self._held))))
+            return False
+        if self.foreign(msg.study_id, topic, stamp=stamp):
+            self.ignored += 1
+            if topic in CLOUD_STATES.values():
+                self._foreign_stamps.add((topic, key), msg.study_id)
+                held = self._held.pop((topic, key), None)
+                if held is not None:
+                    self.ignored += 1
+                    self.cloud_of_other_study(held[0], stamp, msg.study_id)
+            return False
+        self.study.adopt(msg.study_id)
+        if topic in CLOUD_STATES.values():
+            self._write(topic, data, now, published)
+            self._ours.add((topic, key))
+            held = self._held.pop((topic, key), None)
+            if held is not None:
+                self._write(*held)
+            return False  # written here, before its cloud
+        return True
+
+    def _write(self, topic: str, data: bytes, log_time_ns: int, published) -> None:
+        if self.writer.error is not None or self.writer.closed:
+            self.dropped += 1
+            return
         try:
-            self.writer.write(topic, data, time.time_ns(), info.get("source_timestamp") or None)
+            self.writer.write(topic, data, log_time_ns, published)
         except OSError as exc:
             self.dropped += 1
             self._write_failed(exc)
@@ -82,9 +151,12 @@ class Recorder(GraphNode):
                   fix=f"{fix}; `mlv-ros recover` adds the missing index to this file")
 
     def finish(self) -> None:
-        """Close the recording (every message already taken is in it) and report the counts."""
+        """Close the recording (every message already taken is in it, clouds still waiting for
+        their state too) and report the counts."""
         if self.writer.closed:
             return
+        while self._held:
+            self._write(*self._held.pop(next(iter(self._held))))
         try:
             self.writer.close()
             if self.writer.error is not None:  # failed while finishing: the file has what it could take
@@ -93,8 +165,10 @@ class Recorder(GraphNode):
                 return
             received = sum(c.received for c in self.streams.values())
             lost = sum(c.lost for c in self.streams.values())
-            self.report(OK if received == self.writer.message_count and not lost else ERROR, "recording closed",
-                        output=self.output, messages=self.writer.message_count, received=received, lost=lost)
+            other = {"other_study": self.ignored} if self.ignored else {}
+            self.report(OK if received == self.writer.message_count + self.ignored and not lost else ERROR,
+                        "recording closed", output=self.output, messages=self.writer.message_count,
+                        received=received, lost=lost, **other)
         except OSError as exc:
             self.report(ERROR, "could not finalise the recording", output=self.output, reason=str(exc))
 

@@ -7,7 +7,9 @@ reconstructs the myocardium, samples particles and registers the model (paper §
 The cloud carries each particle's position and its polar model coordinates (α, β, w) and
 transmural depth, so the solver rebuilds exactly the same model.
 
-Registration happens once a run, so what it has to say is said once: the final ``registered``
+The first ED frame taken fixes the study (``study_id``, carried on by the registered state);
+frames of another study are reported and ignored. Registration happens once a run, so what it
+has to say is said once: the final ``registered``
 status is WARN, with every warning in it, when the model was built with something missing (slices
 that could not be segmented, no LA view...); a re-sent identical ED frame is only a DEBUG line.
 """
@@ -22,7 +24,7 @@ from sensor_msgs.msg import PointCloud2
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.types import VIEW_SA, StudyShape
+from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 
@@ -47,7 +49,6 @@ class Registration(GraphNode):
         self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.topic_qos(qos.REGISTERED_STATE))
         self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.ed_frames: dict = {}
-        self.study = StudyShape()
         self.expected = 0
         self.first_at = None
         self.last_frame_at = time.monotonic()
@@ -60,6 +61,9 @@ class Registration(GraphNode):
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
+        if self.foreign(msg.study_id, qos.FRAMES, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
+                        stamp=conversions.stamp_text(msg.header.stamp)):
+            return  # another graph's frame (nor does it count as activity on our stream)
         self.last_frame_at = time.monotonic()
         if msg.phase_index != 0 or self.registered:
             return
@@ -137,6 +141,7 @@ class Registration(GraphNode):
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
         verdict = self.verdict = registration_verdict(res.slice_reports)
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
+        state.study_id = self.study.study_id
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         extra = {}
         if res.warnings:

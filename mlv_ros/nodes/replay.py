@@ -2,7 +2,11 @@
 timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate: 0``).
 
 Messages are republished as the recorded CDR bytes (never deserialised), each topic with the QoS
-it was recorded with (``offered_qos_profiles``), so latched topics stay latched.
+it was recorded with (``offered_qos_profiles``), so latched topics stay latched. Our messages
+recorded before fields were appended to their definition (the recording's schema says so) get
+those fields' defaults appended (:func:`mlv_ros.bagio.current_cdr`: e.g. an empty ``study_id``),
+so that today's subscribers can read them (a recording without schemas: tried by
+deserialising).
 
 The recorded ``/diagnostics`` stay in the recording unless ``republish_diagnostics`` is true:
 replayed, old statuses of nodes that are not running would mix with the live graph's on the
@@ -66,6 +70,7 @@ class Replay(GraphNode):
         if missing:
             self.report(WARN, "topics not in the recording", topics=",".join(missing))
         self.pubs = {}
+        self.classes = {}
         for topic, info in recorded.items():
             if wanted and topic not in wanted:
                 continue
@@ -80,6 +85,7 @@ class Replay(GraphNode):
                 self.report(WARN, "skipping topic of unknown type", topic=topic, type=info["type"])
                 continue
             self.pubs[topic] = self.create_publisher(cls, topic, recorded_qos(info["qos"]))
+            self.classes[topic] = cls
         # RELIABLE with a deep queue: a subscriber that wants every recorded time (a recorder, a
         # test) gets it; rclpy's time source subscribes BEST_EFFORT, depth 1, and matches too.
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos.stream_qos()) if self.publish_clock else None
@@ -113,7 +119,7 @@ class Replay(GraphNode):
                 msg.clock.sec, msg.clock.nanosec = t // 1_000_000_000, t % 1_000_000_000
                 self.clock_pub.publish(msg)
                 self.clocks_published += 1
-            self.pubs[self._next.topic].publish(self._next.data)  # raw CDR bytes
+            self.pubs[self._next.topic].publish(self._current(self._next))  # raw CDR bytes
             self.published += 1
             self._next = next(self.messages, None)
             if self.rate <= 0:
@@ -128,6 +134,16 @@ class Replay(GraphNode):
         self.report(OK, "replay finished", messages=self.published, clocks=self.clocks_published)
         if self.exit_when_done:
             self.stop()
+
+
+    def _current(self, m: bagio.BagMessage) -> bytes:
+        """The recorded bytes, with the defaults of fields appended since (if any) added."""
+        if m.missing == ():
+            return m.data
+        try:
+            return bagio.current_cdr(m.data, self.classes[m.topic], m.missing)
+        except ValueError:
+            return m.data  # as recorded: the subscriber reports what it cannot read
 
 
 def main(args=None):

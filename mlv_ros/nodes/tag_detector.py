@@ -9,9 +9,10 @@ Duplicates are dropped (a different image for a filled slot with a warning). A f
 be used, when it is the next one its slice expects, still yields a TagPoints message (empty,
 ``status`` = reason), so downstream knows the slice was seen; an unusable frame for a slot already
 filled or still open further on is only reported (a corrupt copy must not replace or pre-empt the
-real frame). The first usable frame fixes the study's dimensions (phases, slice counts); a frame
-contradicting them is refused. Every report about a frame names it: view, slice, phase and header
-stamp.
+real frame). The first usable frame fixes the study (``study_id``) and its dimensions (phases,
+slice counts); a frame of another study (a second graph on the ROS domain) is reported and
+ignored, one contradicting the dimensions is refused. Tag points carry their frame's study. Every
+report about a frame names it: view, slice, phase and header stamp.
 
 What is said how loud: tags fade over the cycle and lines leave the slab, so tracks ending and
 frames with few or no points are routine; they are DEBUG lines and counts in the 1 Hz heartbeat
@@ -34,7 +35,7 @@ from mlv_ros import conversions, qos
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tags.gabor import TagInputError, validate_image
-from mlv_ros.core.types import StudyShape, TagPointSet
+from mlv_ros.core.types import TagPointSet
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
 
 VIEW_NAME = {TaggedFrame.VIEW_SA: "SA", TaggedFrame.VIEW_LA: "LA"}
@@ -66,7 +67,6 @@ class TagDetector(GraphNode):
         self.trackers: dict = {}   # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
         self.pending: dict = {}    # (view, slice) → {phase: (frame, stamp)}
-        self.study = StudyShape()
         self.messages_handled = 0
         self.frames_out = 0
         self.digests: dict = {}    # (view, slice, phase) → image digest of the frame taken
@@ -84,6 +84,8 @@ class TagDetector(GraphNode):
             self._update_status()
 
     def _take(self, msg: TaggedFrame, where: str, stamp: str) -> None:
+        if self.foreign(msg.study_id, qos.FRAMES, frame=where, stamp=stamp):
+            return  # another graph's frame: nothing of it goes downstream
         if msg.image.height * msg.image.width > self.max_pixels:
             self.counts["frames_refused"] += 1
             self.report(ERROR, "frame refused: image too large", frame=where, stamp=stamp,
@@ -156,6 +158,7 @@ class TagDetector(GraphNode):
             mask, why = self.masker.ed_mask(frame)
         points = tracker.update(frame, mask=mask)
         points.num_sa_slices, points.num_la_slices = frame.num_sa_slices, frame.num_la_slices
+        points.study_id = frame.study_id
         if started and mask is None and tracker.params is not None:
             # Its tag points may include blood or background: worth a look, once. (Without a
             # grid at ED the slice gives no points at all, and that is what _judge says.)
@@ -243,7 +246,8 @@ class TagDetector(GraphNode):
             geometry = conversions.msg_to_geometry(msg.geometry)
             points = TagPointSet(view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
                                  num_phases=msg.num_phases, geometry=geometry, status=reason,
-                                 num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices)
+                                 num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
+                                 study_id=msg.study_id)
             out = conversions.tagpoints_to_msg(points, stamp=msg.header.stamp)
         except ValueError:
             return  # geometry or indices unusable: nothing meaningful to forward

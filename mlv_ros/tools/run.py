@@ -5,6 +5,12 @@
 Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
 ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
 
+A run claims its ROS domain: a private one (an flock, :mod:`mlv_ros.domain`) unless the user
+chose one (``--domain-id`` or ``ROS_DOMAIN_ID``); a chosen domain on which discovery finds a
+node of another mlv_ros graph is refused (exit 2, one line naming it). Every node of the graph
+keeps to the study the input carries (``study_id``) and reports and ignores messages of any
+other, so two graphs that do meet on one domain cannot mix.
+
 The run watches its nodes: one that cannot start, gives up, raises, or leaves the graph with
 nothing to do ends the run at once with that node's reason. SIGINT/SIGTERM stop the input, let
 the phases in flight finish (at most ``--grace`` seconds; a second signal stops waiting), close
@@ -28,6 +34,14 @@ from pathlib import Path
 import yaml
 
 GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
+# Node names of an mlv_ros graph (the launch file and console scripts use them too): one of them
+# on a domain means a graph is using it.
+GRAPH_NODE_NAMES = (*GRAPH, "replay")
+# How long discovery is given to show another graph's nodes before a chosen domain counts as free
+# (on one host they show within about 0.1 s; longer when discovery reaches other hosts).
+DOMAIN_PROBE_S = 1.0
+DOMAIN_PROBE_NETWORK_S = 2.0
+PROBE_PREFIX = "_mlv_ros_run_"  # the node a run looks at its domain with (see graph_nodes_on)
 EXIT_INCOMPLETE, EXIT_USAGE, EXIT_UNTRACKED = 1, 2, 3
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -38,6 +52,10 @@ DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is que
 class RunStartError(ValueError):
     """The graph could not start (a node refused its parameters, the input has no frames, the
     run directory cannot be written); nothing was recorded and nothing is left behind."""
+
+
+class DomainBusyError(RunStartError):
+    """Another mlv_ros graph runs on the ROS domain the run was asked to use."""
 
 
 class RunInterrupted(Exception):
@@ -122,6 +140,90 @@ def node_parameters(params_file: Path, overrides: dict) -> dict:
         values.update(overrides.get(node, {}))
         out[node] = [Parameter(k, value=v) for k, v in values.items()]
     return out
+
+
+def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
+    """Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`, any namespace) that discovery finds on
+    ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
+
+    The look itself is a hidden node named for when it started (``_mlv_ros_run_<ns>_<pid>``), so
+    two runs that look at once see each other: the one that started later counts the earlier
+    one's as a graph on the domain (and is refused), the earlier one goes on.
+
+    Parameters
+    ----------
+    domain_id : int
+        The domain to look at (0..232).
+    wait_s : float, optional
+        Discovery time; default :data:`DOMAIN_PROBE_S`, or :data:`DOMAIN_PROBE_NETWORK_S` when
+        discovery is not kept on this host (``ROS_AUTOMATIC_DISCOVERY_RANGE`` other than
+        ``LOCALHOST``, or ``ROS_STATIC_PEERS``).
+
+    Returns
+    -------
+    list of str
+        Their fully qualified names, sorted (empty: the domain looks free).
+    """
+    import rclpy
+    from rclpy.node import Node
+
+    if wait_s is None:
+        local = (os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST").upper() == "LOCALHOST"
+                 and not os.environ.get("ROS_STATIC_PEERS"))
+        wait_s = DOMAIN_PROBE_S if local else DOMAIN_PROBE_NETWORK_S
+    me = (time.time_ns(), os.getpid())
+
+    def earlier_run(name: str) -> bool:
+        started, _, pid = name.removeprefix(PROBE_PREFIX).partition("_")
+        if not name.startswith(PROBE_PREFIX) or not (started.isdigit() and pid.isdigit()):
+            return False
+        return (int(started), int(pid)) < me
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = None
+    try:
+        # Hidden (leading underscore), without parameter services or /rosout.
+        node = Node(f"{PROBE_PREFIX}{me[0]}_{me[1]}", context=ctx, enable_rosout=False,
+                    start_parameter_services=False)
+        end = time.monotonic() + wait_s
+        while True:
+            found = sorted({f"{ns.rstrip('/')}/{name}" for name, ns in node.get_node_names_and_namespaces()
+                            if name in GRAPH_NODE_NAMES or earlier_run(name)})
+            if found or time.monotonic() >= end:
+                return found
+            time.sleep(0.02)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        ctx.try_shutdown()
+
+
+def busy_domain_text(domain_id: int, nodes: list[str]) -> str:
+    """The one line refusing a busy domain, with how to choose another."""
+    shown = ", ".join(f"another mlv-ros run starting" if PROBE_PREFIX in n else n for n in nodes[:4])
+    shown += ", ..." if len(nodes) > 4 else ""
+    return (f"ROS domain {domain_id} is busy: another mlv_ros graph is running on it ({shown}); "
+            f"choose another with --domain-id N or export ROS_DOMAIN_ID=N (0..232), or set neither "
+            f"and mlv-ros run takes a free private one")
+
+
+def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
+    """(the domain the user chose: ``domain_id`` or ``$ROS_DOMAIN_ID``, or None; whether one was
+    chosen)."""
+    if domain_id is not None:
+        return int(domain_id), True
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return None, False
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 232:
+        raise RunStartError(f"ROS_DOMAIN_ID={text!r} is not a ROS domain id: set it to a number from 0 to 232, "
+                            "or unset it and mlv-ros run takes a free private one")
+    return value, True
 
 
 def _prepare_out(out_dir: Path) -> list[Path]:
@@ -284,7 +386,8 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         Called with one line per event worth showing (phases analysed, an interruption).
     domain_id : int, optional
         The ROS domain the graph talks on; default ``ROS_DOMAIN_ID`` when the caller set it, else
-        a private one claimed for this process (so parallel runs never mix).
+        a private one claimed for this process (so parallel runs never mix). A domain chosen so
+        is refused when another mlv_ros graph's node is on it (:func:`graph_nodes_on`).
     grace : float
         On SIGINT/SIGTERM, seconds to wait at most for the phases in flight.
     handle_signals : bool
@@ -293,7 +396,7 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     Returns
     -------
     dict
-        The summary, also written to ``out_dir/summary.json``: counts, ``complete``, and
+        The summary, also written to ``out_dir/summary.json``: counts, ``study_id``, ``complete``, and
         ``interrupted`` (the signal's name) or ``failed`` (the reason) when the run did not end
         by itself.
 
@@ -302,7 +405,8 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     FileExistsError
         ``out_dir`` already holds a run.
     RunStartError
-        The graph could not start; nothing was recorded and nothing is left behind.
+        The graph could not start; nothing was recorded and nothing is left behind
+        (:class:`DomainBusyError`: the chosen domain holds another mlv_ros graph).
     RunInterrupted
         SIGINT/SIGTERM while it was starting (nothing left behind either).
     """
@@ -344,9 +448,16 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
                             "(want node: {ros__parameters: {name: value}})") from exc
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
+    domain_id, chosen = _chosen_domain(domain_id)
+    if chosen:
+        # A domain the user chose may hold another graph (a second run, a launched one): refuse
+        # it before anything is created. A claimed private one is this process's alone.
+        busy = graph_nodes_on(domain_id)
+        if busy:
+            raise DomainBusyError(busy_domain_text(domain_id, busy))
+    else:
+        domain_id = claim_domain_id()
     created = _prepare_out(out_dir)
-    if domain_id is None:
-        domain_id = int(os.environ["ROS_DOMAIN_ID"]) if os.environ.get("ROS_DOMAIN_ID") else claim_domain_id()
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     t0 = time.monotonic()
@@ -364,6 +475,11 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         src, solver, analyzer, rec = nodes["frame_source"], nodes["meshless_solver"], nodes["motion_analyzer"], nodes["recorder"]
         if not src.frames:
             raise RunStartError(_no_frames(src, source))
+        # Every node keeps to this study from the start, so another graph's messages are never
+        # taken for ours, even when they come first.
+        for node in nodes.values():
+            node.study.adopt(src.study_id)
+        rec.writer.custom_data["study_id"] = src.study_id
         signals.starting = False
     except (RunStartError, RunInterrupted):
         # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
@@ -377,7 +493,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         ctx.try_shutdown()
         raise
     num_phases = max((f.num_phases for f in src.frames), default=0)
-    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id})")
+    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}, "
+             f"study {src.study_id})")
     # Longest a healthy graph stays idle: registration and the solver wait this long for input
     # that may still come before acting on what they have (the solver also for its subscribers),
     # and the source, before publishing, for its subscribers.
@@ -457,6 +574,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
                 pass  # a full disk: the recorder reported it, the summary says so
         summary = {
             "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
+            "study_id": src.study_id,
             "seconds": round(time.monotonic() - t0, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
@@ -468,6 +586,9 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
         }
+        other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
+        if other:  # another graph on the domain: its messages were reported and left out
+            summary["messages_of_other_studies"] = other
         if rec.writer.error is not None:
             summary["recording_error"] = str(rec.writer.error)
             summary["messages_not_recorded"] = rec.dropped
@@ -561,21 +682,21 @@ def read_run(mcap: Path) -> dict:
         if m.topic == qos.REGISTERED_CLOUD:
             run["ed"] = conversions.xyz(conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2)))
         elif m.topic == qos.REGISTERED_STATE:
-            run["rotation"] = conversions.msg_to_model_state(bagio.deserialize(m.data, ModelState)).rotation
+            run["rotation"] = conversions.msg_to_model_state(bagio.deserialize(m.data, ModelState, m.missing)).rotation
         elif m.topic == qos.MOTION:
             msg = deserialize_message(m.data, PointCloud2)
             clouds[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = conversions.xyz(conversions.msg_to_cloud(msg))
         elif m.topic == qos.MODEL_STATE:
-            msg = bagio.deserialize(m.data, ModelState)
+            msg = bagio.deserialize(m.data, ModelState, m.missing)
             stamps[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = msg.phase_index
             run["states"][msg.phase_index] = conversions.msg_to_model_state(msg)
         elif m.topic == qos.METRICS:
-            d = conversions.msg_to_metrics(bagio.deserialize(m.data, MotionMetrics))
+            d = conversions.msg_to_metrics(bagio.deserialize(m.data, MotionMetrics, m.missing))
             run["metrics"][d["phase_index"]] = d
         elif m.topic == qos.FRAMES:
             run["frames"] += 1
         elif m.topic == qos.TAG_POINTS:
-            msg = deserialize_message(m.data, TagPoints)
+            msg = bagio.deserialize(m.data, TagPoints, m.missing)
             if msg.view == TaggedFrame.VIEW_SA and msg.phase_index == 0 and len(msg.track_id):
                 g = conversions.msg_to_geometry(msg.geometry)
                 run["sa_planes"].append((g.image_position, g.normal))

@@ -74,6 +74,8 @@ class PhaseMetrics:
         solver's data-support verdict.
     verdict_reasons : str
         "; "-separated reasons, empty when ok.
+    study_id : str
+        The study the phase was computed from (the model state's; empty = unknown).
     """
 
     phase_index: int = 0
@@ -96,6 +98,7 @@ class PhaseMetrics:
     segment_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     verdict: int = 0
     verdict_reasons: str = ""
+    study_id: str = ""
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:

@@ -382,6 +382,9 @@ class DicomReadResult:
     warnings : list of (str, str)
         ``(path, reason)`` for what loaded but is incomplete, e.g. a cine missing phases (its
         frames keep their phase indices and the declared phase count).
+    study_uids : dict of str to int
+        StudyInstanceUID → number of loaded images that declare it, most frequent first (images
+        without one are not counted).
     """
 
     frames: list[Frame]
@@ -389,6 +392,7 @@ class DicomReadResult:
     series: list[SeriesInfo] = field(default_factory=list)
     long_axis: LongAxisEstimate | None = None
     warnings: list[tuple[str, str]] = field(default_factory=list)
+    study_uids: dict[str, int] = field(default_factory=dict)
 
     def __iter__(self):
         yield self.frames
@@ -405,6 +409,7 @@ class _Image:
     geometry: SliceGeometry
     series_uid: str = ""
     sop_uid: str = ""
+    study_uid: str = ""
     description: str = ""
     series_number: int = 0
     instance: int | None = None
@@ -728,6 +733,7 @@ def _load_image(path: str, max_pixels: int) -> _Image:
         path=path, pixels=pixels, geometry=geom,
         series_uid=_optional(ds, "SeriesInstanceUID", str) or "",
         sop_uid=_optional(ds, "SOPInstanceUID", str) or "",
+        study_uid=_optional(ds, "StudyInstanceUID", str) or "",
         description=_optional(ds, "SeriesDescription", str) or "",
         series_number=_optional(ds, "SeriesNumber", int) or 0,
         instance=_optional(ds, "InstanceNumber", int),
@@ -1002,6 +1008,7 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResul
 
     frames: list[Frame] = []
     series: list[SeriesInfo] = []
+    studies = Counter(i.study_uid for p in planes for i in p if i.study_uid)
     for view, group in ((VIEW_SA, sa_planes), (VIEW_LA, la_planes)):
         for idx, imgs in enumerate(group):
             first = imgs[0]
@@ -1017,7 +1024,7 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS) -> DicomReadResul
                                      description=first.description, series_number=first.series_number,
                                      geometry=first.geometry, files=[i.path for i in imgs]))
     return DicomReadResult(frames=frames, problems=problems, series=series, long_axis=axis,
-                           warnings=warned)
+                           warnings=warned, study_uids=dict(studies.most_common()))
 
 
 def _phase_indices(imgs: list[_Image]) -> tuple[list[int], int, str | None]:
