@@ -320,7 +320,8 @@ class _DiskFile:
         return self._pos
 
     def flush(self) -> None:
-        """Nothing to do: every write is already with the OS."""
+        """Every write is already with the OS; make it survive a power loss too (fsync)."""
+        os.fsync(self._fd)
 
     def truncate(self, size: int) -> None:
         os.ftruncate(self._fd, size)
@@ -448,10 +449,14 @@ class BagWriter:
         self.end_ns = max(self.end_ns, log_time_ns)
 
     def flush(self) -> None:
-        """Push written chunks to the OS (does not close the current chunk; chunks are written
-        unbuffered, so this is only kept for callers that flush)."""
+        """Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
+        this makes them survive a power loss). Does not close the current chunk. A failing sync
+        (EIO) is kept in :attr:`error` like a failing write; the next write reports it."""
         if self.error is None and not self.closed:
-            self._fh.flush()
+            try:
+                self._guarded(self._fh.flush)
+            except OSError:
+                pass
 
     @property
     def message_count(self) -> int:

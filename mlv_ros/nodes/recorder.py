@@ -48,7 +48,7 @@ class Recorder(GraphNode):
         super().__init__("recorder", **node_kwargs)
         self.output = self.param("output", "runs/latest/run.mcap", "MCAP file to write (its directory is created)")
         topics = self.param("topics", list(qos.TOPIC_TYPES), "topics to record (graph topics only)")
-        self.flush_period_s = self.param("flush_period_s", 1.0, "push completed chunks to disk this often", min_value=0.05, max_value=60.0)
+        self.flush_period_s = self.param("flush_period_s", 1.0, "sync completed chunks to disk (fsync) this often", min_value=0.05, max_value=60.0)
         chunk_kib = self.param("chunk_size_kib", 1024, "MCAP chunk size, KiB", min_value=16, max_value=65536)
         compression = self.param("compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"))
         # A recorder that matches a publisher late (across a network, discovery takes a moment)
