@@ -24,6 +24,7 @@ from mlv_msgs.msg import SliceGeometry as SliceGeometryMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame, ModelState, TagPointSet
+from mlv_ros.core.verdict import checked_level
 
 PATIENT_FRAME = "patient"
 _HOST_BIG_ENDIAN = sys.byteorder == "big"
@@ -447,15 +448,8 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         a3=float(state.a3), tau=float(state.tau), iterations=int(state.iterations),
         residual=float(state.residual), converged=bool(state.converged),
         num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
-        verdict=_verdict_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
+        verdict=checked_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
         study_id=_check_study_id(state.study_id))
-
-
-def _verdict_level(level) -> int:
-    """0 ok, 1 degraded, 2 failed (:mod:`mlv_ros.core.verdict`); anything else is refused."""
-    if int(level) not in (0, 1, 2):
-        raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
-    return int(level)
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
@@ -465,7 +459,7 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
         num_particles=msg.num_particles, num_control_points=msg.num_control_points,
-        verdict=_verdict_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
+        verdict=checked_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
         study_id=_check_study_id(msg.study_id))
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
                                                    [state.a0, state.a1, state.a2, state.a3, state.tau,
@@ -527,7 +521,7 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         setattr(msg, name, _fast_array("I", v, np.uint32))
     # Optional in the input: metrics without a verdict are ok with no reasons, without a study
     # of no known study.
-    for name, default, check in (("verdict", 0, _verdict_level), ("verdict_reasons", "", str),
+    for name, default, check in (("verdict", 0, checked_level), ("verdict_reasons", "", str),
                                  ("study_id", "", _check_study_id)):
         try:
             value = _metrics_value(metrics, name)
@@ -554,7 +548,7 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
         out[name] = float(getattr(msg, name))
     for name in METRIC_COUNT_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.uint32).astype(np.int64)
-    out["verdict"] = _verdict_level(msg.verdict)
+    out["verdict"] = checked_level(msg.verdict)
     out["verdict_reasons"] = msg.verdict_reasons
     out["study_id"] = _check_study_id(msg.study_id)
     return out

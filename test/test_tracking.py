@@ -56,13 +56,28 @@ def make_tracker(study, n=2000, **kw):
     return X, MotionTracker(X, X.mean(0), matrix_to_quat(R), **kw)
 
 
-def solve_es(study, **tracker_options):
-    """ED particles and the solution at ES from exact in-plane tags."""
+def referenced_tracker(study, **tracker_options):
+    """``(X, tracker, refs)``: a tracker with every plane's ED grid tags as its references."""
     m = study.motion
     X, tr = make_tracker(study, **tracker_options)
     refs = grid_tags(study)
     for key, g in study.geometries.items():
         tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    return X, tr, refs
+
+
+def slip(study, sets, fraction, rng):
+    """Move about ``fraction`` of each set's tracks by one tag period (8 mm) along its rows."""
+    for key, s in sets.items():
+        slipped = rng.random(len(s.track_id)) < fraction
+        s.position = s.position + slipped[:, None] * 8.0 * study.geometries[key].row_direction
+    return sets
+
+
+def solve_es(study, **tracker_options):
+    """ED particles and the solution at ES from exact in-plane tags."""
+    m = study.motion
+    X, tr, refs = referenced_tracker(study, **tracker_options)
     es = int(round(m.es_phase))
     return X, tr.solve(es, observed(study, refs, es), m.num_phases)
 
@@ -168,18 +183,13 @@ def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
     phase's motion they are dropped before they drag the fit (without the screen the global fit
     follows them: median 2.4 mm)."""
     m = study.motion
-    X, tr = make_tracker(study)
+    X, tr, refs = referenced_tracker(study)
     tr.prescreen = prescreen
-    refs = grid_tags(study)
-    for key, g in study.geometries.items():
-        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
     rng = np.random.default_rng(0)
     for phase in range(1, 5):
         sets = observed(study, refs, phase)
         if phase == 4:
-            for key, s in sets.items():
-                slipped = rng.random(len(s.track_id)) < 0.3
-                s.position = s.position + slipped[:, None] * 8.0 * study.geometries[key].row_direction
+            slip(study, sets, 0.3, rng)
         sol = tr.solve(phase, sets, m.num_phases)
     err = np.linalg.norm(sol.positions - m.position(X, 4), axis=1)
     if prescreen:

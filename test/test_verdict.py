@@ -9,7 +9,7 @@ from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, 
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import DEGRADED, FAILED, OK, Verdict, metrics_verdict, phase_verdict
-from test_tracking import grid_tags, make_tracker, observed, tagset
+from test_tracking import observed, referenced_tracker, slip
 
 
 @pytest.fixture(scope="module")
@@ -20,10 +20,7 @@ def study():
 def solve(study, phase, edit=None, **tracker_options):
     """The solver's verdict at ``phase`` from exact in-plane tags, ``edit(sets)`` applied first."""
     m = study.motion
-    _, tr = make_tracker(study, n=1000, **tracker_options)
-    refs = grid_tags(study)
-    for key, g in study.geometries.items():
-        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    _, tr, refs = referenced_tracker(study, n=1000, **tracker_options)
     sets = observed(study, refs, phase)
     if edit is not None:
         sets = edit(sets)
@@ -81,17 +78,12 @@ def test_a_fit_that_misses_its_tracks_by_half_a_pixel_is_degraded(study):
 
 def test_many_outliers_degrade(study):
     m = study.motion
-    _, tr = make_tracker(study, n=1000)
-    refs = grid_tags(study)
-    for key, g in study.geometries.items():
-        tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+    _, tr, refs = referenced_tracker(study, n=1000)
     rng = np.random.default_rng(0)
     for phase in range(1, 4):
         sets = observed(study, refs, phase)
         if phase == 3:  # 30 % of the tracks slip by a tag period (8 mm): screened out, and said
-            for key, s in sets.items():
-                slipped = rng.random(len(s.track_id)) < 0.3
-                s.position = s.position + slipped[:, None] * 8.0 * study.geometries[key].row_direction
+            slip(study, sets, 0.3, rng)
         state = tr.solve(phase, sets, m.num_phases).state
         assert (state.verdict == OK) == (phase < 3), (phase, state.verdict_reasons)
     assert "rejected as outliers" in state.verdict_reasons

@@ -84,9 +84,20 @@ class Verdict:
 
     @classmethod
     def from_parts(cls, level: int, text: str) -> "Verdict":
-        if int(level) not in (OK, DEGRADED, FAILED):
-            raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
-        return cls(int(level), [r for r in str(text).split("; ") if r])
+        return cls(checked_level(level), [r for r in str(text).split("; ") if r])
+
+
+def checked_level(level) -> int:
+    """``level`` as an int if it is OK, DEGRADED or FAILED.
+
+    Raises
+    ------
+    ValueError
+        Any other value.
+    """
+    if int(level) not in (OK, DEGRADED, FAILED):
+        raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
+    return int(level)
 
 
 def phase_verdict(tracked: int, tracked_at_ed: int, sa_points: dict, residual_mm: float,

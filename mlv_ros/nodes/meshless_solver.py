@@ -28,6 +28,7 @@ from mlv_msgs.msg import TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
+from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
@@ -218,7 +219,7 @@ class MeshlessSolver(GraphNode):
         self.motion_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp)))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         self.phases_published += 1
-        self.report(OK, "phase solved", phase=phase, verdict=("ok", "degraded", "failed")[state.verdict],
+        self.report(OK, "phase solved", phase=phase, verdict=LEVEL_NAMES[state.verdict],
                     control_points=state.num_control_points,
                     residual_mm=round(float(state.residual), 3), iterations=state.iterations,
                     seconds=round(time.monotonic() - t0, 3))

@@ -31,12 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from mlv_ros.cli import describe_os_error, one_line
+from mlv_ros.core.verdict import FAILED, LEVEL_NAMES
 
 PVD_NAME, CSV_NAME, README_NAME = "lv_motion.pvd", "segment_strain.csv", "README.txt"
 CSV_COLUMNS = ("phase", "time_fraction", "segment", "segment_name", "err", "ecc", "ell", "particles", "verdict",
                "verdict_reasons")
-VERDICT_NAMES = ("ok", "degraded", "failed")
-FAILED = 2
 NUM_SEGMENTS = 17
 _POSITION, _DISPLACEMENT = ("x", "y", "z"), ("dx", "dy", "dz")
 
@@ -167,7 +166,7 @@ def segment_rows(phases: dict) -> list[dict]:
             has = ph["verdict"] != FAILED and count != 0
             row = {"phase": p, "time_fraction": _number(ph["time_fraction"]), "segment": s + 1,
                    "segment_name": AHA_SEGMENT_NAMES[s], "particles": "" if count is None else count,
-                   "verdict": VERDICT_NAMES[ph["verdict"]], "verdict_reasons": ph["verdict_reasons"]}
+                   "verdict": LEVEL_NAMES[ph["verdict"]], "verdict_reasons": ph["verdict_reasons"]}
             for k, v in strain.items():
                 row[k] = _number(v[s]) if has and v.size == NUM_SEGMENTS else ""
             rows.append(row)
