@@ -3,8 +3,12 @@ reader once, then through the real frame_source and tag_detector nodes.
 
 Every bad file must be reported with its reason, every legal-but-odd file must load (with the
 pixels it holds), and every valid frame must load exactly as it does without the corpus beside it.
+Beside the study, a legal-but-odd case that is not a tagged cine of it (a single image, a cine
+with nothing in it) is read but not used: it is listed once, by its first file, with the reason
+(issue 15's study selection); read alone, it loads.
 """
 
+import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,7 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.parameter import Parameter
 
 from conftest import spin_until
-from corpus.dicom_cases import CONSTANT_STATUS, frames_by_path, write_dicom_corpus
+from corpus.dicom_cases import frames_by_path, write_dicom_corpus
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.io import DicomReadError, read_dicom_dir, write_study_dicom
@@ -38,8 +42,25 @@ def corpus(tmp_path_factory):
     clean = read_dicom_dir(root / "a_valid")
     cases = write_dicom_corpus(root / "b_corpus", good)
     res = read_dicom_dir(root)
-    return SimpleNamespace(root=root, study=study, good=good, cases=cases, res=res, frame_of=frames_by_path(res),
-                           clean_of=frames_by_path(clean), why=dict(res.problems), warned=dict(res.warnings))
+    frame_of = frames_by_path(res)
+    # The cases that load but are not used beside the study, each read alone.
+    alone_of, alone_warned = {}, {}
+    for c in cases:
+        if c.outcome != "error" and str(c.files[0]) not in frame_of:
+            d = tmp_path_factory.mktemp(f"alone_{c.name}")
+            for f in c.files:
+                shutil.copy(f, d / f.name)
+            alone = read_dicom_dir(d)
+            alone_of.update({str(f): frames_by_path(alone)[str(d / f.name)] for f in c.files})
+            alone_warned.update({str(c.files[0]): why for _, why in alone.warnings})
+    return SimpleNamespace(root=root, study=study, good=good, cases=cases, res=res, frame_of=frame_of,
+                           alone_of=alone_of, alone_warned=alone_warned, clean_of=frames_by_path(clean),
+                           why=dict(res.problems), warned=dict(res.warnings))
+
+
+def _unused(corpus, c) -> bool:
+    """A legal case read but not used beside the study: listed once, by its first file."""
+    return c.outcome != "error" and str(c.files[0]) not in corpus.frame_of
 
 
 def test_corpus_is_large_and_covers_every_category(corpus):
@@ -56,12 +77,21 @@ def test_every_bad_file_is_reported_with_its_reason(corpus):
         for f in map(str, c.files):
             if c.outcome == "error" and c.expect not in corpus.why.get(f, "").lower():
                 wrong.append(f"{c.name}: expected {c.expect!r}, got {corpus.why.get(f, 'it loaded')!r}")
-            elif c.outcome != "error" and f not in corpus.frame_of:
+            elif c.outcome != "error" and f not in corpus.frame_of and f not in corpus.alone_of:
                 wrong.append(f"{c.name}: should load, got {corpus.why.get(f)!r}")
+        if _unused(corpus, c):
+            why = corpus.why.get(str(min(map(str, c.files))), "")
+            # A cine missing a phase is a copy of the study's SA 0 (same place, SeriesNumber, no
+            # times): a repeat, the complete original used.
+            reasons = ("repeated acquisition",) if c.outcome == "warn" else ("one frame", "not tagged")
+            if "not used" not in why or not any(r in why for r in reasons):
+                wrong.append(f"{c.name}: should be listed as not used, got {why!r}")
     assert not wrong, "\n".join(wrong)
-    # Nothing else is reported: no valid file, no file twice.
+    # Nothing else is reported: no valid file, no file twice; an unused series once.
     bad_files = {str(f) for c in corpus.cases if c.outcome == "error" for f in c.files}
-    assert sorted(p for p, _ in corpus.res.problems) == sorted(bad_files)
+    unused = {min(map(str, c.files)) for c in corpus.cases if _unused(corpus, c)}
+    assert len(unused) >= 20  # the single images, the three constant cines, the three SA 0 repeats
+    assert sorted(p for p, _ in corpus.res.problems) == sorted(bad_files | unused)
 
 
 def test_valid_frames_load_bit_identically(corpus):
@@ -83,7 +113,7 @@ def test_odd_but_legal_files_load_with_their_pixels(corpus):
     for c in corpus.cases:
         if c.outcome == "error":
             continue
-        images = [corpus.frame_of[str(f)].image for f in c.files]
+        images = [(corpus.alone_of if _unused(corpus, c) else corpus.frame_of)[str(f)].image for f in c.files]
         if c.category in SAME_PIXELS:
             for img in images:
                 assert img.dtype == np.float32 and np.array_equal(img, template), c.name
@@ -92,15 +122,18 @@ def test_odd_but_legal_files_load_with_their_pixels(corpus):
 
 
 def test_missing_phases_keep_their_indices_and_are_reported(corpus):
+    """Each read alone (beside the study they repeat its SA 0, whose complete cine is used: the
+    one warning)."""
     cases = [c for c in corpus.cases if c.outcome == "warn"]
     assert len(cases) == 3
     for c in cases:
-        assert any(c.expect in corpus.warned.get(str(f), "") for f in c.files), c.name
+        assert c.expect in corpus.alone_warned.get(str(c.files[0]), ""), c.name
         for f in c.files:
             inst = int(pydicom.dcmread(f, stop_before_pixels=True).InstanceNumber)
-            frame = corpus.frame_of[str(f)]
+            frame = corpus.alone_of[str(f)]
             assert (frame.phase_index, frame.num_phases) == (inst - 1, 3), c.name
-    assert len(corpus.res.warnings) == len(cases)  # only those
+    (path, why), = corpus.res.warnings
+    assert path == str(corpus.good[0]) and "slice acquired more than once" in why and "most images" in why
 
 
 def test_max_pixels_refuses_large_images_before_reading_them(corpus):
@@ -135,22 +168,19 @@ def test_frame_source_reports_each_bad_file_and_publishes_every_valid_frame(corp
     for node in (sink, detector, source):
         executor.add_node(node)
     n = len(corpus.res.frames)
-    const = [corpus.frame_of[str(f)] for c in corpus.cases if c.detector_status for f in c.files]
-    const_keys = {(f.view, f.slice_index, f.phase_index) for f in const}
-
-    def detected():
-        return const_keys <= {(p.view, p.slice_index, p.phase_index) for p in points}
 
     # (A cine missing a phase holds its later frames back in the detector: not every frame
-    # yields tag points, so the wait is on the frames and on the constant images' results.)
-    assert spin_until(executor, lambda: source.done and len(frames) == n and detected(), 30), \
-        f"{len(frames)}/{n} frames, constant images detected: {detected()}, done={source.done}"
+    # yields tag points, so the wait is on the frames.)
+    assert spin_until(executor, lambda: source.done and len(frames) == n, 30), \
+        f"{len(frames)}/{n} frames, done={source.done}"
 
     def reported(message):
         return {kv.value for s in statuses if s.message == message for kv in s.values if kv.key == "file"}
 
-    skipped, incomplete = reported("skipped DICOM file"), reported("incomplete DICOM series")
-    assert skipped == {p for p, _ in corpus.res.problems}
+    skipped, incomplete = reported("skipped DICOM file"), reported("DICOM series used with a warning")
+    unused = reported("DICOM series not used")
+    assert unused == {p for p, _ in corpus.res.not_used} and len(unused) >= 20
+    assert skipped | unused == {p for p, _ in corpus.res.problems} and not skipped & unused
     assert incomplete == {p for p, _ in corpus.res.warnings}
     # Every frame the reader loaded (valid and legal-but-odd) was published, pixels intact.
     got = {(f.series_uid, f.view, f.slice_index, f.phase_index): conversions.msg_to_frame(f) for f in frames}
@@ -159,11 +189,10 @@ def test_frame_source_reports_each_bad_file_and_publishes_every_valid_frame(corp
         want = corpus.frame_of[path]
         fr = got[(want.series_uid, want.view, want.slice_index, want.phase_index)]
         assert np.array_equal(fr.image, want.image), path
-    # Images with nothing in them load, and the tag detector says so for each.
-    assert len(const) == 3 * 3
-    status = {(p.view, p.slice_index, p.phase_index): p.status for p in points}
-    for f in const:
-        assert CONSTANT_STATUS in status[(f.view, f.slice_index, f.phase_index)]
-    said = {(kv["view"], kv["slice"]) for s in statuses if s.message == "tag detection"
-            for kv in [{k.key: k.value for k in s.values}] if CONSTANT_STATUS in kv.get("status", "")}
-    assert {(str(f.view), str(f.slice_index)) for f in const} <= said
+    # Cines with nothing in them are not published beside the tagged study: the reader says why
+    # (read alone they load; the tag detector on such images: corpus/message_cases.py).
+    const = [c for c in corpus.cases if c.detector_status]
+    assert len(const) == 3 and not any(str(f) in corpus.frame_of for c in const for f in c.files)
+    for c in const:
+        assert "the ED image is constant" in corpus.why[str(c.files[0])]
+        assert str(c.files[0]) in unused

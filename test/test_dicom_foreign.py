@@ -426,12 +426,14 @@ def test_dicomdir_exports_load_and_the_index_is_reported(study):
 
 def test_pydicom_files_beside_a_study_never_take_the_run_down(study):
     """Scanner/PACS files of other kinds in the folder: refused ones are reported, the readable
-    ones load in a publishable type, and every frame of the study loads unchanged. (That
-    MR_small/CT/RT dose images of other studies are left out, and said so, is issue 15's study
-    selection; today they load as planes of their own.)"""
+    ones of other studies and modalities (MR_small, CT, RT dose) are read, not used, and listed
+    once each with the reason, and every frame of the study loads unchanged. Read alone, each
+    of those loads in a publishable type."""
     root = study.root / "beside"
     shutil.copytree(study.dir, root / "study")
-    loads = {"MR_small.dcm": np.int16, "CT_small.dcm": np.int16, "rtdose_1frame.dcm": np.uint32}
+    loads = {"MR_small.dcm": (np.int16, ["one frame", "another study"]),
+             "CT_small.dcm": (np.int16, ["modality CT", "another study"]),
+             "rtdose_1frame.dcm": (np.uint32, ["modality RTDOSE", "another study"])}
     refused = {"examples_rgb_color.dcm": "colour image", "examples_palette.dcm": "colour image",
                "examples_ybr_color.dcm": "NumberOfFrames 30", "rtdose.dcm": "NumberOfFrames 15",
                "liver_1frame.dcm": "BitsAllocated 1", "SC_rgb_jpeg.dcm": "colour image",
@@ -441,15 +443,25 @@ def test_pydicom_files_beside_a_study_never_take_the_run_down(study):
         shutil.copy(get_testdata_file(name, download=False), root / name)
     res = read_dicom_dir(root)
     why = dict(res.problems)
-    assert sorted(why) == sorted(str(root / n) for n in refused)
+    assert sorted(why) == sorted(str(root / n) for n in [*refused, *loads])
     for name, part in refused.items():
         assert part in why[str(root / name)], (name, why[str(root / name)])
+    for name, (_, parts) in loads.items():
+        reason = why[str(root / name)]
+        assert "not used" in reason and all(p in reason for p in parts), reason
+    assert res.study_uid == study.ref.study_uid and res.complete and res.left_out == []
+    assert sorted(map(_key, res.frames)) == sorted(map(_key, study.ref.frames))
     got = frames_by_path(res)
-    for name, stored in loads.items():
-        ds = pydicom.dcmread(root / name)
-        assert ds.pixel_array.dtype == stored
-        img = got[str(root / name)].image
-        assert img.dtype == np.float32 and np.array_equal(img, _expected(root / name))
     for p in study.paths:
         assert np.array_equal(got[str(root / "study" / p.relative_to(study.dir))].image, study.by_path[str(p)].image)
     _assert_publishable(res)
+    for name, (stored, _) in loads.items():
+        alone = study.root / f"alone_{name}"
+        alone.mkdir()
+        shutil.copy(root / name, alone)
+        res = read_dicom_dir(alone)
+        assert res.problems == [] and "no MR cine" in res.choice
+        assert pydicom.dcmread(alone / name).pixel_array.dtype == stored
+        img = res.frames[0].image
+        assert img.dtype == np.float32 and np.array_equal(img, _expected(alone / name))
+        _assert_publishable(res)

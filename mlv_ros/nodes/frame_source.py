@@ -5,9 +5,12 @@ Order is slice-major (as scanners acquire: each slice's whole cine in one breath
 phase-major; rate is real time × ``rate_factor``, or as fast as possible (``rate_factor: 0``),
 which RELIABLE QoS with a deep queue absorbs without loss.
 
-A DICOM directory loads whatever is valid in it; each skipped file (and each cine missing phases)
-gets its own /diagnostics entry naming it, published before the frames, one per timer tick, once
-a /diagnostics listener is there (up to ``wait_timeout_s``).
+A DICOM directory loads its tagged study (the one with the most tagged cines, or the
+StudyInstanceUID in ``study``); each skipped file, each series not used (and each cine missing
+phases) gets its own /diagnostics entry naming it, published before the frames, one per timer
+tick, once a /diagnostics listener is there (up to ``wait_timeout_s``); so does the choice of
+study when the folder holds several or some of the study was left out (``input_complete``,
+``left_out``, ``dicom_choice`` keep it for the caller).
 
 Every frame carries the study it belongs to (``study_id``, see :func:`study_id_for`): the DICOM
 StudyInstanceUID (a hash of the images without one), a hash of the simulation parameters and
@@ -121,6 +124,9 @@ class FrameSource(GraphNode):
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting for subscribers after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop the node once every frame is acknowledged")
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest DICOM image accepted (rows × cols); larger files are skipped before their pixels are read (source: dicom)", min_value=64, max_value=16384 * 16384)
+        self.dicom_study = self.param("study", "", "StudyInstanceUID to load from the DICOM directory; empty = the study with the most tagged cines (source: dicom)")
+        # dicom: which study was taken and why, whether all of it was used, and what was not.
+        self.dicom_choice, self.input_complete, self.left_out = "", True, []
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
@@ -132,8 +138,9 @@ class FrameSource(GraphNode):
         self._t0 = time.monotonic()
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
+        extra = {"input_complete": self.input_complete, "left_out": len(self.left_out)} if self.source == "dicom" else {}
         self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order,
-                    problems=len(self._reports), study=self.study_id)
+                    problems=len(self._reports), study=self.study_id, **extra)
 
     def _study_id(self) -> str:
         """The study id every frame carries (frames of a recording keep theirs when they have one)."""
@@ -168,10 +175,18 @@ class FrameSource(GraphNode):
         if self.source == "dicom":
             from mlv_ros.core.io.dicom import read_dicom_dir
 
-            res = read_dicom_dir(self.path, max_pixels=self.max_pixels)
-            self._reports += [("skipped DICOM file", {"file": path, "reason": reason}) for path, reason in res.problems]
-            self._reports += [("incomplete DICOM series", {"file": path, "reason": reason})
+            res = read_dicom_dir(self.path, max_pixels=self.max_pixels, study=self.dicom_study or None)
+            self.dicom_choice, self.input_complete, self.left_out = res.choice, res.complete, list(res.left_out)
+            unused = set(res.not_used)
+            self._reports += [("skipped DICOM file", {"file": path, "reason": reason})
+                              for path, reason in res.problems if (path, reason) not in unused]
+            self._reports += [("DICOM series not used", {"file": path, "reason": reason}) for path, reason in res.not_used]
+            self._reports += [("DICOM series used with a warning", {"file": path, "reason": reason})
                               for path, reason in res.warnings]
+            fallback = bool(res.frames) and res.study_uid in res.studies and not res.studies[res.study_uid]
+            if len(res.studies) > 1 or self.dicom_study or not res.complete or fallback:
+                self._reports.append(("DICOM study chosen", {"choice": res.choice, "complete": str(res.complete).lower(),
+                                                             "left_out": "; ".join(why for _, why in res.left_out)}))
             self.study_uids = dict(res.study_uids)
             return res.frames
         return read_bag_frames(self.path)

@@ -6,9 +6,11 @@ Public API
 write_study_dicom(study, out_dir, pixel_scale=1000, progress=None, *, bits_stored=16,
                   rescale=True, rescale_intercept=0.0, sa_series="per_slice",
                   instance_numbers="per_slice", file_names="ordered", names_seed=0) -> list[Path]
-read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS) -> DicomReadResult
-    (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series`` and
-    ``.long_axis``; raises DicomReadError when nothing is usable)
+read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS, study=None) -> DicomReadResult
+    (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series``,
+    ``.long_axis``, and the study selection: ``.study_uid``, ``.studies``, ``.choice``,
+    ``.complete``, ``.left_out``; ``study`` = a StudyInstanceUID to load instead of the one with
+    the most tagged cines; raises DicomReadError when nothing is usable or ``study`` is absent)
 WORKING_DTYPES
     The frames' pixel types (uint8/uint16 stored without a rescale, float32 otherwise), each
     publishable as a sensor_msgs/Image
