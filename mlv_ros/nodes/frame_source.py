@@ -126,7 +126,7 @@ class FrameSource(GraphNode):
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest DICOM image accepted (rows × cols); larger files are skipped before their pixels are read (source: dicom)", min_value=64, max_value=16384 * 16384)
         self.dicom_study = self.param("study", "", "StudyInstanceUID to load from the DICOM directory; empty = the study with the most tagged cines (source: dicom)")
         # dicom: which study was taken and why, whether all of it was used, and what was not.
-        self.dicom_choice, self.input_complete, self.left_out = "", True, []
+        self.dicom_choice, self.input_complete, self.left_out, self.not_used = "", True, [], []
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
         self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
@@ -176,7 +176,8 @@ class FrameSource(GraphNode):
             from mlv_ros.core.io.dicom import read_dicom_dir
 
             res = read_dicom_dir(self.path, max_pixels=self.max_pixels, study=self.dicom_study or None)
-            self.dicom_choice, self.input_complete, self.left_out = res.choice, res.complete, list(res.left_out)
+            self.dicom_choice, self.input_complete = res.choice, res.complete
+            self.left_out, self.not_used = list(res.left_out), list(res.not_used)
             unused = set(res.not_used)
             self._reports += [("skipped DICOM file", {"file": path, "reason": reason})
                               for path, reason in res.problems if (path, reason) not in unused]

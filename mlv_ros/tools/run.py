@@ -1,6 +1,6 @@
 """``mlv-ros run``: the whole graph in one process (one executor), recorded to RUN_DIR/run.mcap.
 
-    mlv-ros run (--phantom PRESET | --dicom DIR | --bag FILE) --out RUN_DIR
+    mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
 
 Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
 ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
@@ -14,7 +14,9 @@ other, so two graphs that do meet on one domain cannot mix.
 The run watches its nodes: one that cannot start, gives up, raises, or leaves the graph with
 nothing to do ends the run at once with that node's reason. SIGINT/SIGTERM stop the input, let
 the phases in flight finish (at most ``--grace`` seconds; a second signal stops waiting), close
-the recording with everything received and mark it incomplete. Exit status: 0 complete, 1 not
+the recording with everything received and mark it incomplete. A ``--dicom`` run is not complete
+either when part of the chosen study was left out (``left_out`` in the summary says what; every
+series under the folder not used is in ``not_used``). Exit status: 0 complete, 1 not
 complete (the reason on one line), 2 a mistake in the command or a graph that could not start
 (nothing recorded), 130/143 interrupted by SIGINT/SIGTERM.
 """
@@ -24,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -45,6 +48,7 @@ PROBE_PREFIX = "_mlv_ros_run_"  # the node a run looks at its domain with (see g
 EXIT_INCOMPLETE, EXIT_USAGE, EXIT_UNTRACKED = 1, 2, 3
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+_UID = re.compile(r"[0-9]+(\.[0-9]+)*")
 QUIET_S = 0.5  # no graph activity for this long: the phases in flight are done
 DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is queued
 
@@ -114,6 +118,8 @@ def add_arguments(parser):
     src.add_argument("--dicom", metavar="DIR", help="read a DICOM directory")
     src.add_argument("--bag", metavar="FILE", help="replay the frames of a recorded MCAP")
     parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (must not hold a run.mcap)")
+    parser.add_argument("--study", metavar="UID", default=None,
+                        help="with --dicom: the StudyInstanceUID to analyse (default: the study with the most tagged cines)")
     parser.add_argument("--params", default=None, help="graph parameters YAML (default config/graph.yaml)")
     parser.add_argument("--snr", type=float, default=None, help="phantom SNR, 0..1000, 0 = noise-free (default from the params file)")
     parser.add_argument("--size", type=int, default=None, help="phantom image size, pixels (32..1024)")
@@ -396,9 +402,12 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     Returns
     -------
     dict
-        The summary, also written to ``out_dir/summary.json``: counts, ``study_id``, ``complete``, and
-        ``interrupted`` (the signal's name) or ``failed`` (the reason) when the run did not end
-        by itself.
+        The summary, also written to ``out_dir/summary.json``: counts, ``study_id``, ``complete``
+        (every phase analysed and, for DICOM, nothing of the study left out), ``phases_complete``
+        (every phase analysed), and ``interrupted`` (the signal's name) or ``failed`` (the reason)
+        when the run did not end by itself. For a DICOM source also ``input_complete``,
+        ``dicom_study`` (which study was taken and why), ``left_out`` and ``not_used``
+        (``"path: reason"`` each).
 
     Raises
     ------
@@ -495,6 +504,9 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     num_phases = max((f.num_phases for f in src.frames), default=0)
     progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}, "
              f"study {src.study_id})")
+    if src.not_used or src.left_out or source.get("study"):
+        progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
+                 f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
     # Longest a healthy graph stays idle: registration and the solver wait this long for input
     # that may still come before acting on what they have (the solver also for its subscribers),
     # and the source, before publishing, for its subscribers.
@@ -580,12 +592,20 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
             "num_phases": num_phases, "recorded_messages": rec.writer.message_count,
             "diagnostics_sent": sum(n.diagnostics_sent for n in nodes.values()),
-            "complete": complete, "interrupted": interrupted, "failed": failed,
+            "complete": complete and src.input_complete, "interrupted": interrupted, "failed": failed,
+            "phases_complete": complete,
             **verdict_summary(analyzer.verdicts),
             "registration_verdict": registration_summary(nodes["registration"]),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
         }
+        if source.get("source") == "dicom":
+            # What of the input was used: the study taken and why, what of it was left out (then
+            # the run is not complete), and every series under the folder not used, with why.
+            summary["input_complete"] = src.input_complete
+            summary["dicom_study"] = src.dicom_choice
+            summary["left_out"] = [f"{path}: {why}" for path, why in src.left_out]
+            summary["not_used"] = [f"{path}: {why}" for path, why in src.not_used]
         other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
         if other:  # another graph on the domain: its messages were reported and left out
             summary["messages_of_other_studies"] = other
@@ -775,6 +795,11 @@ def check_args(args) -> str | None:
         problems.append(f"--out {out} is a file, not a directory: choose a new --out directory")
     if args.dicom and not Path(args.dicom).is_dir():
         problems.append(f"--dicom {args.dicom}: no such directory")
+    if args.study is not None and not args.dicom:
+        problems.append("--study chooses a study of a --dicom folder: give --dicom DIR, or leave --study out")
+    elif args.study is not None and not _UID.fullmatch(args.study.strip()):
+        problems.append(f"--study {args.study!r} is not a DICOM UID (digits and dots, e.g. 1.2.840.113619.2.1): "
+                        "give the StudyInstanceUID the run's summary or 'DICOM study chosen' names")
     if args.bag:
         problems.append(_bag_error(Path(args.bag)))
     if args.masks and not Path(args.masks).is_file():
@@ -834,6 +859,8 @@ def _run(args) -> int:
                 source[key] = float(val) if key == "snr" else int(val)
     elif args.dicom:
         source = {"source": "dicom", "path": str(Path(args.dicom).resolve())}
+        if args.study:
+            source["study"] = args.study.strip()
     else:
         source = {"source": "bag", "path": str(Path(args.bag).resolve())}
     if args.order:
@@ -854,7 +881,7 @@ def _run(args) -> int:
         print(f"mlv-ros run: {exc}", file=sys.stderr)
         return EXIT_USAGE
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
-    if (args.phantom or truth) and summary["complete"]:
+    if (args.phantom or truth) and summary["phases_complete"]:
         acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
                else groundtruth_accuracy(Path(summary["mcap"]), truth))
         summary["accuracy"] = {"es_phase": acc.get("es_phase"), "es": acc.get("es"),
@@ -872,7 +899,7 @@ def _run(args) -> int:
         print(f"mlv-ros run: {quality}", file=sys.stderr)
     if summary["interrupted"]:
         return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
-    if summary["complete"] and untracked(summary):
+    if summary["phases_complete"] and untracked(summary):
         print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
               "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
         return EXIT_UNTRACKED
@@ -891,6 +918,10 @@ def outcome_line(summary: dict) -> str | None:
         return f"interrupted by {summary['interrupted']}: {kept}, marked incomplete"
     if summary["failed"]:
         return f"{summary['failed']}. Kept: {kept}"
+    if summary.get("phases_complete") and summary.get("input_complete") is False:
+        left = summary.get("left_out") or []
+        return (f"incomplete input: every phase analysed, but {len(left)} part(s) of the study were left out "
+                f"(first: {left[0] if left else '?'}): see left_out in summary.json, and complete the folder")
     if not summary["complete"]:
         errors = summary.get("last_errors") or {}
         why = "; ".join(f"{name}: {text}" for name, text in errors.items())
