@@ -27,16 +27,19 @@ _PATH = os.path.join(tempfile.mkdtemp(prefix="fuzz_dicom_"), "input.dcm")  # the
 def TestOneInput(data: bytes) -> None:
     with open(_PATH, "wb") as f:
         f.write(data)
-    image, why = dicom._read_one(_PATH, MAX_PIXELS)
-    if image is None:
+    images, why = dicom._read_one(_PATH, MAX_PIXELS)
+    if images is None:
         if why.startswith("unexpected error"):
             raise AssertionError(f"reason from the last-resort handler: {why}")
         return
-    px = image.pixels
-    if px.ndim != 2 or px.size == 0 or px.size > MAX_PIXELS:
-        raise AssertionError(f"accepted an image of shape {px.shape}")
-    if px.dtype.kind == "f" and not np.all(np.isfinite(px)):
-        raise AssertionError("accepted an image with non-finite pixels")
+    if not images:
+        raise AssertionError("accepted a file with no image")
+    for image in images:  # one per frame (Enhanced multi-frame files)
+        px = image.pixels
+        if px.ndim != 2 or px.size == 0 or px.size > MAX_PIXELS:
+            raise AssertionError(f"accepted an image of shape {px.shape}")
+        if px.dtype.kind == "f" and not np.all(np.isfinite(px)):
+            raise AssertionError("accepted an image with non-finite pixels")
 
 
 def main() -> None:

@@ -14,8 +14,12 @@ tried; per-file problems are collected as ``(path, reason)`` while everything va
 file is checked before its pixels are read: a Part 10 header that is complete and not a DICOMDIR
 (an index: ignored with a reason, its files being read directly), a transfer syntax that matches
 how the pixels are stored and that an installed plugin decodes (otherwise the reason names the
-package), one greyscale frame (colour refused, planar configuration included in the reason) of at
-most ``max_pixels`` with consistent Rows/Columns/BitsAllocated/BitsStored/HighBit/
+package), greyscale frames (colour refused, planar configuration included in the reason) of at
+most ``max_pixels`` each, one per file or an Enhanced multi-frame image (Enhanced MR, Legacy
+Converted Enhanced MR: one file per cine, per stack or per frame; each frame's plane position and
+orientation, pixel measures, rescale, trigger time and temporal position come from its per-frame
+functional groups, then the shared ones, then the dataset, see :class:`_FrameView`), with
+consistent Rows/Columns/BitsAllocated/BitsStored/HighBit/
 PixelRepresentation and a pixel data length to match, and plane geometry that is finite, unit,
 orthogonal and positive (contradictions are refused, not repaired); then float pixels must be
 finite and the rescale usable. Pixels of any stored type (u)int8/16/32, float32/64 are converted
@@ -29,8 +33,7 @@ image shows a tag grid in its spectrum taken (or the one asked for), its MR cine
 fails the tag test only where no tagged cine holds its place and it was acquired like them, with
 a warning), a slice acquired twice given by its later series, every cine given the study's phase
 count (by nearest trigger time, or left out); every series not used is listed once with its
-reason. Each used
-plane is classified from geometry alone: the largest group of parallel planes at distinct
+reason. Each used plane is classified from geometry alone: the largest group of parallel planes at distinct
 positions is the short-axis stack, every other plane is long-axis.
 The long axis is estimated from the LA planes' common line (or the SA normal), oriented apex →
 base with the anatomical prior that the base lies right-posterior-superior of the apex (LPS
@@ -67,6 +70,10 @@ DEFAULT_MAX_PIXELS = 4096 * 4096
 _IOP_TOL = 1e-2
 _DEFER_BYTES = 256 * 1024  # values larger than this stay on disk until the header is checked
 _UNDEFINED_LENGTH = 0xFFFFFFFF
+#: Where an Enhanced frame's trigger time is looked for, first found wins (ms from the R wave).
+_TRIGGER_KEYWORDS = ("NominalCardiacTriggerDelayTime", "TriggerTime", "ActualCardiacTriggerDelayTime")
+#: A multi-frame file may hold at most this many times max_pixels pixels in all its frames.
+_MAX_FILE_FRAMES_PIXELS = 512
 _PARALLEL_COS = np.cos(np.radians(5.0))
 _BASE_SIDE = np.array([-1.0, 1.0, 1.0]) / np.sqrt(3.0)
 
@@ -373,7 +380,7 @@ class SeriesInfo:
     description: str
     series_number: int
     geometry: SliceGeometry
-    files: list[str]
+    files: list[str]  # one per image, in phase order (a multi-frame file once per frame of it)
 
 
 @dataclass
@@ -456,10 +463,12 @@ class _Image:
     #: When the series was acquired, for telling a repeat from the original: ``(has_date,
     #: seconds)`` (seconds since 0001-01-01 with a date, else since midnight), or None.
     acquired: tuple[bool, float] | None = None
+    #: Frame number in a multi-frame (Enhanced) file, 1-based; 0 for a single-frame file.
+    frame: int = 0
 
 
 class _Skip(Exception):
-    """Raised inside :func:`_load_image`; its message is the file's reason in ``problems``."""
+    """Raised inside :func:`_load_images`; its message is the file's reason in ``problems``."""
 
 
 def _get(ds, name):
@@ -576,8 +585,9 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     if rows <= 0 or cols <= 0:
         raise _Skip(f"image has zero size (Rows {rows}, Columns {cols})")
     nframes = _get(ds, "NumberOfFrames")
-    if nframes not in (None, "") and _required_int(ds, "NumberOfFrames") != 1:
-        raise _Skip(f"NumberOfFrames {nframes}: one 2-D frame per file expected")
+    if nframes not in (None, "") and _required_int(ds, "NumberOfFrames") != 1 and not _enhanced(ds):
+        raise _Skip(f"NumberOfFrames {nframes} without per-frame functional groups: one 2-D frame per file "
+                    f"expected, or an Enhanced (functional-group) multi-frame image")
     spp = _required_int(ds, "SamplesPerPixel")
     photometric = str(_get(ds, "PhotometricInterpretation")).strip()
     if spp < 1:
@@ -693,8 +703,10 @@ def _dicomdir_reason(path: str, ds) -> str:
             f"directly{listed}")
 
 
-def _load_image(path: str, max_pixels: int) -> _Image:
-    """Every per-file check, cheapest first; pixel bytes are only read once the header is sane."""
+def _load_images(path: str, max_pixels: int) -> list[_Image]:
+    """Every per-file check, cheapest first; pixel bytes are only read once the header is sane.
+    One image per frame: an Enhanced multi-frame file gives each frame with its functional
+    groups (:func:`_frame_views`)."""
     if os.path.getsize(path) == 0:
         raise _Skip("empty file (0 bytes)")
     try:
@@ -747,16 +759,29 @@ def _load_image(path: str, max_pixels: int) -> _Image:
         raise _Skip(f"{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed")
     if rows * cols > max_pixels:
         raise _Skip(f"image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = {max_pixels}")
-    geom = _geometry(ds)
+    nframes = _optional(ds, "NumberOfFrames", int) or 1
+    if nframes < 1:
+        raise _Skip(f"NumberOfFrames {nframes}: at least 1 expected")
+    if nframes * rows * cols > _MAX_FILE_FRAMES_PIXELS * max_pixels:
+        raise _Skip(f"{nframes} frames of {rows}x{cols} pixels: more than {_MAX_FILE_FRAMES_PIXELS} x max_pixels "
+                    f"= {_MAX_FILE_FRAMES_PIXELS * max_pixels} pixels in one file")
+    views = _frame_views(ds, nframes) if _enhanced(ds) else [ds]
+    geoms = []
+    for k, view in enumerate(views):
+        try:
+            geoms.append(_geometry(view))
+        except _Skip as why:
+            raise _Skip(f"frame {k + 1} of {nframes}: {why}" if len(views) > 1 else str(why)) from None
     bits = _required_int(ds, "BitsAllocated")
     if not encapsulated:
-        want = rows * cols * bits // 8
+        want = rows * cols * bits // 8 * nframes
         have = len(_get(ds, tag) or b"")
         if have < want:
             raise _Skip(f"pixel data unreadable: truncated, {have} of {want} bytes present "
-                        f"(Rows × Columns × BitsAllocated/8)")
+                        f"(Rows × Columns × BitsAllocated/8{' × NumberOfFrames' if nframes > 1 else ''})")
         if have > want + 1:  # one byte of padding to an even length is legal
-            raise _Skip(f"pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8 = {want} "
+            raise _Skip(f"pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8"
+                        f"{' × NumberOfFrames' if nframes > 1 else ''} = {want} "
                         f"(wrong Rows, Columns or BitsAllocated?)")
     if encapsulated:
         missing = _decoder_missing(ts)
@@ -766,9 +791,38 @@ def _load_image(path: str, max_pixels: int) -> _Image:
         pixels = ds.pixel_array
     except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
         raise _Skip(f"pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})") from None
-    if pixels.shape != (rows, cols):
-        raise _Skip(f"pixel data decodes to shape {pixels.shape}, header says {rows}x{cols}")
-    pixels = _working_pixels(ds, pixels, tag)
+    want_shape = (nframes, rows, cols) if nframes > 1 else (rows, cols)
+    if pixels.shape != want_shape:
+        raise _Skip(f"pixel data decodes to shape {pixels.shape}, header says "
+                    f"{'x'.join(map(str, want_shape))}")
+    if views[0] is ds:
+        return [_image(path, ds, _working_pixels(ds, pixels, tag), geoms[0])]
+    # Enhanced: each frame its own image, timing from its functional groups; without a phase
+    # count, the largest TemporalPositionIndex stands for it.
+    stack = pixels.reshape(nframes, rows, cols)
+    out = []
+    for k, (view, geom) in enumerate(zip(views, geoms)):
+        try:
+            out.append(_image(path, view, _working_pixels(view, stack[k], tag), geom, frame=k + 1))
+        except _Skip as why:
+            raise _Skip(f"frame {k + 1} of {nframes}: {why}") from None
+    temporal = [_optional(view, "TemporalPositionIndex", int) for view in views]
+    if not any(i.cardiac_images for i in out) and all(t and t > 0 for t in temporal):
+        for i in out:
+            i.cardiac_images = max(temporal)
+    return out
+
+
+def _image(path: str, ds, pixels: np.ndarray, geom: SliceGeometry, frame: int = 0) -> _Image:
+    """The :class:`_Image` of one checked frame (``ds``: the dataset, or a frame's view of it)."""
+    if frame:  # Enhanced: the frame's phase is its TemporalPositionIndex where it has one
+        instance = _optional(ds, "TemporalPositionIndex", int) or frame
+        trigger = next((t for t in (_optional(ds, k, float) for k in _TRIGGER_KEYWORDS)
+                        if t is not None and np.isfinite(t)), None)
+        nominal = _optional(ds, "RRIntervalTimeNominal", float) or _optional(ds, "NominalInterval", float)
+    else:
+        instance = _optional(ds, "InstanceNumber", int)
+        trigger, nominal = _optional(ds, "TriggerTime", float), _optional(ds, "NominalInterval", float)
     return _Image(
         path=path, pixels=pixels, geometry=geom,
         series_uid=_optional(ds, "SeriesInstanceUID", str) or "",
@@ -776,13 +830,74 @@ def _load_image(path: str, max_pixels: int) -> _Image:
         study_uid=_optional(ds, "StudyInstanceUID", str) or "",
         description=_optional(ds, "SeriesDescription", str) or "",
         series_number=_optional(ds, "SeriesNumber", int) or 0,
-        instance=_optional(ds, "InstanceNumber", int),
-        trigger_ms=_finite_or_nan(_optional(ds, "TriggerTime", float)),
-        nominal_ms=_finite_or_nan(_optional(ds, "NominalInterval", float)),
+        instance=instance,
+        trigger_ms=_finite_or_nan(trigger),
+        nominal_ms=_finite_or_nan(nominal),
         cardiac_images=_optional(ds, "CardiacNumberOfImages", int),
         modality=(_optional(ds, "Modality", str) or "").strip().upper(),
         frame_of_reference_uid=_optional(ds, "FrameOfReferenceUID", str) or "",
-        acquired=_acquired(ds))
+        acquired=_acquired(ds), frame=frame)
+
+
+def _enhanced(ds) -> bool:
+    """An Enhanced (functional-group) image: Enhanced MR, Legacy Converted Enhanced MR, and the
+    like: per-frame attributes in PerFrameFunctionalGroupsSequence."""
+    try:
+        return "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
+    except Exception:
+        return False
+
+
+class _FrameView:
+    """One frame of an Enhanced multi-frame dataset seen as a single-frame one: ``get(name)``
+    looks in the frame's per-frame functional groups, then the shared ones (each macro's first
+    item: PlanePositionSequence, PlaneOrientationSequence, PixelMeasuresSequence,
+    PixelValueTransformationSequence, CardiacSynchronizationSequence, FrameContentSequence,
+    MRTimingAndRelatedParametersSequence, the Unassigned…ConvertedAttributesSequence of legacy
+    conversions, …), then the dataset itself."""
+
+    def __init__(self, ds, per_frame, shared):
+        self._layers = [*_macro_items(per_frame), *_macro_items(shared), ds]
+
+    def get(self, name, default=None):
+        for layer in self._layers:
+            v = layer.get(name)
+            if v is not None:
+                return v
+        return default
+
+    def __contains__(self, name) -> bool:
+        return any(name in layer for layer in self._layers)
+
+
+def _macro_items(group) -> list:
+    """The first item of every sequence in a functional group item (``group`` may be None)."""
+    if group is None:
+        return []
+    out = []
+    for elem in group:
+        if elem.VR == "SQ" and len(elem.value):
+            out.append(elem.value[0])
+    return out
+
+
+def _frame_views(ds, nframes: int) -> list[_FrameView]:
+    """A :class:`_FrameView` per frame; a malformed functional group is a reason to skip the file."""
+    try:
+        shared_seq = ds.get("SharedFunctionalGroupsSequence")
+        per_seq = ds.get("PerFrameFunctionalGroupsSequence")
+    except Exception as exc:
+        raise _Skip(f"functional groups unreadable ({type(exc).__name__}: {exc})") from None
+    shared = shared_seq[0] if shared_seq else None
+    per = list(per_seq) if per_seq else []
+    if per and len(per) != nframes:
+        raise _Skip(f"PerFrameFunctionalGroupsSequence has {len(per)} item(s) for NumberOfFrames {nframes}")
+    if not per and nframes > 1:
+        raise _Skip(f"NumberOfFrames {nframes} without PerFrameFunctionalGroupsSequence: each frame's position "
+                    f"and timing unknown")
+    return [_FrameView(ds, per[k] if per else None, shared) for k in range(nframes)]
+
+
 
 
 def _dicom_seconds(date: str | None, time: str | None) -> tuple[bool, float] | None:
@@ -833,12 +948,12 @@ def _finite_or_nan(v: float | None) -> float:
     return float(v) if v is not None and np.isfinite(v) else np.nan
 
 
-def _read_one(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[_Image | None, str | None]:
-    """Load one file; returns (image, None) or (None, reason)."""
+def _read_one(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[list[_Image] | None, str | None]:
+    """Load one file; returns (images, None), one per frame, or (None, reason)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # pydicom's warnings repeat what the reason says
-            return _load_image(path, max_pixels), None
+            return _load_images(path, max_pixels), None
     except _Skip as why:
         return None, str(why)
     except MemoryError:
@@ -1483,17 +1598,20 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
         raise DicomReadError(f"no files under {root}: nothing to read", problems)
     images: list[_Image] = []
     unread: list[tuple[str, str]] = []
-    first_with_uid: dict[str, str] = {}
+    first_with_uid: dict[tuple[str, int], str] = {}
     for f in files:
-        img, why = _read_one(f, int(max_pixels))
-        if img is None:
+        imgs, why = _read_one(f, int(max_pixels))
+        if imgs is None:
             problems.append((f, why))
             unread.append((f, why))
-        elif img.sop_uid and img.sop_uid in first_with_uid:
-            problems.append((f, f"duplicate instance: same SOPInstanceUID as {first_with_uid[img.sop_uid]}"))
-        else:
+            continue
+        for img in imgs:
+            key = (img.sop_uid, img.frame)
+            if img.sop_uid and key in first_with_uid:
+                problems.append((f, f"duplicate instance: same SOPInstanceUID as {first_with_uid[key]}"))
+                break
             if img.sop_uid:
-                first_with_uid[img.sop_uid] = f
+                first_with_uid[key] = f
             images.append(img)
 
     groups: dict[tuple, list[_Image]] = defaultdict(list)
