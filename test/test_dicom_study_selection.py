@@ -303,6 +303,15 @@ def test_an_unreadable_file_of_the_study_makes_it_incomplete(studies, tmp_path):
     del ds.ImagePositionPatient
     ds.save_as(bad, enforce_file_format=True)
     (tmp_path / "a" / "notes.txt").write_text("not DICOM")
+    # A presentation state of the study (no pixels): reported, but nothing of the study is missing.
+    gsps = pydicom.dcmread(bad, stop_before_pixels=True)
+    gsps.SOPClassUID = gsps.file_meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.11.1"
+    gsps.SOPInstanceUID = gsps.file_meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=["gsps"])
+    gsps.Modality = "PR"
+    for tag in ("Rows", "Columns", "BitsAllocated", "BitsStored", "HighBit", "PixelRepresentation",
+                "SamplesPerPixel", "PhotometricInterpretation"):
+        delattr(gsps, tag)
+    gsps.save_as(tmp_path / "a" / "gsps.dcm", enforce_file_format=True)
     res = read_dicom_dir(tmp_path)
     assert not res.complete and len(res.frames) == 32
     left, cine = dict(res.left_out), str(tmp_path / "a" / "LA_02" / "IM_0001.dcm")
@@ -310,7 +319,9 @@ def test_an_unreadable_file_of_the_study_makes_it_incomplete(studies, tmp_path):
     assert "not read" in left[str(bad)] and "missing geometry" in left[str(bad)]
     assert "phase(s) 2 of 3 missing" in left[cine]
     assert [p for p, _ in res.warnings] == [cine]
-    assert sorted(p for p, _ in res.problems) == [str(bad), str(tmp_path / "a" / "notes.txt")]
+    assert sorted(p for p, _ in res.problems) == [str(bad), str(tmp_path / "a" / "gsps.dcm"),
+                                                  str(tmp_path / "a" / "notes.txt")]
+    assert "non-image DICOM" in dict(res.problems)[str(tmp_path / "a" / "gsps.dcm")]
 
 
 def test_another_frame_of_reference_and_a_folder_without_tags(studies, tmp_path):

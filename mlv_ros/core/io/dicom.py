@@ -417,8 +417,8 @@ class DicomReadResult:
         False when anything of the chosen study was left out (see ``left_out``).
     left_out : list of (str, str)
         ``(path, what and why)``: the chosen study's tagged cines not used (too few phases,
-        another frame of reference), its cines missing phases, and its files that could not be
-        read (those whose header still names the study).
+        another frame of reference), its cines missing phases, and its MR images that could not
+        be read (those whose header still names the study; not its non-image objects).
     not_used : list of (str, str)
         The series read but not used, ``(first file, reason)`` once each (also in ``problems``).
     """
@@ -932,16 +932,26 @@ def _acquired(ds) -> tuple[bool, float] | None:
     return None
 
 
-def _header_study_uid(path: str) -> str:
-    """StudyInstanceUID of a file that did not read as an image, if its header still says ("")."""
+def _unread_image_of(path: str, study_uid: str) -> bool:
+    """Is a file that did not read an MR image of study ``study_uid``, as far as its header
+    still says? (Not: non-image objects of the study such as presentation states, structured
+    reports or key-object selections, images of another modality, or a header that does not
+    read.)"""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             ds = pydicom.dcmread(path, stop_before_pixels=True, defer_size=_DEFER_BYTES,
-                                 specific_tags=["StudyInstanceUID"])
-            return str(ds.get("StudyInstanceUID", "") or "").strip()
+                                 specific_tags=["StudyInstanceUID", "Modality", "SOPClassUID", "Rows"])
+            if str(ds.get("StudyInstanceUID", "") or "").strip() != study_uid:
+                return False
+            modality = str(ds.get("Modality", "") or "").strip().upper()
+            meta = getattr(ds, "file_meta", None)
+            sop = str((meta.get("MediaStorageSOPClassUID") if meta is not None else None)
+                      or ds.get("SOPClassUID", "") or "")
+            image = "Image" in pydicom.uid.UID(sop).name if sop else "Rows" in ds
+            return image and modality in ("", "MR")
     except Exception:  # not DICOM, damaged: nothing says which study it was
-        return ""
+        return False
 
 
 def _finite_or_nan(v: float | None) -> float:
@@ -1643,9 +1653,9 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     sel = _select_study(cines, study, root, problems)
     problems += sel.problems
     planes = sel.cines
-    if sel.study_uid:  # files of the chosen study that could not be read are left out of it
-        sel.left_out += [(f, f"a file of the study not read: {why}") for f, why in unread
-                         if _header_study_uid(f) == sel.study_uid]
+    if sel.study_uid:  # MR images of the chosen study that could not be read are left out of it
+        sel.left_out += [(f, f"an image of the study not read: {why}") for f, why in unread
+                         if _unread_image_of(f, sel.study_uid)]
 
     # Classify: largest cluster of parallel planes at >= 2 distinct positions = SA stack.
     normals = [p.first.geometry.normal for p in planes]
