@@ -1395,14 +1395,14 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
 
     def rank(key):
         cs = groups[key]
-        return sum(c.tagged for c in cs), sum(not c.kind for c in cs), sum(len(c.imgs) for c in cs), key
+        return sum(c.tagged for c in cs), sum(not c.kind for c in cs), sum(len(c.imgs) for c in cs)
 
     def name(uid):
         return uid or "(no StudyInstanceUID)"
 
-    pool = list(groups)
+    pool = sorted(groups)  # of equal ranks, max() keeps the first: the smaller UIDs
     if study:
-        pool = [k for k in groups if k[0] == study]
+        pool = [k for k in pool if k[0] == study]
         if not pool:
             there = ", ".join(f"{name(u)} ({n} tagged cine(s))" for u, n in studies.items())
             raise DicomReadError(f"study {study} is not under {root}; the studies there: {there}: "
