@@ -203,3 +203,25 @@ def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
 def test_bad_solver_weights_are_clear_errors(study, option):
     with pytest.raises(ValueError, match=next(iter(option))):
         make_tracker(study, n=300, **option)
+
+
+def test_low_confidence_points_count_less(study):
+    """A third of the tag points is displaced by 1.5 mm in-plane (below the 3 mm outlier floor:
+    the outlier screen keeps them) and reported with confidence 0.3, the rest with 0.9: weighted
+    by confidence, the fit keeps less than 60 % of the error the bad points add unweighted
+    (measured ~45 %)."""
+    m = study.motion
+    es = int(round(m.es_phase))
+    err = {}
+    for case in ("exact", "unweighted", "weighted"):
+        X, tr, refs = referenced_tracker(study, n=1000, confidence_weights=case == "weighted")
+        sets = observed(study, refs, es)
+        rng = np.random.default_rng(4)
+        for key, s in sets.items():
+            bad = (rng.random(len(s.track_id)) < 1 / 3) & (case != "exact")
+            s.position = s.position + bad[:, None] * 1.5 * study.geometries[key].row_direction
+            s.confidence = np.where(bad, 0.3, 0.9).astype(np.float32)
+        sol = tr.solve(es, sets, m.num_phases)
+        err[case] = float(np.median(np.linalg.norm(sol.positions - m.position(X, es), axis=1)))
+    assert err["unweighted"] > err["exact"] + 0.1, err  # the premise: the bad points do pull
+    assert err["weighted"] - err["exact"] < 0.6 * (err["unweighted"] - err["exact"]), err

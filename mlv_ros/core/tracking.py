@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
                                    polar_frame, quat_to_matrix)
+from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 from mlv_ros.core.verdict import phase_verdict
 
@@ -34,6 +35,19 @@ SliceKey = tuple  # (view, slice_index)
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
 # slices spanning this fraction of the LV's height, and extrapolated this far beyond them.
 TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
+
+
+def data_weights(confidence) -> np.ndarray:
+    """Data weight of each tag point from its detection confidence (0..1), shape (K,).
+
+    A tag point's position error is its phase error times λ/2π, and the phase error falls as
+    the Gabor response rises above the noise; the confidence is that response relative to the
+    local intensity spread, so its square stands in for the inverse variance. Weights are
+    relative (the fits scale them to mean 1): a faded point still counts, just less than a sharp
+    one. Confidences are floored at 0.1 so that no measured point is ignored.
+    """
+    c = np.clip(np.nan_to_num(np.asarray(confidence, np.float64), nan=1.0), 0.1, 1.0)
+    return c * c
 
 
 # --------------------------------------------------------------------------- assembling
@@ -157,6 +171,9 @@ class MotionTracker:
         which would continue it as a rigid rotation.
     twist_smoothing : float
         Curvature penalty of the twist function relative to its data term (dimensionless).
+    confidence_weights : bool
+        Weight each tag point's spring by :func:`data_weights` of its detection confidence
+        (False: all points alike).
     """
 
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
@@ -164,7 +181,7 @@ class MotionTracker:
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
                  hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
                  longitudinal_weight: float = 3.0e3, global_prior: float = 1.0, twist_knots: int = 11,
-                 twist_smoothing: float = 0.3):
+                 twist_smoothing: float = 0.3, confidence_weights: bool = True):
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
         if polar is not None:
@@ -177,6 +194,7 @@ class MotionTracker:
         self.rest = self.model.rest_points
         self._tree = cKDTree(self.rest)
         self.data_weight = float(data_weight)
+        self.confidence_weights = bool(confidence_weights)
         self.slice_following = int(slice_following)
         self.max_attach_mm = float(max_attach_mm)
         self.max_iterations = int(max_iterations)
@@ -230,14 +248,15 @@ class MotionTracker:
         return int(keep.sum())
 
     def _constraints(self, sets: dict):
-        """ED positions, targets, normals and keys of every track seen at this phase."""
-        keys, rest, targets, normals = [], [], [], []
+        """ED positions, targets, normals, keys and data weights of every track seen at this phase."""
+        keys, rest, targets, normals, conf = [], [], [], [], []
         for key, pts in sets.items():
             ref = self.reference.get(key)
             if not ref or len(pts) == 0:
                 continue
             n = pts.geometry.normal
-            for tid, pos in zip(pts.track_id, pts.position):
+            c = pts.confidence if len(pts.confidence) == len(pts) else np.ones(len(pts))
+            for tid, pos, ck in zip(pts.track_id, pts.position, c):
                 p0 = ref.get(int(tid))
                 if p0 is None:
                     continue
@@ -245,9 +264,11 @@ class MotionTracker:
                 rest.append(p0)
                 targets.append(pos)
                 normals.append(n)
+                conf.append(ck)
         if not keys:
-            return keys, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
-        return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals)
+            return keys, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+        weights = data_weights(np.asarray(conf)) if self.confidence_weights else np.ones(len(keys))
+        return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals), weights
 
     def _attach(self, rest, normals, offsets):
         pos = rest + offsets[:, None] * normals
@@ -263,7 +284,7 @@ class MotionTracker:
         ValueError
             No usable constraint at this phase (nothing inside the model, or no reference).
         """
-        keys, rest, targets, normals = self._constraints(sets)
+        keys, rest, targets, normals, weights = self._constraints(sets)
         if not keys:
             raise ValueError(f"phase {phase_index}: no tag point matches an ED reference inside the model")
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
@@ -287,7 +308,8 @@ class MotionTracker:
                     self.rejected += int(pre.sum())
                     ctrl = self.model.attach(pos[inside])
             result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
-                                    tol=self.tol, local=False, global_prior=self.global_prior)
+                                    tol=self.tol, local=False, global_prior=self.global_prior,
+                                    weights=weights[inside])
             # Robustness: a track that swapped identity or drifted leaves a residual far beyond
             # what the global fit leaves elsewhere; drop such points and refit.
             outlier = self._outliers(ctrl.weights @ self.model.positions(), targets[inside], normals[inside])
@@ -298,16 +320,18 @@ class MotionTracker:
                 self.rejected += int(outlier.sum())
                 ctrl = self.model.attach(pos[inside])
                 result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
-                                        tol=self.tol, local=False, global_prior=self.global_prior)
+                                        tol=self.tol, local=False, global_prior=self.global_prior,
+                                        weights=weights[inside])
             x_global = self.model.positions()
             if self.twist_knots:
                 sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
                 sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
                 x_global = self._twist_function(ctrl.weights, targets[inside], normals[inside], x_global,
-                                                sa, len(sa_slices))
+                                                sa, len(sa_slices), weights[inside])
             self.positions = x_global
             if self.local:
-                self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global)
+                self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global,
+                                               weights[inside])
                 self.positions = x_global + self.delta
             offsets = self._follow_slices(offsets, rest, normals, targets, inside)
             if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
@@ -343,7 +367,7 @@ class MotionTracker:
                              residual_mm, float(np.median(spacing)) if spacing else 0.0,
                              rejected=int(rejected), candidates=int(attached))
 
-    def _local_solve(self, phi, targets, normals, x_global):
+    def _local_solve(self, phi, targets, normals, x_global, weights=None):
         """Local deformation δ (paper: internal forces act on the local part only) at elastic
         equilibrium under the in-plane tag forces: minimise
         ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)``, a sparse SPD
@@ -354,7 +378,8 @@ class MotionTracker:
         op, vol = self.model.operator, self.model.phyxels.volume
         lam, mu = self.model.lam, self.model.mu
         n = self.num_particles
-        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        wk = control_weights(weights, len(targets))
+        P = (np.eye(3) - np.einsum("ka,kb->kab", normals, normals)) * wk[:, None, None]
         phi_t = phi.T.tocsr()
         if self._kdiag is None:
             dsq = op.matrix.multiply(op.matrix)  # (3N, N): d_ij[b]²
@@ -398,7 +423,7 @@ class MotionTracker:
         if kv:
             rhs = rhs - op.adjoint((kv * vol * (Jg - 1.0))[:, None, None] * C)
         rhs = rhs.ravel()
-        diag_data = np.asarray(phi.multiply(phi).T @ np.ones(phi.shape[0])).ravel()
+        diag_data = np.asarray(phi.multiply(phi).T @ wk).ravel()
         vdiag = self._kdiag * kv / (mu + (mu + lam) / 3.0)
         diag = np.repeat((self._kdiag + vdiag + alpha * L.diagonal() + kappa * diag_data + eps)[:, None], 3, axis=1)
         if kl:  # exact diagonal of the axial term: kl Σ_i v_i G_ij² a_c², G_ij = Σ_b a_b d_ij[b]
@@ -412,7 +437,7 @@ class MotionTracker:
         sol, _info = cg(A, rhs, x0=x0, rtol=self.cg_rtol, maxiter=self.cg_maxiter, M=M)
         return sol.reshape(n, 3)
 
-    def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices):
+    def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
         """Twist as a parameter function of height (the parameter functions of Park et al., which
         the paper's model builds on): rotate each particle about the model's long axis by
         ``Δφ(h)``, piecewise linear between ``twist_knots`` uniform knots in the material height
@@ -435,6 +460,8 @@ class MotionTracker:
             Which control points lie on SA slices (the ones that measure circumferential motion).
         num_sa_slices : int
             Distinct SA slices among them.
+        weights : ndarray, shape (K,), optional
+            Data weights (:func:`data_weights`); default all 1.
 
         Returns
         -------
@@ -451,7 +478,8 @@ class MotionTracker:
         m = self.twist_knots
         knots = np.linspace(0.0, 1.0, m)
         hat = np.clip(1.0 - np.abs(self._height[:, None] - knots) * (m - 1), 0.0, None)  # (N, m)
-        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        P = (np.eye(3) - np.einsum("ka,kb->kab", normals, normals)) * np.sqrt(
+            control_weights(weights, len(targets)))[:, None, None]
         J = np.stack([np.einsum("kab,kb->ka", P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)], axis=1)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)

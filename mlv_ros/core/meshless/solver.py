@@ -187,6 +187,24 @@ def plane_projectors(normals, m: int) -> np.ndarray:
     return np.eye(3) - nrm[:, :, None] * nrm[:, None, :]
 
 
+def control_weights(weights, m: int) -> np.ndarray:
+    """Per-control-point data weights scaled to mean 1, shape (M,); all 1 when ``weights`` is None.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, NaN/inf, negative, or all zero.
+    """
+    if weights is None:
+        return np.ones(m)
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (m,):
+        raise ValueError(f"weights must have shape ({m},) to match the control points, got {w.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0.0) or not np.any(w > 0.0):
+        raise ValueError("weights must be finite, >= 0 and not all zero")
+    return w * (m / float(np.sum(w)))
+
+
 # --------------------------------------------------------------------------- result
 @dataclass
 class FitResult:
@@ -406,7 +424,7 @@ class MeshlessModel:
             global_update: str = "gauss-newton", local_update: str = "solve",
             dt: float = 1.0, local_start: float = 1e-3, cg_maxiter: int = 100,
             cg_rtol: float = 1e-3, refresh_every: int = 5, global_prior: float = 0.0,
-            callback: Callable[[int, "MeshlessModel"], None] | None = None) -> FitResult:
+            weights=None, callback: Callable[[int, "MeshlessModel"], None] | None = None) -> FitResult:
         """Fit the model to control-point targets (one cardiac phase).
 
         Parameters
@@ -452,6 +470,10 @@ class MeshlessModel:
             (0 = off). Directions many control points constrain barely feel it; directions few
             or none see (axial scale from SA-only points, a rotation from points on one side)
             stay put instead of wandering to whatever fits the in-plane residuals a hair better.
+        weights : array_like, shape (M,), optional
+            Relative weight of each control point's residual (e.g. its measurement's inverse
+            variance); scaled to mean 1, so ``data_weight`` keeps its meaning. Default: all 1.
+            The reported residual is then the weighted RMS.
         callback : callable, optional
             ``callback(iteration, model)`` after every iteration.
 
@@ -463,7 +485,8 @@ class MeshlessModel:
         ------
         ValueError
             No control points, target/normal shape mismatch, NaN/inf targets or normals, unknown
-            update scheme, negative or non-finite ``global_prior``.
+            update scheme, negative or non-finite ``global_prior``, weights of the wrong shape,
+            negative, non-finite or all zero.
         """
         t0 = time.perf_counter()
         ctrl = control if isinstance(control, ControlPoints) else self.attach(control)
@@ -474,6 +497,11 @@ class MeshlessModel:
         if not np.all(np.isfinite(tgt)):
             raise ValueError(f"targets contain NaN/inf (first bad row {int(np.flatnonzero(~np.isfinite(tgt).all(1))[0])})")
         proj = plane_projectors(plane_normals, m)
+        w = control_weights(weights, m)
+        # The data term is Σ w_k |P_k r_k|²: √w P in the residual (squared in D and the cost),
+        # w P where the local stage applies the projector once.
+        proj_local = proj * w[:, None, None]
+        proj = proj * np.sqrt(w)[:, None, None]
         if global_update not in ("gauss-newton", "explicit"):
             raise ValueError(f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}")
         if local_update not in ("solve", "explicit"):
@@ -542,8 +570,8 @@ class MeshlessModel:
             elif local and local_active:
                 # ---- local stage (eq. 6, 22–23) with the global parameters held
                 ran_local = True
-                q, pq, prec = self._local_metric(proj, phi, kappa)
-                force = kappa * (phi_t @ (res @ q))                 # f_ext spread by the kernel
+                q, pq, prec = self._local_metric(proj_local, phi, kappa)
+                force = kappa * (phi_t @ ((res * np.sqrt(w)[:, None]) @ q))                 # f_ext spread by the kernel
                 if local_update == "explicit":
                     fint = elastic.internal_forces(self.operator, self.delta, vol, self.lam, self.mu)
                     if self.stabilisation:

@@ -28,6 +28,10 @@ from .phase import PhaseField, solve_phase
 # |R_d| / σ_local for an ideal 1-1 SPAMM grid: each direction is a cosine of amplitude 1/4
 # (|R| = 1/8) and the grid's variance is 5/64, so the ratio is (1/8)/sqrt(5/64) = 1/sqrt(5).
 IDEAL_CONTRAST_RATIO = 1.0 / np.sqrt(5.0)
+# Coverage normalisation (detect_intersections(coverage_normalised=True)) divides by at most
+# 1/sqrt(COVERAGE_FLOOR): beyond that a point sees more outside the mask than inside it.
+COVERAGE_FLOOR = 0.25
+DEFAULT_MIN_CONFIDENCE = 0.4  # detect_intersections' threshold (confidence 0..1)
 # A region's tag grid must explain at least this much of its contrast coherently
 # (:func:`grid_coherence`; an ideal grid gives IDEAL_CONTRAST_RATIO ≈ 0.45, tagged ED walls at
 # SNR 12 measured 0.40–0.43 in their true outline, untagged anatomy and noise ≤ 0.11). Below it
@@ -56,6 +60,8 @@ class Detection:
         where ``σ_local`` is the local intensity standard deviation (1 for an ideal noise-free grid).
     residual : ndarray of float32, shape (N,)
         Phase residual after refinement, rad.
+    plain_confidence : ndarray of float32, shape (N,)
+        ``confidence`` before the coverage normalisation (equal to it when not normalised).
     params : TagParameters or None
         Tag parameters used (None when the image was rejected before they were known).
     reason : str
@@ -68,6 +74,7 @@ class Detection:
     labels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
     confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     residual: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    plain_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     params: TagParameters | None = None
     reason: str = ""
     maps: GaborMaps | None = None
@@ -417,11 +424,11 @@ def _sane_wavevectors(k: np.ndarray) -> np.ndarray:
 
 
 def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, params: TagParameters | None = None,
-                         min_confidence: float = 0.4, min_energy_fraction: float = 0.1,
+                         min_confidence: float = DEFAULT_MIN_CONFIDENCE, min_energy_fraction: float = 0.1,
                          orientations_deg=(-12.0, 0.0, 12.0), spacing_factors=(0.8, 1.0, 1.25),
                          sigma_u: float = 0.5, sigma_v: float = 0.6, max_residual: float = 0.3,
                          roi=None, accept_mask=None, normalise: bool = True, tuned: bool | None = None,
-                         keep_maps: bool = False,
+                         keep_maps: bool = False, coverage_normalised: bool = False,
                          spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX)) -> Detection:
     """Find tag-grid intersections with sub-pixel accuracy (stateless; never raises on bad images).
 
@@ -465,6 +472,14 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         and tuning every point of a whole frame would cost ~0.2 ms per point.
     keep_maps : bool
         Attach the :class:`GaborMaps` (of the filtered window) to the result.
+    coverage_normalised : bool
+        With a mask (and ``normalise``), divide the confidence by ``sqrt(c)``, ``c`` the share of
+        the filter's energy envelope (Gaussian, 0.4 tag spacings) inside the mask (floored at
+        COVERAGE_FLOOR). The masked image is zero outside the mask, so a wall thinner than the
+        filter gives a response ∝ c from its tags but ∝ sqrt(c) from noise: the plain confidence
+        then rejects thin-wall tags that stand as far above the noise as thick-wall ones do.
+        Normalised, noise scores the same whatever the wall thickness, and one threshold is one
+        false-alarm rate (thick walls, c ≈ 1, are unchanged). Used to follow known tracks.
     spacing_range_px : (float, float)
         Tag periods the spectrum estimate considers, px (:func:`estimate_grid`).
 
@@ -535,7 +550,11 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     if m is not None and normalise:
         img, std = masked_normalise(img, m, float(np.mean(params.spacing_px)))
     maps = gabor_filter_bank(img, params, orientations_deg, spacing_factors, sigma_u, sigma_v)
-    conf = confidence_map(img, maps, params, std)
+    conf = plain = confidence_map(img, maps, params, std)
+    if std is not None and coverage_normalised:
+        lam = float(np.mean(params.spacing_px))
+        cov = cv2.GaussianBlur(m.astype(np.float32), (0, 0), 0.4 * lam, borderType=cv2.BORDER_CONSTANT)
+        conf = np.minimum(plain / np.sqrt(np.maximum(cov, COVERAGE_FLOOR)), 1.0).astype(np.float32)
     # ψ_d = wrap(φ_d − π): multiply by −1 so that tag centres have phase 0.
     field_ = PhaseField.from_complex(-maps.response)
     j = field_.jac
@@ -581,23 +600,24 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         qt, inside_t = field_.nearest(xt)
         keep = okt & (moved <= 0.5) & inside_t & valid[qt[:, 0], qt[:, 1]]
         x, res, q = xt[keep], res[keep], qt[keep]
-    c = conf[q[:, 0], q[:, 1]]
+    c, cp = conf[q[:, 0], q[:, 1]], plain[q[:, 0], q[:, 1]]
     if x.shape[0] == 0:
         return Detection(params=params, reason="no tag intersection passed refinement "
                          f"(residual ≤ {max_residual:g} rad, confidence ≥ {min_confidence:g})",
                          maps=maps if keep_maps else None)
     # Neighbouring pixels may converge to the same root: keep the most confident within 1 px.
     order = np.argsort(-c, kind="stable")
-    x, res, c = x[order], res[order], c[order]
+    x, res, c, cp = x[order], res[order], c[order], cp[order]
     drop = np.zeros(len(x), bool)
     for a, b in sorted(cKDTree(x).query_pairs(1.0)):
         if not drop[a]:
             drop[b] = True
-    x, res, c = x[~drop], res[~drop], c[~drop]
+    x, res, c, cp = x[~drop], res[~drop], c[~drop], cp[~drop]
     x = x + offset
     labels = grid_labels(x, params, full_shape, weights=c)
     # Deterministic order: by label, then position.
     order = np.lexsort((x[:, 1], x[:, 0], labels[:, 1], labels[:, 0]))
     return Detection(pixel_rc=x[order], labels=labels[order], confidence=c[order].astype(np.float32),
-                     residual=res[order].astype(np.float32), params=params, reason="",
+                     residual=res[order].astype(np.float32), plain_confidence=cp[order].astype(np.float32),
+                     params=params, reason="",
                      maps=maps if keep_maps else None)

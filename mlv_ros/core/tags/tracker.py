@@ -25,7 +25,7 @@ from mlv_ros.core.types import Frame, TagPointSet
 
 from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, TAG_PERIOD_RANGE_MM, TagInputError, TagParameters,
                     validate_image)
-from .intersections import Detection, detect_intersections
+from .intersections import DEFAULT_MIN_CONFIDENCE, Detection, detect_intersections
 from .rpm import ThinPlateSpline, tps_rpm
 
 
@@ -70,6 +70,11 @@ class SliceTracker:
     revive : bool
         Offer dropped tracks again at the position the live tracks' warp predicts for them; a
         detection matching it (within ``gate``) resumes the track.
+    follow_coverage : bool
+        After ED, detect with the confidence normalised for the share of the filter inside the
+        propagated wall mask (``coverage_normalised`` of :func:`detect_intersections`): a track
+        on a wall thinner than a tag period is kept while its tags stand above the noise as
+        far as a thick wall's must. ED detection (new tracks) keeps the plain confidence.
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -82,7 +87,7 @@ class SliceTracker:
     def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
                  gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
                  propagate_mask: bool = True, mask_erosion_px: int = 0, confirm_px: float = 0.5,
-                 revive: bool = True, **detect_kwargs):
+                 revive: bool = True, follow_coverage: bool = True, **detect_kwargs):
         self.geometry = geometry
         self.spacing_px = spacing_px
         self.angles = angles
@@ -94,6 +99,7 @@ class SliceTracker:
         self.mask_erosion_px = int(mask_erosion_px)
         self.confirm_px = float(confirm_px)
         self.revive = bool(revive)
+        self.follow_coverage = bool(follow_coverage)
         self.detect_kwargs = detect_kwargs
         self.reset()
 
@@ -186,6 +192,7 @@ class SliceTracker:
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
         det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
+                                   coverage_normalised=self.follow_coverage,
                                    **{**self.detect_kwargs, **({"tuned": False} if two_pass else {})})
         self.last_detection = det
         if not det.ok or len(det) == 0:
@@ -206,7 +213,8 @@ class SliceTracker:
                                                      erode=self.mask_erosion_px, dilate=0)
             if region2 is not None:
                 det2 = final = detect_intersections(image, mask=region2, params=self.params, roi=roi,
-                                            accept_mask=accept2, **self.detect_kwargs)
+                                                    accept_mask=accept2, coverage_normalised=self.follow_coverage,
+                                                    **self.detect_kwargs)
                 # Only points the second pass confirms (within confirm_px) count as detected: a first-
                 # pass point that came from tags just outside the predicted border is not one.
                 found = np.zeros(int(hit.sum()), bool)
@@ -254,7 +262,9 @@ class SliceTracker:
         # starved of points (fewer than REVIVE_BELOW of its ED tracks alive) revives.
         if (~self._dead).sum() >= REVIVE_BELOW * len(self.track_id):
             return none
-        free = np.ones(len(det), bool)
+        # Taking a track up again is an association without a path to it: the detection must be
+        # as sure as a new track's (the plain confidence), not only stand out of the noise.
+        free = det.plain_confidence >= self.detect_kwargs.get("min_confidence", DEFAULT_MIN_CONFIDENCE)
         d, _ = cKDTree(positions).query(det.pixel_rc)
         free &= d > self.confirm_px
         if not free.any():
