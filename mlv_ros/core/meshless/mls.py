@@ -35,6 +35,10 @@ class MLSOperator:
         gradient and internal forces sum to zero).
     matrix_t : scipy.sparse.csr_matrix, shape (N, 3N)
         ``Dᵀ`` kept in CSR form for fast adjoint products (force assembly, eq. 22–23).
+    entry_i, entry_j : ndarray of int, shape (P + N,)
+        Phyxel and member of every ``d_ij``: the phyxels' pairs, then each particle with itself.
+    entry_d : ndarray, shape (P + N, 3)
+        ``d_ij`` for those entries, mm⁻¹ (``d_ii = −Σ_j d_ij`` last).
     """
 
     def __init__(self, phyxels: Phyxels):
@@ -48,6 +52,8 @@ class MLSOperator:
         cols = np.concatenate([np.repeat(pj, 3), np.repeat(ar, 3)])
         vals = np.concatenate([dij.ravel(), dii.ravel()])
         self.n = n
+        self.entry_i, self.entry_j = np.concatenate([pi, ar]), np.concatenate([pj, ar])
+        self.entry_d = np.concatenate([dij, dii])
         self.matrix = sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, n))
         self.matrix.sum_duplicates()
         self.matrix_t = self.matrix.T.tocsr()
