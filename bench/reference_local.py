@@ -4,7 +4,7 @@
 - :func:`tracker_local_solve`: ``MotionTracker._local_solve`` — matrix-free Jacobi-PCG whose
   matvec calls the MLS gradient and adjoint and an assembled (N, N) fit-error matrix
   (:func:`tracker_fit_error_matrix`, the slow part of the first phase).
-- :func:`phantom_local_step`: the PCG step of ``MeshlessModel.fit`` (``local_update="solve"``) on
+- :class:`PhantomSystemReference`: the PCG system of ``MeshlessModel.fit`` (``local_update="solve"``) on
   :func:`mlv_ros.core.meshless.elastic.linear_stiffness_apply` +
   :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`.
 """
@@ -95,34 +95,40 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
     return sol.reshape(n, 3), count[0]
 
 
-def phantom_local_step(model, phi, proj, res, kappa, cg_rtol=1e-3, cg_maxiter=100):
-    """The old PCG local step of ``MeshlessModel.fit``: Δδ solving
-    ``(κ ΦᵀQᵀPQΦ + K + S + ε) Δδ = κ Φᵀ Qᵀ res − (K + S + ε) δ`` from the model's current δ.
-    Returns (Δδ (N, 3), CG iterations)."""
-    n, m = model.num_particles, phi.shape[0]
-    vol = model.phyxels.volume
-    kdiag = elastic.stiffness_diagonal(model.operator, vol, model.lam, model.mu)
-    coef = model.stabilisation * model.mu * elastic.stabilisation_weights(model.operator, vol)
-    kdiag = kdiag + elastic.stabilisation_diagonal(model.operator, coef)[:, None]
-    eps = 1e-4 * float(np.median(kdiag))
+class PhantomSystemReference:
+    """The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``): matrix-free
+    ``κ ΦᵀQᵀPQΦ + K + S + ε`` on :func:`~mlv_ros.core.meshless.elastic.linear_stiffness_apply` and
+    :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`, Jacobi-preconditioned CG. Same
+    interface as :class:`mlv_ros.core.meshless.local.LocalSystem` (``internal``, ``solve``), so
+    ``model._local_system = lambda data: PhantomSystemReference(model, data)`` runs a whole fit
+    with it."""
 
-    def stiffness(v):
-        out = elastic.linear_stiffness_apply(model.operator, v, vol, model.lam, model.mu)
-        return out + elastic.stabilisation_apply(model.operator, v, coef) if model.stabilisation else out
+    def __init__(self, model, data):
+        self.model, self.n = model, model.num_particles
+        vol = model.phyxels.volume
+        kdiag = elastic.stiffness_diagonal(model.operator, vol, model.lam, model.mu)
+        self.coef = model.stabilisation * model.mu * elastic.stabilisation_weights(model.operator, vol)
+        kdiag = kdiag + elastic.stabilisation_diagonal(model.operator, self.coef)[:, None]
+        self.eps = 1e-4 * float(np.median(kdiag))
+        self.kappa, self.phi, self.pq = data
+        self.phi_t = self.phi.T.tocsr()
+        self.prec = self.kappa * ((self.phi.multiply(self.phi)).T @ np.einsum("maa->ma", self.pq)) + kdiag + self.eps
 
-    q = model.params.matrix @ model.rest_params.matrix.T
-    pq = np.einsum("ba,mbc,cd->mad", q, proj, q)
-    prec = kappa * ((phi.multiply(phi)).T @ np.einsum("maa->ma", pq)) + kdiag + eps
-    phi_t = phi.T.tocsr()
-    rhs = kappa * (phi_t @ (res @ q)) - stiffness(model.delta) - eps * model.delta
+    def internal(self, v):
+        m = self.model
+        out = elastic.linear_stiffness_apply(m.operator, v, m.phyxels.volume, m.lam, m.mu)
+        if m.stabilisation:
+            out = out + elastic.stabilisation_apply(m.operator, v, self.coef)
+        return out + self.eps * v
 
-    def matvec(v):
-        v = v.reshape(n, 3)
-        return (kappa * (phi_t @ np.einsum("mab,mb->ma", pq, phi @ v)) + stiffness(v) + eps * v).ravel()
+    def matvec(self, v):
+        return self.kappa * (self.phi_t @ np.einsum("mab,mb->ma", self.pq, self.phi @ v)) + self.internal(v)
 
-    A = LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
-    M = LinearOperator((3 * n, 3 * n), matvec=lambda v: v / prec.ravel(), dtype=np.float64)
-    count = [0]
-    dx, _ = cg(A, rhs.ravel(), rtol=cg_rtol, atol=1e-9 * kappa * np.sqrt(m), maxiter=cg_maxiter, M=M,
-               callback=lambda _x: count.__setitem__(0, count[0] + 1))
-    return dx.reshape(n, 3), count[0]
+    def solve(self, rhs, x0=None, *, rtol=1e-3, atol=0.0, maxiter=100):
+        n3 = 3 * self.n
+        A = LinearOperator((n3, n3), matvec=lambda v: self.matvec(v.reshape(self.n, 3)).ravel(), dtype=np.float64)
+        M = LinearOperator((n3, n3), matvec=lambda v: v / self.prec.ravel(), dtype=np.float64)
+        count = [0]
+        dx, _ = cg(A, np.ravel(rhs), x0=None if x0 is None else np.ravel(x0), rtol=rtol, atol=atol,
+                   maxiter=maxiter, M=M, callback=lambda _x: count.__setitem__(0, count[0] + 1))
+        return dx.reshape(self.n, 3), count[0]

@@ -102,6 +102,16 @@ class LocalOperators:
         t_self = wsum + 2.0 * np.einsum("na,na->n", b, dc) + np.einsum("na,nab,nb->n", dc, ph.moment, dc)
         self.fit_error_diagonal = (np.bincount(pj, weights=s[pi] * t_pair, minlength=n) + s * t_self)
         self._elastic = elastic_tangent(self.lam, self.mu)
+        # Products with Dᵀ and L as CSC views of D and L: scipy's CSC kernel streams through the
+        # stresses and scatters into the (N, 3) result, measured 1.5–2.5× faster than CSR here.
+        self._adjoint = operator.matrix.T
+        self._laplacian_csc = self.laplacian.T
+
+    def fit_error_apply(self, u: np.ndarray) -> np.ndarray:
+        """Gradient of the fit-error penalty (weights ``s_i``, multiplier 1) at ``u`` (N, 3)."""
+        op = self.operator
+        h = (op.matrix @ u).reshape(self.n, 3, 3)  # [i, b, a] = H_i[a, b]
+        return self._laplacian_csc @ u - self._adjoint @ np.matmul(self.fit_error_moment, h).reshape(3 * self.n, 3)
 
     def elastic_diagonal(self) -> np.ndarray:
         """Diagonal of the linear elastic stiffness, shape (N, 3)."""
@@ -163,12 +173,11 @@ class LocalSystem:
 
     def internal(self, u: np.ndarray) -> np.ndarray:
         """``A u`` without the data springs, shape (N, 3)."""
-        op = self.ops.operator
-        g = (op.matrix @ u).reshape(self.n, 9, 1)
-        s = np.matmul(self._tangent, g).reshape(3 * self.n, 3)
-        out = op.matrix_t @ s
+        ops = self.ops
+        g = (ops.operator.matrix @ u).reshape(self.n, 9, -1)
+        out = ops._adjoint @ np.matmul(self._tangent, g).reshape(3 * self.n, -1)
         if self.fit_error:
-            out += self.fit_error * (self.ops.laplacian @ u)
+            out += self.fit_error * (ops._laplacian_csc @ u)
         if self.eps:
             out += self.eps * u
         return out
@@ -178,7 +187,8 @@ class LocalSystem:
         if self._data is None:
             return np.zeros_like(u)
         kappa, phi, phi_t, metric = self._data
-        return kappa * (phi_t @ np.matmul(metric, (phi @ u)[:, :, None])[:, :, 0])
+        m = metric.shape[0]
+        return kappa * (phi_t @ np.matmul(metric, (phi @ u).reshape(m, 3, -1)).reshape(m, -1))
 
     def matvec(self, u: np.ndarray) -> np.ndarray:
         """``A u``, shape (N, 3)."""
@@ -198,6 +208,9 @@ class LocalSystem:
               atol: float = 0.0, maxiter: int = 400) -> tuple[np.ndarray, int]:
         """Block-Jacobi preconditioned CG on ``A u = rhs``.
 
+        (A coarse space of global polynomials up to degree 3, balanced with block Jacobi, saved
+        at most a third of the iterations on the LV tracker and cost more than it saved.)
+
         Parameters
         ----------
         rhs : ndarray, shape (N, 3)
@@ -211,12 +224,12 @@ class LocalSystem:
         u : ndarray, shape (N, 3)
         iterations : int
         """
-        n3 = 3 * self.n
-        A = LinearOperator((n3, n3), matvec=lambda v: self.matvec(v.reshape(self.n, 3)).ravel(), dtype=np.float64)
+        n, n3 = self.n, 3 * self.n
+        A = LinearOperator((n3, n3), matvec=lambda v: self.matvec(v.reshape(n, 3)).ravel(), dtype=np.float64)
         M = LinearOperator((n3, n3), dtype=np.float64,
-                           matvec=lambda v: np.matmul(self._block_inv, v.reshape(self.n, 3, 1)).ravel())
+                           matvec=lambda v: np.matmul(self._block_inv, v.reshape(n, 3, 1)).ravel())
         count = [0]
         x, _info = cg(A, np.asarray(rhs, dtype=np.float64).ravel(), x0=None if x0 is None else np.ravel(x0),
                       rtol=rtol, atol=atol, maxiter=maxiter, M=M,
                       callback=lambda _x: count.__setitem__(0, count[0] + 1))
-        return x.reshape(self.n, 3), count[0]
+        return x.reshape(n, 3), count[0]
