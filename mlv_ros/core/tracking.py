@@ -462,15 +462,12 @@ class MotionTracker:
         n = normals[idx]
         base = rest[idx] + offsets[idx, None] * n
         probe = base + n  # +1 mm along the normal
-
-        def model_positions(pos):
-            ok = self._tree.query(pos)[0] <= self.max_attach_mm
-            out = np.full(pos.shape, np.nan)
-            if ok.any():
-                out[ok] = self.model.attach(pos[ok]).weights @ self.positions
-            return out
-
-        x0, x1 = model_positions(base), model_positions(probe)
+        pos = np.concatenate([base, probe])  # one attachment for both (each point is independent)
+        ok = self._tree.query(pos)[0] <= self.max_attach_mm
+        out = np.full(pos.shape, np.nan)
+        if ok.any():
+            out[ok] = self.model.attach(pos[ok]).weights @ self.positions
+        x0, x1 = out[:idx.size], out[idx.size:]
         f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
         df = np.einsum("ij,ij->i", x1 - x0, n)
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)

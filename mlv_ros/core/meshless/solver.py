@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Callable
 
 import numpy as np
@@ -140,14 +141,15 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
                          f"no particle within {h_near[bad]:.3g} mm (nearest {dist[bad, 0]:.3g} mm)")
     lists = tree.query_ball_point(y, r=h, return_sorted=False)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
-    pj = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists])
+    pj = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
     pk = np.repeat(np.arange(m), counts)
     rel = points[pj] - y[pk]
     wk = poly6(np.linalg.norm(rel, axis=1), h[pk])
     # Linear MLS shape functions φ_j = w_j p_jᵀ M⁻¹ p(y), p = (1, x − y): reproduce affine fields.
     basis = np.concatenate([np.ones((pj.size, 1)), rel / h[pk, None]], axis=1)
-    mom = np.zeros((m, 4, 4))
-    np.add.at(mom, pk, wk[:, None, None] * basis[:, :, None] * basis[:, None, :])
+    wb = wk[:, None] * basis
+    group = sp.csr_matrix((np.ones(pj.size), (pk, np.arange(pj.size))), shape=(m, pj.size))
+    mom = (group @ (wb[:, :, None] * basis[:, None, :]).reshape(-1, 16)).reshape(m, 4, 4)
     sv = np.linalg.svd(mom, compute_uv=False)
     shepard = ~(sv[:, 3] > 1e-8 * sv[:, 0])
     rhs = np.zeros((m, 4, 1))
