@@ -194,8 +194,11 @@ def _pairs_within(tree: cKDTree, points: np.ndarray, h: np.ndarray, idx: np.ndar
 
 
 def _moments(pi, xij, wij, n):
-    m = np.zeros((n, 3, 3))
-    np.add.at(m, pi, xij[:, :, None] * xij[:, None, :] * wij[:, None, None])
+    m = np.empty((n, 3, 3))
+    wx = xij * wij[:, None]
+    for a in range(3):
+        for b in range(a, 3):
+            m[:, a, b] = m[:, b, a] = np.bincount(pi, weights=wx[:, a] * xij[:, b], minlength=n)
     return m
 
 
