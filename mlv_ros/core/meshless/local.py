@@ -23,6 +23,10 @@ springs — each a pass over the compact pair layout of :class:`~mlv_ros.core.me
 The preconditioner is the exact 3 × 3 diagonal block per particle (the incompressibility block
 uses the particle's own cofactor for its neighbours', which only the preconditioner sees).
 
+Everything is float64: the fit-error penalty is a difference of two terms that nearly cancel
+for smooth fields, and float32 sparse products measured no faster here (1.6 vs 1.5 ms at 3000
+particles).
+
 Units: moduli in any pressure unit P, volumes mm³, displacements mm, forces P·mm².
 """
 
