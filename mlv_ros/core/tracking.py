@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
-                                   plane_projectors, polar_frame, quat_to_matrix)
+from mlv_ros.core.meshless import (ControlPoints, GlobalParameters, MeshlessModel, ModelCoordinates,
+                                   ModelFrame, plane_projectors, polar_frame, quat_to_matrix)
 from mlv_ros.core.meshless.local import LocalOperators
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 from mlv_ros.core.verdict import phase_verdict
@@ -289,7 +289,7 @@ class MotionTracker:
                     inside = np.zeros_like(inside)
                     inside[keep] = True
                     self.rejected += int(pre.sum())
-                    ctrl = self.model.attach(pos[inside])
+                    ctrl = _control_rows(ctrl, ~pre)
             result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                     tol=self.tol, local=False, global_prior=self.global_prior)
             # Robustness: a track that swapped identity or drifted leaves a residual far beyond
@@ -300,7 +300,7 @@ class MotionTracker:
                 inside = np.zeros_like(inside)
                 inside[keep] = True
                 self.rejected += int(outlier.sum())
-                ctrl = self.model.attach(pos[inside])
+                ctrl = _control_rows(ctrl, ~outlier)
                 result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                         tol=self.tol, local=False, global_prior=self.global_prior)
             x_global = self.model.positions()
@@ -475,6 +475,12 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
         return new
+
+
+def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
+    """The control points ``keep`` (boolean, shape (M,)) of ``ctrl``: each point's weights depend
+    on its own position only, so this equals attaching those points again."""
+    return ControlPoints(ctrl.weights[keep], ctrl.rest_positions[keep], None, ctrl.shepard[keep])
 
 
 def lv_frame_axes(particles, rotation):
