@@ -528,7 +528,6 @@ class MeshlessModel:
         it = 0
         d_s = self.local_deformation[support]
         res = residual(self.params, d_s)
-        n = self.num_particles
         for it in range(1, max_iterations + 1):
             t_it = time.perf_counter()
             lmat = model_jacobian(self.params, coords_s, d_s)
