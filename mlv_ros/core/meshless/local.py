@@ -174,7 +174,10 @@ class LocalSystem:
             self._data = (kappa, phi, phi.T.tocsr(), metric)
             block = block + kappa * (phi.multiply(phi).T @ metric.reshape(-1, 9)).reshape(n, 3, 3)
         self.block_diagonal = block
-        self._block_inv = np.linalg.inv(block)
+        try:
+            self._block_inv = np.linalg.inv(block)
+        except np.linalg.LinAlgError:  # a particle no term reaches (eps = 0, no phyxel members)
+            self._block_inv = np.linalg.pinv(block, hermitian=True)
 
     def internal(self, u: np.ndarray) -> np.ndarray:
         """``A u`` without the data springs, shape (N, 3)."""
