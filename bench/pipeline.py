@@ -1,6 +1,9 @@
 """Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
 SNR 20) in one process. Prints one JSON document: total time, per-stage latency per phase
-(from the recording's receive times), peak RSS, messages published vs recorded, accuracy.
+(from the recording's receive times), peak RSS, messages published vs recorded, accuracy; then
+``local_stage``: the run's recorded tag points replayed through a tracker built as the solver node
+builds it, every local solve timed with the new stage and with the old one
+(``bench/reference_local.py``) on identical inputs (``--no-replay`` skips it).
 
     mlv-ros bench pipeline [-- --phases 25 --size 256 --out DIR]
 """
@@ -13,11 +16,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import sys
+
+import numpy as np
 from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
 
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
-from mlv_ros import bagio, qos
+from mlv_ros import bagio, conversions, qos
+from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.tools.run import phantom_accuracy, run_graph
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from reference_local import tracker_local_solve  # noqa: E402
 
 
 def stage_latencies(mcap: Path) -> dict:
@@ -50,12 +61,69 @@ def stage_latencies(mcap: Path) -> dict:
             "analyzer_per_phase_ms": stats(analyse_ms)}
 
 
+def local_stage_replay(mcap: Path) -> dict:
+    """Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
+
+    The tracker is built from the recorded registration with the solver node's default
+    parameters; each phase is solved as the node solves it, and every call of the local stage
+    also runs the reference copy of the old one from the same warm start (its time is left out of
+    the new solver's per-phase time). The old stage's first call includes its fit-error matrix.
+    """
+    cloud = state = None
+    sets: dict = {}
+    for m in bagio.read_bag(mcap, topics=[qos.REGISTERED_CLOUD, qos.REGISTERED_STATE, qos.TAG_POINTS]):
+        if m.topic == qos.REGISTERED_CLOUD:
+            cloud = conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2))
+        elif m.topic == qos.REGISTERED_STATE:
+            state = conversions.msg_to_model_state(deserialize_message(m.data, ModelState))
+        else:
+            p = conversions.msg_to_tagpoints(deserialize_message(m.data, TagPoints))
+            sets.setdefault(int(p.phase_index), {})[(int(p.view), int(p.slice_index))] = p
+    t0 = time.perf_counter()
+    tr = MotionTracker(conversions.xyz(cloud), state.translation, state.rotation,
+                       polar=(cloud["alpha"], cloud["beta"], cloud["w"]),
+                       shape=(state.a0, state.a1, state.a2, state.a3, state.tau))
+    build_s = time.perf_counter() - t0
+    for pts in sets.get(0, {}).values():
+        tr.set_reference(pts)
+    new_solve, cache, calls = tr._local_solve, {}, []
+
+    def both(phi, targets, normals, x_global):
+        d0 = None if tr.delta is None else tr.delta.copy()
+        t1 = time.perf_counter()
+        new = new_solve(phi, targets, normals, x_global)
+        t2 = time.perf_counter()
+        old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
+        calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
+        return new
+
+    tr._local_solve = both
+    phase_s, num_phases = [], max(sets) + 1
+    for p in sorted(sets)[1:]:
+        before = len(calls)
+        t1 = time.perf_counter()
+        tr.solve(p, sets[p], num_phases)
+        phase_s.append(time.perf_counter() - t1 - sum(c[1] for c in calls[before:]))
+    new_t, old_t, diff = (np.array(v) for v in zip(*calls))
+    return {
+        "particles": tr.num_particles, "phases": len(phase_s), "local_solves": len(calls),
+        "model_build_s": round(build_s, 3), "first_phase_s": round(phase_s[0], 3),
+        "solver_per_phase_s_median": round(float(np.median(phase_s)), 3),
+        "new_local_s_median": round(float(np.median(new_t)), 4), "old_local_s_median": round(float(np.median(old_t[1:])), 4),
+        "ratio_local_median": round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
+        "old_first_local_s_with_matrix_build": round(float(old_t[0]), 3),
+        "position_difference_mm_median": round(float(np.median(diff)), 4),
+        "position_difference_mm_worst_solve": round(float(diff.max()), 4),
+    }
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--phases", type=int, default=25)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--preset", default="normal")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--no-replay", action="store_true", help="skip the old-vs-new local stage replay")
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="mlv-bench-pipeline-"))
     t0 = time.perf_counter()
@@ -76,6 +144,8 @@ def main():
         "all_recorded": all(published[t] == topics.get(t, {}).get("count", 0) for t in published),
         "accuracy_es": acc.get("es"), "complete": s["complete"], "run_dir": str(out),
     }
+    if not args.no_replay and s["complete"]:
+        result["local_stage"] = local_stage_replay(out / "run.mcap")
     print(json.dumps(result, indent=2))
 
 

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.meshless import (GlobalParameters, MeshlessModel, ModelCoordinates, ModelFrame,
-                                   polar_frame, quat_to_matrix)
+from mlv_ros.core.meshless import (ControlPoints, GlobalParameters, MeshlessModel, ModelCoordinates,
+                                   ModelFrame, plane_projectors, polar_frame, quat_to_matrix)
+from mlv_ros.core.meshless.local import LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 from mlv_ros.core.verdict import phase_verdict
@@ -205,8 +206,11 @@ class MotionTracker:
         # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase).
         self.cg_rtol, self.cg_maxiter = 1e-3, 400
         self.delta = None
-        self._kdiag = None
-        self._hourglass = None
+        # The local stage's operators, built with the model; the fit-error penalty is weighted by
+        # the normalised kernel weights and scaled against the elastic diagonal per solve.
+        ph, lam, mu = self.model.phyxels, self.model.lam, self.model.mu
+        self._local = LocalOperators(self.model.operator, ph.volume, lam, mu, 1.0 / ph.wij.max())
+        self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (mu + (mu + lam) / 3.0)
         self.outlier_mm = 3.0
         self.prescreen = True
         self.rejected = 0
@@ -306,7 +310,7 @@ class MotionTracker:
                     inside = np.zeros_like(inside)
                     inside[keep] = True
                     self.rejected += int(pre.sum())
-                    ctrl = self.model.attach(pos[inside])
+                    ctrl = _control_rows(ctrl, ~pre)
             result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                     tol=self.tol, local=False, global_prior=self.global_prior,
                                     weights=weights[inside])
@@ -318,7 +322,7 @@ class MotionTracker:
                 inside = np.zeros_like(inside)
                 inside[keep] = True
                 self.rejected += int(outlier.sum())
-                ctrl = self.model.attach(pos[inside])
+                ctrl = _control_rows(ctrl, ~outlier)
                 result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
                                         tol=self.tol, local=False, global_prior=self.global_prior,
                                         weights=weights[inside])
@@ -342,7 +346,7 @@ class MotionTracker:
         H = self.model.operator.gradient(x - self.rest)  # H[i, a, b] = ∂u_a/∂X_b
         F = np.eye(3) + H
         E = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
-        P = np.eye(3) - np.einsum("ka,kb->kab", normals[inside], normals[inside])
+        P = plane_projectors(normals[inside], int(inside.sum()))
         res = np.einsum("kab,kb->ka", P, targets[inside] - ctrl.weights @ x)
         state = result.state
         state.residual = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
@@ -370,29 +374,30 @@ class MotionTracker:
     def _local_solve(self, phi, targets, normals, x_global, weights=None):
         """Local deformation δ (paper: internal forces act on the local part only) at elastic
         equilibrium under the in-plane tag forces: minimise
-        ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)``, a sparse SPD
-        system solved by Jacobi-preconditioned CG (linear elasticity of the small local part;
-        the large motion is in the global parameters), warm-started from the previous phase."""
-        from scipy.sparse.linalg import LinearOperator, cg
+        ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)`` plus the MLS
+        fit error, near-incompressibility and axial stiffness (:mod:`mlv_ros.core.meshless.local`),
+        warm-started from the previous phase.
 
-        op, vol = self.model.operator, self.model.phyxels.volume
-        lam, mu = self.model.lam, self.model.mu
-        n = self.num_particles
-        wk = control_weights(weights, len(targets))
-        P = (np.eye(3) - np.einsum("ka,kb->kab", normals, normals)) * wk[:, None, None]
-        phi_t = phi.T.tocsr()
-        if self._kdiag is None:
-            dsq = op.matrix.multiply(op.matrix)  # (3N, N): d_ij[b]²
-            w = np.repeat(vol, 3)
-            self._kdiag = np.asarray(dsq.T @ w).ravel() * (mu + (mu + lam) / 3.0)
-        kappa = self.data_weight * float(np.median(self._kdiag))
-        eps = 1e-6 * kappa
+        Parameters
+        ----------
+        phi : sparse (K, N)
+            Control-point interpolation weights.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        x_global : ndarray, shape (N, 3)
+            Global-model particle positions, mm.
+        weights : ndarray, shape (K,), optional
+            Data weights (:func:`data_weights`); default all 1.
 
-        if self._hourglass is None:
-            self._hourglass = self._hourglass_matrix()
-        L = self._hourglass
-        alpha = self.hourglass_weight * float(np.median(self._kdiag)) / max(float(np.median(L.diagonal())), 1e-300)
-
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            δ, mm.
+        """
+        op, mu = self.model.operator, self.model.mu
+        kscale = float(np.median(self._kdiag))
+        kappa = self.data_weight * kscale
+        alpha = self.hourglass_weight * kscale / max(float(np.median(self._local.fit_error_diagonal)), 1e-300)
         # Near-incompressibility of the whole deformation (myocardium keeps its volume): the
         # linearised volume change of F = F_g + ∇δ, J_g (1 + F_g⁻ᵀ : ∇δ) − 1, is penalised.
         Fg = np.eye(3) + op.gradient(x_global - self.rest)
@@ -400,42 +405,16 @@ class MotionTracker:
         ok = np.abs(Jg) > 1e-6
         C = np.zeros_like(Fg)
         C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
-        kv = self.volume_weight * mu
         # Local longitudinal stretch (along the fitted long axis) costs kl; see longitudinal_weight.
-        kl = self.longitudinal_weight * mu
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
-        aa = np.outer(ax, ax)
-
-        def apply(v):
-            d = v.reshape(n, 3)
-            H = op.gradient(d)
-            tr = np.trace(H, axis1=1, axis2=2)
-            S = vol[:, None, None] * (mu * (H + np.swapaxes(H, 1, 2)) + lam * tr[:, None, None] * np.eye(3))
-            if kv:
-                S = S + (kv * vol * np.einsum("iab,iab->i", C, H))[:, None, None] * C
-            if kl:
-                S = S + (kl * vol * np.einsum("a,iab,b->i", ax, H, ax))[:, None, None] * aa
-            data = phi_t @ np.einsum("kab,kb->ka", P, phi @ d)
-            return (op.adjoint(S) + alpha * (L @ d) + kappa * data + eps * d).ravel()
-
+        P = plane_projectors(normals, len(normals)) * control_weights(weights, len(targets))[:, None, None]
+        system = self._local.system(fit_error=alpha, volume=(self.volume_weight * mu, C, Jg - 1.0),
+                                    axial=(self.longitudinal_weight * mu, ax), data=(kappa, phi, P),
+                                    eps=1e-6 * kappa)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
-        rhs = kappa * (phi_t @ r)
-        if kv:
-            rhs = rhs - op.adjoint((kv * vol * (Jg - 1.0))[:, None, None] * C)
-        rhs = rhs.ravel()
-        diag_data = np.asarray(phi.multiply(phi).T @ wk).ravel()
-        vdiag = self._kdiag * kv / (mu + (mu + lam) / 3.0)
-        diag = np.repeat((self._kdiag + vdiag + alpha * L.diagonal() + kappa * diag_data + eps)[:, None], 3, axis=1)
-        if kl:  # exact diagonal of the axial term: kl Σ_i v_i G_ij² a_c², G_ij = Σ_b a_b d_ij[b]
-            D = op.matrix.tocsr()
-            G = D[0::3] * ax[0] + D[1::3] * ax[1] + D[2::3] * ax[2]
-            diag = diag + kl * np.asarray(G.multiply(G).T @ vol).ravel()[:, None] * (ax * ax)[None, :]
-        prec = 1.0 / diag.ravel()
-        A = LinearOperator((3 * n, 3 * n), matvec=apply, dtype=np.float64)
-        M = LinearOperator((3 * n, 3 * n), matvec=lambda v: prec * v, dtype=np.float64)
-        x0 = self.delta.ravel() if self.delta is not None else None
-        sol, _info = cg(A, rhs, x0=x0, rtol=self.cg_rtol, maxiter=self.cg_maxiter, M=M)
-        return sol.reshape(n, 3)
+        rhs = kappa * (phi.T @ r) + system.constant_force()
+        delta, _its = system.solve(rhs, self.delta, rtol=self.cg_rtol, maxiter=self.cg_maxiter)
+        return delta
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
         """Twist as a parameter function of height (the parameter functions of Park et al., which
@@ -478,8 +457,7 @@ class MotionTracker:
         m = self.twist_knots
         knots = np.linspace(0.0, 1.0, m)
         hat = np.clip(1.0 - np.abs(self._height[:, None] - knots) * (m - 1), 0.0, None)  # (N, m)
-        P = (np.eye(3) - np.einsum("ka,kb->kab", normals, normals)) * np.sqrt(
-            control_weights(weights, len(targets)))[:, None, None]
+        P = plane_projectors(normals, len(normals)) * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
         J = np.stack([np.einsum("kab,kb->ka", P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)], axis=1)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)
@@ -496,28 +474,11 @@ class MotionTracker:
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
-        P = np.eye(3) - np.einsum("ka,kb->kab", normals, normals)
+        P = plane_projectors(normals, len(normals))
         r = np.linalg.norm(np.einsum("kab,kb->ka", P, targets - x), axis=1)
         med = float(np.median(r))
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
         return r > max(self.outlier_mm, med + 5.0 * sigma)
-
-    def _hourglass_matrix(self):
-        """``Bᵀ W B`` of the MLS fit error (paper eq. 16): ``e_ij = δ_j − δ_i − ∇δ_i x_ij`` per
-        phyxel pair, weighted by w_ij. It vanishes for affine fields and penalises exactly the
-        zig-zag modes that the MLS gradient cannot see (zero-energy modes of the strain energy).
-        One (N, N) matrix serves all three displacement components."""
-        import scipy.sparse as sp
-
-        ph, D = self.model.phyxels, self.model.operator.matrix  # D: (3N, N)
-        n, p = self.num_particles, ph.pair_i.shape[0]
-        rows = np.arange(p)
-        Ej = sp.csr_matrix((np.ones(p), (rows, ph.pair_j)), shape=(p, n))
-        Ei = sp.csr_matrix((np.ones(p), (rows, ph.pair_i)), shape=(p, n))
-        X = sp.csr_matrix((ph.xij.ravel(), (np.repeat(rows, 3), (3 * ph.pair_i[:, None] + np.arange(3)).ravel())),
-                          shape=(p, 3 * n))
-        B = (Ej - Ei - X @ D).tocsr()
-        return (B.T @ sp.diags(ph.wij / ph.wij.max()) @ B).tocsr()
 
     def _follow_slices(self, offsets, rest, normals, targets, inside):
         """Newton step on s per control point: bring the model position of the material line
@@ -529,15 +490,12 @@ class MotionTracker:
         n = normals[idx]
         base = rest[idx] + offsets[idx, None] * n
         probe = base + n  # +1 mm along the normal
-
-        def model_positions(pos):
-            ok = self._tree.query(pos)[0] <= self.max_attach_mm
-            out = np.full(pos.shape, np.nan)
-            if ok.any():
-                out[ok] = self.model.attach(pos[ok]).weights @ self.positions
-            return out
-
-        x0, x1 = model_positions(base), model_positions(probe)
+        pos = np.concatenate([base, probe])  # one attachment for both (each point is independent)
+        ok = self._tree.query(pos)[0] <= self.max_attach_mm
+        out = np.full(pos.shape, np.nan)
+        if ok.any():
+            out[ok] = self.model.attach(pos[ok]).weights @ self.positions
+        x0, x1 = out[:idx.size], out[idx.size:]
         f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
         df = np.einsum("ij,ij->i", x1 - x0, n)
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
@@ -545,6 +503,12 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
         return new
+
+
+def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
+    """The control points ``keep`` (boolean, shape (M,)) of ``ctrl``: each point's weights depend
+    on its own position only, so this equals attaching those points again."""
+    return ControlPoints(ctrl.weights[keep], ctrl.rest_positions[keep], None, ctrl.shepard[keep])
 
 
 def lv_frame_axes(particles, rotation):

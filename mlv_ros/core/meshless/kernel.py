@@ -86,7 +86,7 @@ def mean_neighbour_distance(points: np.ndarray, k: int = NUM_NEIGHBOURS,
     n = points.shape[0]
     k = min(k, n - 1)
     tree = cKDTree(points) if tree is None else tree
-    dist, idx = tree.query(points, k=k + 1)
+    dist, idx = tree.query(points, k=k + 1, workers=-1)
     return dist[:, 1:].mean(axis=1), idx[:, 1:]
 
 
@@ -99,7 +99,7 @@ def check_duplicates(points: np.ndarray, tree: cKDTree | None = None,
     carry a zero-length edge and the two displacements become indistinguishable.
     """
     tree = cKDTree(points) if tree is None else tree
-    dist, idx = tree.query(points, k=2)
+    dist, idx = tree.query(points, k=2, workers=-1)
     if tol is None:
         med = float(np.median(dist[:, 1]))
         tol = max(DUPLICATE_FRACTION * med, 1e-9)
@@ -185,7 +185,7 @@ class Phyxels:
 
 def _pairs_within(tree: cKDTree, points: np.ndarray, h: np.ndarray, idx: np.ndarray):
     """Flat (i, j) pairs with |x_j − x_i| < h_i for centres ``idx`` (self excluded)."""
-    lists = tree.query_ball_point(points[idx], r=h[idx], return_sorted=False)
+    lists = tree.query_ball_point(points[idx], r=h[idx], return_sorted=False, workers=-1)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
     pj = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
     pi = np.repeat(idx, counts)
@@ -194,8 +194,11 @@ def _pairs_within(tree: cKDTree, points: np.ndarray, h: np.ndarray, idx: np.ndar
 
 
 def _moments(pi, xij, wij, n):
-    m = np.zeros((n, 3, 3))
-    np.add.at(m, pi, xij[:, :, None] * xij[:, None, :] * wij[:, None, None])
+    m = np.empty((n, 3, 3))
+    wx = xij * wij[:, None]
+    for a in range(3):
+        for b in range(a, 3):
+            m[:, a, b] = m[:, b, a] = np.bincount(pi, weights=wx[:, a] * xij[:, b], minlength=n)
     return m
 
 

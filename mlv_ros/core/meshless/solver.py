@@ -16,8 +16,9 @@ are ``x = c + R (s(q_s) + d)``.
 2. **Local stage** — eq. 6, ``D ḋ = f_ext + f_int`` for the local deformation. The default
    (``local_update="solve"``) takes the step to equilibrium at once: it minimises
    ``½ κ Σ_k |P_k (t_k − x_k)|² + ½ δᵀ K δ + ½ ε |δ|²`` over δ with the St Venant–Kirchhoff
-   stiffness ``K`` linearised at rest, by Jacobi-preconditioned conjugate gradients on the
-   matrix-free sparse operators (inexact, ``cg_rtol``; δ accumulates over iterations). ε = 1e-4 ×
+   stiffness ``K`` linearised at rest (plus the zero-energy-mode penalty), by the block-Jacobi
+   preconditioned conjugate gradients of :mod:`mlv_ros.core.meshless.local` (inexact,
+   ``cg_rtol``; δ accumulates over iterations). ε = 1e-4 ×
    median diag(K) only removes the rigid-mode ambiguity between δ and (c, R).
    ``local_update="explicit"`` is the paper-literal explicit step
    ``δ ← δ + dt D⁻¹ (f_ext + f_int(δ))`` with the full non-linear internal force and diagonal
@@ -38,11 +39,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import elastic
@@ -53,6 +54,7 @@ from mlv_ros.core.meshless.globals import (
 from mlv_ros.core.meshless.kernel import (
     NUM_NEIGHBOURS, SUPPORT_FACTOR, build_phyxels, poly6, validate_points,
 )
+from mlv_ros.core.meshless.local import LocalOperators
 from mlv_ros.core.meshless.mls import MLSOperator
 from mlv_ros.core.types import ModelState
 
@@ -139,14 +141,15 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
                          f"no particle within {h_near[bad]:.3g} mm (nearest {dist[bad, 0]:.3g} mm)")
     lists = tree.query_ball_point(y, r=h, return_sorted=False)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
-    pj = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists])
+    pj = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
     pk = np.repeat(np.arange(m), counts)
     rel = points[pj] - y[pk]
     wk = poly6(np.linalg.norm(rel, axis=1), h[pk])
     # Linear MLS shape functions φ_j = w_j p_jᵀ M⁻¹ p(y), p = (1, x − y): reproduce affine fields.
     basis = np.concatenate([np.ones((pj.size, 1)), rel / h[pk, None]], axis=1)
-    mom = np.zeros((m, 4, 4))
-    np.add.at(mom, pk, wk[:, None, None] * basis[:, :, None] * basis[:, None, :])
+    wb = wk[:, None] * basis
+    group = sp.csr_matrix((np.ones(pj.size), (pk, np.arange(pj.size))), shape=(m, pj.size))
+    mom = (group @ (wb[:, :, None] * basis[:, None, :]).reshape(-1, 16)).reshape(m, 4, 4)
     sv = np.linalg.svd(mom, compute_uv=False)
     shepard = ~(sv[:, 3] > 1e-8 * sv[:, 0])
     rhs = np.zeros((m, 4, 1))
@@ -296,12 +299,25 @@ class MeshlessModel:
         self.phyxels = build_phyxels(self.rest_points, self._k, self._support_factor,
                                      self._cond_max, h=h)
         self.operator = MLSOperator(self.phyxels)
-        self._kdiag = elastic.stiffness_diagonal(self.operator, self.phyxels.volume, self.lam, self.mu)
-        self._stab_coef = self.stabilisation * self.mu * elastic.stabilisation_weights(self.operator, self.phyxels.volume)
-        self._kdiag = self._kdiag + elastic.stabilisation_diagonal(self.operator, self._stab_coef)[:, None]
-        # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
-        # parameters and δ unique (K is blind to rigid δ, which c and R already express).
-        self._eps_delta = 1e-4 * float(np.median(self._kdiag))
+        self._local_ops = None
+
+    @property
+    def local_operators(self) -> LocalOperators:
+        """The local stage's operators on the current phyxels (built on first use): linear SVK and
+        the zero-energy-mode penalty with weights ``v_i ŵ_ij / h_i²``
+        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_weights`)."""
+        if self._local_ops is None:
+            ph = self.phyxels
+            wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
+            s = ph.volume / np.where(wsum > 0, wsum, 1.0) / ph.h ** 2
+            ops = LocalOperators(self.operator, ph.volume, self.lam, self.mu, s)
+            # Stiffness scale: the elastic diagonal plus the penalty's direct (u_j − u_i) part.
+            self._kdiag = ops.elastic_diagonal() + (self.stabilisation * self.mu * ops.laplacian.diagonal())[:, None]
+            # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
+            # parameters and δ unique (K is blind to rigid δ, which c and R already express).
+            self._eps_delta = 1e-4 * float(np.median(self._kdiag))
+            self._local_ops = ops
+        return self._local_ops
 
     @property
     def num_particles(self) -> int:
@@ -375,12 +391,10 @@ class MeshlessModel:
         return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor)
 
     # ---------------------------------------------------------------- fitting
-    def _stiffness(self, v):
-        """Linearised SVK stiffness plus the zero-energy-mode penalty applied to v (N, 3)."""
-        out = elastic.linear_stiffness_apply(self.operator, v, self.phyxels.volume, self.lam, self.mu)
-        if self.stabilisation:
-            out = out + elastic.stabilisation_apply(self.operator, v, self._stab_coef)
-        return out
+    def _local_system(self, data=None):
+        """The local stage's system: linear SVK + zero-energy-mode penalty + ε (+ ``data``)."""
+        ops = self.local_operators
+        return ops.system(fit_error=self.stabilisation * self.mu, data=data, eps=self._eps_delta)
 
     def _local_metric(self, proj, phi, kappa):
         """``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
@@ -516,7 +530,9 @@ class MeshlessModel:
         phi_s = phi[:, support].tocsr()
         coords_s = self.coords.subset(support)
         phi_t = phi.T.tocsr()
-        kappa = data_weight * float(np.median(self._kdiag))
+        if local:  # the local stage's operators are built on the first fit that uses them
+            ops = self.local_operators
+            kappa = data_weight * float(np.median(self._kdiag))
         vol = self.phyxels.volume
         prior = None
         if global_prior > 0.0 and global_update == "gauss-newton":
@@ -540,7 +556,6 @@ class MeshlessModel:
         it = 0
         d_s = self.local_deformation[support]
         res = residual(self.params, d_s)
-        n = self.num_particles
         for it in range(1, max_iterations + 1):
             t_it = time.perf_counter()
             lmat = model_jacobian(self.params, coords_s, d_s)
@@ -571,31 +586,18 @@ class MeshlessModel:
                 # ---- local stage (eq. 6, 22–23) with the global parameters held
                 ran_local = True
                 q, pq, prec = self._local_metric(proj_local, phi, kappa)
-                force = kappa * (phi_t @ ((res * np.sqrt(w)[:, None]) @ q))                 # f_ext spread by the kernel
+                force = kappa * (phi_t @ ((res * np.sqrt(w)[:, None]) @ q))  # f_ext spread by the kernel
                 if local_update == "explicit":
                     fint = elastic.internal_forces(self.operator, self.delta, vol, self.lam, self.mu)
                     if self.stabilisation:
-                        fint = fint - elastic.stabilisation_apply(self.operator, self.delta, self._stab_coef)
+                        fint = fint - self.stabilisation * self.mu * ops.fit_error_apply(self.delta)
                     dx = dt * (force + fint - self._eps_delta * self.delta) / prec
                 else:
                     # Equilibrium of D ḋ = f_ext + f_int in one step: solve
                     # (κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ by PCG.
-                    rhs = force - self._stiffness(self.delta) - self._eps_delta * self.delta
-
-                    def matvec(v):
-                        v = v.reshape(n, 3)
-                        data = phi_t @ np.einsum("mab,mb->ma", pq, phi @ v)
-                        return (kappa * data + self._stiffness(v) + self._eps_delta * v).ravel()
-
-                    op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
-                    precond = spla.LinearOperator((3 * n, 3 * n), matvec=lambda v: v / prec.ravel(),
-                                                  dtype=np.float64)
-                    counter = [0]
-                    dx, _ = spla.cg(op, rhs.ravel(), rtol=cg_rtol, atol=1e-9 * kappa * np.sqrt(m),
-                                    maxiter=cg_maxiter, M=precond,
-                                    callback=lambda _x: counter.__setitem__(0, counter[0] + 1))
-                    dx = dx.reshape(n, 3)
-                    cg_its = counter[0]
+                    system = self._local_system((kappa, phi, pq))
+                    dx, cg_its = system.solve(force - system.internal(self.delta), rtol=cg_rtol,
+                                              atol=1e-9 * kappa * np.sqrt(m), maxiter=cg_maxiter)
                 if np.all(np.isfinite(dx)):
                     self.delta += dx
             if ran_local:
@@ -605,7 +607,7 @@ class MeshlessModel:
                 d_s = self.local_deformation[support]
                 res = residual(self.params, d_s)
                 if refresh_every and it % refresh_every == 0 and self.refresh_support():
-                    vol = self.phyxels.volume
+                    vol, ops = self.phyxels.volume, self.local_operators
             rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
             history.append({"iteration": it, "residual": rms, "global_step": g_step,
                             "local_step": l_step, "local": ran_local, "cg_iterations": cg_its,
