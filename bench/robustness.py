@@ -15,7 +15,10 @@ error ≤ 2°, every phase solved) with the model covering ≥ 90 % of the true 
 measured on the particles, so a model short of the base would pass on what it has). The summary
 gives the worst and the median of each measure and the number of cases passing.
 
-    mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep]
+    mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal]
+
+The drawn abnormal regions (issue 20) are left out unless ``--abnormal``: the cases stay the
+normal hearts these seeds drew before, comparable with earlier runs.
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
 """
@@ -60,11 +63,16 @@ def tag_points_per_slice(mcap: Path) -> dict:
     return {k: {"ed": v.get(0, 0), "min": min(v.values())} for k, v in sorted(counts.items())}
 
 
-def run_case(seed: int, out: Path, timeout: float) -> dict:
+def run_case(seed: int, out: Path, timeout: float, abnormal: bool = False) -> dict:
     study, run_dir = out / "study", out / "run"
     case = {"seed": seed}
     t0 = time.monotonic()
-    sim = subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), "--out", str(study),
+    extra = []
+    if not abnormal:  # the studies these seeds drew before abnormal regions existed (issue 20)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "no_regions.yaml").write_text("abnormal_regions: []\n")
+        extra = ["--protocol", str(out / "no_regions.yaml")]
+    sim = subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), *extra, "--out", str(study),
                           "--no-progress"], capture_output=True, text=True)
     case["simulate_seconds"] = round(time.monotonic() - t0, 1)
     if sim.returncode != 0:
@@ -135,6 +143,9 @@ def main():
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
     ap.add_argument("--timeout", type=float, default=900.0, help="per-run limit, seconds")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once (each run claims its own ROS domain)")
+    ap.add_argument("--abnormal", action="store_true",
+                    help="keep the drawn regional abnormalities (default: none, the studies these seeds drew "
+                         "before; regional strain is `mlv-ros bench strain`)")
     args = ap.parse_args()
     if args.cases < 1:
         ap.error("--cases must be >= 1")
@@ -142,7 +153,7 @@ def main():
     cases = []
 
     def one(seed):
-        case = run_case(seed, root / f"case-{seed}", args.timeout)
+        case = run_case(seed, root / f"case-{seed}", args.timeout, args.abnormal)
         print(json.dumps({k: case.get(k) for k in ("seed", "pass", "es", "phases_solved", "num_phases",
                                                    "run_seconds", "error") if k in case}),
               file=sys.stderr, flush=True)

@@ -12,15 +12,23 @@ Format (version 1)
     slice in the npz order: ``view`` "SA"/"LA", ``slice_index``, ``series_uid``, ``description``,
     ``rows``, ``columns``, ``geometry`` = ImagePositionPatient / ImageOrientationPatient /
     PixelSpacing / SliceThickness), ``conventions`` (text), ``arrays`` (what each npz array is),
-    and whatever the writer's ``extra`` adds (``mlv-ros simulate --random``: ``protocol`` and
-    ``dicom``, the writer's options).
+    ``regional`` (:func:`mlv_ros.core.sim.regional.regional_truth`: the abnormal ``regions``,
+    and per AHA segment at the ES phase ``round(es_phase)`` the true Green–Lagrange ``err``,
+    ``ecc``, ``ell`` in the cylindrical frame of the true axis and septum, the prescribed
+    ``contraction`` and the truth ``class`` normal / hypokinetic / akinetic / dyskinetic with its
+    ``class_thresholds``; absent in files written before it), and whatever the writer's ``extra``
+    adds (``mlv-ros simulate --random``: ``protocol`` and ``dicom``, the writer's options).
 ``groundtruth.npz``:
     ``ed_masks`` bool (S, rows, cols) — ED myocardium per slice (slab fraction ≥ 0.5);
     ``material_points`` float64 (N, 3) — ED positions of uniformly sampled myocardium, mm;
     ``trajectories`` float32 (P, N, 3) — their positions at every phase, mm;
     ``levels`` (K,) — fractions of the length from the apex; ``twist_deg``, ``endo_radius_mm``,
     ``mid_radius_mm``, ``epi_radius_mm``, ``thickness_mm``, ``height_mm`` (P, K) — per-level
-    curves from :meth:`LVMotion.level_curves`; ``base_descent_mm`` (P,).
+    curves from :meth:`LVMotion.level_curves`; ``base_descent_mm`` (P,);
+    ``strain`` float32 (P, N, 3) — true Green–Lagrange E_rr, E_cc, E_ll of the material points
+    at every phase (frame as ``regional``); ``segments`` int8 (N,) — their AHA segment 1–17;
+    ``contraction`` float32 (N,) — their prescribed share of normal motion (1 normal, 0 akinetic,
+    < 0 dyskinetic). The last three are absent in files written before them.
 """
 
 from __future__ import annotations
@@ -57,10 +65,18 @@ class GroundTruth:
     material_points: np.ndarray
     trajectories: np.ndarray
     curves: dict
+    strain: np.ndarray | None = None
+    segments: np.ndarray | None = None
+    contraction: np.ndarray | None = None
 
     @property
     def num_phases(self) -> int:
         return int(self.meta["num_phases"])
+
+    @property
+    def regional(self) -> dict | None:
+        """The ``regional`` entry (per-segment ES strain and class), None in older files."""
+        return self.meta.get("regional")
 
 
 def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
@@ -87,11 +103,15 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    from mlv_ros.core.sim.regional import regional_truth, strain_components, truth_frame, truth_segments
+
     m = study.motion
     lv = np.linspace(0.0, 1.0, 21) if levels is None else np.asarray(levels, dtype=np.float64)
     X = m.sample_myocardium(n_points, seed=study.seed)
     traj = np.stack([m.position(X, p) for p in range(m.num_phases)]).astype(np.float32)
     curves = m.level_curves(lv)
+    tf = truth_frame(m)
+    strain = np.stack([strain_components(m, X, p, tf) for p in range(m.num_phases)]).astype(np.float32)
     f = m.frame
     slices = []
     masks = []
@@ -114,13 +134,17 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
                   "long_axis": f.long_axis.tolist(), "septum": f.septum.tolist(),
                   "e2": f.e2.tolist(), "length_mm": f.length},
         "slices": slices, "conventions": _CONVENTIONS,
+        "regional": regional_truth(m, seed=study.seed),
         "arrays": {
             "ed_masks": "bool (S, rows, cols): ED myocardium per slice, in 'slices' order",
             "material_points": "float64 (N, 3): ED positions, mm",
             "trajectories": "float32 (P, N, 3): positions at each phase, mm",
             "levels": "(K,): fractions of the length from the apex",
             **{k: "(P, K)" for k in _CURVES},
-            "base_descent_mm": "(P,): base-plane displacement toward the apex, mm"},
+            "base_descent_mm": "(P,): base-plane displacement toward the apex, mm",
+            "strain": "float32 (P, N, 3): true Green-Lagrange E_rr, E_cc, E_ll of the material points",
+            "segments": "int8 (N,): AHA segment 1..17 of the material points (truth frame)",
+            "contraction": "float32 (N,): prescribed share of normal motion (1 normal, 0 akinetic, <0 dyskinetic)"},
     }
     for k, v in (extra or {}).items():
         if k in meta:
@@ -132,6 +156,8 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
     np.savez_compressed(
         npath, ed_masks=np.stack(masks), material_points=X, trajectories=traj, levels=lv,
         base_descent_mm=m.length - m.level_curves([1.0])["height_mm"][:, 0],
+        strain=strain, segments=truth_segments(m, X, tf).astype(np.int8),
+        contraction=m.contraction(X).astype(np.float32),
         **{k: curves[k] for k in _CURVES})
     return jpath, npath
 
@@ -168,7 +194,9 @@ def load_groundtruth(path) -> GroundTruth:
     curves = {k: arrays[k] for k in (*_CURVES, "levels", "base_descent_mm")}
     return GroundTruth(meta=meta, ed_masks=masks, geometries=geoms,
                        material_points=arrays["material_points"],
-                       trajectories=arrays["trajectories"], curves=curves)
+                       trajectories=arrays["trajectories"], curves=curves,
+                       strain=arrays.get("strain"), segments=arrays.get("segments"),
+                       contraction=arrays.get("contraction"))
 
 
 def motion_from_groundtruth(path):

@@ -15,16 +15,21 @@ With the activation ``s(t) ∈ [0, 1]`` (0 at ED, 1 at ES; raised-cosine rise an
 
 * twist:        ``θ' = θ + s φ_ES(u)``, ``φ_ES`` a monotone PCHIP through
   ``(0, φ_apex), (u_0, 0), (1, φ_base)``;
-* long axis:    ``z' = Z(z, θ) = z − s ε (z − k L a(θ) B(u))``, ``ε = base_descent / L``: the apex
-  is fixed and the base descends ``ε L``; in an infarct ``a(θ) b(u)`` is a C² segment
-  window, ``B(u) = ∫_0^u b``, and ``k`` the lost contractility, so the segment stops shortening;
+* long axis:    ``z' = Z(z, θ) = z − s ε (z − L Σ_i k_i a_i(θ) B_i(u))``, ``ε = base_descent / L``:
+  the apex is fixed and the base descends ``ε L``; each abnormal region i (the infarct preset's
+  segment, ``motion.regions``; :mod:`mlv_ros.core.sim.regional`) has a C² window
+  ``a_i(θ) b_i(u)``, ``B_i(u) = ∫_0^u b_i`` and ``k_i = 1 − contraction`` the lost share of the
+  normal motion: k = 1 stops the region shortening (akinetic), 0 < k < 1 reduces it
+  (hypokinetic), k > 1 reverses it (dyskinetic: the region lengthens);
 * radial:       ``r'² = ρ² Q(z) + (r² − Q(z)) / J₂``, with ``Q`` the squared reference
-  endocardial radius, ``ρ = 1 − s (1 − ρ_ES)(1 − k a b)`` the endocardial radius ratio and
+  endocardial radius, ``ρ = 1 − s (1 − ρ_ES)(1 − Σ k a b)`` the endocardial radius ratio (k > 1:
+  the endocardium moves outward, the wall thins: a bulge) and
   ``J₂ = ∂(θ', z')/∂(θ, z) = Z_z − φ' Z_θ``.
 
 In the volume coordinates ``(r²/2, θ, z)`` the Jacobian is triangular with determinant
 ``(1/J₂)·J₂ = 1``: the map is exactly isochoric (det F = 1) for any smooth ``Q, ρ, φ, Z``, and
-every step inverts in closed form except ``z`` in an infarct (a few Newton steps).
+every step inverts in closed form except ``z`` with abnormal regions (a few Newton steps).
+Regions do not overlap, so ``Σ k a b ≤ max k ≤ 2`` and ``J₂ ≥ 1 − ε − s²ε k |φ'_u a' B| > 0``.
 The geometry (which ED points are myocardium) is independent of the map; material outside the
 myocardium moves with the same formula, but the imaging treats the background as static.
 
@@ -32,7 +37,7 @@ References
 ----------
 Paper §3.2 and Fig. 9–16 (shortening, radial contraction, apex CCW / base CW twist); method
 notes "Coordinates and conventions" (twist sign, ≈45 % zero-rotation level); AHA 17-segment
-model (Cerqueira et al., Circulation 2002) for the infarct segment.
+model (Cerqueira et al., Circulation 2002) for the infarct segment and the AHA angles of regions.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from mlv_ros.core.sim.presets import load_preset
+from mlv_ros.core.sim.regional import check_regions
 
 # AHA segment centres in the local angle θ (deg, CCW from apex, 0 = mid-septum): basal and mid
 # rings 60° wide in the order anterior, anteroseptal, inferoseptal, inferior, inferolateral,
@@ -75,6 +81,31 @@ def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
     if s <= 16:
         return _RING4[s - 13], 45.0, *AHA_LEVELS["apical"]
     return 0.0, 180.0, *AHA_LEVELS["apex"]
+
+
+def infarct_region(infarct: dict) -> dict:
+    """A preset's ``motion.infarct`` (one AHA segment) as a region of
+    :mod:`mlv_ros.core.sim.regional` (for the ground truth; its motion is the original one).
+
+    Parameters
+    ----------
+    infarct : dict
+        ``aha_segment``, optional ``residual_motion``, ``blend_deg``, ``blend_fraction``.
+
+    Returns
+    -------
+    dict
+        ``kind`` (akinetic for residual motion ≤ 0.1, else hypokinetic), ``levels``,
+        ``centre_deg`` (in [0, 360)), ``width_deg``, ``contraction`` (the residual motion),
+        ``blend_deg``, ``blend_fraction``, ``aha_segment``.
+    """
+    centre, half, u_lo, u_hi = aha_segment_window(int(infarct["aha_segment"]))
+    c = float(infarct.get("residual_motion", 0.0))
+    return {"kind": "akinetic" if c <= 0.1 else "hypokinetic", "levels": [u_lo, u_hi],
+            "centre_deg": centre % 360.0, "width_deg": 2.0 * half, "contraction": c,
+            "blend_deg": float(infarct.get("blend_deg", 20.0)),
+            "blend_fraction": float(infarct.get("blend_fraction", 0.06)),
+            "aha_segment": int(infarct["aha_segment"])}
 
 
 def _smoothstep(x):
@@ -209,19 +240,31 @@ class LVMotion:
             [0.0, u0, 1.0], np.radians([m["twist_apex_deg"], 0.0, m["twist_base_deg"]]))
         self._dtwist = self._twist.derivative()
 
+        # Abnormal regions (mlv_ros.core.sim.regional): the preset's infarct first, then
+        # motion.regions. Each is (k, centre, half, blend_theta, blend_u, (u_lo, u_hi)) with
+        # k = 1 − contraction the lost share of the normal motion.
+        self._regions: list[tuple] = []
+        self.regions: list[dict] = []
+        self.infarct_segment = None
         inf = m.get("infarct")
         if inf:
             centre, half, u_lo, u_hi = aha_segment_window(int(inf["aha_segment"]))
-            self.inf_k = 1.0 - float(inf.get("residual_motion", 0.0))
-            self.inf_centre = np.radians(centre)
-            self.inf_half = np.radians(half)
-            self.inf_blend_theta = np.radians(float(inf.get("blend_deg", 20.0)))
-            self.inf_blend_u = float(inf.get("blend_fraction", 0.06))
-            self.inf_u = (u_lo, u_hi)
+            k = 1.0 - float(inf.get("residual_motion", 0.0))
+            self._regions.append((k, np.radians(centre), np.radians(half),
+                                  np.radians(float(inf.get("blend_deg", 20.0))),
+                                  float(inf.get("blend_fraction", 0.06)), (u_lo, u_hi)))
+            self.regions.append(infarct_region(inf))
             self.infarct_segment = int(inf["aha_segment"])
-        else:
-            self.inf_k = 0.0
-            self.infarct_segment = None
+        for r in check_regions(m.get("regions") or [], g, others=self.regions, where="motion.regions"):
+            w = r["blend_fraction"]
+            lo, hi = r["levels"]
+            # An open end takes the apex tip / the base plane in fully (b = 1 there).
+            u_lo = -0.5 * w if lo == 0.0 else lo
+            u_hi = 1.0 + 0.5 * w if hi == 1.0 else hi
+            self._regions.append((1.0 - r["contraction"], np.radians(r["centre_deg"]),
+                                  np.radians(0.5 * r["width_deg"]), np.radians(r["blend_deg"]),
+                                  w, (u_lo, u_hi)))
+            self.regions.append(r)
         # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
         self._q_soft = 0.02 * (self.endo_a ** 2 if self.kind == "prolate" else self.r_in ** 2)
 
@@ -343,20 +386,16 @@ class LVMotion:
         q = np.maximum(self.endo_a ** 2 * (1.0 - d * d), 0.0)
         return q * _smoothstep(q / self._q_soft)[0]
 
-    def _window(self, theta, u):
-        """Infarct window a(θ), a'(θ), b(u), B(u) (all zeros without an infarct)."""
-        if not self.inf_k:
-            z = np.zeros_like(u)
-            return z, z, z, z
-        d = np.angle(np.exp(1j * (theta - self.inf_centre)))  # wrapped to (−π, π]
-        bt = self.inf_blend_theta
-        a, da = _smoothstep((self.inf_half + 0.5 * bt - np.abs(d)) / bt)
-        if self.inf_half >= np.pi:  # apex cap: every angle
+    @staticmethod
+    def _window(region, theta, u):
+        """Window a(θ), a'(θ), b(u), B(u) of one region (C² in θ and u; B = ∫_0^u b)."""
+        _, centre, half, bt, w, (lo, hi) = region
+        d = np.angle(np.exp(1j * (theta - centre)))  # wrapped to (−π, π]
+        a, da = _smoothstep((half + 0.5 * bt - np.abs(d)) / bt)
+        if half >= np.pi:  # a whole ring (the apex cap): every angle
             a, da = np.ones_like(theta), np.zeros_like(theta)
         else:
             da = -np.sign(d) * da / bt
-        w = self.inf_blend_u
-        lo, hi = self.inf_u
         x0 = (u - lo + 0.5 * w) / w
         x1 = (u - hi + 0.5 * w) / w
         b = _smoothstep(x0)[0] - _smoothstep(x1)[0]
@@ -365,21 +404,53 @@ class LVMotion:
         return a, da, b, B
 
     def _components(self, theta, z, s):
-        """Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s."""
+        """Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s.
+
+        Regions enter through sums over their windows (they do not overlap, so at most one
+        term is non-zero anywhere); each term keeps the single-infarct expression's operation
+        order, so the infarct preset's motion is bit-identical to its one-region original.
+        """
         L = self.length
         u = z / L
         uc = np.clip(u, 0.0, 1.0)
         inside = (u > 0.0) & (u < 1.0)
         phi = s * self._twist(uc)
         dphi = np.where(inside, s * self._dtwist(uc) / L, 0.0)
-        a, da, b, B = self._window(theta, u)
-        k = self.inf_k
-        Z = z - s * self.eps * (z - k * L * a * B)
-        Zz = 1.0 - s * self.eps * (1.0 - k * a * b)
-        Zt = s * self.eps * k * L * da * B
+        zero = np.zeros_like(u)
+        kab, kLaB, zt = zero, zero, zero
+        for reg in self._regions:
+            k = reg[0]
+            a, da, b, B = self._window(reg, theta, u)
+            kab = kab + k * a * b
+            kLaB = kLaB + k * L * a * B
+            zt = zt + s * self.eps * k * L * da * B
+        Z = z - s * self.eps * (z - kLaB)
+        Zz = 1.0 - s * self.eps * (1.0 - kab)
+        Zt = zt
         J2 = Zz - dphi * Zt
-        rho = 1.0 - s * (1.0 - self.rho_es) * (1.0 - k * a * b)
+        rho = 1.0 - s * (1.0 - self.rho_es) * (1.0 - kab)
         return phi, dphi, Z, Zz, Zt, J2, rho
+
+    def contraction(self, X_ed: np.ndarray) -> np.ndarray:
+        """Prescribed share of the normal systolic motion kept at ED points.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3)
+            ED positions, mm.
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            ``1 − Σ k a b``: 1 normal, 0 akinetic, below 0 dyskinetic (smooth across blends).
+        """
+        _, th, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
+        u = z / self.length
+        c = np.ones_like(u)
+        for reg in self._regions:
+            a, _, b, _ = self._window(reg, th, u)
+            c = c - reg[0] * a * b
+        return c
 
     # ----------------------------------------------------------------- public map
     def _s(self, phase):
@@ -422,7 +493,7 @@ class LVMotion:
         phase : int or float
             Phase index.
         tol : float
-            Newton tolerance on the height z, mm (only an infarct needs iterations).
+            Newton tolerance on the height z, mm (only abnormal regions need iterations).
         max_iter : int
             Newton iteration cap.
 
@@ -438,7 +509,7 @@ class LVMotion:
         rp, thp, zp = self.frame.to_local(flat)
         # Normal hearts: Z = (1 − sε) z, so the first Newton step is exact.
         z = zp / (1.0 - s * self.eps)
-        for _ in range(max_iter if self.inf_k else 1):
+        for _ in range(max_iter if self._regions else 1):
             th = thp - s * self._twist(np.clip(z / self.length, 0.0, 1.0))
             _, _, Z, _, _, J2, _ = self._components(th, z, s)
             step = (Z - zp) / J2

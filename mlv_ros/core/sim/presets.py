@@ -116,5 +116,8 @@ def validate_preset(preset: dict, source: str = "<preset>") -> None:
         raise ValueError(f"{source}: motion.endo_radius_ratio_es must be in (0, 1.5]")
     if not 0 < m["twist_zero_level"] < 1:
         raise ValueError(f"{source}: motion.twist_zero_level must be in (0, 1)")
+    if m.get("regions") is not None:
+        from mlv_ros.core.sim.regional import check_regions  # (overlap with an infarct: LVMotion)
+        check_regions(m["regions"], g, where=f"{source}: motion.regions")
     if int(im["sa_slices"]) < 2 or int(im["subplanes"]) < 1 or int(im["size"]) < 16:
         raise ValueError(f"{source}: imaging needs sa_slices >= 2, subplanes >= 1, size >= 16")

@@ -6,10 +6,13 @@ the matrix, the slices, timing, contrast, the SA stack's order and normal sign, 
 files encode it all (:data:`ITEMS` lists them with units and ranges; README "Random
 protocols" has the table).
 
+Items are scalars or lists, except ``abnormal_regions``: a list of mappings
+(:mod:`mlv_ros.core.sim.regional`).
+
 * :func:`draw_protocol` draws every item from its documented range. Each item has its own
   random stream, keyed by ``(seed, item name)``, so fixing one item leaves every other item's
   draw unchanged, except where a range depends on another item (the matrix and the tag period on
-  the pixel spacing, the SA stack on the shape, the background intensity on its kind, the LA
+  the pixel spacing, the SA stack and the abnormal regions on the shape, the background intensity on its kind, the LA
   angles and flips on the plane count, the intercept on the rescale).
 * :func:`complete_protocol` fills a partial protocol from the shape's preset (today's fixed
   protocol), so ``{}`` means the ``normal`` preset exactly.
@@ -37,6 +40,8 @@ import numpy as np
 import yaml
 
 from mlv_ros.core.sim.presets import load_preset
+from mlv_ros.core.sim.regional import (REGION_KINDS, apex_tip_level, check_regions,
+                                       normalise_region)
 
 SHAPES = ("normal", "hypertrophic", "dilated", "infarct")
 #: Apex → base of a human heart points right-posterior-superior (LPS); the DICOM reader's prior.
@@ -160,6 +165,25 @@ def _angle_list(v):
     return [_float(0.0, 180.0, hi_open=True)(x) for x in v]
 
 
+class _Why(ValueError):
+    """A check failure whose message is worth showing (the item's error message quotes it)."""
+
+
+#: At most this many abnormal regions in a protocol.
+MAX_REGIONS = 3
+
+
+def _regions(v):
+    if not isinstance(v, (list, tuple)):
+        raise _Why("not a list of regions")
+    if len(v) > MAX_REGIONS:
+        raise _Why(f"{len(v)} regions, at most {MAX_REGIONS}")
+    try:
+        return [normalise_region(r, f"region {i}") for i, r in enumerate(v)]
+    except ValueError as exc:
+        raise _Why(str(exc)) from None
+
+
 def _bool_list(v):
     if not isinstance(v, (list, tuple, np.ndarray)):
         raise ValueError("not a list")
@@ -181,6 +205,17 @@ _ITEMS = [
          "CCW seen from the apex, deg", "0 ≤ x < 360", "0 ≤ x < 360", _float(0.0, 360.0, True)),
     Item("base_centre_mm", "centre of the ED base plane, LPS mm", "each coordinate −50 … 50",
          "3 numbers, each −500 … 500", _vector(3, -500.0, 500.0)),
+    Item("abnormal_regions", "regional wall-motion abnormalities (mlv_ros/core/sim/regional.py): "
+         "kind, levels [lo, hi] (0 apex … 1 base), centre_deg (CCW from the septum seen from the "
+         "apex), width_deg (360: a ring), contraction (share of normal motion kept)",
+         "none (40 %), 1 (40 %) or 2 (20 %) regions, kind uniform; a ring from the apex to level "
+         "0.15 … 0.4 (a quarter), else a 60 … 180° sector over 0.2 … 0.5 of the length above the "
+         "apex tip; contraction hypokinetic 0.3 … 0.6, akinetic 0, dyskinetic −0.5 … −0.2; apart",
+         f"a list of ≤ {MAX_REGIONS} regions: kind hypokinetic | akinetic | dyskinetic, levels "
+         "0 ≤ lo < hi ≤ 1 (≥ 0.05 apart), centre_deg 0 … 360, width_deg 30 … 360, contraction "
+         "hypokinetic 0.1 … 0.9, akinetic −0.1 … 0.1, dyskinetic −1 … −0.1, optional blend_deg "
+         "5 … 60 and blend_fraction 0.02 … 0.2; sectors above the apex tip; regions apart "
+         "(blends included, and from the infarct shape's own segment)", _regions),
     # tag grid
     Item("tag_angle_deg", "in-plane grid rotation from the image rows, deg", "0 ≤ x < 180",
          "0 ≤ x < 180", _float(0.0, 180.0, True)),
@@ -296,6 +331,8 @@ def check_items(values: dict) -> dict:
         if name in values:
             try:
                 out[name] = it.check(values[name])
+            except _Why as exc:
+                raise _bad(name, values[name], str(exc)) from None
             except (ValueError, TypeError):
                 raise _bad(name, values[name]) from None
     return out
@@ -304,14 +341,18 @@ def check_items(values: dict) -> dict:
 # --------------------------------------------------------------------------- shapes
 @lru_cache(maxsize=None)
 def _shape(shape: str) -> dict:
-    """Preset facts a protocol needs: length, base descent, the preset's own protocol values."""
+    """Preset facts a protocol needs: length, base descent, the preset's own protocol values and
+    abnormal regions."""
     p = load_preset(shape)
     g, m, o, im = p["geometry"], p["motion"], p["orientation"], p["imaging"]
     L = float(g["length_mm"])
     n = int(im["sa_slices"])
     b, a = float(im["sa_base_gap_mm"]), float(im["sa_apex_gap_mm"])
+    from mlv_ros.core.sim.motion import infarct_region  # motion imports this module's neighbours
+
+    regions = [infarct_region(m["infarct"])] if m.get("infarct") else []
     return {"length": L, "descent": float(m["base_descent_mm"]), "n": n, "base_gap": b,
-            "apex_gap": a, "preset": p}
+            "apex_gap": a, "preset": p, "regions": regions}
 
 
 def _sa_room(shape: str) -> tuple[float, float]:
@@ -342,7 +383,7 @@ def default_protocol(shape: str = "normal") -> dict:
     n_la = int(im["la_planes"])
     return {
         "shape": shape, "long_axis": [float(x) for x in o["long_axis"]], "septum_deg": 0.0,
-        "base_centre_mm": [float(x) for x in o["base_centre_mm"]],
+        "base_centre_mm": [float(x) for x in o["base_centre_mm"]], "abnormal_regions": [],
         "tag_angle_deg": float(im.get("tag_angle_deg", 0.0)),
         "tag_spacing_mm": float(im["tag_spacing_mm"]),
         "pixel_spacing_mm": float(im["pixel_spacing_mm"]), "size": int(im["size"]),
@@ -412,6 +453,11 @@ def validate_protocol(protocol: dict) -> dict:
             f"{p['sa_base_gap_mm']:g} + (sa_slices − 1) × sa_spacing_mm = "
             f"{p['sa_base_gap_mm'] + stack:g} mm; "
             f"allowed: sa_base_gap_mm + (sa_slices − 1) × sa_spacing_mm ≤ {L:g}")
+    try:
+        check_regions(p["abnormal_regions"], _shape(p["shape"])["preset"]["geometry"],
+                      others=_shape(p["shape"])["regions"], where="region")
+    except ValueError as exc:
+        raise _bad("abnormal_regions", p["abnormal_regions"], f"{exc}; shape = {p['shape']}") from None
     if len(p["la_angles_deg"]) != p["la_planes"]:
         raise _bad("la_angles_deg", p["la_angles_deg"], f"la_planes = {p['la_planes']}")
     if len(p["la_flip"]) != p["la_planes"]:
@@ -516,6 +562,35 @@ def _draw_la_angles(r: np.random.Generator, n: int) -> list[float]:
     return [float(round(a % 180.0, 2) % 180.0) for a in angles]
 
 
+def _draw_regions(r: np.random.Generator, shape: str) -> list[dict]:
+    """0–2 non-overlapping abnormal regions (ranges in the ``abnormal_regions`` item)."""
+    s = _shape(shape)
+    geometry = s["preset"]["geometry"]
+    low = math.ceil((apex_tip_level(geometry) + 0.1) * 100.0) / 100.0  # + the default blend
+    out: list[dict] = []
+    for _ in range(int(r.choice(3, p=[0.4, 0.4, 0.2]))):
+        for _attempt in range(50):  # a few redraws where a second region would overlap
+            kind = REGION_KINDS[int(r.integers(len(REGION_KINDS)))]
+            c = {"hypokinetic": _uniform(r, 0.3, 0.6, 2), "akinetic": 0.0,
+                 "dyskinetic": _uniform(r, -0.5, -0.2, 2)}[kind]
+            if r.random() < 0.25:
+                reg = {"kind": kind, "levels": [0.0, _uniform(r, 0.15, 0.4, 2)], "centre_deg": 0.0,
+                       "width_deg": 360.0, "contraction": c}
+            else:
+                length = _uniform(r, 0.2, 0.5, 2)
+                lo = _uniform(r, low, max(low, 1.0 - length), 2)
+                hi = min(round(lo + length, 2), 1.0)
+                reg = {"kind": kind, "levels": [lo, 1.0 if hi >= 0.95 else hi],
+                       "centre_deg": _uniform(r, 0.0, 360.0, 1) % 360.0,
+                       "width_deg": _uniform(r, 60.0, 180.0, 1), "contraction": c}
+            try:
+                out.append(check_regions([reg], geometry, others=[*s["regions"], *out])[0])
+                break
+            except ValueError:
+                continue
+    return out
+
+
 def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     """Draw a complete acquisition protocol.
 
@@ -564,6 +639,7 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     pick("long_axis", _draw_axis)
     pick("septum_deg", lambda r: _uniform(r, 0.0, 360.0, 2) % 360.0)
     pick("base_centre_mm", lambda r: [_uniform(r, -50.0, 50.0, 1) for _ in range(3)])
+    pick("abnormal_regions", lambda r: _draw_regions(r, p["shape"]))
     pick("tag_angle_deg", lambda r: _uniform(r, 0.0, 180.0, 2) % 180.0)
     pick("pixel_spacing_mm", lambda r: _uniform(r, 1.0, 2.0, 3))
     dx = p["pixel_spacing_mm"]
@@ -680,6 +756,8 @@ def protocol_preset(protocol: dict) -> dict:
         o["septum_hint"] = _septum_hint(o["septum_hint"], p["long_axis"], p["septum_deg"])
     m["num_phases"] = p["num_phases"]
     m["cycle_duration_s"] = p["cycle_duration_s"]
+    if p["abnormal_regions"]:
+        m["regions"] = [dict(r) for r in p["abnormal_regions"]]
     stack = (p["sa_slices"] - 1) * p["sa_spacing_mm"]
     apex_gap = s["length"] - p["sa_base_gap_mm"] - stack
     if abs(apex_gap - s["apex_gap"]) < 1e-9:
@@ -787,7 +865,8 @@ def save_protocol(protocol: dict, path, header: str = "") -> Path:
     lines = [f"# {h}" if h else "#" for h in header.splitlines()]
     for name, it in ITEMS.items():
         if name in protocol:
-            value = yaml.safe_dump([protocol[name]], default_flow_style=True, width=10_000).strip()
+            value = yaml.safe_dump([protocol[name]], default_flow_style=True, width=10_000,
+                                   sort_keys=False).strip()
             lines.append(f"{name}: {value[1:-1]}  # {it.doc}")  # the value without the list's [ ]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
