@@ -61,6 +61,13 @@ def test_graph_yaml_applies_in_any_namespace_and_statuses_are_named_as_diagnosti
             assert (src.status.name, src.status.hardware_id) == ("frame_source: input", "none")
         finally:
             src.destroy_node()
+    # `-p` on the command line still wins over the file, in any namespace (graph.yaml keeps its
+    # `/**` key last: rcl files `-p` under `/**` too, and node keys after it would win)
+    cli = dict(params, cli_args=params["cli_args"] + ["-p", "wait_for_subscribers:=2", "-p", "max_pixels:=4096"])
+    for ns in ("/", "/study2"):
+        src = FrameSource(context=ros_context, namespace=ns, **cli)
+        assert (src.wait_for_subscribers, src.max_pixels) == (2, 4096)
+        src.destroy_node()
     # diagnostic_updater.use_fqn (mlv-ros run --namespace sets it): the node's full name
     fqn = dict(params, parameter_overrides=params["parameter_overrides"] + [
         Parameter("diagnostic_updater.use_fqn", value=True)])
@@ -157,3 +164,8 @@ def test_a_namespaced_recording_replays_in_the_player_namespace(two_runs, ros_co
     assert [p.topic_name for p in replay.pubs.values()] == ["/again" + qos.FRAMES]
     assert spin_until(executor, lambda: replay.done and len(got) == summary["frames_published"], 20), len(got)
     assert not elsewhere
+    # A graph topic may also be asked for by its root name.
+    by_root = Replay(context=ros_context, parameter_overrides=[
+        Parameter("path", value=str(mcap)), Parameter("topics", value=[qos.MOTION])])
+    assert {t: p.topic_name for t, p in by_root.pubs.items()} == {"/study_a" + qos.MOTION: qos.MOTION}
+    by_root.destroy_node()

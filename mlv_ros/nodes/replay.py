@@ -55,7 +55,7 @@ class Replay(GraphNode):
         super().__init__("replay", **node_kwargs)
         self.path = self.param("path", "", "MCAP file (or rosbag2 directory) to play")
         self.rate = self.param("rate", 0.0, "time scale of the original timing; 0 = as fast as possible", min_value=0.0, max_value=1000.0)
-        only = self.param("topics", [""], "topics to play (empty = all)")
+        only = self.param("topics", [""], "topics to play, by recorded or (graph topics) root name; empty = all")
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers (on any topic) to wait for", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop once everything is played and acknowledged")
@@ -71,14 +71,16 @@ class Replay(GraphNode):
             raise ValueError("parameter path is required: the MCAP file to play")
         wanted = [t for t in only if t]
         recorded = bagio.bag_topics(self.path)
-        missing = [t for t in wanted if t not in recorded]
+        # A graph topic may be asked for by its recorded name or its root name (/lv/motion).
+        roots = {topic: (qos.split_graph_topic(topic) or (None, None))[1] for topic in recorded}
+        missing = [t for t in wanted if t not in recorded and t not in roots.values()]
         if missing:
             self.report(WARN, "topics not in the recording", topics=",".join(missing))
         self.pubs = {}  # recorded topic → its publisher
         self.classes = {}
         namespaces = {}  # namespace the graph's topics were recorded in → one of them
         for topic, info in recorded.items():
-            if wanted and topic not in wanted:
+            if wanted and topic not in wanted and roots[topic] not in wanted:
                 continue
             split = qos.split_graph_topic(topic)
             if split is not None:
