@@ -628,16 +628,6 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
     return topic if wanted is None or topic in wanted else None
 
 
-def graph_namespace(path) -> str | None:
-    """The namespace a recording holds the graph's topics in (``/`` for the root; None when it
-    has none), from its channels."""
-    for topic in bag_topics(path):
-        split = qos.split_graph_topic(topic)
-        if split is not None:
-            return split[0]
-    return None
-
-
 # Fields appended to our messages after recordings were made with the older definition
 # (type name → (name, CDR kind, default) in the order they were appended): such a recording
 # stays readable. A recording lacks some last part of each tuple (the fields appended after it).

@@ -87,7 +87,8 @@ def graph_settings(source: str = "phantom", path: str = "", output_dir: str = ""
     if source not in SOURCES:
         raise ValueError(f"source:={source} is not one of {', '.join(SOURCES)}: e.g. source:=dicom path:=/data/study")
     if source != "phantom" and not path:
-        raise ValueError(f"source:={source} needs path:= (the {'DICOM directory' if source == 'dicom' else 'recording'})")
+        what = "DICOM directory" if source == "dicom" else "recording"
+        raise ValueError(f"source:={source} needs path:= (the {what})")
     if namespace_error(namespace):
         raise ValueError(f"namespace:={namespace_error(namespace)}")
     ns = full_namespace(namespace)

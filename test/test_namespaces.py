@@ -85,7 +85,8 @@ def test_domain_check_is_namespace_aware(ros_context, executor, tmp_path, capsys
     domain = int(os.environ["ROS_DOMAIN_ID"])
     # (The refusal first: a probe right after another probe of this process was destroyed may
     # not be discovered within the second it looks.)
-    rc = cli.main(["run", "--phantom", "normal", "--out", str(tmp_path / "run"), "--namespace", "/busy/", "--timeout", "20"])
+    rc = cli.main(["run", "--phantom", "normal", "--out", str(tmp_path / "run"), "--namespace", "/busy/",
+                   "--timeout", "20"])
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1, lines
     assert f"ROS domain {domain} is busy" in lines[0] and "namespace /busy " in lines[0], lines[0]

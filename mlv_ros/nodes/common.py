@@ -87,7 +87,8 @@ class GraphNode(Node):
         # diagnostic_updater.use_fqn is true (two graphs in two namespaces share /diagnostics).
         use_fqn = self.param(USE_FQN, False, "name diagnostic statuses by the node's fully qualified name "
                              "(as diagnostic_updater's parameter of that name)")
-        self.diagnostic_name = f"{self.get_fully_qualified_name() if use_fqn else self.get_name()}: {self.DIAGNOSTIC_TASK}"
+        node = self.get_fully_qualified_name() if use_fqn else self.get_name()
+        self.diagnostic_name = f"{node}: {self.DIAGNOSTIC_TASK}"
         # Like diagnostic_updater: the node's current status is republished every second, so a
         # monitor that joins late still sees it; events are also published the moment they occur.
         self._status = self.diagnostic_status(OK, "starting")
@@ -206,7 +207,8 @@ class GraphNode(Node):
         first = study_id not in self.other_studies
         self.other_studies[study_id] += 1
         self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": study_id, **where}, log=first)
+                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": study_id, **where},
+                     log=first)
         return True
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
@@ -215,7 +217,8 @@ class GraphNode(Node):
         state's line); the caller drops it."""
         self.other_studies[other_study] += 1
         self._report(ERROR, "point cloud of another study ignored with its model state",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": other_study, "stamp": stamp},
+                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": other_study,
+                      "stamp": stamp},
                      log=False)
 
     def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:

@@ -54,9 +54,12 @@ class MeshlessSolver(GraphNode):
         self.wait_timeout_s = self.param("wait_timeout_s", 10.0, "then publish to those present, with a warning", min_value=0.0, max_value=3600.0)
         self._waiting_since = None
         self.motion_pub = self.create_publisher(PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION))
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.MODEL_STATE), qos.topic_qos(qos.MODEL_STATE))
-        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
-        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_state, qos.subscription_qos(qos.REGISTERED_STATE))
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.MODEL_STATE),
+                                               qos.topic_qos(qos.MODEL_STATE))
+        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_cloud,
+                                 qos.subscription_qos(qos.REGISTERED_CLOUD))
+        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_state,
+                                 qos.subscription_qos(qos.REGISTERED_STATE))
         self.create_subscription(TagPoints, qos.relative(qos.TAG_POINTS), self._on_points,
                                  qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
         self.assembler = PhaseAssembler()

@@ -62,7 +62,8 @@ class TagDetector(GraphNode):
         self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
                                    "gets the frames already sent; false for a publisher without history")
         self.pub = self.create_publisher(TagPoints, qos.relative(qos.TAG_POINTS), qos.topic_qos(qos.TAG_POINTS))
-        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
+        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
+                                 qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
         self.trackers: dict = {}   # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
