@@ -23,7 +23,7 @@ from mlv_ros.nodes.tag_detector import TagDetector
 from mlv_ros.resources import config_file
 from mlv_ros.tools.run import graph_nodes_on, node_parameters, phantom_accuracy
 
-# Two studies of different hearts, small enough to run side by side in about 20 s on 2 cores
+# Two studies of different hearts, small enough to run side by side in 27-34 s on 2 busy cores
 # (noise-free 96² images, 8 phases: ES median error about 1 mm alone).
 STUDIES = {"study_a": "normal", "study_b": "dilated"}
 SMALL = ["--size", "96", "--phases", "8", "--particles", "400", "--snr", "0", "--quiet"]
