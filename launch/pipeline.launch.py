@@ -1,28 +1,54 @@
 """The mlv_ros graph, one process per node, for users with a full ROS 2 Jazzy install:
 
-    ros2 launch mlv_ros pipeline.launch.py [params_file:=/path/to/graph.yaml]
+    ros2 launch mlv_ros pipeline.launch.py                                  # a phantom
+    ros2 launch mlv_ros pipeline.launch.py source:=dicom path:=/data/study  # a DICOM study
+    ros2 launch mlv_ros pipeline.launch.py source:=bag path:=runs/old       # the frames of a recording
+        [output_dir:=runs/mine] [namespace:=study2] [params_file:=/path/to/graph.yaml]
 
-Without ROS's launch tools (e.g. a PyPI-only install) run the same graph in one process with
-``mlv-ros run``.
+Each launch records to a fresh ``runs/<YYYYmmdd-HHMMSS>/run.mcap`` under the directory it was
+started from unless ``output_dir`` says where (what the arguments become:
+:mod:`mlv_ros.launch_settings`). Without ROS's launch tools (e.g. a PyPI-only install) run the
+same graph in one process with ``mlv-ros run``.
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+from mlv_ros.launch_settings import graph_settings
 
 NODES = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
 
 
+def launch_setup(context, *args, **kwargs):
+    """The graph's nodes, for the arguments as given at launch time."""
+    arg = {name: LaunchConfiguration(name).perform(context)
+           for name in ("source", "path", "output_dir", "namespace", "params_file")}
+    settings = graph_settings(arg["source"], arg["path"], arg["output_dir"], arg["namespace"])
+    print(f"[mlv_ros] recording to {settings.output_dir / 'run.mcap'}"
+          + (f" (namespace {settings.namespace})" if settings.namespace else ""))
+    return [Node(package="mlv_ros", executable=name, name=name, namespace=settings.namespace or None,
+                 parameters=[arg["params_file"], settings.overrides.get(name, {})], output="screen")
+            for name in NODES]
+
+
 def generate_launch_description():
     default_params = os.path.join(get_package_share_directory("mlv_ros"), "config", "graph.yaml")
-    params = LaunchConfiguration("params_file")
-    return LaunchDescription(
-        [DeclareLaunchArgument("params_file", default_value=default_params,
-                               description="parameters of the whole graph")]
-        + [Node(package="mlv_ros", executable=name, name=name, parameters=[params], output="screen")
-           for name in NODES]
-    )
+    return LaunchDescription([
+        DeclareLaunchArgument("source", default_value="phantom", choices=["phantom", "dicom", "bag"],
+                              description="where frames come from: a simulated phantom, a DICOM directory, "
+                                          "or the frames of a recording"),
+        DeclareLaunchArgument("path", default_value="",
+                              description="the DICOM directory (source:=dicom) or recording (source:=bag)"),
+        DeclareLaunchArgument("output_dir", default_value="",
+                              description="run directory for run.mcap; empty: a fresh runs/<YYYYmmdd-HHMMSS>"),
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="ROS namespace of every node and topic (e.g. study2); empty: the root"),
+        DeclareLaunchArgument("params_file", default_value=default_params,
+                              description="parameters of the whole graph (keys /**/<node>, as config/graph.yaml)"),
+        OpaqueFunction(function=launch_setup),
+    ])

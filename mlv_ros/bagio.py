@@ -42,7 +42,7 @@ import yaml
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from mlv_ros import __version__
+from mlv_ros import __version__, qos
 
 ROS_DISTRO = "jazzy"
 _PRIMITIVES = {
@@ -555,10 +555,26 @@ class BagMessage:
     missing: tuple | None = ()
 
 
-def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
+def read_bag(path, topics: list[str] | None = None, any_namespace: bool = False) -> Iterator[BagMessage]:
     """Messages of an MCAP recording in log-time order (CDR bytes; deserialise with rclpy).
 
-    Raises ``ValueError`` for a file that is not MCAP or has no ``cdr`` channels.
+    Parameters
+    ----------
+    path : str or Path
+        The MCAP file, or a rosbag2 directory holding one.
+    topics : list of str, optional
+        Only these topics (default: all).
+    any_namespace : bool
+        ``topics`` are graph topics by their root names (:mod:`mlv_ros.qos`), read in whatever
+        namespace the recording holds them (a run under ``--namespace study2`` records
+        ``/study2/mlv/frames``); each message's ``topic`` is then the root name. Other topics
+        (``/diagnostics``) keep their names.
+
+    Raises
+    ------
+    ValueError
+        A file that is not MCAP; with ``any_namespace``, a recording holding graph topics of
+        more than one namespace (which one is meant cannot be told).
     """
     path = Path(path)
     if path.is_dir():
@@ -567,18 +583,49 @@ def read_bag(path, topics: list[str] | None = None) -> Iterator[BagMessage]:
         try:
             reader = make_reader(fh)
             missing: dict = {}  # schema id → fields that schema lacks
-            for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+            names: dict = {}  # channel id → the name to give its messages (None: not wanted)
+            namespaces: dict = {}  # namespace → a topic recorded in it (any_namespace)
+            for schema, channel, message in reader.iter_messages(topics=None if any_namespace else topics,
+                                                                   log_time_order=True):
                 if channel.message_encoding != "cdr":
                     continue
+                if any_namespace:
+                    if channel.id not in names:
+                        names[channel.id] = _root_name(channel.topic, topics, namespaces, path)
+                    topic = names[channel.id]
+                    if topic is None:
+                        continue
+                else:
+                    topic = channel.topic
                 name = schema.name if schema else ""
                 if channel.schema_id not in missing:
                     text = schema.data.decode(errors="replace") if schema and schema.encoding == "ros2msg" else ""
                     missing[channel.schema_id] = fields_missing_from(name, text) if name in _APPENDED_FIELDS else ()
-                yield BagMessage(channel.topic, name, message.data, message.log_time, missing[channel.schema_id])
+                yield BagMessage(topic, name, message.data, message.log_time, missing[channel.schema_id])
         except Exception as exc:  # mcap raises several private exception types
-            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+            if isinstance(exc, (KeyboardInterrupt, SystemExit, SeveralNamespacesError)):
                 raise
             raise ValueError(f"cannot read {path} as MCAP: {exc}") from exc
+
+
+class SeveralNamespacesError(ValueError):
+    """A recording holds the graph's topics in more than one namespace."""
+
+
+def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
+    """The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
+    not wanted); ``namespaces`` collects the namespaces of the graph topics seen."""
+    split = qos.split_graph_topic(recorded)
+    if split is None:
+        return recorded if wanted is None or recorded in wanted else None
+    namespace, topic = split
+    namespaces.setdefault(namespace, recorded)
+    if len(namespaces) > 1:
+        raise SeveralNamespacesError(
+            f"{path} holds the graph's topics in several namespaces ({', '.join(sorted(namespaces))}): "
+            "read it with a tool that takes topic names (e.g. `ros2 bag play --topics ...`), or record "
+            "one graph per file")
+    return topic if wanted is None or topic in wanted else None
 
 
 # Fields appended to our messages after recordings were made with the older definition

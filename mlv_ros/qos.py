@@ -4,11 +4,20 @@ Every stream that carries acquisition data or results is RELIABLE with a deep KE
 so a whole study (25 phases × 11 slices = 275 frames) fits in flight without a drop. What late
 joiners need is also TRANSIENT_LOCAL: the registered model (latched, depth 1) and the frames and
 tag points (the whole study's history), so a node restarted mid-run catches up.
+
+Topic names. The constants below are the graph's topics as they resolve in the root namespace
+(and as a run there records them). Nodes create their publishers and subscriptions with the
+relative form (:func:`relative`: ``mlv/frames``), so a node started in a namespace
+(``-r __ns:=/study2``, ``mlv-ros run --namespace study2``) talks on ``/study2/mlv/frames``;
+``/diagnostics`` stays absolute, as diagnostic_updater's. Readers of recordings find the graph
+topics in whatever namespace they were recorded (:func:`split_graph_topic`).
 """
+
+import re
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-# Topics (absolute; remap with --ros-args -r old:=new).
+# Topics, by their names in the root namespace (nodes use them relative: see relative()).
 FRAMES = "/mlv/frames"                    # mlv_msgs/TaggedFrame
 TAG_POINTS = "/mlv/tag_points"            # mlv_msgs/TagPoints
 REGISTERED_CLOUD = "/mlv/registered_cloud"  # sensor_msgs/PointCloud2, ED particles (latched)
@@ -34,8 +43,70 @@ LATCHED_TOPICS = (REGISTERED_CLOUD, REGISTERED_STATE)
 # (TRANSIENT_LOCAL, KEEP_LAST(STREAM_DEPTH)), so a node that (re)joins late receives the history.
 HISTORY_TOPICS = (FRAMES, TAG_POINTS)
 
+# The topics a node resolves in its namespace (all but /diagnostics).
+GRAPH_TOPICS = tuple(t for t in TOPIC_TYPES if t != DIAGNOSTICS)
+_NAMESPACE = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+
 STREAM_DEPTH = 1000
 LATCHED_READER_DEPTH = 10  # subscriptions to the latched topics (see subscription_qos)
+
+
+def relative(topic: str) -> str:
+    """The name a node publishes or subscribes graph topic ``topic`` with.
+
+    Parameters
+    ----------
+    topic : str
+        A graph topic by its root-namespace name (e.g. :data:`FRAMES`).
+
+    Returns
+    -------
+    str
+        ``mlv/frames`` for ``/mlv/frames`` (resolved in the node's namespace); any other name
+        (``/diagnostics``, a topic not of the graph) unchanged.
+    """
+    return topic.lstrip("/") if topic in GRAPH_TOPICS else topic
+
+
+def split_graph_topic(name: str) -> tuple[str, str] | None:
+    """The namespace and the graph topic of a resolved (recorded) topic name.
+
+    Parameters
+    ----------
+    name : str
+        A fully qualified topic name, e.g. ``/study2/mlv/frames``.
+
+    Returns
+    -------
+    tuple of (str, str) or None
+        ``("/study2", "/mlv/frames")``; ``("/", "/mlv/frames")`` for the root namespace; None
+        for a name that is no graph topic (``/diagnostics`` included: it has no namespace).
+    """
+    for topic in GRAPH_TOPICS:
+        if name == topic:
+            return "/", topic
+        if name.endswith(topic) and _NAMESPACE.fullmatch(name[:-len(topic)]):
+            return name[:-len(topic)], topic
+    return None
+
+
+def namespace_error(namespace: str) -> str | None:
+    """Why ``namespace`` is not a ROS namespace (None when it is).
+
+    Tokens of letters, digits and underscores, not starting with a digit, separated by ``/``;
+    the leading ``/`` may be left out (``study2`` is ``/study2``).
+    """
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
+    if ns == "/" or (_NAMESPACE.fullmatch(ns) and "__" not in ns):
+        return None
+    return (f"{namespace!r} is not a ROS namespace: use letters, digits and underscores, tokens "
+            "separated by '/' and not starting with a digit (e.g. study2 or site_a/study2)")
+
+
+def full_namespace(namespace: str | None) -> str:
+    """``namespace`` as ROS writes it: ``/study2`` for ``study2`` or ``/study2/``, ``/`` for none."""
+    ns = (namespace or "").strip("/")
+    return "/" + ns if ns else "/"
 
 
 def stream_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
@@ -51,8 +122,13 @@ def latched_qos(depth: int = 1) -> QoSProfile:
 
 
 def diagnostics_qos() -> QoSProfile:
-    """RELIABLE, KEEP_LAST(1000): deeper than diagnostic_updater's 100, because a burst of bad
-    input gives one report per message and a monitor must not lose them."""
+    """RELIABLE, VOLATILE, KEEP_LAST(1000).
+
+    diagnostic_updater publishes ``/diagnostics`` with depth 1 (one array of every task, once a
+    period); our nodes publish each event the moment it happens as well, and a burst of bad input
+    gives one report per message, so the queue is as deep as the data streams' for a monitor not
+    to lose them. Any RELIABLE or BEST_EFFORT VOLATILE subscriber matches.
+    """
     return stream_qos(STREAM_DEPTH)
 
 

@@ -24,6 +24,7 @@ from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
 from mlv_ros.nodes.frame_source import count_slices, order_frames
+from mlv_ros.nodes.common import status_node
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
 from mlv_ros.nodes.recorder import Recorder
@@ -63,7 +64,7 @@ class Probe(Node):
 
     def statuses(self) -> list[tuple[str, int, str, dict]]:
         """Every DiagnosticStatus received: (node name, level, message, values)."""
-        return [(s.hardware_id, s.level, s.message, {kv.key: kv.value for kv in s.values})
+        return [(status_node(s), s.level, s.message, {kv.key: kv.value for kv in s.values})
                 for d in self.out["diag"] for s in d.status]
 
 
@@ -321,7 +322,7 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
     seen = len(probe.out["diag"])
 
     def alive():
-        return {s.hardware_id for d in probe.out["diag"][seen:] for s in d.status}
+        return {status_node(s) for d in probe.out["diag"][seen:] for s in d.status}
 
     spin(lambda: alive() >= set(nodes), 5)
     return CorpusReport(cases=len(cases), reported=len(cases) - len(failures), failures=failures, crashes=crashes,

@@ -22,6 +22,7 @@ from conftest import REPO, console_script, spin_until
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.sim import simulate_study
+from mlv_ros.nodes.common import status_node
 from mlv_ros.nodes.frame_source import count_slices, order_frames
 from mlv_ros.nodes.registration import Registration
 from mlv_ros.nodes.tag_detector import TagDetector
@@ -50,7 +51,7 @@ class Watcher(Node):
             depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
 
     def statuses(self, node="tag_detector"):
-        return [s for d in self.diag for s in d.status if s.hardware_id == node]
+        return [s for d in self.diag for s in d.status if status_node(s) == node]
 
     def lines(self, min_level=0, node="tag_detector"):
         return [f"{m.level} {m.msg}" for m in self.logs if m.name == node and m.level >= min_level]

@@ -15,6 +15,7 @@ from conftest import console_script, spin_until
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.nodes.common import status_node
 from mlv_ros.nodes.frame_source import FrameSource
 
 ALL_NODES = ["frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder", "replay"]
@@ -103,7 +104,7 @@ def test_every_node_console_script_starts_and_stops_on_sigint(name, ros_context,
     args = [console_script(name)] + (["--ros-args", *extra] if extra else [])
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        assert spin_until(executor, lambda: any(s.hardware_id == name for d in diags.msgs for s in d.status),
+        assert spin_until(executor, lambda: any(status_node(s) == name for d in diags.msgs for s in d.status),
                           timeout=60), f"{name} never reported on /diagnostics"
         proc.send_signal(2)
         assert proc.wait(timeout=30) == 0

@@ -13,6 +13,7 @@ from conftest import spin_until
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.sim import simulate_study
+from mlv_ros.nodes.common import status_node
 from mlv_ros.nodes.frame_source import count_slices, order_frames
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
@@ -42,7 +43,7 @@ class Harness(Node):
                                      qos.diagnostics_qos() if key == "diag" else qos.stream_qos())
 
     def statuses(self):
-        return [(s.hardware_id, s.level, s.message, {kv.key: kv.value for kv in s.values})
+        return [(status_node(s), s.level, s.message, {kv.key: kv.value for kv in s.values})
                 for d in self.out["diag"] for s in d.status]
 
 

@@ -13,6 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from conftest import console_script, spin_until
 from mlv_ros import bagio, qos
+from mlv_ros.nodes.common import status_node
 from mlv_ros.tools.run import phantom_accuracy, read_run, run_graph
 
 # A reduced acquisition that runs in about a minute on 2 cores (the default study is
@@ -107,7 +108,7 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
                              ("motion_analyzer", [])]]
     try:
         def up(name):
-            return any(st.hardware_id == name for d in diags for st in d.status)
+            return any(status_node(st) == name for d in diags for st in d.status)
         assert spin_until(executor, lambda: all(up(n) for n in ("recorder", "tag_detector", "registration",
                                                                  "meshless_solver", "motion_analyzer")), 60)
         src = subprocess.run([console_script("frame_source"), "--ros-args", "-p", "source:=pattern",
@@ -116,7 +117,7 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
         assert src.returncode == 0, src.stderr
         assert spin_until(executor, lambda: len(points) == 6, 60), f"{len(points)} tag point sets"
         # The pattern has no heart: registration must say so on /diagnostics, not crash.
-        assert spin_until(executor, lambda: any(st.hardware_id == "registration" and st.level == DiagnosticStatus.ERROR
+        assert spin_until(executor, lambda: any(status_node(st) == "registration" and st.level == DiagnosticStatus.ERROR
                                                 for d in diags for st in d.status), 30)
     finally:
         for p in procs:

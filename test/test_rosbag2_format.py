@@ -282,7 +282,7 @@ def mixed_bag(path: Path) -> tuple[list[int], list[bytes]]:
 
 
 def graph_yaml_replay_params() -> dict:
-    return yaml.safe_load((REPO / "config" / "graph.yaml").read_text())["replay"]["ros__parameters"]
+    return yaml.safe_load((REPO / "config" / "graph.yaml").read_text())["/**/replay"]["ros__parameters"]
 
 
 def play(ros_context, executor, path, frames, wait_for, params: dict) -> Replay:

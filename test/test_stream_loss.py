@@ -14,7 +14,7 @@ from conftest import spin_until
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.pattern import pattern_frames
-from mlv_ros.nodes.common import ERROR
+from mlv_ros.nodes.common import ERROR, status_node
 from mlv_ros.nodes.recorder import Recorder
 
 BURST = qos.STREAM_DEPTH + 100
@@ -29,12 +29,12 @@ class Monitor(Node):
 
     def events(self, message):
         return [{kv.key: kv.value for kv in s.values} | {"level": s.level}
-                for s in self.statuses if s.hardware_id == "recorder" and s.message == message]
+                for s in self.statuses if status_node(s) == "recorder" and s.message == message]
 
     def last_counts(self, topic):
         for s in reversed(self.statuses):
             values = {kv.key: kv.value for kv in s.values}
-            if s.hardware_id == "recorder" and f"received {topic}" in values:
+            if status_node(s) == "recorder" and f"received {topic}" in values:
                 return {k: int(values[f"{k} {topic}"]) for k in ("received", "lost", "missed")}
         return None
 
@@ -129,7 +129,7 @@ def test_a_publisher_that_cannot_reach_a_subscription_is_reported(ros_context, e
 
     def reports():
         return [{kv.key: kv.value for kv in s.values} for s in mon.statuses
-                if s.hardware_id == "tag_detector" and "incompatible" in s.message]
+                if status_node(s) == "tag_detector" and "incompatible" in s.message]
 
     assert spin_until(executor, lambda: bool(reports()), 20)
     assert reports()[0]["topic"] == qos.FRAMES and reports()[0]["policy"] == "DURABILITY"

@@ -27,6 +27,9 @@ from mlv_ros import qos
 from mlv_ros.core.types import StudyShape
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+USE_FQN = "diagnostic_updater.use_fqn"
+# diagnostic_updater's hardware_id for what has no hardware of its own ("set this value to none").
+HARDWARE_ID = "none"
 
 
 @dataclass
@@ -71,14 +74,24 @@ class GraphNode(Node):
     """A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
     every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`)."""
 
+    # What this node's one diagnostic task is called: statuses are named "<node>: <task>", as
+    # diagnostic_updater names them (subclasses say what they do).
+    DIAGNOSTIC_TASK = "status"
+
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
+        self._topics: dict[str, str] = {}
         self._diag_pub = self.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos())
         self.diagnostics_sent = 0
+        # As diagnostic_updater: "<node name>: <task>", the node's fully qualified name when
+        # diagnostic_updater.use_fqn is true (two graphs in two namespaces share /diagnostics).
+        use_fqn = self.param(USE_FQN, False, "name diagnostic statuses by the node's fully qualified name "
+                             "(as diagnostic_updater's parameter of that name)")
+        node = self.get_fully_qualified_name() if use_fqn else self.get_name()
+        self.diagnostic_name = f"{node}: {self.DIAGNOSTIC_TASK}"
         # Like diagnostic_updater: the node's current status is republished every second, so a
         # monitor that joins late still sees it; events are also published the moment they occur.
-        self._status = DiagnosticStatus(level=OK, name=self.get_fully_qualified_name(),
-                                        message="starting", hardware_id=self.get_name())
+        self._status = self.diagnostic_status(OK, "starting")
         self.streams: dict[str, StreamCount] = {}
         self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._with_counts(self._status)))
         self.finished = Future()  # completed when the node's job is over (run_node then exits)
@@ -88,6 +101,19 @@ class GraphNode(Node):
         # whoever starts the graph); messages of any other study are reported and ignored.
         self.study = StudyShape()
         self.other_studies: Counter = Counter()  # other study id → its messages ignored
+
+    def topic_name(self, topic: str) -> str:
+        """Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
+        ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied)."""
+        if topic not in self._topics:
+            self._topics[topic] = self.resolve_topic_name(qos.relative(topic))
+        return self._topics[topic]
+
+    def diagnostic_status(self, level: int, message: str, values: dict | None = None) -> DiagnosticStatus:
+        """A status of this node's task, named and identified as diagnostic_updater does."""
+        status = DiagnosticStatus(level=level, name=self.diagnostic_name, message=message, hardware_id=HARDWARE_ID)
+        status.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
+        return status
 
     @property
     def done(self) -> bool:
@@ -145,8 +171,10 @@ class GraphNode(Node):
         expose the writer's GUID, so sequences are only checked while the topic has a single
         publisher (every graph stream has one); a sequence number going back means a new
         (restarted) publisher.
-        ``callback`` may take ``(msg)`` or ``(msg, message_info)``, as with rclpy.
+        ``callback`` may take ``(msg)`` or ``(msg, message_info)``, as with rclpy. The counts
+        are kept (:attr:`streams`) and reported under the topic's resolved name.
         """
+        topic, name = self.resolve_topic_name(topic), topic
         count = self.streams.setdefault(topic, StreamCount())
         try:
             inspect.signature(callback).bind(object())
@@ -163,11 +191,11 @@ class GraphNode(Node):
         kwargs.setdefault("event_callbacks", SubscriptionEventCallbacks(incompatible_qos=lambda event: self.report(
             ERROR, "a publisher's QoS is incompatible with this subscription: its messages cannot arrive",
             topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
-        return super().create_subscription(msg_type, topic, counted, qos_profile, **kwargs)
+        return super().create_subscription(msg_type, name, counted, qos_profile, **kwargs)
 
     def foreign(self, study_id: str, topic: str, **where) -> bool:
-        """Whether a message of ``study_id`` taken from ``topic`` belongs to another study than
-        this node's (:attr:`study`; an empty id, or none adopted yet, is never foreign).
+        """Whether a message of ``study_id`` taken from graph topic ``topic`` belongs to another
+        study than this node's (:attr:`study`; an empty id, or none adopted yet, is never foreign).
 
         A foreign message is reported at once as an ERROR on /diagnostics naming both study ids,
         the topic and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the
@@ -179,16 +207,18 @@ class GraphNode(Node):
         first = study_id not in self.other_studies
         self.other_studies[study_id] += 1
         self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
-                     {"topic": topic, "study": self.study.study_id, "other_study": study_id, **where}, log=first)
+                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": study_id, **where},
+                     log=first)
         return True
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
-        """A point cloud taken from ``topic`` whose model state (same stamp) is of ``other_study``:
+        """A point cloud taken from graph topic ``topic`` whose model state (same stamp) is of ``other_study``:
         reported on /diagnostics and counted as :meth:`foreign` does (the console has had the
         state's line); the caller drops it."""
         self.other_studies[other_study] += 1
         self._report(ERROR, "point cloud of another study ignored with its model state",
-                     {"topic": topic, "study": self.study.study_id, "other_study": other_study, "stamp": stamp},
+                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": other_study,
+                      "stamp": stamp},
                      log=False)
 
     def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:
@@ -234,15 +264,13 @@ class GraphNode(Node):
                                 hardware_id=status.hardware_id, values=list(status.values) + extra)
 
     def report(self, level: int, message: str, **values) -> None:
-        """Publish one DiagnosticStatus (name = node, hardware_id = node name) now, make it the
-        node's current status, and log it."""
+        """Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
+        current status, and log it."""
         self._report(level, message, values)
 
     def _report(self, level: int, message: str, values: dict, log: bool = True) -> None:
         """:meth:`report`; with ``log`` false the console line is DEBUG whatever the level."""
-        status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
-                                  message=message, hardware_id=self.get_name())
-        status.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+        status = self.diagnostic_status(level, message, values)
         self._status = status
         if level == ERROR:
             self.last_error = status
@@ -263,6 +291,12 @@ class GraphNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(arr)
         self.diagnostics_sent += 1
+
+
+def status_node(status: DiagnosticStatus) -> str:
+    """The name of the node that published ``status`` (``tag_detector`` for
+    ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``)."""
+    return status.name.partition(": ")[0].rpartition("/")[2]
 
 
 def status_text(status: DiagnosticStatus) -> str:

@@ -44,10 +44,11 @@ def order_frames(frames: list[Frame], order: str) -> list[Frame]:
 
 
 def read_bag_frames(path) -> list[Frame]:
-    """Every ``/mlv/frames`` message of a recording, as Frames (also of recordings made before
-    fields were appended to TaggedFrame: their ``study_id`` is empty)."""
+    """Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
+    Frames (also of recordings made before fields were appended to TaggedFrame: their
+    ``study_id`` is empty)."""
     return [conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
-            for m in bagio.read_bag(path, topics=[qos.FRAMES])]
+            for m in bagio.read_bag(path, topics=[qos.FRAMES], any_namespace=True)]
 
 
 def _digest(*parts) -> str:
@@ -108,6 +109,8 @@ def count_slices(frames: list[Frame]) -> list[Frame]:
 
 
 class FrameSource(GraphNode):
+    DIAGNOSTIC_TASK = "input"
+
     def __init__(self, **node_kwargs):
         super().__init__("frame_source", **node_kwargs)
         self.source = self.param("source", "phantom", "where frames come from", choices=SOURCES)
@@ -128,7 +131,7 @@ class FrameSource(GraphNode):
         # dicom: which study was taken and why, whether all of it was used, and what was not.
         self.dicom_choice, self.input_complete, self.left_out, self.not_used = "", True, [], []
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
-        self.pub = self.create_publisher(TaggedFrame, qos.FRAMES, qos.topic_qos(qos.FRAMES))
+        self.pub = self.create_publisher(TaggedFrame, qos.relative(qos.FRAMES), qos.topic_qos(qos.FRAMES))
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.study_id = self._study_id()

@@ -36,6 +36,8 @@ MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
 
 
 class MeshlessSolver(GraphNode):
+    DIAGNOSTIC_TASK = "motion solve"
+
     def __init__(self, **node_kwargs):
         super().__init__("meshless_solver", **node_kwargs)
         self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
@@ -51,11 +53,14 @@ class MeshlessSolver(GraphNode):
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers of the motion and state topics to wait for before publishing", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 10.0, "then publish to those present, with a warning", min_value=0.0, max_value=3600.0)
         self._waiting_since = None
-        self.motion_pub = self.create_publisher(PointCloud2, qos.MOTION, qos.topic_qos(qos.MOTION))
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.MODEL_STATE, qos.topic_qos(qos.MODEL_STATE))
-        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
-        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_state, qos.subscription_qos(qos.REGISTERED_STATE))
-        self.create_subscription(TagPoints, qos.TAG_POINTS, self._on_points,
+        self.motion_pub = self.create_publisher(PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION))
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.MODEL_STATE),
+                                               qos.topic_qos(qos.MODEL_STATE))
+        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_cloud,
+                                 qos.subscription_qos(qos.REGISTERED_CLOUD))
+        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_state,
+                                 qos.subscription_qos(qos.REGISTERED_STATE))
+        self.create_subscription(TagPoints, qos.relative(qos.TAG_POINTS), self._on_points,
                                  qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
         self.assembler = PhaseAssembler()
         self.cloud = None

@@ -35,16 +35,22 @@ _key = stamp_key
 
 
 class MotionAnalyzer(GraphNode):
+    DIAGNOSTIC_TASK = "motion analysis"
+
     def __init__(self, **node_kwargs):
         super().__init__("motion_analyzer", **node_kwargs)
         self.levels = self.param("levels", 10, "level bins apex → base", min_value=2, max_value=100)
         self.endo_fraction = self.param("endo_fraction", 0.2, "transmural depth counted as endocardium (cavity volume)", min_value=0.01, max_value=1.0)
         self.max_unpaired = self.param("max_unpaired", 200, "motion clouds / model states held while waiting for their pair", min_value=1, max_value=100000)
-        self.pub = self.create_publisher(MotionMetrics, qos.METRICS, qos.topic_qos(qos.METRICS))
-        self.create_subscription(PointCloud2, qos.REGISTERED_CLOUD, self._on_registered_cloud, qos.subscription_qos(qos.REGISTERED_CLOUD))
-        self.create_subscription(ModelStateMsg, qos.REGISTERED_STATE, self._on_registered_state, qos.subscription_qos(qos.REGISTERED_STATE))
-        self.create_subscription(PointCloud2, qos.MOTION, self._on_motion, qos.subscription_qos(qos.MOTION))
-        self.create_subscription(ModelStateMsg, qos.MODEL_STATE, self._on_state, qos.subscription_qos(qos.MODEL_STATE))
+        self.pub = self.create_publisher(MotionMetrics, qos.relative(qos.METRICS), qos.topic_qos(qos.METRICS))
+        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_registered_cloud,
+                                 qos.subscription_qos(qos.REGISTERED_CLOUD))
+        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_registered_state,
+                                 qos.subscription_qos(qos.REGISTERED_STATE))
+        self.create_subscription(PointCloud2, qos.relative(qos.MOTION), self._on_motion,
+                                 qos.subscription_qos(qos.MOTION))
+        self.create_subscription(ModelStateMsg, qos.relative(qos.MODEL_STATE), self._on_state,
+                                 qos.subscription_qos(qos.MODEL_STATE))
         self.reg_cloud = self.reg_state = self.analyzer = None
         self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
         self._reg_key = None  # stamp of the registered state taken

@@ -1,5 +1,9 @@
 """recorder: writes every graph topic to MCAP the way rosbag2 does (see :mod:`mlv_ros.bagio`).
 
+It subscribes to the graph's topics in its own namespace and records them under the names they
+resolve to there (``/mlv/frames`` at the root, ``/study2/mlv/frames`` under ``/study2``), as
+``ros2 bag record`` would; ``/diagnostics`` is shared by every namespace.
+
 Subscriptions are raw (the CDR bytes are written as received, never deserialised), RELIABLE and
 as deep as the publishers' queues. SIGINT/SIGTERM: the node first takes every message already
 queued, then finalises the file (summary, indexes, ``metadata.yaml``). Completed chunks go to
@@ -44,10 +48,13 @@ def message_class(type_name: str):
 
 
 class Recorder(GraphNode):
+    DIAGNOSTIC_TASK = "recording"
+
     def __init__(self, **node_kwargs):
         super().__init__("recorder", **node_kwargs)
         self.output = self.param("output", "runs/latest/run.mcap", "MCAP file to write (its directory is created)")
-        topics = self.param("topics", list(qos.TOPIC_TYPES), "topics to record (graph topics only)")
+        topics = self.param("topics", list(qos.TOPIC_TYPES), "graph topics to record, by their root names "
+                            "(/mlv/frames; recorded as they resolve in the recorder's namespace)")
         self.flush_period_s = self.param("flush_period_s", 1.0, "sync completed chunks to disk (fsync) this often", min_value=0.05, max_value=60.0)
         chunk_kib = self.param("chunk_size_kib", 1024, "MCAP chunk size, KiB", min_value=16, max_value=65536)
         compression = self.param("compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"))
@@ -66,11 +73,13 @@ class Recorder(GraphNode):
         self._held: dict = {}  # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
         self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
         self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
+        self.recorded: dict[str, str] = {}  # graph topic (root name) → the name recorded: as it resolves here
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
             self.classes[topic] = message_class(type_name)
-            self.writer.add_topic(topic, type_name, [qos.qos_dict(qos.topic_qos(topic))])
-            self.create_subscription(message_class(type_name), topic,
+            self.recorded[topic] = self.topic_name(topic)
+            self.writer.add_topic(self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))])
+            self.create_subscription(message_class(type_name), qos.relative(topic),
                                      lambda data, info, topic=topic: self._on_message(topic, data, info),
                                      qos.subscription_qos(topic, catch_up=catch_up), raw=True)
         self.create_timer(self.flush_period_s, self.writer.flush)
@@ -89,7 +98,7 @@ class Recorder(GraphNode):
                 msg = None
             if msg is not None and not self._take(topic, msg, data, now, published):
                 return
-        self._write(topic, data, now, published)
+        self._write(self.recorded[topic], data, now, published)
 
     def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
         """Whether ``msg`` is written now (False: left out as another study's, or a cloud held
@@ -103,7 +112,7 @@ class Recorder(GraphNode):
                 return False
             if pair in self._ours:
                 return True
-            self._held[pair] = (topic, data, now, published)
+            self._held[pair] = (self.recorded[topic], data, now, published)
             while len(self._held) > MAX_HELD_CLOUDS:  # states that never come: write the oldest
                 self._write(*self._held.pop(next(iter(self._held))))
             return False
@@ -114,11 +123,11 @@ class Recorder(GraphNode):
                 held = self._held.pop((topic, key), None)
                 if held is not None:
                     self.ignored += 1
-                    self.cloud_of_other_study(held[0], stamp, msg.study_id)
+                    self.cloud_of_other_study(held[0], stamp, msg.study_id)  # (its recorded name)
             return False
         self.study.adopt(msg.study_id)
         if topic in CLOUD_STATES.values():
-            self._write(topic, data, now, published)
+            self._write(self.recorded[topic], data, now, published)
             self._ours.add((topic, key))
             held = self._held.pop((topic, key), None)
             if held is not None:
@@ -127,6 +136,7 @@ class Recorder(GraphNode):
         return True
 
     def _write(self, topic: str, data: bytes, log_time_ns: int, published) -> None:
+        """Write one message of ``topic`` (its recorded name) to the file."""
         if self.writer.error is not None or self.writer.closed:
             self.dropped += 1
             return

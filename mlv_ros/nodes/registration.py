@@ -35,6 +35,8 @@ REQUIRED_CLOUD_FIELDS = CLOUD_FIELDS[:6]
 
 
 class Registration(GraphNode):
+    DIAGNOSTIC_TASK = "ED registration"
+
     def __init__(self, **node_kwargs):
         super().__init__("registration", **node_kwargs)
         self.num_particles = self.param("num_particles", 3000, "model particles", min_value=100, max_value=200000)
@@ -45,9 +47,12 @@ class Registration(GraphNode):
         self.mask_label = self.param("mask_label", 2, "myocardium label in mask_path (ACDC: 2)", min_value=0, max_value=65535)
         self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
                                    "gets the frames already sent; false for a publisher without history")
-        self.cloud_pub = self.create_publisher(PointCloud2, qos.REGISTERED_CLOUD, qos.topic_qos(qos.REGISTERED_CLOUD))
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.REGISTERED_STATE, qos.topic_qos(qos.REGISTERED_STATE))
-        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
+        self.cloud_pub = self.create_publisher(PointCloud2, qos.relative(qos.REGISTERED_CLOUD),
+                                               qos.topic_qos(qos.REGISTERED_CLOUD))
+        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.REGISTERED_STATE),
+                                               qos.topic_qos(qos.REGISTERED_STATE))
+        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
+                                 qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None

@@ -1,12 +1,15 @@
 """replay: publishes a recorded MCAP's topics (as ``ros2 bag play`` does), with the original
 timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate: 0``).
 
-Messages are republished as the recorded CDR bytes (never deserialised), each topic with the QoS
-it was recorded with (``offered_qos_profiles``), so latched topics stay latched. Our messages
-recorded before fields were appended to their definition (the recording's schema says so) get
-those fields' defaults appended (:func:`mlv_ros.bagio.current_cdr`: e.g. an empty ``study_id``),
-so that today's subscribers can read them (a recording without schemas: tried by
-deserialising).
+The graph's topics are played in the node's namespace whatever namespace they were recorded in
+(``/study2/mlv/frames`` recorded, ``/mlv/frames`` played at the root, ``/study3/mlv/frames``
+under ``-r __ns:=/study3``), as every node of the graph names its topics relative; other topics
+go out under their recorded names. Messages are republished as the recorded CDR bytes (never
+deserialised), each topic with the QoS it was recorded with (``offered_qos_profiles``), so
+latched topics stay latched. Our messages recorded before fields were appended to their
+definition (the recording's schema says so) get those fields' defaults appended
+(:func:`mlv_ros.bagio.current_cdr`: e.g. an empty ``study_id``), so that today's subscribers can
+read them (a recording without schemas: tried by deserialising).
 
 The recorded ``/diagnostics`` stay in the recording unless ``republish_diagnostics`` is true:
 replayed, old statuses of nodes that are not running would mix with the live graph's on the
@@ -46,11 +49,13 @@ def recorded_qos(offered) -> QoSProfile:
 
 
 class Replay(GraphNode):
+    DIAGNOSTIC_TASK = "replay"
+
     def __init__(self, **node_kwargs):
         super().__init__("replay", **node_kwargs)
         self.path = self.param("path", "", "MCAP file (or rosbag2 directory) to play")
         self.rate = self.param("rate", 0.0, "time scale of the original timing; 0 = as fast as possible", min_value=0.0, max_value=1000.0)
-        only = self.param("topics", [""], "topics to play (empty = all)")
+        only = self.param("topics", [""], "topics to play, by recorded or (graph topics) root name; empty = all")
         self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers (on any topic) to wait for", min_value=0, max_value=100)
         self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting after this long", min_value=0.0, max_value=3600.0)
         self.exit_when_done = self.param("exit_when_done", True, "stop once everything is played and acknowledged")
@@ -66,14 +71,20 @@ class Replay(GraphNode):
             raise ValueError("parameter path is required: the MCAP file to play")
         wanted = [t for t in only if t]
         recorded = bagio.bag_topics(self.path)
-        missing = [t for t in wanted if t not in recorded]
+        # A graph topic may be asked for by its recorded name or its root name (/lv/motion).
+        roots = {topic: (qos.split_graph_topic(topic) or (None, None))[1] for topic in recorded}
+        missing = [t for t in wanted if t not in recorded and t not in roots.values()]
         if missing:
             self.report(WARN, "topics not in the recording", topics=",".join(missing))
-        self.pubs = {}
+        self.pubs = {}  # recorded topic → its publisher
         self.classes = {}
+        namespaces = {}  # namespace the graph's topics were recorded in → one of them
         for topic, info in recorded.items():
-            if wanted and topic not in wanted:
+            if wanted and topic not in wanted and roots[topic] not in wanted:
                 continue
+            split = qos.split_graph_topic(topic)
+            if split is not None:
+                namespaces.setdefault(split[0], topic)
             if topic == qos.DIAGNOSTICS and not self.republish_diagnostics:
                 if topic in wanted:
                     self.report(WARN, "recorded diagnostics are not republished unless asked",
@@ -84,8 +95,15 @@ class Replay(GraphNode):
             except (ImportError, AttributeError, ValueError):
                 self.report(WARN, "skipping topic of unknown type", topic=topic, type=info["type"])
                 continue
-            self.pubs[topic] = self.create_publisher(cls, topic, recorded_qos(info["qos"]))
+            # The graph's topics are played in this node's namespace, whatever namespace they were
+            # recorded in (as every node of the graph names them: relative); others as recorded.
+            name = qos.relative(split[1]) if split is not None else topic
+            self.pubs[topic] = self.create_publisher(cls, name, recorded_qos(info["qos"]))
             self.classes[topic] = cls
+        if len(namespaces) > 1:
+            raise ValueError(f"{self.path} holds the graph's topics of {len(namespaces)} namespaces "
+                             f"({', '.join(sorted(namespaces))}): play one with -p topics:=\"[...]\" "
+                             f"(e.g. {', '.join(sorted(namespaces.values()))})")
         # RELIABLE with a deep queue: a subscriber that wants every recorded time (a recorder, a
         # test) gets it; rclpy's time source subscribes BEST_EFFORT, depth 1, and matches too.
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos.stream_qos()) if self.publish_clock else None

@@ -28,8 +28,6 @@ from __future__ import annotations
 import hashlib
 from collections import Counter
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.registration.streaming import StreamingMasker
@@ -54,6 +52,8 @@ def _digest(msg: TaggedFrame) -> bytes:
 
 
 class TagDetector(GraphNode):
+    DIAGNOSTIC_TASK = "tag tracking"
+
     def __init__(self, **node_kwargs):
         super().__init__("tag_detector", **node_kwargs)
         self.spacing_px = self.param("spacing_px", 0.0, "tag spacing override, pixels (0 = estimate from the ED spectrum)", min_value=0.0, max_value=100.0)
@@ -61,8 +61,9 @@ class TagDetector(GraphNode):
         self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest image accepted (rows × cols)", min_value=64, max_value=16384 * 16384)
         self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
                                    "gets the frames already sent; false for a publisher without history")
-        self.pub = self.create_publisher(TagPoints, qos.TAG_POINTS, qos.topic_qos(qos.TAG_POINTS))
-        self.create_subscription(TaggedFrame, qos.FRAMES, self._on_frame, qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
+        self.pub = self.create_publisher(TagPoints, qos.relative(qos.TAG_POINTS), qos.topic_qos(qos.TAG_POINTS))
+        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
+                                 qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
         self.trackers: dict = {}   # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
@@ -230,9 +231,7 @@ class TagDetector(GraphNode):
         values = {"frames": self.frames_out, "slices": len(self.trackers), "tracks_at_ed": ed_tracks,
                   "tracks_alive": alive, **{k: v for k, v in sorted(c.items())}}
         message = "; ".join(problems) if problems else f"tracking: {self.frames_out} frames, {len(self.trackers)} slices"
-        status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(), message=message,
-                                  hardware_id=self.get_name())
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        status = self.diagnostic_status(level, message, values)
         # GraphNode's heartbeat republishes _status (with the per-topic stream counts) at 1 Hz.
         self._status = status
 

@@ -90,7 +90,7 @@ def read_phases(mcap: Path) -> dict:
     # /lv/motion with every field (read_run keeps positions only), paired with its phase by the
     # stamp it shares with /lv/model_state, as read_run pairs them.
     clouds, stamp_phase = {}, {}
-    for m in bagio.read_bag(mcap, topics=[qos.MOTION, qos.MODEL_STATE]):
+    for m in bagio.read_bag(mcap, topics=[qos.MOTION, qos.MODEL_STATE], any_namespace=True):
         if m.topic == qos.MOTION:
             msg = deserialize_message(m.data, PointCloud2)
             key = (msg.header.stamp.sec, msg.header.stamp.nanosec)

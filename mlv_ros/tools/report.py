@@ -40,8 +40,9 @@ def check_recording(path: Path) -> None:
         return  # no summary (a killed recorder) or not MCAP: reading it says which
     read = (qos.REGISTERED_CLOUD, qos.REGISTERED_STATE, qos.MOTION, qos.MODEL_STATE, qos.METRICS,
             qos.FRAMES, qos.TAG_POINTS)  # what read_run deserialises
-    wrong = [f"{t} holds {topics[t]['type'] or 'an untyped channel'}, not {qos.TOPIC_TYPES[t]}"
-             for t in read if t in topics and topics[t]["type"] != qos.TOPIC_TYPES[t]]
+    graph = {split[1]: name for name in topics if (split := qos.split_graph_topic(name))}  # in any namespace
+    wrong = [f"{graph[t]} holds {topics[graph[t]]['type'] or 'an untyped channel'}, not {qos.TOPIC_TYPES[t]}"
+             for t in read if t in graph and topics[graph[t]]["type"] != qos.TOPIC_TYPES[t]]
     if wrong:
         raise ValueError(f"{path} is not an mlv-ros recording: {'; '.join(wrong)} "
                          "(give the run.mcap that `mlv-ros run` or `mlv-ros demo` wrote)")

@@ -1,15 +1,17 @@
 """``mlv-ros run``: the whole graph in one process (one executor), recorded to RUN_DIR/run.mcap.
 
-    mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
+    mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR [--namespace NS]
 
 Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
 ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
 
 A run claims its ROS domain: a private one (an flock, :mod:`mlv_ros.domain`) unless the user
 chose one (``--domain-id`` or ``ROS_DOMAIN_ID``); a chosen domain on which discovery finds a
-node of another mlv_ros graph is refused (exit 2, one line naming it). Every node of the graph
-keeps to the study the input carries (``study_id``) and reports and ignores messages of any
-other, so two graphs that do meet on one domain cannot mix.
+node of another mlv_ros graph in the same namespace is refused (exit 2, one line naming it).
+``--namespace NS`` puts every node, and so every graph topic, under ``/NS`` (``/NS/mlv/frames``;
+the recording holds those names), so graphs in different namespaces share a domain. Every node
+of the graph keeps to the study the input carries (``study_id``) and reports and ignores
+messages of any other, so two graphs that do meet on one domain cannot mix.
 
 The run watches its nodes: one that cannot start, gives up, raises, or leaves the graph with
 nothing to do ends the run at once with that node's reason. SIGINT/SIGTERM stop the input, let
@@ -133,28 +135,37 @@ def add_arguments(parser):
     parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free private one)")
+    parser.add_argument("--namespace", metavar="NS", default=None,
+                        help="run every node and topic under this ROS namespace (e.g. study2: /study2/mlv/frames); "
+                             "graphs in different namespaces can share a domain")
 
 
 def node_parameters(params_file: Path, overrides: dict) -> dict:
-    """{node: [rclpy Parameter]} from the graph YAML plus overrides {node: {name: value}}."""
+    """{node: rclpy Node keyword arguments} giving each graph node the parameters file and the
+    overrides {node: {name: value}} (which win over the file).
+
+    The file is handed to rcl as ``--ros-args --params-file`` does, so its keys mean what they
+    mean to every ROS node: ``/**`` (any node in any namespace), ``/**/frame_source`` (that node
+    in any namespace), ``frame_source`` (that node in the root namespace only), ``/study2/frame_source``
+    or the nested ``study2: {frame_source: ...}``; of several keys matching a node, the later
+    in the file wins.
+    """
     from rclpy.parameter import Parameter
 
-    data = yaml.safe_load(params_file.read_text()) or {}
-    out = {}
-    for node in GRAPH:
-        values = dict((data.get(node) or {}).get("ros__parameters") or {})
-        values.update(overrides.get(node, {}))
-        out[node] = [Parameter(k, value=v) for k, v in values.items()]
-    return out
+    return {node: {"cli_args": ["--ros-args", "--params-file", str(params_file)],
+                   "parameter_overrides": [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]}
+            for node in GRAPH}
 
 
-def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
-    """Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`, any namespace) that discovery finds on
-    ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
+def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = "/") -> list[str]:
+    """Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` that discovery finds
+    on ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
 
-    The look itself is a hidden node named for when it started (``_mlv_ros_run_<ns>_<pid>``), so
-    two runs that look at once see each other: the one that started later counts the earlier
-    one's as a graph on the domain (and is refused), the earlier one goes on.
+    A graph in another namespace talks on other topics (``/a/mlv/frames``, ``/b/mlv/frames``):
+    it is no conflict, and not counted. The look itself is a hidden node in ``namespace`` named
+    for when it started (``_mlv_ros_run_<ns>_<pid>``), so two runs that look at once in one
+    namespace see each other: the one that started later counts the earlier one's as a graph
+    there (and is refused), the earlier one goes on.
 
     Parameters
     ----------
@@ -164,6 +175,8 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
         Discovery time; default :data:`DOMAIN_PROBE_S`, or :data:`DOMAIN_PROBE_NETWORK_S` when
         discovery is not kept on this host (``ROS_AUTOMATIC_DISCOVERY_RANGE`` other than
         ``LOCALHOST``, or ``ROS_STATIC_PEERS``).
+    namespace : str
+        The namespace to look in (``/`` the root; ``study2`` is ``/study2``).
 
     Returns
     -------
@@ -178,6 +191,9 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
                  and not os.environ.get("ROS_STATIC_PEERS"))
         wait_s = DOMAIN_PROBE_S if local else DOMAIN_PROBE_NETWORK_S
     me = (time.time_ns(), os.getpid())
+    from mlv_ros.qos import full_namespace
+
+    namespace = full_namespace(namespace)
 
     def earlier_run(name: str) -> bool:
         started, _, pid = name.removeprefix(PROBE_PREFIX).partition("_")
@@ -190,12 +206,12 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
     node = None
     try:
         # Hidden (leading underscore), without parameter services or /rosout.
-        node = Node(f"{PROBE_PREFIX}{me[0]}_{me[1]}", context=ctx, enable_rosout=False,
+        node = Node(f"{PROBE_PREFIX}{me[0]}_{me[1]}", namespace=namespace, context=ctx, enable_rosout=False,
                     start_parameter_services=False)
         end = time.monotonic() + wait_s
         while True:
             found = sorted({f"{ns.rstrip('/')}/{name}" for name, ns in node.get_node_names_and_namespaces()
-                            if name in GRAPH_NODE_NAMES or earlier_run(name)})
+                            if full_namespace(ns) == namespace and (name in GRAPH_NODE_NAMES or earlier_run(name))})
             if found or time.monotonic() >= end:
                 return found
             time.sleep(0.02)
@@ -205,13 +221,14 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None) -> list[str]:
         ctx.try_shutdown()
 
 
-def busy_domain_text(domain_id: int, nodes: list[str]) -> str:
-    """The one line refusing a busy domain, with how to choose another."""
+def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = "/") -> str:
+    """The one line refusing a busy domain, with how to choose another (or another namespace)."""
     shown = ", ".join(f"another mlv-ros run starting" if PROBE_PREFIX in n else n for n in nodes[:4])
     shown += ", ..." if len(nodes) > 4 else ""
-    return (f"ROS domain {domain_id} is busy: another mlv_ros graph is running on it ({shown}); "
-            f"choose another with --domain-id N or export ROS_DOMAIN_ID=N (0..232), or set neither "
-            f"and mlv-ros run takes a free private one")
+    where = "the root namespace" if namespace == "/" else f"namespace {namespace}"
+    return (f"ROS domain {domain_id} is busy: another mlv_ros graph is running on it in {where} ({shown}); "
+            f"choose another with --domain-id N or export ROS_DOMAIN_ID=N (0..232), or another --namespace NS, "
+            f"or set no domain and mlv-ros run takes a free private one")
 
 
 def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
@@ -268,6 +285,9 @@ def _error_text(exc: BaseException) -> str:
     if isinstance(exc, InvalidParameterValueException):  # rclpy's text ends in ": <name>"
         reason = str(exc).partition("Reason: ")[2].rpartition(": ")[0]
         return f"{reason or exc} (see --params)"
+    if type(exc).__name__ == "RCLInvalidROSArgsError":  # rcl refusing the parameters file
+        reason = str(exc).partition("Error: ")[2].partition(", at /")[0]
+        return f"the parameters file cannot be read by ROS: {reason or exc} (see --params)"
     if isinstance(exc, (ValueError, OSError, ParameterException)):
         return str(exc)
     tb = exc.__traceback__
@@ -372,7 +392,7 @@ def _no_frames(src, source: dict) -> str:
 
 def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
               timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
-              handle_signals: bool = True) -> dict:
+              handle_signals: bool = True, namespace: str | None = None) -> dict:
     """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
 
     Parameters
@@ -398,6 +418,11 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         On SIGINT/SIGTERM, seconds to wait at most for the phases in flight.
     handle_signals : bool
         Take SIGINT/SIGTERM for a clean stop (only from the main thread).
+    namespace : str, optional
+        ROS namespace of every node (``study2`` or ``/study2``; default the root): the graph's
+        topics resolve under it and are recorded so. Diagnostic statuses are then named by the
+        nodes' fully qualified names (``diagnostic_updater.use_fqn``), since ``/diagnostics`` is
+        shared. The domain check looks for another graph in this namespace only.
 
     Returns
     -------
@@ -424,12 +449,13 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         signals.install()
     try:
         return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id, grace,
-                          signals)
+                          signals, namespace)
     finally:
         signals.restore()
 
 
-def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals) -> dict:
+def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals,
+               namespace) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -449,21 +475,24 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     overrides = {k: dict(v) for k, v in (overrides or {}).items()}
     overrides.setdefault("frame_source", {}).update(source)
     overrides.setdefault("recorder", {})["output"] = str(mcap)
+    namespace = qos.full_namespace(namespace)
+    if namespace != "/":  # /diagnostics is shared: say which graph's node each status is
+        for name in GRAPH:
+            overrides.setdefault(name, {})["diagnostic_updater.use_fqn"] = True
     params_path = Path(params_file) if params_file else config_file("graph.yaml")
-    try:
-        params = node_parameters(params_path, overrides)
-    except (OSError, yaml.YAMLError, AttributeError, TypeError) as exc:
-        raise RunStartError(f"--params {params_path}: {_error_text(exc).splitlines()[0]} "
-                            "(want node: {ros__parameters: {name: value}})") from exc
+    bad_params = _params_error(params_path)
+    if bad_params:
+        raise RunStartError(bad_params)
+    params = node_parameters(params_path, overrides)
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
     domain_id, chosen = _chosen_domain(domain_id)
     if chosen:
         # A domain the user chose may hold another graph (a second run, a launched one): refuse
         # it before anything is created. A claimed private one is this process's alone.
-        busy = graph_nodes_on(domain_id)
+        busy = graph_nodes_on(domain_id, namespace=namespace)
         if busy:
-            raise DomainBusyError(busy_domain_text(domain_id, busy))
+            raise DomainBusyError(busy_domain_text(domain_id, busy, namespace))
     else:
         domain_id = claim_domain_id()
     created = _prepare_out(out_dir)
@@ -475,7 +504,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         ex = SingleThreadedExecutor(context=ctx)
         for name in GRAPH:  # downstream first, so every subscriber exists before frames flow
             try:
-                nodes[name] = classes[name](context=ctx, parameter_overrides=params[name])
+                nodes[name] = classes[name](context=ctx, namespace=namespace, **params[name])
             except RunInterrupted:
                 raise
             except Exception as exc:
@@ -502,7 +531,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         ctx.try_shutdown()
         raise
     num_phases = max((f.num_phases for f in src.frames), default=0)
-    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}, "
+    where = "" if namespace == "/" else f", namespace {namespace}"
+    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}{where}, "
              f"study {src.study_id})")
     if src.not_used or src.left_out or source.get("study"):
         progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
@@ -536,7 +566,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             if src.done and num_phases and analyzer.published >= num_phases:
                 break
             if (src.done and num_phases and solver.next_phase >= num_phases and not analyzer.clouds
-                    and _taken(analyzer, qos.MOTION) >= solver.phases_published):
+                    and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.phases_published):
                 break  # every phase attempted (some may have failed; diagnostics say which)
             now = time.monotonic()
             if _activity(nodes) != activity:
@@ -586,6 +616,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
                 pass  # a full disk: the recorder reported it, the summary says so
         summary = {
             "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
+            "namespace": namespace,
             "study_id": src.study_id,
             "seconds": round(time.monotonic() - t0, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
@@ -698,7 +729,7 @@ def read_run(mcap: Path) -> dict:
            "sa_planes": []}  # (point, normal) of every SA plane with ED tag points
     stamps = {}
     clouds = {}
-    for m in bagio.read_bag(mcap):
+    for m in bagio.read_bag(mcap, any_namespace=True):
         if m.topic == qos.REGISTERED_CLOUD:
             run["ed"] = conversions.xyz(conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2)))
         elif m.topic == qos.REGISTERED_STATE:
@@ -785,6 +816,7 @@ def check_args(args) -> str | None:
         _number_error("--phases", args.phases, 2, 200),
         _number_error("--particles", args.particles, 100, 200000),
         _number_error("--domain-id", args.domain_id, 0, 232),
+        None if args.namespace is None else _namespace_error(args.namespace),
         None if math.isfinite(args.timeout) and args.timeout > 0 else f"--timeout must be a positive number of seconds, got {args.timeout}",
         None if math.isfinite(args.grace) and args.grace >= 0 else f"--grace must be a number of seconds ≥ 0, got {args.grace}",
     ]
@@ -807,6 +839,13 @@ def check_args(args) -> str | None:
     if args.params:
         problems.append(_params_error(Path(args.params)))
     return next((p for p in problems if p), None)
+
+
+def _namespace_error(namespace: str) -> str | None:
+    from mlv_ros.qos import namespace_error
+
+    error = namespace_error(namespace)
+    return f"--namespace {error}" if error else None
 
 
 def _bag_error(path: Path) -> str | None:
@@ -832,11 +871,17 @@ def _params_error(path: Path) -> str | None:
         return f"--params {path}: {exc.strerror or exc}"
     except yaml.YAMLError as exc:
         return f"--params {path} is not valid YAML: {str(exc).splitlines()[0]}"
-    if data is not None and not (isinstance(data, dict) and all(
-            isinstance(v, dict) and isinstance(v.get("ros__parameters", {}), (dict, type(None)))
-            for v in data.values() if v is not None)):
-        return f"--params {path}: want node: {{ros__parameters: {{name: value}}}} (as config/graph.yaml)"
+    if data is not None and not (isinstance(data, dict) and _params_shape(data)):
+        return (f"--params {path}: want /**/node: {{ros__parameters: {{name: value}}}} "
+                "(a ROS parameters file, as config/graph.yaml)")
     return None
+
+
+def _params_shape(data: dict) -> bool:
+    """Whether ``data`` is shaped as a ROS parameters file: node (or namespace) keys down to
+    ``ros__parameters`` maps."""
+    return all(isinstance(value, dict) or value is None if key == "ros__parameters"
+               else isinstance(value, dict) and _params_shape(value) for key, value in data.items())
 
 
 def run(args) -> int:
@@ -873,7 +918,7 @@ def _run(args) -> int:
     try:
         summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
                             progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
-                            domain_id=args.domain_id, grace=args.grace)
+                            domain_id=args.domain_id, grace=args.grace, namespace=args.namespace)
     except RunInterrupted as exc:
         print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
         return SIGNAL_EXIT[exc.signum]
