@@ -375,7 +375,8 @@ def top_level_imports(paths) -> set[str]:
                 found.update(a.name.split(".")[0] for a in node.names)
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 found.add(node.module.split(".")[0])
-    local = {"mlv_ros"} | {p.stem for p in (REPO / "test").iterdir() if p.suffix == ".py" or p.is_dir()}
+    local = ({"mlv_ros"} | {p.stem for p in (REPO / "test").iterdir() if p.suffix == ".py" or p.is_dir()}
+             | {p.stem for p in (REPO / "bench").glob("*.py")})  # tests compare against bench references
     return {m for m in found if m not in sys.stdlib_module_names and m not in local and m != "__future__"}
 
 
