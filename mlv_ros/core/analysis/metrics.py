@@ -29,6 +29,10 @@ _ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_di
                  "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count",
                  "segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
 
+#: PhaseMetrics fields MotionMetrics.msg does not carry yet (adding them rebuilds mlv_msgs): the
+#: per-segment uncertainties; ``mlv-ros report`` recomputes them from the recorded motion.
+NOT_IN_MSG_YET = ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
+
 
 def _empty() -> np.ndarray:
     return np.zeros(0)
