@@ -17,7 +17,9 @@ Per case (JSON): the regions, ``global`` (truth, ours, error per component), ``s
 |Ecc error| ≤ 0.05), ``signs`` (segments with true |Err| > 0.05 or |Ecc| > 0.03 reported with
 the right sign: fraction and the wrong ones), ``abnormal`` (truth class per abnormal segment
 with truth and ours), ``classification`` (sensitivity / specificity of akinetic + dyskinetic
-segments: null until the analysis classifies segments) and ``must`` (the issue's criteria:
+segments, from the findings :mod:`mlv_ros.core.analysis.findings` makes of the recorded
+metrics as ``mlv-ros report`` does; an indeterminate segment is no finding: a missed abnormal
+one, counted apart too) and ``must`` (the issue's criteria:
 global Ecc, Ell within 0.02 and Err within 0.05; Ecc error ≤ 0.05 in ≥ 95 % of segments; every
 sign right). The summary pools the segments of all cases.
 
@@ -78,9 +80,18 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     published = all(np.asarray(met.get(f"segment_{c}", ())).size == 17 for c in COMPONENTS)
     segs = {c: np.asarray(met[f"segment_{c}"]) for c in COMPONENTS} if published else reanalysis
     count = np.asarray(met.get("segment_count", ())) if published else np.asarray(re.segment_count)
+    # The findings a user reads (mlv-ros report): the recorded metrics of every phase, their
+    # per-segment uncertainties recomputed from the recorded motion (MotionMetrics does not carry
+    # them yet), streamed phase by phase as the analysis does.
+    from mlv_ros.core.analysis import PhaseMetrics, segment_findings
+    from mlv_ros.tools.report import with_segment_uncertainty
+
+    phases = with_segment_uncertainty([PhaseMetrics.from_dict(d) for _, d in sorted(run["metrics"].items())],
+                                      run, an.frame)
+    found = segment_findings(phases)
     return {"segments": segs, "count": count if count.size == 17 else None, "published": published,
             "global": {c: float(np.nanmean(st[c[1:]])) for c in COMPONENTS},
-            "reanalysis": reanalysis, "classes": met.get("segment_class")}
+            "reanalysis": reanalysis, "classes": found.classes if phases else None, "findings": found}
 
 
 def compare(truth: dict, ours: dict) -> dict:
@@ -121,9 +132,16 @@ def compare(truth: dict, ours: dict) -> dict:
     if ours["classes"] is not None and len(ours["classes"]) == 17:
         pos = np.array([s["class"] in ABNORMAL for s in seg])[ok]
         got = np.array([c in ABNORMAL for c in ours["classes"]])[ok]
+        ind = np.array([c == "indeterminate" for c in ours["classes"]])[ok]
+        # An indeterminate segment is not a finding: a missed abnormal one counts as a false
+        # negative, a normal one as a true negative; how many there were is said beside.
         out["classification"] = {
             "true_positive": int(np.sum(pos & got)), "false_negative": int(np.sum(pos & ~got)),
-            "true_negative": int(np.sum(~pos & ~got)), "false_positive": int(np.sum(~pos & got))}
+            "true_negative": int(np.sum(~pos & ~got)), "false_positive": int(np.sum(~pos & got)),
+            "indeterminate_abnormal": int(np.sum(pos & ind)), "indeterminate_other": int(np.sum(~pos & ind)),
+            "per_segment": [{"segment": int(k + 1), "truth": seg[k]["class"], "ours": ours["classes"][k]}
+                            for k in np.flatnonzero(ok) if seg[k]["class"] != "normal"
+                            or ours["classes"][k] != "normal"]}
     out["must"] = bool(all(abs(out["global"][c]["error"]) <= v for c, v in MUST_GLOBAL.items())
                        and out["segments"]["ecc_within_0.05"] >= MUST_ECC_FRACTION
                        and not wrong)
@@ -179,8 +197,9 @@ def summarise(cases: list[dict]) -> dict:
         tn, fp = sum(c["true_negative"] for c in cls), sum(c["false_positive"] for c in cls)
         out["sensitivity"] = round(tp / (tp + fn), 4) if tp + fn else None
         out["specificity"] = round(tn / (tn + fp), 4) if tn + fp else None
+        out["indeterminate"] = {k: sum(c[f"indeterminate_{k}"] for c in cls) for k in ("abnormal", "other")}
     else:
-        out["sensitivity"] = out["specificity"] = None  # the analysis does not classify segments yet
+        out["sensitivity"] = out["specificity"] = None  # no run had metrics to classify
     return out
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, phase_metrics
+from mlv_ros.core.analysis.metrics import NOT_IN_MSG_YET
 from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
 
 FR = oblique_frame()
@@ -21,8 +22,9 @@ def test_fields_map_onto_motion_metrics_msg():
         if m and not line.lstrip().startswith("#") and "=" not in line.split("#")[0]:  # constants aside
             names.append(m.group(2))
     names.remove("header")
-    fields = set(PhaseMetrics.__dataclass_fields__)
+    fields = set(PhaseMetrics.__dataclass_fields__) - set(NOT_IN_MSG_YET)
     assert set(names) == fields  # one-to-one, including level_count / segment_count
+    assert not set(names) & set(NOT_IN_MSG_YET)  # once the message has them, drop them from the list
 
 
 def test_phase_metrics_of_an_analytic_motion_with_given_F():

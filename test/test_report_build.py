@@ -46,7 +46,8 @@ def test_full_report_with_comparison(tmp_path, normal):
     index = build_report(tmp_path, phases, X, pos, compare=RunData(hyp, X, hpos, FR, "hypertrophic"),
                          meta={"label": "normal", "title": "synthetic pair"}, frame=FR)
     assert index == tmp_path / "index.html"
-    names = ("level_curves.png", "global_curves.png", "strain_bullseye.png", "displacement_es.png")
+    names = ("level_curves.png", "global_curves.png", "strain_bullseye.png", "segment_findings.png",
+             "displacement_es.png")
     for n in names:
         data = (tmp_path / n).read_bytes()
         assert data.startswith(PNG) and len(data) > 10_000, n
@@ -70,6 +71,12 @@ def test_full_report_with_comparison(tmp_path, normal):
     assert len(s["runs"][0]["phases"]) == NP and len(s["runs"][0]["peak_segment_strain"]["ecc"]) == 17
 
 
+def s_none_findings(path) -> bool:
+    """No strain: the summary says so (findings null), the page says why."""
+    return read_summary(path)["runs"][0]["segment_findings"] is None and "no regional findings" in (
+        path / "index.html").read_text()
+
+
 def test_missing_phases_no_strain_no_positions(tmp_path, low_dpi):
     phases, pos = make_run(strain=False)
     kept = [p for p in phases if p.phase_index not in (2, 7)]
@@ -78,6 +85,8 @@ def test_missing_phases_no_strain_no_positions(tmp_path, low_dpi):
     assert "2 of 10 phases missing: [2, 7]" in page
     assert "no strain in any phase" in page and "no ED positions" in page
     assert not (tmp_path / "strain_bullseye.png").exists()
+    assert not (tmp_path / "segment_findings.png").exists()
+    assert s_none_findings(tmp_path)
     assert not (tmp_path / "displacement_es.png").exists()
     assert (tmp_path / "level_curves.png").read_bytes().startswith(PNG)
     assert (tmp_path / "global_curves.png").read_bytes().startswith(PNG)

@@ -23,7 +23,7 @@ from sensor_msgs.msg import PointCloud2
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
-from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+from mlv_ros.core.analysis import LVAnalyzer, LVFrame, SegmentFindings
 from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
@@ -52,6 +52,8 @@ class MotionAnalyzer(GraphNode):
         self.create_subscription(ModelStateMsg, qos.relative(qos.MODEL_STATE), self._on_state,
                                  qos.subscription_qos(qos.MODEL_STATE))
         self.reg_cloud = self.reg_state = self.analyzer = None
+        self.findings = SegmentFindings()  # per-segment findings of the cycle so far
+        self._findings_said = None  # the abnormal segments last reported
         self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
         self._reg_key = None  # stamp of the registered state taken
         self._foreign_stamps = RecentKeys()  # stamps of model states of another study
@@ -176,7 +178,8 @@ class MotionAnalyzer(GraphNode):
                             expected=self.analyzer.X.shape[0])
                 continue
             try:
-                metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases)
+                metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases,
+                                              residual_mm=state.residual)
                 # The solver's data support first, then this phase's physiological bounds.
                 verdict = Verdict.from_parts(state.verdict, state.verdict_reasons).merge(
                     Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
@@ -195,6 +198,19 @@ class MotionAnalyzer(GraphNode):
             # failed), with why.
             level = {OK_VERDICT: OK, DEGRADED: WARN}.get(verdict.level, ERROR)
             self.report(level, "metrics", **values, **({"reasons": verdict.text} if verdict.level else {}))
+            self._say_findings(metrics)
+
+    def _say_findings(self, metrics) -> None:
+        """Update the per-segment findings (not in MotionMetrics yet: the report recomputes them)
+        and say which segments read akinetic / dyskinetic whenever that changes."""
+        f = self.findings.update(metrics)
+        said = (tuple(f.abnormal(("akinetic",))), tuple(f.abnormal(("dyskinetic",))),
+                f.classes.count("indeterminate"))
+        if f.es_phase is None or said == self._findings_said:
+            return
+        self._findings_said = said
+        self.report(OK, "regional findings", es_phase=f.es_phase, akinetic=list(said[0]) or "none",
+                    dyskinetic=list(said[1]) or "none", indeterminate_segments=said[2])
 
 
 def main(args=None):

@@ -8,6 +8,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from mlv_ros.cli import describe_os_error, one_line
 
 
@@ -61,7 +63,50 @@ def load_run_data(path: Path, label: str):
     if run["ed"] is not None and run["rotation"] is not None:
         frame = LVFrame(*lv_frame_axes(run["ed"], run["rotation"]))
     phases = [PhaseMetrics.from_dict(d) for _, d in sorted(run["metrics"].items())]
+    if frame is not None:
+        phases = with_segment_uncertainty(phases, run, frame)
     return RunData(phases, run["ed"], run["positions"] or None, frame, label), run
+
+
+def with_segment_uncertainty(phases, run: dict, frame) -> list:
+    """Recorded metrics with their per-segment uncertainties filled in where missing.
+
+    MotionMetrics does not carry the uncertainties yet, so they are recomputed here from the
+    recorded motion exactly as the analyzer computes them (:class:`LVAnalyzer` on the registered
+    ED cloud and the run's frame, MLS strain of the recorded positions, the phase's solver
+    residual from ``/lv/model_state``); the recorded strains, counts and verdicts are kept.
+    Phases without recorded positions keep empty uncertainties (the findings then use the
+    support-only uncertainty, :meth:`SegmentFindings.update`).
+
+    Parameters
+    ----------
+    phases : list of PhaseMetrics
+    run : dict
+        :func:`mlv_ros.tools.run.read_run` of the recording.
+    frame : LVFrame
+    """
+    from dataclasses import replace
+
+    from mlv_ros.core.analysis import LVAnalyzer
+
+    if run.get("ed") is None or not run.get("positions"):
+        return list(phases)
+    try:
+        an = LVAnalyzer(run["ed"], frame)
+    except ValueError:
+        return list(phases)
+    out = []
+    for p in phases:
+        x = run["positions"].get(int(p.phase_index))
+        if x is None or p.segment_err_unc.size == 17 or np.shape(x) != an.X.shape:
+            out.append(p)
+            continue
+        state = run["states"].get(int(p.phase_index))
+        m = an.phase(x, phase_index=p.phase_index, num_phases=p.num_phases,
+                     residual_mm=float(state.residual) if state is not None else 0.0)
+        out.append(replace(p, segment_err_unc=m.segment_err_unc, segment_ecc_unc=m.segment_ecc_unc,
+                           segment_ell_unc=m.segment_ell_unc))
+    return out
 
 
 def build(mcap: Path, out: Path | None = None, compare: Path | None = None, label: str | None = None,

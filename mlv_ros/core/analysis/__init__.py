@@ -1,5 +1,6 @@
 """Motion analysis of the dense LV point cloud (issue 9): cardiac frame, displacement
-decomposition, per-level twist / radius, cavity volume, Lagrangian strain and AHA segments.
+decomposition, per-level twist / radius, cavity volume, Lagrangian strain and AHA segments, and
+per-segment findings (peak strain with an uncertainty, wall-motion class: :mod:`.findings`).
 
 Pure numpy/scipy; nothing here imports rclpy. Inputs are arrays in DICOM patient coordinates
 (mm); every function is Lagrangian: quantities are relative to end-diastole (ED, phase 0).
@@ -9,6 +10,8 @@ circumferential angles and twist are positive counter-clockwise seen from the ap
 toward the base, radial is positive outward, strains are Green–Lagrange ``E = ½(FᵀF − I)``.
 """
 
+from mlv_ros.core.analysis.findings import CLASSES as FINDING_CLASSES
+from mlv_ros.core.analysis.findings import Findings, SegmentFindings, segment_findings
 from mlv_ros.core.analysis.frame import CardiacCoordinates, LVFrame, cardiac_coordinates, estimate_frame
 from mlv_ros.core.analysis.metrics import LVAnalyzer, PhaseMetrics, phase_metrics
 from mlv_ros.core.analysis.motion import (
@@ -32,9 +35,12 @@ from mlv_ros.core.analysis.strain import (
 __all__ = [
     "AHA_SEGMENT_NAMES",
     "CardiacCoordinates",
+    "FINDING_CLASSES",
+    "Findings",
     "LVAnalyzer",
     "LVFrame",
     "PhaseMetrics",
+    "SegmentFindings",
     "aha_segments",
     "cardiac_coordinates",
     "cardiac_strain",
@@ -48,6 +54,7 @@ __all__ = [
     "level_metrics",
     "mls_neighbourhood",
     "phase_metrics",
+    "segment_findings",
     "segment_means",
     "torsion",
 ]

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
+from mlv_ros.core.analysis.findings import UNCERTAINTY_FLOOR, segment_lengths, segment_uncertainty
 from mlv_ros.core.analysis.frame import LVFrame, as_points, cardiac_coordinates
 from mlv_ros.core.analysis.motion import CavityModel, LevelBinning, _level_dict, decompose_displacement, torsion
 from mlv_ros.core.analysis.strain import MLSNeighbourhood, aha_segments, cardiac_strain, green_lagrange, segment_means
@@ -25,7 +26,12 @@ from mlv_ros.core.verdict import metrics_verdict
 
 _ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
                  "radial_displacement_mm", "circumferential_displacement_mm",
-                 "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count")
+                 "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count",
+                 "segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
+
+#: PhaseMetrics fields MotionMetrics.msg does not carry yet (adding them rebuilds mlv_msgs): the
+#: per-segment uncertainties; ``mlv-ros report`` recomputes them from the recorded motion.
+NOT_IN_MSG_YET = ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
 
 
 def _empty() -> np.ndarray:
@@ -68,6 +74,10 @@ class PhaseMetrics:
         Particles per level. Not in MotionMetrics.msg (optional; empty when unknown).
     segment_count : ndarray of int, shape (17,) or (0,)
         Particles with a valid strain per segment. Not in MotionMetrics.msg (optional).
+    segment_err_unc, segment_ecc_unc, segment_ell_unc : ndarray, shape (17,) or (0,)
+        Uncertainty of each segment mean (dimensionless; NaN = too few particles to say),
+        :func:`mlv_ros.core.analysis.findings.segment_uncertainty`; empty when unknown. Not in
+        MotionMetrics.msg yet (the report recomputes them from the recorded positions).
     verdict : int
         0 ok, 1 degraded, 2 failed: whether this motion is physiologically possible
         (:func:`mlv_ros.core.verdict.metrics_verdict`); the analyzer node merges in the
@@ -96,6 +106,9 @@ class PhaseMetrics:
     segment_ell: np.ndarray = field(default_factory=_empty)
     level_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     segment_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    segment_err_unc: np.ndarray = field(default_factory=_empty)
+    segment_ecc_unc: np.ndarray = field(default_factory=_empty)
+    segment_ell_unc: np.ndarray = field(default_factory=_empty)
     verdict: int = 0
     verdict_reasons: str = ""
     study_id: str = ""
@@ -166,6 +179,7 @@ class LVAnalyzer:
         self.mls_k = int(mls_k)
         self._mls: MLSNeighbourhood | None = None
         self.edv_ml = self.cavity.volume_ml(self.X) if edv_ml is None else float(edv_ml)
+        self.segment_lengths = segment_lengths(self.coords.rho, self.coords.axial, self.segments)
 
     @property
     def mls(self) -> MLSNeighbourhood:
@@ -189,7 +203,7 @@ class LVAnalyzer:
         return cardiac_strain(green_lagrange(F), c.e_r, c.e_c, c.e_l)
 
     def phase(self, x, F=None, *, phase_index: int = 0, num_phases: int = 0,
-              time_fraction: float | None = None, apex=None) -> PhaseMetrics:
+              time_fraction: float | None = None, apex=None, residual_mm: float = 0.0) -> PhaseMetrics:
         """Metrics of one phase.
 
         Parameters
@@ -204,6 +218,10 @@ class LVAnalyzer:
             Default ``phase_index / num_phases`` (0 when num_phases is 0).
         apex : array_like, shape (3,), optional
             Current apex for the LA radius (default: the ED apex).
+        residual_mm : float
+            The solver's RMS residual at the control points for this phase, mm
+            (``ModelState.residual``; 0 = unknown): enters the segment uncertainties
+            (:mod:`mlv_ros.core.analysis.findings`).
 
         Returns
         -------
@@ -223,6 +241,9 @@ class LVAnalyzer:
         if st is not None:
             for key, comp in (("segment_err", "rr"), ("segment_ecc", "cc"), ("segment_ell", "ll")):
                 seg[key], seg["segment_count"] = segment_means(st[comp], self.segments)
+                seg[f"{key}_unc"] = segment_uncertainty(
+                    st[comp], self.segments, seg["segment_count"], UNCERTAINTY_FLOOR[key[-3:]],
+                    self.segment_lengths[key[-3:]], residual_mm if np.isfinite(residual_mm) else 0.0, self.mls_k)
         verdict = metrics_verdict(ef, float(np.max(np.linalg.norm(x - self.X, axis=1))), self.frame.length,
                                   [seg.get(k, ()) for k in ("segment_err", "segment_ecc", "segment_ell")],
                                   edv_ml=self.edv_ml)

@@ -7,9 +7,11 @@ Pure functions of arrays and :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics
 from mlv_ros.core.report.build import build_report
 from mlv_ros.core.report.figures import (
     draw_bullseye,
+    draw_class_bullseye,
     plot_displacement_3d,
     plot_global_curves,
     plot_level_curves,
+    plot_segment_findings,
     plot_strain_bullseyes,
 )
 from mlv_ros.core.report.summary import RunData, peak_segment_strain, summarize, write_summary_json
@@ -18,10 +20,12 @@ __all__ = [
     "RunData",
     "build_report",
     "draw_bullseye",
+    "draw_class_bullseye",
     "peak_segment_strain",
     "plot_displacement_3d",
     "plot_global_curves",
     "plot_level_curves",
+    "plot_segment_findings",
     "plot_strain_bullseyes",
     "summarize",
     "write_summary_json",

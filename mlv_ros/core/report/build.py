@@ -20,6 +20,7 @@ from mlv_ros.core.report.figures import (
     plot_displacement_3d,
     plot_global_curves,
     plot_level_curves,
+    plot_segment_findings,
     plot_strain_bullseyes,
 )
 from mlv_ros.core.report.summary import RunData, sorted_phases, summarize, write_summary_json
@@ -36,6 +37,10 @@ CONVENTIONS = [
     "LA radius = axial distance from the ED apex to the particle centroid (paper: model centre to apex).",
     "Strain: Green–Lagrange E = ½(FᵀF − I), negative = shortening; peak = largest magnitude over the cycle.",
     "Bull's-eye seen from the apex: anterior at the top, septum on the left (AHA 17 segments).",
+    "Wall motion per segment at end-systole relative to the heart's own median function (f = 1 as the rest, "
+    "0 still, < 0 the wrong way): normal f ≥ 0.6, hypokinetic 0.35–0.6, akinetic −0.2–0.35, dyskinetic "
+    "f < −0.2 or stretching (Ecc > 0, Err < 0) beyond 2σ; indeterminate when σ_f > 0.33 or too few "
+    "particles (mlv_ros/core/analysis/findings.py).",
 ]
 
 _KEY_ROWS = (
@@ -102,6 +107,39 @@ def _fmt(v, f: str) -> str:
     return f.format(v)
 
 
+def _pm(v, u) -> str:
+    if v is None:
+        return "—"
+    return f"{v:+.3f}" + (f" ± {u:.3f}" if u is not None else "")
+
+
+def _findings_html(summaries: list[dict]) -> str:
+    """One table per run: class, function index and ES / peak strain ± uncertainty per segment."""
+    e = html.escape
+    parts = []
+    for s in summaries:
+        f = s.get("segment_findings")
+        if not f:
+            parts.append(f"<p>{e(s['label'])}: no strain, no regional findings.</p>")
+            continue
+        rows = "".join(
+            f"<tr><td>{r['segment']} {e(r['name'])}</td><td>{e(r['class'])}</td>"
+            f"<td>{e(_pm(r['function_index'], r['function_unc']))}</td>"
+            + "".join(f"<td>{e(_pm(r[f'es_{c}'], r[f'es_{c}_unc']))}</td>" for c in ("ecc", "err", "ell"))
+            + "".join(f"<td>{e(_pm(r[f'peak_{c}'], r[f'peak_{c}_unc']))}</td>" for c in ("ecc", "err", "ell"))
+            + "</tr>" for r in _clean_rows(f["segments"]))
+        parts.append(f"<p><b>{e(s['label'])}</b>: ES phase {f['es_phase']}; classes "
+                     + e(", ".join(f"{k} {n}" for k, n in f["counts"].items() if n)) + "</p>"
+                     "<table><tr><th>segment</th><th>class</th><th>f ± σ</th><th>ES Ecc</th><th>ES Err</th>"
+                     f"<th>ES Ell</th><th>peak Ecc</th><th>peak Err</th><th>peak Ell</th></tr>{rows}</table>")
+    return "".join(parts)
+
+
+def _clean_rows(rows: list[dict]) -> list[dict]:
+    """NaN → None in the findings rows (so they print as —)."""
+    return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
+
+
 def _html(title: str, meta: dict, summaries: list[dict], figures: list[tuple[str, str]], skipped: list[str]) -> str:
     e = html.escape
     head = "".join(f"<th>{e(s['label'])}</th>" for s in summaries)
@@ -140,6 +178,7 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 <ul>{meta_html}</ul>
 <h2>Key numbers</h2>
 <table><tr><th></th>{head}</tr>{rows}</table>
+<h2>Regional findings (end-systole)</h2>{_findings_html(summaries)}
 <h2>Missing / not shown</h2><div class="missing">{miss_html}</div>
 <h2>Figures</h2>{figs}
 <h2>Conventions</h2><ul>{conv}</ul>
@@ -217,6 +256,10 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
                 lambda: plot_global_curves(with_phases, out / "global_curves.png"))
         attempt("strain_bullseye.png", "Peak Err / Ecc / Ell by AHA segment (bull's-eye seen from the apex).",
                 lambda: plot_strain_bullseyes(with_phases, out / "strain_bullseye.png"))
+        attempt("segment_findings.png",
+                "Wall motion by AHA segment at end-systole: normal / hypokinetic / akinetic / dyskinetic, "
+                "indeterminate (hatched) where the data cannot tell; f = share of the heart's own function ± σ.",
+                lambda: plot_segment_findings(with_phases, out / "segment_findings.png"))
     else:
         skipped.append("no phases in any run: no curves")
     views = []

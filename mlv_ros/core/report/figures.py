@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 
 from mlv_ros.core.analysis.frame import LVFrame
 from mlv_ros.core.analysis.motion import decompose_displacement
+from mlv_ros.core.analysis.findings import segment_findings
 from mlv_ros.core.report.summary import RunData, level_table, peak_segment_strain, sorted_phases
 
 DPI = 110
@@ -189,6 +190,17 @@ def _aha_wedges():
     return wedges
 
 
+def _bullseye_frame(ax, title: str = "") -> None:
+    ax.set_ylim(0, 4)
+    ax.set_axis_off()
+    ax.text(np.pi / 2, 4.35, "anterior", ha="center", fontsize=7)
+    ax.text(np.pi, 4.45, "septal", ha="center", va="center", rotation=90, fontsize=7)
+    ax.text(-np.pi / 2, 4.4, "inferior", ha="center", va="center", fontsize=7)
+    ax.text(0, 4.45, "lateral", ha="center", va="center", rotation=-90, fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=10, pad=14)
+
+
 def draw_bullseye(ax, values, *, vlim: float | None = None, title: str = "", cmap="coolwarm",
                   label: str = ""):
     """Draw a 17-segment AHA bull's-eye on a polar Axes.
@@ -226,15 +238,70 @@ def draw_bullseye(ax, values, *, vlim: float | None = None, title: str = "", cma
     ax.plot(ring, np.ones_like(ring), color="k", lw=0.8)
     ax.text(0, 0, f"17\n{'n/a' if not np.isfinite(v[16]) else f'{v[16]:.2f}'}", ha="center", va="center",
             fontsize=6.5)
-    ax.set_ylim(0, 4)
-    ax.set_axis_off()
-    ax.text(np.pi / 2, 4.35, "anterior", ha="center", fontsize=7)
-    ax.text(np.pi, 4.45, "septal", ha="center", va="center", rotation=90, fontsize=7)
-    ax.text(-np.pi / 2, 4.4, "inferior", ha="center", va="center", fontsize=7)
-    ax.text(0, 4.45, "lateral", ha="center", va="center", rotation=-90, fontsize=7)
-    if title:
-        ax.set_title(title, fontsize=10, pad=14)
+    _bullseye_frame(ax, title)
     return cm.ScalarMappable(norm=norm, cmap=cmap)
+
+
+#: Colours of the wall-motion classes (bull's-eye of findings): normal white, worsening to red;
+#: indeterminate hatched grey (no class claimed).
+CLASS_COLOURS = {"normal": "#ffffff", "hypokinetic": "#f6d55c", "akinetic": "#ed7d31",
+                 "dyskinetic": "#c00000", "indeterminate": "#d0d0d0"}
+
+
+def draw_class_bullseye(ax, classes, labels=None, *, title: str = ""):
+    """Draw the 17 segments' wall-motion classes on a polar Axes (layout of :func:`draw_bullseye`).
+
+    Parameters
+    ----------
+    ax : matplotlib polar Axes
+    classes : sequence of str, length 17
+        Class per segment (AHA order), keys of :data:`CLASS_COLOURS`.
+    labels : sequence of str, length 17, optional
+        Text under each segment's number (default the class's first four letters).
+    """
+    if len(classes) != 17:
+        raise ValueError(f"bull's-eye needs 17 classes, got {len(classes)}")
+    labels = list(labels) if labels is not None else [c[:4] for c in classes]
+
+    def paint(seg, theta, width, bottom):
+        c = classes[seg - 1]
+        ax.bar(theta, 1.0, width=width, bottom=bottom, color=CLASS_COLOURS.get(c, "#d0d0d0"), edgecolor="k",
+               lw=0.8, hatch="//" if c == "indeterminate" else None)
+
+    for seg, ring, psi0, width in _aha_wedges():
+        ang0 = np.radians(90.0 + psi0 - 330.0)
+        w = np.radians(width)
+        paint(seg, ang0 + w / 2, w, ring)
+        ax.text(ang0 + w / 2, ring + 0.5, f"{seg}\n{labels[seg - 1]}", ha="center", va="center", fontsize=6)
+    paint(17, 0, 2 * np.pi, 0)
+    ax.text(0, 0, f"17\n{labels[16]}", ha="center", va="center", fontsize=6)
+    _bullseye_frame(ax, title)
+
+
+def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
+    """Bull's-eye of the wall-motion class per AHA segment, one panel per run, each segment
+    labelled with its class and function index ``f ± σ_f`` (share of the heart's own function,
+    :mod:`mlv_ros.core.analysis.findings`). None (nothing written) when no run carries strain."""
+    panels = []
+    for run in runs:
+        ph = [p for p in sorted_phases(run.phases)[0] if p.has_strain]
+        if ph:
+            panels.append((run.label, segment_findings(ph)))
+    if not panels:
+        return None
+    fig = Figure(figsize=(5.2 * len(panels) + 2.2, 5.6), layout="constrained")
+    for j, (lab, f) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), j + 1, projection="polar")
+        labels = [f"{c[:4]}" + (f"\n{fi:+.2f}±{si:.2f}" if np.isfinite(fi) and np.isfinite(si) else "")
+                  for c, fi, si in zip(f.classes, f.function_index, f.function_unc)]
+        es = "no systolic phase yet" if f.es_phase is None else f"ES phase {f.es_phase}"
+        draw_class_bullseye(ax, f.classes, labels, title=f"{lab}: wall motion at ES ({es})")
+    from matplotlib.patches import Patch
+
+    fig.legend(handles=[Patch(facecolor=c, edgecolor="k", hatch="//" if n == "indeterminate" else None, label=n)
+                        for n, c in CLASS_COLOURS.items()], loc="outside right center", fontsize=8)
+    fig.suptitle("Regional wall motion by AHA segment\n(f = share of the heart's own function ± σ)", fontsize=10)
+    return _save(fig, path)
 
 
 def plot_strain_bullseyes(runs: Sequence[RunData], path) -> Path | None:

@@ -20,6 +20,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from mlv_ros.core.analysis.findings import segment_findings
 from mlv_ros.core.analysis.frame import LVFrame
 from mlv_ros.core.analysis.metrics import PhaseMetrics
 
@@ -134,11 +135,15 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
         peak_twist_apex_deg, peak_twist_base_deg, peak_torsion_deg_per_cm,
         peak_sa_radius_change_mm, peak_base_longitudinal_mm, la_radius_ed_mm,
         la_radius_es_mm, peak_global_err/ecc/ell), ``peak_segment_strain`` (17 each or
-        None) and ``phases`` (every field of every phase).
+        None), ``segment_findings`` (per AHA segment: peak and ES strain with uncertainties,
+        function index, wall-motion class and the thresholds used,
+        :meth:`mlv_ros.core.analysis.findings.Findings.to_dict`; None without strain) and
+        ``phases`` (every field of every phase).
     """
     ph, dup = sorted_phases(phases)
     missing: list[str] = []
-    out: dict = {"label": label, "missing": missing, "key": {}, "peak_segment_strain": None, "phases": []}
+    out: dict = {"label": label, "missing": missing, "key": {}, "peak_segment_strain": None,
+                 "segment_findings": None, "phases": []}
     if not ph:
         missing.append("no phases: nothing to report")
         out.update(num_phases=0, phases_present=[], missing_phases=[])
@@ -194,6 +199,10 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
         key[f"peak_global_{c}"] = None
     if seg is not None:
         out["peak_segment_strain"] = {k: [_f(x) for x in v] for k, v in seg.items()}
+        found = segment_findings(ph)
+        out["segment_findings"] = found.to_dict()
+        for kind in ("akinetic", "dyskinetic"):
+            key[f"{kind}_segments"] = found.abnormal((kind,))
         for c in ("err", "ecc", "ell"):
             g = []
             for p in ph:

@@ -1,0 +1,364 @@
+"""Per-segment findings a reader uses: peak strain with an uncertainty and a wall-motion class.
+
+For each AHA segment (1–17) the analysis keeps, phase by phase (streaming: the findings of the
+cycle so far), the signed peak Err, Ecc, Ell, their values at end-systole (ES: the phase of
+smallest cavity volume so far), an uncertainty of each, and a class ``normal``,
+``hypokinetic``, ``akinetic``, ``dyskinetic`` or ``indeterminate``.
+
+Uncertainty of a segment's mean strain (one phase, per component k ∈ rr, cc, ll)
+-------------------------------------------------------------------------------
+The analyzer does not see the tag points (they reach the solver only), so the uncertainty is
+built from what it has; :meth:`LVAnalyzer.phase <mlv_ros.core.analysis.metrics.LVAnalyzer.phase>`
+computes it::
+
+    σ_k² = FLOOR_k² + (√2 ρ / ℓ_k)² + s_k² / n_eff        (× VERDICT_INFLATION if degraded)
+
+* ``FLOOR_k`` (:data:`UNCERTAINTY_FLOOR`): what we never claim to beat — the spread between
+  experienced readers of tagged MRI (issue 20's goal: Ecc, Ell 0.02; Err 0.05).
+* ``ρ``: the solver's RMS in-plane residual at the control points of this phase, mm
+  (``ModelState.residual``, the fit residual: tag motion the model did not explain). A
+  displacement error ρ at both ends of a length ℓ changes its mean strain by about √2 ρ / ℓ;
+  ℓ_rr is the segment's ED wall thickness (5–95 % span of the distance from the axis), ℓ_cc its
+  mid-wall arc (mean radius × sector angle), ℓ_ll its ED long-axis extent (5–95 % span).
+  Unknown residual counts as 0.
+* ``s_k``: the spread (standard deviation) of the per-particle strain inside the segment — a
+  segment across a hinge between moving and still wall, or with a noisy motion field, has a less
+  certain mean. ``n_eff = count / mls_k``: particles of one MLS neighbourhood share their data,
+  so they are not independent samples.
+* Support: a segment with fewer than :data:`MIN_SEGMENT_PARTICLES` particles with strain has no
+  uncertainty (NaN: not measured). A phase whose verdict is *degraded* has its uncertainties
+  multiplied by :data:`VERDICT_INFLATION`; a *failed* phase is not a measurement and is never
+  used.
+
+What it captures: how much model surface covers the segment, how well the model fitted the tags
+at that phase and how uniform the segment's motion is. What it does not: the tag-point density
+in the segment itself (not available to the analyzer) and bias of the motion field (a region
+smoothed into line with its neighbours by the solver's penalties looks certain and normal).
+
+Classification (at ES)
+----------------------
+Relative to the heart's own function, so it holds for normal, dilated and hypertrophic hearts:
+
+* References: ``Ecc_ref`` = median ES Ecc of the supported segments 1–16 (at most
+  ``−REF_MIN['ecc']``), ``Err_ref`` = their median ES Err (at least ``REF_MIN['err']``): a heart
+  with several abnormal segments still has a normal median while fewer than half are abnormal.
+* Expected share of the reference per segment, :data:`NORMAL_PATTERN`: the apical ring's wall
+  tapers and shortens less, and the apex cap's cylindrical "radial" is not transmural, so a
+  normal cap thickens little. The circumferential direction is undefined at the apex tip: the
+  cap's Ecc is not used.
+* Function index ``f`` = inverse-variance weighted mean of ``Ecc / (P_cc Ecc_ref)`` and
+  ``Err / (P_rr Err_ref)`` (1 = as the rest of the heart, 0 = no motion, < 0 = moves the wrong
+  way), with its uncertainty ``σ_f``. Classes on ``f`` (:data:`CLASS_BOUNDS`): normal
+  ``f ≥ 0.6``, hypokinetic ``0.35 ≤ f < 0.6``, akinetic ``−0.2 ≤ f < 0.35``, dyskinetic
+  ``f < −0.2``; and dyskinetic whenever the wall stretches beyond its uncertainty at ES:
+  ``Err < −Z σ_rr`` (thinning) or, segments 1–16, ``Ecc > Z σ_cc`` (Z = :data:`STRETCH_Z`).
+* ``indeterminate`` when the segment has no support, no systolic phase has been seen yet, or
+  ``σ_f > MAX_SIGMA_F`` (0.33: beyond it a normal segment could be read akinetic within 2σ).
+  Never a confident wrong class for lack of data. With the floors above the apex cap (its normal
+  Err is ~0.2 of the heart's) is indeterminate unless it thins beyond 2σ, and so are the segments
+  of a heart whose median Ecc is near ``REF_MIN`` (too little motion to compare against).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mlv_ros.core.analysis.strain import AHA_SEGMENT_NAMES
+from mlv_ros.core.verdict import DEGRADED, FAILED
+
+COMPONENTS = ("err", "ecc", "ell")
+#: Smallest uncertainty of a segment mean, per component: the spread between experienced readers
+#: of tagged MRI (issue 20's goal); we do not claim to measure better than they read.
+UNCERTAINTY_FLOOR = {"err": 0.05, "ecc": 0.02, "ell": 0.02}
+#: Fewer particles with strain than this in a segment: not measured (two MLS neighbourhoods).
+MIN_SEGMENT_PARTICLES = 24
+#: A degraded phase (the solver's data support or physiological bounds) counts as half as sure.
+VERDICT_INFLATION = 2.0
+#: Smallest magnitude of the heart's reference Ecc / Err: below it the heart barely contracts
+#: anywhere and "relative to the rest of the heart" would divide by noise.
+REF_MIN = {"ecc": 0.03, "err": 0.05}
+#: Expected share of the heart's median Err / Ecc a normal segment reaches (index = segment − 1);
+#: None = the component is not used for that segment. From the simulator's normal, dilated and
+#: hypertrophic hearts' truth (apical ring 0.6–0.85 of the median in Err, 0.15–0.8 in Ecc; cap Err
+#: 0.17–0.24 of the median, cap Ecc of either sign: the cylindrical frame degenerates at the tip).
+NORMAL_PATTERN = {"err": (1.0,) * 12 + (0.75,) * 4 + (0.2,),
+                  "ecc": (1.0,) * 12 + (0.6,) * 4 + (None,)}
+#: Classes on the function index f (share of the heart's normal function the segment keeps), the
+#: first whose lower bound f reaches. Looser than the truth's contraction bounds (0.75 / 0.2 /
+#: −0.2, :data:`mlv_ros.core.sim.regional.CLASS_THRESHOLDS`): normal segments vary 0.55–1.45
+#: around the median in the truth's own Err, and a segment's mean takes in the blend toward its
+#: neighbours, so an akinetic segment's mean keeps up to ~0.35 of normal (truth: 95 % below 0.53,
+#: hypokinetic 95 % above 0.38; on the truth's strain the 0.35 bound finds 92 % of akinetic or
+#: dyskinetic segments at 96 % specificity).
+CLASS_BOUNDS = (("normal", 0.6), ("hypokinetic", 0.35), ("akinetic", -0.2), ("dyskinetic", -math.inf))
+CLASSES = tuple(n for n, _ in CLASS_BOUNDS) + ("indeterminate",)
+#: "Beyond the uncertainty": stretching by more than this many σ makes a segment dyskinetic.
+STRETCH_Z = 2.0
+#: Largest σ_f a class is given with: a normal segment (f ≈ 1) is then called akinetic (f < 0.35)
+#: only when read 2σ low.
+MAX_SIGMA_F = 0.33
+
+
+def segment_uncertainty(values, segments, count, floor: float, length_mm, residual_mm: float = 0.0,
+                        mls_k: int = 12) -> np.ndarray:
+    """Uncertainty of each segment's mean strain at one phase (module docstring formula).
+
+    Parameters
+    ----------
+    values : array_like, shape (N,)
+        Per-particle strain component (NaN where not estimated).
+    segments : array_like of int, shape (N,)
+        AHA segment 1–17 per particle.
+    count : array_like of int, shape (17,)
+        Particles with a finite value per segment.
+    floor : float
+        :data:`UNCERTAINTY_FLOOR` of the component.
+    length_mm : array_like, shape (17,)
+        The length ℓ the component's strain is measured over, mm, per segment.
+    residual_mm : float
+        The solver's RMS residual at the control points for this phase, mm (0 if unknown).
+    mls_k : int
+        Neighbours of the MLS strain estimate (particles per independent sample).
+
+    Returns
+    -------
+    ndarray, shape (17,)
+        σ (dimensionless); NaN where the segment has fewer than :data:`MIN_SEGMENT_PARTICLES`.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    s = np.asarray(segments)
+    cnt = np.asarray(count, dtype=np.float64)
+    ok = np.isfinite(v)
+    tot = np.bincount(s[ok] - 1, weights=v[ok], minlength=17)
+    tot2 = np.bincount(s[ok] - 1, weights=v[ok] ** 2, minlength=17)
+    mean = tot / np.maximum(cnt, 1)
+    spread2 = np.maximum(tot2 / np.maximum(cnt, 1) - mean ** 2, 0.0)
+    n_eff = np.maximum(cnt / max(int(mls_k), 1), 1.0)
+    ell = np.maximum(np.asarray(length_mm, dtype=np.float64), 1e-3)
+    sig = np.sqrt(floor ** 2 + 2.0 * (float(residual_mm) / ell) ** 2 + spread2 / n_eff)
+    return np.where(cnt >= MIN_SEGMENT_PARTICLES, sig, np.nan)
+
+
+def segment_lengths(rho, axial, segments) -> dict:
+    """ED lengths the segment mean strains are measured over (for :func:`segment_uncertainty`).
+
+    Parameters
+    ----------
+    rho, axial : array_like, shape (N,)
+        ED distance from the long axis and along it, mm.
+    segments : array_like of int, shape (N,)
+
+    Returns
+    -------
+    dict
+        ``err``: wall thickness (5–95 % span of ρ), ``ecc``: mid-wall arc (mean ρ × the sector's
+        angle: 60° basal/mid, 90° apical, 360° cap), ``ell``: long-axis extent (5–95 % span of
+        the axial position); each shape (17,), mm (NaN for an empty segment).
+    """
+    rho = np.asarray(rho, dtype=np.float64)
+    axial = np.asarray(axial, dtype=np.float64)
+    s = np.asarray(segments)
+    angle = np.radians([60.0] * 12 + [90.0] * 4 + [360.0])
+    out = {k: np.full(17, np.nan) for k in COMPONENTS}
+    for k in range(17):
+        m = s == k + 1
+        if m.sum() < 2:
+            continue
+        out["err"][k] = float(np.subtract(*np.percentile(rho[m], [95, 5])))
+        out["ecc"][k] = float(np.mean(rho[m]) * angle[k])
+        out["ell"][k] = float(np.subtract(*np.percentile(axial[m], [95, 5])))
+    return out
+
+
+def _signed_peak_update(peak, peak_unc, v, unc):
+    """Keep the value of largest magnitude (sign kept) and its uncertainty, elementwise."""
+    better = np.isfinite(v) & (~np.isfinite(peak) | (np.abs(v) > np.abs(peak)))
+    return np.where(better, v, peak), np.where(better, unc, peak_unc)
+
+
+def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Classes of the 17 segments from their ES strain and its uncertainty (module docstring).
+
+    Parameters
+    ----------
+    es : dict
+        ``err``, ``ecc``: ES segment means, shape (17,) each (NaN = not measured).
+    unc : dict
+        ``err``, ``ecc``: their uncertainties, shape (17,) (NaN = no support).
+
+    Returns
+    -------
+    classes : ndarray of str, shape (17,)
+        :data:`CLASSES` names.
+    f, f_unc : ndarray, shape (17,)
+        Function index and its uncertainty (NaN where not computable).
+    ref : dict
+        ``ecc``, ``err``: the heart's references (None when no segment 1–16 is supported).
+    """
+    classes = np.full(17, "indeterminate", dtype=object)
+    f = np.full(17, np.nan)
+    f_unc = np.full(17, np.nan)
+    sup = {c: np.isfinite(es[c]) & np.isfinite(unc[c]) for c in ("err", "ecc")}
+    ref = {}
+    for c, sign in (("ecc", -1.0), ("err", 1.0)):
+        remote = es[c][:16][sup[c][:16]]
+        ref[c] = None if remote.size < 3 else sign * max(sign * float(np.median(remote)), REF_MIN[c])
+    if ref["ecc"] is None and ref["err"] is None:
+        return classes, f, f_unc, ref
+    num = np.zeros(17)
+    wsum = np.zeros(17)
+    for c in ("ecc", "err"):
+        if ref[c] is None:
+            continue
+        p = np.array([np.nan if x is None else x for x in NORMAL_PATTERN[c]])
+        scale = p * ref[c]
+        use = sup[c] & np.isfinite(scale)
+        fi = np.where(use, es[c] / np.where(use, scale, 1.0), 0.0)
+        si = np.where(use, unc[c] / np.abs(np.where(use, scale, 1.0)), np.inf)
+        w = np.where(use, 1.0 / si ** 2, 0.0)
+        num += w * fi
+        wsum += w
+    have = wsum > 0
+    f[have] = num[have] / wsum[have]
+    f_unc[have] = 1.0 / np.sqrt(wsum[have])
+    for name, bound in reversed(CLASS_BOUNDS):
+        classes[have & (f >= bound)] = name
+    stretch = np.zeros(17, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        stretch |= sup["err"] & (es["err"] < -STRETCH_Z * unc["err"])
+        stretch[:16] |= (sup["ecc"] & (es["ecc"] > STRETCH_Z * unc["ecc"]))[:16]
+    classes[have & (f_unc > MAX_SIGMA_F)] = "indeterminate"
+    classes[stretch] = "dyskinetic"  # beyond its own uncertainty: a confident call
+    return classes, f, f_unc, ref
+
+
+@dataclass
+class Findings:
+    """Per-segment findings of the cycle so far (17 entries each, AHA order 1…17).
+
+    Attributes
+    ----------
+    phases_used : list of int
+        Phases with strain that entered (failed phases never do).
+    es_phase : int or None
+        Phase of smallest cavity volume among them, excluding ED (None: no systolic phase yet).
+    peak : dict of ndarray
+        ``err``, ``ecc``, ``ell``: signed peak over the phases used (NaN: never measured).
+    peak_unc : dict of ndarray
+        Uncertainty at the phase of each peak.
+    es, es_unc : dict of ndarray
+        Values and uncertainties at ``es_phase``.
+    function_index, function_unc : ndarray, shape (17,)
+        ``f`` and ``σ_f`` of the classification (NaN where not computable).
+    classes : list of str
+        :data:`CLASSES` names.
+    reference : dict
+        The heart's ``ecc`` / ``err`` references at ES (None when not available).
+    """
+
+    phases_used: list = field(default_factory=list)
+    es_phase: int | None = None
+    peak: dict = field(default_factory=dict)
+    peak_unc: dict = field(default_factory=dict)
+    es: dict = field(default_factory=dict)
+    es_unc: dict = field(default_factory=dict)
+    function_index: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
+    function_unc: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
+    classes: list = field(default_factory=lambda: ["indeterminate"] * 17)
+    reference: dict = field(default_factory=dict)
+
+    def abnormal(self, kinds=("akinetic", "dyskinetic")) -> list[int]:
+        """Segment numbers (1–17) classed as one of ``kinds``."""
+        return [k + 1 for k, c in enumerate(self.classes) if c in kinds]
+
+    def to_dict(self) -> dict:
+        """JSON-ready: per-segment rows plus the thresholds used (NaN stays NaN: write it with
+        :func:`mlv_ros.core.report.summary.write_summary_json`, which makes it null)."""
+        rows = []
+        for k in range(17):
+            row = {"segment": k + 1, "name": AHA_SEGMENT_NAMES[k], "class": self.classes[k]}
+            for c in COMPONENTS:
+                for key, d in ((f"peak_{c}", self.peak), (f"peak_{c}_unc", self.peak_unc),
+                               (f"es_{c}", self.es), (f"es_{c}_unc", self.es_unc)):
+                    row[key] = float(d[c][k]) if c in d else math.nan
+            row["function_index"] = float(self.function_index[k])
+            row["function_unc"] = float(self.function_unc[k])
+            rows.append(row)
+        return {"es_phase": self.es_phase, "phases_used": list(self.phases_used),
+                "reference": dict(self.reference), "segments": rows,
+                "counts": {c: self.classes.count(c) for c in CLASSES},
+                "thresholds": {"class_bounds": {n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS},
+                               "stretch_z": STRETCH_Z, "max_sigma_f": MAX_SIGMA_F,
+                               "uncertainty_floor": dict(UNCERTAINTY_FLOOR),
+                               "min_segment_particles": MIN_SEGMENT_PARTICLES,
+                               "verdict_inflation": VERDICT_INFLATION, "reference_min": dict(REF_MIN),
+                               "normal_pattern": {c: list(v) for c, v in NORMAL_PATTERN.items()}}}
+
+
+class SegmentFindings:
+    """Streaming per-segment findings: feed each phase's metrics, read :attr:`findings`.
+
+    Example
+    -------
+    >>> sf = SegmentFindings()                                  # doctest: +SKIP
+    >>> for x in positions: sf.update(analyzer.phase(x, ...))
+    >>> sf.findings.classes[16]
+    """
+
+    def __init__(self):
+        nan = np.full(17, np.nan)
+        self._peak = {c: nan.copy() for c in COMPONENTS}
+        self._peak_unc = {c: nan.copy() for c in COMPONENTS}
+        self._es = None  # (volume, phase, values, unc)
+        self._used: list[int] = []
+        self.findings = Findings(peak=dict(self._peak), peak_unc=dict(self._peak_unc))
+
+    def update(self, metrics) -> Findings:
+        """Take one phase (a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`); returns the
+        findings of the cycle so far. A failed phase or one without strain changes nothing;
+        without the uncertainty arrays (e.g. metrics recorded before they existed) each segment
+        gets the support-only uncertainty: the floor, NaN below :data:`MIN_SEGMENT_PARTICLES`
+        particles (unknown count: supported), inflated when the phase is degraded."""
+        level = int(getattr(metrics, "verdict", 0))
+        if level >= FAILED or not metrics.has_strain:
+            return self.findings
+        count = np.asarray(metrics.segment_count)
+        supported = count >= MIN_SEGMENT_PARTICLES if count.size == 17 else np.ones(17, dtype=bool)
+        vals, unc = {}, {}
+        for c in COMPONENTS:
+            v = np.asarray(getattr(metrics, f"segment_{c}"), dtype=np.float64)
+            u = np.asarray(getattr(metrics, f"segment_{c}_unc", np.zeros(0)), dtype=np.float64)
+            if u.size != 17:
+                u = np.full(17, UNCERTAINTY_FLOOR[c])
+            u = np.where(supported, u, np.nan)
+            if level >= DEGRADED:
+                u = u * VERDICT_INFLATION
+            vals[c] = np.where(np.isfinite(u), v, np.nan)
+            unc[c] = u
+            self._peak[c], self._peak_unc[c] = _signed_peak_update(self._peak[c], self._peak_unc[c], vals[c], u)
+        idx = int(metrics.phase_index)
+        self._used.append(idx)
+        vol = float(metrics.cavity_volume_ml)
+        if idx != 0 and (self._es is None or vol < self._es[0]):
+            self._es = (vol, idx, vals, unc)
+        f = Findings(phases_used=sorted(set(self._used)), peak={c: v.copy() for c, v in self._peak.items()},
+                     peak_unc={c: v.copy() for c, v in self._peak_unc.items()})
+        if self._es is not None:
+            _, f.es_phase, f.es, f.es_unc = self._es
+            cls, f.function_index, f.function_unc, f.reference = classify(f.es, f.es_unc)
+            f.classes = [str(c) for c in cls]
+        self.findings = f
+        return f
+
+
+def segment_findings(phases) -> Findings:
+    """Findings of a whole list of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics` (taken in
+    phase order; duplicates: the last wins)."""
+    by = {int(p.phase_index): p for p in phases}
+    sf = SegmentFindings()
+    for k in sorted(by):
+        sf.update(by[k])
+    return sf.findings
