@@ -74,7 +74,9 @@ class SliceTracker:
         After ED, detect with the confidence normalised for the share of the filter inside the
         propagated wall mask (``coverage_normalised`` of :func:`detect_intersections`): a track
         on a wall thinner than a tag period is kept while its tags stand above the noise as
-        far as a thick wall's must. ED detection (new tracks) keeps the plain confidence.
+        far as a thick wall's must. ED detection (new tracks) keeps the plain confidence, and
+        every reported point carries its plain confidence (the solver weights by it: a point
+        seen through little wall is the more biased by the wall's border).
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -204,7 +206,7 @@ class SliceTracker:
         hit = res.match >= 0
         final = det
         new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
-        conf = det.confidence[np.maximum(res.match, 0)]
+        conf = det.plain_confidence[np.maximum(res.match, 0)]
         if two_pass and hit.sum() >= 4:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
@@ -224,7 +226,7 @@ class SliceTracker:
                     found = np.isfinite(d2)
                 idx = np.nonzero(hit)[0]
                 new[idx[found]] = det2.pixel_rc[j2[found]]
-                conf[idx[found]] = det2.confidence[j2[found]]
+                conf[idx[found]] = det2.plain_confidence[j2[found]]
                 new[idx[~found]] = res.warped[idx[~found]]
                 hit[idx[~found]] = False
         self._coast(live[~hit], pred[~hit], new[~hit])
@@ -281,7 +283,7 @@ class SliceTracker:
             taken.add(j[k])
             idx.append(lost[k])
             pos.append(det.pixel_rc[cand[j[k]]])
-            conf.append(det.confidence[cand[j[k]]])
+            conf.append(det.plain_confidence[cand[j[k]]])
         if not idx:
             return none
         idx, pos = np.array(idx), np.array(pos)
