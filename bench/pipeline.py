@@ -88,27 +88,30 @@ def local_stage_replay(mcap: Path) -> dict:
         tr.set_reference(pts)
     new_solve, cache, calls = tr._local_solve, {}, []
 
-    def both(phi, targets, normals, x_global):
+    def both(phi, targets, normals, x_global, weights=None):
         d0 = None if tr.delta is None else tr.delta.copy()
         t1 = time.perf_counter()
-        new = new_solve(phi, targets, normals, x_global)
+        new = new_solve(phi, targets, normals, x_global, weights)
         t2 = time.perf_counter()
         old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
         calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
         return new
 
     tr._local_solve = both
-    phase_s, num_phases = [], max(sets) + 1
+    phase_s, phase_its, num_phases = [], [], max(sets) + 1
     for p in sorted(sets)[1:]:
         before = len(calls)
+        tr.cg_iterations.clear()
         t1 = time.perf_counter()
         tr.solve(p, sets[p], num_phases)
+        phase_its.append(sum(tr.cg_iterations))
         phase_s.append(time.perf_counter() - t1 - sum(c[1] for c in calls[before:]))
     new_t, old_t, diff = (np.array(v) for v in zip(*calls))
     return {
         "particles": tr.num_particles, "phases": len(phase_s), "local_solves": len(calls),
         "model_build_s": round(build_s, 3), "first_phase_s": round(phase_s[0], 3),
         "solver_per_phase_s_median": round(float(np.median(phase_s)), 3),
+        "cg_iterations_per_phase_median": float(np.median(phase_its)),
         "new_local_s_median": round(float(np.median(new_t)), 4), "old_local_s_median": round(float(np.median(old_t[1:])), 4),
         "ratio_local_median": round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
         "old_first_local_s_with_matrix_build": round(float(old_t[0]), 3),

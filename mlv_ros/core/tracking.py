@@ -20,6 +20,7 @@ MotionTracker
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -205,6 +206,7 @@ class MotionTracker:
         # infarct; worst median, p95, twist and radius error over the phases): 1e-3 matches 1e-5
         # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase).
         self.cg_rtol, self.cg_maxiter = 1e-3, 400
+        self.cg_iterations = deque(maxlen=1000)  # CG iterations of the latest local solves (benchmarks)
         self.delta = None
         # The local stage's operators, built with the model; the fit-error penalty is weighted by
         # the normalised kernel weights and scaled against the elastic diagonal per solve.
@@ -413,7 +415,8 @@ class MotionTracker:
                                     eps=1e-6 * kappa)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
         rhs = kappa * (phi.T @ r) + system.constant_force()
-        delta, _its = system.solve(rhs, self.delta, rtol=self.cg_rtol, maxiter=self.cg_maxiter)
+        delta, its = system.solve(rhs, self.delta, rtol=self.cg_rtol, maxiter=self.cg_maxiter)
+        self.cg_iterations.append(its)
         return delta
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
