@@ -89,10 +89,10 @@ def local_stage_replay(mcap: Path) -> dict:
         tr.set_reference(pts)
     new_solve, cache, calls = tr._local_solve, {}, []
 
-    def both(phi, targets, normals, x_global, weights=None):
+    def both(phi, targets, normals, x_global, weights=None, rtol=None):
         d0 = None if tr.delta is None else tr.delta.copy()
         t1 = time.perf_counter()
-        new = new_solve(phi, targets, normals, x_global, weights)
+        new = new_solve(phi, targets, normals, x_global, weights, rtol)
         t2 = time.perf_counter()
         old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
         calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
