@@ -94,7 +94,9 @@ def local_stage_replay(mcap: Path) -> dict:
         t1 = time.perf_counter()
         new = new_solve(phi, targets, normals, x_global, weights, rtol)
         t2 = time.perf_counter()
+        kept, tr.cg_rtol = tr.cg_rtol, tr.cg_rtol if rtol is None else rtol  # the reference at the same tolerance
         old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
+        tr.cg_rtol = kept
         calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
         return new
 
