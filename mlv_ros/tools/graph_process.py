@@ -53,8 +53,8 @@ def _status_msg(d: dict | None):
 
     if d is None:
         return None
-    return DiagnosticStatus(level=bytes([int(d["level"])]), name=d["name"], message=d["message"], hardware_id=d["hardware_id"],
-                            values=[KeyValue(key=k, value=v) for k, v in d["values"]])
+    return DiagnosticStatus(level=bytes([int(d["level"])]), name=d["name"], message=d["message"],
+                            hardware_id=d["hardware_id"], values=[KeyValue(key=k, value=v) for k, v in d["values"]])
 
 
 class _Study:
@@ -195,14 +195,11 @@ def _emit(out, obj: dict) -> None:
 
 
 def _state(node) -> dict:
-    from mlv_ros.nodes.common import status_text
-
     state = {k: int(getattr(node, k, 0)) for k in STATE_FIELDS}
     state["failure"] = node.failure
     state["last_error"] = _status_dict(node.last_error)
     state["status"] = _status_dict(node.status)
     state["other_studies"] = dict(node.other_studies)
-    state["status_text"] = status_text(node.status)
     return state
 
 

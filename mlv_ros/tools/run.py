@@ -526,7 +526,10 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         separate = child_nodes()
         for name in GRAPH:  # downstream first, so every subscriber exists before frames flow
             if name in separate:  # started now, so it starts while the others do
-                nodes[name] = ChildNode.start(name, domain_id, namespace, params_path, overrides.get(name, {}))
+                try:
+                    nodes[name] = ChildNode.start(name, domain_id, namespace, params_path, overrides.get(name, {}))
+                except OSError as exc:
+                    raise RunStartError(f"{name} could not start: {exc.strerror or exc}") from exc
                 continue
             try:
                 nodes[name] = classes[name](context=ctx, namespace=namespace, **params[name])
