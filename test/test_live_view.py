@@ -240,7 +240,7 @@ def test_a_foxglove_client_receives_the_cloud_of_every_phase(tmp_path):
         assert (m.encoding, m.height, m.width, m.step, len(m.data)) == ("mono8", rows, cols, cols, rows * cols)
         assert np.ptp(np.frombuffer(m.data, np.uint8)) > 100  # windowed to show the tags, not a flat field
     annotations = {(m.timestamp.seconds, m.timestamp.nanos): m for m in client.decode("/mlv/sa_00/tags")}
-    assert sorted(annotations) == sorted(tags)
+    assert sorted(annotations) == sorted(tags) == sorted(frames)  # one set per image, with its stamp
     for key, rc in tags.items():
         (drawn,) = annotations[key].points
         got = np.array([(p.x, p.y) for p in drawn.points]).reshape(-1, 2)
@@ -299,11 +299,18 @@ def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, execu
     assert view.phases_not_shown == {1: "no SA slice with 3+ tag points"} and view.clouds_served == 2
     assert spin_until(executor, lambda: len(client.messages[qos.MOTION]) == 2 and len(client.statuses) == 2, 10), \
         client.log
+    # A client that subscribes late gets the latest phase shown at once, then what follows.
+    late = FoxgloveClient(view.url, (qos.MOTION,))
+    assert late.subscribed.wait(30), late.log
+    assert spin_until(executor, lambda: len(late.messages[qos.MOTION]) == 1, 10), late.log
     executor.remove_node(view)
-    view.destroy_node()  # stops the server: the client's connection ends
+    view.destroy_node()  # stops the server: the clients' connections end
     client.join(10)
-    stamps = sorted((m.timestamp.seconds, m.timestamp.nanos) for m in client.decode(qos.MOTION))
-    assert stamps == [(10, 0), (12, 0)]
+    late.join(10)
+    assert [(m.timestamp.seconds, m.timestamp.nanos) for m in late.decode(qos.MOTION)] == [(12, 0)]
+    assert len(client.messages[qos.MOTION]) == 3  # the first client sees the latest cloud again
+    stamps = [(m.timestamp.seconds, m.timestamp.nanos) for m in client.decode(qos.MOTION)]
+    assert stamps == [(10, 0), (12, 0), (12, 0)]
     said = {s["message"]: s["level"] for s in client.statuses}
     assert said == {"phase 1 failed, not shown: no SA slice with 3+ tag points": 2,
                     "phase 2 degraded (use with care): few tag points": 1}

@@ -22,8 +22,9 @@ own schemas, so its panels draw them without any message definition of ours:
   verdict — for the Plot panel (x: ``/lv/curves.time_fraction``); the curves grow as phases come.
 
 Under a namespace every channel name starts with it (``/study2/lv/motion``). Channels are served
-as messages arrive; a client that connects late sees the phases from then on (the recording holds
-them all). ``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the
+as phases are solved. A client that subscribes late gets, at once, the latest cloud and every
+phase shown so far of the slices it subscribes to (a few tenths of a second later: the executor
+serves them), then the phases from then on (the recording holds them all). ``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the
 first study taken is kept, model states of another are reported and their clouds dropped.
 
 Parameters (``config/graph.yaml``): ``host``, ``port`` (0 = any free port), ``images``,
@@ -62,6 +63,24 @@ def port_error(host: str, port: int, exc: Exception) -> str:
     return f"live view: cannot listen on {host}:{port}: {text.removeprefix('FoxgloveError: ')}; check host and port"
 
 
+class _Subscriptions:
+    """foxglove ServerListener: notes each subscription with what had been served when it came
+    (``state()``: clouds served, phases served), called from the server's thread; the node serves
+    what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`)."""
+
+    def __init__(self, state):
+        self.state = state
+        self.topics: list[tuple] = []  # (topic, clouds served, phases served) at subscription
+        self.count = 0
+
+    def on_subscribe(self, client, channel) -> None:
+        self.topics.append((channel.topic, *self.state()))
+        self.count += 1
+
+    def on_unsubscribe(self, client, channel) -> None:
+        self.count -= 1
+
+
 class LiveView(GraphNode):
     DIAGNOSTIC_TASK = "live view"
 
@@ -84,9 +103,13 @@ class LiveView(GraphNode):
         self.fox_context = foxglove.Context()
         prefix = self.get_namespace().rstrip("/")
         self._channel_name = lambda rel: f"{prefix}/{rel}"
+        self.clouds_served = 0
+        self._served = frozenset()  # phases served, replaced (not changed) as phases go out: read by the listener
+        self._fox_listener = _Subscriptions(lambda: (self.clouds_served, self._served))
         try:
             self.server = foxglove.start_server(name="mlv_ros live view", host=self.host, port=port,
-                                                context=self.fox_context, message_backlog_size=backlog)
+                                                context=self.fox_context, message_backlog_size=backlog,
+                                                server_listener=self._fox_listener)
         except RuntimeError as exc:
             raise ValueError(port_error(self.host, port, exc)) from None
         self.port = self.server.port
@@ -101,10 +124,10 @@ class LiveView(GraphNode):
         # "tags_by_phase": {phase: ImageAnnotations}}
         self._slices: dict = {}
         self.phases_served: set[int] = set()  # phases whose cloud (or verdict) went out
+        self._last_cloud = None  # the latest foxglove.PointCloud served (for a client that subscribes late)
         self._clouds: dict = {}  # stamp → (points, stamp msg) waiting for its model state
         self._states: dict = {}  # stamp → model state waiting for its cloud
         self._foreign_stamps = RecentKeys()
-        self.clouds_served = 0
         self.phases_not_shown: dict[int, str] = {}  # failed phase → reasons
         self.curves_served = 0
         self.messages_handled = 0
@@ -118,7 +141,23 @@ class LiveView(GraphNode):
                                      qos.subscription_qos(qos.FRAMES, catch_up=catch_up))
             self.create_subscription(TagPoints, qos.relative(qos.TAG_POINTS), self._on_tags,
                                      qos.subscription_qos(qos.TAG_POINTS, catch_up=catch_up))
+        self.create_timer(0.2, self._serve_subscribed)
         self.report(OK, "serving", url=self.url)
+
+    def _serve_subscribed(self) -> None:
+        """Serve what a client that just subscribed missed: the latest cloud, unless a newer one
+        went out since it subscribed; a slice's images and tag points of the phases shown before
+        it subscribed (others subscribed then see them again, with the same stamps)."""
+        topics = self._fox_listener.topics
+        while topics:
+            topic, clouds_then, served_then = topics.pop(0)
+            if topic == self.cloud_channel.topic() and clouds_then and clouds_then == self.clouds_served:
+                self.cloud_channel.log(self._last_cloud)
+            for ch in list(self._slices.values()):
+                for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
+                    if ch[kind].topic() == topic:
+                        for phase in sorted(served_then & set(held)):
+                            ch[kind].log(held[phase])
 
     # ------------------------------------------------------------------ motion clouds
     def _on_motion(self, msg: PointCloud2) -> None:
@@ -171,6 +210,7 @@ class LiveView(GraphNode):
         phase = int(state.phase_index)
         verdict = Verdict.from_parts(state.verdict, state.verdict_reasons)
         self.phases_served.add(phase)
+        self._served = frozenset(self.phases_served)
         for ch in self._slices.values():  # the images of this phase, with their tag points
             for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
                 if phase in held:
@@ -184,11 +224,12 @@ class LiveView(GraphNode):
         if verdict.level == DEGRADED:
             self.server.publish_status(f"phase {phase} degraded (use with care): {verdict.text}", StatusLevel.Warning,
                                        id=f"phase {phase}")
-        self.cloud_channel.log(conversions.cloud_to_foxglove(points, header.stamp, header.frame_id or
-                                                             conversions.PATIENT_FRAME))
+        self._last_cloud = conversions.cloud_to_foxglove(points, header.stamp,
+                                                         header.frame_id or conversions.PATIENT_FRAME)
+        self.cloud_channel.log(self._last_cloud)
         self.clouds_served += 1
         self.report(OK, "serving", url=self.url, phases_shown=self.clouds_served,
-                    phases_not_shown=len(self.phases_not_shown))
+                    phases_not_shown=len(self.phases_not_shown), client_subscriptions=self._fox_listener.count)
 
     # ------------------------------------------------------------------ curves
     def _on_metrics(self, msg: MotionMetrics) -> None:
