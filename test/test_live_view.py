@@ -346,3 +346,19 @@ def test_layout_shows_what_the_live_view_serves():
         else:
             paths = [p["value"] for p in cfg["paths"]] + [cfg["xAxisPath"]["value"]]
             assert all(p.startswith(f"/{CURVES_CHANNEL}.") and p.split(".", 1)[1] in fields for p in paths), paths
+
+
+def test_channels_follow_the_nodes_namespace(ros_context):
+    from rclpy.parameter import Parameter
+
+    from mlv_ros.nodes.live_view import LiveView
+
+    view = LiveView(context=ros_context, namespace="/study2", parameter_overrides=[Parameter("port", value=0)])
+    try:
+        assert view.cloud_channel.topic() == "/study2/lv/motion"
+        assert view.curves_channel.topic() == "/study2/lv/curves"
+        assert view._slice(0, 3)["image"].topic() == "/study2/mlv/sa_03/image"
+        assert view._slice(1, 0)["tags"].topic() == "/study2/mlv/la_00/tags"
+        assert view.topic_name(qos.MOTION) == "/study2/lv/motion"  # the ROS topic it reads
+    finally:
+        view.destroy_node()

@@ -484,17 +484,17 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     overrides = {k: dict(v) for k, v in (overrides or {}).items()}
     overrides.setdefault("frame_source", {}).update(source)
     overrides.setdefault("recorder", {})["output"] = str(mcap)
+    names = GRAPH if live is None else ["live_view", *GRAPH]  # the live view first: it sees every phase
+    if live is not None:
+        overrides["live_view"] = {**dict(live), **overrides.get("live_view", {})}
     namespace = qos.full_namespace(namespace)
     if namespace != "/":  # /diagnostics is shared: say which graph's node each status is
-        for name in GRAPH:
+        for name in names:
             overrides.setdefault(name, {})["diagnostic_updater.use_fqn"] = True
     params_path = Path(params_file) if params_file else config_file("graph.yaml")
     bad_params = _params_error(params_path)
     if bad_params:
         raise RunStartError(bad_params)
-    names = GRAPH if live is None else ["live_view", *GRAPH]  # the live view first: it sees every phase
-    if live is not None:
-        overrides["live_view"] = {**dict(live), **overrides.get("live_view", {})}
     params = node_parameters(params_path, overrides, names)
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
