@@ -86,8 +86,11 @@ class LiveView(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__("live_view", **node_kwargs)
-        import foxglove
-        from foxglove.channels import PointCloudChannel
+        try:
+            import foxglove
+            from foxglove.channels import PointCloudChannel
+        except ImportError as exc:  # a ROS install without the pip-only SDK
+            raise ValueError(f"the live view needs Foxglove's SDK ({exc}): pip install foxglove-sdk==0.30.3") from None
 
         self.host = self.param("host", "127.0.0.1", "address the Foxglove WebSocket listens on "
                                "(127.0.0.1: this machine only; 0.0.0.0: every interface)")
