@@ -281,4 +281,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from mlv_ros.threads import compute_threads
+
+    _node_classes()  # imported first: OpenCV's pool is held only if loaded before
+    with compute_threads():
+        raise SystemExit(main())

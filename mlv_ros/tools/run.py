@@ -468,8 +468,12 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     if handle_signals:
         signals.install()
     try:
-        return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id, grace,
-                          signals, namespace)
+        import mlv_ros.nodes.tag_detector  # noqa: F401  (OpenCV loaded first, so its pool is held too)
+        from mlv_ros.threads import compute_threads
+
+        with compute_threads():  # the same motion as any other layout of the graph (mlv_ros/threads.py)
+            return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id,
+                              grace, signals, namespace)
     finally:
         signals.restore()
 
