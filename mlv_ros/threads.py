@@ -6,7 +6,8 @@ OpenBLAS sums a matrix product's inner dimension in an order that depends on how
 runs (measured: ``(a·w)ᵀ a`` of a 3000 × 143 design matrix differs by 2e-13 between 1 and 2
 threads), so the registration's wall-surface fit moved the registered particles by 7e-14 mm with
 the thread count, and the solver's CG stopping rule turned that into 0.016 mm at one phase of the
-test_multihost study (an iteration more or less at rtol 1e-2). The thread count of a process is
+test_multihost study (its last local solve, at rtol 1e-3, took 91 CG iterations instead of 90;
+the change, not its size, is what the stopping rule amplifies). The thread count of a process is
 whatever its OpenBLAS read from ``OPENBLAS_NUM_THREADS`` when numpy was imported (the machine's
 cores if unset), so a node started from its console script, one started by ``mlv-ros run`` (which
 sets 1) and the nodes of a run inside a process that imported numpy earlier (a test, a notebook)
