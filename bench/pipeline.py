@@ -1,5 +1,6 @@
 """Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
-SNR 20) in one process. Prints one JSON document: total time, per-stage latency per phase
+SNR 20) as ``mlv-ros run`` runs it (the tag detector in a child process; MLV_ROS_ONE_PROCESS=1:
+all in one). Prints one JSON document: total time, per-stage latency per phase
 (from the recording's receive times), peak RSS, messages published vs recorded, accuracy; then
 ``local_stage``: the run's recorded tag points replayed through a tracker built as the solver node
 builds it, every local solve timed with the new stage and with the old one
@@ -88,27 +89,32 @@ def local_stage_replay(mcap: Path) -> dict:
         tr.set_reference(pts)
     new_solve, cache, calls = tr._local_solve, {}, []
 
-    def both(phi, targets, normals, x_global):
+    def both(phi, targets, normals, x_global, weights=None, rtol=None):
         d0 = None if tr.delta is None else tr.delta.copy()
         t1 = time.perf_counter()
-        new = new_solve(phi, targets, normals, x_global)
+        new = new_solve(phi, targets, normals, x_global, weights, rtol)
         t2 = time.perf_counter()
+        kept, tr.cg_rtol = tr.cg_rtol, tr.cg_rtol if rtol is None else rtol  # the reference at the same tolerance
         old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
+        tr.cg_rtol = kept
         calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
         return new
 
     tr._local_solve = both
-    phase_s, num_phases = [], max(sets) + 1
+    phase_s, phase_its, num_phases = [], [], max(sets) + 1
     for p in sorted(sets)[1:]:
         before = len(calls)
+        tr.cg_iterations.clear()
         t1 = time.perf_counter()
         tr.solve(p, sets[p], num_phases)
+        phase_its.append(sum(tr.cg_iterations))
         phase_s.append(time.perf_counter() - t1 - sum(c[1] for c in calls[before:]))
     new_t, old_t, diff = (np.array(v) for v in zip(*calls))
     return {
         "particles": tr.num_particles, "phases": len(phase_s), "local_solves": len(calls),
         "model_build_s": round(build_s, 3), "first_phase_s": round(phase_s[0], 3),
         "solver_per_phase_s_median": round(float(np.median(phase_s)), 3),
+        "cg_iterations_per_phase_median": float(np.median(phase_its)),
         "new_local_s_median": round(float(np.median(new_t)), 4), "old_local_s_median": round(float(np.median(old_t[1:])), 4),
         "ratio_local_median": round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
         "old_first_local_s_with_matrix_build": round(float(old_t[0]), 3),
@@ -139,6 +145,8 @@ def main():
         "benchmark": "pipeline", "preset": args.preset, "size": args.size, "phases": args.phases,
         "slices": 11, "total_s": round(wall, 2), "graph_s": s["seconds"],
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        # the largest of the run's child processes (the tag detector's: mlv_ros.tools.graph_process)
+        "peak_rss_mb_child_process": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
         "latency": stage_latencies(out / "run.mcap"),
         "published_vs_recorded": {t: [published[t], topics.get(t, {}).get("count", 0)] for t in published},
         "all_recorded": all(published[t] == topics.get(t, {}).get("count", 0) for t in published),

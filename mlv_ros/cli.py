@@ -18,6 +18,18 @@ import math
 import os
 import sys
 
+# One compute thread per process for OpenBLAS/OpenMP and OpenCV (unless the user set them): the
+# graph's work is many small numpy/scipy/OpenCV calls, and a second pool thread only spins on
+# the core the first needs (pcg in core/meshless/local.py measured that for BLAS). Set before
+# numpy, scipy or cv2 is imported, which happens only below (the tools import them). Measured
+# on the 2-core machine under load (4-6), `bench pipeline` (default study, one process): 28.4,
+# 30.9, 33.9, 29.0 s with the default pools, 26.9, 26.9 s with one thread; the tag detector in
+# a process of its own was slowed 3x by the other's pool threads. (The graph's processes hold
+# their pools at one thread at run time in any case, mlv_ros/threads.py, so that the motion is
+# the same in any layout; this covers the other subcommands.)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"):
+    os.environ.setdefault(_var, "1")
+
 SUBCOMMANDS = {
     "demo": ("mlv_ros.tools.demo", "run the whole pipeline on the built-in normal phantom"),
     "run": ("mlv_ros.tools.run", "run the graph on DICOM, a phantom preset or a bag"),

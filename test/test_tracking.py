@@ -225,3 +225,21 @@ def test_low_confidence_points_count_less(study):
         err[case] = float(np.median(np.linalg.norm(sol.positions - m.position(X, es), axis=1)))
     assert err["unweighted"] > err["exact"] + 0.1, err  # the premise: the bad points do pull
     assert err["weighted"] - err["exact"] < 0.6 * (err["unweighted"] - err["exact"]), err
+
+
+def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
+    """The graph hands the solver a phase's slices in the order they arrived, which depends on
+    the frame order and the process layout; the motion must not. Before the solver took the
+    slices in (view, slice) order, the same sets in another order gave float sums in another
+    order, then another CG iteration count: 0.015 mm at one phase of a recorded study. Compared
+    to the bit, over two phases (the second warm-started from the first)."""
+    m = study.motion
+    solutions = []
+    for order in (1, -1):
+        _, tr, refs = referenced_tracker(study, n=600)
+        for phase in (2, 4):
+            sets = observed(study, refs, phase)
+            sol = tr.solve(phase, dict(list(sets.items())[::order]), m.num_phases)
+        solutions.append(sol.positions)
+    assert list(observed(study, refs, 2)) != list(observed(study, refs, 2))[::-1]  # the premise: two orders
+    np.testing.assert_array_equal(solutions[0], solutions[1])

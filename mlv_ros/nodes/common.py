@@ -24,6 +24,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from mlv_ros import qos
+from mlv_ros.threads import compute_threads
 from mlv_ros.core.types import StudyShape
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
@@ -312,8 +313,15 @@ def run_node(factory: Callable[..., Node], args=None) -> int:
 
     rclpy's own signal handlers are replaced by ours: a signal only sets a flag, so the context
     stays valid while the node takes every message still queued (a recorder must not lose what
-    was sent before the signal) and runs its ``finish()`` (e.g. closing a file).
+    was sent before the signal) and runs its ``finish()`` (e.g. closing a file). Its BLAS,
+    OpenMP and OpenCV pools hold one thread (:mod:`mlv_ros.threads`: the same motion whatever
+    process the node runs in).
     """
+    with compute_threads():
+        return _run_node(factory, args)
+
+
+def _run_node(factory, args) -> int:
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop_requested = []
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -115,7 +115,7 @@ class LocalOperators:
     def fit_error_apply(self, u: np.ndarray) -> np.ndarray:
         """Gradient of the fit-error penalty (weights ``s_i``, multiplier 1) at ``u`` (N, 3)."""
         op = self.operator
-        h = (op.matrix @ u).reshape(self.n, 3, 3)  # [i, b, a] = H_i[a, b]
+        h = (op.matrix_csc @ u).reshape(self.n, 3, 3)  # [i, b, a] = H_i[a, b]
         return self._laplacian_csc @ u - self._adjoint @ np.matmul(self.fit_error_moment, h).reshape(3 * self.n, 3)
 
     def elastic_diagonal(self) -> np.ndarray:
@@ -182,7 +182,7 @@ class LocalSystem:
     def internal(self, u: np.ndarray) -> np.ndarray:
         """``A u`` without the data springs, shape (N, 3)."""
         ops = self.ops
-        g = (ops.operator.matrix @ u).reshape(self.n, 9, -1)
+        g = (ops.operator.matrix_csc @ u).reshape(self.n, 9, -1)
         out = ops._adjoint @ np.matmul(self._tangent, g).reshape(3 * self.n, -1)
         if self.fit_error:
             out += self.fit_error * (ops._laplacian_csc @ u)

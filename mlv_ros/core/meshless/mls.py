@@ -33,6 +33,8 @@ class MLSOperator:
     matrix : scipy.sparse.csr_matrix, shape (3N, N)
         ``D[3i+b, j] = d_ij[b]`` in mm⁻¹; every row sums to zero (so constant fields have zero
         gradient and internal forces sum to zero).
+    matrix_csc : scipy.sparse.csc_matrix, shape (3N, N)
+        :attr:`matrix` in CSC form, for products with (N, 3) fields (measured faster).
     matrix_t : scipy.sparse.csc_matrix, shape (N, 3N)
         ``Dᵀ`` for adjoint products (force assembly, eq. 22–23).
     entry_i, entry_j : ndarray of int, shape (P + N,)
@@ -65,6 +67,10 @@ class MLSOperator:
         cols[at], vals[at] = pj, dij
         cols[ptr[1:] - 1], vals[ptr[1:] - 1] = ar, dii
         self.matrix = sp.bsr_matrix((vals[:, :, None], cols, ptr), shape=(3 * n, n)).tocsr()
+        # Products D u with u (N, 3) go through a CSC copy: scipy's CSR kernel with a 3-column
+        # right-hand side measured 2.5–6.2 ms at 3000 particles (80 members each), the CSC one
+        # 1.1 ms (the same as three single-column CSR products), on the 2-core machine.
+        self.matrix_csc = self.matrix.tocsc()
         self.phyxels = phyxels
 
     @property
@@ -89,7 +95,7 @@ class MLSOperator:
         u = np.asarray(u, dtype=np.float64)
         if u.shape != (self.n, 3):
             raise ValueError(f"displacement must have shape ({self.n}, 3), got {u.shape}")
-        return (self.matrix @ u).reshape(self.n, 3, 3).transpose(0, 2, 1)
+        return (self.matrix_csc @ u).reshape(self.n, 3, 3).transpose(0, 2, 1)
 
     def adjoint(self, p: np.ndarray) -> np.ndarray:
         """Adjoint of :meth:`gradient`: ``f[j, a] = Σ_i Σ_b p[i, a, b] d_ij[b]``.

@@ -89,8 +89,19 @@ class ControlPoints:
         return int(self.weights.shape[0])
 
 
+def particle_support_radii(points: np.ndarray, tree: cKDTree, k: int = NUM_NEIGHBOURS,
+                           support_factor: float = SUPPORT_FACTOR) -> np.ndarray:
+    """Each particle's own support radius, ``support_factor`` × the mean distance to its ``k``
+    nearest other particles, shape (N,): what :func:`attach_control_points` tests a control
+    point's nearest particle against (compute once per cloud and pass it as ``support_radii``)."""
+    n = points.shape[0]
+    d_pp, _ = tree.query(points, k=min(k + 1, n))
+    return support_factor * d_pp.reshape(n, -1)[:, 1:].mean(axis=1)
+
+
 def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = None,
-                          k: int = NUM_NEIGHBOURS, support_factor: float = SUPPORT_FACTOR) -> ControlPoints:
+                          k: int = NUM_NEIGHBOURS, support_factor: float = SUPPORT_FACTOR,
+                          support_radii: np.ndarray | None = None) -> ControlPoints:
     """Attach control points to the particle cloud.
 
     Parameters
@@ -101,6 +112,9 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
         Either integer particle indices, shape (M,), or rest positions, shape (M, 3), mm.
     tree : cKDTree, optional
         Tree on ``points``.
+    support_radii : ndarray, shape (N,), optional
+        :func:`particle_support_radii` of ``points`` (with the same ``k`` and
+        ``support_factor``), when attaching repeatedly to one cloud.
 
     Returns
     -------
@@ -132,8 +146,11 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     h = support_factor * dist.mean(axis=1)
     # Outside the cloud: farther from its nearest particle than that particle's own support
     # radius (3 × its mean 10-NN spacing).
-    d_pp, _ = tree.query(points[nn[:, 0]], k=min(k + 1, n))
-    h_near = support_factor * d_pp.reshape(m, -1)[:, 1:].mean(axis=1)
+    if support_radii is None:
+        d_pp, _ = tree.query(points[nn[:, 0]], k=min(k + 1, n))
+        h_near = support_factor * d_pp.reshape(m, -1)[:, 1:].mean(axis=1)
+    else:
+        h_near = support_radii[nn[:, 0]]
     far = dist[:, 0] > h_near
     if far.any():
         bad = int(np.flatnonzero(far)[0])
@@ -289,6 +306,7 @@ class MeshlessModel:
         s_rest = global_shape(self.coords, self.rest_params.a, self.rest_params.tau)
         self.d_rest = (self.rest_points - self.rest_params.translation) @ self.rest_params.matrix - s_rest
         self._tree = cKDTree(self.rest_points)
+        self._support_radii = None  # per particle, for attach (built on first use)
         self._build_phyxels(None)
         self.params = self.rest_params.copy()
         self.delta = np.zeros((n, 3))
@@ -388,7 +406,10 @@ class MeshlessModel:
     def attach(self, control) -> ControlPoints:
         """Attach control points (particle indices or rest positions); see
         :func:`attach_control_points`. Reuse the result across phases to skip the kernel work."""
-        return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor)
+        if self._support_radii is None:
+            self._support_radii = particle_support_radii(self.rest_points, self._tree, self._k, self._support_factor)
+        return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor,
+                                     self._support_radii)
 
     # ---------------------------------------------------------------- fitting
     def _local_system(self, data=None):

@@ -48,6 +48,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.special import ndtr
 
+from mlv_ros.core.filters import running_median
 from mlv_ros.core.tags.gabor import TAG_PERIOD_RANGE_MM  # plausible SPAMM periods, mm
 
 #: Rays per slice (2° apart).
@@ -194,7 +195,7 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
     """
     img = np.asarray(image, dtype=np.float64)
     win = np.outer(np.hanning(img.shape[0]), np.hanning(img.shape[1]))
-    res = img - ndi.median_filter(img, size=int(np.ceil(max_period_px)) | 1, mode="reflect")
+    res = img - running_median(img, int(np.ceil(max_period_px)) | 1)
     found = np.abs(np.fft.fft2((res - res.mean()) * win))
     spec = np.abs(np.fft.fft2((img - img.mean()) * win))
     fy = np.fft.fftfreq(img.shape[0])

@@ -21,6 +21,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
+from mlv_ros.core.filters import running_median
+
 from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, GaborMaps, TagInputError, TagParameters,
                     estimate_tag_parameters, gabor_filter_bank, resolve_parameters, validate_image)
 from .phase import PhaseField, solve_phase
@@ -265,7 +267,7 @@ def estimate_grid(image, mask=None, score_region=None,
     sources.append((img, None))
     if region is not None:
         size = int(np.ceil(spacing_range_px[1])) | 1
-        sources.append((img - ndi.median_filter(img, size=size, mode="reflect"), None))
+        sources.append((img - running_median(img, size), None))
     for source, spec_region in sources:
         for whiten in (False, True):
             try:
