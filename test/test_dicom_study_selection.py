@@ -473,3 +473,33 @@ def test_mosaic_series_are_refused_per_series(studies, tmp_path):
     # Nothing but MOSAIC files: a clear error, not a study of them.
     with pytest.raises(DicomReadError, match="no usable cine.*Siemens MOSAIC"):
         read_dicom_dir(real.parent)
+
+
+def test_a_cine_with_fewer_phases_is_used_by_nearest_trigger_time(studies, tmp_path):
+    """SA 5 acquired with 2 phases at 10 and 340 ms (the study's phases at 0, 333 and 667 ms, a
+    quarter interval = 83 ms allowed): its images become phases 1 and 2 of 3, phase 3 missing,
+    listed in left_out; at 0 and 500 ms (167 ms off) it is left out with the reason."""
+    shutil.copytree(studies.root / "a", tmp_path / "study")
+    shutil.rmtree(tmp_path / "study" / "SA_05")
+    two = _cine(studies.a_paths, "SA_05")[:2]
+    near = _save_series(two, tmp_path / "study" / "SA_05", "near", CardiacNumberOfImages=2,
+                        TriggerTime=lambda ds, k: [10.0, 340.0][k])
+    res = read_dicom_dir(tmp_path / "study")
+    got = frames_by_path(res)
+    assert [got[str(f)].phase_index for f in near] == [0, 1]
+    assert all(got[str(f)].num_phases == 3 for f in near)
+    assert [round(got[str(f)].trigger_time, 3) for f in near] == [0.01, 0.34]
+    assert len(res.frames) == 32 and len(res.series) == 11 and not res.complete
+    (path, why), = res.left_out
+    assert path == str(near[0]) and "nearest its TriggerTime" in why and "phase(s) 3 of 3 missing" in why
+    assert res.not_used == []
+    ref = frames_by_path(read_dicom_dir(tmp_path / "study" / "SA_05"))
+    assert all(np.array_equal(got[str(f)].image, ref[str(f)].image) for f in near)
+    # Too far from the study's phases: left out, with how far.
+    for p in near:
+        ds = pydicom.dcmread(p)
+        ds.TriggerTime = 500.0 * int(ds.InstanceNumber == two[1].InstanceNumber)
+        ds.save_as(p, enforce_file_format=True)
+    res = read_dicom_dir(tmp_path / "study")
+    assert len(res.frames) == 30 and not res.complete and [p for p, _ in res.not_used] == [str(near[0])]
+    assert "up to 167 ms from the study's" in res.not_used[0][1]

@@ -1149,6 +1149,10 @@ _RING_BINS = 2.0
 _NULL_RINGS = (0.55, 1.7)
 _TAG_MAX_SIDE = 256  # larger images are judged on their central 256 × 256 pixels
 _SAME_PLACE_COS = np.cos(np.radians(5.0))
+#: A cine with fewer phases than its study is used (each image as the study phase nearest its
+#: TriggerTime, the others missing) when every image lies within this fraction of the study's
+#: phase interval of its phase: the heart moves little in a quarter of a phase.
+_FEWER_PHASES_TOL = 0.25
 #: Tags on the heart alone (dark or untagged surroundings) are a small share of the image, so the
 #: whole-image spectrum rarely shows them (scores 2–4.5 against the 6 needed). The study then
 #: votes: each MR cine's ED image is cut into windows of this size (at least
@@ -1453,8 +1457,10 @@ def _plan_phases(c: _Cine, warned: list, left_out: list | None) -> None:
 def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None:
     """Give every used cine the study's phase count N (the most common; of a tie the smallest):
     a cine with more phases gets the N images nearest the study's trigger times (each phase's
-    median over the N-phase cines; phase fractions where a time is missing), one with fewer is
-    left out (``why``)."""
+    median over the N-phase cines; phase fractions where a time is missing); one with fewer
+    phases gives each image the study phase nearest its trigger time when every image lies
+    within :data:`_FEWER_PHASES_TOL` of a phase interval of one (distinct phases; the others are
+    missing, so it is listed in ``left_out``), otherwise it is left out (``why``)."""
     if not used:
         return
     plans = {id(c): _phase_indices(c.imgs) for c in used}
@@ -1472,8 +1478,26 @@ def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None
         if num == n:
             _plan_phases(c, warned, left_out)
         elif num < n or len(c.imgs) < n:
+            t = np.array([i.trigger_ms for i in c.imgs])
+            step = float(np.median(np.diff(ref))) if n > 1 and np.all(np.isfinite(ref)) else np.nan
+            if np.all(np.isfinite(t)) and np.isfinite(step) and step > 0 and len(t) <= n:
+                pick = _match_phases(t, ref)  # a distinct study phase for each image
+                off = float(np.max(np.abs(ref[pick] - t)))
+                if off <= _FEWER_PHASES_TOL * step:
+                    c.use, c.phases, c.num_phases = list(c.imgs), list(pick), n
+                    missing = sorted(set(range(n)) - set(pick))
+                    left_out.append((c.first.path, (
+                        f"{c.describe()}: {num} phase(s) in a study of {n}: each image used as the study phase "
+                        f"nearest its TriggerTime (largest difference {off:.0f} ms, {_FEWER_PHASES_TOL:g} of the "
+                        f"{step:.0f} ms phase interval allowed); phase(s) {', '.join(str(k + 1) for k in missing)} "
+                        f"of {n} missing")))
+                    continue
+                far = (f"; its TriggerTimes lie up to {off:.0f} ms from the study's ({_FEWER_PHASES_TOL:g} of the "
+                       f"{step:.0f} ms phase interval allowed)")
+            else:
+                far = "; TriggerTimes missing" if not np.all(np.isfinite(t)) or not np.isfinite(step) else ""
             c.why = (f"{num} phase(s) ({len(c.imgs)} image(s)) where the study has {n}: too few to give every "
-                     f"phase by TriggerTime")
+                     f"phase, and not matched to the study's phases by TriggerTime{far}")
             left_out.append((c.first.path, f"{c.describe()} not used: {c.why}"))
         else:
             t = np.array([i.trigger_ms for i in c.imgs])
