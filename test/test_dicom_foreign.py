@@ -419,14 +419,15 @@ def test_colour_and_undecodable_files_are_reported_and_the_study_loads(study):
 
 def test_a_missing_decoder_is_reported_with_the_package_that_decodes(study):
     """In an interpreter where the plugins cannot be imported (as without requirements/base.txt's
-    decoder pins), compressed files are reported naming the package; the rest loads."""
+    decoder pins, and without python-gdcm, which pydicom also decodes with), compressed files are
+    reported naming the package; the rest loads."""
     out = study.root / "no_plugins"
     jls = _rewrite(study, out, lambda ds: ds.compress(JPEGLSLossless), only="SA_00")
     j2k = _rewrite(study, out, lambda ds: ds.compress(JPEG2000Lossless), only="SA_01")
     rle = _rewrite(study, out, lambda ds: ds.compress(RLELossless), only="SA_02")  # pydicom's own decoder
     plain = _rewrite(study, out, lambda ds: None, only="SA_03")
     code = ("import json, sys\n"
-            "for name in ('pylibjpeg', 'libjpeg', 'openjpeg', 'rle', 'jpeg_ls', 'PIL'):\n"
+            "for name in ('pylibjpeg', 'libjpeg', 'openjpeg', 'rle', 'jpeg_ls', 'PIL', 'gdcm'):\n"
             "    sys.modules[name] = None  # importing it now raises ImportError, as if not installed\n"
             "from mlv_ros.core.io import read_dicom_dir\n"
             "res = read_dicom_dir(sys.argv[1])\n"
