@@ -17,7 +17,9 @@ Measured, per kind and surroundings:
   ``dicom._TAG_STUDY``), and whether its period is the protocol's within 10 %.
 
 ``margin`` = smallest tagged heart-only study score / largest untagged study score (> 1:
-separated). JSON on stdout.
+separated by the threshold); ``over_twins`` = per heart-only protocol, its tagged study's score
+over the larger of its two untagged twins' (what decides a folder holding both: > 1, the tagged
+one is taken). JSON on stdout.
 
 Usage: ``mlv-ros bench tag_test [-- --protocols 30 --seed 0]``
 """
@@ -73,11 +75,13 @@ def main(argv=None) -> int:
     cine: dict[str, list] = {}
     study: dict[str, list] = {}
     wrong_period: list = []
+    over_twins: list = []
     t_votes, n_votes = 0.0, 0
     for seed in range(args.seed, args.seed + args.protocols):
         bg = ("none", "untagged", "tagged")[seed % 3]
         p = draw_protocol(seed, {"background": bg, "num_phases": 2, "abnormal_regions": []})
         where = "heart_only" if bg != "tagged" else "surrounded"
+        scores = {}
         for kind in KINDS:
             images = _study(seed, kind, p)
             cine.setdefault(f"{kind}/{where}", []).extend(dicom._tag_grid(im, p["pixel_spacing_mm"])[0]
@@ -87,8 +91,11 @@ def main(argv=None) -> int:
             t_votes += time.perf_counter() - t0
             n_votes += len(images)
             study.setdefault(f"{kind}/{where}", []).append(score)
+            scores[kind] = score
             if kind == "tagged" and abs(period / p["tag_spacing_mm"] - 1.0) > 0.1:
                 wrong_period.append({"seed": seed, "found_mm": round(period, 2), "protocol_mm": p["tag_spacing_mm"]})
+        if where == "heart_only":
+            over_twins.append(scores["tagged"] / max(scores["untagged"], scores["ssfp"]))
     untagged = [s for k, v in study.items() if not k.startswith("tagged/") for s in v]
     out = {
         "protocols": args.protocols, "first_seed": args.seed,
@@ -96,6 +103,8 @@ def main(argv=None) -> int:
         "cine_clear": {k: _stats(v) for k, v in sorted(cine.items())},
         "study_votes": {k: _stats(v) for k, v in sorted(study.items())},
         "margin": round(min(study["tagged/heart_only"]) / max(untagged), 3),
+        "over_twins": _stats(over_twins),
+        "heart_only_above_every_untagged": int(sum(s > max(untagged) for s in study["tagged/heart_only"])),
         "untagged_studies_passing": int(sum(s >= dicom._TAG_STUDY for s in untagged)),
         "heart_only_studies_failing": int(sum(s < dicom._TAG_STUDY for s in study["tagged/heart_only"])),
         "tagged_period_off_by_10pct": wrong_period,

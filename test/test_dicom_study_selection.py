@@ -503,3 +503,17 @@ def test_a_cine_with_fewer_phases_is_used_by_nearest_trigger_time(studies, tmp_p
     res = read_dicom_dir(tmp_path / "study")
     assert len(res.frames) == 30 and not res.complete and [p for p, _ in res.not_used] == [str(near[0])]
     assert "up to 167 ms from the study's" in res.not_used[0][1]
+
+
+def test_below_the_vote_threshold_the_closest_study_still_wins(heart_only, tmp_path, monkeypatch):
+    """Were the heart-only study's vote under the threshold (here: the threshold raised out of
+    reach), the choice between studies without a clear tag grid still goes by the vote, not by the
+    number of cines: the tagged study, all its cines used, and the choice says how close it came."""
+    monkeypatch.setattr(dicom_io, "_TAG_STUDY", 100.0)
+    shutil.copytree(heart_only.root / "untagged", tmp_path / "0_untagged")
+    shutil.copytree(heart_only.root / "tagged", tmp_path / "9_tagged")
+    res = read_dicom_dir(tmp_path)
+    assert res.study_uid == heart_only.tagged.study_uid, res.choice
+    assert "come closest to sharing a tag grid" in res.choice and "8 MR cine(s) all used" in res.choice
+    _same_frames(res, heart_only.ref)
+    assert len(res.not_used) == 11 and res.complete

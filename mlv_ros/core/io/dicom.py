@@ -29,7 +29,8 @@ cine missing phases (fewer images than CardiacNumberOfImages) keeps its phase in
 reported in ``warnings``. Images are grouped by series and plane (a cine), phases ordered by
 TriggerTime then InstanceNumber. Then the study is chosen (:func:`read_dicom_dir`, Notes): cines
 grouped by StudyInstanceUID and FrameOfReferenceUID, the group with the most MR cines whose ED
-image shows a tag grid in its spectrum taken (or the one asked for), its MR cines used (one that
+image shows a tag grid in its spectrum taken, else the one whose cines share a grid in windows
+most clearly (tags on the heart alone; or the one asked for), its MR cines used (one that
 fails the tag test only where no tagged cine holds its place and it was acquired like them, with
 a warning), a slice acquired twice given by its later series, every cine given the study's phase
 count (by nearest trigger time, or left out); every series not used is listed once with its
@@ -1163,9 +1164,14 @@ _FEWER_PHASES_TOL = 0.25
 #: gives a maximum of about 3 by chance (the largest of some hundred Rayleigh peaks over their
 #: median), whatever the anatomy; an untagged cine at one period rarely more, and the median
 #: of ≥ :data:`_TAG_STUDY_MIN_CINES` cines at one period still less. Measured (bench
-#: ``tag_test.py``) on 120 random protocols, 8/12/16 bits, SNR 10–40, periods 3.5–10 px: studies
-#: tagged on the heart alone 3.74–15.1 (median 5.8), untagged twins (zero tag contrast, or
-#: bright blood 1.5–3 × myocardium with bright surroundings) 2.75–3.55.
+#: ``tag_test.py``) on 60 random protocols (40 heart-only), 8/12/16 bits, SNR 10–40, periods
+#: 3.5–10 px, each against two untagged twins (zero tag contrast; bright blood 1.5–3 ×
+#: myocardium with bright surroundings): heart-only tagged studies 3.74–15.1 (median 5.8),
+#: untagged 2.77–3.65; on another noise draw (the protocols' own phase counts) 3.60–15.5
+#: against ≤ 3.80 (one bright-blood study whose thin dark wall votes at 2.7 px). The threshold
+#: is thin, so it only names the result: between studies without a clearly tagged cine the
+#: larger vote wins (a heart-only study scored 1.14–5.0 × the larger of its own two twins' in
+#: all 80 pairs, and above every untagged study of its draw in 79 of 80).
 _LOCAL_WINDOW_MM = 60.0
 _LOCAL_MIN_PX = 32
 _LOCAL_PEAKS = 24
@@ -1559,9 +1565,10 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
         tally[c.first.study_uid] += int(c.tagged)
     studies = dict(sorted(tally.items(), key=lambda kv: (-kv[1], kv[0])))
 
-    def rank(key):
+    def rank(key):  # clearly tagged cines; else the vote (a heart-only study beats untagged ones); size
         cs = groups[key]
-        return sum(c.tagged for c in cs), sum(not c.kind for c in cs), sum(len(c.imgs) for c in cs)
+        return (sum(c.tag >= _TAG_CLEAR for c in cs), heart.get(key, (0.0,))[0], sum(not c.kind for c in cs),
+                sum(len(c.imgs) for c in cs))
 
     def name(uid):
         return uid or "(no StudyInstanceUID)"
@@ -1574,7 +1581,7 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
             raise DicomReadError(f"study {study} is not under {root}; the studies there: {there}: "
                                  f"ask for one of these", problems)
     best = max(pool, key=rank)
-    n_tagged, n_cines = rank(best)[:2]
+    n_tagged, n_cines = sum(c.tagged for c in groups[best]), rank(best)[2]
     others = [f"{name(u)} ({n} tagged cine(s))" for u, n in studies.items() if u != best[0]]
     also = f"; also under the folder: study {', study '.join(others)}" if others else ""
     how = " (asked for)" if study else ""
@@ -1634,10 +1641,13 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     elif n_tagged:
         choice = f"study {name(best[0])}{how}: {n_tagged} tagged cine(s){also}"
     else:
-        votes = f" (common grid {heart[best][0]:.1f}x, {_TAG_STUDY:g} needed)" if best in heart else ""
+        if best in heart:
+            which = (f"the study whose cines come closest to sharing a tag grid in windows ({heart[best][0]:.1f}x, "
+                     f"{_TAG_STUDY:g} needed) taken, its {n_cines} MR cine(s) all used")
+        else:
+            which = f"the study with the most MR cines ({n_cines}) taken, all of them used"
         choice = (f"study {name(best[0])}{how}: no cine shows a tag grid in its ED image's spectrum, nor do its "
-                  f"cines share one in windows{votes}; the study with the most MR cines ({n_cines}) taken, all "
-                  f"of them used{also}")
+                  f"cines share one in windows; {which}{also}")
     return _Selection(used, best[0], studies, choice, _series_problems(cines), warned, left_out)
 
 
@@ -1759,10 +1769,12 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     StudyInstanceUID and FrameOfReferenceUID, and an MR cine (≥ 2 images in time) is tagged when
     the spectrum of its ED image shows a tag grid (two peaks of one period, see
     :func:`_tag_grid`; a cine of the chosen study also when it shows one at the study's tag
-    period). The group with the most tagged cines is taken (whatever the file order; ties go to
-    more MR cines, more images, then the smaller UID), or the one ``study`` names; without any
-    tagged cine, the group with the most MR cines, all of whose cines are used; without any MR
-    cine, every image as it is. The tag test chooses, it does not thin the study: a cine of the
+    period). A group of ≥ 3 MR cines none of which passes votes on a grid they share in windows
+    (tags on the heart alone, :data:`_TAG_STUDY`). The group with the most clearly tagged cines
+    is taken (whatever the file order), else the one with the largest vote (ties go to more MR
+    cines, more images, then the smaller UID), or the one ``study`` names; a vote below the
+    threshold takes all the group's MR cines, as does a group of the most MR cines when nothing
+    votes; without any MR cine, every image as it is (Siemens MOSAIC images never). The tag test chooses, it does not thin the study: a cine of the
     taken group that fails it is not used at the place of a tagged cine (that one is), nor when
     its image is constant or it was acquired unlike every tagged cine (matrix, pixel spacing
     within 2 %); otherwise it is used, with a warning. Of the cines used, a slice acquired again
