@@ -1307,7 +1307,8 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
             continue
         top = np.argsort(-spec[k][rows, cols], kind="stable")[:_LOCAL_PEAKS]
         rows, cols = rows[top], cols[top]
-        hood = spec[k][(rows[:, None, None] + off[None, :, None]) % win, (cols[:, None, None] + off[None, None, :]) % win]
+        hood = spec[k][(rows[:, None, None] + off[None, :, None]) % win,
+                       (cols[:, None, None] + off[None, None, :]) % win]
         ref = np.median(hood.reshape(len(rows), -1), axis=1)
         height = np.where(ref > 0, spec[k][rows, cols] / np.where(ref > 0, ref, 1.0), np.inf)
         fa, th = rad[rows, cols], ang[rows, cols]
@@ -1774,14 +1775,17 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     is taken (whatever the file order), else the one with the largest vote (ties go to more MR
     cines, more images, then the smaller UID), or the one ``study`` names; a vote below the
     threshold takes all the group's MR cines, as does a group of the most MR cines when nothing
-    votes; without any MR cine, every image as it is (Siemens MOSAIC images never). The tag test chooses, it does not thin the study: a cine of the
-    taken group that fails it is not used at the place of a tagged cine (that one is), nor when
+    votes; without any MR cine, every image as it is (Siemens MOSAIC images never). The tag test
+    chooses, it does not thin the study: a cine of the taken group that fails it is not used at
+    the place of a tagged cine (that one is), nor when
     its image is constant or it was acquired unlike every tagged cine (matrix, pixel spacing
     within 2 %); otherwise it is used, with a warning. Of the cines used, a slice acquired again
     in another series keeps the later acquisition (acquisition/series time, else SeriesNumber;
     where neither tells, the one with the most images, then the first by SeriesInstanceUID),
     with a warning. The study's phase count is the most common one: a cine with more phases
-    gives the images nearest the study's trigger times, one with fewer is left out. Every
+    gives the images nearest the study's trigger times, one with fewer gives each image the
+    study phase nearest its trigger time (within a quarter phase interval, else it is left out,
+    :data:`_FEWER_PHASES_TOL`). Every
     series not used is listed once in ``problems`` (and ``not_used``) with its reason.
     """
     if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
