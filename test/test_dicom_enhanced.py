@@ -76,6 +76,29 @@ def test_enhanced_mr_loads_as_the_classic_files(study, per, legacy):
     assert np.allclose(res.long_axis.direction, study.ref.long_axis.direction)
 
 
+def test_legacy_converted_enhanced_mr_written_by_highdicom(study, tmp_path):
+    """An independent Enhanced writer: highdicom's LegacyConvertedEnhancedMRImage of each classic
+    series (one file per cine, functional groups as highdicom lays them out): the same frames."""
+    from highdicom.legacy import LegacyConvertedEnhancedMRImage
+    from pydicom.uid import generate_uid
+
+    series: dict[str, list] = {}
+    for p in study.paths:
+        ds = pydicom.dcmread(p)
+        series.setdefault(ds.SeriesInstanceUID, []).append(ds)
+    for k, (uid, datasets) in enumerate(sorted(series.items())):
+        enhanced = LegacyConvertedEnhancedMRImage(
+            legacy_datasets=datasets, series_instance_uid=generate_uid(entropy_srcs=["highdicom", uid]),
+            series_number=int(datasets[0].SeriesNumber), sop_instance_uid=generate_uid(entropy_srcs=["sop", uid]),
+            instance_number=k + 1)
+        enhanced.save_as(tmp_path / f"lce_{k:02d}.dcm", enforce_file_format=True)
+    first = pydicom.dcmread(tmp_path / "lce_00.dcm", stop_before_pixels=True)
+    assert first.SOPClassUID == "1.2.840.10008.5.1.4.1.1.4.4" and int(first.NumberOfFrames) == 3
+    res = read_dicom_dir(tmp_path)
+    assert res.problems == [] and res.complete and len(res.series) == 11
+    _assert_same_frames(res.frames, study.ref.frames, same_series=False)
+
+
 def test_enhanced_mr_beside_classic_files_and_damaged_functional_groups(study, tmp_path):
     """Enhanced files of the study beside foreign files (CT_small, an Enhanced copy of SA 2 with
     its frames' positions cut): the study, as its classic files; each bad file reported once."""

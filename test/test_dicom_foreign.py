@@ -253,6 +253,85 @@ def test_lossless_compressed_copies_are_bit_identical(study):
         assert res.problems == [] and np.array_equal(res.frames[0].image, want), name
 
 
+def _gdcm_copy(src: Path, dst: Path, syntax: str) -> None:
+    """``src`` transcoded by GDCM (python-gdcm: an encoder independent of pydicom and its plugins)
+    to the transfer syntax ``gdcm.TransferSyntax.<syntax>``, written to ``dst``."""
+    import gdcm
+
+    reader = gdcm.ImageReader()
+    reader.SetFileName(str(src))
+    assert reader.Read(), src
+    change = gdcm.ImageChangeTransferSyntax()
+    change.SetTransferSyntax(gdcm.TransferSyntax(getattr(gdcm.TransferSyntax, syntax)))
+    change.SetInput(reader.GetImage())
+    assert change.Change(), (src, syntax)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    writer = gdcm.ImageWriter()
+    writer.SetFileName(str(dst))
+    writer.SetFile(reader.GetFile())
+    writer.SetImage(change.GetOutput())
+    assert writer.Write(), dst
+
+
+#: GDCM's lossless JPEG encoders: JPEG Lossless SV1 (Process 14, first-order prediction; the
+#: usual PACS export), Process 14 with any predictor, JPEG-LS lossless.
+GDCM_LOSSLESS = {"JPEGLosslessProcess14_1": "1.2.840.10008.1.2.4.70", "JPEGLosslessProcess14": "1.2.840.10008.1.2.4.57",
+                 "JPEGLSLossless": "1.2.840.10008.1.2.4.80"}
+
+
+def test_copies_compressed_by_gdcm_are_bit_identical(study):
+    """The study transcoded by GDCM to each lossless JPEG syntax, unsigned (uint16 with a rescale)
+    and signed (int16): every frame bit-identical to the uncompressed file's."""
+    def signed(ds):
+        _set_stored(ds, _stored(ds) - 32768, np.int16, 0.001, 32.768)
+
+    plain_signed = _rewrite(study, study.root / "gdcm_signed_plain", signed, only="SA_03")
+    want_signed = frames_by_path(read_dicom_dir(study.root / "gdcm_signed_plain"))
+    for name, uid in GDCM_LOSSLESS.items():
+        out = study.root / f"gdcm_{name}"
+        files = [out / p.relative_to(study.dir) for p in study.paths]
+        for src, dst in zip(study.paths, files):
+            _gdcm_copy(src, dst, name)
+        ds = pydicom.dcmread(files[0], stop_before_pixels=True)
+        assert ds.file_meta.TransferSyntaxUID == uid and "GDCM" in str(ds.file_meta.ImplementationVersionName)
+        res = read_dicom_dir(out)
+        assert res.problems == [] and res.complete, name
+        got = frames_by_path(res)
+        for f, p in zip(files, study.paths):
+            a, b = got[str(f)].image, study.by_path[str(p)].image
+            assert a.dtype == b.dtype and np.array_equal(a, b), (name, f)
+        signed_out = study.root / f"gdcm_signed_{name}"
+        copies = [signed_out / p.name for p in plain_signed]
+        for src, dst in zip(plain_signed, copies):
+            _gdcm_copy(src, dst, name)
+        got = frames_by_path(read_dicom_dir(signed_out))
+        for f, q in zip(copies, plain_signed):
+            assert pydicom.dcmread(f, stop_before_pixels=True).PixelRepresentation == 1
+            assert np.array_equal(got[str(f)].image, want_signed[str(q)].image), (name, f)
+
+
+def test_a_run_on_a_jpeg_lossless_study_gives_the_same_motion(tmp_path):
+    """One short graph run (2 phases, 200 particles) on a study and on its GDCM JPEG Lossless SV1
+    copy: the same motion in every phase (bit-identical frames, a deterministic solver)."""
+    from mlv_ros.tools.run import read_run, run_graph
+
+    sim = simulate_study("normal", snr=20.0, size=80, num_phases=2, subplanes=1, seed=3)
+    plain = write_study_dicom(sim, tmp_path / "plain")
+    for p in plain:
+        _gdcm_copy(p, tmp_path / "sv1" / p.relative_to(tmp_path / "plain"), "JPEGLosslessProcess14_1")
+    runs = {}
+    for name in ("plain", "sv1"):
+        summary = run_graph({"source": "dicom", "path": str(tmp_path / name)}, tmp_path / f"run_{name}",
+                            overrides={"registration": {"num_particles": 200}}, timeout=240,
+                            progress=lambda *_: None)
+        assert summary["complete"], (name, summary)
+        runs[name] = read_run(tmp_path / f"run_{name}" / "run.mcap")
+    a, b = runs["plain"], runs["sv1"]
+    assert sorted(a["positions"]) == sorted(b["positions"]) == [0, 1]
+    worst = {k: float(np.max(np.abs(a["positions"][k] - b["positions"][k]))) for k in a["positions"]}
+    assert all(d == 0.0 for d in worst.values()), f"largest position difference per phase (mm): {worst}"
+
+
 def test_lossy_jpeg_decodes(study):
     """Lossy 8-bit JPEG (Pillow's encoder): decoded to within the codec's error; 12-bit JPEG."""
     from PIL import Image
@@ -340,14 +419,15 @@ def test_colour_and_undecodable_files_are_reported_and_the_study_loads(study):
 
 def test_a_missing_decoder_is_reported_with_the_package_that_decodes(study):
     """In an interpreter where the plugins cannot be imported (as without requirements/base.txt's
-    decoder pins), compressed files are reported naming the package; the rest loads."""
+    decoder pins, and without python-gdcm, which pydicom also decodes with), compressed files are
+    reported naming the package; the rest loads."""
     out = study.root / "no_plugins"
     jls = _rewrite(study, out, lambda ds: ds.compress(JPEGLSLossless), only="SA_00")
     j2k = _rewrite(study, out, lambda ds: ds.compress(JPEG2000Lossless), only="SA_01")
     rle = _rewrite(study, out, lambda ds: ds.compress(RLELossless), only="SA_02")  # pydicom's own decoder
     plain = _rewrite(study, out, lambda ds: None, only="SA_03")
     code = ("import json, sys\n"
-            "for name in ('pylibjpeg', 'libjpeg', 'openjpeg', 'rle', 'jpeg_ls', 'PIL'):\n"
+            "for name in ('pylibjpeg', 'libjpeg', 'openjpeg', 'rle', 'jpeg_ls', 'PIL', 'gdcm'):\n"
             "    sys.modules[name] = None  # importing it now raises ImportError, as if not installed\n"
             "from mlv_ros.core.io import read_dicom_dir\n"
             "res = read_dicom_dir(sys.argv[1])\n"

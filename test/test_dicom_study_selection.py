@@ -342,7 +342,7 @@ def test_another_frame_of_reference_and_a_folder_without_tags(studies, tmp_path)
     shutil.copytree(studies.untagged[0].parent.parent, plain / "study")
     shutil.copy(get_testdata_file("MR_small.dcm", download=False), plain)
     res = read_dicom_dir(plain)
-    assert len(res.frames) == 33 and res.complete and "no cine shows a clear tag grid" in res.choice
+    assert len(res.frames) == 33 and res.complete and "no cine shows a tag grid" in res.choice
     assert [p for p, _ in res.problems] == [str(plain / "MR_small.dcm")]
 
 
@@ -381,3 +381,139 @@ def test_cines_of_the_study_that_fail_the_tag_test(studies, tmp_path):
     assert res.complete and res.warnings == [] and list(dict(res.problems)) == [str(between[0])]
     assert "not tagged" in res.problems[0][1] and "acquired unlike the study's tagged cines" in res.problems[0][1]
     _same_frames(res, studies.ref_a)
+
+
+@pytest.fixture(scope="module")
+def heart_only(tmp_path_factory):
+    """A study tagged on the heart alone (dark surroundings, 128² px of 1.8 mm: no cine passes the
+    whole-image tag test) and an untagged bright-blood study of the same protocol with more
+    cines (9 SA + 2 LA against 6 + 2), both written by ``write_study_dicom``."""
+    from mlv_ros.core.sim.protocol import protocol_preset
+
+    root = tmp_path_factory.mktemp("heart_only")
+    protocol = dict(shape="normal", background="none", size=128, pixel_spacing_mm=1.8, snr=20.0, tag_spacing_mm=7.0,
+                    tag_angle_deg=30.0, num_phases=3, sa_slices=6, la_planes=2)
+    preset = protocol_preset(protocol)
+    kw = dict(snr=20.0, size=128, num_phases=3, subplanes=1, pixel_spacing=1.8)
+    tagged = simulate_study(preset, seed=21, **kw)
+    preset["imaging"].update(tag_spacing_mm=1e6, blood_m0=2.0, sa_slices=9)
+    untagged = simulate_study(preset, seed=22, **kw)
+    assert tagged.study_uid != untagged.study_uid
+    write_study_dicom(tagged, root / "tagged")
+    write_study_dicom(untagged, root / "untagged")
+    return SimpleNamespace(root=root, tagged=tagged, untagged=untagged, ref=read_dicom_dir(root / "tagged"))
+
+
+def test_tags_on_the_heart_alone_are_found_by_the_study_vote(heart_only):
+    """No cine of the heart-only study passes the whole-image test; its cines share a grid at the
+    protocol's period in windows, the untagged twin's do not."""
+    ed = {name: [f.image for f in getattr(heart_only, name).frames if f.phase_index == 0]
+          for name in ("tagged", "untagged")}
+    assert max(dicom_io._tag_grid(im, 1.8)[0] for im in ed["tagged"]) < dicom_io._TAG_CLEAR
+    score, period, each = dicom_io._heart_grid([(im, 1.8) for im in ed["tagged"]])
+    assert score >= dicom_io._TAG_STUDY and abs(period / 7.0 - 1.0) <= 0.06
+    assert dicom_io._heart_grid([(im, 1.8) for im in ed["untagged"]])[0] < dicom_io._TAG_STUDY
+    res = heart_only.ref
+    assert res.study_uid == heart_only.tagged.study_uid and "tags on the heart alone" in res.choice
+    assert len(res.frames) == 24 and res.complete
+
+
+@pytest.mark.parametrize("order", ["tagged_first", "untagged_first", "shuffled"])
+def test_a_larger_untagged_study_does_not_win_over_tags_on_the_heart(heart_only, order, tmp_path):
+    """The untagged study has more MR cines (the old fallback's pick); the heart-only tagged study is
+    chosen whatever the file order, its frames as read alone, the other study's 11 series listed."""
+    first, last = ("0_", "9_") if order == "tagged_first" else ("9_", "0_")
+    shutil.copytree(heart_only.root / "tagged", tmp_path / f"{first}tagged")
+    shutil.copytree(heart_only.root / "untagged", tmp_path / f"{last}untagged")
+    root = tmp_path
+    if order == "shuffled":
+        _shuffle_flat(tmp_path, 5)
+        root = tmp_path / "flat"
+    res = read_dicom_dir(root)
+    assert res.study_uid == heart_only.tagged.study_uid, res.choice
+    assert "tags on the heart alone" in res.choice and heart_only.untagged.study_uid in res.choice
+    _same_frames(res, heart_only.ref)
+    assert len(res.not_used) == 11 and all("another study" in r for _, r in res.not_used)
+    assert res.complete
+
+
+def test_mosaic_series_are_refused_per_series(studies, tmp_path):
+    """Two cines re-saved as Siemens MOSAIC (one by ImageType, one by the private
+    NumberOfImagesInMosaic only) and nibabel's real MOSAIC diffusion files beside the study: each
+    series listed once as a MOSAIC, the study as read alone."""
+    import gzip
+
+    import nibabel
+
+    shutil.copytree(studies.root / "a", tmp_path / "study")
+    uid, for_uid = studies.a.study_uid, studies.a.frame_of_reference_uid
+
+    def private_count(ds, k):
+        block = ds.private_block(0x0019, "SIEMENS MR HEADER", create=True)
+        block.add_new(0x0A, "US", 4)
+        return ds.SeriesDescription
+
+    by_type = _save_series(_cine(studies.a_paths, "SA_02"), tmp_path / "mosaic_type", "mosaic_type", SeriesNumber=50,
+                           StudyInstanceUID=uid, FrameOfReferenceUID=for_uid,
+                           ImageType=["ORIGINAL", "PRIMARY", "M", "ND", "MOSAIC"])
+    by_private = _save_series(_cine(studies.a_paths, "SA_04"), tmp_path / "mosaic_private", "mosaic_private",
+                              SeriesNumber=51, SeriesDescription=private_count)
+    data = Path(nibabel.__file__).parent / "nicom" / "tests" / "data"
+    real = tmp_path / "dwi" / "siemens_dwi_0.dcm"
+    real.parent.mkdir()
+    real.write_bytes(gzip.decompress((data / "siemens_dwi_0.dcm.gz").read_bytes()))
+    res = read_dicom_dir(tmp_path)
+    assert res.study_uid == uid and res.complete
+    _same_frames(res, studies.ref_a)
+    why = dict(res.not_used)
+    assert sorted(why) == sorted([str(by_type[0]), str(by_private[0]), str(real)])
+    assert all("Siemens MOSAIC" in r and "not a cine of one slice" in r for r in why.values())
+    assert "ImageType" in why[str(by_type[0])] and "NumberOfImagesInMosaic 4" in why[str(by_private[0])]
+    assert "NumberOfImagesInMosaic 48" in why[str(real)]
+    # Nothing but MOSAIC files: a clear error, not a study of them.
+    with pytest.raises(DicomReadError, match="no usable cine.*Siemens MOSAIC"):
+        read_dicom_dir(real.parent)
+
+
+def test_a_cine_with_fewer_phases_is_used_by_nearest_trigger_time(studies, tmp_path):
+    """SA 5 acquired with 2 phases at 10 and 340 ms (the study's phases at 0, 333 and 667 ms, a
+    quarter interval = 83 ms allowed): its images become phases 1 and 2 of 3, phase 3 missing,
+    listed in left_out; at 0 and 500 ms (167 ms off) it is left out with the reason."""
+    shutil.copytree(studies.root / "a", tmp_path / "study")
+    shutil.rmtree(tmp_path / "study" / "SA_05")
+    two = _cine(studies.a_paths, "SA_05")[:2]
+    near = _save_series(two, tmp_path / "study" / "SA_05", "near", CardiacNumberOfImages=2,
+                        TriggerTime=lambda ds, k: [10.0, 340.0][k])
+    res = read_dicom_dir(tmp_path / "study")
+    got = frames_by_path(res)
+    assert [got[str(f)].phase_index for f in near] == [0, 1]
+    assert all(got[str(f)].num_phases == 3 for f in near)
+    assert [round(got[str(f)].trigger_time, 3) for f in near] == [0.01, 0.34]
+    assert len(res.frames) == 32 and len(res.series) == 11 and not res.complete
+    (path, why), = res.left_out
+    assert path == str(near[0]) and "nearest its TriggerTime" in why and "phase(s) 3 of 3 missing" in why
+    assert res.not_used == []
+    ref = frames_by_path(read_dicom_dir(tmp_path / "study" / "SA_05"))
+    assert all(np.array_equal(got[str(f)].image, ref[str(f)].image) for f in near)
+    # Too far from the study's phases: left out, with how far.
+    for p in near:
+        ds = pydicom.dcmread(p)
+        ds.TriggerTime = 500.0 * int(ds.InstanceNumber == two[1].InstanceNumber)
+        ds.save_as(p, enforce_file_format=True)
+    res = read_dicom_dir(tmp_path / "study")
+    assert len(res.frames) == 30 and not res.complete and [p for p, _ in res.not_used] == [str(near[0])]
+    assert "up to 167 ms from the study's" in res.not_used[0][1]
+
+
+def test_below_the_vote_threshold_the_closest_study_still_wins(heart_only, tmp_path, monkeypatch):
+    """Were the heart-only study's vote under the threshold (here: the threshold raised out of
+    reach), the choice between studies without a clear tag grid still goes by the vote, not by the
+    number of cines: the tagged study, all its cines used, and the choice says how close it came."""
+    monkeypatch.setattr(dicom_io, "_TAG_STUDY", 100.0)
+    shutil.copytree(heart_only.root / "untagged", tmp_path / "0_untagged")
+    shutil.copytree(heart_only.root / "tagged", tmp_path / "9_tagged")
+    res = read_dicom_dir(tmp_path)
+    assert res.study_uid == heart_only.tagged.study_uid, res.choice
+    assert "come closest to sharing a tag grid" in res.choice and "8 MR cine(s) all used" in res.choice
+    _same_frames(res, heart_only.ref)
+    assert len(res.not_used) == 11 and res.complete

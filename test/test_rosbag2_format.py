@@ -358,12 +358,16 @@ IMPORT_KEYS = {
     "PIL": "python3-pil",  # Pillow
     "meshio": "python3-meshio",
     "websockets": "python3-websockets", "google": "python3-protobuf",  # test_live_view.py's Foxglove client
+    "gdcm": None,  # python-gdcm (tests only); Debian's python3-gdcm has no rosdep key
+    "highdicom": None,  # tests only
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     "pylibjpeg": None, "libjpeg": None, "openjpeg": None, "rle": None, "jpeg_ls": None,
 }
-PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "foxglove": "foxglove-sdk", "pylibjpeg": "pylibjpeg",
+PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "foxglove": "foxglove-sdk",
+             "pylibjpeg": "pylibjpeg",
              "libjpeg": "pylibjpeg-libjpeg", "openjpeg": "pylibjpeg-openjpeg", "rle": "pylibjpeg-rle",
-             "jpeg_ls": "pyjpegls"}
+             "jpeg_ls": "pyjpegls", "gdcm": "python-gdcm",
+             "highdicom": "highdicom"}
 # Declared keys that no import names, and why.
 NON_IMPORT_KEYS = {"python3-pytest-timeout": "pytest.ini sets `timeout`"}
 

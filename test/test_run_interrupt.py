@@ -205,6 +205,26 @@ def test_foreign_bag_ends_at_once_with_the_reason(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_folder_of_mosaic_files_ends_at_once_with_the_reason(tmp_path):
+    """Siemens MOSAIC diffusion files (nibabel's own test files) were taken as a 2-phase cine and
+    the run sat 600 s: now the frame source refuses the series and the run ends with the reason."""
+    import gzip
+
+    import nibabel
+
+    data = Path(nibabel.__file__).parent / "nicom" / "tests" / "data"
+    folder = tmp_path / "dwi"
+    folder.mkdir()
+    for name in ("siemens_dwi_0", "siemens_dwi_1000"):
+        (folder / f"{name}.dcm").write_bytes(gzip.decompress((data / f"{name}.dcm.gz").read_bytes()))
+    run = Run(["--dicom", str(folder), "--out", str(tmp_path / "run")])
+    rc, _, lines = run.finish(timeout=60)
+    assert rc == 2 and time.monotonic() - run.t0 < 30
+    assert_one_line_reason(lines, "frame_source could not start", "no usable cine", "Siemens MOSAIC",
+                           "NumberOfImagesInMosaic 48")
+    assert not (tmp_path / "run").exists()
+
+
 def test_node_that_cannot_build_its_model_ends_the_run_at_once(tmp_path):
     """twist_knots 1 is inside the solver's declared range (0..100) but the model refuses it
     once the registration arrives: the run ends then, with that reason (it used to wait 600 s)."""
