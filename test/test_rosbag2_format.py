@@ -358,13 +358,14 @@ IMPORT_KEYS = {
     "PIL": "python3-pil",  # Pillow
     "meshio": "python3-meshio",
     "websockets": "python3-websockets", "google": "python3-protobuf",  # test_live_view.py's Foxglove client
+    "threadpoolctl": None,  # mlv_ros/threads.py; rosdistro has no key
     "gdcm": None,  # python-gdcm (tests only); Debian's python3-gdcm has no rosdep key
     "highdicom": None,  # tests only
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     "pylibjpeg": None, "libjpeg": None, "openjpeg": None, "rle": None, "jpeg_ls": None,
 }
 PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "foxglove": "foxglove-sdk",
-             "pylibjpeg": "pylibjpeg",
+             "threadpoolctl": "threadpoolctl", "pylibjpeg": "pylibjpeg",
              "libjpeg": "pylibjpeg-libjpeg", "openjpeg": "pylibjpeg-openjpeg", "rle": "pylibjpeg-rle",
              "jpeg_ls": "pyjpegls", "gdcm": "python-gdcm",
              "highdicom": "highdicom"}
