@@ -14,7 +14,7 @@ from typing import Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
@@ -102,6 +102,16 @@ class GraphNode(Node):
         self.study = StudyShape()
         self.other_studies: Counter = Counter()  # other study id → its messages ignored
 
+    # Parameter checks beyond what a descriptor's range can say (param's ``check``): rclpy runs
+    # this callback when a parameter is declared with its start-up value and whenever one is set.
+    def _checked_parameters(self, parameters) -> SetParametersResult:
+        for p in parameters:
+            check = self._parameter_checks.get(p.name)
+            why = check(p.value) if check is not None else None
+            if why:
+                return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {why}")
+        return SetParametersResult(successful=True)
+
     def topic_name(self, topic: str) -> str:
         """Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
         ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied)."""
@@ -140,11 +150,20 @@ class GraphNode(Node):
         self.stop()
 
     def param(self, name: str, default, description: str, *, min_value=None, max_value=None,
-              choices: tuple | None = None, read_only: bool = True):
+              choices: tuple | None = None, read_only: bool = True, check: Callable | None = None):
         """Declare a parameter with a descriptor (and range) and return its value.
 
         Integer/float ranges are enforced by rclpy when set at start-up or at run time.
+        ``check(value)`` returns why a value inside the range is still refused (None: accepted),
+        e.g. the core's own rule; it runs as a parameter callback, so a refused start-up value
+        makes the node refuse to start (rclpy's InvalidParameterValueException, with that reason)
+        and a refused run-time set is answered unsuccessful.
         """
+        if check is not None:
+            if not hasattr(self, "_parameter_checks"):
+                self._parameter_checks: dict[str, Callable] = {}
+                self.add_on_set_parameters_callback(self._checked_parameters)
+            self._parameter_checks[name] = check
         desc = ParameterDescriptor(description=description, read_only=read_only)
         if choices:
             desc.additional_constraints = "one of: " + ", ".join(map(str, choices))

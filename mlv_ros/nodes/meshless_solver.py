@@ -27,7 +27,7 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
-from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
+from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
@@ -45,7 +45,7 @@ class MeshlessSolver(GraphNode):
         self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
         self.global_prior = self.param("global_prior", 1.0, "prior holding the global parameters at the previous phase, counted like this many control points (0 = off)", min_value=0.0, max_value=1e5)
         self.longitudinal_weight = self.param("longitudinal_weight", 3.0e3, "stiffness against local stretch along the long axis, in units of the shear modulus (0 = off): only LA tags measure it", min_value=0.0, max_value=1e9)
-        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100)
+        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100, check=twist_knots_error)
         self.twist_smoothing = self.param("twist_smoothing", 0.3, "curvature penalty of the twist function", min_value=1e-6, max_value=1e5)
         self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
