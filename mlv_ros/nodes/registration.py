@@ -144,7 +144,7 @@ class Registration(GraphNode):
                                                         conversions.make_header(stamp)))
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
-        verdict = self.verdict = registration_verdict(res.slice_reports)
+        verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
         state.study_id = self.study.study_id
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
