@@ -348,10 +348,20 @@ def run_node(factory: Callable[..., Node], args=None) -> int:
         executor.add_node(node)
         while not stop_requested and not getattr(node, "done", False) and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
-        # Drain: keep taking queued messages until none has arrived for 0.2 s.
+        # Drain: keep taking queued messages until none has arrived for 0.2 s. After a signal a
+        # node may wait longer for what is still coming (upstream_alive: under `ros2 launch`
+        # every node gets the signal at once and the upstream ones still publish what they had
+        # queued), at most its shutdown_wait_s; a second signal ends the wait at once.
+        signalled = len(stop_requested)
+        waits = signalled and getattr(node, "upstream_alive", None)
+        end = time.monotonic() + (getattr(node, "shutdown_wait_s", 0.0) if waits else 0.0)
+        if waits and waits():
+            node.get_logger().info(f"{signal.Signals(stop_requested[0]).name}: taking what the graph still sends "
+                                   f"(at most {node.shutdown_wait_s:g} s; a second signal stops now)")
         handled = getattr(node, "messages_handled", 0)
         quiet_since = time.monotonic()
-        while rclpy.ok() and time.monotonic() - quiet_since < 0.2:
+        while rclpy.ok() and len(stop_requested) <= max(signalled, 1) and (
+                time.monotonic() - quiet_since < 0.2 or (waits and time.monotonic() < end and waits())):
             executor.spin_once(timeout_sec=0.05)
             if getattr(node, "messages_handled", 0) != handled:
                 handled, quiet_since = node.messages_handled, time.monotonic()

@@ -6,7 +6,10 @@ resolve to there (``/mlv/frames`` at the root, ``/study2/mlv/frames`` under ``/s
 
 Subscriptions are raw (the CDR bytes are written as received, never deserialised), RELIABLE and
 as deep as the publishers' queues. SIGINT/SIGTERM: the node first takes every message already
-queued, then finalises the file (summary, indexes, ``metadata.yaml``). Completed chunks go to
+queued and, while a node still publishes on a recorded topic, what it still sends (at most
+``shutdown_wait_s``; under ``ros2 launch`` every node gets the signal at once, and the upstream
+ones publish the phases in flight before they exit), then finalises the file (summary, indexes,
+``metadata.yaml``). A second signal closes the file at once. Completed chunks go to
 the OS as they are written, so a SIGKILL loses at most the chunk being filled (``mlv-ros
 recover`` rewrites a valid file from what is on disk).
 
@@ -62,6 +65,9 @@ class Recorder(GraphNode):
         # would miss what was sent before; frames and tag points keep their history for it.
         catch_up = self.param("catch_up", True, "take frames and tag points with their history (TRANSIENT_LOCAL); "
                               "false for a publisher without history")
+        self.shutdown_wait_s = self.param(
+            "shutdown_wait_s", 10.0, "after SIGINT/SIGTERM, keep recording while the graph's nodes still publish "
+            "on the recorded topics, at most this long (a second signal closes at once)", min_value=0.0, max_value=3600.0)
         unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
         if unknown:
             raise ValueError(f"cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}")
@@ -84,6 +90,11 @@ class Recorder(GraphNode):
                                      qos.subscription_qos(topic, catch_up=catch_up), raw=True)
         self.create_timer(self.flush_period_s, self.writer.flush)
         self.report(OK, "recording", output=self.output, topics=len(topics))
+
+    def upstream_alive(self) -> bool:
+        """Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
+        node and this one publish, aside): after a signal the recording stays open for it."""
+        return any(self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS)
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.messages_handled += 1
