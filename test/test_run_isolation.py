@@ -11,7 +11,7 @@ import os
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 
 from conftest import spin_until
@@ -186,3 +186,44 @@ def test_replay_of_a_recording_made_before_study_ids(ros_context, executor):
     assert spin_until(executor, lambda: len(got) == 176, 20), len(got)
     assert {m.study_id for m in got} == {""} and got[0].image.height == 128
 
+
+
+def test_namespaced_recording_keeps_only_its_own_graphs_statuses(ros_context, executor, tmp_path):
+    """/diagnostics is shared by every graph on a domain. A recorder in namespace study_a records
+    the statuses of its own graph's nodes (named /study_a/<node>, as mlv-ros run --namespace and
+    the launch file name them) and leaves out those of study_b's graph, of a root graph and of any
+    other node, counting them; with all_diagnostics it records them all."""
+    from mlv_ros.nodes.common import OK, USE_FQN, GraphNode
+    from mlv_ros.nodes.recorder import GRAPH_NODE_NAMES
+
+    fqn = [Parameter(USE_FQN, value=True)]
+    recs = {"own": Recorder(context=ros_context, namespace="study_a", parameter_overrides=[
+                Parameter("output", value=str(tmp_path / "own" / "run.mcap")), *fqn]),
+            "all": Recorder(context=ros_context, namespace="study_a", parameter_overrides=[
+                Parameter("output", value=str(tmp_path / "all" / "run.mcap")), Parameter("all_diagnostics", value=True),
+                *fqn])}
+    publishers = [GraphNode("tag_detector", context=ros_context, namespace="study_a", parameter_overrides=fqn),
+                  GraphNode("tag_detector", context=ros_context, namespace="study_b", parameter_overrides=fqn),
+                  GraphNode("meshless_solver", context=ros_context),  # a root graph's, named by its name alone
+                  GraphNode("battery", context=ros_context, namespace="study_a", parameter_overrides=fqn)]
+    for n in (*recs.values(), *publishers):
+        executor.add_node(n)
+    assert spin_until(executor, lambda: all(r.count_publishers(qos.DIAGNOSTICS) >= 6 for r in recs.values()), 10)
+    for p in publishers:
+        p.report(OK, "hello")
+    assert spin_until(executor, lambda: all(
+        r.streams[qos.DIAGNOSTICS].received >= 6 + 2 for r in recs.values()), 10)  # (and the recorders' own)
+    for r in recs.values():
+        r.finish()
+    names = {}
+    for key in recs:
+        names[key] = {st.name.partition(": ")[0] for m in bagio.read_bag(tmp_path / key / "run.mcap")
+                      if m.topic == qos.DIAGNOSTICS for st in bagio.deserialize(m.data, DiagnosticArray, m.missing).status}
+    assert names["own"] == {"/study_a/tag_detector", "/study_a/recorder"}, names["own"]
+    assert names["all"] >= {"/study_a/tag_detector", "/study_b/tag_detector", "meshless_solver", "/study_a/battery"}
+    assert recs["own"].other_graph_statuses >= 3 and recs["all"].other_graph_statuses == 0
+    assert recs["own"].status.level == OK and "other_graph_statuses" in {kv.key for kv in recs["own"].status.values}
+    assert "meshless_solver" in GRAPH_NODE_NAMES  # left out for its namespace, not its name
+    for n in (*recs.values(), *publishers):
+        executor.remove_node(n)
+        n.destroy_node()

@@ -318,6 +318,17 @@ def status_node(status: DiagnosticStatus) -> str:
     return status.name.partition(": ")[0].rpartition("/")[2]
 
 
+def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
+    """(namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
+    for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
+    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown)."""
+    node = status.name.partition(": ")[0]
+    if not node.startswith("/"):
+        return None, node
+    ns, _, name = node.rpartition("/")
+    return qos.full_namespace(ns), name
+
+
 def status_text(status: DiagnosticStatus) -> str:
     """One line for people: ``message (key: value, ...)``."""
     values = ", ".join(f"{kv.key}: {kv.value}" for kv in status.values)
