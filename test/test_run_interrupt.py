@@ -41,7 +41,8 @@ class Run:
 
     def __init__(self, args: list[str], preexec_fn=None):
         self.t0 = time.monotonic()
-        self.proc = subprocess.Popen([console_script("mlv-ros"), "run", *args], stdout=subprocess.PIPE,
+        # --verbose: the waits below are on the run's event lines and the nodes' INFO lines.
+        self.proc = subprocess.Popen([console_script("mlv-ros"), "run", "--verbose", *args], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True, env=run_env(), preexec_fn=preexec_fn)
         self.lines: list[str] = []
         self._new: queue.Queue = queue.Queue()

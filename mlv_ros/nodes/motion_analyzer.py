@@ -61,6 +61,7 @@ class MotionAnalyzer(GraphNode):
         self.states: dict = {}
         self.published = 0
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
+        self.volumes: dict = {}  # phase → cavity volume, ml, of the latest metrics
         self.messages_handled = 0
         self.report(OK, "waiting for the registered model")
 
@@ -192,6 +193,7 @@ class MotionAnalyzer(GraphNode):
             self.pub.publish(out)
             self.published += 1
             self.verdicts[int(state.phase_index)] = (verdict.level, verdict.text)
+            self.volumes[int(state.phase_index)] = float(metrics.cavity_volume_ml)
             values = dict(phase=state.phase_index, verdict=verdict.name, volume_ml=round(metrics.cavity_volume_ml, 1),
                           twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
             # A result the user must not take at face value is said so (WARN degraded, ERROR

@@ -2,8 +2,10 @@
 
     mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR [--namespace NS]
 
-Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
-ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
+Shows a progress bar over phases (on a terminal) and a short summary (:mod:`mlv_ros.tools.console`:
+what ran, how it ended, accuracy against the ground truth when the input is a phantom or a
+simulated study, volumes, verdicts, where the results are); ``--verbose`` adds the nodes' INFO
+lines, a line per event and the whole summary as JSON. Writes RUN_DIR/summary.json.
 
 A run claims its ROS domain: a private one (an flock, :mod:`mlv_ros.domain`) unless the user
 chose one (``--domain-id`` or ``ROS_DOMAIN_ID``); a chosen domain on which discovery finds a
@@ -37,6 +39,8 @@ import time
 from pathlib import Path
 
 import yaml
+
+from mlv_ros.tools.console import RunConsole, summary_lines
 
 GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
 # Node names of an mlv_ros graph (the launch file and console scripts use them too): one of them
@@ -132,7 +136,10 @@ def add_arguments(parser):
     parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
     parser.add_argument("--grace", type=float, default=10.0,
                         help="on SIGINT/SIGTERM, wait at most this many seconds for the phases in flight (default 10)")
-    parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
+    parser.add_argument("--quiet", action="store_true", help="the same as --no-progress")
+    parser.add_argument("--verbose", action="store_true",
+                        help="also the nodes' INFO lines, one line per event and the whole summary as JSON")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free private one)")
     parser.add_argument("--namespace", metavar="NS", default=None,
@@ -392,7 +399,7 @@ def _no_frames(src, source: dict) -> str:
 
 def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
               timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
-              handle_signals: bool = True, namespace: str | None = None) -> dict:
+              handle_signals: bool = True, namespace: str | None = None, on_phase=None) -> dict:
     """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
 
     Parameters
@@ -423,6 +430,9 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         topics resolve under it and are recorded so. Diagnostic statuses are then named by the
         nodes' fully qualified names (``diagnostic_updater.use_fqn``), since ``/diagnostics`` is
         shared. The domain check looks for another graph in this namespace only.
+    on_phase : callable, optional
+        Called with (phases analysed, phases in the study) once the graph runs and at each
+        phase analysed (a progress bar).
 
     Returns
     -------
@@ -449,13 +459,13 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         signals.install()
     try:
         return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id, grace,
-                          signals, namespace)
+                          signals, namespace, on_phase or (lambda done, total: None))
     finally:
         signals.restore()
 
 
 def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals,
-               namespace) -> dict:
+               namespace, on_phase) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -537,6 +547,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     if src.not_used or src.left_out or source.get("study"):
         progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
                  f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
+    on_phase(0, num_phases)
     # Longest a healthy graph stays idle: registration and the solver wait this long for input
     # that may still come before acting on what they have (the solver also for its subscribers),
     # and the source, before publishing, for its subscribers.
@@ -557,6 +568,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             if analyzer.published > seen:
                 seen = analyzer.published
                 progress(f"[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)")
+                on_phase(seen, num_phases)
             if signals.received:
                 interrupted = signals.first
                 break
@@ -584,8 +596,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             progress(f"[mlv-ros] {interrupted}: input stopped after {src.published} of {len(src.frames)} frames; "
                      f"finishing the phases in flight (at most {grace:g} s; {interrupted} again stops now)")
             _settle(ex, nodes, lambda: len(signals.received) > 1, quiet_s=QUIET_S, max_s=grace,
-                    on_phase=lambda n: progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
-                                                f"({time.monotonic() - t0:.1f} s)"))
+                    on_phase=lambda n: (progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
+                                                 f"({time.monotonic() - t0:.1f} s)"), on_phase(n, num_phases)))
         elif failed:
             src.halt("the run failed")
         else:  # ended by itself: let the last results reach their subscribers
@@ -626,6 +638,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             "complete": complete and src.input_complete, "interrupted": interrupted, "failed": failed,
             "phases_complete": complete,
             **verdict_summary(analyzer.verdicts),
+            "cavity_volume_ml": {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
             "registration_verdict": registration_summary(nodes["registration"]),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
@@ -640,6 +653,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
         if other:  # another graph on the domain: its messages were reported and left out
             summary["messages_of_other_studies"] = other
+        if rec.other_graph_statuses:  # /diagnostics of other graphs' nodes, left out of the recording
+            summary["statuses_of_other_graphs"] = rec.other_graph_statuses
         if rec.writer.error is not None:
             summary["recording_error"] = str(rec.writer.error)
             summary["messages_not_recorded"] = rec.dropped
@@ -915,16 +930,21 @@ def _run(args) -> int:
         overrides["registration"]["num_particles"] = args.particles
     if args.masks:
         overrides["registration"]["mask_path"] = str(Path(args.masks).resolve())
+    console = RunConsole(verbose=args.verbose, progress=not (args.no_progress or args.quiet))
+    restore = console.quiet_nodes()
     try:
-        summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
-                            progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
-                            domain_id=args.domain_id, grace=args.grace, namespace=args.namespace)
+        summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout, progress=console.line,
+                            domain_id=args.domain_id, grace=args.grace, namespace=args.namespace,
+                            on_phase=console.phase)
     except RunInterrupted as exc:
         print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
         return SIGNAL_EXIT[exc.signum]
     except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RunStartError is a ValueError
         print(f"mlv-ros run: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        console.close()
+        restore()
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
     if (args.phantom or truth) and summary["phases_complete"]:
         acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
@@ -934,21 +954,33 @@ def _run(args) -> int:
                                "coverage": acc.get("coverage"),
                                "per_phase": acc.get("per_phase")}
         write_summary(Path(args.out), summary)
-    print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
-        {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
+    if args.verbose:
+        print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
+            {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
+    code, how = exit_status(summary)
+    print("\n".join(summary_lines(summary, exit_status=code, exit_reason=how, accuracy=summary.get("accuracy"))),
+          flush=True)
     line = outcome_line(summary)
     if line:
         print(f"mlv-ros run: {line}", file=sys.stderr)
     quality = verdict_line(summary)
     if quality:
         print(f"mlv-ros run: {quality}", file=sys.stderr)
-    if summary["interrupted"]:
-        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
-    if summary["phases_complete"] and untracked(summary):
+    if code == EXIT_UNTRACKED:
         print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
               "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
-        return EXIT_UNTRACKED
-    return 0 if summary["complete"] else EXIT_INCOMPLETE
+    return code
+
+
+def exit_status(summary: dict) -> tuple[int, str]:
+    """What ``mlv-ros run`` exits with for ``summary``, and in a few words why."""
+    if summary["interrupted"]:
+        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]], f"interrupted by {summary['interrupted']}"
+    if summary["phases_complete"] and untracked(summary):
+        return EXIT_UNTRACKED, "the study could not be tracked"
+    if summary["complete"]:
+        return 0, "complete"
+    return EXIT_INCOMPLETE, "not complete (why: the line below)"
 
 
 def outcome_line(summary: dict) -> str | None:
