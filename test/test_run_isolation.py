@@ -11,6 +11,7 @@ import os
 import threading
 import time
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 
@@ -28,10 +29,10 @@ OURS, THEIRS = "study-ours", "study-theirs"
 IGNORED = "message of another study ignored (another graph on this ROS_DOMAIN_ID?)"
 
 
-def frames_of(study: str, stamp0: float) -> list:
+def frames_of(study: str, stamp0: float, run: str = "") -> list:
     frames = count_slices(pattern_frames(num_phases=3))  # 2 slices × 3 phases, 64²
     for f in frames:
-        f.study_id = study
+        f.study_id, f.run_id = study, run
     return [conversions.frame_to_msg(f, stamp=stamp0 + i) for i, f in enumerate(frames)]
 
 
@@ -40,7 +41,16 @@ def cloud(stamp: float):
     return conversions.cloud_to_msg(pts, conversions.make_header(stamp))
 
 
-def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executor, tmp_path):
+# Two graphs on one domain: of two studies, or two runs of the same study (each run draws its own
+# run_id at its frame source), as (our study, our run), (their study, their run), how the other is named.
+OTHERS = {"another study": ((OURS, "run-a"), (THEIRS, "run-b"), THEIRS),
+          "another run of the same study": ((OURS, "run-a"), (OURS, "run-b"), f"{OURS} run run-b")}
+
+
+@pytest.mark.parametrize("other", OTHERS)
+def test_nodes_keep_to_the_first_study_and_report_the_other(other, ros_context, executor, tmp_path):
+    (our_study, our_run), (their_study, their_run), THEIRS = OTHERS[other]
+    ours_label = f"{our_study} run {our_run}"
     det = TagDetector(context=ros_context)
     analyzer = MotionAnalyzer(context=ros_context)
     rec = Recorder(context=ros_context, parameter_overrides=[Parameter("output", value=str(tmp_path / "run.mcap"))])
@@ -49,7 +59,7 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
         executor.add_node(n)
     wait_matched(executor, probe, {qos.FRAMES: 2, qos.MODEL_STATE: 2, qos.MOTION: 2})
 
-    ours, theirs = frames_of(OURS, 1.0), frames_of(THEIRS, 100.0)
+    ours, theirs = frames_of(our_study, 1.0, our_run), frames_of(their_study, 100.0, their_run)
     probe.publish(qos.FRAMES, ours[0])  # the first frame taken decides the study
     assert spin_until(executor, lambda: det.messages_handled == 1 and rec.streams[qos.FRAMES].received == 1, 10)
     for a, b in zip(theirs, ours[1:] + [None]):
@@ -58,25 +68,28 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
             probe.publish(qos.FRAMES, b)
     # Model states and their clouds: ours (stamp 300) is held for its cloud; theirs take their
     # clouds with them, whether the cloud comes before the state (301) or after (302).
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(1, 3, study_id=OURS), stamp=300.0))
+    def state(phase, study, run, stamp):
+        return conversions.model_state_to_msg(ModelState(phase, 3, study_id=study, run_id=run), stamp=stamp)
+
+    probe.publish(qos.MODEL_STATE, state(1, our_study, our_run, 300.0))
     probe.publish(qos.MOTION, cloud(301.0))
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(1, 3, study_id=THEIRS), stamp=301.0))
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(2, 3, study_id=THEIRS), stamp=302.0))
+    probe.publish(qos.MODEL_STATE, state(1, their_study, their_run, 301.0))
+    probe.publish(qos.MODEL_STATE, state(2, their_study, their_run, 302.0))
     probe.publish(qos.MOTION, cloud(302.0))
     assert spin_until(executor, lambda: det.messages_handled == 12 and analyzer.messages_handled == 5
                       and len(probe.received("points")) == 6 and data_taken(rec) == 12 + 6 + 5, 15)
 
     # The tag detector: our six frames tracked, theirs reported one by one and nothing sent on.
     assert sorted(p.header.stamp.sec for p in probe.received("points")) == [1, 2, 3, 4, 5, 6]
-    assert {p.study_id for p in probe.received("points")} == {OURS}
+    assert {(p.study_id, p.run_id) for p in probe.received("points")} == {(our_study, our_run)}
     def said():
         return [v for node, level, msg, v in probe.statuses() if node == "tag_detector" and msg == IGNORED]
 
     assert spin_until(executor, lambda: len(said()) == 6, 5), said()
     said = said()
-    assert all(v["study"] == OURS and v["other_study"] == THEIRS and v["topic"] == qos.FRAMES for v in said)
+    assert all(v["study"] == ours_label and v["other_study"] == THEIRS and v["topic"] == qos.FRAMES for v in said)
     assert sorted(v["stamp"] for v in said) == sorted(conversions.stamp_text(m.header.stamp) for m in theirs)
-    assert det.other_studies == {THEIRS: 6} and det.study.study_id == OURS
+    assert det.other_studies == {THEIRS: 6} and (det.study.study_id, det.study.run_id) == (our_study, our_run)
     assert not [s for s in probe.statuses() if s[0] == "tag_detector" and any(
         w in s[2] for w in ("bad frame", "different frame", "slot", "duplicate"))], "their frames were taken for ours"
     # ... and its heartbeat keeps saying so, at ERROR.
@@ -99,8 +112,8 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
     for m in bagio.read_bag(tmp_path / "run.mcap"):
         recorded.setdefault(m.topic, []).append(m)
     assert len(recorded[qos.FRAMES]) == 6 and len(recorded[qos.TAG_POINTS]) == 6
-    assert all(bagio.deserialize(m.data, qos_class(m.topic)).study_id == OURS
-               for topic in (qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE) for m in recorded[topic])
+    assert all((bagio.deserialize(m.data, qos_class(m.topic)).study_id, bagio.deserialize(m.data, qos_class(m.topic)).run_id)
+               == (our_study, our_run) for topic in (qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE) for m in recorded[topic])
     assert len(recorded[qos.MODEL_STATE]) == 1 and qos.MOTION not in recorded
     assert rec.ignored == 6 + 2 + 2 and rec.other_studies == {THEIRS: 10}
     assert spin_until(executor, lambda: [s for s in probe.statuses() if s[0] == "recorder" and s[2] == "recording closed"], 5)

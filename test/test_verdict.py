@@ -171,18 +171,21 @@ def test_recordings_made_before_the_verdict_still_read():
         cases += [(ModelState, "# Run isolation", {"phase_index": 3, "num_phases": 9, "verdict": 2,
                                                    "verdict_reasons": reasons}),
                   (MotionMetrics, "# Run isolation", {"phase_index": 2, "verdict": 1, "verdict_reasons": reasons})]
+    for sid in ("s", "abcd"):  # recorded before run_id alone
+        cases += [(cls, "# The run the message belongs to", {"phase_index": 1, "num_phases": 9, "study_id": sid})
+                  for cls in (ModelState, MotionMetrics, TaggedFrame, TagPoints)]
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
         name = f"mlv_msgs/msg/{cls.__name__}"
         text = (bagio._msg_file("mlv_msgs", cls.__name__).read_text())
         missing = bagio.fields_missing_from(name, text[:text.index(cut)])
         for got in (bagio.deserialize(data, cls), bagio.deserialize(data, cls, missing)):  # by trying, by schema
-            assert got.study_id == ""
+            assert got.study_id == values.get("study_id", "") and got.run_id == ""
             if "verdict" not in values and hasattr(got, "verdict"):
                 assert got.verdict == 0 and got.verdict_reasons == ""
             for k, v in values.items():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
-        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).study_id == ""  # what replay publishes
+        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).run_id == ""  # what replay publishes
     assert bagio.fields_missing_from("mlv_msgs/msg/ModelState", bagio.message_definition("mlv_msgs/msg/ModelState")) == ()
     with pytest.raises(ValueError, match="cannot deserialise"):
         bagio.deserialize(b"\x00\x01\x00\x00garbage", ModelState)

@@ -212,23 +212,25 @@ class GraphNode(Node):
             topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
         return super().create_subscription(msg_type, name, counted, qos_profile, **kwargs)
 
-    def foreign(self, study_id: str, topic: str, **where) -> bool:
-        """Whether a message of ``study_id`` taken from graph topic ``topic`` belongs to another
-        study than this node's (:attr:`study`; an empty id, or none adopted yet, is never foreign).
+    def foreign(self, study_id: str, topic: str, run_id: str = "", **where) -> str:
+        """Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
+        another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
+        never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
 
-        A foreign message is reported at once as an ERROR on /diagnostics naming both study ids,
-        the topic and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the
-        console gets the first one of each other study (later ones are DEBUG lines). The caller
-        ignores the message.
+        A foreign message is reported at once as an ERROR on /diagnostics naming both, the topic
+        and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the console gets
+        the first one of each other study or run (later ones are DEBUG lines). The caller ignores
+        the message.
         """
-        if not self.study.foreign(study_id):
-            return False
-        first = study_id not in self.other_studies
-        self.other_studies[study_id] += 1
+        other = self.study.other(study_id, run_id)
+        if other is None:
+            return ""
+        first = other not in self.other_studies
+        self.other_studies[other] += 1
         self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": study_id, **where},
+                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other, **where},
                      log=first)
-        return True
+        return other
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
         """A point cloud taken from graph topic ``topic`` whose model state (same stamp) is of ``other_study``:
@@ -236,7 +238,7 @@ class GraphNode(Node):
         state's line); the caller drops it."""
         self.other_studies[other_study] += 1
         self._report(ERROR, "point cloud of another study ignored with its model state",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": other_study,
+                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other_study,
                       "stamp": stamp},
                      log=False)
 
@@ -276,7 +278,7 @@ class GraphNode(Node):
             ignored = sum(self.other_studies.values())
             level = max(level, ERROR)
             message = f"{message}; {ignored} message(s) of another study ignored"
-            extra += [KeyValue(key="study", value=self.study.study_id),
+            extra += [KeyValue(key="study", value=self.study.label),
                       KeyValue(key="other studies ignored", value=", ".join(
                           f"{sid}: {n}" for sid, n in self.other_studies.most_common(5)))]
         return DiagnosticStatus(level=level, name=status.name, message=message,

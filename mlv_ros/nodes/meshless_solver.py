@@ -95,17 +95,18 @@ class MeshlessSolver(GraphNode):
 
     def _on_state(self, msg: ModelStateMsg) -> None:
         key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
-        if self.foreign(msg.study_id, qos.REGISTERED_STATE, stamp=stamp):
-            self._foreign_stamps.add(key, msg.study_id)
+        other = self.foreign(msg.study_id, qos.REGISTERED_STATE, run_id=msg.run_id, stamp=stamp)
+        if other:
+            self._foreign_stamps.add(key, other)
             if self._reg_clouds.pop(key, None) is not None:
-                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, msg.study_id)
+                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, other)
             return
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
             self.report(ERROR, "bad registered state", stamp=stamp, reason=str(exc))
             return
-        self.study.adopt(state.study_id)
+        self.study.adopt(state.study_id, state.run_id)
         self.rest_state, self._rest_key = state, key
         self._build()
 
@@ -133,7 +134,7 @@ class MeshlessSolver(GraphNode):
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.TAG_POINTS, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
+        if self.foreign(msg.study_id, qos.TAG_POINTS, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp)):
             return  # another graph's tag points (nor are they input to wait on)
         self.last_input = time.monotonic()
@@ -215,7 +216,7 @@ class MeshlessSolver(GraphNode):
                 self.report(ERROR, "phase not solved", phase=phase, reason=str(exc))
                 return
             x, E, state = sol.positions, sol.strain, sol.state
-        state.study_id = self.study.study_id
+        state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
         d = x - tr.rest
         cloud = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2],

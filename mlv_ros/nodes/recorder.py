@@ -174,16 +174,17 @@ class Recorder(GraphNode):
             while len(self._held) > MAX_HELD_CLOUDS:  # states that never come: write the oldest
                 self._write(*self._held.pop(next(iter(self._held))))
             return False
-        if self.foreign(msg.study_id, topic, stamp=stamp):
+        other = self.foreign(msg.study_id, topic, run_id=msg.run_id, stamp=stamp)
+        if other:
             self.ignored += 1
             if topic in CLOUD_STATES.values():
-                self._foreign_stamps.add((topic, key), msg.study_id)
+                self._foreign_stamps.add((topic, key), other)
                 held = self._held.pop((topic, key), None)
                 if held is not None:
                     self.ignored += 1
-                    self.cloud_of_other_study(held[0], stamp, msg.study_id)  # (its recorded name)
+                    self.cloud_of_other_study(held[0], stamp, other)  # (its recorded name)
             return False
-        self.study.adopt(msg.study_id)
+        self.study.adopt(msg.study_id, msg.run_id)
         if topic in CLOUD_STATES.values():
             self._write(self.recorded[topic], data, now, published)
             self._ours.add((topic, key))

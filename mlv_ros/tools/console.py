@@ -230,7 +230,8 @@ def summary_lines(summary: dict, *, exit_status: int, exit_reason: str | None, a
         how = "failed"
     else:
         how = "complete" if summary.get("complete") else "incomplete"
-    lines = [f"run: {source_text(summary.get('source') or {})}, study {summary.get('study_id') or '?'}",
+    lines = [f"run: {source_text(summary.get('source') or {})}, study {summary.get('study_id') or '?'}"
+             + (f" (run {summary['run_id']})" if summary.get("run_id") else ""),
              f"result: {how} after {summary.get('seconds', 0):.1f} s: {solved} of {n} phases solved, {analysed} analysed, "
              f"{summary.get('frames_published', 0)} frames"]
     if summary.get("failed"):

@@ -526,8 +526,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         # Every node keeps to this study from the start, so another graph's messages are never
         # taken for ours, even when they come first.
         for node in nodes.values():
-            node.study.adopt(src.study_id)
-        rec.writer.custom_data["study_id"] = src.study_id
+            node.study.adopt(src.study_id, src.run_id)
+        rec.writer.custom_data.update(study_id=src.study_id, run_id=src.run_id)
         signals.starting = False
     except (RunStartError, RunInterrupted):
         # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
@@ -543,7 +543,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     num_phases = max((f.num_phases for f in src.frames), default=0)
     where = "" if namespace == "/" else f", namespace {namespace}"
     progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}{where}, "
-             f"study {src.study_id})")
+             f"study {src.study_id}, run {src.run_id})")
     if src.not_used or src.left_out or source.get("study"):
         progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
                  f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
@@ -629,7 +629,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         summary = {
             "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
             "namespace": namespace,
-            "study_id": src.study_id,
+            "study_id": src.study_id, "run_id": src.run_id,
             "seconds": round(time.monotonic() - t0, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
