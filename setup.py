@@ -14,6 +14,7 @@ NODES = [
     "motion_analyzer",
     "recorder",
     "replay",
+    "live_view",
 ]
 
 setup(
@@ -23,7 +24,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.json")),
         ("share/" + package_name + "/config/phantoms", glob("config/phantoms/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],

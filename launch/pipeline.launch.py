@@ -4,6 +4,7 @@
     ros2 launch mlv_ros pipeline.launch.py source:=dicom path:=/data/study  # a DICOM study
     ros2 launch mlv_ros pipeline.launch.py source:=bag path:=runs/old       # the frames of a recording
         [output_dir:=runs/mine] [namespace:=study2] [params_file:=/path/to/graph.yaml]
+        [live:=true [live_port:=8765]]                                      # ... watched in Foxglove
 
 Each launch records to a fresh ``runs/<YYYYmmdd-HHMMSS>/run.mcap`` under the directory it was
 started from unless ``output_dir`` says where (what the arguments become:
@@ -27,13 +28,17 @@ NODES = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_
 def launch_setup(context, *args, **kwargs):
     """The graph's nodes, for the arguments as given at launch time."""
     arg = {name: LaunchConfiguration(name).perform(context)
-           for name in ("source", "path", "output_dir", "namespace", "params_file")}
+           for name in ("source", "path", "output_dir", "namespace", "params_file", "live", "live_port")}
     settings = graph_settings(arg["source"], arg["path"], arg["output_dir"], arg["namespace"])
     print(f"[mlv_ros] recording to {settings.output_dir / 'run.mcap'}"
           + (f" (namespace {settings.namespace})" if settings.namespace else ""))
+    nodes = NODES + (["live_view"] if arg["live"] == "true" else [])
+    if arg["live"] == "true":  # the live view's port; the node refuses one out of range at start
+        settings.overrides["live_view"] = {**settings.overrides.get("live_view", {}), "port": int(arg["live_port"])}
+        print(f"[mlv_ros] live view on port {arg['live_port']} (Foxglove: Open connection, Foxglove WebSocket)")
     return [Node(package="mlv_ros", executable=name, name=name, namespace=settings.namespace or None,
                  parameters=[arg["params_file"], settings.overrides.get(name, {})], output="screen")
-            for name in NODES]
+            for name in nodes]
 
 
 def generate_launch_description():
@@ -50,5 +55,10 @@ def generate_launch_description():
                               description="ROS namespace of every node and topic (e.g. study2); empty: the root"),
         DeclareLaunchArgument("params_file", default_value=default_params,
                               description="parameters of the whole graph (keys /**/<node>, as config/graph.yaml)"),
+        DeclareLaunchArgument("live", default_value="false", choices=["true", "false"],
+                              description="also start live_view: the run served to Foxglove over a WebSocket "
+                                          "(layout config/foxglove_layout.json)"),
+        DeclareLaunchArgument("live_port", default_value="8765",
+                              description="the live view's WebSocket port (live:=true)"),
         OpaqueFunction(function=launch_setup),
     ])

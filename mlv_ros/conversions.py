@@ -554,3 +554,166 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
     out["study_id"] = _check_study_id(msg.study_id)
     out["run_id"] = _check_study_id(msg.run_id, "run_id")
     return out
+
+
+# --------------------------------------------------------------------------- Foxglove schemas
+# The live view (mlv_ros/nodes/live_view.py) serves the graph's results with Foxglove's own
+# schemas (foxglove-sdk; imported here on first use, so the graph runs without it).
+FOXGLOVE_CURVE_FIELDS = ("cavity_volume_ml", "ejection_fraction", "twist_apex_deg", "twist_base_deg",
+                         "torsion_deg_per_cm")
+
+
+def foxglove_timestamp(stamp: Time):
+    """ROS ``builtin_interfaces/Time`` → ``foxglove.messages.Timestamp`` (same instant)."""
+    from foxglove.messages import Timestamp
+
+    return Timestamp(sec=int(stamp.sec), nsec=int(stamp.nanosec))
+
+
+def cloud_to_foxglove(points: np.ndarray, stamp: Time, frame_id: str = PATIENT_FRAME):
+    """Structured point array (as :func:`msg_to_cloud` returns it) → ``foxglove.PointCloud``.
+
+    Parameters
+    ----------
+    points : structured ndarray, shape (N,)
+        Scalar numeric fields (e.g. ``x y z`` in mm, ``dx dy dz`` in mm, ``err ecc ell``
+        dimensionless); the record layout (offsets, stride) is kept.
+    stamp : builtin_interfaces/Time
+        The source message's header stamp.
+    frame_id : str
+        The coordinate frame of ``x y z`` (``patient``: DICOM LPS, mm, as the recorded clouds).
+
+    Returns
+    -------
+    foxglove.messages.PointCloud
+        Identity pose, little-endian packed fields with the same names, offsets and stride.
+
+    Raises
+    ------
+    ValueError
+        Not a 1-D structured array, or a field of a type PackedElementField cannot hold.
+    """
+    from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud, Pose, Quaternion, \
+        Vector3
+
+    points = np.asarray(points)
+    if points.dtype.names is None or points.ndim != 1:
+        raise ValueError("a Foxglove point cloud needs a 1-D structured array of named fields")
+    kinds = {np.dtype(np.uint8): "Uint8", np.dtype(np.int8): "Int8", np.dtype(np.uint16): "Uint16",
+             np.dtype(np.int16): "Int16", np.dtype(np.uint32): "Uint32", np.dtype(np.int32): "Int32",
+             np.dtype(np.float32): "Float32", np.dtype(np.float64): "Float64"}
+    little = points.dtype.newbyteorder("<")
+    fields = []
+    for name in points.dtype.names:
+        fdt, offset = points.dtype.fields[name][:2]
+        kind = kinds.get(fdt.newbyteorder("="))
+        if kind is None or fdt.shape:
+            raise ValueError(f"field {name!r} has dtype {fdt}, which a Foxglove PackedElementField cannot hold")
+        fields.append(PackedElementField(name=name, offset=offset, type=getattr(PackedElementFieldNumericType, kind)))
+    return PointCloud(timestamp=foxglove_timestamp(stamp), frame_id=frame_id,
+                      pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                      point_stride=points.dtype.itemsize, fields=fields, data=points.astype(little).tobytes())
+
+
+def display_window(image: np.ndarray) -> tuple[float, float]:
+    """Grey-level window (low, high) for showing a slice: its 1st and 99.5th percentiles.
+
+    Scale-free (any scanner's stored range, rescale or float image); taken once per slice (from
+    its first frame) and kept, so the tags' fading over the cycle stays visible.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    finite = image[np.isfinite(image)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    low, high = np.percentile(finite, [1.0, 99.5])
+    return float(low), float(high if high > low else low + 1.0)
+
+
+def image_to_foxglove(image: np.ndarray, window: tuple[float, float], stamp: Time, frame_id: str = PATIENT_FRAME):
+    """A slice image → ``foxglove.RawImage`` (``mono8``), grey levels mapped linearly from
+    ``window`` (low → 0, high → 255, clipped; NaN → 0).
+
+    Parameters
+    ----------
+    image : ndarray, shape (rows, columns)
+        Any numeric dtype (the frame as :func:`msg_to_image` gives it).
+    window : (float, float)
+        Grey levels shown as black and white (:func:`display_window`).
+    stamp : builtin_interfaces/Time
+        The frame's header stamp (its tag points' annotations carry the same one).
+    """
+    from foxglove.messages import RawImage
+
+    image = np.asarray(image)
+    if image.ndim != 2 or not image.size:
+        raise ValueError(f"an image to show must be 2-D and not empty, got shape {image.shape}")
+    low, high = float(window[0]), float(window[1])
+    if not (np.isfinite(low) and np.isfinite(high) and high > low):
+        raise ValueError(f"display window must be finite with high > low, got {window}")
+    scaled = (np.nan_to_num(image.astype(np.float32), nan=low) - low) * (255.0 / (high - low))
+    data = np.clip(scaled, 0.0, 255.0).astype(np.uint8)
+    rows, cols = data.shape
+    return RawImage(timestamp=foxglove_timestamp(stamp), frame_id=frame_id, width=cols, height=rows,
+                    encoding="mono8", step=cols, data=data.tobytes())
+
+
+def tagpoints_to_foxglove(pixel_rc: np.ndarray, stamp: Time, color=(1.0, 0.3, 0.1, 1.0), size_px: float = 4.0):
+    """Tag points of one frame → ``foxglove.ImageAnnotations`` (one POINTS annotation).
+
+    Parameters
+    ----------
+    pixel_rc : ndarray, shape (N, 2)
+        (row, column) of each point, pixels, 0 at the centre of the first pixel (as TagPoints).
+        Foxglove places annotations from the top-left *corner* of the image, so each point is
+        drawn at (column + 0.5, row + 0.5).
+    stamp : builtin_interfaces/Time
+        The tag points' header stamp (= their frame's), which pairs them with the image.
+    color : tuple of 4 floats
+        RGBA, 0..1.
+    size_px : float
+        Point size on screen, pixels.
+    """
+    from foxglove.messages import Color, ImageAnnotations, Point2, PointsAnnotation, PointsAnnotationType
+
+    rc = np.asarray(pixel_rc, dtype=np.float64).reshape(-1, 2)
+    _require_finite("tag pixel_rc", rc)
+    ts = foxglove_timestamp(stamp)
+    points = [Point2(x=float(c) + 0.5, y=float(r) + 0.5) for r, c in rc]
+    return ImageAnnotations(timestamp=ts, points=[PointsAnnotation(
+        timestamp=ts, type=PointsAnnotationType.Points, points=points,
+        outline_color=Color(r=color[0], g=color[1], b=color[2], a=color[3]), thickness=float(size_px))])
+
+
+def metrics_to_curves(metrics: Mapping) -> dict:
+    """One phase's metrics (:func:`msg_to_metrics`) → the live view's curve point, a JSON object
+    Foxglove's Plot panel reads (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
+
+    Keys: ``phase_index``, ``num_phases``, ``time_fraction`` (0..1), ``verdict`` (0 ok,
+    1 degraded, 2 failed) and ``verdict_reasons``; then, except for a failed phase (no measurement:
+    never plotted), ``cavity_volume_ml`` (ml), ``ejection_fraction`` (0..1), ``twist_apex_deg`` and
+    ``twist_base_deg`` (degrees, the most apical / basal level, + counter-clockwise seen from the
+    apex) and ``torsion_deg_per_cm``.
+    """
+    out = {"phase_index": int(metrics["phase_index"]), "num_phases": int(metrics["num_phases"]),
+           "time_fraction": float(metrics["time_fraction"]), "verdict": int(metrics["verdict"]),
+           "verdict_reasons": str(metrics["verdict_reasons"])}
+    if out["verdict"] >= 2:
+        return out
+    twist = np.asarray(metrics["twist_deg"], dtype=np.float64)
+    values = {"cavity_volume_ml": metrics["cavity_volume_ml"], "ejection_fraction": metrics["ejection_fraction"],
+              "twist_apex_deg": twist[0] if twist.size else None, "twist_base_deg": twist[-1] if twist.size else None,
+              "torsion_deg_per_cm": metrics["torsion_deg_per_cm"]}
+    out.update({k: float(v) for k, v in values.items() if v is not None and np.isfinite(v)})
+    return out
+
+
+def curves_schema() -> dict:
+    """JSON schema of :func:`metrics_to_curves`'s objects (advertised with the channel, so
+    Foxglove offers the fields before the first phase)."""
+    number = {"type": "number"}
+    props = {"phase_index": {"type": "integer"}, "num_phases": {"type": "integer"}, "time_fraction": number,
+             "verdict": {"type": "integer", "description": "0 ok, 1 degraded, 2 failed (no values)"},
+             "verdict_reasons": {"type": "string"}}
+    props.update({k: number for k in FOXGLOVE_CURVE_FIELDS})
+    return {"type": "object", "title": "mlv_ros.PhaseCurves", "properties": props,
+            "required": ["phase_index", "num_phases", "time_fraction", "verdict"]}

@@ -101,6 +101,7 @@ def graph_settings(source: str = "phantom", path: str = "", output_dir: str = ""
                          "output_dir out for a fresh one under runs/")
     overrides["recorder"] = {"output": str(out / "run.mcap")}
     if ns != "/":  # /diagnostics is shared: name each status by the node's full name
-        for node in ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder"):
+        for node in ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder",
+                     "live_view"):
             overrides.setdefault(node, {})["diagnostic_updater.use_fqn"] = True
     return GraphSettings(namespace="" if ns == "/" else ns, output_dir=out, overrides=overrides)

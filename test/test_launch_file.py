@@ -15,7 +15,7 @@ from conftest import REPO
 from mlv_ros.launch_settings import fresh_run_dir, graph_settings
 
 LAUNCH_FILE = REPO / "launch" / "pipeline.launch.py"
-ARGUMENTS = {"source", "path", "output_dir", "namespace", "params_file"}
+ARGUMENTS = {"source", "path", "output_dir", "namespace", "params_file", "live", "live_port"}
 GRAPH = {"recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"}
 
 
@@ -29,6 +29,7 @@ def test_launch_file_declares_its_arguments():
     assert all("description" in kw and "default_value" in kw for kw in declared.values())
     assert declared["output_dir"]["default_value"].value == ""  # empty: a fresh run directory
     assert [e.value for e in declared["source"]["choices"].elts] == ["phantom", "dicom", "bag"]
+    assert declared["live"]["default_value"].value == "false"  # the live view only when asked for
 
 
 class _Recorded:
@@ -95,6 +96,15 @@ def test_launch_arguments_reach_the_nodes(launch_file, tmp_path, monkeypatch):
     assert src[0] == "/etc/mine.yaml" and src[1]["source"] == "dicom" and src[1]["path"] == str(tmp_path / "data/study")
     assert nodes["recorder"]["parameters"][1]["output"] == str(tmp_path / "out" / "r1" / "run.mcap")
     assert all(n["parameters"][1]["diagnostic_updater.use_fqn"] is True for n in nodes.values())
+
+
+def test_live_argument_adds_the_live_view(launch_file, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    nodes = _launch(launch_file, live="true", live_port="9000", namespace="study2")
+    assert set(nodes) == GRAPH | {"live_view"}
+    view = nodes["live_view"]
+    assert view["executable"] == "live_view" and view["namespace"] == "/study2"
+    assert view["parameters"][1]["port"] == 9000 and view["parameters"][1]["diagnostic_updater.use_fqn"] is True
 
 
 def test_launch_settings_refuse_what_cannot_work(tmp_path):

@@ -60,7 +60,7 @@ def run_graph_on(messages, ros_context, executor, timeout=240):
     for m in messages:
         h.pub.publish(m)
     assert spin_until(executor, lambda: len(h.out["metrics"]) >= PHASES, timeout), \
-        f"only {analyzer.published} phases analysed; diagnostics: {h.statuses()[-10:]}"
+        f"only {nodes[-1].published} phases analysed; diagnostics: {h.statuses()[-10:]}"
     return h, nodes
 
 

@@ -351,16 +351,17 @@ IMPORT_KEYS = {
     "launch": "launch", "launch_ros": "launch_ros",
     "numpy": "python3-numpy", "scipy": "python3-scipy", "cv2": "python3-opencv", "yaml": "python3-yaml",
     "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm",
-    "pydicom": None, "nibabel": None, "mcap": None,
+    "pydicom": None, "nibabel": None, "mcap": None, "foxglove": None,  # foxglove: PyPI foxglove-sdk
     "setuptools": "python3-setuptools",
     "pytest": "python3-pytest", "hypothesis": "python3-hypothesis", "rosbags": "python3-rosbags-pip",
     "catkin_pkg": "python3-catkin-pkg-modules",
     "PIL": "python3-pil",  # Pillow
     "meshio": "python3-meshio",
+    "websockets": "python3-websockets", "google": "python3-protobuf",  # test_live_view.py's Foxglove client
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     "pylibjpeg": None, "libjpeg": None, "openjpeg": None, "rle": None, "jpeg_ls": None,
 }
-PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "pylibjpeg": "pylibjpeg",
+PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "foxglove": "foxglove-sdk", "pylibjpeg": "pylibjpeg",
              "libjpeg": "pylibjpeg-libjpeg", "openjpeg": "pylibjpeg-openjpeg", "rle": "pylibjpeg-rle",
              "jpeg_ls": "pyjpegls"}
 # Declared keys that no import names, and why.

@@ -36,6 +36,9 @@ def test_bar_only_on_a_terminal_and_not_with_no_progress():
         console.line("[mlv-ros] phase 1/4 analysed")
         console.close()
         assert console.stream.getvalue() == ""
+    quiet = RunConsole(progress=False, stream=io.StringIO())
+    quiet.line("[mlv-ros] live view: ws://127.0.0.1:8765 (Foxglove: ...)")  # needed while the run goes on
+    assert quiet.stream.getvalue().startswith("[mlv-ros] live view: ws://")
     verbose = RunConsole(verbose=True, progress=False, stream=io.StringIO())
     verbose.line("[mlv-ros] phase 1/4 analysed")
     assert verbose.stream.getvalue() == "[mlv-ros] phase 1/4 analysed\n"

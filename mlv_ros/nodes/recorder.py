@@ -49,7 +49,7 @@ MAX_HELD_CLOUDS = 64
 # The nodes of an mlv_ros graph (as the launch file and mlv-ros run name them): their statuses on
 # the shared /diagnostics are the ones a recording keeps.
 GRAPH_NODE_NAMES = ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder",
-                    "replay")
+                    "replay", "live_view")
 
 
 def message_class(type_name: str):

@@ -26,6 +26,8 @@ import sys
 MAX_SUMMARY_LINES = 30
 #: Reason groups shown per verdict level (the rest are counted; summary.json has them all).
 MAX_REASON_GROUPS = 4
+#: Event lines shown without --verbose too: what the user needs while the run goes on.
+ALWAYS_SHOWN = ("[mlv-ros] live view:",)
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
 
 
@@ -66,8 +68,9 @@ class RunConsole:
         return lambda: set_logger_level("", before)
 
     def line(self, text: str) -> None:
-        """An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only."""
-        if not self.verbose:
+        """An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
+        the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address)."""
+        if not self.verbose and not text.startswith(ALWAYS_SHOWN):
             return
         if self.bar is not None:
             self.bar.write(text, file=self.stream)
@@ -249,6 +252,9 @@ def summary_lines(summary: dict, *, exit_status: int, exit_reason: str | None, a
     if other or statuses:
         lines.append(f"isolation: {other} message(s) of another study or run ignored, {statuses} /diagnostics "
                      "status(es) of other graphs left out of the recording")
+    view = summary.get("live_view")
+    if view:
+        lines.append(f"live view: {view.get('url')}, {view.get('phases_shown', 0)} phase(s) shown")
     if summary.get("recording_error"):
         lines.append(f"recording: stopped early: {_clip(summary['recording_error'], 150)}")
     run_dir = summary.get("run_dir", "")

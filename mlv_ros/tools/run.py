@@ -145,9 +145,13 @@ def add_arguments(parser):
     parser.add_argument("--namespace", metavar="NS", default=None,
                         help="run every node and topic under this ROS namespace (e.g. study2: /study2/mlv/frames); "
                              "graphs in different namespaces can share a domain")
+    parser.add_argument("--live", action="store_true",
+                        help="serve the run live to Foxglove (ws://127.0.0.1:8765; layout config/foxglove_layout.json)")
+    parser.add_argument("--live-port", type=int, default=None, metavar="N",
+                        help="the live view's port (implies --live; default 8765 from the params file, 0 = any free)")
 
 
-def node_parameters(params_file: Path, overrides: dict) -> dict:
+def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
     """{node: rclpy Node keyword arguments} giving each graph node the parameters file and the
     overrides {node: {name: value}} (which win over the file).
 
@@ -161,7 +165,7 @@ def node_parameters(params_file: Path, overrides: dict) -> dict:
 
     return {node: {"cli_args": ["--ros-args", "--params-file", str(params_file)],
                    "parameter_overrides": [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]}
-            for node in GRAPH}
+            for node in names}
 
 
 def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = "/") -> list[str]:
@@ -399,7 +403,8 @@ def _no_frames(src, source: dict) -> str:
 
 def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
               timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
-              handle_signals: bool = True, namespace: str | None = None, on_phase=None) -> dict:
+              handle_signals: bool = True, namespace: str | None = None, live: dict | None = None,
+              on_phase=None) -> dict:
     """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
 
     Parameters
@@ -430,6 +435,11 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         topics resolve under it and are recorded so. Diagnostic statuses are then named by the
         nodes' fully qualified names (``diagnostic_updater.use_fqn``), since ``/diagnostics`` is
         shared. The domain check looks for another graph in this namespace only.
+    live : dict, optional
+        Serve the run to Foxglove: a ``live_view`` node (:mod:`mlv_ros.nodes.live_view`) with
+        these parameters over the file's (e.g. ``{"port": 8765}``), started before the graph so
+        it sees every phase; its URL is the first progress line after the start. A port that
+        cannot be bound is a :class:`RunStartError`.
     on_phase : callable, optional
         Called with (phases analysed, phases in the study) once the graph runs and at each
         phase analysed (a progress bar).
@@ -459,13 +469,13 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         signals.install()
     try:
         return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id, grace,
-                          signals, namespace, on_phase or (lambda done, total: None))
+                          signals, namespace, live, on_phase or (lambda done, total: None))
     finally:
         signals.restore()
 
 
 def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals,
-               namespace, on_phase) -> dict:
+               namespace, live=None, on_phase=lambda done, total: None) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -485,17 +495,24 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     overrides = {k: dict(v) for k, v in (overrides or {}).items()}
     overrides.setdefault("frame_source", {}).update(source)
     overrides.setdefault("recorder", {})["output"] = str(mcap)
+    names = GRAPH if live is None else ["live_view", *GRAPH]  # the live view first: it sees every phase
+    if live is not None:
+        overrides["live_view"] = {**dict(live), **overrides.get("live_view", {})}
     namespace = qos.full_namespace(namespace)
     if namespace != "/":  # /diagnostics is shared: say which graph's node each status is
-        for name in GRAPH:
+        for name in names:
             overrides.setdefault(name, {})["diagnostic_updater.use_fqn"] = True
     params_path = Path(params_file) if params_file else config_file("graph.yaml")
     bad_params = _params_error(params_path)
     if bad_params:
         raise RunStartError(bad_params)
-    params = node_parameters(params_path, overrides)
+    params = node_parameters(params_path, overrides, names)
     classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
                "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
+    if live is not None:
+        from mlv_ros.nodes.live_view import LiveView
+
+        classes["live_view"] = LiveView
     domain_id, chosen = _chosen_domain(domain_id)
     if chosen:
         # A domain the user chose may hold another graph (a second run, a launched one): refuse
@@ -512,7 +529,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     nodes = {}
     try:
         ex = SingleThreadedExecutor(context=ctx)
-        for name in GRAPH:  # downstream first, so every subscriber exists before frames flow
+        for name in names:  # downstream first, so every subscriber exists before frames flow
             try:
                 nodes[name] = classes[name](context=ctx, namespace=namespace, **params[name])
             except RunInterrupted:
@@ -544,6 +561,9 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     where = "" if namespace == "/" else f", namespace {namespace}"
     progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}{where}, "
              f"study {src.study_id}, run {src.run_id})")
+    if live is not None:
+        progress(f"[mlv-ros] live view: {nodes['live_view'].url} (Foxglove: Open connection, Foxglove WebSocket; "
+                 f"layout config/foxglove_layout.json)")
     if src.not_used or src.left_out or source.get("study"):
         progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
                  f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
@@ -655,6 +675,10 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             summary["messages_of_other_studies"] = other
         if rec.other_graph_statuses:  # /diagnostics of other graphs' nodes, left out of the recording
             summary["statuses_of_other_graphs"] = rec.other_graph_statuses
+        if live is not None:
+            view = nodes["live_view"]
+            summary["live_view"] = {"url": view.url, "phases_shown": view.clouds_served,
+                                    "phases_not_shown": {str(p): why for p, why in sorted(view.phases_not_shown.items())}}
         if rec.writer.error is not None:
             summary["recording_error"] = str(rec.writer.error)
             summary["messages_not_recorded"] = rec.dropped
@@ -831,6 +855,7 @@ def check_args(args) -> str | None:
         _number_error("--phases", args.phases, 2, 200),
         _number_error("--particles", args.particles, 100, 200000),
         _number_error("--domain-id", args.domain_id, 0, 232),
+        _number_error("--live-port", args.live_port, 0, 65535, " (0 = any free port)"),
         None if args.namespace is None else _namespace_error(args.namespace),
         None if math.isfinite(args.timeout) and args.timeout > 0 else f"--timeout must be a positive number of seconds, got {args.timeout}",
         None if math.isfinite(args.grace) and args.grace >= 0 else f"--grace must be a number of seconds ≥ 0, got {args.grace}",
@@ -935,6 +960,8 @@ def _run(args) -> int:
     try:
         summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout, progress=console.line,
                             domain_id=args.domain_id, grace=args.grace, namespace=args.namespace,
+                            live=({} if args.live_port is None else {"port": args.live_port})
+                            if args.live or args.live_port is not None else None,
                             on_phase=console.phase)
     except RunInterrupted as exc:
         print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
