@@ -632,14 +632,14 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
 # (type name → (name, CDR kind, default) in the order they were appended): such a recording
 # stays readable. A recording lacks some last part of each tuple (the fields appended after it).
 _APPENDED_FIELDS = {
-    # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string "")
+    # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
     "mlv_msgs/msg/ModelState": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                ("study_id", "string", "")),
+                                ("study_id", "string", ""), ("run_id", "string", "")),
     "mlv_msgs/msg/MotionMetrics": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                   ("study_id", "string", "")),
-    # study_id (string "")
-    "mlv_msgs/msg/TaggedFrame": (("study_id", "string", ""),),
-    "mlv_msgs/msg/TagPoints": (("study_id", "string", ""),),
+                                   ("study_id", "string", ""), ("run_id", "string", "")),
+    # study_id (string ""); then run_id (string "")
+    "mlv_msgs/msg/TaggedFrame": (("study_id", "string", ""), ("run_id", "string", "")),
+    "mlv_msgs/msg/TagPoints": (("study_id", "string", ""), ("run_id", "string", "")),
 }
 
 

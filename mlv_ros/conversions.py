@@ -332,14 +332,14 @@ def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices:
         raise ValueError(f"slice_index {slice_index} outside [0, {name} = {count}) for view {view}")
 
 
-def _check_study_id(study_id) -> str:
-    """A message's ``study_id``: text of printable characters, at most :data:`MAX_STUDY_ID` long
-    (empty = unknown)."""
+def _check_study_id(study_id, name: str = "study_id") -> str:
+    """A message's ``study_id`` (or ``run_id``, by ``name``): text of printable characters, at most
+    :data:`MAX_STUDY_ID` long (empty = unknown)."""
     study_id = str(study_id)
     if len(study_id) > MAX_STUDY_ID:
-        raise ValueError(f"study_id has {len(study_id)} characters, at most {MAX_STUDY_ID} allowed")
+        raise ValueError(f"{name} has {len(study_id)} characters, at most {MAX_STUDY_ID} allowed")
     if not study_id.isprintable():
-        raise ValueError(f"study_id {study_id!r} holds non-printable characters")
+        raise ValueError(f"{name} {study_id!r} holds non-printable characters")
     return study_id
 
 
@@ -355,7 +355,7 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
         phase_index=frame.phase_index, num_phases=frame.num_phases,
         trigger_time=float(frame.trigger_time), cycle_duration=float(frame.cycle_duration),
         series_uid=frame.series_uid, num_sa_slices=frame.num_sa_slices, num_la_slices=frame.num_la_slices,
-        study_id=_check_study_id(frame.study_id))
+        study_id=_check_study_id(frame.study_id), run_id=_check_study_id(frame.run_id, "run_id"))
 
 
 def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
@@ -368,7 +368,7 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
         view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
         num_phases=msg.num_phases, trigger_time=msg.trigger_time, cycle_duration=msg.cycle_duration,
         series_uid=msg.series_uid, num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-        study_id=_check_study_id(msg.study_id))
+        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
 
 
 def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> TagPoints:
@@ -393,7 +393,7 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
         position=_fast_array("d", pos, np.float64),
         track_id=_fast_array("i", np.asarray(points.track_id).reshape(-1), np.int32),
         confidence=_fast_array("f", conf, np.float32), status=points.status,
-        study_id=_check_study_id(points.study_id))
+        study_id=_check_study_id(points.study_id), run_id=_check_study_id(points.run_id, "run_id"))
 
 
 def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
@@ -428,7 +428,7 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
         num_phases=msg.num_phases, geometry=geometry, pixel_rc=rc, position=pos,
         track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(), confidence=conf, status=msg.status,
         stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-        study_id=_check_study_id(msg.study_id))
+        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
 
 
 def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelStateMsg:
@@ -449,7 +449,7 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         residual=float(state.residual), converged=bool(state.converged),
         num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
         verdict=checked_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
-        study_id=_check_study_id(state.study_id))
+        study_id=_check_study_id(state.study_id), run_id=_check_study_id(state.run_id, "run_id"))
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
@@ -460,7 +460,7 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
         num_particles=msg.num_particles, num_control_points=msg.num_control_points,
         verdict=checked_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
-        study_id=_check_study_id(msg.study_id))
+        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
                                                    [state.a0, state.a1, state.a2, state.a3, state.tau,
                                                     state.residual]]))
@@ -522,7 +522,8 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
     # Optional in the input: metrics without a verdict are ok with no reasons, without a study
     # of no known study.
     for name, default, check in (("verdict", 0, checked_level), ("verdict_reasons", "", str),
-                                 ("study_id", "", _check_study_id)):
+                                 ("study_id", "", _check_study_id),
+                                 ("run_id", "", lambda v: _check_study_id(v, "run_id"))):
         try:
             value = _metrics_value(metrics, name)
         except (KeyError, AttributeError):
@@ -551,6 +552,7 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
     out["verdict"] = checked_level(msg.verdict)
     out["verdict_reasons"] = msg.verdict_reasons
     out["study_id"] = _check_study_id(msg.study_id)
+    out["run_id"] = _check_study_id(msg.run_id, "run_id")
     return out
 
 

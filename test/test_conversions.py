@@ -332,6 +332,16 @@ def test_study_id_round_trip_through_every_message():
     m = make_metrics()
     assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, "study_id": study})))["study_id"] == study
     assert cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))["study_id"] == ""  # optional: unknown study
+    # ... and the run's id alongside.
+    f.run_id = p.run_id = s.run_id = "9f3a11c0d2e4b5a6"
+    assert cv.msg_to_frame(cdr(cv.frame_to_msg(f))).run_id == f.run_id
+    assert cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(p))).run_id == f.run_id
+    assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(s))).run_id == f.run_id
+    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, "run_id": f.run_id})))["run_id"] == f.run_id
+    s.run_id = "a\tb"
+    with pytest.raises(ValueError, match="run_id .* non-printable"):
+        cv.model_state_to_msg(s)
+    s.run_id = ""
     assert cv.msg_to_frame(cdr(cv.frame_to_msg(Frame(image=img, geometry=oblique_geometry(), view=0, slice_index=0,
                                                      phase_index=0, num_phases=2)))).study_id == ""
     for bad, why in (("x" * (cv.MAX_STUDY_ID + 1), "at most"), ("a\nb", "non-printable")):

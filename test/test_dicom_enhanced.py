@@ -152,6 +152,13 @@ def test_run_on_enhanced_mr_with_a_study_chosen_and_parts_left_out(tmp_path):
     assert [n.split(":")[0] for n in summary["not_used"]] == [str(folder / "CT_small.dcm"), str(folder / "sa5_0.dcm")]
     said = [line for line in done.stderr.splitlines() if line.startswith("mlv-ros run: incomplete input")]
     assert len(said) == 1 and "see left_out in summary.json" in said[0], done.stderr[-2000:]
+    # The console: a short summary on stdout (what was run, the part left out, the exit status),
+    # no INFO lines of the nodes (without --verbose) and no progress bar (no terminal).
+    shown = done.stdout.splitlines()
+    assert len(shown) <= 30 and shown[0].startswith(f"run: dicom {folder} (study {sim.study_uid})"), done.stdout
+    assert "input: 1 part(s) of the study left out" in done.stdout and shown[-1].startswith("exit 1: not complete")
+    assert "3 of 3 phases solved, 3 analysed" in done.stdout and "volumes: ED " in done.stdout, done.stdout
+    assert "[INFO]" not in done.stderr and "phases analysed" not in done.stderr, done.stderr[-2000:]
     # The frames recorded are the classic files' own, SA 5 excepted.
     ref = read_dicom_dir(tmp_path / "classic")
     sa5_uid = sim.series_uids[(VIEW_SA, 5)]

@@ -83,24 +83,33 @@ def test_writer_refuses_to_overwrite_and_unknown_topics(tmp_path):
         list(bagio.read_bag(tmp_path / "metadata.yaml"))
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_recorder_process_keeps_every_message_on_signal(sig, ros_context, executor, tmp_path):
-    out = tmp_path / "run.mcap"
+def recorder_process_and_source(ros_context, executor, out, num_phases):
+    """The recorder's console script recording frames to ``out`` (a process of its own, as under
+    ``ros2 launch``) and a pattern frame source in this process, on ``executor``."""
     rec = subprocess.Popen([console_script("recorder"), "--ros-args", "-p", f"output:={out}",
                             "-p", f"topics:=['{qos.FRAMES}']"], stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True)
     src = FrameSource(context=ros_context, parameter_overrides=[
-        Parameter("source", value="pattern"), Parameter("num_phases", value=20)])
+        Parameter("source", value="pattern"), Parameter("num_phases", value=num_phases)])
     executor.add_node(src)
+    return rec, src
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_recorder_process_keeps_every_message_on_signal(sig, ros_context, executor, tmp_path):
+    out = tmp_path / "run.mcap"
+    rec, src = recorder_process_and_source(ros_context, executor, out, num_phases=20)
     try:
         assert spin_until(executor, lambda: src.done, timeout=60), "recorder never subscribed"
+        executor.remove_node(src)
+        src.destroy_node()  # the graph is gone (the recorder would wait for it: see the next test)
         rec.send_signal(sig)  # every frame was acknowledged by the recorder before this
         assert rec.wait(timeout=30) == 0
     finally:
         if rec.poll() is None:
             rec.kill()
     log = rec.stdout.read()
-    assert bagio.bag_topics(out)[qos.FRAMES]["count"] == src.published == 40, log
+    assert bagio.bag_topics(out)[qos.FRAMES]["count"] == 40, log
     assert sum(1 for t, _, _ in read_with_rosbags(out) if t == qos.FRAMES) == 40
 
 
@@ -198,3 +207,34 @@ def test_recorder_refuses_to_overwrite_with_a_clear_error(tmp_path):
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "refusing to overwrite" in res.stderr
     assert out.read_bytes() == b"precious"
+
+
+def test_recorder_process_signalled_mid_stream_keeps_what_the_graph_still_sends(ros_context, executor, tmp_path):
+    """As under ``ros2 launch``: the recorder (its console script, a process of its own) gets
+    SIGINT while frames still flow. It records what its publishers still send until they leave,
+    then closes the file with metadata.yaml: every published frame is in it, in order."""
+    out = tmp_path / "run.mcap"
+    rec, src = recorder_process_and_source(ros_context, executor, out, num_phases=60)
+    try:
+        assert spin_until(executor, lambda: src.published >= 20, timeout=60), "recorder never subscribed"
+        rec.send_signal(signal.SIGINT)  # mid-stream: 100 of 120 frames still to come
+        at_signal = src.published
+        time.sleep(0.5)  # the recorder is in its shutdown now (it would have closed after 0.2 s quiet)
+        assert spin_until(executor, lambda: src.done, timeout=60)
+        executor.remove_node(src)
+        src.destroy_node()  # the graph leaves: the recorder closes
+        left_at = time.monotonic()
+        assert rec.wait(timeout=30) == 0
+        closed_after = time.monotonic() - left_at
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    log = rec.stdout.read()
+    assert at_signal < 120 == src.published
+    assert closed_after < 5, closed_after
+    frames = [m for t, _, m in read_with_rosbags(out) if t == qos.FRAMES]
+    assert [(m.slice_index, m.phase_index) for m in frames] == [(f.slice_index, f.phase_index)
+                                                                for f in pattern_frames(num_phases=60)], log
+    meta = yaml.safe_load((out.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["message_count"] == 120
+    assert "recording closed" in log and "lost=0" in log, log

@@ -38,6 +38,14 @@ def _gt_surface(motion, which):
 def test_segmentation_dice_every_slice(registered):
     st, res = registered
     assert all(r.ok for r in res.slice_reports)
+    # The registered wall is as thick as the phantom's (normal 9 mm; hypertrophic 16 mm and a
+    # 5 mm septal bulge), and the registration's verdict is ok.
+    from mlv_ros.core.verdict import OK, registration_verdict
+
+    wall = res.wall_thickness_mm()
+    true = st.preset["geometry"]["epi_radius_mm"] - st.preset["geometry"]["endo_radius_mm"]
+    assert abs(np.median(wall) - true) < 2.0, (np.median(wall), true)
+    assert registration_verdict(res.slice_reports, wall).level == OK
     for key in st.keys:
         # Acceptance: Dice >= 0.85 on every slice (measured ≥ 0.93 on these studies).
         assert dice(res.masks[key], st.ed_masks[key]) >= 0.90, key

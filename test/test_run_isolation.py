@@ -11,7 +11,8 @@ import os
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 
 from conftest import spin_until
@@ -28,10 +29,10 @@ OURS, THEIRS = "study-ours", "study-theirs"
 IGNORED = "message of another study ignored (another graph on this ROS_DOMAIN_ID?)"
 
 
-def frames_of(study: str, stamp0: float) -> list:
+def frames_of(study: str, stamp0: float, run: str = "") -> list:
     frames = count_slices(pattern_frames(num_phases=3))  # 2 slices × 3 phases, 64²
     for f in frames:
-        f.study_id = study
+        f.study_id, f.run_id = study, run
     return [conversions.frame_to_msg(f, stamp=stamp0 + i) for i, f in enumerate(frames)]
 
 
@@ -40,7 +41,16 @@ def cloud(stamp: float):
     return conversions.cloud_to_msg(pts, conversions.make_header(stamp))
 
 
-def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executor, tmp_path):
+# Two graphs on one domain: of two studies, or two runs of the same study (each run draws its own
+# run_id at its frame source), as (our study, our run), (their study, their run), how the other is named.
+OTHERS = {"another study": ((OURS, "run-a"), (THEIRS, "run-b"), THEIRS),
+          "another run of the same study": ((OURS, "run-a"), (OURS, "run-b"), f"{OURS} run run-b")}
+
+
+@pytest.mark.parametrize("other", OTHERS)
+def test_nodes_keep_to_the_first_study_and_report_the_other(other, ros_context, executor, tmp_path):
+    (our_study, our_run), (their_study, their_run), THEIRS = OTHERS[other]
+    ours_label = f"{our_study} run {our_run}"
     det = TagDetector(context=ros_context)
     analyzer = MotionAnalyzer(context=ros_context)
     rec = Recorder(context=ros_context, parameter_overrides=[Parameter("output", value=str(tmp_path / "run.mcap"))])
@@ -49,7 +59,7 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
         executor.add_node(n)
     wait_matched(executor, probe, {qos.FRAMES: 2, qos.MODEL_STATE: 2, qos.MOTION: 2})
 
-    ours, theirs = frames_of(OURS, 1.0), frames_of(THEIRS, 100.0)
+    ours, theirs = frames_of(our_study, 1.0, our_run), frames_of(their_study, 100.0, their_run)
     probe.publish(qos.FRAMES, ours[0])  # the first frame taken decides the study
     assert spin_until(executor, lambda: det.messages_handled == 1 and rec.streams[qos.FRAMES].received == 1, 10)
     for a, b in zip(theirs, ours[1:] + [None]):
@@ -58,25 +68,28 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
             probe.publish(qos.FRAMES, b)
     # Model states and their clouds: ours (stamp 300) is held for its cloud; theirs take their
     # clouds with them, whether the cloud comes before the state (301) or after (302).
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(1, 3, study_id=OURS), stamp=300.0))
+    def state(phase, study, run, stamp):
+        return conversions.model_state_to_msg(ModelState(phase, 3, study_id=study, run_id=run), stamp=stamp)
+
+    probe.publish(qos.MODEL_STATE, state(1, our_study, our_run, 300.0))
     probe.publish(qos.MOTION, cloud(301.0))
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(1, 3, study_id=THEIRS), stamp=301.0))
-    probe.publish(qos.MODEL_STATE, conversions.model_state_to_msg(ModelState(2, 3, study_id=THEIRS), stamp=302.0))
+    probe.publish(qos.MODEL_STATE, state(1, their_study, their_run, 301.0))
+    probe.publish(qos.MODEL_STATE, state(2, their_study, their_run, 302.0))
     probe.publish(qos.MOTION, cloud(302.0))
     assert spin_until(executor, lambda: det.messages_handled == 12 and analyzer.messages_handled == 5
                       and len(probe.received("points")) == 6 and data_taken(rec) == 12 + 6 + 5, 15)
 
     # The tag detector: our six frames tracked, theirs reported one by one and nothing sent on.
     assert sorted(p.header.stamp.sec for p in probe.received("points")) == [1, 2, 3, 4, 5, 6]
-    assert {p.study_id for p in probe.received("points")} == {OURS}
+    assert {(p.study_id, p.run_id) for p in probe.received("points")} == {(our_study, our_run)}
     def said():
         return [v for node, level, msg, v in probe.statuses() if node == "tag_detector" and msg == IGNORED]
 
     assert spin_until(executor, lambda: len(said()) == 6, 5), said()
     said = said()
-    assert all(v["study"] == OURS and v["other_study"] == THEIRS and v["topic"] == qos.FRAMES for v in said)
+    assert all(v["study"] == ours_label and v["other_study"] == THEIRS and v["topic"] == qos.FRAMES for v in said)
     assert sorted(v["stamp"] for v in said) == sorted(conversions.stamp_text(m.header.stamp) for m in theirs)
-    assert det.other_studies == {THEIRS: 6} and det.study.study_id == OURS
+    assert det.other_studies == {THEIRS: 6} and (det.study.study_id, det.study.run_id) == (our_study, our_run)
     assert not [s for s in probe.statuses() if s[0] == "tag_detector" and any(
         w in s[2] for w in ("bad frame", "different frame", "slot", "duplicate"))], "their frames were taken for ours"
     # ... and its heartbeat keeps saying so, at ERROR.
@@ -99,8 +112,8 @@ def test_nodes_keep_to_the_first_study_and_report_the_other(ros_context, executo
     for m in bagio.read_bag(tmp_path / "run.mcap"):
         recorded.setdefault(m.topic, []).append(m)
     assert len(recorded[qos.FRAMES]) == 6 and len(recorded[qos.TAG_POINTS]) == 6
-    assert all(bagio.deserialize(m.data, qos_class(m.topic)).study_id == OURS
-               for topic in (qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE) for m in recorded[topic])
+    assert all((bagio.deserialize(m.data, qos_class(m.topic)).study_id, bagio.deserialize(m.data, qos_class(m.topic)).run_id)
+               == (our_study, our_run) for topic in (qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE) for m in recorded[topic])
     assert len(recorded[qos.MODEL_STATE]) == 1 and qos.MOTION not in recorded
     assert rec.ignored == 6 + 2 + 2 and rec.other_studies == {THEIRS: 10}
     assert spin_until(executor, lambda: [s for s in probe.statuses() if s[0] == "recorder" and s[2] == "recording closed"], 5)
@@ -186,3 +199,44 @@ def test_replay_of_a_recording_made_before_study_ids(ros_context, executor):
     assert spin_until(executor, lambda: len(got) == 176, 20), len(got)
     assert {m.study_id for m in got} == {""} and got[0].image.height == 128
 
+
+
+def test_namespaced_recording_keeps_only_its_own_graphs_statuses(ros_context, executor, tmp_path):
+    """/diagnostics is shared by every graph on a domain. A recorder in namespace study_a records
+    the statuses of its own graph's nodes (named /study_a/<node>, as mlv-ros run --namespace and
+    the launch file name them) and leaves out those of study_b's graph, of a root graph and of any
+    other node, counting them; with all_diagnostics it records them all."""
+    from mlv_ros.nodes.common import OK, USE_FQN, GraphNode
+    from mlv_ros.nodes.recorder import GRAPH_NODE_NAMES
+
+    fqn = [Parameter(USE_FQN, value=True)]
+    recs = {"own": Recorder(context=ros_context, namespace="study_a", parameter_overrides=[
+                Parameter("output", value=str(tmp_path / "own" / "run.mcap")), *fqn]),
+            "all": Recorder(context=ros_context, namespace="study_a", parameter_overrides=[
+                Parameter("output", value=str(tmp_path / "all" / "run.mcap")), Parameter("all_diagnostics", value=True),
+                *fqn])}
+    publishers = [GraphNode("tag_detector", context=ros_context, namespace="study_a", parameter_overrides=fqn),
+                  GraphNode("tag_detector", context=ros_context, namespace="study_b", parameter_overrides=fqn),
+                  GraphNode("meshless_solver", context=ros_context),  # a root graph's, named by its name alone
+                  GraphNode("battery", context=ros_context, namespace="study_a", parameter_overrides=fqn)]
+    for n in (*recs.values(), *publishers):
+        executor.add_node(n)
+    assert spin_until(executor, lambda: all(r.count_publishers(qos.DIAGNOSTICS) >= 6 for r in recs.values()), 10)
+    for p in publishers:
+        p.report(OK, "hello")
+    assert spin_until(executor, lambda: all(
+        r.streams[qos.DIAGNOSTICS].received >= 6 + 2 for r in recs.values()), 10)  # (and the recorders' own)
+    for r in recs.values():
+        r.finish()
+    names = {}
+    for key in recs:
+        names[key] = {st.name.partition(": ")[0] for m in bagio.read_bag(tmp_path / key / "run.mcap")
+                      if m.topic == qos.DIAGNOSTICS for st in bagio.deserialize(m.data, DiagnosticArray, m.missing).status}
+    assert names["own"] == {"/study_a/tag_detector", "/study_a/recorder"}, names["own"]
+    assert names["all"] >= {"/study_a/tag_detector", "/study_b/tag_detector", "meshless_solver", "/study_a/battery"}
+    assert recs["own"].other_graph_statuses >= 3 and recs["all"].other_graph_statuses == 0
+    assert recs["own"].status.level == OK and "other_graph_statuses" in {kv.key for kv in recs["own"].status.values}
+    assert "meshless_solver" in GRAPH_NODE_NAMES  # left out for its namespace, not its name
+    for n in (*recs.values(), *publishers):
+        executor.remove_node(n)
+        n.destroy_node()

@@ -171,18 +171,21 @@ def test_recordings_made_before_the_verdict_still_read():
         cases += [(ModelState, "# Run isolation", {"phase_index": 3, "num_phases": 9, "verdict": 2,
                                                    "verdict_reasons": reasons}),
                   (MotionMetrics, "# Run isolation", {"phase_index": 2, "verdict": 1, "verdict_reasons": reasons})]
+    for sid in ("s", "abcd"):  # recorded before run_id alone
+        cases += [(cls, "# The run the message belongs to", {"phase_index": 1, "num_phases": 9, "study_id": sid})
+                  for cls in (ModelState, MotionMetrics, TaggedFrame, TagPoints)]
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
         name = f"mlv_msgs/msg/{cls.__name__}"
         text = (bagio._msg_file("mlv_msgs", cls.__name__).read_text())
         missing = bagio.fields_missing_from(name, text[:text.index(cut)])
         for got in (bagio.deserialize(data, cls), bagio.deserialize(data, cls, missing)):  # by trying, by schema
-            assert got.study_id == ""
+            assert got.study_id == values.get("study_id", "") and got.run_id == ""
             if "verdict" not in values and hasattr(got, "verdict"):
                 assert got.verdict == 0 and got.verdict_reasons == ""
             for k, v in values.items():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
-        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).study_id == ""  # what replay publishes
+        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).run_id == ""  # what replay publishes
     assert bagio.fields_missing_from("mlv_msgs/msg/ModelState", bagio.message_definition("mlv_msgs/msg/ModelState")) == ()
     with pytest.raises(ValueError, match="cannot deserialise"):
         bagio.deserialize(b"\x00\x01\x00\x00garbage", ModelState)
@@ -212,8 +215,39 @@ def test_registration_and_ed_volume_verdicts():
     few = [R(view=0, slice_index=i, ok=i < 2, reason="") for i in range(6)] + [R(view=1, slice_index=0, ok=False, reason="")]
     v = registration_verdict(few)
     assert v.level == DEGRADED and "2 of 6 SA slices" in v.text and "none of the 1 LA views" in v.text
+    # Wall thickness: any adult heart passes, hypertrophic (20 mm, a 30 mm septum) and thinned
+    # by a scar (3 mm over a tenth of the wall) included; a wall no heart has does not.
+    rng = np.random.default_rng(0)
+    for wall in (rng.normal(8.0, 1.0, 2000), rng.normal(20.0, 2.0, 2000), np.r_[rng.normal(8.0, 1.0, 1800), [3.0] * 200],
+                 np.r_[rng.normal(18.0, 2.0, 1800), [30.0] * 200], rng.normal(5.0, 0.5, 2000)):
+        assert registration_verdict(ok, wall).level == OK, registration_verdict(ok, wall).text
+    thick = registration_verdict(ok, rng.normal(35.0, 2.0, 2000))
+    assert thick.level == DEGRADED and "ED wall thickness 35" in thick.text
+    assert registration_verdict(ok, np.full(100, 0.8)).level == FAILED
+    assert registration_verdict(ok, np.full(100, 80.0)).level == FAILED
+    holed = registration_verdict(ok, np.r_[rng.normal(8.0, 1.0, 1800), [0.5] * 200])
+    assert holed.level == DEGRADED and "thin over 5 %" in holed.text
+    assert registration_verdict(ok, []).level == OK  # no surfaces: not checked
     # The issue's 40 605 ml EDV is not a heart; 1.2 l is a heart no adult has.
     assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=40605.0).level == FAILED
     huge = metrics_verdict(0.3, 5.0, 80.0, edv_ml=1200.0)
     assert huge.level == DEGRADED and "ED cavity volume" in huge.text
     assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=140.0).level == OK
+
+
+def test_registration_of_a_wall_no_adult_has_is_degraded():
+    """A phantom whose wall is 33 mm thick everywhere (the segmentation takes it, each slice
+    under its 35 mm bound): the registered model's mean wall is beyond the adult range, and the
+    verdict says so with the thickness."""
+    from mlv_ros.core.registration import register_ed
+    from mlv_ros.core.sim import load_preset
+    from mlv_ros.core.verdict import registration_verdict
+
+    preset = load_preset("normal")
+    preset["geometry"].update(endo_radius_mm=22.0, epi_radius_mm=55.0, endo_depth_mm=52.0)  # 33 mm walls
+    thick = simulate_study(preset, snr=20, quick=True, num_phases=2)
+    res = register_ed([f for f in thick.frames if f.phase_index == 0], num_particles=500, seed=0)
+    wall = res.wall_thickness_mm()
+    assert 28.0 < wall.mean() < 38.0
+    v = registration_verdict(res.slice_reports, wall)
+    assert v.level == DEGRADED and "ED wall thickness" in v.text and "outside the adult range" in v.text

@@ -118,6 +118,19 @@ class PhaseSolution:
     num_constraints: int
 
 
+def twist_knots_error(twist_knots) -> str | None:
+    """Why ``twist_knots`` cannot define :class:`MotionTracker`'s twist function, else None.
+
+    0 is the paper's single twist factor τ; a piecewise-linear function of height needs at least
+    2 knots (one knot is no function of height) and at most 100.
+    """
+    if isinstance(twist_knots, bool) or not isinstance(twist_knots, (int, np.integer)):
+        return f"twist_knots must be an integer, got {type(twist_knots).__name__}"
+    if int(twist_knots) not in (0, *range(2, 101)):
+        return "twist_knots must be 0 (the single twist factor) or 2..100 (one knot is no function of height)"
+    return None
+
+
 class MotionTracker:
     """Dense LV motion through the cycle from tracked tag points.
 
@@ -184,6 +197,11 @@ class MotionTracker:
                  hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
                  longitudinal_weight: float = 3.0e3, global_prior: float = 1.0, twist_knots: int = 11,
                  twist_smoothing: float = 0.3, confidence_weights: bool = True):
+        why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
+        if why:
+            raise ValueError(f"twist_knots {twist_knots}: {why}")
+        if not 0.0 < twist_smoothing < 1e6:
+            raise ValueError(f"twist_smoothing must be in (0, 1e6), got {twist_smoothing}")
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
         if polar is not None:
@@ -228,9 +246,6 @@ class MotionTracker:
         if not 0.0 <= global_prior < 1e6:
             raise ValueError(f"global_prior must be in [0, 1e6), got {global_prior}")
         self.global_prior = float(global_prior)
-        if int(twist_knots) not in (0, *range(2, 101)) or not 0.0 < twist_smoothing < 1e6:
-            raise ValueError(f"twist_knots must be 0 or 2..100 and twist_smoothing in (0, 1e6); "
-                             f"got {twist_knots}, {twist_smoothing}")
         self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
         t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]

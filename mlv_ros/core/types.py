@@ -42,6 +42,9 @@ class Frame:
     study_id : str
         The study the frame belongs to (DICOM StudyInstanceUID or a hash; empty = unknown): a
         consumer keeps to one study (:class:`StudyShape`).
+    run_id : str
+        The run that published it (a nonce drawn once by the frame source; empty = unknown):
+        two runs of one study differ in it, and a consumer keeps to one run too.
     """
 
     image: np.ndarray
@@ -56,6 +59,7 @@ class Frame:
     num_sa_slices: int = 0
     num_la_slices: int = 0
     study_id: str = ""
+    run_id: str = ""
 
 
 @dataclass
@@ -74,7 +78,7 @@ class TagPointSet:
         0..1.
     status : str
         Empty when fine; otherwise why the set is empty or partial.
-    study_id : str
+    study_id, run_id : str
         As in the source :class:`Frame`.
     """
 
@@ -92,6 +96,7 @@ class TagPointSet:
     num_sa_slices: int = 0  # as in Frame
     num_la_slices: int = 0
     study_id: str = ""  # as in Frame
+    run_id: str = ""  # as in Frame
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
@@ -105,8 +110,8 @@ class ModelState:
     (model-centred → patient); ``translation`` is c in mm; ``a0`` mm; ``a1..a3`` and ``tau``
     dimensionless (twist φ = π τ sin α). ``verdict`` (0 ok, 1 degraded, 2 failed) and
     ``verdict_reasons`` ("; "-separated) say how far the data supported this phase
-    (:mod:`mlv_ros.core.verdict`). ``study_id`` names the study the state was computed from (as
-    in :class:`Frame`).
+    (:mod:`mlv_ros.core.verdict`). ``study_id`` and ``run_id`` name the study and run the state
+    was computed from (as in :class:`Frame`).
     """
 
     phase_index: int = 0
@@ -126,6 +131,7 @@ class ModelState:
     verdict: int = 0
     verdict_reasons: str = ""
     study_id: str = ""
+    run_id: str = ""
 
 
 class ForeignStudyError(ValueError):
@@ -141,49 +147,68 @@ class StudyShape:
     """An acquisition's identity and dimensions as its messages declare them; every message must
     agree.
 
-    ``study_id`` and each dimension are taken from the first message that declares them (an
-    empty study id and slice counts of 0 mean unknown); a later message of another study is
-    foreign (:class:`ForeignStudyError`: a second graph on the same ROS domain, to be reported and
-    ignored), and one declaring a different dimension contradicts the study and is refused, so
-    one corrupt message cannot make a consumer wait for phases or slices that do not exist.
+    ``study_id``, ``run_id`` and each dimension are taken from the first message that declares
+    them (empty ids and slice counts of 0 mean unknown); a later message of another study, or of
+    another run of the same study, is foreign (:class:`ForeignStudyError`: a second graph on the
+    same ROS domain, to be reported and ignored), and one declaring a different dimension
+    contradicts the study and is refused, so one corrupt message cannot make a consumer wait for
+    phases or slices that do not exist.
     """
 
     num_phases: int = 0
     num_sa_slices: int = 0
     num_la_slices: int = 0
     study_id: str = ""
+    run_id: str = ""
 
-    def foreign(self, study_id: str) -> bool:
-        """Whether ``study_id`` names another study than the one adopted (an unknown id, on
-        either side, is never foreign)."""
-        return bool(self.study_id and study_id and study_id != self.study_id)
+    @property
+    def label(self) -> str:
+        """The study (and run) kept to, for people: ``study`` or ``study run R``."""
+        return f"{self.study_id} run {self.run_id}" if self.run_id else self.study_id
 
-    def adopt(self, study_id: str) -> None:
-        """Keep to ``study_id`` from now on (when none is known yet).
+    def other(self, study_id: str, run_id: str = "") -> str | None:
+        """What makes ``study_id`` / ``run_id`` foreign, named for people (``study_id`` for another
+        study, ``'<study_id> run <run_id>'`` for another run of this one), or None when they are
+        this node's (an unknown id, on either side, is never foreign)."""
+        if self.study_id and study_id and study_id != self.study_id:
+            return study_id
+        if self.run_id and run_id and run_id != self.run_id:
+            return f"{study_id or self.study_id} run {run_id}"
+        return None
+
+    def foreign(self, study_id: str, run_id: str = "") -> bool:
+        """Whether ``study_id`` / ``run_id`` name another study or run than the ones adopted."""
+        return self.other(study_id, run_id) is not None
+
+    def adopt(self, study_id: str, run_id: str = "") -> None:
+        """Keep to ``study_id`` and ``run_id`` from now on (each when none is known yet).
 
         Raises
         ------
         ForeignStudyError
-            Another study is already adopted.
+            Another study or run is already adopted.
         """
-        if self.foreign(study_id):
-            raise ForeignStudyError(self.study_id, study_id)
+        other = self.other(study_id, run_id)
+        if other is not None:
+            raise ForeignStudyError(self.label, other)
         self.study_id = self.study_id or str(study_id or "")
+        self.run_id = self.run_id or str(run_id or "")
 
     def check(self, item) -> None:
-        """Adopt or verify the study and dimensions of ``item`` (a :class:`Frame` or
+        """Adopt or verify the study, run and dimensions of ``item`` (a :class:`Frame` or
         :class:`TagPointSet`; any object with these attributes, missing ones unknown).
 
         Raises
         ------
         ForeignStudyError
-            ``item`` belongs to another study (checked first).
+            ``item`` belongs to another study or run (checked first).
         ValueError
             ``item`` declares a dimension different from the one already known.
         """
-        study_id = getattr(item, "study_id", "")
-        if self.foreign(study_id):
-            raise ForeignStudyError(self.study_id, study_id)
+        study_id, run_id = getattr(item, "study_id", ""), getattr(item, "run_id", "")
+        other = self.other(study_id, run_id)
+        if other is not None:
+            raise ForeignStudyError(self.label, other)
         names = ("num_phases", "num_sa_slices", "num_la_slices")
         clash = [f"{name} {getattr(item, name, 0)} (study: {getattr(self, name)})"
                  for name in names
@@ -192,4 +217,4 @@ class StudyShape:
             raise ValueError("inconsistent with the study: " + ", ".join(clash))
         for name in names:
             setattr(self, name, getattr(self, name) or int(getattr(item, name, 0)))
-        self.adopt(study_id)
+        self.adopt(study_id, run_id)

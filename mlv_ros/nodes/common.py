@@ -14,7 +14,7 @@ from typing import Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
@@ -103,6 +103,16 @@ class GraphNode(Node):
         self.study = StudyShape()
         self.other_studies: Counter = Counter()  # other study id → its messages ignored
 
+    # Parameter checks beyond what a descriptor's range can say (param's ``check``): rclpy runs
+    # this callback when a parameter is declared with its start-up value and whenever one is set.
+    def _checked_parameters(self, parameters) -> SetParametersResult:
+        for p in parameters:
+            check = self._parameter_checks.get(p.name)
+            why = check(p.value) if check is not None else None
+            if why:
+                return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {why}")
+        return SetParametersResult(successful=True)
+
     def topic_name(self, topic: str) -> str:
         """Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
         ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied)."""
@@ -141,11 +151,20 @@ class GraphNode(Node):
         self.stop()
 
     def param(self, name: str, default, description: str, *, min_value=None, max_value=None,
-              choices: tuple | None = None, read_only: bool = True):
+              choices: tuple | None = None, read_only: bool = True, check: Callable | None = None):
         """Declare a parameter with a descriptor (and range) and return its value.
 
         Integer/float ranges are enforced by rclpy when set at start-up or at run time.
+        ``check(value)`` returns why a value inside the range is still refused (None: accepted),
+        e.g. the core's own rule; it runs as a parameter callback, so a refused start-up value
+        makes the node refuse to start (rclpy's InvalidParameterValueException, with that reason)
+        and a refused run-time set is answered unsuccessful.
         """
+        if check is not None:
+            if not hasattr(self, "_parameter_checks"):
+                self._parameter_checks: dict[str, Callable] = {}
+                self.add_on_set_parameters_callback(self._checked_parameters)
+            self._parameter_checks[name] = check
         desc = ParameterDescriptor(description=description, read_only=read_only)
         if choices:
             desc.additional_constraints = "one of: " + ", ".join(map(str, choices))
@@ -194,23 +213,25 @@ class GraphNode(Node):
             topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
         return super().create_subscription(msg_type, name, counted, qos_profile, **kwargs)
 
-    def foreign(self, study_id: str, topic: str, **where) -> bool:
-        """Whether a message of ``study_id`` taken from graph topic ``topic`` belongs to another
-        study than this node's (:attr:`study`; an empty id, or none adopted yet, is never foreign).
+    def foreign(self, study_id: str, topic: str, run_id: str = "", **where) -> str:
+        """Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
+        another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
+        never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
 
-        A foreign message is reported at once as an ERROR on /diagnostics naming both study ids,
-        the topic and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the
-        console gets the first one of each other study (later ones are DEBUG lines). The caller
-        ignores the message.
+        A foreign message is reported at once as an ERROR on /diagnostics naming both, the topic
+        and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the console gets
+        the first one of each other study or run (later ones are DEBUG lines). The caller ignores
+        the message.
         """
-        if not self.study.foreign(study_id):
-            return False
-        first = study_id not in self.other_studies
-        self.other_studies[study_id] += 1
+        other = self.study.other(study_id, run_id)
+        if other is None:
+            return ""
+        first = other not in self.other_studies
+        self.other_studies[other] += 1
         self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": study_id, **where},
+                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other, **where},
                      log=first)
-        return True
+        return other
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
         """A point cloud taken from graph topic ``topic`` whose model state (same stamp) is of ``other_study``:
@@ -218,7 +239,7 @@ class GraphNode(Node):
         state's line); the caller drops it."""
         self.other_studies[other_study] += 1
         self._report(ERROR, "point cloud of another study ignored with its model state",
-                     {"topic": self.topic_name(topic), "study": self.study.study_id, "other_study": other_study,
+                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other_study,
                       "stamp": stamp},
                      log=False)
 
@@ -258,7 +279,7 @@ class GraphNode(Node):
             ignored = sum(self.other_studies.values())
             level = max(level, ERROR)
             message = f"{message}; {ignored} message(s) of another study ignored"
-            extra += [KeyValue(key="study", value=self.study.study_id),
+            extra += [KeyValue(key="study", value=self.study.label),
                       KeyValue(key="other studies ignored", value=", ".join(
                           f"{sid}: {n}" for sid, n in self.other_studies.most_common(5)))]
         return DiagnosticStatus(level=level, name=status.name, message=message,
@@ -300,6 +321,17 @@ def status_node(status: DiagnosticStatus) -> str:
     return status.name.partition(": ")[0].rpartition("/")[2]
 
 
+def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
+    """(namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
+    for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
+    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown)."""
+    node = status.name.partition(": ")[0]
+    if not node.startswith("/"):
+        return None, node
+    ns, _, name = node.rpartition("/")
+    return qos.full_namespace(ns), name
+
+
 def status_text(status: DiagnosticStatus) -> str:
     """One line for people: ``message (key: value, ...)``."""
     values = ", ".join(f"{kv.key}: {kv.value}" for kv in status.values)
@@ -337,10 +369,20 @@ def _run_node(factory, args) -> int:
         executor.add_node(node)
         while not stop_requested and not getattr(node, "done", False) and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
-        # Drain: keep taking queued messages until none has arrived for 0.2 s.
+        # Drain: keep taking queued messages until none has arrived for 0.2 s. After a signal a
+        # node may wait longer for what is still coming (upstream_alive: under `ros2 launch`
+        # every node gets the signal at once and the upstream ones still publish what they had
+        # queued), at most its shutdown_wait_s; a second signal ends the wait at once.
+        signalled = len(stop_requested)
+        waits = signalled and getattr(node, "upstream_alive", None)
+        end = time.monotonic() + (getattr(node, "shutdown_wait_s", 0.0) if waits else 0.0)
+        if waits and waits():
+            node.get_logger().info(f"{signal.Signals(stop_requested[0]).name}: taking what the graph still sends "
+                                   f"(at most {node.shutdown_wait_s:g} s; a second signal stops now)")
         handled = getattr(node, "messages_handled", 0)
         quiet_since = time.monotonic()
-        while rclpy.ok() and time.monotonic() - quiet_since < 0.2:
+        while rclpy.ok() and len(stop_requested) <= max(signalled, 1) and (
+                time.monotonic() - quiet_since < 0.2 or (waits and time.monotonic() < end and waits())):
             executor.spin_once(timeout_sec=0.05)
             if getattr(node, "messages_handled", 0) != handled:
                 handled, quiet_since = node.messages_handled, time.monotonic()

@@ -15,13 +15,16 @@ study when the folder holds several or some of the study was left out (``input_c
 Every frame carries the study it belongs to (``study_id``, see :func:`study_id_for`): the DICOM
 StudyInstanceUID (a hash of the images without one), a hash of the simulation parameters and
 seed, or what a recording's frames carry (a hash of the bag's path for frames recorded before
-the field existed). Downstream nodes keep to that study and ignore any other on the domain.
+the field existed), and the run it belongs to (``run_id``: a nonce drawn when the node starts,
+frames of a recording taking this run's). Downstream nodes keep to that study and run and ignore
+any other on the domain, a second run of the same study included.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import secrets
 import time
 from pathlib import Path
 
@@ -135,7 +138,11 @@ class FrameSource(GraphNode):
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.study_id = self._study_id()
-        self.study.adopt(self.study_id)
+        # This run: every frame carries it (a recording's frames are published anew by this run).
+        self.run_id = secrets.token_hex(8)
+        for f in self.frames:
+            f.run_id = self.run_id
+        self.study.adopt(self.study_id, self.run_id)
         self.published = 0
         self.halted: str | None = None  # why publishing was stopped early (see halt)
         self._t0 = time.monotonic()
@@ -143,7 +150,7 @@ class FrameSource(GraphNode):
         self.timer = self.create_timer(0.001, self._tick)
         extra = {"input_complete": self.input_complete, "left_out": len(self.left_out)} if self.source == "dicom" else {}
         self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order,
-                    problems=len(self._reports), study=self.study_id, **extra)
+                    problems=len(self._reports), study=self.study_id, run=self.run_id, **extra)
 
     def _study_id(self) -> str:
         """The study id every frame carries (frames of a recording keep theirs when they have one)."""

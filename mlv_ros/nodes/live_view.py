@@ -181,10 +181,11 @@ class LiveView(GraphNode):
         self.messages_handled += 1
         stamp = conversions.stamp_text(msg.header.stamp)
         key = stamp_key(msg.header.stamp)
-        if self.foreign(msg.study_id, qos.MODEL_STATE, phase=msg.phase_index, stamp=stamp):
-            self._foreign_stamps.add(key, msg.study_id)
+        other = self.foreign(msg.study_id, qos.MODEL_STATE, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp)
+        if other:
+            self._foreign_stamps.add(key, other)
             if self._clouds.pop(key, None) is not None:
-                self.cloud_of_other_study(qos.MOTION, stamp, msg.study_id)
+                self.cloud_of_other_study(qos.MOTION, stamp, other)
             return
         try:
             state = conversions.msg_to_model_state(msg)
@@ -192,7 +193,7 @@ class LiveView(GraphNode):
             self.report(ERROR, "bad model state: its phase is not shown", phase=msg.phase_index, stamp=stamp,
                         reason=str(exc))
             return
-        self.study.adopt(state.study_id)
+        self.study.adopt(state.study_id, state.run_id)
         self._hold(self._states, "model state", key, state)
 
     def _hold(self, held: dict, what: str, key, item) -> None:
@@ -237,7 +238,7 @@ class LiveView(GraphNode):
     # ------------------------------------------------------------------ curves
     def _on_metrics(self, msg: MotionMetrics) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.METRICS, phase=msg.phase_index, stamp=conversions.stamp_text(msg.header.stamp)):
+        if self.foreign(msg.study_id, qos.METRICS, run_id=msg.run_id, phase=msg.phase_index, stamp=conversions.stamp_text(msg.header.stamp)):
             return
         try:
             curves = conversions.metrics_to_curves(conversions.msg_to_metrics(msg))
@@ -265,7 +266,7 @@ class LiveView(GraphNode):
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
         stamp = conversions.stamp_text(msg.header.stamp)
-        if self.foreign(msg.study_id, qos.FRAMES, stamp=stamp):
+        if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, stamp=stamp):
             return
         try:
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
@@ -283,7 +284,7 @@ class LiveView(GraphNode):
     def _on_tags(self, msg: TagPoints) -> None:
         self.messages_handled += 1
         stamp = conversions.stamp_text(msg.header.stamp)
-        if self.foreign(msg.study_id, qos.TAG_POINTS, stamp=stamp):
+        if self.foreign(msg.study_id, qos.TAG_POINTS, run_id=msg.run_id, stamp=stamp):
             return
         try:
             points = conversions.msg_to_tagpoints(msg)

@@ -27,7 +27,7 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
-from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes
+from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
@@ -45,7 +45,7 @@ class MeshlessSolver(GraphNode):
         self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
         self.global_prior = self.param("global_prior", 1.0, "prior holding the global parameters at the previous phase, counted like this many control points (0 = off)", min_value=0.0, max_value=1e5)
         self.longitudinal_weight = self.param("longitudinal_weight", 3.0e3, "stiffness against local stretch along the long axis, in units of the shear modulus (0 = off): only LA tags measure it", min_value=0.0, max_value=1e9)
-        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100)
+        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100, check=twist_knots_error)
         self.twist_smoothing = self.param("twist_smoothing", 0.3, "curvature penalty of the twist function", min_value=1e-6, max_value=1e5)
         self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
         self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
@@ -95,17 +95,18 @@ class MeshlessSolver(GraphNode):
 
     def _on_state(self, msg: ModelStateMsg) -> None:
         key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
-        if self.foreign(msg.study_id, qos.REGISTERED_STATE, stamp=stamp):
-            self._foreign_stamps.add(key, msg.study_id)
+        other = self.foreign(msg.study_id, qos.REGISTERED_STATE, run_id=msg.run_id, stamp=stamp)
+        if other:
+            self._foreign_stamps.add(key, other)
             if self._reg_clouds.pop(key, None) is not None:
-                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, msg.study_id)
+                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, other)
             return
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
             self.report(ERROR, "bad registered state", stamp=stamp, reason=str(exc))
             return
-        self.study.adopt(state.study_id)
+        self.study.adopt(state.study_id, state.run_id)
         self.rest_state, self._rest_key = state, key
         self._build()
 
@@ -133,7 +134,7 @@ class MeshlessSolver(GraphNode):
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.TAG_POINTS, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
+        if self.foreign(msg.study_id, qos.TAG_POINTS, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp)):
             return  # another graph's tag points (nor are they input to wait on)
         self.last_input = time.monotonic()
@@ -215,7 +216,7 @@ class MeshlessSolver(GraphNode):
                 self.report(ERROR, "phase not solved", phase=phase, reason=str(exc))
                 return
             x, E, state = sol.positions, sol.strain, sol.state
-        state.study_id = self.study.study_id
+        state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
         d = x - tr.rest
         cloud = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2],

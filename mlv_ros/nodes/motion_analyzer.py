@@ -61,6 +61,7 @@ class MotionAnalyzer(GraphNode):
         self.states: dict = {}
         self.published = 0
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
+        self.volumes: dict = {}  # phase → cavity volume, ml, of the latest metrics
         self.messages_handled = 0
         self.report(OK, "waiting for the registered model")
 
@@ -76,13 +77,14 @@ class MotionAnalyzer(GraphNode):
     def _state_of_other_study(self, msg, topic: str) -> bool:
         """Whether the model state ``msg`` is of another study (reported); its cloud goes too."""
         stamp = conversions.stamp_text(msg.header.stamp)
-        if not self.foreign(msg.study_id, topic, phase=msg.phase_index, stamp=stamp):
+        other = self.foreign(msg.study_id, topic, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp)
+        if not other:
             return False
         key = _key(msg.header.stamp)
-        self._foreign_stamps.add(key, msg.study_id)
+        self._foreign_stamps.add(key, other)
         for cloud_topic, held in ((qos.REGISTERED_CLOUD, self._reg_clouds), (qos.MOTION, self.clouds)):
             if held.pop(key, None) is not None:
-                self.cloud_of_other_study(cloud_topic, stamp, msg.study_id)
+                self.cloud_of_other_study(cloud_topic, stamp, other)
         return True
 
     def _on_registered_cloud(self, msg):
@@ -104,7 +106,7 @@ class MotionAnalyzer(GraphNode):
         except ValueError as exc:
             self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
         else:
-            self.study.adopt(state.study_id)
+            self.study.adopt(state.study_id, state.run_id)
             self.reg_state, self._reg_key = state, _key(msg.header.stamp)
         self._build()
 
@@ -154,7 +156,7 @@ class MotionAnalyzer(GraphNode):
             self.report(ERROR, "bad model state dropped", phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
             return
-        self.study.adopt(state.study_id)
+        self.study.adopt(state.study_id, state.run_id)
         self._hold(self.states, "model state", msg.header.stamp, msg)
 
     def _hold(self, held: dict, what: str, stamp, item) -> None:
@@ -185,6 +187,7 @@ class MotionAnalyzer(GraphNode):
                     Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 metrics.study_id = state.study_id or self.study.study_id
+                metrics.run_id = state.run_id or self.study.run_id
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
                 self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
@@ -192,6 +195,7 @@ class MotionAnalyzer(GraphNode):
             self.pub.publish(out)
             self.published += 1
             self.verdicts[int(state.phase_index)] = (verdict.level, verdict.text)
+            self.volumes[int(state.phase_index)] = float(metrics.cavity_volume_ml)
             values = dict(phase=state.phase_index, verdict=verdict.name, volume_ml=round(metrics.cavity_volume_ml, 1),
                           twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
             # A result the user must not take at face value is said so (WARN degraded, ERROR

@@ -6,7 +6,10 @@ resolve to there (``/mlv/frames`` at the root, ``/study2/mlv/frames`` under ``/s
 
 Subscriptions are raw (the CDR bytes are written as received, never deserialised), RELIABLE and
 as deep as the publishers' queues. SIGINT/SIGTERM: the node first takes every message already
-queued, then finalises the file (summary, indexes, ``metadata.yaml``). Completed chunks go to
+queued and, while a node still publishes on a recorded topic, what it still sends (at most
+``shutdown_wait_s``; under ``ros2 launch`` every node gets the signal at once, and the upstream
+ones publish the phases in flight before they exit), then finalises the file (summary, indexes,
+``metadata.yaml``). A second signal closes the file at once. Completed chunks go to
 the OS as they are written, so a SIGKILL loses at most the chunk being filled (``mlv-ros
 recover`` rewrites a valid file from what is on disk).
 
@@ -15,7 +18,10 @@ A write that fails (disk full, file size limit, I/O error) stops the recording: 
 are counted as ``dropped``, ``metadata.yaml`` counts what the file holds, and the node stops
 (:meth:`GraphNode.fail`: exit 1 on its own, the end of the run under ``mlv-ros run``).
 
-Run isolation: the recording holds one study. Messages that carry a ``study_id`` (frames, tag
+Run isolation: the recording holds one graph's statuses: of what arrives on the shared
+``/diagnostics``, statuses of the graph's nodes in this namespace (:meth:`Recorder.ours`; all of
+them with ``all_diagnostics``); the others are counted (``other_graph_statuses``) and left out.
+The recording holds one study. Messages that carry a ``study_id`` (frames, tag
 points, model states, metrics) are read for it (their bytes are still written as received); the
 recorder keeps to the study of the first one (or the one ``mlv-ros run`` gives it) and reports
 and leaves out messages of another. Point clouds cannot carry a study: each is written once its
@@ -30,15 +36,20 @@ import importlib
 import time
 from pathlib import Path
 
-from rclpy.serialization import deserialize_message
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.serialization import deserialize_message, serialize_message
 
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.nodes.common import ERROR, OK, GraphNode, RecentKeys, run_node, stamp_key
+from mlv_ros.nodes.common import USE_FQN, ERROR, OK, GraphNode, RecentKeys, run_node, stamp_key, status_place
 
 # Topics whose messages carry study_id, and the point clouds paired with a model state by stamp.
 STUDY_TOPICS = (qos.FRAMES, qos.TAG_POINTS, qos.REGISTERED_STATE, qos.MODEL_STATE, qos.METRICS)
 CLOUD_STATES = {qos.REGISTERED_CLOUD: qos.REGISTERED_STATE, qos.MOTION: qos.MODEL_STATE}
 MAX_HELD_CLOUDS = 64
+# The nodes of an mlv_ros graph (as the launch file and mlv-ros run name them): their statuses on
+# the shared /diagnostics are the ones a recording keeps.
+GRAPH_NODE_NAMES = ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder",
+                    "replay", "live_view")
 
 
 def message_class(type_name: str):
@@ -62,6 +73,14 @@ class Recorder(GraphNode):
         # would miss what was sent before; frames and tag points keep their history for it.
         catch_up = self.param("catch_up", True, "take frames and tag points with their history (TRANSIENT_LOCAL); "
                               "false for a publisher without history")
+        self.shutdown_wait_s = self.param(
+            "shutdown_wait_s", 10.0, "after SIGINT/SIGTERM, keep recording while the graph's nodes still publish "
+            "on the recorded topics, at most this long (a second signal closes at once)", min_value=0.0, max_value=3600.0)
+        self.all_diagnostics = self.param(
+            "all_diagnostics", False, "record every status on /diagnostics (false: only this graph's: the graph's "
+            "node names in this namespace)")
+        self.other_graph_statuses = 0  # statuses of other graphs' (or other) nodes left out of /diagnostics
+        self._arrays_left_out = 0  # /diagnostics messages left out whole (none of their statuses ours)
         unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
         if unknown:
             raise ValueError(f"cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}")
@@ -85,12 +104,21 @@ class Recorder(GraphNode):
         self.create_timer(self.flush_period_s, self.writer.flush)
         self.report(OK, "recording", output=self.output, topics=len(topics))
 
+    def upstream_alive(self) -> bool:
+        """Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
+        node and this one publish, aside): after a signal the recording stays open for it."""
+        return any(self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS)
+
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.messages_handled += 1
         if self.writer.error is not None or self.writer.closed:
             self.dropped += 1
             return
         now, published = time.time_ns(), info.get("source_timestamp") or None
+        if topic == qos.DIAGNOSTICS and not self.all_diagnostics:
+            data = self._own_statuses(data)
+            if data is None:
+                return
         if topic in STUDY_TOPICS or topic in CLOUD_STATES:
             try:
                 msg = deserialize_message(data, self.classes[topic])
@@ -99,6 +127,36 @@ class Recorder(GraphNode):
             if msg is not None and not self._take(topic, msg, data, now, published):
                 return
         self._write(self.recorded[topic], data, now, published)
+
+    def ours(self, status) -> bool:
+        """Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
+        this recorder's namespace. A status named by the node's name alone (no namespace) counts
+        as ours at the root, or when this graph does not name its statuses by namespace
+        (``diagnostic_updater.use_fqn`` false here): then another graph's in another namespace
+        cannot be told apart, and is kept."""
+        ns, node = status_place(status)
+        if node not in GRAPH_NODE_NAMES:
+            return False
+        if ns is None:
+            return self.get_namespace() == "/" or not self.get_parameter(USE_FQN).value
+        return ns == qos.full_namespace(self.get_namespace())
+
+    def _own_statuses(self, data: bytes) -> bytes | None:
+        """``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
+        when all are, re-serialised when some are not, None when none is."""
+        try:
+            arr = deserialize_message(data, DiagnosticArray)
+        except Exception:  # not ours to judge: recorded as it came
+            return data
+        keep = [st for st in arr.status if self.ours(st)]
+        if len(keep) == len(arr.status):
+            return data
+        self.other_graph_statuses += len(arr.status) - len(keep)
+        if not keep:
+            self._arrays_left_out += 1
+            return None
+        arr.status = keep
+        return serialize_message(arr)
 
     def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
         """Whether ``msg`` is written now (False: left out as another study's, or a cloud held
@@ -116,16 +174,17 @@ class Recorder(GraphNode):
             while len(self._held) > MAX_HELD_CLOUDS:  # states that never come: write the oldest
                 self._write(*self._held.pop(next(iter(self._held))))
             return False
-        if self.foreign(msg.study_id, topic, stamp=stamp):
+        other = self.foreign(msg.study_id, topic, run_id=msg.run_id, stamp=stamp)
+        if other:
             self.ignored += 1
             if topic in CLOUD_STATES.values():
-                self._foreign_stamps.add((topic, key), msg.study_id)
+                self._foreign_stamps.add((topic, key), other)
                 held = self._held.pop((topic, key), None)
                 if held is not None:
                     self.ignored += 1
-                    self.cloud_of_other_study(held[0], stamp, msg.study_id)  # (its recorded name)
+                    self.cloud_of_other_study(held[0], stamp, other)  # (its recorded name)
             return False
-        self.study.adopt(msg.study_id)
+        self.study.adopt(msg.study_id, msg.run_id)
         if topic in CLOUD_STATES.values():
             self._write(self.recorded[topic], data, now, published)
             self._ours.add((topic, key))
@@ -176,7 +235,10 @@ class Recorder(GraphNode):
             received = sum(c.received for c in self.streams.values())
             lost = sum(c.lost for c in self.streams.values())
             other = {"other_study": self.ignored} if self.ignored else {}
-            self.report(OK if received == self.writer.message_count + self.ignored and not lost else ERROR,
+            if self.other_graph_statuses:
+                other["other_graph_statuses"] = self.other_graph_statuses
+            left_out = self.ignored + self._arrays_left_out
+            self.report(OK if received == self.writer.message_count + left_out and not lost else ERROR,
                         "recording closed", output=self.output, messages=self.writer.message_count,
                         received=received, lost=lost, **other)
         except OSError as exc:

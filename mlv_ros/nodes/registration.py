@@ -66,7 +66,7 @@ class Registration(GraphNode):
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.FRAMES, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
+        if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp)):
             return  # another graph's frame (nor does it count as activity on our stream)
         self.last_frame_at = time.monotonic()
@@ -144,9 +144,9 @@ class Registration(GraphNode):
                                                         conversions.make_header(stamp)))
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
-        verdict = self.verdict = registration_verdict(res.slice_reports)
+        verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
-        state.study_id = self.study.study_id
+        state.study_id, state.run_id = self.study.study_id, self.study.run_id
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         extra = {}
         if res.warnings:

@@ -85,7 +85,7 @@ class TagDetector(GraphNode):
             self._update_status()
 
     def _take(self, msg: TaggedFrame, where: str, stamp: str) -> None:
-        if self.foreign(msg.study_id, qos.FRAMES, frame=where, stamp=stamp):
+        if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, frame=where, stamp=stamp):
             return  # another graph's frame: nothing of it goes downstream
         if msg.image.height * msg.image.width > self.max_pixels:
             self.counts["frames_refused"] += 1
@@ -159,7 +159,7 @@ class TagDetector(GraphNode):
             mask, why = self.masker.ed_mask(frame)
         points = tracker.update(frame, mask=mask)
         points.num_sa_slices, points.num_la_slices = frame.num_sa_slices, frame.num_la_slices
-        points.study_id = frame.study_id
+        points.study_id, points.run_id = frame.study_id, frame.run_id
         if started and mask is None and tracker.params is not None:
             # Its tag points may include blood or background: worth a look, once. (Without a
             # grid at ED the slice gives no points at all, and that is what _judge says.)
@@ -246,7 +246,7 @@ class TagDetector(GraphNode):
             points = TagPointSet(view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
                                  num_phases=msg.num_phases, geometry=geometry, status=reason,
                                  num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-                                 study_id=msg.study_id)
+                                 study_id=msg.study_id, run_id=msg.run_id)
             out = conversions.tagpoints_to_msg(points, stamp=msg.header.stamp)
         except ValueError:
             return  # geometry or indices unusable: nothing meaningful to forward

@@ -1,7 +1,11 @@
 """``mlv-ros demo`` (the README's ``make demo``): simulate the built-in ``normal`` LV phantom
 (8 SA + 3 LA tagged cines, 256², 25 phases, SNR 20), run the whole graph on it in one process,
 record the run, build the report and print the accuracy against the phantom's analytic ground
-truth. About a minute and a half on 2 cores."""
+truth. About a minute and a half on 2 cores.
+
+The console is ``mlv-ros run``'s (:mod:`mlv_ros.tools.console`): a progress bar over phases on a
+terminal, then a short summary; ``--verbose`` adds the event lines, the nodes' INFO lines and the
+result as JSON."""
 
 from __future__ import annotations
 
@@ -17,12 +21,16 @@ from mlv_ros.cli import describe_os_error, one_line
 def add_arguments(parser):
     parser.add_argument("--out", default=None, help="run directory (default: runs/demo-<date-time>)")
     parser.add_argument("--preset", default="normal", help="phantom preset (default: normal)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
+    parser.add_argument("--verbose", action="store_true",
+                        help="also the nodes' INFO lines, one line per event and the result as JSON")
 
 
 def run(args) -> int:
     from mlv_ros.core.sim import load_preset
+    from mlv_ros.tools.console import RunConsole, summary_lines
     from mlv_ros.tools.report import build
-    from mlv_ros.tools.run import SIGNAL_EXIT, RunInterrupted, phantom_accuracy, run_graph, verdict_line
+    from mlv_ros.tools.run import SIGNAL_EXIT, RunInterrupted, exit_status, phantom_accuracy, run_graph, verdict_line
 
     def fail(msg) -> int:
         print(f"mlv-ros demo: {one_line(msg)}", file=sys.stderr)
@@ -41,9 +49,11 @@ def run(args) -> int:
     except OSError as exc:
         return fail(f"cannot write --out: {describe_os_error(exc)}")
     print(f"[demo] simulating the '{args.preset}' phantom and running the graph -> {out}", file=sys.stderr)
+    console = RunConsole(verbose=args.verbose, progress=not args.no_progress)
+    restore = console.quiet_nodes()
     try:
-        summary = run_graph({"source": "phantom", "preset": args.preset}, out,
-                            progress=lambda s: print(s, file=sys.stderr))
+        summary = run_graph({"source": "phantom", "preset": args.preset}, out, progress=console.line,
+                            on_phase=console.phase)
     except RunInterrupted as exc:
         print(f"mlv-ros demo: {exc}; nothing recorded", file=sys.stderr)
         return SIGNAL_EXIT[exc.signum]
@@ -51,12 +61,18 @@ def run(args) -> int:
         return fail(exc)
     except OSError as exc:
         return fail(describe_os_error(exc))
+    finally:
+        console.close()
+        restore()
     if summary.get("interrupted"):
         print(f"mlv-ros demo: interrupted by {summary['interrupted']}; the recording keeps the phases solved "
               f"({summary['phases_solved']} of {summary['num_phases']}) in {summary['mcap']}", file=sys.stderr)
         return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
     if not summary["complete"]:
-        print(json.dumps(summary, indent=2))
+        if args.verbose:
+            print(json.dumps(summary, indent=2))
+        _, how = exit_status(summary)
+        print("\n".join(summary_lines(summary, exit_status=1, exit_reason=how)))
         print("mlv-ros demo: the run did not complete; see /diagnostics in the recording", file=sys.stderr)
         return 1
     acc = phantom_accuracy(Path(summary["mcap"]), args.preset, summary["num_phases"])
@@ -77,7 +93,9 @@ def run(args) -> int:
         "true_myocardium_covered": round(acc["coverage"], 4),
     }
     (out / "accuracy.json").write_text(json.dumps(acc, indent=2))
-    print(json.dumps(result, indent=2))
+    if args.verbose:
+        print(json.dumps(result, indent=2))
+    print("\n".join(summary_lines(summary, exit_status=0, exit_reason="complete", accuracy=acc, report=str(index))))
     quality = verdict_line(summary)
     if quality:
         print(f"mlv-ros demo: {quality}", file=sys.stderr)

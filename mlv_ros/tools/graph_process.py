@@ -5,7 +5,7 @@ The run starts the child with :meth:`ChildNode.start` (the same interpreter and 
 talks to it over the child's stdin and stdout, one JSON object a line:
 
 - run → child: the node's configuration (name, ROS domain, namespace, parameters file,
-  overrides), then ``{"study": ID}`` (the study every node keeps to; the node spins only after
+  overrides), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps to; the node spins only after
   it), then ``{"stop": true}`` (or end of file: the run is gone).
 - child → run: ``{"event": "started"}`` or ``{"event": "start_failed", "reason": ...}``,
   ``{"event": "ready"}``, then the node's counters whenever they change (at most every 0.1 s;
@@ -62,11 +62,11 @@ class _Study:
 
     def __init__(self, child: "ChildNode"):
         self._child = child
-        self.study_id = ""
+        self.study_id = self.run_id = ""
 
-    def adopt(self, study_id: str) -> None:
-        self.study_id = study_id
-        self._child._adopt(study_id)
+    def adopt(self, study_id: str, run_id: str = "") -> None:
+        self.study_id, self.run_id = study_id, run_id
+        self._child._adopt(study_id, run_id)
 
 
 class ChildNode:
@@ -152,8 +152,8 @@ class ChildNode:
                 return self.start_error or self.crash or "its process ended before the node started"
         return f"not started after {timeout:g} s"
 
-    def _adopt(self, study_id: str, timeout: float = 30.0) -> None:
-        self._send({"study": study_id})
+    def _adopt(self, study_id: str, run_id: str, timeout: float = 30.0) -> None:
+        self._send({"study": study_id, "run": run_id})
         end = time.monotonic() + timeout
         while time.monotonic() < end and not self._events["eof"].is_set():
             if self._events["ready"].wait(0.05):
@@ -234,7 +234,8 @@ def main() -> int:
         line = sys.stdin.readline()
         if not line:
             return 0  # the run ended while starting
-        node.study.adopt(json.loads(line).get("study", ""))
+        study = json.loads(line)
+        node.study.adopt(study.get("study", ""), study.get("run", ""))
         _emit(out, {"event": "ready"})
 
         def watch_stdin():

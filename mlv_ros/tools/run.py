@@ -3,8 +3,10 @@ its own (:mod:`mlv_ros.tools.graph_process`), the other nodes in the run's proce
 
     mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR [--namespace NS]
 
-Shows progress per phase, prints a JSON summary (counts, timings, and accuracy against the
-ground truth when the input is a phantom) and writes it to RUN_DIR/summary.json.
+Shows a progress bar over phases (on a terminal) and a short summary (:mod:`mlv_ros.tools.console`:
+what ran, how it ended, accuracy against the ground truth when the input is a phantom or a
+simulated study, volumes, verdicts, where the results are); ``--verbose`` adds the nodes' INFO
+lines, a line per event and the whole summary as JSON. Writes RUN_DIR/summary.json.
 
 A run claims its ROS domain: a private one (an flock, :mod:`mlv_ros.domain`) unless the user
 chose one (``--domain-id`` or ``ROS_DOMAIN_ID``); a chosen domain on which discovery finds a
@@ -38,6 +40,8 @@ import time
 from pathlib import Path
 
 import yaml
+
+from mlv_ros.tools.console import RunConsole, summary_lines
 
 GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
 # Node names of an mlv_ros graph (the launch file and console scripts use them too): one of them
@@ -140,7 +144,10 @@ def add_arguments(parser):
     parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
     parser.add_argument("--grace", type=float, default=10.0,
                         help="on SIGINT/SIGTERM, wait at most this many seconds for the phases in flight (default 10)")
-    parser.add_argument("--quiet", action="store_true", help="no per-phase progress lines")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
+    parser.add_argument("--quiet", action="store_true", help="the same as --no-progress")
+    parser.add_argument("--verbose", action="store_true",
+                        help="also the nodes' INFO lines, one line per event and the whole summary as JSON")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free private one)")
     parser.add_argument("--namespace", metavar="NS", default=None,
@@ -416,7 +423,8 @@ def _no_frames(src, source: dict) -> str:
 
 def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
               timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
-              handle_signals: bool = True, namespace: str | None = None, live: dict | None = None) -> dict:
+              handle_signals: bool = True, namespace: str | None = None, live: dict | None = None,
+              on_phase=None) -> dict:
     """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
 
     Parameters
@@ -452,6 +460,9 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         these parameters over the file's (e.g. ``{"port": 8765}``), started before the graph so
         it sees every phase; its URL is the first progress line after the start. A port that
         cannot be bound is a :class:`RunStartError`.
+    on_phase : callable, optional
+        Called with (phases analysed, phases in the study) once the graph runs and at each
+        phase analysed (a progress bar).
 
     Returns
     -------
@@ -482,13 +493,13 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
 
         with compute_threads():  # the same motion as any other layout of the graph (mlv_ros/threads.py)
             return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id,
-                              grace, signals, namespace, live)
+                              grace, signals, namespace, live, on_phase or (lambda done, total: None))
     finally:
         signals.restore()
 
 
 def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals,
-               namespace, live=None) -> dict:
+               namespace, live=None, on_phase=lambda done, total: None) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -569,8 +580,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         # Every node keeps to this study from the start, so another graph's messages are never
         # taken for ours, even when they come first.
         for node in nodes.values():
-            node.study.adopt(src.study_id)
-        rec.writer.custom_data["study_id"] = src.study_id
+            node.study.adopt(src.study_id, src.run_id)
+        rec.writer.custom_data.update(study_id=src.study_id, run_id=src.run_id)
         signals.starting = False
     except (RunStartError, RunInterrupted):
         # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
@@ -586,13 +597,14 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     num_phases = max((f.num_phases for f in src.frames), default=0)
     where = "" if namespace == "/" else f", namespace {namespace}"
     progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}{where}, "
-             f"study {src.study_id})")
+             f"study {src.study_id}, run {src.run_id})")
     if live is not None:
         progress(f"[mlv-ros] live view: {nodes['live_view'].url} (Foxglove: Open connection, Foxglove WebSocket; "
                  f"layout config/foxglove_layout.json)")
     if src.not_used or src.left_out or source.get("study"):
         progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
                  f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
+    on_phase(0, num_phases)
     # Longest a healthy graph stays idle: registration and the solver wait this long for input
     # that may still come before acting on what they have (the solver also for its subscribers),
     # and the source, before publishing, for its subscribers.
@@ -613,6 +625,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             if analyzer.published > seen:
                 seen = analyzer.published
                 progress(f"[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)")
+                on_phase(seen, num_phases)
             if signals.received:
                 interrupted = signals.first
                 break
@@ -640,8 +653,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             progress(f"[mlv-ros] {interrupted}: input stopped after {src.published} of {len(src.frames)} frames; "
                      f"finishing the phases in flight (at most {grace:g} s; {interrupted} again stops now)")
             _settle(ex, nodes, lambda: len(signals.received) > 1, quiet_s=QUIET_S, max_s=grace,
-                    on_phase=lambda n: progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
-                                                f"({time.monotonic() - t0:.1f} s)"))
+                    on_phase=lambda n: (progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
+                                                 f"({time.monotonic() - t0:.1f} s)"), on_phase(n, num_phases)))
         elif failed:
             src.halt("the run failed")
         else:  # ended by itself: let the last results reach their subscribers
@@ -676,7 +689,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         summary = {
             "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
             "namespace": namespace,
-            "study_id": src.study_id,
+            "study_id": src.study_id, "run_id": src.run_id,
             "seconds": round(time.monotonic() - t0, 2),
             "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
             "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
@@ -685,6 +698,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             "complete": complete and src.input_complete, "interrupted": interrupted, "failed": failed,
             "phases_complete": complete,
             **verdict_summary(analyzer.verdicts),
+            "cavity_volume_ml": {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
             "registration_verdict": registration_summary(nodes["registration"]),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
@@ -699,6 +713,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
         if other:  # another graph on the domain: its messages were reported and left out
             summary["messages_of_other_studies"] = other
+        if rec.other_graph_statuses:  # /diagnostics of other graphs' nodes, left out of the recording
+            summary["statuses_of_other_graphs"] = rec.other_graph_statuses
         if live is not None:
             view = nodes["live_view"]
             summary["live_view"] = {"url": view.url, "phases_shown": view.clouds_served,
@@ -979,18 +995,23 @@ def _run(args) -> int:
         overrides["registration"]["num_particles"] = args.particles
     if args.masks:
         overrides["registration"]["mask_path"] = str(Path(args.masks).resolve())
+    console = RunConsole(verbose=args.verbose, progress=not (args.no_progress or args.quiet))
+    restore = console.quiet_nodes()
     try:
-        summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout,
-                            progress=(lambda *_: None) if args.quiet else (lambda s: print(s, file=sys.stderr)),
+        summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout, progress=console.line,
                             domain_id=args.domain_id, grace=args.grace, namespace=args.namespace,
                             live=({} if args.live_port is None else {"port": args.live_port})
-                            if args.live or args.live_port is not None else None)
+                            if args.live or args.live_port is not None else None,
+                            on_phase=console.phase)
     except RunInterrupted as exc:
         print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
         return SIGNAL_EXIT[exc.signum]
     except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RunStartError is a ValueError
         print(f"mlv-ros run: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        console.close()
+        restore()
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
     if (args.phantom or truth) and summary["phases_complete"]:
         acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
@@ -1000,21 +1021,33 @@ def _run(args) -> int:
                                "coverage": acc.get("coverage"),
                                "per_phase": acc.get("per_phase")}
         write_summary(Path(args.out), summary)
-    print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
-        {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
+    if args.verbose:
+        print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
+            {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
+    code, how = exit_status(summary)
+    print("\n".join(summary_lines(summary, exit_status=code, exit_reason=how, accuracy=summary.get("accuracy"))),
+          flush=True)
     line = outcome_line(summary)
     if line:
         print(f"mlv-ros run: {line}", file=sys.stderr)
     quality = verdict_line(summary)
     if quality:
         print(f"mlv-ros run: {quality}", file=sys.stderr)
-    if summary["interrupted"]:
-        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
-    if summary["phases_complete"] and untracked(summary):
+    if code == EXIT_UNTRACKED:
         print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
               "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
-        return EXIT_UNTRACKED
-    return 0 if summary["complete"] else EXIT_INCOMPLETE
+    return code
+
+
+def exit_status(summary: dict) -> tuple[int, str]:
+    """What ``mlv-ros run`` exits with for ``summary``, and in a few words why."""
+    if summary["interrupted"]:
+        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]], f"interrupted by {summary['interrupted']}"
+    if summary["phases_complete"] and untracked(summary):
+        return EXIT_UNTRACKED, "the study could not be tracked"
+    if summary["complete"]:
+        return 0, "complete"
+    return EXIT_INCOMPLETE, "not complete (why: the line below)"
 
 
 def outcome_line(summary: dict) -> str | None:

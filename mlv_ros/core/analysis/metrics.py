@@ -84,8 +84,8 @@ class PhaseMetrics:
         solver's data-support verdict.
     verdict_reasons : str
         "; "-separated reasons, empty when ok.
-    study_id : str
-        The study the phase was computed from (the model state's; empty = unknown).
+    study_id, run_id : str
+        The study and run the phase was computed from (the model state's; empty = unknown).
     """
 
     phase_index: int = 0
@@ -112,6 +112,7 @@ class PhaseMetrics:
     verdict: int = 0
     verdict_reasons: str = ""
     study_id: str = ""
+    run_id: str = ""
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:

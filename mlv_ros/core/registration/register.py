@@ -96,6 +96,18 @@ class RegistrationResult:
     surfaces: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
 
+    def wall_thickness_mm(self) -> np.ndarray:
+        """ED wall thickness of the registered model, mm: for each epicardial surface sample
+        (:attr:`surfaces`), the distance to the nearest endocardial sample; shape (M,), empty
+        without surfaces. At the apex this is the apical wall (epicardial to endocardial apex)."""
+        from scipy.spatial import cKDTree
+
+        endo, epi = (np.asarray(self.surfaces.get(k, np.zeros((0, 3))), float).reshape(-1, 3)
+                     for k in ("endo", "epi"))
+        if not len(endo) or not len(epi):
+            return np.zeros(0)
+        return cKDTree(endo).query(epi)[0]
+
 
 # --------------------------------------------------------------------------- helpers
 def _fov_centre(f: Frame) -> np.ndarray:
