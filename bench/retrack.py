@@ -72,9 +72,19 @@ def track(frames, **tracker_kwargs) -> dict:
 
 
 def solve(sets: dict, cloud, state, **solver_kwargs):
+    """Every phase solved as the solver node does; keywords MotionTracker does not take are set as
+    its attributes (``outlier_mm``, ``prescreen``, ...)."""
+    import inspect
+
+    known = inspect.signature(MotionTracker).parameters
+    attrs = {k: solver_kwargs.pop(k) for k in list(solver_kwargs) if k not in known}
     tr = MotionTracker(conversions.xyz(cloud), state.translation, state.rotation,
                        polar=(cloud["alpha"], cloud["beta"], cloud["w"]),
                        shape=(state.a0, state.a1, state.a2, state.a3, state.tau), **solver_kwargs)
+    for k, v in attrs.items():
+        if not hasattr(tr, k):
+            raise ValueError(f"MotionTracker has no parameter or attribute {k!r}")
+        setattr(tr, k, v)
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
     n = max(sets) + 1
