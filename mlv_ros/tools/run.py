@@ -955,14 +955,16 @@ def _run(args) -> int:
     quality = verdict_line(summary)
     if quality:
         print(f"mlv-ros run: {quality}", file=sys.stderr)
-    if summary.get("twist_extrapolated"):
-        print(f"mlv-ros run: {summary['twist_extrapolated']}", file=sys.stderr)
     if summary["interrupted"]:
         return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]]
     if summary["phases_complete"] and untracked(summary):
         print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
               "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
         return EXIT_UNTRACKED
+    if summary["phases_complete"] and not summary["failed"] and summary.get("twist_extrapolated"):
+        # How to read the twist of a run that ended normally (an interrupted or failed run says
+        # only why, in one line).
+        print(f"mlv-ros run: {summary['twist_extrapolated']}", file=sys.stderr)
     return 0 if summary["complete"] else EXIT_INCOMPLETE
 
 
