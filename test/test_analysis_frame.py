@@ -94,3 +94,29 @@ def test_estimate_frame_recovers_axis_direction_of_a_prolate_cloud():
     assert est.axis @ fr.axis > 0.999
     assert np.linalg.norm(est.apex - fr.apex) < 0.1 * fr.length
     assert est.e1 @ fr.e1 > 0.999
+
+
+def test_plane_levels_and_what_twist_is_extrapolated():
+    from mlv_ros.core.analysis.frame import levels_outside, plane_level_span, twist_extrapolation_note
+
+    fr = oblique_frame()
+    # SA planes ⟂ the axis at 40 % and 85 % of the length, one tilted 20° (its centre still on
+    # level 0.6), and an LA plane holding the axis (no crossing: skipped).
+    tilt = fr.axis * np.cos(np.radians(20)) + fr.e1 * np.sin(np.radians(20))
+    planes = [(fr.apex + 0.4 * fr.length * fr.axis + 7 * fr.e2, fr.axis),
+              (fr.apex + 0.85 * fr.length * fr.axis, -fr.axis),
+              (fr.apex + 0.6 * fr.length * fr.axis, tilt),
+              (fr.apex, fr.e1)]
+    lo, hi = plane_level_span(fr, planes)
+    assert lo == pytest.approx(0.4, abs=1e-12) and hi == pytest.approx(0.85, abs=1e-12)
+    assert plane_level_span(fr, planes[3:]) is None
+    centres = (np.arange(10) + 0.5) / 10
+    # Bins more than half a bin beyond the span: 0.05…0.35 below 0.42, 0.95 above 0.85.
+    assert list(np.flatnonzero(levels_outside(centres, (0.42, hi)))) == [0, 1, 2, 3, 9]
+    note = twist_extrapolation_note((lo, hi))
+    assert "0.40 and 0.85" in note and "apical and basal" in note and "torsion" in note
+    assert "apical" in twist_extrapolation_note((0.3, 0.97)) and "basal" not in twist_extrapolation_note((0.3, 0.97))
+    assert twist_extrapolation_note((0.04, 0.96)) == ""
+    assert "not measured at any level" in twist_extrapolation_note(None)
+    with pytest.raises(ValueError, match="plane normal"):
+        plane_level_span(fr, [(fr.apex, [0, np.nan, 1])])

@@ -59,3 +59,21 @@ def test_random_protocol_accuracy_against_ground_truth(random_study_run):
     assert es["twist_error_deg"] <= 2.0, json.dumps(es)
     assert acc["inside_myocardium"] >= 0.9 and acc["coverage"] >= 0.9, (acc["inside_myocardium"], acc["coverage"])
     assert max(r["median_mm"] for r in acc["per_phase"]) <= 1.0
+
+
+def test_random_protocol_says_where_twist_is_measured(random_study_run):
+    import numpy as np
+
+    from mlv_ros.core.analysis.frame import LVFrame, plane_level_span
+
+    study, summary = random_study_run
+    truth = json.loads((study / "groundtruth.json").read_text())
+    frame = LVFrame(truth["frame"]["apex"], truth["frame"]["base_centre"], truth["frame"]["septum"])
+    planes = [(s["geometry"]["ImagePositionPatient"], np.cross(*np.reshape(s["geometry"]["ImageOrientationPatient"], (2, 3))))
+              for s in truth["slices"] if s["view"] == "SA"]
+    true_lo, true_hi = plane_level_span(frame, planes)
+    lo, hi = summary["twist_measured_levels"]
+    # The model's own apex and base are a few mm off the truth's; an SA slice without tag points
+    # (the smallest apical one) would move the end by one spacing (≤ 0.12 of these LVs).
+    assert abs(lo - true_lo) <= 0.12 and abs(hi - true_hi) <= 0.12, (lo, hi, true_lo, true_hi)
+    assert ("apical" in summary["twist_extrapolated"]) == (lo > 0.1), summary["twist_extrapolated"]

@@ -174,3 +174,25 @@ def test_failed_phases_are_not_plotted_and_flagged_phases_are_named(tmp_path, no
     page = index.read_text()
     assert "phase 3 failed (not plotted)" in page and "phase 7 degraded" in page
     assert "2 of 8 SA slices" in page
+
+
+def test_twist_beyond_the_sa_slices_is_marked_extrapolated(tmp_path, normal, low_dpi, monkeypatch):
+    import mlv_ros.core.report.build as build
+
+    monkeypatch.setattr(build, "plot_displacement_3d", lambda *a, **k: None)  # not what is checked
+    phases, pos = normal
+    # SA slices from level 0.42 to 0.96: the apical bins (0.05…0.35) are extrapolated, the base is not.
+    build_report(tmp_path / "a", phases, X, pos, frame=FR, twist_span=(0.42, 0.96))
+    s = read_summary(tmp_path / "a")["runs"][0]
+    assert s["twist_measured_levels"] == [0.42, 0.96]
+    assert "apical" in s["twist_extrapolated"] and "basal" not in s["twist_extrapolated"]
+    assert s["key"]["extrapolated"] == ["peak_torsion_deg_per_cm", "peak_twist_apex_deg"]
+    page = (tmp_path / "a" / "index.html").read_text()
+    assert page.count("(extrapolated*)") == 2 and "not measured" in page
+    # SA slices cover every level: nothing marked; not known (an old caller): no claim either way.
+    build_report(tmp_path / "b", phases, X, pos, frame=FR, twist_span=(0.03, 0.97))
+    s = read_summary(tmp_path / "b")["runs"][0]
+    assert s["twist_extrapolated"] == "" and s["key"]["extrapolated"] == []
+    assert "extrapolated*" not in (tmp_path / "b" / "index.html").read_text()
+    build_report(tmp_path / "c", phases, X, pos, frame=FR)
+    assert "twist_extrapolated" not in read_summary(tmp_path / "c")["runs"][0]

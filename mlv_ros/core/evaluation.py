@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mlv_ros.core.analysis import LVAnalyzer
+from mlv_ros.core.analysis.frame import levels_outside
 
 
 def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer | None = None,
@@ -57,9 +58,7 @@ def evaluate_run(X_ed: np.ndarray, positions: dict, motion, analyzer: LVAnalyzer
             if got.twist_deg.size == true.twist_deg.size and got.twist_deg.size:
                 row["twist_error_deg"] = float(np.max(np.abs(got.twist_deg - true.twist_deg)))
                 if sa_span is not None:
-                    pos = np.asarray(got.level_position)
-                    half = 0.5 / max(pos.size, 1)
-                    inside = (pos >= sa_span[0] - half) & (pos <= sa_span[1] + half)
+                    inside = ~levels_outside(got.level_position, sa_span)
                     if inside.any():
                         row["twist_error_measured_deg"] = float(
                             np.max(np.abs(got.twist_deg - true.twist_deg)[inside]))

@@ -24,9 +24,10 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 from mlv_msgs.msg import ModelState as ModelStateMsg
-from mlv_msgs.msg import TagPoints
+from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
+from mlv_ros.core.analysis.frame import plane_level_span
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
@@ -69,6 +70,8 @@ class MeshlessSolver(GraphNode):
         self._rest_key = None  # stamp of the registered state taken
         self._foreign_stamps = RecentKeys()  # stamps of registered states of another study
         self.tracker = None
+        self.frame = None  # ED long-axis frame (LVFrame) of the registered model
+        self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
         self.next_phase = 0
         self.num_phases = 0
         self.last_input = time.monotonic()
@@ -128,7 +131,8 @@ class MeshlessSolver(GraphNode):
             self.report(ERROR, "cannot build the model from the registration", reason=str(exc))
             return
         apex, base, ref = lv_frame_axes(pts, s.rotation)
-        self.cardiac = cardiac_coordinates(pts, LVFrame(apex, base, ref))
+        self.frame = LVFrame(apex, base, ref)
+        self.cardiac = cardiac_coordinates(pts, self.frame)
         self.report(OK, "model ready", particles=len(pts))
         self._advance()
 
@@ -205,6 +209,13 @@ class MeshlessSolver(GraphNode):
         tr = self.tracker
         if phase == 0:
             used = sum(tr.set_reference(pts) for pts in sets.values())
+            # Only SA tags see twist: beyond the SA planes with ED points it is extrapolated.
+            self.twist_span = plane_level_span(self.frame, [
+                (p.geometry.image_position, p.geometry.normal) for (view, _), p in sets.items()
+                if view == TaggedFrame.VIEW_SA and len(p) and p.geometry is not None])
+            self.report(OK, "twist measured where SA slices hold tag points",
+                        levels="none" if self.twist_span is None else
+                        f"{self.twist_span[0]:.2f}..{self.twist_span[1]:.2f}")
             x, E = tr.rest, np.zeros((tr.num_particles, 3, 3))
             state = self.rest_state
             state.phase_index, state.num_phases, state.num_control_points = 0, self.num_phases, used

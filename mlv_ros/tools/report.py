@@ -54,18 +54,22 @@ def load_run_data(path: Path, label: str):
     """RunData (per-phase metrics, ED and per-phase positions, LV frame) from a recording
     (checked with :func:`check_recording` first: :func:`build` does)."""
     from mlv_ros.core.analysis import LVFrame, PhaseMetrics
+    from mlv_ros.core.analysis.frame import plane_level_span
     from mlv_ros.core.report.summary import RunData
     from mlv_ros.core.tracking import lv_frame_axes
     from mlv_ros.tools.run import read_run
 
     run = read_run(path)
     frame = None
+    span = False  # not known without the model and the ED tag points
     if run["ed"] is not None and run["rotation"] is not None:
         frame = LVFrame(*lv_frame_axes(run["ed"], run["rotation"]))
+        if run["ed_tag_sets"]:
+            span = plane_level_span(frame, run["sa_planes"])
     phases = [PhaseMetrics.from_dict(d) for _, d in sorted(run["metrics"].items())]
     if frame is not None:
         phases = with_segment_uncertainty(phases, run, frame)
-    return RunData(phases, run["ed"], run["positions"] or None, frame, label), run
+    return RunData(phases, run["ed"], run["positions"] or None, frame, label, span), run
 
 
 def with_segment_uncertainty(phases, run: dict, frame) -> list:
@@ -133,7 +137,7 @@ def build(mcap: Path, out: Path | None = None, compare: Path | None = None, labe
     if other is not None:
         meta["compare_label"] = other.label
     return build_report(out or run_dir / "report", data.phases, data.ed_positions, data.positions_by_phase,
-                        compare=other, meta=meta, frame=data.frame)
+                        compare=other, meta=meta, frame=data.frame, twist_span=data.twist_span)
 
 
 def run(args) -> int:

@@ -700,6 +700,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             **verdict_summary(analyzer.verdicts),
             "cavity_volume_ml": {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
             "registration_verdict": registration_summary(nodes["registration"]),
+            **twist_summary(solver, analyzer),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
         }
@@ -762,6 +763,19 @@ def verdict_summary(verdicts: dict) -> dict:
     return out
 
 
+def twist_summary(solver, analyzer) -> dict:
+    """``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points
+    cross; None without any) and ``twist_extrapolated`` (what of the twist and torsion is
+    extrapolated, one sentence; '' when nothing is), once the solver has taken its ED phase."""
+    from mlv_ros.core.analysis.frame import twist_extrapolation_note
+
+    if getattr(solver, "frame", None) is None or solver.next_phase == 0:
+        return {}
+    span = solver.twist_span
+    return {"twist_measured_levels": None if span is None else [round(span[0], 3), round(span[1], 3)],
+            "twist_extrapolated": twist_extrapolation_note(span, analyzer.levels)}
+
+
 def registration_summary(node) -> dict | None:
     """The ED registration's verdict and reasons (None before it registered)."""
     v = getattr(node, "verdict", None)
@@ -805,7 +819,8 @@ def read_run(mcap: Path) -> dict:
     from mlv_ros import bagio, conversions, qos
 
     run = {"positions": {}, "states": {}, "metrics": {}, "ed": None, "rotation": None, "frames": 0,
-           "sa_planes": []}  # (point, normal) of every SA plane with ED tag points
+           "sa_planes": [],  # (point, normal) of every SA plane with ED tag points
+           "ed_tag_sets": 0}  # ED tag point sets recorded (any view, empty ones too)
     stamps = {}
     clouds = {}
     for m in bagio.read_bag(mcap, any_namespace=True):
@@ -827,6 +842,7 @@ def read_run(mcap: Path) -> dict:
             run["frames"] += 1
         elif m.topic == qos.TAG_POINTS:
             msg = bagio.deserialize(m.data, TagPoints, m.missing)
+            run["ed_tag_sets"] += msg.phase_index == 0
             if msg.view == TaggedFrame.VIEW_SA and msg.phase_index == 0 and len(msg.track_id):
                 g = conversions.msg_to_geometry(msg.geometry)
                 run["sa_planes"].append((g.image_position, g.normal))
@@ -848,16 +864,13 @@ def phantom_accuracy(mcap: Path, preset: str, num_phases: int) -> dict:
 
 def _accuracy(run: dict, motion) -> dict:
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+    from mlv_ros.core.analysis.frame import plane_level_span
     from mlv_ros.core.evaluation import evaluate_run
     from mlv_ros.core.tracking import lv_frame_axes
 
-    apex, base, ref = lv_frame_axes(run["ed"], run["rotation"])
-    analyzer = LVAnalyzer(run["ed"], LVFrame(apex, base, ref))
-    span = None
-    if run.get("sa_planes"):
-        axis = base - apex
-        h = [float((p - apex) @ n / (axis @ n)) for p, n in run["sa_planes"] if abs(axis @ n) > 1e-6]
-        span = (min(h), max(h)) if h else None
+    frame = LVFrame(*lv_frame_axes(run["ed"], run["rotation"]))
+    analyzer = LVAnalyzer(run["ed"], frame)
+    span = plane_level_span(frame, run.get("sa_planes") or [])
     return evaluate_run(run["ed"], run["positions"], motion, analyzer, sa_span=span)
 
 
@@ -1036,6 +1049,11 @@ def _run(args) -> int:
     if code == EXIT_UNTRACKED:
         print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
               "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
+    elif (not summary["interrupted"] and summary["phases_complete"] and not summary["failed"]
+          and summary.get("twist_extrapolated")):
+        # How to read the twist of a run that ended normally (an interrupted or failed run says
+        # only why, in one line).
+        print(f"mlv-ros run: {summary['twist_extrapolated']}", file=sys.stderr)
     return code
 
 

@@ -304,3 +304,89 @@ def estimate_frame(points, reference=None, *, end_fraction: float = 0.15) -> LVF
     base = c + hi * a
     ref = vt[1] if reference is None else reference
     return LVFrame(apex, base, ref)
+
+
+def plane_level_span(frame: LVFrame, planes) -> tuple[float, float] | None:
+    """Levels (0 apex → 1 base) at which image planes cross the ED long axis.
+
+    Twist is circumferential motion, which only short-axis tags measure (a long-axis view holds
+    the axis, so its tags move with twist only through-plane). Beyond the SA planes that hold tag
+    points, twist and torsion are extrapolated by the solver's twist function, not measured.
+
+    Parameters
+    ----------
+    frame : LVFrame
+        ED long-axis frame (level ``h = (X − apex)·axis / length``).
+    planes : iterable of (point, normal)
+        A point on each plane (e.g. DICOM ImagePositionPatient) and its normal, mm /
+        any length, patient coordinates. Planes parallel to the axis (within 1e-6) are skipped.
+
+    Returns
+    -------
+    (float, float) or None
+        Lowest and highest level crossed (may lie outside [0, 1]); None without a crossing plane.
+
+    Raises
+    ------
+    ValueError
+        A point or normal without 3 finite components.
+    """
+    levels = []
+    for point, normal in planes:
+        p, n = _vec3(point, "plane point"), _vec3(normal, "plane normal")
+        along = float(frame.axis @ n)
+        if abs(along) > 1e-6 * max(float(np.linalg.norm(n)), 1e-300):
+            levels.append(float((p - frame.apex) @ n / along) / frame.length)
+    return (min(levels), max(levels)) if levels else None
+
+
+def levels_outside(level_position, span, levels: int | None = None) -> np.ndarray:
+    """Which level bins lie beyond ``span`` (:func:`plane_level_span`) by more than half a bin.
+
+    Parameters
+    ----------
+    level_position : array_like, shape (L,)
+        Level bin centres, 0 apex → 1 base (``MotionMetrics.level_position``).
+    span : (float, float) or None
+        Measured levels; None = nothing measured (every bin outside).
+    levels : int, optional
+        Number of bins on [0, 1] (half a bin is the tolerance); default ``len(level_position)``.
+
+    Returns
+    -------
+    ndarray of bool, shape (L,)
+    """
+    pos = np.asarray(level_position, dtype=np.float64).reshape(-1)
+    if span is None:
+        return np.ones(pos.shape, bool)
+    half = 0.5 / max(int(levels or pos.size), 1)
+    return (pos < span[0] - half) | (pos > span[1] + half)
+
+
+def twist_extrapolation_note(span, levels: int = 10) -> str:
+    """What of the reported twist is extrapolated, in one sentence ('' when nothing is).
+
+    Parameters
+    ----------
+    span : (float, float) or None
+        Levels the SA planes with tag points cross (:func:`plane_level_span`); None = no SA
+        data (the twist function then stays at the global twist factor).
+    levels : int
+        Level bins of the analysis on [0, 1] (the motion analyzer's ``levels``).
+
+    Returns
+    -------
+    str
+    """
+    if span is None:
+        return ("no SA slice holds tag points: twist and torsion are not measured at any level "
+                "(only short-axis tags see circumferential motion)")
+    centres = (np.arange(int(levels)) + 0.5) / int(levels)
+    out = levels_outside(centres, span, levels)
+    ends = [name for name, side in (("apical", centres < span[0]), ("basal", centres > span[1]))
+            if np.any(out & side)]
+    if not ends:
+        return ""
+    return (f"twist is measured only between levels {span[0]:.2f} and {span[1]:.2f} (0 apex, 1 base), where SA "
+            f"slices hold tag points: the twist of the {' and '.join(ends)} levels beyond them, and the torsion, "
+            "are extrapolated, not measured")

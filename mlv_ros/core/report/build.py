@@ -135,6 +135,11 @@ def _findings_html(summaries: list[dict]) -> str:
     return "".join(parts)
 
 
+def _extrapolated(summary: dict, key: str) -> str:
+    """' (extrapolated)' after a twist number that no SA slice measured (see the note below the table)."""
+    return " (extrapolated*)" if key in summary["key"].get("extrapolated", ()) else ""
+
+
 def _clean_rows(rows: list[dict]) -> list[dict]:
     """NaN → None in the findings rows (so they print as —)."""
     return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
@@ -144,8 +149,12 @@ def _html(title: str, meta: dict, summaries: list[dict], figures: list[tuple[str
     e = html.escape
     head = "".join(f"<th>{e(s['label'])}</th>" for s in summaries)
     rows = "".join(
-        f"<tr><td>{e(lab)}</td>" + "".join(f"<td>{e(_fmt(s['key'].get(k), f))}</td>" for s in summaries) + "</tr>"
+        f"<tr><td>{e(lab)}</td>" + "".join(f"<td>{e(_fmt(s['key'].get(k), f))}{_extrapolated(s, k)}</td>"
+                                           for s in summaries) + "</tr>"
         for k, lab, f in _KEY_ROWS)
+    notes = [f"* {s['label']}: {s['twist_extrapolated']}" for s in summaries if s.get("twist_extrapolated")]
+    twist_html = ('<div class="missing"><ul>' + "".join(f"<li>{e(n)}</li>" for n in notes) + "</ul></div>"
+                  if notes else "")
     rows += ("<tr><td>phases present / expected</td>"
              + "".join(f"<td>{len(s['phases_present'])} / {s['num_phases']}</td>" for s in summaries) + "</tr>")
     miss = [f"{s['label']}: {m}" for s in summaries for m in s["missing"]] + skipped
@@ -178,6 +187,7 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 <ul>{meta_html}</ul>
 <h2>Key numbers</h2>
 <table><tr><th></th>{head}</tr>{rows}</table>
+{twist_html}
 <h2>Regional findings (end-systole)</h2>{_findings_html(summaries)}
 <h2>Missing / not shown</h2><div class="missing">{miss_html}</div>
 <h2>Figures</h2>{figs}
@@ -188,7 +198,7 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 
 
 def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phase=None, compare=None,
-                 meta: dict | None = None, *, frame=None) -> Path:
+                 meta: dict | None = None, *, frame=None, twist_span=False) -> Path:
     """Write the report of a run (and optionally a comparison run) to ``out_dir``.
 
     Parameters
@@ -210,6 +220,9 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
         ``title``, ``label`` and ``compare_label`` are used for headings.
     frame : LVFrame, optional
         ED frame of the main run (estimated from ``ed_positions`` if needed).
+    twist_span : (float, float), None or False
+        Levels of the main run its SA slices with tag points cross (see :class:`RunData`): twist
+        numbers beyond them are marked extrapolated. False: not known.
 
     Returns
     -------
@@ -219,7 +232,8 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta = dict(meta or {})
-    runs = [RunData(list(phases or []), ed_positions, positions_by_phase, frame, str(meta.get("label", "run")))]
+    runs = [RunData(list(phases or []), ed_positions, positions_by_phase, frame, str(meta.get("label", "run")),
+                    twist_span)]
     if compare is not None:
         if isinstance(compare, RunData):
             runs.append(compare)
@@ -233,7 +247,7 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
                                 if int(getattr(p, "verdict", 0)) == level}
                          for level, name in ((DEGRADED, "phases_degraded"), (FAILED, "phases_failed"))})
     runs = [replace(r, phases=[p for p in r.phases if int(getattr(p, "verdict", 0)) < FAILED]) for r in runs]
-    summaries = [summarize(r.phases, r.label) | v for r, v in zip(runs, verdicts)]
+    summaries = [summarize(r.phases, r.label, r.twist_span) | v for r, v in zip(runs, verdicts)]
     figures: list[tuple[str, str]] = []
     skipped: list[str] = []
 

@@ -21,7 +21,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from mlv_ros.core.analysis.findings import segment_findings
-from mlv_ros.core.analysis.frame import LVFrame
+from mlv_ros.core.analysis.frame import LVFrame, levels_outside, twist_extrapolation_note
 from mlv_ros.core.analysis.metrics import PhaseMetrics
 
 
@@ -40,6 +40,10 @@ class RunData:
     frame : LVFrame, optional
         ED long-axis frame; estimated from ``ed_positions`` when missing.
     label : str
+    twist_span : (float, float), None or False
+        Levels (0 apex … 1 base) the SA slices with tag points cross
+        (:func:`~mlv_ros.core.analysis.frame.plane_level_span`): twist beyond them is
+        extrapolated. None: no SA slice held tag points; False (default): not known.
     """
 
     phases: list = field(default_factory=list)
@@ -47,6 +51,7 @@ class RunData:
     positions_by_phase: Mapping[int, np.ndarray] | Sequence | None = None
     frame: LVFrame | None = None
     label: str = "run"
+    twist_span: tuple | None | bool = False
 
 
 def sorted_phases(phases: Sequence[PhaseMetrics]) -> tuple[list[PhaseMetrics], list[int]]:
@@ -123,7 +128,7 @@ def _f(v) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
+def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=False) -> dict:
     """Key numbers of a run and a list of what is missing.
 
     Returns
@@ -138,7 +143,10 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
         None), ``segment_findings`` (per AHA segment: peak and ES strain with uncertainties,
         function index, wall-motion class and the thresholds used,
         :meth:`mlv_ros.core.analysis.findings.Findings.to_dict`; None without strain) and
-        ``phases`` (every field of every phase).
+        ``phases`` (every field of every phase). With ``twist_span`` known (see
+        :class:`RunData`): ``twist_measured_levels`` and ``twist_extrapolated`` (a sentence, ''
+        when nothing is), and ``key["extrapolated"]``: which of the twist keys (apex, base,
+        torsion) come from levels no SA slice measured.
     """
     ph, dup = sorted_phases(phases)
     missing: list[str] = []
@@ -194,6 +202,14 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run") -> dict:
     else:
         for k in ("peak_twist_apex_deg", "peak_twist_base_deg", "peak_sa_radius_change_mm", "peak_base_longitudinal_mm"):
             key[k] = None
+    if twist_span is not False:
+        levels = max((p.level_position.size for p in ph), default=0)
+        out["twist_measured_levels"] = None if twist_span is None else [_f(v) for v in twist_span]
+        out["twist_extrapolated"] = twist_extrapolation_note(twist_span, levels) if levels else ""
+        outside = levels_outside(pos, twist_span, levels) if pos.size else np.zeros(0, bool)
+        ends = {"peak_twist_apex_deg": bool(outside[:1].any()), "peak_twist_base_deg": bool(outside[-1:].any())}
+        ends["peak_torsion_deg_per_cm"] = twist_span is None or any(ends.values())
+        key["extrapolated"] = sorted(k for k, v in ends.items() if v)
     seg = peak_segment_strain(ph)
     for c in ("err", "ecc", "ell"):
         key[f"peak_global_{c}"] = None

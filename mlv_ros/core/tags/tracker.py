@@ -77,6 +77,14 @@ class SliceTracker:
         far as a thick wall's must. ED detection (new tracks) keeps the plain confidence, and
         every reported point carries its plain confidence (the solver weights by it: a point
         seen through little wall is the more biased by the wall's border).
+    follow_relative : float
+        Live tracks are followed down to this fraction of the median (following) confidence of
+        the slice's matched tracks at the previous phase, never above the ED threshold
+        (``min_confidence``) nor below ``follow_floor``: tags fade with T1 over the cycle, and a
+        fixed threshold loses a whole faded slice at once. 0 keeps the fixed threshold.
+    follow_floor : float
+        Lowest threshold for following (a match must still fall within ``gate`` of its
+        prediction and be confirmed by the second pass).
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -89,7 +97,8 @@ class SliceTracker:
     def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
                  gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
                  propagate_mask: bool = True, mask_erosion_px: int = 0, confirm_px: float = 0.5,
-                 revive: bool = True, follow_coverage: bool = True, **detect_kwargs):
+                 revive: bool = True, follow_coverage: bool = True, follow_relative: float = 0.6,
+                 follow_floor: float = 0.25, **detect_kwargs):
         self.geometry = geometry
         self.spacing_px = spacing_px
         self.angles = angles
@@ -102,6 +111,11 @@ class SliceTracker:
         self.confirm_px = float(confirm_px)
         self.revive = bool(revive)
         self.follow_coverage = bool(follow_coverage)
+        self.follow_relative = float(follow_relative)
+        self.follow_floor = float(follow_floor)
+        if not (0.0 <= self.follow_relative <= 1.0 and 0.0 < self.follow_floor <= 1.0):
+            raise ValueError(f"follow_relative must be in [0, 1] and follow_floor in (0, 1]; "
+                             f"got {follow_relative}, {follow_floor}")
         self.detect_kwargs = detect_kwargs
         self.reset()
 
@@ -116,6 +130,7 @@ class SliceTracker:
         self._step = np.zeros((0, 2))
         self._gap = np.zeros(0, int)
         self._dead = np.zeros(0, bool)
+        self._follow_conf = np.nan  # median following confidence of the last phase's matches
         self.last_phase = -1
         self.last_detection: Detection | None = None
         self._started = False
@@ -193,9 +208,10 @@ class SliceTracker:
         hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
+        kwargs = {**self.detect_kwargs, "min_confidence": self.follow_threshold()}
         det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
                                    coverage_normalised=self.follow_coverage,
-                                   **{**self.detect_kwargs, **({"tuned": False} if two_pass else {})})
+                                   **{**kwargs, **({"tuned": False} if two_pass else {})})
         self.last_detection = det
         if not det.ok or len(det) == 0:
             self._coast(live, pred, pred)
@@ -207,6 +223,7 @@ class SliceTracker:
         final = det
         new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
         conf = det.plain_confidence[np.maximum(res.match, 0)]
+        follow = det.confidence[np.maximum(res.match, 0)]
         if two_pass and hit.sum() >= 4:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
@@ -216,7 +233,7 @@ class SliceTracker:
             if region2 is not None:
                 det2 = final = detect_intersections(image, mask=region2, params=self.params, roi=roi,
                                                     accept_mask=accept2, coverage_normalised=self.follow_coverage,
-                                                    **self.detect_kwargs)
+                                                    **kwargs)
                 # Only points the second pass confirms (within confirm_px) count as detected: a first-
                 # pass point that came from tags just outside the predicted border is not one.
                 found = np.zeros(int(hit.sum()), bool)
@@ -227,6 +244,7 @@ class SliceTracker:
                 idx = np.nonzero(hit)[0]
                 new[idx[found]] = det2.pixel_rc[j2[found]]
                 conf[idx[found]] = det2.plain_confidence[j2[found]]
+                follow[idx[found]] = det2.confidence[j2[found]]
                 new[idx[~found]] = res.warped[idx[~found]]
                 hit[idx[~found]] = False
         self._coast(live[~hit], pred[~hit], new[~hit])
@@ -234,6 +252,8 @@ class SliceTracker:
         self._step[live[hit]] = new[hit] - prev
         self._pos[live[hit]] = new[hit]
         self._gap[live[hit]] = 0
+        if hit.any():
+            self._follow_conf = float(np.median(follow[hit]))
         back = self._revive(live[hit], new[hit], final, sp)
         n_ed = len(self.track_id)
         n_out = int(hit.sum()) + len(back[0])
@@ -247,6 +267,13 @@ class SliceTracker:
         pts = np.concatenate([new[hit], back[1]])
         cf = np.concatenate([conf[hit], back[2]])
         return self._result(frame, pts, ids, cf, status)
+
+    def follow_threshold(self) -> float:
+        """Confidence a detection needs to continue a live track at the next phase (0..1)."""
+        base = float(self.detect_kwargs.get("min_confidence", DEFAULT_MIN_CONFIDENCE))
+        if self.follow_relative <= 0 or not np.isfinite(self._follow_conf):
+            return base
+        return float(np.clip(self.follow_relative * self._follow_conf, min(self.follow_floor, base), base))
 
     def _revive(self, matched, positions, det: Detection, spacing: float):
         """Dropped tracks seen again: detections no live track claimed, within ``REVIVE_GATE`` spacings of
@@ -330,6 +357,7 @@ class SliceTracker:
         self._step = np.zeros((n, 2))
         self._gap = np.zeros(n, int)
         self._dead = np.zeros(n, bool)
+        self._follow_conf = float(np.median(det.confidence)) if n else np.nan
         return self._result(frame, det.pixel_rc, self.track_id, det.confidence, note.rstrip("; "))
 
     def _propagated_mask(self, pred, live, shape, erode: int = 0, dilate: int = 0):
