@@ -30,9 +30,10 @@ from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
 from mlv_ros.core.analysis.frame import plane_level_span
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, Silence, run_node, stamp_key
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 
+TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
 MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
 
 
@@ -74,10 +75,10 @@ class MeshlessSolver(GraphNode):
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
         self.next_phase = 0
         self.num_phases = 0
-        self.last_input = time.monotonic()
+        self.silence = Silence(TIMER_PERIOD_S)  # on the tag points, counted while this node is spun
         self.phases_published = 0
         self.messages_handled = 0
-        self.create_timer(0.2, self._on_timer)
+        self.create_timer(TIMER_PERIOD_S, self._on_timer)
         self.report(OK, "waiting for the registered model")
 
     # ------------------------------------------------------------------ inputs
@@ -141,7 +142,7 @@ class MeshlessSolver(GraphNode):
         if self.foreign(msg.study_id, qos.TAG_POINTS, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp)):
             return  # another graph's tag points (nor are they input to wait on)
-        self.last_input = time.monotonic()
+        self.silence.heard()
         try:
             points = conversions.msg_to_tagpoints(msg)
             self.study.check(points)
@@ -160,9 +161,10 @@ class MeshlessSolver(GraphNode):
         self._advance()
 
     def _on_timer(self) -> None:
+        silent = self.silence.tick()
         if self.tracker is None or self.next_phase >= max(self.num_phases, 1):
             return
-        if self.assembler.sets(self.next_phase) and time.monotonic() - self.last_input > self.incomplete_timeout_s:
+        if self.assembler.sets(self.next_phase) and silent > self.incomplete_timeout_s:
             self._advance(force=True)
         elif self._waiting_since is not None:
             self._advance()
@@ -202,7 +204,7 @@ class MeshlessSolver(GraphNode):
             self._solve(p, sets)
             self.assembler.phases.pop(p, None)
             self.next_phase = p + 1
-            self.last_input = time.monotonic()  # our own solving time is not input silence
+            self.silence.heard()  # our own solving time is not input silence
 
     def _solve(self, phase: int, sets: dict) -> None:
         t0 = time.monotonic()

@@ -26,8 +26,9 @@ from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, Silence, run_node
 
+CHECK_PERIOD_S = 0.25  # how often the ED timeout is looked at
 CLOUD_FIELDS = ("x", "y", "z", "alpha", "beta", "w", "transmural")
 # What consumers need of the cloud (finite, floating point): position and polar model coordinates;
 # ``transmural`` is optional.
@@ -56,12 +57,12 @@ class Registration(GraphNode):
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
-        self.last_frame_at = time.monotonic()
+        self.silence = Silence(CHECK_PERIOD_S)  # on the frame stream, counted while this node is spun
         self.registered = False
         self.result = None
         self.verdict = None  # registration_verdict of the ED model, once registered
         self.messages_handled = 0
-        self.create_timer(0.25, self._check_timeout)
+        self.create_timer(CHECK_PERIOD_S, self._check_timeout)
         self.report(OK, "waiting for ED frames")
 
     def _on_frame(self, msg: TaggedFrame) -> None:
@@ -69,7 +70,7 @@ class Registration(GraphNode):
         if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
                         stamp=conversions.stamp_text(msg.header.stamp)):
             return  # another graph's frame (nor does it count as activity on our stream)
-        self.last_frame_at = time.monotonic()
+        self.silence.heard()
         if msg.phase_index != 0 or self.registered:
             return
         try:
@@ -96,11 +97,10 @@ class Registration(GraphNode):
             self._register()
 
     def _check_timeout(self) -> None:
-        if self.registered or self.first_at is None:
-            return
         # Slices stream one cine at a time, so later slices' ED frames can be far apart: only
         # silence on the frame stream means the missing ones are not coming.
-        if time.monotonic() - self.last_frame_at < self.ed_timeout_s:
+        silent = self.silence.tick()
+        if self.registered or self.first_at is None or silent < self.ed_timeout_s:
             return
         sa = sum(1 for v, _ in self.ed_frames if v == VIEW_SA)
         if sa >= self.min_sa_slices:
