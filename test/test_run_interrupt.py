@@ -284,6 +284,45 @@ def test_write_error_stops_the_recording_cleanly(tmp_path):
     assert json.loads((run_dir / "summary.json").read_text())["failed"].startswith("recorder: ")
 
 
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 400 KiB tmpfs (root only: mount needs CAP_SYS_ADMIN), unmounted after the test."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("a real full disk needs a tmpfs mount, i.e. root (EFBIG stands in above)")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(disk)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_full_disk_stops_the_recording_cleanly(tmp_path, small_disk):
+    """A real ENOSPC: the run's output on a 400 KiB tmpfs. The recorder says so on /diagnostics
+    and in one line, keeps every whole record written before, and the run exits 1 with the reason
+    in summary.json; mlv-ros recover reads the file back (its index was not written)."""
+    run_dir = small_disk / "run"
+    params = params_file(tmp_path, {"recorder": {"chunk_size_kib": 64}})
+    run = Run([*SMALL, "--phases", "4", "--params", params, "--out", str(run_dir)])
+    rc, _, lines = run.finish()
+    assert rc == 1
+    assert any("[ERROR]" in line and "[recorder]: recording stopped: No space left on device (ENOSPC)" in line
+               for line in lines)
+    assert_one_line_reason(lines, "recorder: recording stopped", "ENOSPC", "free space on that disk")
+    recovered = bagio.recover(run_dir / "run.mcap", tmp_path / "recovered.mcap")
+    assert recovered["messages"] > 0 and recovered["stopped_at"].startswith("EndOfFile"), recovered
+    # summary.json whole, or not there and the run says so (never an empty or cut file).
+    if (run_dir / "summary.json").exists():
+        assert json.loads((run_dir / "summary.json").read_text())["failed"].startswith("recorder: ")
+    else:
+        assert any("summary.json not written: No space left on device" in line for line in lines), lines[-5:]
+    assert not (run_dir / ".summary.json.part").exists()
+
+
 # ---------------------------------------------------------------------------------- CLI
 def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
     not_mcap = tmp_path / "notes.txt"

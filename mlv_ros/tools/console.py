@@ -258,7 +258,9 @@ def summary_lines(summary: dict, *, exit_status: int, exit_reason: str | None, a
     if summary.get("recording_error"):
         lines.append(f"recording: stopped early: {_clip(summary['recording_error'], 150)}")
     run_dir = summary.get("run_dir", "")
-    lines.append(f"results: {summary.get('mcap')} and {run_dir}/summary.json" + (f"; report {report}" if report else ""))
+    where = (f"{run_dir}/summary.json" if not summary.get("summary_error")
+             else f"no summary.json ({summary['summary_error'].removeprefix('summary.json not written: ')})")
+    lines.append(f"results: {summary.get('mcap')} and {where}" + (f"; report {report}" if report else ""))
     lines.append(f"exit {exit_status}" + (f": {_clip(exit_reason, 200)}" if exit_reason else ": complete"))
     if len(lines) > MAX_SUMMARY_LINES:  # keep the head and the exit line
         lines = lines[:MAX_SUMMARY_LINES - 2] + ["... (see summary.json)", lines[-1]]

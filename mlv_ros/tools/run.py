@@ -802,11 +802,16 @@ def untracked(summary: dict) -> bool:
 
 
 def write_summary(out_dir: Path, summary: dict) -> None:
-    """``summary.json`` in the run directory; on a write error (a full disk) the summary says so
-    instead (``summary_error``)."""
+    """``summary.json`` in the run directory, whole or not at all (written beside, then renamed:
+    a full disk left an empty file); on a write error the summary says so instead
+    (``summary_error``) and an earlier summary.json stays as it was."""
+    path = Path(out_dir) / "summary.json"
+    part = path.with_name(".summary.json.part")
     try:
-        (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2))
+        part.write_text(json.dumps(summary, indent=2))
+        os.replace(part, path)
     except OSError as exc:
+        part.unlink(missing_ok=True)
         summary["summary_error"] = f"summary.json not written: {exc.strerror or exc}"
 
 
