@@ -283,7 +283,7 @@ def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, execu
     probe = Probe(ros_context)
     for node in (view, probe):
         executor.add_node(node)
-    client = FoxgloveClient(view.url, ("/lv/curves",))  # statuses go to every client
+    client = FoxgloveClient(view.url, (qos.MOTION, "/lv/curves"))
     assert client.subscribed.wait(30), client.log
     rng = np.random.default_rng(3)
     verdicts = {0: (0, ""), 1: (2, "no SA slice with 3+ tag points"), 2: (1, "few tag points")}
@@ -297,9 +297,9 @@ def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, execu
 
     assert spin_until(executor, lambda: len(view.phases_served) == 3, 30), view.phases_served
     assert view.phases_not_shown == {1: "no SA slice with 3+ tag points"} and view.clouds_served == 2
-    assert spin_until(executor, lambda: len(client.statuses) == 2, 10), client.log
-    # The first client on the cloud's channel, late: it gets the latest phase shown at once (the
-    # degraded phase 2, not the failed phase 1).
+    assert spin_until(executor, lambda: len(client.messages[qos.MOTION]) == 2 and len(client.statuses) == 2, 10), \
+        client.log
+    # A client that subscribes late gets the latest phase shown at once, then what follows.
     late = FoxgloveClient(view.url, (qos.MOTION,))
     assert late.subscribed.wait(30), late.log
     assert spin_until(executor, lambda: len(late.messages[qos.MOTION]) == 1, 10), late.log
@@ -308,6 +308,9 @@ def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, execu
     client.join(10)
     late.join(10)
     assert [(m.timestamp.seconds, m.timestamp.nanos) for m in late.decode(qos.MOTION)] == [(12, 0)]
+    assert len(client.messages[qos.MOTION]) == 3  # the first client sees the latest cloud again
+    stamps = [(m.timestamp.seconds, m.timestamp.nanos) for m in client.decode(qos.MOTION)]
+    assert stamps == [(10, 0), (12, 0), (12, 0)]
     said = {s["message"]: s["level"] for s in client.statuses}
     assert said == {"phase 1 failed, not shown: no SA slice with 3+ tag points": 2,
                     "phase 2 degraded (use with care): few tag points": 1}

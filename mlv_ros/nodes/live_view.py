@@ -22,12 +22,9 @@ own schemas, so its panels draw them without any message definition of ours:
   verdict — for the Plot panel (x: ``/lv/curves.time_fraction``); the curves grow as phases come.
 
 Under a namespace every channel name starts with it (``/study2/lv/motion``). Channels are served
-as phases are solved. The first client to subscribe to a channel late gets, at once, the latest
-cloud or every phase shown so far of that slice (a few tenths of a second later: the executor
-looks every 0.2 s), then the phases from then on; a second client on a channel already followed
-gets the phases from then on (the recording holds them all). No Python callback is handed to the
-SDK's server: one (a ``ServerListener``) ran on the server's thread and, needing the GIL while
-the executor's thread held it in a channel call, stopped the server's answers to a client. ``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the
+as phases are solved. A client that subscribes late gets, at once, the latest cloud and every
+phase shown so far of the slices it subscribes to (a few tenths of a second later: the executor
+serves them), then the phases from then on (the recording holds them all). ``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the
 first study taken is kept, model states of another are reported and their clouds dropped.
 
 Parameters (``config/graph.yaml``): ``host``, ``port`` (0 = any free port), ``images``,
@@ -66,6 +63,24 @@ def port_error(host: str, port: int, exc: Exception) -> str:
     return f"live view: cannot listen on {host}:{port}: {text.removeprefix('FoxgloveError: ')}; check host and port"
 
 
+class _Subscriptions:
+    """foxglove ServerListener: notes each subscription with what had been served when it came
+    (``state()``: clouds served, phases served), called from the server's thread; the node serves
+    what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`)."""
+
+    def __init__(self, state):
+        self.state = state
+        self.topics: list[tuple] = []  # (topic, clouds served, phases served) at subscription
+        self.count = 0
+
+    def on_subscribe(self, client, channel) -> None:
+        self.topics.append((channel.topic, *self.state()))
+        self.count += 1
+
+    def on_unsubscribe(self, client, channel) -> None:
+        self.count -= 1
+
+
 class LiveView(GraphNode):
     DIAGNOSTIC_TASK = "live view"
 
@@ -92,10 +107,12 @@ class LiveView(GraphNode):
         prefix = self.get_namespace().rstrip("/")
         self._channel_name = lambda rel: f"{prefix}/{rel}"
         self.clouds_served = 0
-        self._followed: dict[str, bool] = {}  # channel topic → it had a subscriber at the last look
+        self._served = frozenset()  # phases served, replaced (not changed) as phases go out: read by the listener
+        self._fox_listener = _Subscriptions(lambda: (self.clouds_served, self._served))
         try:
             self.server = foxglove.start_server(name="mlv_ros live view", host=self.host, port=port,
-                                                context=self.fox_context, message_backlog_size=backlog)
+                                                context=self.fox_context, message_backlog_size=backlog,
+                                                server_listener=self._fox_listener)
         except RuntimeError as exc:
             raise ValueError(port_error(self.host, port, exc)) from None
         self.port = self.server.port
@@ -131,21 +148,19 @@ class LiveView(GraphNode):
         self.report(OK, "serving", url=self.url)
 
     def _serve_subscribed(self) -> None:
-        """Serve what a channel's first subscriber missed: the latest cloud; a slice's images and
-        tag points of the phases shown so far."""
-        if self._newly_followed(self.cloud_channel) and self._last_cloud is not None:
-            self.cloud_channel.log(self._last_cloud)
-        for ch in list(self._slices.values()):
-            for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
-                if self._newly_followed(ch[kind]):
-                    for phase in sorted(self.phases_served & set(held)):
-                        ch[kind].log(held[phase])
-
-    def _newly_followed(self, channel) -> bool:
-        """Whether ``channel`` has a subscriber now and had none at the last look."""
-        now, topic = channel.has_sinks(), channel.topic()
-        before, self._followed[topic] = self._followed.get(topic, False), now
-        return now and not before
+        """Serve what a client that just subscribed missed: the latest cloud, unless a newer one
+        went out since it subscribed; a slice's images and tag points of the phases shown before
+        it subscribed (others subscribed then see them again, with the same stamps)."""
+        topics = self._fox_listener.topics
+        while topics:
+            topic, clouds_then, served_then = topics.pop(0)
+            if topic == self.cloud_channel.topic() and clouds_then and clouds_then == self.clouds_served:
+                self.cloud_channel.log(self._last_cloud)
+            for ch in list(self._slices.values()):
+                for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
+                    if ch[kind].topic() == topic:
+                        for phase in sorted(served_then & set(held)):
+                            ch[kind].log(held[phase])
 
     # ------------------------------------------------------------------ motion clouds
     def _on_motion(self, msg: PointCloud2) -> None:
@@ -199,6 +214,7 @@ class LiveView(GraphNode):
         phase = int(state.phase_index)
         verdict = Verdict.from_parts(state.verdict, state.verdict_reasons)
         self.phases_served.add(phase)
+        self._served = frozenset(self.phases_served)
         for ch in self._slices.values():  # the images of this phase, with their tag points
             for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
                 if phase in held:
@@ -217,7 +233,7 @@ class LiveView(GraphNode):
         self.cloud_channel.log(self._last_cloud)
         self.clouds_served += 1
         self.report(OK, "serving", url=self.url, phases_shown=self.clouds_served,
-                    phases_not_shown=len(self.phases_not_shown), channels_followed=sum(self._followed.values()))
+                    phases_not_shown=len(self.phases_not_shown), client_subscriptions=self._fox_listener.count)
 
     # ------------------------------------------------------------------ curves
     def _on_metrics(self, msg: MotionMetrics) -> None:
