@@ -5,7 +5,7 @@ The run starts the child with :meth:`ChildNode.start` (the same interpreter and 
 talks to it over the child's stdin and stdout, one JSON object a line:
 
 - run → child: the node's configuration (name, ROS domain, namespace, parameters file,
-  overrides), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps to; the node spins only after
+  overrides, logging threshold), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps to; the node spins only after
   it), then ``{"stop": true}`` (or end of file: the run is gone).
 - child → run: ``{"event": "started"}`` or ``{"event": "start_failed", "reason": ...}``,
   ``{"event": "ready"}``, then the node's counters whenever they change (at most every 0.1 s;
@@ -92,6 +92,8 @@ class ChildNode:
     def start(cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict) -> "ChildNode":
         """Start node ``name`` in a child process (this interpreter, this environment, the
         directory holding ``mlv_ros`` on its path)."""
+        from rclpy.logging import get_logger_effective_level
+
         import mlv_ros
 
         env = dict(os.environ)
@@ -101,7 +103,9 @@ class ChildNode:
                                 stdout=subprocess.PIPE, env=env, text=True, start_new_session=True)
         child = cls(name, proc)
         child._send({"node": name, "domain_id": int(domain_id), "namespace": namespace,
-                     "params_file": str(params_file), "overrides": overrides})
+                     "params_file": str(params_file), "overrides": overrides,
+                     # the run's logging threshold (e.g. WARN: the console shows no INFO lines)
+                     "log_level": int(get_logger_effective_level(""))})
         return child
 
     # ------------------------------------------------------------------ run side
@@ -220,6 +224,10 @@ def main() -> int:
     name = config.get("node", "")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(config.get("domain_id", 0)))
+    if config.get("log_level") is not None:
+        from rclpy.logging import LoggingSeverity, set_logger_level
+
+        set_logger_level("", LoggingSeverity(int(config["log_level"])))
     node = None
     try:
         try:
