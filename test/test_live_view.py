@@ -59,7 +59,9 @@ class FoxgloveClient:
         deadline = time.monotonic() + 20
         while True:
             try:
-                return await websockets.connect(self.url, subprotocols=[SUBPROTOCOL], max_size=None)
+                # max_queue None: the awaited pong below is read behind every queued frame; with the default
+                # bound a burst of frames stopped the reading and the pong never came.
+                return await websockets.connect(self.url, subprotocols=[SUBPROTOCOL], max_size=None, max_queue=None)
             except OSError:
                 if time.monotonic() > deadline:
                     raise
@@ -109,7 +111,7 @@ class FoxgloveClient:
 
     def join(self, timeout: float) -> None:
         self._thread.join(timeout)
-        assert not self._thread.is_alive(), "the server did not close the connection when the run ended"
+        assert not self._thread.is_alive(), f"the server did not close the connection when the run ended: {self.log}"
         if self.error is not None:
             raise self.error
 
