@@ -134,3 +134,13 @@ def test_too_few_sa_slices_is_a_clear_error(study):
         register_ed([f for f in ed if f.view == VIEW_LA])
     with pytest.raises(ValueError, match="got none"):
         register_ed([])
+
+
+def test_noise_only_study_fails_with_each_slices_reason():
+    # SNR 1.5 at 96 px: the wall-run search once started past a ray's last sample and numpy's
+    # "zero-size array" message went out as the registration's reason.
+    st = simulate_study("normal", snr=1.5, size=96, num_phases=8, seed=0)
+    ed = [f for f in st.frames if f.phase_index == 0]
+    with pytest.raises(ValueError, match=r"usable SA slices .*SA 0: ") as info:
+        register_ed(ed, num_particles=500, seed=0)
+    assert "zero-size" not in str(info.value)

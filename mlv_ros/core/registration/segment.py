@@ -419,7 +419,8 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
         ok = np.isfinite(epi)
         if ok.sum() < 5:
             return nan, nan, None
-        a = np.searchsorted(radii, np.nan_to_num(endo))
+        # Clipped: on noise a run can start past a ray's last sample, which would leave its wall empty.
+        a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo)), n - 1)
         b = np.minimum(np.searchsorted(radii, np.nan_to_num(epi)), last)
         # A small cavity (apical slices) is sampled up to half its radius.
         cav = ok[:, None] & (idx[None, :] < np.minimum(a - off, a // 2)[:, None]) & inside
@@ -437,7 +438,7 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
             and top - max(cavity, outside) > MIN_WALL_SNR * noise):
         return endo, epi, None
     rows = np.flatnonzero(ok)
-    a = np.searchsorted(radii, np.nan_to_num(endo[rows]))
+    a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo[rows])), n - 1)
     b = np.searchsorted(radii, epi[rows])
     sub = s[rows]
     core = np.array([ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)])
