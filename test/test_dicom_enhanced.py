@@ -23,6 +23,8 @@ from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_SA
 from mlv_ros.nodes.frame_source import read_bag_frames
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 BIN = Path(sys.executable).parent
 
 

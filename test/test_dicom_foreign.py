@@ -32,6 +32,8 @@ from mlv_ros import conversions
 from mlv_ros.core.io import WORKING_DTYPES, read_dicom_dir, write_study_dicom
 from mlv_ros.core.sim import simulate_study
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 RESCALE_TAGS = ("RescaleSlope", "RescaleIntercept", "RescaleType")
 
 

@@ -32,6 +32,8 @@ from conftest import console_script
 from mlv_ros import qos
 from mlv_ros.tools.run import RunStartError, run_graph
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 SUBPROTOCOL = "foxglove.sdk.v1"
 STUDY = {"source": "phantom", "preset": "normal", "snr": 20.0, "size": 128, "num_phases": 3, "order": "phase_major"}
 OVERRIDES = {"registration": {"num_particles": 600}}

@@ -4,8 +4,11 @@ sets out = recorded), and every phase must be solved and analysed."""
 
 import json
 
+import pytest
 from graphkit import run_load
 from mlv_ros.core.sim import simulate_study
+
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
 
 PHASES = 10
 

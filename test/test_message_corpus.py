@@ -20,6 +20,8 @@ from mlv_ros import conversions, qos
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.nodes.frame_source import count_slices, order_frames
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 PHASES = 4
 MAX_PIXELS = 256 * 256
 STAMP0 = 1000.0  # corpus stamps start here; valid frames are stamped 1, 2, ...

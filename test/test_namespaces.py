@@ -23,6 +23,8 @@ from mlv_ros.nodes.tag_detector import TagDetector
 from mlv_ros.resources import config_file
 from mlv_ros.tools.run import graph_nodes_on, node_parameters, phantom_accuracy
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 # Two studies of different hearts, small enough to run side by side in 27-34 s on 2 busy cores
 # (noise-free 96² images, 8 phases: ES median error about 1 mm alone).
 STUDIES = {"study_a": "normal", "study_b": "dilated"}

@@ -20,6 +20,8 @@ from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
 from mlv_ros.nodes.registration import Registration
 from mlv_ros.nodes.tag_detector import TagDetector
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 PHASES = 6
 
 

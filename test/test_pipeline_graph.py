@@ -16,6 +16,8 @@ from mlv_ros import bagio, qos
 from mlv_ros.nodes.common import status_node
 from mlv_ros.tools.run import phantom_accuracy, read_run, run_graph
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 # A reduced acquisition that runs in about a minute on 2 cores (the default study is
 # 256² × 25 phases; `mlv-ros bench pipeline` measures that one).
 PHANTOM = {"source": "phantom", "preset": "normal", "snr": 20.0, "size": 192, "num_phases": 16}

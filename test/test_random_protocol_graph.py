@@ -16,6 +16,8 @@ import pytest
 
 from mlv_ros.tools.run import groundtruth_accuracy, run_graph
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 BIN = Path(sys.executable).parent
 # seed -> what it draws (from its protocol.yaml)
 SEEDS = {

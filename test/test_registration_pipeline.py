@@ -13,6 +13,8 @@ from mlv_ros.core.registration.segment import dice
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
+pytestmark = pytest.mark.slow  # about a minute of simulation: scheduled first (conftest)
+
 
 @pytest.fixture(scope="module", params=["normal", "hypertrophic"])
 def study(request):

@@ -370,7 +370,8 @@ PIP_NAMES = {"pydicom": "pydicom", "nibabel": "nibabel", "mcap": "mcap", "foxglo
              "jpeg_ls": "pyjpegls", "gdcm": "python-gdcm",
              "highdicom": "highdicom"}
 # Declared keys that no import names, and why.
-NON_IMPORT_KEYS = {"python3-pytest-timeout": "pytest.ini sets `timeout`"}
+NON_IMPORT_KEYS = {"python3-pytest-timeout": "pytest.ini sets `timeout`",
+                   "python3-pytest-xdist": "pytest.ini runs two workers (`-n 2`)"}
 
 
 def top_level_imports(paths) -> set[str]:

@@ -27,6 +27,8 @@ from rosbags.typesys import Stores, get_typestore
 from conftest import console_script
 from mlv_ros import bagio, qos
 
+pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
+
 SMALL = ["--phantom", "normal", "--size", "96", "--particles", "300"]
 
 

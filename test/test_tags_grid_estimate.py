@@ -16,6 +16,8 @@ from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.tags import detect_intersections, estimate_grid
 from mlv_ros.core.types import VIEW_SA
 
+pytestmark = pytest.mark.slow  # about a minute of simulation: scheduled first (conftest)
+
 FOV_MM = 200.0
 
 
