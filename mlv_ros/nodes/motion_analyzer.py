@@ -188,6 +188,13 @@ class MotionAnalyzer(GraphNode):
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 metrics.study_id = state.study_id or self.study.study_id
                 metrics.run_id = state.run_id or self.study.run_id
+                # Where the segments' origin came from (the registered model's), and the findings
+                # of the cycle so far, this phase included.
+                metrics.segment_origin = self.reg_state.segment_origin
+                metrics.segment_origin_confidence = self.reg_state.segment_origin_confidence
+                findings = self.findings.update(metrics)
+                for name, value in findings.message_fields().items():
+                    setattr(metrics, name, value)
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
                 self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
@@ -202,12 +209,11 @@ class MotionAnalyzer(GraphNode):
             # failed), with why.
             level = {OK_VERDICT: OK, DEGRADED: WARN}.get(verdict.level, ERROR)
             self.report(level, "metrics", **values, **({"reasons": verdict.text} if verdict.level else {}))
-            self._say_findings(metrics)
+            self._say_findings(findings)
 
-    def _say_findings(self, metrics) -> None:
-        """Update the per-segment findings (not in MotionMetrics yet: the report recomputes them)
-        and say which segments read akinetic / dyskinetic whenever that changes."""
-        f = self.findings.update(metrics)
+    def _say_findings(self, f) -> None:
+        """Say which segments read akinetic / dyskinetic whenever that changes (the findings
+        themselves go out in MotionMetrics)."""
         said = (tuple(f.abnormal(("akinetic",))), tuple(f.abnormal(("dyskinetic",))),
                 f.classes.count("indeterminate"))
         if f.es_phase is None or said == self._findings_said:
