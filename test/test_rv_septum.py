@@ -98,3 +98,24 @@ def test_rv_is_drawn_and_leaves_the_rest_of_the_protocol_and_the_lv_alone():
     with pytest.raises(ValueError, match="geometry.rv.span_deg"):
         make_motion({**protocol_preset(complete_protocol({})),
                      "geometry": {**protocol_preset(complete_protocol({}))["geometry"], "rv": {"span_deg": 10}}})
+
+
+def test_registration_orients_the_model_by_the_detected_septum():
+    """register_ed: with an RV the model's β = 0 (the inferior insertion) lies 60° CCW from the
+    detected septum, within a few degrees of the truth's inferior insertion; the analysis frame of
+    the registered model then puts the AHA anterior insertion where the truth has it."""
+    from mlv_ros.core.registration import register_ed
+    from mlv_ros.core.sim.study import simulate_study
+    from mlv_ros.core.tracking import lv_frame_axes
+
+    p = draw_protocol(2002, {"right_ventricle": True, "abnormal_regions": [], "sa_slices": 5, "la_planes": 3,
+                             "size": 144, "pixel_spacing_mm": 1.8, "sa_fov_shift_mm": [0.0, 0.0],
+                             "la_fov_shift_mm": [0.0, 0.0]})
+    st = simulate_study(protocol_preset(p), snr=p["snr"], num_phases=2, subplanes=1, seed=1)
+    res = register_ed([f for f in st.frames if f.phase_index == 0], num_particles=1000, seed=0)
+    assert res.septum is not None and res.septum.source == SOURCE_DETECTED, res.septum
+    m = make_motion(protocol_preset(p))
+    axis, truth = m.frame.long_axis, m.rv_insertions()
+    _, _, ref = lv_frame_axes(res.particles, res.state.rotation)
+    assert _angle_deg(ref, truth["inferior_direction"], axis) < 8.0
+    assert _angle_deg(res.septum.septum, truth["septum_direction"], axis) < 6.0
