@@ -739,11 +739,11 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
 
     With ``missing`` known (from the recording's schema, :func:`fields_missing_from`) those are
     appended. Without, the current definition is tried, then the one before the last group of
-    fields (:data:`_APPENDED_GROUPS`) was appended, then the oldest, then those in between. The order matters: under a wrong
-    older definition the bytes can parse (appended strings read as a verdict of 1 and empty
-    reasons), but a message of the oldest definition never parses with only the newest field
-    appended (its last field is 4-aligned, so the defaults run out of bytes), and one of the
-    newest older definition is read right by the first guess.
+    fields (:data:`_APPENDED_GROUPS`) was appended, then the oldest, then those in between, and a
+    guess counts only when its appended fields read back as their defaults
+    (:func:`_reads_defaults`): under a wrong older definition the bytes can parse (appended
+    strings read as a verdict of 1 and empty reasons; a ModelState of before the study id with
+    the newest group appended read a float from a string's length).
     """
     from rclpy.serialization import deserialize_message
 

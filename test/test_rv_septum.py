@@ -19,6 +19,10 @@ from mlv_ros.core.sim.protocol import complete_protocol, draw_protocol, protocol
 from mlv_ros.core.types import VIEW_SA
 
 
+# A small stack that still segments (4 SA slices of 144² at 1.8 mm, centred on the heart).
+SMALL = {"sa_slices": 4, "size": 144, "pixel_spacing_mm": 1.8, "sa_fov_shift_mm": [0.0, 0.0]}
+
+
 def _angle_deg(a, b, axis):
     a = np.asarray(a) - (np.asarray(a) @ axis) * axis
     b = np.asarray(b) - (np.asarray(b) @ axis) * axis
@@ -47,8 +51,7 @@ def _ed_stack(protocol):
 # background, dark blood (0.32), SNR 14; 2010 infarct, tagged background, 1.98 mm pixels.
 @pytest.mark.parametrize("seed", [2004, 2008, 2010])
 def test_septum_found_from_the_rv(seed):
-    p = draw_protocol(seed, {"right_ventricle": True, "abnormal_regions": [], "sa_slices": 4, "size": 144, "sa_fov_shift_mm": [0.0, 0.0],
-                             "pixel_spacing_mm": 1.8})
+    p = draw_protocol(seed, {"right_ventricle": True, "abnormal_regions": [], **SMALL})
     m, stack = _ed_stack(p)
     axis = m.frame.long_axis
     truth = m.rv_insertions()
@@ -66,8 +69,7 @@ def test_septum_found_from_the_rv(seed):
 
 
 def test_no_rv_keeps_the_prior_and_says_why():
-    p = draw_protocol(2008, {"right_ventricle": False, "abnormal_regions": [], "sa_slices": 4, "size": 144, "sa_fov_shift_mm": [0.0, 0.0],
-                             "pixel_spacing_mm": 1.8})
+    p = draw_protocol(2008, {"right_ventricle": False, "abnormal_regions": [], **SMALL})
     m, stack = _ed_stack(p)
     axis = m.frame.long_axis
     prior = default_reference(axis, rotate_deg=0.0)
@@ -81,7 +83,8 @@ def test_rv_is_drawn_and_leaves_the_rest_of_the_protocol_and_the_lv_alone():
     draws = [draw_protocol(s)["right_ventricle"] for s in range(40)]
     assert 0 < sum(draws) < 40
     a, b = draw_protocol(7, {"right_ventricle": False}), draw_protocol(7, {"right_ventricle": True})
-    assert {k: v for k, v in a.items() if k != "right_ventricle"} == {k: v for k, v in b.items() if k != "right_ventricle"}
+    others = (lambda p: {k: v for k, v in p.items() if k != "right_ventricle"})
+    assert others(a) == others(b)
     assert complete_protocol({})["right_ventricle"] is False  # the presets' own studies have none
     ma = make_motion(protocol_preset(complete_protocol({"septum_deg": 40.0})))
     mb = make_motion(protocol_preset(complete_protocol({"septum_deg": 40.0, "right_ventricle": True})))

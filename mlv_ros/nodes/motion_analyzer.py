@@ -13,6 +13,11 @@ Run isolation: the node keeps to the study of the first model state it takes (``
 registered or per phase), and reports and ignores states of another study; the clouds paired
 with them (same stamp: clouds cannot carry a study) are dropped with them. Metrics carry the
 study.
+
+Each metrics message also carries the per-segment findings of the cycle so far
+(:class:`~mlv_ros.core.analysis.SegmentFindings`: peak and ES strain with uncertainties, the
+wall-motion class) and where the AHA segments' circumferential origin came from
+(``segment_origin``: the registered state's, the RV found in the images or the anatomical prior).
 """
 
 from __future__ import annotations

@@ -165,7 +165,8 @@ class Registration(GraphNode):
             where["segment_origin"] = (f"RV detected on {septum.slices_used} of {septum.slices_total} SA slices "
                                        f"(confidence {septum.confidence:.2f})" if septum.source == "detected" else
                                        f"{septum.source}: not tied to the anatomy ({septum.reason})")
-        self.report(WARN if extra else OK, "registered", **where, particles=len(res.particles), slices=len(self.ed_frames),
+        self.report(WARN if extra else OK, "registered", **where, particles=len(res.particles),
+                    slices=len(self.ed_frames),
                     seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3), **extra)
 
 

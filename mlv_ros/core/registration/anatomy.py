@@ -239,7 +239,8 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
     step_deg = 360.0 / seg.angles.size
     arc = length * step_deg
     if not ARC_RANGE_DEG[0] <= arc <= ARC_RANGE_DEG[1]:
-        return None, f"the blood next to the LV wraps {arc:.0f}° of it (an RV: {ARC_RANGE_DEG[0]:g}–{ARC_RANGE_DEG[1]:g}°)"
+        lo, hi = ARC_RANGE_DEG
+        return None, f"the blood next to the LV wraps {arc:.0f}° of it (an RV: {lo:g}–{hi:g}°)"
     return SliceRV(start, end, arc, int(areas[best - 1]), labels == best), ""
 
 
