@@ -17,7 +17,7 @@ gives the worst and the median of each measure and the number of cases passing.
 
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal]
 
-The drawn abnormal regions (issue 20) are left out unless ``--abnormal``: the cases stay the
+The drawn abnormal regions and right ventricle (issue 20) are left out unless ``--abnormal``: the cases stay the
 normal hearts these seeds drew before, comparable with earlier runs.
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
@@ -68,9 +68,9 @@ def run_case(seed: int, out: Path, timeout: float, abnormal: bool = False) -> di
     case = {"seed": seed}
     t0 = time.monotonic()
     extra = []
-    if not abnormal:  # the studies these seeds drew before abnormal regions existed (issue 20)
+    if not abnormal:  # the studies these seeds drew before abnormal regions and the RV existed (issue 20)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "no_regions.yaml").write_text("abnormal_regions: []\n")
+        (out / "no_regions.yaml").write_text("abnormal_regions: []\nright_ventricle: false\n")
         extra = ["--protocol", str(out / "no_regions.yaml")]
     sim = subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), *extra, "--out", str(study),
                           "--no-progress"], capture_output=True, text=True)

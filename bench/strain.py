@@ -81,8 +81,8 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     segs = {c: np.asarray(met[f"segment_{c}"]) for c in COMPONENTS} if published else reanalysis
     count = np.asarray(met.get("segment_count", ())) if published else np.asarray(re.segment_count)
     # The findings a user reads (mlv-ros report): the recorded metrics of every phase, their
-    # per-segment uncertainties recomputed from the recorded motion (MotionMetrics does not carry
-    # them yet), streamed phase by phase as the analysis does.
+    # per-segment uncertainties as recorded (recomputed from the recorded motion for recordings
+    # made before MotionMetrics carried them), streamed phase by phase as the analysis does.
     from mlv_ros.core.analysis import PhaseMetrics, segment_findings
     from mlv_ros.tools.report import with_segment_uncertainty
 

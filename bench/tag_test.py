@@ -79,7 +79,8 @@ def main(argv=None) -> int:
     t_votes, n_votes = 0.0, 0
     for seed in range(args.seed, args.seed + args.protocols):
         bg = ("none", "untagged", "tagged")[seed % 3]
-        p = draw_protocol(seed, {"background": bg, "num_phases": 2, "abnormal_regions": []})
+        p = draw_protocol(seed, {"background": bg, "num_phases": 2, "abnormal_regions": [],
+                                 "right_ventricle": False})
         where = "heart_only" if bg != "tagged" else "surrounded"
         scores = {}
         for kind in KINDS:

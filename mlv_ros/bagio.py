@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -43,6 +44,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from mlv_ros import __version__, qos
+from mlv_ros.core.analysis.findings import FINDING_ARRAY_FIELDS
 
 ROS_DISTRO = "jazzy"
 _PRIMITIVES = {
@@ -633,14 +635,35 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
 # stays readable. A recording lacks some last part of each tuple (the fields appended after it).
 _APPENDED_FIELDS = {
     # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
+    # ...; then segment_origin (uint8 0 = unknown) and its confidence (issue 20); MotionMetrics
+    # then the segment uncertainties and findings (empty, ES phase −1: none).
     "mlv_msgs/msg/ModelState": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                ("study_id", "string", ""), ("run_id", "string", "")),
+                                ("study_id", "string", ""), ("run_id", "string", ""),
+                                ("segment_origin", "uint8", 0), ("segment_origin_confidence", "float64", 0.0)),
     "mlv_msgs/msg/MotionMetrics": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                   ("study_id", "string", ""), ("run_id", "string", "")),
+                                   ("study_id", "string", ""), ("run_id", "string", ""),
+                                   ("segment_origin", "uint8", 0), ("segment_origin_confidence", "float64", 0.0),
+                                   *((n, "sequence", ()) for n in ("segment_err_unc", "segment_ecc_unc",
+                                                                   "segment_ell_unc")),
+                                   ("findings_es_phase", "int32", -1),
+                                   *((n, "sequence", ()) for n in FINDING_ARRAY_FIELDS),
+                                   ("segment_class", "sequence", ())),
     # study_id (string ""); then run_id (string "")
     "mlv_msgs/msg/TaggedFrame": (("study_id", "string", ""), ("run_id", "string", "")),
     "mlv_msgs/msg/TagPoints": (("study_id", "string", ""), ("run_id", "string", "")),
 }
+
+
+# Fields appended together (one change of the definition), oldest first: an older recording
+# lacks whole groups only, so only these are tried when the schema is not known.
+_APPENDED_GROUPS = {"mlv_msgs/msg/ModelState": (2, 1, 1, 2), "mlv_msgs/msg/MotionMetrics": (2, 1, 1, 21),
+                    "mlv_msgs/msg/TaggedFrame": (1, 1), "mlv_msgs/msg/TagPoints": (1, 1)}
+
+
+def _older_definitions(type_name: str, n: int) -> list[int]:
+    """How many of the last appended fields each older definition lacks, newest first."""
+    sizes = _APPENDED_GROUPS.get(type_name, (1,) * n)
+    return [sum(sizes[-i:]) for i in range(1, len(sizes) + 1)]
 
 
 def _field_names(definition: str) -> list[str]:
@@ -678,6 +701,15 @@ def _cdr_defaults(data: bytes, fields) -> bytes:
     for _name, kind, value in fields:
         if kind == "uint8":
             out += int(value).to_bytes(1, order)
+        elif kind == "int32":
+            out += b"\0" * (-(len(out) - 4) % 4)
+            out += int(value).to_bytes(4, order, signed=True)
+        elif kind == "float64":
+            out += b"\0" * (-(len(out) - 4) % 8)
+            out += struct.pack("<d" if little else ">d", float(value))
+        elif kind == "sequence":  # an empty sequence: its length 0
+            out += b"\0" * (-(len(out) - 4) % 4)
+            out += (0).to_bytes(4, order)
         elif kind == "string":
             raw = str(value).encode() + b"\0"
             out += b"\0" * (-(len(out) - 4) % 4)
@@ -691,16 +723,27 @@ def _type_name(msg_class) -> str:
     return f"{msg_class.__module__.split('.')[0]}/msg/{msg_class.__name__}"
 
 
+def _reads_defaults(msg, fields) -> bool:
+    """Whether the appended ``fields`` read back as the defaults they were appended with: under a
+    wrong older definition the bytes can parse yet shift, and a default then reads as part of
+    another field (e.g. a float from a string's length)."""
+    for name, kind, value in fields:
+        got = getattr(msg, name)
+        if (len(got) != 0) if kind == "sequence" else (got != value):
+            return False
+    return True
+
+
 def _read_as(data: bytes, msg_class, missing: tuple | None):
     """(message, the fields that were appended) for ``data``.
 
     With ``missing`` known (from the recording's schema, :func:`fields_missing_from`) those are
-    appended. Without, the current definition is tried, then the one before the last fields
-    were appended, then the oldest, then those in between. The order matters: under a wrong
-    older definition the bytes can parse (appended strings read as a verdict of 1 and empty
-    reasons), but a message of the oldest definition never parses with only the newest field
-    appended (its last field is 4-aligned, so the defaults run out of bytes), and one of the
-    newest older definition is read right by the first guess.
+    appended. Without, the current definition is tried, then the one before the last group of
+    fields (:data:`_APPENDED_GROUPS`) was appended, then the oldest, then those in between, and a
+    guess counts only when its appended fields read back as their defaults
+    (:func:`_reads_defaults`): under a wrong older definition the bytes can parse (appended
+    strings read as a verdict of 1 and empty reasons; a ModelState of before the study id with
+    the newest group appended read a float from a string's length).
     """
     from rclpy.serialization import deserialize_message
 
@@ -711,14 +754,16 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
     except Exception as exc:  # rclpy raises its private RMWError
         appended = _APPENDED_FIELDS.get(_type_name(msg_class), ())
         n = len(appended)
-        if len(data) >= 4:
-            for k in dict.fromkeys([1, n, *range(n - 1, 1, -1)]):
-                if not 1 <= k <= n:
-                    continue
+        ends = _older_definitions(_type_name(msg_class), n)
+        if len(data) >= 4 and ends:
+            for k in dict.fromkeys([ends[0], ends[-1], *ends[-2:0:-1]]):
+                candidate = _cdr_defaults(data, appended[-k:])
                 try:
-                    return deserialize_message(_cdr_defaults(data, appended[-k:]), msg_class), appended[-k:]
+                    msg = deserialize_message(candidate, msg_class)
                 except Exception:
                     continue
+                if _reads_defaults(msg, appended[-k:]):
+                    return msg, appended[-k:]
         raise exc
 
 

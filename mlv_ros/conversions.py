@@ -22,8 +22,9 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics as MotionMetricsMsg
 from mlv_msgs.msg import SliceGeometry as SliceGeometryMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
+from mlv_ros.core.analysis.findings import CLASS_CODES, FINDING_ARRAY_FIELDS
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame, ModelState, TagPointSet
+from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_LA, VIEW_SA, Frame, ModelState, TagPointSet
 from mlv_ros.core.verdict import checked_level
 
 PATIENT_FRAME = "patient"
@@ -449,7 +450,24 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         residual=float(state.residual), converged=bool(state.converged),
         num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
         verdict=checked_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
-        study_id=_check_study_id(state.study_id), run_id=_check_study_id(state.run_id, "run_id"))
+        study_id=_check_study_id(state.study_id), run_id=_check_study_id(state.run_id, "run_id"),
+        segment_origin=_check_origin(getattr(state, "segment_origin", 0)),
+        segment_origin_confidence=_check_confidence(getattr(state, "segment_origin_confidence", 0.0)))
+
+
+def _check_origin(v) -> int:
+    """A ``segment_origin`` code (:data:`~mlv_ros.core.types.SEGMENT_ORIGIN_CODES`)."""
+    if isinstance(v, bool) or int(v) != v or int(v) not in SEGMENT_ORIGIN_CODES.values():
+        raise ValueError(f"segment_origin must be one of {sorted(SEGMENT_ORIGIN_CODES.values())} "
+                         f"({', '.join(f'{c} {n}' for n, c in SEGMENT_ORIGIN_CODES.items())}), got {v!r}")
+    return int(v)
+
+
+def _check_confidence(v) -> float:
+    v = float(v)
+    if not 0.0 <= v <= 1.0:
+        raise ValueError(f"segment_origin_confidence must be in [0, 1], got {v}")
+    return v
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
@@ -460,7 +478,9 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
         num_particles=msg.num_particles, num_control_points=msg.num_control_points,
         verdict=checked_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
-        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
+        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"),
+        segment_origin=_check_origin(msg.segment_origin),
+        segment_origin_confidence=_check_confidence(msg.segment_origin_confidence))
     _require_finite("model state", np.concatenate([state.translation, state.rotation,
                                                    [state.a0, state.a1, state.a2, state.a3, state.tau,
                                                     state.residual]]))
@@ -477,6 +497,9 @@ METRIC_SCALAR_FIELDS = ("time_fraction", "la_radius_mm", "torsion_deg_per_cm", "
                         "ejection_fraction")
 METRIC_SEGMENT_FIELDS = ("segment_err", "segment_ecc", "segment_ell")
 METRIC_COUNT_FIELDS = ("level_count", "segment_count")  # optional in the input (default empty)
+# Optional in the input (default empty): per-segment uncertainties and findings, 0 or 17 entries,
+# NaN allowed (not measured), and the wall-motion class codes.
+METRIC_NAN_SEGMENT_FIELDS = ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc") + FINDING_ARRAY_FIELDS
 
 
 def _metrics_value(metrics, name):
@@ -519,9 +542,22 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         if v.size and (np.any(v < 0) or not np.all(np.isfinite(v))):
             raise ValueError(f"{name} must hold non-negative counts")
         setattr(msg, name, _fast_array("I", v, np.uint32))
+    for name in METRIC_NAN_SEGMENT_FIELDS + ("segment_class",):
+        try:
+            v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
+        except (KeyError, AttributeError):
+            v = np.zeros(0)
+        _check_segment_extra(name, v)
+        if name == "segment_class":
+            msg.segment_class = _fast_array("B", v, np.uint8)
+        else:
+            setattr(msg, name, _fast_array("d", v, np.float64))
     # Optional in the input: metrics without a verdict are ok with no reasons, without a study
-    # of no known study.
+    # of no known study, without findings of an unknown segment origin and ES phase.
     for name, default, check in (("verdict", 0, checked_level), ("verdict_reasons", "", str),
+                                 ("segment_origin", 0, _check_origin),
+                                 ("segment_origin_confidence", 0.0, _check_confidence),
+                                 ("findings_es_phase", -1, _check_es_phase),
                                  ("study_id", "", _check_study_id),
                                  ("run_id", "", lambda v: _check_study_id(v, "run_id"))):
         try:
@@ -530,6 +566,25 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
             value = default
         setattr(msg, name, check(value))
     return msg
+
+
+def _check_segment_extra(name: str, v: np.ndarray) -> None:
+    """Findings / uncertainty arrays: 0 or 17 entries; classes are codes 0…4; NaN (not
+    measured) is allowed, ±inf is not."""
+    if v.size not in (0, 17):
+        raise ValueError(f"{name} must have 0 or 17 (AHA segments) entries, got {v.size}")
+    if np.any(np.isinf(v)):
+        raise ValueError(f"{name} holds an infinite value")
+    if name == "segment_class" and v.size and (not np.all(np.isfinite(v)) or np.any(v != np.round(v))
+                                               or np.any((v < 0) | (v >= len(CLASS_CODES)))):
+        raise ValueError(f"segment_class must hold codes 0..{len(CLASS_CODES) - 1} "
+                         f"({', '.join(f'{c} {n}' for n, c in CLASS_CODES.items())})")
+
+
+def _check_es_phase(v) -> int:
+    if isinstance(v, bool) or int(v) != v or int(v) < -1:
+        raise ValueError(f"findings_es_phase must be a phase index or -1 (none yet), got {v!r}")
+    return int(v)
 
 
 def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
@@ -549,6 +604,14 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
         out[name] = float(getattr(msg, name))
     for name in METRIC_COUNT_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.uint32).astype(np.int64)
+    for name in METRIC_NAN_SEGMENT_FIELDS:
+        out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
+        _check_segment_extra(name, out[name])
+    out["segment_class"] = np.frombuffer(msg.segment_class, dtype=np.uint8).astype(np.int64)
+    _check_segment_extra("segment_class", out["segment_class"].astype(np.float64))
+    out["segment_origin"] = _check_origin(msg.segment_origin)
+    out["segment_origin_confidence"] = _check_confidence(msg.segment_origin_confidence)
+    out["findings_es_phase"] = _check_es_phase(msg.findings_es_phase)
     out["verdict"] = checked_level(msg.verdict)
     out["verdict_reasons"] = msg.verdict_reasons
     out["study_id"] = _check_study_id(msg.study_id)

@@ -352,3 +352,41 @@ def test_study_id_round_trip_through_every_message():
         msg.study_id = bad
         with pytest.raises(ValueError, match=why):
             cv.msg_to_frame(msg)
+
+
+def test_segment_origin_and_findings_round_trip():
+    """The registered state's segment origin and the per-segment findings (NaN = not measured,
+    classes as uint8 codes) survive CDR; bad codes and lengths are refused."""
+    from mlv_ros.core.analysis.findings import CLASS_CODES, FINDING_ARRAY_FIELDS, Findings
+    from mlv_ros.core.types import SEGMENT_ORIGIN_CODES
+    s = ModelState(phase_index=0, num_phases=20, segment_origin=SEGMENT_ORIGIN_CODES["detected"],
+                   segment_origin_confidence=0.73)
+    back = cv.msg_to_model_state(cdr(cv.model_state_to_msg(s)))
+    assert back.segment_origin == 2 and back.segment_origin_confidence == 0.73
+    assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(ModelState(num_phases=2)))).segment_origin == 0
+    with pytest.raises(ValueError, match="segment_origin must be one of"):
+        cv.model_state_to_msg(ModelState(num_phases=2, segment_origin=7))
+
+    vals = {c: RNG.normal(scale=0.1, size=17) for c in ("err", "ecc", "ell")}
+    vals["err"][16] = np.nan  # an unmeasured segment stays NaN
+    f = Findings(phases_used=[0, 3], es_phase=3, peak=vals, peak_unc={c: np.full(17, 0.02) for c in vals},
+                 es=vals, es_unc={c: np.full(17, 0.03) for c in vals}, function_index=RNG.normal(size=17),
+                 function_unc=np.full(17, 0.1), classes=["normal"] * 6 + ["akinetic", "dyskinetic"] + ["indeterminate"] * 9)
+    m = make_metrics()
+    m.update(f.message_fields(), segment_origin=1, segment_origin_confidence=0.0,
+             segment_err_unc=np.full(17, 0.05), segment_ecc_unc=np.full(17, np.nan), segment_ell_unc=np.zeros(0))
+    back = cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))
+    for name in FINDING_ARRAY_FIELDS + ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc"):
+        assert back[name].tobytes() == np.asarray(m[name], np.float64).tobytes(), name
+    assert np.isnan(back["finding_peak_err"][16]) and back["findings_es_phase"] == 3
+    assert [list(CLASS_CODES)[c] for c in back["segment_class"]] == f.classes
+    assert back["segment_origin"] == 1
+    # Metrics without findings (recorded before them) read as empty / unknown.
+    old = cv.msg_to_metrics(cdr(cv.metrics_to_msg(make_metrics())))
+    assert old["segment_class"].size == 0 and old["findings_es_phase"] == -1 and old["segment_origin"] == 0
+    for bad, match in ((dict(segment_class=np.full(17, 9)), "segment_class must hold codes"),
+                       (dict(finding_es_ecc=np.zeros(16)), "0 or 17"),
+                       (dict(finding_es_ecc=np.full(17, np.inf)), "infinite"),
+                       (dict(findings_es_phase=-3), "findings_es_phase")):
+        with pytest.raises(ValueError, match=match):
+            cv.metrics_to_msg({**m, **bad})

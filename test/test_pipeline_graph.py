@@ -61,7 +61,7 @@ def test_end_to_end_accuracy_against_ground_truth(phantom_run):
 
 def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
     out, s = phantom_run
-    counts = {}
+    counts, last = {}, {}
     with AnyReader([out / "run.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for conn, _t, raw in reader.messages():
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
@@ -69,12 +69,21 @@ def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
                 cloud = reader.deserialize(raw, conn.msgtype)
                 assert [f.name for f in cloud.fields][:6] == ["x", "y", "z", "dx", "dy", "dz"]
                 assert cloud.header.frame_id == "patient"
+            if conn.topic in (qos.METRICS, qos.REGISTERED_STATE):
+                last[conn.topic] = reader.deserialize(raw, conn.msgtype)
     assert counts[qos.FRAMES] == s["frames_published"]
     assert counts[qos.TAG_POINTS] == s["tag_sets_published"]
     assert counts[qos.MOTION] == counts[qos.MODEL_STATE] == counts[qos.METRICS] == 16
     assert counts[qos.REGISTERED_CLOUD] == counts[qos.REGISTERED_STATE] == 1
     assert counts[qos.DIAGNOSTICS] >= 1
     assert sum(counts.values()) == s["recorded_messages"]
+    # The findings and where the segments' origin came from, as rosbags reads them: this phantom
+    # has no RV, so the anatomical prior, said in the registered state and every metrics message.
+    m, reg = last[qos.METRICS], last[qos.REGISTERED_STATE]
+    assert reg.segment_origin == m.segment_origin == 1 and m.segment_origin_confidence == 0.0
+    assert len(m.segment_class) == 17 and set(m.segment_class) <= {0, 1, 2, 3, 4}
+    assert len(m.finding_es_ecc) == len(m.finding_peak_err_unc) == len(m.segment_ecc_unc) == 17
+    assert m.findings_es_phase > 0
     run = read_run(out / "run.mcap")
     assert sorted(run["positions"]) == list(range(16))
     np.testing.assert_allclose(run["positions"][0], run["ed"], atol=1e-4)  # phase 0 = ED

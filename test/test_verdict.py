@@ -174,6 +174,11 @@ def test_recordings_made_before_the_verdict_still_read():
     for sid in ("s", "abcd"):  # recorded before run_id alone
         cases += [(cls, "# The run the message belongs to", {"phase_index": 1, "num_phases": 9, "study_id": sid})
                   for cls in (ModelState, MotionMetrics, TaggedFrame, TagPoints)]
+    for sid in ("s", "abcd", "abcdefg"):  # recorded before the segment origin and findings (issue 20)
+        cases += [(ModelState, "# Where the circumferential reference",
+                   {"phase_index": 1, "num_phases": 9, "study_id": sid}),
+                  (MotionMetrics, "# Where the AHA segments'", {"phase_index": 1, "num_phases": 9, "study_id": sid,
+                                                                  "cavity_volume_ml": 90.5})]
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
         name = f"mlv_msgs/msg/{cls.__name__}"
@@ -185,6 +190,9 @@ def test_recordings_made_before_the_verdict_still_read():
                 assert got.verdict == 0 and got.verdict_reasons == ""
             for k, v in values.items():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
+            if hasattr(got, "segment_origin"):  # unknown origin, no findings (ES phase −1)
+                assert got.segment_origin == 0 and got.segment_origin_confidence == 0.0
+                assert getattr(got, "findings_es_phase", -1) == -1 and len(getattr(got, "segment_class", b"")) == 0
         assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).run_id == ""  # what replay publishes
     assert bagio.fields_missing_from("mlv_msgs/msg/ModelState", bagio.message_definition("mlv_msgs/msg/ModelState")) == ()
     with pytest.raises(ValueError, match="cannot deserialise"):

@@ -111,7 +111,9 @@ class ModelState:
     dimensionless (twist φ = π τ sin α). ``verdict`` (0 ok, 1 degraded, 2 failed) and
     ``verdict_reasons`` ("; "-separated) say how far the data supported this phase
     (:mod:`mlv_ros.core.verdict`). ``study_id`` and ``run_id`` name the study and run the state
-    was computed from (as in :class:`Frame`).
+    was computed from (as in :class:`Frame`). ``segment_origin`` (:data:`SEGMENT_ORIGIN_CODES`)
+    and ``segment_origin_confidence`` (0…1) say where the registered model's circumferential
+    reference came from (0 / 0.0 on per-phase states).
     """
 
     phase_index: int = 0
@@ -132,6 +134,13 @@ class ModelState:
     verdict_reasons: str = ""
     study_id: str = ""
     run_id: str = ""
+    segment_origin: int = 0
+    segment_origin_confidence: float = 0.0
+
+
+#: ModelState / MotionMetrics ``segment_origin`` codes: where the circumferential reference (and
+#: so the AHA segments) came from (mlv_ros/core/registration/anatomy.py).
+SEGMENT_ORIGIN_CODES = {"unknown": 0, "prior": 1, "detected": 2, "given": 3}
 
 
 class ForeignStudyError(ValueError):

@@ -13,6 +13,11 @@ Run isolation: the node keeps to the study of the first model state it takes (``
 registered or per phase), and reports and ignores states of another study; the clouds paired
 with them (same stamp: clouds cannot carry a study) are dropped with them. Metrics carry the
 study.
+
+Each metrics message also carries the per-segment findings of the cycle so far
+(:class:`~mlv_ros.core.analysis.SegmentFindings`: peak and ES strain with uncertainties, the
+wall-motion class) and where the AHA segments' circumferential origin came from
+(``segment_origin``: the registered state's, the RV found in the images or the anatomical prior).
 """
 
 from __future__ import annotations
@@ -188,6 +193,13 @@ class MotionAnalyzer(GraphNode):
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 metrics.study_id = state.study_id or self.study.study_id
                 metrics.run_id = state.run_id or self.study.run_id
+                # Where the segments' origin came from (the registered model's), and the findings
+                # of the cycle so far, this phase included.
+                metrics.segment_origin = self.reg_state.segment_origin
+                metrics.segment_origin_confidence = self.reg_state.segment_origin_confidence
+                findings = self.findings.update(metrics)
+                for name, value in findings.message_fields().items():
+                    setattr(metrics, name, value)
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
                 self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
@@ -202,12 +214,11 @@ class MotionAnalyzer(GraphNode):
             # failed), with why.
             level = {OK_VERDICT: OK, DEGRADED: WARN}.get(verdict.level, ERROR)
             self.report(level, "metrics", **values, **({"reasons": verdict.text} if verdict.level else {}))
-            self._say_findings(metrics)
+            self._say_findings(findings)
 
-    def _say_findings(self, metrics) -> None:
-        """Update the per-segment findings (not in MotionMetrics yet: the report recomputes them)
-        and say which segments read akinetic / dyskinetic whenever that changes."""
-        f = self.findings.update(metrics)
+    def _say_findings(self, f) -> None:
+        """Say which segments read akinetic / dyskinetic whenever that changes (the findings
+        themselves go out in MotionMetrics)."""
         said = (tuple(f.abnormal(("akinetic",))), tuple(f.abnormal(("dyskinetic",))),
                 f.classes.count("indeterminate"))
         if f.es_phase is None or said == self._findings_said:

@@ -24,7 +24,7 @@ from sensor_msgs.msg import PointCloud2
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.types import VIEW_SA
+from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, Silence, run_node
 
@@ -147,6 +147,10 @@ class Registration(GraphNode):
         verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
         state.study_id, state.run_id = self.study.study_id, self.study.run_id
+        septum = res.septum
+        if septum is not None:
+            state.segment_origin = SEGMENT_ORIGIN_CODES[septum.source]
+            state.segment_origin_confidence = float(np.clip(septum.confidence, 0.0, 1.0))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         extra = {}
         if res.warnings:
@@ -155,7 +159,14 @@ class Registration(GraphNode):
             extra["not_segmented"] = "; ".join(left_out)
         if verdict.level:
             extra["verdict"] = f"{verdict.name}: {verdict.text}"
-        self.report(WARN if extra else OK, "registered", particles=len(res.particles), slices=len(self.ed_frames),
+        # Where the AHA segments' origin came from; not a warning (nothing to act on), but said.
+        where = {}
+        if septum is not None:
+            where["segment_origin"] = (f"RV detected on {septum.slices_used} of {septum.slices_total} SA slices "
+                                       f"(confidence {septum.confidence:.2f})" if septum.source == "detected" else
+                                       f"{septum.source}: not tied to the anatomy ({septum.reason})")
+        self.report(WARN if extra else OK, "registered", **where, particles=len(res.particles),
+                    slices=len(self.ed_frames),
                     seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3), **extra)
 
 

@@ -700,6 +700,7 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             **verdict_summary(analyzer.verdicts),
             "cavity_volume_ml": {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
             "registration_verdict": registration_summary(nodes["registration"]),
+            "segment_origin": segment_origin_summary(nodes["registration"]),
             **twist_summary(solver, analyzer),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
             "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
@@ -780,6 +781,15 @@ def registration_summary(node) -> dict | None:
     """The ED registration's verdict and reasons (None before it registered)."""
     v = getattr(node, "verdict", None)
     return None if v is None else {"verdict": v.name, "reasons": v.text}
+
+
+def segment_origin_summary(node) -> dict | None:
+    """Where the AHA segments' circumferential origin came from (None before it registered):
+    ``source`` detected (the RV in the ED SA images) / prior (not tied to the anatomy) / given,
+    the insertion directions and confidence (:meth:`SeptumEstimate.to_dict`)."""
+    res = getattr(node, "result", None)
+    septum = getattr(res, "septum", None)
+    return None if septum is None else septum.to_dict()
 
 
 def verdict_line(summary: dict) -> str | None:

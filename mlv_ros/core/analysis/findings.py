@@ -97,6 +97,11 @@ CLASS_BOUNDS = (("normal", 0.6), ("hypokinetic", 0.35), ("akinetic", -0.2), ("dy
 CLASSES = tuple(n for n, _ in CLASS_BOUNDS) + ("indeterminate",)
 #: "Beyond the uncertainty": stretching by more than this many σ makes a segment dyskinetic.
 STRETCH_Z = 2.0
+#: The per-segment findings arrays of MotionMetrics (17 each or empty; NaN = not measured).
+FINDING_ARRAY_FIELDS = tuple(f"finding_{w}_{c}{u}" for w in ("peak", "es") for u in ("", "_unc") for c in COMPONENTS) \
+    + ("finding_function_index", "finding_function_unc")
+#: Wall-motion class codes of MotionMetrics.segment_class (index in :data:`CLASSES`).
+CLASS_CODES = {name: k for k, name in enumerate(CLASSES)}
 #: Largest σ_f a class is given with: a normal segment (f ≈ 1) is then called akinetic (f < 0.35)
 #: only when read 2σ low.
 MAX_SIGMA_F = 0.33
@@ -273,6 +278,25 @@ class Findings:
     def abnormal(self, kinds=("akinetic", "dyskinetic")) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
         return [k + 1 for k, c in enumerate(self.classes) if c in kinds]
+
+    def message_fields(self) -> dict:
+        """The MotionMetrics findings fields: ``findings_es_phase`` (−1: none yet), the
+        :data:`FINDING_ARRAY_FIELDS` (17 floats each, NaN = not measured; empty before any phase
+        with strain) and ``segment_class`` (17 :data:`CLASS_CODES`)."""
+        out = {"findings_es_phase": -1 if self.es_phase is None else int(self.es_phase)}
+        if not self.phases_used:
+            out.update({k: np.zeros(0) for k in FINDING_ARRAY_FIELDS})
+            out["segment_class"] = np.zeros(0, dtype=np.int64)
+            return out
+        nan = np.full(17, np.nan)
+        for w, d, du in (("peak", self.peak, self.peak_unc), ("es", self.es, self.es_unc)):
+            for c in COMPONENTS:
+                out[f"finding_{w}_{c}"] = np.asarray(d.get(c, nan), dtype=np.float64)
+                out[f"finding_{w}_{c}_unc"] = np.asarray(du.get(c, nan), dtype=np.float64)
+        out["finding_function_index"] = np.asarray(self.function_index, dtype=np.float64)
+        out["finding_function_unc"] = np.asarray(self.function_unc, dtype=np.float64)
+        out["segment_class"] = np.array([CLASS_CODES[c] for c in self.classes], dtype=np.int64)
+        return out
 
     def to_dict(self) -> dict:
         """JSON-ready: per-segment rows plus the thresholds used (NaN stays NaN: write it with

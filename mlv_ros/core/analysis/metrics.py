@@ -18,7 +18,8 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from mlv_ros.core.analysis.findings import UNCERTAINTY_FLOOR, segment_lengths, segment_uncertainty
+from mlv_ros.core.analysis.findings import (FINDING_ARRAY_FIELDS, UNCERTAINTY_FLOOR, segment_lengths,
+                                            segment_uncertainty)
 from mlv_ros.core.analysis.frame import LVFrame, as_points, cardiac_coordinates
 from mlv_ros.core.analysis.motion import CavityModel, LevelBinning, _level_dict, decompose_displacement, torsion
 from mlv_ros.core.analysis.strain import MLSNeighbourhood, aha_segments, cardiac_strain, green_lagrange, segment_means
@@ -27,11 +28,10 @@ from mlv_ros.core.verdict import metrics_verdict
 _ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
                  "radial_displacement_mm", "circumferential_displacement_mm",
                  "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count",
-                 "segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
+                 "segment_err_unc", "segment_ecc_unc", "segment_ell_unc") + FINDING_ARRAY_FIELDS + ("segment_class",)
 
-#: PhaseMetrics fields MotionMetrics.msg does not carry yet (adding them rebuilds mlv_msgs): the
-#: per-segment uncertainties; ``mlv-ros report`` recomputes them from the recorded motion.
-NOT_IN_MSG_YET = ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc")
+#: PhaseMetrics fields MotionMetrics.msg does not carry (none since the findings went in).
+NOT_IN_MSG_YET = ()
 
 
 def _empty() -> np.ndarray:
@@ -76,8 +76,16 @@ class PhaseMetrics:
         Particles with a valid strain per segment. Not in MotionMetrics.msg (optional).
     segment_err_unc, segment_ecc_unc, segment_ell_unc : ndarray, shape (17,) or (0,)
         Uncertainty of each segment mean (dimensionless; NaN = too few particles to say),
-        :func:`mlv_ros.core.analysis.findings.segment_uncertainty`; empty when unknown. Not in
-        MotionMetrics.msg yet (the report recomputes them from the recorded positions).
+        :func:`mlv_ros.core.analysis.findings.segment_uncertainty`; empty when unknown.
+    segment_origin, segment_origin_confidence : int, float
+        Where the AHA segments' circumferential origin came from (``SEGMENT_ORIGIN_*`` of
+        :mod:`mlv_ros.core.types`: 0 unknown, 1 anatomical prior, 2 RV detected in the images,
+        3 given) and the detection's confidence 0…1; set by the motion analyzer from the
+        registered model.
+    findings_es_phase, finding_* , segment_class
+        The per-segment findings of the cycle so far
+        (:meth:`mlv_ros.core.analysis.findings.Findings.message_fields`); −1 / empty until the
+        analyzer fills them in.
     verdict : int
         0 ok, 1 degraded, 2 failed: whether this motion is physiologically possible
         (:func:`mlv_ros.core.verdict.metrics_verdict`); the analyzer node merges in the
@@ -109,6 +117,24 @@ class PhaseMetrics:
     segment_err_unc: np.ndarray = field(default_factory=_empty)
     segment_ecc_unc: np.ndarray = field(default_factory=_empty)
     segment_ell_unc: np.ndarray = field(default_factory=_empty)
+    segment_origin: int = 0
+    segment_origin_confidence: float = 0.0
+    findings_es_phase: int = -1
+    finding_peak_err: np.ndarray = field(default_factory=_empty)
+    finding_peak_ecc: np.ndarray = field(default_factory=_empty)
+    finding_peak_ell: np.ndarray = field(default_factory=_empty)
+    finding_peak_err_unc: np.ndarray = field(default_factory=_empty)
+    finding_peak_ecc_unc: np.ndarray = field(default_factory=_empty)
+    finding_peak_ell_unc: np.ndarray = field(default_factory=_empty)
+    finding_es_err: np.ndarray = field(default_factory=_empty)
+    finding_es_ecc: np.ndarray = field(default_factory=_empty)
+    finding_es_ell: np.ndarray = field(default_factory=_empty)
+    finding_es_err_unc: np.ndarray = field(default_factory=_empty)
+    finding_es_ecc_unc: np.ndarray = field(default_factory=_empty)
+    finding_es_ell_unc: np.ndarray = field(default_factory=_empty)
+    finding_function_index: np.ndarray = field(default_factory=_empty)
+    finding_function_unc: np.ndarray = field(default_factory=_empty)
+    segment_class: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     verdict: int = 0
     verdict_reasons: str = ""
     study_id: str = ""
@@ -116,7 +142,7 @@ class PhaseMetrics:
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:
-            dt = np.int64 if name.endswith("count") else np.float64
+            dt = np.int64 if name.endswith("count") or name == "segment_class" else np.float64
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dt).reshape(-1))
 
     @property

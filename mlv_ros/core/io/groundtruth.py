@@ -16,8 +16,11 @@ Format (version 1)
     and per AHA segment at the ES phase ``round(es_phase)`` the true Green–Lagrange ``err``,
     ``ecc``, ``ell`` in the cylindrical frame of the true axis and septum, the prescribed
     ``contraction`` and the truth ``class`` normal / hypokinetic / akinetic / dyskinetic with its
-    ``class_thresholds``; absent in files written before it), and whatever the writer's ``extra``
-    adds (``mlv-ros simulate --random``: ``protocol`` and ``dicom``, the writer's options).
+    ``class_thresholds``; absent in files written before it), ``rv``
+    (:meth:`LVMotion.rv_insertions`: the true RV insertion points, θ in the phantom's frame and LPS
+    directions, and the septum's bisector; null without an RV, absent in files written before
+    it), and whatever the writer's ``extra`` adds (``mlv-ros simulate --random``: ``protocol``
+    and ``dicom``, the writer's options).
 ``groundtruth.npz``:
     ``ed_masks`` bool (S, rows, cols) — ED myocardium per slice (slab fraction ≥ 0.5);
     ``material_points`` float64 (N, 3) — ED positions of uniformly sampled myocardium, mm;
@@ -135,6 +138,7 @@ def write_groundtruth(study, out_dir, n_points: int = 2000, levels=None,
                   "e2": f.e2.tolist(), "length_mm": f.length},
         "slices": slices, "conventions": _CONVENTIONS,
         "regional": regional_truth(m, seed=study.seed),
+        "rv": m.rv_insertions(),
         "arrays": {
             "ed_masks": "bool (S, rows, cols): ED myocardium per slice, in 'slices' order",
             "material_points": "float64 (N, 3): ED positions, mm",

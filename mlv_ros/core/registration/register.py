@@ -27,6 +27,7 @@ import numpy as np
 from mlv_ros.core.io.dicom import estimate_long_axis
 from mlv_ros.core.meshless import MeshlessModel, ModelFrame
 from mlv_ros.core.registration import segment as seg
+from mlv_ros.core.registration.anatomy import SOURCE_DETECTED, SOURCE_GIVEN, SeptumEstimate, estimate_septum
 from mlv_ros.core.registration.initialise import (AxisFrame, LVShape, default_reference, model_frame,
                                                   reconstruct_shape, sample_particles)
 from mlv_ros.core.registration.landmarks import LANDMARKS_PER_SA_SLICE, curvature_landmarks
@@ -81,6 +82,10 @@ class RegistrationResult:
         ``"endo"``, ``"epi"``: registered wall-surface samples, (M, 3) mm.
     timings : dict
         Seconds per stage.
+    septum : SeptumEstimate
+        Where the septum (β = 0 is the inferior RV insertion 60° from it) came from: the RV found
+        in the ED SA images (``source`` "detected"), the anatomical prior ("prior", with why), or
+        the caller's ``reference_direction`` ("given").
     """
 
     particles: np.ndarray
@@ -95,6 +100,7 @@ class RegistrationResult:
     masks: dict = field(default_factory=dict)
     surfaces: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
+    septum: SeptumEstimate | None = None
 
     def wall_thickness_mm(self) -> np.ndarray:
         """ED wall thickness of the registered model, mm: for each epicardial surface sample
@@ -242,7 +248,9 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     data_weight : float
         External-force weight of :meth:`MeshlessModel.fit`.
     reference_direction : array_like, shape (3,), optional
-        β = 0 direction (patient); default :func:`~.initialise.default_reference`.
+        β = 0 direction (patient). Default: the inferior RV insertion 60° from the septum found in
+        the ED SA images (:mod:`~.anatomy`), else :func:`~.initialise.default_reference` (the
+        anatomical prior, with a warning).
 
     Returns
     -------
@@ -283,8 +291,6 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     est = estimate_long_axis([by_key[k].geometry for k in sa_keys], [by_key[k].geometry for k in la_keys],
                              np.array([_fov_centre(by_key[k]) for k in sa_keys]))
     axis_pt, axis_dir = est.point, est.direction
-    ref = default_reference(axis_dir) if reference_direction is None else np.asarray(reference_direction, float)
-    frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
 
     user = masks or {}
     segs: dict = {}
@@ -336,6 +342,20 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         warnings.append(f"registered from {len(segs)} of {len(sa_keys) + len(la_keys)} slices; dropped: "
                         + ", ".join(f"{_VIEW[r.view]} {r.slice_index}" for r in failed))
     usable_la = [k for k in la_keys if k in segs]
+
+    # ---- circumferential reference: the septum from the RV in the images, else the prior
+    if reference_direction is None:
+        septum = estimate_septum([(np.asarray(by_key[k].image), segs[k], by_key[k].geometry) for k in usable_sa],
+                                 axis_dir, default_reference(axis_dir, rotate_deg=0.0))
+        if septum.source == SOURCE_DETECTED:
+            ref = default_reference(axis_dir, septum_hint=septum.septum)
+        else:
+            ref = default_reference(axis_dir)  # the segments are then not tied to the anatomy (septum.reason)
+    else:
+        ref = np.asarray(reference_direction, float)
+        septum = SeptumEstimate(SOURCE_GIVEN, default_reference(axis_dir, septum_hint=ref, rotate_deg=-60.0),
+                                reason="reference_direction given by the caller")
+    frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
     if la_keys and not usable_la:
         warnings.append("no usable LA view: apex and base are extrapolated from the SA stack")
 
@@ -475,7 +495,7 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
                        num_particles=len(particles), **state_kw)
     timings["total"] = time.perf_counter() - t0
     return RegistrationResult(particles, mframe, polar, state, shape, reports, warnings, axis_pt, axis_dir,
-                              {k: s.mask for k, s in segs.items()}, surfaces, timings)
+                              {k: s.mask for k, s in segs.items()}, surfaces, timings, septum)
 
 
 def _perp(v, axis) -> np.ndarray:

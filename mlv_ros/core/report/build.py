@@ -128,8 +128,10 @@ def _findings_html(summaries: list[dict]) -> str:
             + "".join(f"<td>{e(_pm(r[f'es_{c}'], r[f'es_{c}_unc']))}</td>" for c in ("ecc", "err", "ell"))
             + "".join(f"<td>{e(_pm(r[f'peak_{c}'], r[f'peak_{c}_unc']))}</td>" for c in ("ecc", "err", "ell"))
             + "</tr>" for r in _clean_rows(f["segments"]))
+        origin = f.get("segment_origin") or {}
         parts.append(f"<p><b>{e(s['label'])}</b>: ES phase {f['es_phase']}; classes "
-                     + e(", ".join(f"{k} {n}" for k, n in f["counts"].items() if n)) + "</p>"
+                     + e(", ".join(f"{k} {n}" for k, n in f["counts"].items() if n))
+                     + (f". Segments: {e(origin['note'])}." if origin.get("note") else "") + "</p>"
                      "<table><tr><th>segment</th><th>class</th><th>f ± σ</th><th>ES Ecc</th><th>ES Err</th>"
                      f"<th>ES Ell</th><th>peak Ecc</th><th>peak Err</th><th>peak Ell</th></tr>{rows}</table>")
     return "".join(parts)

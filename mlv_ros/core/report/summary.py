@@ -128,6 +128,28 @@ def _f(v) -> float | None:
     return v if math.isfinite(v) else None
 
 
+_ORIGIN_NOTES = {
+    0: ("unknown", "where the segments' circumferential origin came from is not recorded"),
+    1: ("prior", "no right ventricle was found in the images: the segments are placed by an anatomical "
+                 "prior (septum toward the patient's right), not tied to this heart's anatomy"),
+    2: ("detected", "the segments start at the RV insertion points found in the ED short-axis images"),
+    3: ("given", "the segments follow a reference direction given to the registration"),
+}
+
+
+def segment_origin_note(phases: Sequence[PhaseMetrics]) -> dict:
+    """Where the AHA segments' circumferential origin came from (the phases' ``segment_origin``,
+    the last phase's): ``source`` unknown / prior / detected / given, ``confidence`` and a
+    sentence ``note`` for the reader."""
+    last = phases[-1] if phases else None
+    code = int(getattr(last, "segment_origin", 0)) if last is not None else 0
+    source, note = _ORIGIN_NOTES.get(code, _ORIGIN_NOTES[0])
+    conf = float(getattr(last, "segment_origin_confidence", 0.0)) if last is not None else 0.0
+    if code == 2:
+        note += f" (confidence {conf:.2f})"
+    return {"source": source, "confidence": _f(conf), "note": note}
+
+
 def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=False) -> dict:
     """Key numbers of a run and a list of what is missing.
 
@@ -142,7 +164,8 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=Fal
         la_radius_es_mm, peak_global_err/ecc/ell), ``peak_segment_strain`` (17 each or
         None), ``segment_findings`` (per AHA segment: peak and ES strain with uncertainties,
         function index, wall-motion class and the thresholds used,
-        :meth:`mlv_ros.core.analysis.findings.Findings.to_dict`; None without strain) and
+        :meth:`mlv_ros.core.analysis.findings.Findings.to_dict`, plus ``segment_origin``,
+        :func:`segment_origin_note`; None without strain) and
         ``phases`` (every field of every phase). With ``twist_span`` known (see
         :class:`RunData`): ``twist_measured_levels`` and ``twist_extrapolated`` (a sentence, ''
         when nothing is), and ``key["extrapolated"]``: which of the twist keys (apex, base,
@@ -217,6 +240,7 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=Fal
         out["peak_segment_strain"] = {k: [_f(x) for x in v] for k, v in seg.items()}
         found = segment_findings(ph)
         out["segment_findings"] = found.to_dict()
+        out["segment_findings"]["segment_origin"] = segment_origin_note(ph)
         for kind in ("akinetic", "dyskinetic"):
             key[f"{kind}_segments"] = found.abnormal((kind,))
         for c in ("err", "ecc", "ell"):

@@ -5,7 +5,9 @@ Signal model (per sample point ``x`` of an image at trigger time ``t``)
 ``X = motion.inverse(x, t)`` is the ED material position of whatever sits at ``x``:
 
 * myocardium (``X`` inside the ED wall): ``M_myo · (E P(X) + 1 − E)``;
-* blood (``X`` in the cavity or atrium): ``M_blood`` — flow washes the tags out;
+* blood (``X`` in the cavity or atrium, or the RV's): ``M_blood`` — flow washes the tags out;
+* the RV free wall (:mod:`mlv_ros.core.sim.rv`, when the preset has ``geometry.rv``) is tagged
+  like myocardium;
 * background tissue (static, inside a sphere around the LV): ``M_bg · (E P(x) + 1 − E)``, or
   ``M_bg`` untagged with ``imaging.background_tagged: false``; air 0.
 
@@ -308,7 +310,7 @@ class ImageSynthesizer:
         r, _, z = f.to_local(self.pix)
         reach = np.abs(self.offsets).max()
         zmax = motion.length + motion.atrium_height
-        self.cand = np.flatnonzero((r < 1.15 * motion.max_radius + 3.0 + reach)
+        self.cand = np.flatnonzero((r < 1.15 * motion.reach_radius + 3.0 + reach)
                                    & (z > -3.0 - reach) & (z < zmax + 3.0 + reach))
         self.normal = g.normal
 
@@ -345,6 +347,9 @@ class ImageSynthesizer:
             X = self.motion.inverse(base + off * self.normal, phase)
             myo = self.motion.inside_myocardium(X)
             blood = self.motion.inside_blood(X)
+            if self.motion.rv is not None:  # the RV's wall is tagged, its blood is not
+                rv_wall, rv_blood = self.motion.inside_rv(X)
+                myo, blood = myo | rv_wall, blood | rv_blood
             val = np.where(myo, m_myo * (E * self._tags(X) + 1.0 - E),
                            np.where(blood, m_blood, bg))
             acc += w * val

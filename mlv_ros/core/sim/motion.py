@@ -49,6 +49,7 @@ from scipy.interpolate import PchipInterpolator
 
 from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.sim.regional import check_regions
+from mlv_ros.core.sim.rv import RightVentricle, check_rv
 
 # AHA segment centres in the local angle θ (deg, CCW from apex, 0 = mid-septum): basal and mid
 # rings 60° wide in the order anterior, anteroseptal, inferoseptal, inferior, inferolateral,
@@ -267,6 +268,12 @@ class LVMotion:
             self.regions.append(r)
         # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
         self._q_soft = 0.02 * (self.endo_a ** 2 if self.kind == "prolate" else self.r_in ** 2)
+        # Optional right ventricle (mlv_ros.core.sim.rv): seen in the images, not LV myocardium.
+        rv = check_rv(g.get("rv"))
+        self.rv = None if rv is None else RightVentricle(
+            rv, self.length, self.epi_radius, self.epi_a if self.kind == "prolate" else self.r_out)
+        #: Farthest any imaged tissue of the heart reaches from the long axis at ED, mm.
+        self.reach_radius = self.max_radius + (self.rv.extent_mm if self.rv is not None else 0.0)
 
     # ----------------------------------------------------------------- time course
     def activation(self, phase) -> np.ndarray:
@@ -342,6 +349,38 @@ class LVMotion:
         if self.atrium_height > 0:
             cav |= (z > self.length) & (z <= self.length + self.atrium_height) & (r < self.endo_a)
         return cav
+
+    def inside_rv(self, X_ed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(wall, blood)``: whether ED points ``X_ed`` (N, 3), mm, are RV free wall and RV
+        blood, each bool (N,) (all False without an RV; :mod:`mlv_ros.core.sim.rv`)."""
+        X = np.asarray(X_ed, dtype=np.float64).reshape(-1, 3)
+        if self.rv is None:
+            return np.zeros(len(X), bool), np.zeros(len(X), bool)
+        r, th, z = self.frame.to_local(X)
+        return self.rv.free_wall(r, th, z), self.rv.blood(r, th, z)
+
+    def rv_insertions(self) -> dict | None:
+        """The RV's true insertion points (None without an RV).
+
+        Returns
+        -------
+        dict
+            ``anterior_deg``, ``inferior_deg``: θ of the insertions in the local frame (deg, CCW
+            seen from the apex, 0 at ``frame.septum``); ``anterior_direction``,
+            ``inferior_direction``, ``septum_direction``: unit vectors ⟂ the long axis, LPS (the
+            septum's is the bisector of the two insertions).
+        """
+        if self.rv is None:
+            return None
+        f = self.frame
+        a, b = self.rv.insertions_deg
+
+        def direction(deg):
+            t = np.radians(deg)
+            return (np.cos(t) * f.septum + np.sin(t) * f.e2).tolist()
+        return {"anterior_deg": a, "inferior_deg": b, "anterior_direction": direction(a),
+                "inferior_direction": direction(b), "septum_direction": direction(0.5 * (a + b)),
+                "params": dict(self.rv.params)}
 
     def sample_myocardium(self, n: int, seed: int = 0) -> np.ndarray:
         """Uniform random ED myocardial points (rejection sampling in the bounding cylinder).

@@ -119,5 +119,8 @@ def validate_preset(preset: dict, source: str = "<preset>") -> None:
     if m.get("regions") is not None:
         from mlv_ros.core.sim.regional import check_regions  # (overlap with an infarct: LVMotion)
         check_regions(m["regions"], g, where=f"{source}: motion.regions")
+    if g.get("rv") is not None:
+        from mlv_ros.core.sim.rv import check_rv
+        check_rv(g["rv"], where=f"{source}: geometry.rv")
     if int(im["sa_slices"]) < 2 or int(im["subplanes"]) < 1 or int(im["size"]) < 16:
         raise ValueError(f"{source}: imaging needs sa_slices >= 2, subplanes >= 1, size >= 16")

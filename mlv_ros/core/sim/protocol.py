@@ -216,6 +216,9 @@ _ITEMS = [
          "hypokinetic 0.1 … 0.9, akinetic −0.1 … 0.1, dyskinetic −1 … −0.1, optional blend_deg "
          "5 … 60 and blend_fraction 0.02 … 0.2; sectors above the apex tip; regions apart "
          "(blends included, and from the infarct shape's own segment)", _regions),
+    Item("right_ventricle", "a right ventricle (mlv_ros/core/sim/rv.py): blood crescent and thin "
+         "tagged free wall on the septal side, insertions 120° apart about the septum direction",
+         "true (75 %) | false", "true | false", _bool),
     # tag grid
     Item("tag_angle_deg", "in-plane grid rotation from the image rows, deg", "0 ≤ x < 180",
          "0 ≤ x < 180", _float(0.0, 180.0, True)),
@@ -384,6 +387,7 @@ def default_protocol(shape: str = "normal") -> dict:
     return {
         "shape": shape, "long_axis": [float(x) for x in o["long_axis"]], "septum_deg": 0.0,
         "base_centre_mm": [float(x) for x in o["base_centre_mm"]], "abnormal_regions": [],
+        "right_ventricle": bool(p["geometry"].get("rv")),
         "tag_angle_deg": float(im.get("tag_angle_deg", 0.0)),
         "tag_spacing_mm": float(im["tag_spacing_mm"]),
         "pixel_spacing_mm": float(im["pixel_spacing_mm"]), "size": int(im["size"]),
@@ -640,6 +644,7 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     pick("septum_deg", lambda r: _uniform(r, 0.0, 360.0, 2) % 360.0)
     pick("base_centre_mm", lambda r: [_uniform(r, -50.0, 50.0, 1) for _ in range(3)])
     pick("abnormal_regions", lambda r: _draw_regions(r, p["shape"]))
+    pick("right_ventricle", lambda r: bool(r.random() < 0.75))
     pick("tag_angle_deg", lambda r: _uniform(r, 0.0, 180.0, 2) % 180.0)
     pick("pixel_spacing_mm", lambda r: _uniform(r, 1.0, 2.0, 3))
     dx = p["pixel_spacing_mm"]
@@ -756,6 +761,10 @@ def protocol_preset(protocol: dict) -> dict:
         o["septum_hint"] = _septum_hint(o["septum_hint"], p["long_axis"], p["septum_deg"])
     m["num_phases"] = p["num_phases"]
     m["cycle_duration_s"] = p["cycle_duration_s"]
+    if p["right_ventricle"]:
+        preset["geometry"]["rv"] = preset["geometry"].get("rv") or {}
+    else:
+        preset["geometry"].pop("rv", None)
     if p["abnormal_regions"]:
         m["regions"] = [dict(r) for r in p["abnormal_regions"]]
     stack = (p["sa_slices"] - 1) * p["sa_spacing_mm"]
