@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import (ControlPoints, GlobalParameters, MeshlessModel, ModelCoordinates,
                                    ModelFrame, plane_projectors, polar_frame, quat_to_matrix)
-from mlv_ros.core.meshless.local import LocalOperators
+from mlv_ros.core.meshless.local import CoarseSpace, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
 from mlv_ros.core.verdict import phase_verdict
@@ -37,6 +37,9 @@ SliceKey = tuple  # (view, slice_index)
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
 # slices spanning this fraction of the LV's height, and extrapolated this far beyond them.
 TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
+# The local stage's coarse space (MotionTracker's coarse_aggregates): one aggregate per this many
+# particles, at most this many aggregates (12 coarse unknowns each; a dense Cholesky per solve).
+COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
 
 
 def data_weights(confidence) -> np.ndarray:
@@ -189,6 +192,11 @@ class MotionTracker:
     confidence_weights : bool
         Weight each tag point's spring by :func:`data_weights` of its detection confidence
         (False: all points alike).
+    coarse_aggregates : int, optional
+        Aggregates of the local stage's coarse space
+        (:class:`~mlv_ros.core.meshless.local.CoarseSpace`, built once with the model; 0 =
+        block-Jacobi alone). Default: one per ``COARSE_PARTICLES`` particles, at most
+        ``COARSE_MAX_AGGREGATES``. It changes only how fast CG converges, not what it converges to.
     """
 
     def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
@@ -196,7 +204,8 @@ class MotionTracker:
                  max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
                  hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
                  longitudinal_weight: float = 3.0e3, global_prior: float = 1.0, twist_knots: int = 11,
-                 twist_smoothing: float = 0.3, confidence_weights: bool = True):
+                 twist_smoothing: float = 0.3, confidence_weights: bool = True,
+                 coarse_aggregates: int | None = None):
         why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
         if why:
             raise ValueError(f"twist_knots {twist_knots}: {why}")
@@ -235,6 +244,7 @@ class MotionTracker:
         ph, lam, mu = self.model.phyxels, self.model.lam, self.model.mu
         self._local = LocalOperators(self.model.operator, ph.volume, lam, mu, 1.0 / ph.wij.max())
         self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (mu + (mu + lam) / 3.0)
+        self.data_weight, self.hourglass_weight = float(data_weight), hourglass_weight
         self.outlier_mm = 3.0
         self.prescreen = True
         self.rejected = 0
@@ -255,6 +265,17 @@ class MotionTracker:
         self.normals: dict = {}    # (view, slice) → (normal (3,), point on plane (3,))
         self.offsets: dict = {}    # (view, slice, track_id) → s, mm along the normal
         self.last_phase = 0
+        if coarse_aggregates is None:
+            coarse_aggregates = min(COARSE_MAX_AGGREGATES, self.rest.shape[0] // COARSE_PARTICLES)
+        if not isinstance(coarse_aggregates, (int, np.integer)) or coarse_aggregates < 0:
+            raise ValueError(f"coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got {coarse_aggregates}")
+        self._coarse = None
+        if coarse_aggregates:
+            # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
+            kappa, alpha = self._multipliers()
+            self._coarse = CoarseSpace(self._local, min(int(coarse_aggregates), self.rest.shape[0]),
+                                       fit_error=alpha, volume_weight=self.volume_weight * mu,
+                                       axial=(self.longitudinal_weight * mu, quat_to_matrix(self.model.rest_params.rotation)[:, 2]), eps=1e-6 * kappa)
 
     @property
     def num_particles(self) -> int:
@@ -397,6 +418,13 @@ class MotionTracker:
                              residual_mm, float(np.median(spacing)) if spacing else 0.0,
                              rejected=int(rejected), candidates=int(attached))
 
+    def _multipliers(self) -> tuple[float, float]:
+        """The data springs' κ and the fit-error penalty's multiplier, both scaled against the
+        median elastic diagonal."""
+        kscale = float(np.median(self._kdiag))
+        return (self.data_weight * kscale,
+                self.hourglass_weight * kscale / max(float(np.median(self._local.fit_error_diagonal)), 1e-300))
+
     def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None):
         """Local deformation δ (paper: internal forces act on the local part only) at elastic
         equilibrium under the in-plane tag forces: minimise
@@ -423,9 +451,7 @@ class MotionTracker:
             δ, mm.
         """
         op, mu = self.model.operator, self.model.mu
-        kscale = float(np.median(self._kdiag))
-        kappa = self.data_weight * kscale
-        alpha = self.hourglass_weight * kscale / max(float(np.median(self._local.fit_error_diagonal)), 1e-300)
+        kappa, alpha = self._multipliers()
         # Near-incompressibility of the whole deformation (myocardium keeps its volume): the
         # linearised volume change of F = F_g + ∇δ, J_g (1 + F_g⁻ᵀ : ∇δ) − 1, is penalised.
         Fg = np.eye(3) + op.gradient(x_global - self.rest)
@@ -438,7 +464,7 @@ class MotionTracker:
         P = plane_projectors(normals, len(normals)) * control_weights(weights, len(targets))[:, None, None]
         system = self._local.system(fit_error=alpha, volume=(self.volume_weight * mu, C, Jg - 1.0),
                                     axial=(self.longitudinal_weight * mu, ax), data=(kappa, phi, P),
-                                    eps=1e-6 * kappa)
+                                    eps=1e-6 * kappa, coarse=self._coarse)
         r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
         rhs = kappa * (phi.T @ r) + system.constant_force()
         delta, its = system.solve(rhs, self.delta, rtol=self.cg_rtol if rtol is None else rtol,
