@@ -384,7 +384,7 @@ class MotionTracker:
                 self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global,
                                                weights[inside], rtol=rtol)
                 self.positions = x_global + self.delta
-            offsets = self._follow_slices(offsets, rest, normals, targets, inside)
+            offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
             if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
                 worst = (self.rejected - rejected_before, attached)
         for k, s in zip(keys, offsets):
@@ -536,13 +536,41 @@ class MotionTracker:
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
         return r > max(self.outlier_mm, med + 5.0 * sigma)
 
-    def _follow_slices(self, offsets, rest, normals, targets, inside):
+    def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):
         """Newton step on s per control point: bring the model position of the material line
-        ``p0 + s n`` back onto the image plane (the plane through the measured target)."""
+        ``p0 + s n`` back onto the image plane (the plane through the measured target).
+
+        ``ctrl``: the pass's attachment of ``p0 + s n`` for the points ``inside`` (in their order),
+        reused for the base positions (an attachment is per point, so it equals attaching them
+        again); only the probes 1 mm along the normals are attached here.
+        """
         new = offsets.copy()
         idx = np.flatnonzero(inside)
         if idx.size == 0:
             return new
+        n = normals[idx]
+        base = rest[idx] + offsets[idx, None] * n
+        probe = base + n  # +1 mm along the normal
+        if ctrl is not None and len(ctrl) == idx.size:
+            x0 = ctrl.weights @ self.positions  # base points are inside: attached by the pass
+            x1 = np.full(probe.shape, np.nan)
+            ok = self._tree.query(probe)[0] <= self.max_attach_mm
+            if ok.any():
+                x1[ok] = self.model.attach(probe[ok]).weights @ self.positions
+        else:
+            pos = np.concatenate([base, probe])  # one attachment for both (each point is independent)
+            ok = self._tree.query(pos)[0] <= self.max_attach_mm
+            out = np.full(pos.shape, np.nan)
+            if ok.any():
+                out[ok] = self.model.attach(pos[ok]).weights @ self.positions
+            x0, x1 = out[:idx.size], out[idx.size:]
+        f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
+        df = np.einsum("ij,ij->i", x1 - x0, n)
+        good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
+        step = np.zeros(idx.size)
+        step[good] = -f0[good] / df[good]
+        new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
+        return new
         n = normals[idx]
         base = rest[idx] + offsets[idx, None] * n
         probe = base + n  # +1 mm along the normal
