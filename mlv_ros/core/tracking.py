@@ -536,6 +536,15 @@ class MotionTracker:
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
         return r > max(self.outlier_mm, med + 5.0 * sigma)
 
+    def _model_at(self, points) -> np.ndarray:
+        """Current model positions of rest points (M, 3), NaN for those farther than
+        ``max_attach_mm`` from every particle."""
+        out = np.full(points.shape, np.nan)
+        ok = self._tree.query(points)[0] <= self.max_attach_mm
+        if ok.any():
+            out[ok] = self.model.attach(points[ok]).weights @ self.positions
+        return out
+
     def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):
         """Newton step on s per control point: bring the model position of the material line
         ``p0 + s n`` back onto the image plane (the plane through the measured target).
@@ -552,17 +561,9 @@ class MotionTracker:
         base = rest[idx] + offsets[idx, None] * n
         probe = base + n  # +1 mm along the normal
         if ctrl is not None and len(ctrl) == idx.size:
-            x0 = ctrl.weights @ self.positions  # base points are inside: attached by the pass
-            x1 = np.full(probe.shape, np.nan)
-            ok = self._tree.query(probe)[0] <= self.max_attach_mm
-            if ok.any():
-                x1[ok] = self.model.attach(probe[ok]).weights @ self.positions
+            x0, x1 = ctrl.weights @ self.positions, self._model_at(probe)  # base points: inside
         else:
-            pos = np.concatenate([base, probe])  # one attachment for both (each point is independent)
-            ok = self._tree.query(pos)[0] <= self.max_attach_mm
-            out = np.full(pos.shape, np.nan)
-            if ok.any():
-                out[ok] = self.model.attach(pos[ok]).weights @ self.positions
+            out = self._model_at(np.concatenate([base, probe]))  # each point is independent
             x0, x1 = out[:idx.size], out[idx.size:]
         f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
         df = np.einsum("ij,ij->i", x1 - x0, n)
