@@ -6,9 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from mlv_ros.core import tracking
 from mlv_ros.core.meshless import MeshlessModel, cylindrical_frame, elastic
+from mlv_ros.core.meshless.local import CoarseSpace, farthest_point_aggregates
 from mlv_ros.core.phantom import H_CYL, R_OUTER, control_subset, deform, sample_cylinder_shell
 from mlv_ros.core.sim import simulate_study
 from test_tracking import observed, referenced_tracker
@@ -76,3 +78,95 @@ def test_paper_model_fit_matches_the_reference_local_stage():
     rms_new, rms_old = (float(np.sqrt(np.mean(np.sum((r.positions - y) ** 2, axis=1)))) for r in (new, old))
     assert abs(rms_new - rms_old) < 1e-3, (rms_new, rms_old)
     assert np.median(np.linalg.norm(new.positions - old.positions, axis=1)) < 0.02
+
+
+def _coarse_basis(coarse, n):
+    """The vector basis ``Z = Z_s ⊗ I₃`` as a dense (N, 3, 3Q) array (coarse index e·Q + q)."""
+    q, zs = coarse.num_basis, coarse.basis.toarray()
+    z = np.zeros((n, 3, 3 * q))
+    for e in range(3):
+        z[:, e, e * q:(e + 1) * q] = zs
+    return z
+
+
+def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(study):
+    """The coarse matrix assembled from sparse products equals ``Zᵀ A Z`` taken column by column
+    through the system's own matrix–vector product (every term: elasticity, volume at rest, axial,
+    fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``."""
+    _, tr, _ = referenced_tracker(study, n=800, coarse_aggregates=0)
+    ops, n, rng = tr._local, tr.num_particles, np.random.default_rng(3)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    coarse = CoarseSpace(ops, 6, fit_error=3.0, volume_weight=50.0, axial=(7.0, axis), eps=0.1)
+    m = 40
+    phi = sp.random(m, n, density=0.02, random_state=1, format="csr")
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    metric = (np.eye(3) - nrm[:, :, None] * nrm[:, None, :]) * rng.uniform(0.5, 2.0, m)[:, None, None]
+    system = ops.system(fit_error=3.0, volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
+                        axial=(7.0, axis), data=(5.0, phi, metric), eps=0.1)
+    z = _coarse_basis(coarse, n)
+    az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
+    galerkin = np.einsum("nec,ned->cd", z, az)
+    r = rng.normal(size=(n, 3))
+    want = np.einsum("nec,c->ne", z, np.linalg.solve(galerkin, np.einsum("nec,ne->c", z, r)))
+    got = coarse.factor((5.0, phi, metric))(r)
+    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+    # internal part alone (no data): the same against the system without springs
+    system = ops.system(fit_error=3.0, volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
+                        axial=(7.0, axis), eps=0.1)
+    az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
+    np.testing.assert_allclose(coarse.internal, np.einsum("nec,ned->cd", z, az),
+                               atol=1e-12 * np.abs(coarse.internal).max())
+
+
+def test_coarse_correction_keeps_the_solution_and_cuts_cg_iterations(study, monkeypatch):
+    """Two-level PCG converges to block-Jacobi's solution (tight tolerance), and at the
+    tracker's tolerance in fewer iterations, on the tracker's own systems at ES."""
+    m = study.motion
+    _, tr, refs = referenced_tracker(study, n=800)
+    assert tr._coarse is not None
+    systems, build = [], tr._local.system
+
+    def keep(**kw):
+        systems.append(kw)
+        return build(**kw)
+
+    monkeypatch.setattr(tr._local, "system", keep)
+    tr.solve(int(round(m.es_phase)), observed(study, refs, int(round(m.es_phase))), m.num_phases)
+    its_bj = its_two = 0
+    for kw in systems:
+        with_coarse = build(**kw)
+        plain = build(**{k: v for k, v in kw.items() if k != "coarse"})
+        b = np.sin(tr.rest / 7.0) * kw["data"][0]
+        exact, _ = plain.solve(b, rtol=1e-10, maxiter=5000)
+        two, _ = with_coarse.solve(b, rtol=1e-10, maxiter=5000)
+        np.testing.assert_allclose(two, exact, atol=1e-6 * np.abs(exact).max())
+        its_bj += plain.solve(b, rtol=1e-3)[1]
+        its_two += with_coarse.solve(b, rtol=1e-3)[1]
+    assert len(systems) == 2
+    assert its_two < 0.7 * its_bj, (its_two, its_bj)
+
+
+def test_aggregates_cover_the_cloud_and_degenerate_ones_drop_directions():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(500, 3)) * [30.0, 20.0, 10.0]
+    agg = farthest_point_aggregates(x, 16)
+    assert agg.shape == (500,) and set(agg.tolist()) == set(range(16))
+    np.testing.assert_array_equal(agg, farthest_point_aggregates(x, 16))  # deterministic
+    for bad in (0, 501):
+        with pytest.raises(ValueError, match="num_aggregates"):
+            farthest_point_aggregates(x, bad)
+
+    # a flat cloud: no aggregate spans z, so each keeps 1, x, y, orthonormal over its particles
+    from mlv_ros.core.meshless.kernel import build_phyxels
+    from mlv_ros.core.meshless.local import LocalOperators
+    from mlv_ros.core.meshless.mls import MLSOperator
+
+    g = np.mgrid[0:20, 0:20].reshape(2, -1).T * 1.5
+    flat = np.concatenate([g, np.zeros((len(g), 1))], axis=1)
+    ph = build_phyxels(flat)
+    coarse = CoarseSpace(LocalOperators(MLSOperator(ph), ph.volume, 1.0, 1.0, 1.0), 8, eps=1.0)
+    assert coarse.num_basis == 3 * 8
+    np.testing.assert_allclose((coarse.basis.T @ coarse.basis).toarray(), np.eye(24), atol=1e-10)
+    r = np.random.default_rng(1).normal(size=(len(flat), 3))
+    assert np.all(np.isfinite(coarse.factor()(r)))
