@@ -10,20 +10,22 @@ studies without the graph (seconds to a minute per study instead of minutes).
     python bench/retrack.py CASE_DIR [CASE_DIR ...]     # CASE_DIR holds run/run.mcap and study/
 
 Prints one JSON line per case: ES median / p95 (mm), twist error (all levels and where SA slices
-are), phases solved / degraded / failed, worst phase median, seconds, and for a study with
-regional abnormalities (``groundtruth.json`` ``regional``) the ES median / p95 3D error of each
-abnormal AHA segment (the truth's segments).
+are), phases solved / degraded / failed, worst phase median, seconds, and the ES median / p95 3D
+error of the worst AHA segment and of each abnormal one (the truth's segments,
+``groundtruth.json`` ``regional``).
 
 ``--ideal`` replaces every tracked point by where the truth puts it (its ED material line, the
 line through its ED position along the slice normal, crossing the image plane at that phase):
-the same tracks, none of their tracking error. Solving those separates what the tracker loses
-from what the solver does with perfect tag points.
+the same tracks, none of their tracking error. ``--ideal every-track`` also keeps every ED
+track at every phase (a tracker that loses nothing). Solving those separates what the tracker
+loses from what the solver does with perfect tag points.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import sys
 import time
@@ -108,12 +110,15 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
     return tr, positions, verdicts
 
 
-def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25) -> tuple[dict, int]:
+def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25,
+                  every_track: bool = False) -> tuple[dict, int]:
     """``sets`` with every tracked point moved to where the truth puts it (see the module
     docstring): the crossing of its ED material line ``p0 + s n`` with the image plane nearest
     ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly. Points whose
     line does not cross the plane within reach, and tracks without an ED point, keep their
-    measured position. Returns the new sets and how many points kept theirs."""
+    measured position. ``every_track``: every ED track at every phase (a tracker that loses
+    nothing), those whose line does not cross left out. Returns the new sets and how many points
+    kept their measured position (or were left out)."""
     ed = {key: dict(zip(map(int, pts.track_id), pts.position)) for key, pts in sets.get(0, {}).items()}
     s = np.arange(-reach_mm, reach_mm + 0.5 * step_mm, step_mm)
     out, kept = {0: sets.get(0, {})}, 0
@@ -121,8 +126,10 @@ def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0
         if phase == 0:
             continue
         out[phase] = {}
-        for key, pts in by_key.items():
+        for key, pts in (sets[0] if every_track else by_key).items():
             new = copy.copy(pts)
+            if every_track:
+                new.phase_index = phase
             ref = ed.get(key, {})
             has = np.array([int(t) in ref for t in pts.track_id], dtype=bool)
             pos = np.array(pts.position, dtype=np.float64, copy=True)
@@ -143,34 +150,49 @@ def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0
                 kept += int((~ok).sum())
             kept += int((~has).sum())
             new.position = pos
+            if every_track and has.any() and not ok.all():
+                new = _subset(new, np.flatnonzero(has)[ok])
             out[phase][key] = new
     return out, kept
 
 
-def abnormal_segment_errors(case: Path, rest, positions, motion) -> dict:
-    """ES median / p95 3D error (mm) of each abnormal AHA segment of the truth (its own frame)."""
+def _subset(pts, rows):
+    """``pts`` with only the points ``rows`` (every per-point array indexed alike)."""
+    return dataclasses.replace(pts, pixel_rc=pts.pixel_rc[rows], position=pts.position[rows],
+                               track_id=pts.track_id[rows],
+                               confidence=pts.confidence[rows] if len(pts.confidence) else pts.confidence)
+
+
+def segment_errors(case: Path, rest, positions, motion) -> dict:
+    """ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
+    ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``."""
     from mlv_ros.core.sim.regional import truth_segments
 
     gt = json.loads((case / "study" / "groundtruth.json").read_text()).get("regional") or {}
     es = int(gt.get("phase", -1))
-    abnormal = [(sg["segment"], sg["class"]) for sg in gt.get("segments", ()) if sg["class"] != "normal"]
-    if not abnormal or es not in positions:
+    if es not in positions:
         return {}
     seg = truth_segments(motion, rest)
     err = np.linalg.norm(positions[es] - motion.position(rest, es), axis=1)
-    return {f"segment_{k}_{cls}": [round(float(np.median(err[seg == k])), 3),
-                                   round(float(np.percentile(err[seg == k], 95)), 3)]
-            for k, cls in abnormal if np.any(seg == k)}
+
+    def stats(k):
+        return [round(float(np.median(err[seg == k])), 3), round(float(np.percentile(err[seg == k], 95)), 3)]
+
+    present = [k for k in range(1, 18) if np.any(seg == k)]
+    worst = max(present, key=lambda k: float(np.median(err[seg == k])))
+    return {"worst_segment": [worst, *stats(worst)],
+            **{f"segment_{sg['segment']}_{sg['class']}": stats(sg["segment"]) for sg in gt.get("segments", ())
+               if sg["class"] != "normal" and sg["segment"] in present}}
 
 
-def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: bool = False) -> dict:
+def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / "run" / "run.mcap")
     sets = track(frames, **(tracker_kwargs or {}))
     truth = motion_from_groundtruth(case / "study")
     not_ideal = None
     if ideal:
-        sets, not_ideal = ideal_targets(sets, truth)
+        sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == "every-track")
     t1 = time.monotonic()
     tr, positions, verdicts = solve(sets, cloud, state, **(solver_kwargs or {}))
     sa_planes = [(p.geometry.image_position, p.geometry.normal) for (v, _), p in sets.get(0, {}).items()
@@ -178,7 +200,7 @@ def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: bool
     run = {"ed": tr.rest, "rotation": state.rotation, "positions": positions, "sa_planes": sa_planes}
     acc = _accuracy(run, truth)
     es = acc["es"] or {}
-    return {"case": case.name, **({"ideal": True, "points_not_ideal": not_ideal} if ideal else {}),
+    return {"case": case.name, **({"ideal": ideal, "points_not_ideal": not_ideal} if ideal else {}),
             **{k: round(es[k], 3) for k in ("median_mm", "p95_mm", "twist_error_deg", "twist_error_measured_deg")
                if k in es},
             "coverage": round(acc["coverage"], 3),
@@ -186,7 +208,7 @@ def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: bool
             "degraded": sorted(p for p, (v, _) in verdicts.items() if OK < v < FAILED),
             "failed": sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
             "worst_phase_median_mm": round(max(r["median_mm"] for r in acc["per_phase"]), 3),
-            **abnormal_segment_errors(case, tr.rest, positions, truth),
+            **segment_errors(case, tr.rest, positions, truth),
             "track_s": round(t1 - t0, 1), "solve_s": round(time.monotonic() - t1, 1)}
 
 
@@ -197,8 +219,9 @@ def main():
                     help="SliceTracker keyword (a number or true/false), repeatable")
     ap.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
                     help="MotionTracker keyword (a number or true/false), repeatable")
-    ap.add_argument("--ideal", action="store_true",
-                    help="replace the tracked points by where the truth puts them (no tracking error)")
+    ap.add_argument("--ideal", nargs="?", const="tracks", choices=("tracks", "every-track"), default=None,
+                    help="replace the tracked points by where the truth puts them (no tracking error); "
+                         "every-track: every ED track at every phase as well (no track lost)")
     args = ap.parse_args()
     kw = [{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in opts)} for opts in (args.tracker, args.solver)]
     for case in args.cases:
