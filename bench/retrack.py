@@ -10,12 +10,22 @@ studies without the graph (seconds to a minute per study instead of minutes).
     python bench/retrack.py CASE_DIR [CASE_DIR ...]     # CASE_DIR holds run/run.mcap and study/
 
 Prints one JSON line per case: ES median / p95 (mm), twist error (all levels and where SA slices
-are), phases solved / degraded / failed, worst phase median, seconds.
+are), phases solved / degraded / failed, worst phase median, seconds, and the ES median / p95 3D
+error of the worst AHA segment and of each abnormal one (the truth's segments,
+``groundtruth.json`` ``regional``).
+
+``--ideal`` replaces every tracked point by where the truth puts it (its ED material line, the
+line through its ED position along the slice normal, crossing the image plane at that phase):
+the same tracks, none of their tracking error. ``--ideal every-track`` also keeps every ED
+track at every phase (a tracker that loses nothing). Solving those separates what the tracker
+loses from what the solver does with perfect tag points.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
 import json
 import sys
 import time
@@ -100,18 +110,97 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
     return tr, positions, verdicts
 
 
-def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None) -> dict:
+def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25,
+                  every_track: bool = False) -> tuple[dict, int]:
+    """``sets`` with every tracked point moved to where the truth puts it (see the module
+    docstring): the crossing of its ED material line ``p0 + s n`` with the image plane nearest
+    ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly. Points whose
+    line does not cross the plane within reach, and tracks without an ED point, keep their
+    measured position. ``every_track``: every ED track at every phase (a tracker that loses
+    nothing), those whose line does not cross left out. Returns the new sets and how many points
+    kept their measured position (or were left out)."""
+    ed = {key: dict(zip(map(int, pts.track_id), pts.position)) for key, pts in sets.get(0, {}).items()}
+    s = np.arange(-reach_mm, reach_mm + 0.5 * step_mm, step_mm)
+    out, kept = {0: sets.get(0, {})}, 0
+    for phase, by_key in sets.items():
+        if phase == 0:
+            continue
+        out[phase] = {}
+        for key, pts in (sets[0] if every_track else by_key).items():
+            new = copy.copy(pts)
+            if every_track:
+                new.phase_index = phase
+            ref = ed.get(key, {})
+            has = np.array([int(t) in ref for t in pts.track_id], dtype=bool)
+            pos = np.array(pts.position, dtype=np.float64, copy=True)
+            if has.any():
+                n = pts.geometry.normal
+                p0 = np.array([ref[int(t)] for t in pts.track_id[has]])
+                line = motion.position((p0[:, None, :] + s[None, :, None] * n).reshape(-1, 3),
+                                       phase).reshape(len(p0), s.size, 3)
+                f = (line - p0[:, None, :]) @ n                  # signed distance to the plane, mm
+                cross = np.diff(np.sign(f), axis=1) != 0
+                j = np.argmin(np.where(cross, np.abs(s[:-1]), np.inf), axis=1)
+                ok = cross[np.arange(len(p0)), j]
+                r = np.arange(len(p0))
+                a = (f[r, j] / np.where(ok, f[r, j] - f[r, j + 1], 1.0))[:, None]
+                crossing = line[r, j] + a * (line[r, j + 1] - line[r, j])
+                rows = np.flatnonzero(has)
+                pos[rows[ok]] = crossing[ok]
+                kept += int((~ok).sum())
+            kept += int((~has).sum())
+            new.position = pos
+            if every_track and has.any() and not ok.all():
+                new = _subset(new, np.flatnonzero(has)[ok])
+            out[phase][key] = new
+    return out, kept
+
+
+def _subset(pts, rows):
+    """``pts`` with only the points ``rows`` (every per-point array indexed alike)."""
+    return dataclasses.replace(pts, pixel_rc=pts.pixel_rc[rows], position=pts.position[rows],
+                               track_id=pts.track_id[rows],
+                               confidence=pts.confidence[rows] if len(pts.confidence) else pts.confidence)
+
+
+def segment_errors(case: Path, rest, positions, motion) -> dict:
+    """ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
+    ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``."""
+    from mlv_ros.core.sim.regional import truth_segments
+
+    gt = json.loads((case / "study" / "groundtruth.json").read_text()).get("regional") or {}
+    es = int(gt.get("phase", -1))
+    if es not in positions:
+        return {}
+    seg = truth_segments(motion, rest)
+    err = np.linalg.norm(positions[es] - motion.position(rest, es), axis=1)
+
+    def stats(k):
+        return [round(float(np.median(err[seg == k])), 3), round(float(np.percentile(err[seg == k], 95)), 3)]
+
+    present = [k for k in range(1, 18) if np.any(seg == k)]
+    worst = max(present, key=lambda k: float(np.median(err[seg == k])))
+    return {"worst_segment": [worst, *stats(worst)],
+            **{f"segment_{sg['segment']}_{sg['class']}": stats(sg["segment"]) for sg in gt.get("segments", ())
+               if sg["class"] != "normal" and sg["segment"] in present}}
+
+
+def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / "run" / "run.mcap")
     sets = track(frames, **(tracker_kwargs or {}))
+    truth = motion_from_groundtruth(case / "study")
+    not_ideal = None
+    if ideal:
+        sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == "every-track")
     t1 = time.monotonic()
     tr, positions, verdicts = solve(sets, cloud, state, **(solver_kwargs or {}))
     sa_planes = [(p.geometry.image_position, p.geometry.normal) for (v, _), p in sets.get(0, {}).items()
                  if v == TaggedFrame.VIEW_SA and len(p.track_id)]
     run = {"ed": tr.rest, "rotation": state.rotation, "positions": positions, "sa_planes": sa_planes}
-    acc = _accuracy(run, motion_from_groundtruth(case / "study"))
+    acc = _accuracy(run, truth)
     es = acc["es"] or {}
-    return {"case": case.name,
+    return {"case": case.name, **({"ideal": ideal, "points_not_ideal": not_ideal} if ideal else {}),
             **{k: round(es[k], 3) for k in ("median_mm", "p95_mm", "twist_error_deg", "twist_error_measured_deg")
                if k in es},
             "coverage": round(acc["coverage"], 3),
@@ -119,6 +208,7 @@ def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None) -> dict:
             "degraded": sorted(p for p, (v, _) in verdicts.items() if OK < v < FAILED),
             "failed": sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
             "worst_phase_median_mm": round(max(r["median_mm"] for r in acc["per_phase"]), 3),
+            **segment_errors(case, tr.rest, positions, truth),
             "track_s": round(t1 - t0, 1), "solve_s": round(time.monotonic() - t1, 1)}
 
 
@@ -129,10 +219,13 @@ def main():
                     help="SliceTracker keyword (a number or true/false), repeatable")
     ap.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
                     help="MotionTracker keyword (a number or true/false), repeatable")
+    ap.add_argument("--ideal", nargs="?", const="tracks", choices=("tracks", "every-track"), default=None,
+                    help="replace the tracked points by where the truth puts them (no tracking error); "
+                         "every-track: every ED track at every phase as well (no track lost)")
     args = ap.parse_args()
     kw = [{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in opts)} for opts in (args.tracker, args.solver)]
     for case in args.cases:
-        print(json.dumps(replay_case(case, *kw) | ({"tracker": kw[0]} if kw[0] else {})
+        print(json.dumps(replay_case(case, *kw, ideal=args.ideal) | ({"tracker": kw[0]} if kw[0] else {})
                          | ({"solver": kw[1]} if kw[1] else {})), flush=True)
 
 

@@ -199,6 +199,7 @@ def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
 
 
 @pytest.mark.parametrize("option", [{"longitudinal_weight": -1.0}, {"longitudinal_weight": float("nan")},
+                                    {"longitudinal_coupling": -0.1}, {"longitudinal_coupling": float("nan")},
                                     {"global_prior": -0.5}, {"global_prior": float("inf")}])
 def test_bad_solver_weights_are_clear_errors(study, option):
     with pytest.raises(ValueError, match=next(iter(option))):
@@ -243,3 +244,30 @@ def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
         solutions.append(sol.positions)
     assert list(observed(study, refs, 2)) != list(observed(study, refs, 2))[::-1]  # the premise: two orders
     np.testing.assert_array_equal(solutions[0], solutions[1])
+
+
+def test_longitudinal_coupling_follows_an_akinetic_sector():
+    """The infarct phantom's akinetic sector (levels 0.4-0.7, AHA 7): SA tags see it not
+    shortening around the axis, only three LA planes see anything along it. Coupled, the local
+    longitudinal strain follows the circumferential one, and the basal wall above the sector
+    (AHA 1) stops descending with the rest of the base: from exact tags its ES median error falls
+    from 1.61 to 1.37 mm (measured), the p95 from 1.93 to 1.77 mm."""
+    from mlv_ros.core.sim.regional import truth_segments
+
+    study = simulate_study("infarct", snr=20, quick=True)
+    m = study.motion
+    refs = grid_tags(study)
+    es = int(round(m.es_phase))
+    err = {}
+    for coupling in (0.0, 0.5):
+        X, tr = make_tracker(study, n=2000, longitudinal_coupling=coupling)
+        for key, g in study.geometries.items():
+            tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+        for phase in range(1, es + 1):
+            sol = tr.solve(phase, observed(study, refs, phase), m.num_phases)
+        err[coupling] = np.linalg.norm(sol.positions - m.position(X, es), axis=1)
+    basal = truth_segments(m, X) == 1
+    assert np.median(err[0.5][basal]) < 0.9 * np.median(err[0.0][basal]), (
+        np.median(err[0.0][basal]), np.median(err[0.5][basal]))
+    assert np.percentile(err[0.5], 95) < np.percentile(err[0.0], 95)
+    assert np.median(err[0.5]) < np.median(err[0.0]) + 0.05

@@ -175,6 +175,18 @@ class MotionTracker:
         LA track constrains it: at the free basal end above the last SA slice the wall was
         pushed up to 20 mm toward the atria (randomized protocols whose LA tracks faded on one
         side). With it, the volume is kept by thickening, as the myocardium keeps it.
+    longitudinal_coupling : float
+        0 (default) keeps the axial term on the local longitudinal strain alone. κ > 0 couples it
+        to the local circumferential strain: the term then holds ``E_ll − ρ E_cc`` of the local
+        deformation, ρ = κ × the heart's own global E_ll / E_cc at this phase, so a region the SA
+        tags show not shortening around the axis does not shorten along it either. Only LA
+        planes measure longitudinal motion, at a few angles; without the coupling an akinetic
+        sector between them is given its neighbours' shortening, thickens by incompressibility,
+        and the basal wall above it descends with the rest of the base. Measured, off against
+        0.5 (``bench/retrack.py CASE --solver longitudinal_coupling=0.5``, ES median / p95 mm):
+        akinetic 1012 0.75 / 2.88 → 0.86 / 2.33, 2006 0.42 / 2.65 → 0.45 / 2.24; healthy 1001
+        0.47 / 1.06 → 0.49 / 1.07, 1007 0.61 / 1.41 → 0.67 / 1.48. Opt-in until measured over the
+        whole robustness bench and the presets.
     global_prior : float
         Weight of the prior that holds the global parameters at the previous phase
         (:meth:`MeshlessModel.fit`'s ``global_prior``): with few or one-sided tag points a weakly
@@ -205,7 +217,7 @@ class MotionTracker:
                  hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
                  longitudinal_weight: float = 3.0e3, global_prior: float = 1.0, twist_knots: int = 11,
                  twist_smoothing: float = 0.3, confidence_weights: bool = True,
-                 coarse_aggregates: int | None = None):
+                 coarse_aggregates: int | None = None, longitudinal_coupling: float = 0.0):
         why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
         if why:
             raise ValueError(f"twist_knots {twist_knots}: {why}")
@@ -256,6 +268,9 @@ class MotionTracker:
         if not 0.0 <= longitudinal_weight < 1e12:
             raise ValueError(f"longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}")
         self.longitudinal_weight = float(longitudinal_weight)
+        if not 0.0 <= longitudinal_coupling <= 2.0:
+            raise ValueError(f"longitudinal_coupling must be in [0, 2], got {longitudinal_coupling}")
+        self.longitudinal_coupling = float(longitudinal_coupling)
         if not 0.0 <= global_prior < 1e6:
             raise ValueError(f"global_prior must be in [0, 1e6), got {global_prior}")
         self.global_prior = float(global_prior)
@@ -464,6 +479,8 @@ class MotionTracker:
         C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
         # Local longitudinal stretch (along the fitted long axis) costs kl; see longitudinal_weight.
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
+        if self.longitudinal_coupling:
+            ax = self._coupled_axial(ax, Fg, x_global)
         P = plane_projectors(normals, len(normals)) * control_weights(weights, len(targets))[:, None, None]
         system = self._local.system(fit_error=alpha, volume=(self.volume_weight * mu, C, Jg - 1.0),
                                     axial=(self.longitudinal_weight * mu, ax), data=(kappa, phi, P),
@@ -474,6 +491,21 @@ class MotionTracker:
                                   maxiter=self.cg_maxiter)
         self.cg_iterations.append(its)
         return delta
+
+    def _coupled_axial(self, ax, Fg, x_global) -> np.ndarray:
+        """Per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term (see
+        ``longitudinal_coupling``), shape (N, 3, 3): ``M_i : H_i`` is the local longitudinal strain
+        less ρ times the local circumferential one (``c_i`` the circumferential direction about
+        the fitted axis ``a``). ρ = ``longitudinal_coupling`` × the global fit's median
+        longitudinal over circumferential linear strain, within [0, 2]; 0 while the global
+        circumferential strain is above −0.02 (near ED: no ratio to read, no deviation to couple)."""
+        circ = np.cross(ax, x_global - self.model.params.translation)
+        circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
+        hg = Fg - np.eye(3)
+        ell = float(np.median(np.einsum("a,nab,b->n", ax, hg, ax)))
+        ecc = float(np.median(np.einsum("na,nab,nb->n", circ, hg, circ)))
+        rho = self.longitudinal_coupling * float(np.clip(ell / ecc, 0.0, 2.0)) if ecc < -0.02 else 0.0
+        return np.outer(ax, ax)[None] - rho * circ[:, :, None] * circ[:, None, :]
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
         """Twist as a parameter function of height (the parameter functions of Park et al., which

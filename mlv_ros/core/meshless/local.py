@@ -139,7 +139,8 @@ class LocalOperators:
         volume : (k_v, C, g) or None
             ``k_v`` (P), cofactors ``C`` shape (N, 3, 3), offsets ``g`` shape (N,) or None.
         axial : (k_l, a) or None
-            ``k_l`` (P) and the unit axis ``a`` shape (3,).
+            ``k_l`` (P) and the unit axis ``a`` shape (3,), or per particle a strain measure
+            ``M`` shape (N, 3, 3): the term is then ``½ k_l Σ_i v_i (M_i : H_i)²``.
         data : (κ, Φ, P) or None
             ``κ`` (P·mm), weights ``Φ`` sparse (M, N), metrics ``P`` shape (M, 3, 3).
         eps : float
@@ -166,8 +167,12 @@ class LocalSystem:
             if volume[2] is not None:
                 self._offset = (kv * ops.volume * np.asarray(volume[2], dtype=np.float64))[:, None, None] * C
         if axial is not None and axial[0]:
-            aa = np.outer(axial[1], axial[1])
-            unit = unit + float(axial[0]) * np.einsum("ab,cd->abcd", aa, aa)
+            a = np.asarray(axial[1], dtype=np.float64)
+            if a.ndim == 1:
+                aa = np.outer(a, a)
+                unit = unit + float(axial[0]) * np.einsum("ab,cd->abcd", aa, aa)
+            else:  # per particle: ½ k_l Σ_i v_i (M_i : H_i)²
+                unit = unit + float(axial[0]) * np.einsum("nab,ncd->nabcd", a, a)
         tangent = ops.volume[:, None, None, None, None] * unit
         if self.fit_error:
             # −s_i H A_i: ∂S_ab/∂H_cd = −s_i δ_ac A_i[d, b]
