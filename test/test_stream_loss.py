@@ -28,7 +28,7 @@ class Monitor(Node):
                                  qos.diagnostics_qos())
 
     def events(self, message):
-        """The recorder's statuses with ``message``, once each (its heartbeat may repeat the last one)."""
+        """Return the recorder's statuses with ``message``, once each (its heartbeat repeats)."""
         seen = {}
         for s in self.statuses:
             if status_node(s) == "recorder" and s.message == message:
