@@ -29,7 +29,7 @@ from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.tools.run import phantom_accuracy, run_graph
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reference_local import tracker_local_solve  # noqa: E402
+from reference_local import tracker_local_solve  # noqa: E402, I100
 
 
 def stage_latencies(mcap: Path) -> dict:
@@ -145,7 +145,8 @@ def main():
         "benchmark": "pipeline", "preset": args.preset, "size": args.size, "phases": args.phases,
         "slices": 11, "total_s": round(wall, 2), "graph_s": s["seconds"],
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        # the largest of the run's child processes (the tag detector's: mlv_ros.tools.graph_process)
+        # the largest of the run's child processes (the tag detector's:
+        # mlv_ros.tools.graph_process)
         "peak_rss_mb_child_process": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
         "latency": stage_latencies(out / "run.mcap"),
         "published_vs_recorded": {t: [published[t], topics.get(t, {}).get("count", 0)] for t in published},

@@ -4,8 +4,8 @@
 - :func:`tracker_local_solve`: ``MotionTracker._local_solve`` — matrix-free Jacobi-PCG whose
   matvec calls the MLS gradient and adjoint and an assembled (N, N) fit-error matrix
   (:func:`tracker_fit_error_matrix`, the slow part of the first phase).
-- :class:`PhantomSystemReference`: the PCG system of ``MeshlessModel.fit`` (``local_update="solve"``) on
-  :func:`mlv_ros.core.meshless.elastic.linear_stiffness_apply` +
+- :class:`PhantomSystemReference`: the PCG system of ``MeshlessModel.fit``
+  (``local_update="solve"``) on :func:`mlv_ros.core.meshless.elastic.linear_stiffness_apply` +
   :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`.
 """
 
@@ -19,7 +19,7 @@ from mlv_ros.core.meshless import elastic, quat_to_matrix
 
 
 def tracker_fit_error_matrix(model):
-    """``Bᵀ W B`` of the MLS fit error (eq. 16), shape (N, N), assembled through sparse products."""
+    """Assemble ``Bᵀ W B`` of the MLS fit error (eq. 16), shape (N, N), by sparse products."""
     ph, D = model.phyxels, model.operator.matrix
     n, p = model.num_particles, ph.pair_i.shape[0]
     rows = np.arange(p)

@@ -1,19 +1,21 @@
 """Benchmark: randomized acquisition protocols through the real DICOM path, against ground truth.
 
-Each case draws a protocol (``mlv-ros simulate --random SEED``: shape, LV orientation, grid angle and
-period, pixel size, matrix, slice thickness and spacing, SA/LA counts, LA rotations, phases, cycle,
-T1, SNR, tagged surroundings or not, blood brightness, stack order and normal signs, bit depth and
-rescale, series layout), writes the DICOM study and its ground truth, runs the whole graph on the
-files (``mlv-ros run --dicom``) and compares the recorded motion with the analytic truth.
+Each case draws a protocol (``mlv-ros simulate --random SEED``: shape, LV orientation, grid angle
+and period, pixel size, matrix, slice thickness and spacing, SA/LA counts, LA rotations, phases,
+cycle, T1, SNR, tagged surroundings or not, blood brightness, stack order and normal signs, bit
+depth and rescale, series layout), writes the DICOM study and its ground truth, runs the whole
+graph on the files (``mlv-ros run --dicom``) and compares the recorded motion with the analytic
+truth.
 
 Per case (JSON): the drawn protocol, exit codes, phases solved, ES median / p95 3D error (mm), the
 largest twist error over levels at ES (deg; also over the levels the SA stack spans only:
-beyond it twist is extrapolated, and the must-criterion takes all levels), particles inside the true myocardium, the fraction of
-the true myocardium the model covers, tag points per slice (ED and fewest over the cycle),
-seconds, and whether the issue's must-criteria hold (ES median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist
-error ≤ 2°, every phase solved) with the model covering ≥ 90 % of the true myocardium (errors are
-measured on the particles, so a model short of the base would pass on what it has). The summary
-gives the worst and the median of each measure and the number of cases passing.
+beyond it twist is extrapolated, and the must-criterion takes all levels), particles inside the
+true myocardium, the fraction of the true myocardium the model covers, tag points per slice (ED and
+fewest over the cycle), seconds, and whether the issue's must-criteria hold (ES median ≤ 1.0 mm,
+p95 ≤ 2.5 mm, twist error ≤ 2°, every phase solved) with the model covering ≥ 90 % of the true
+myocardium (errors are measured on the particles, so a model short of the base would pass on what
+it has). The summary gives the worst and the median of each measure and the number of cases
+passing.
 
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal]
 

@@ -168,7 +168,9 @@ def save_overlay(vis, path, title):
 
 
 def summarise(rows):
-    cat = lambda k: np.concatenate([r[k] for r in rows]) if rows else np.zeros(0)
+    def cat(k):
+        return np.concatenate([r[k] for r in rows]) if rows else np.zeros(0)
+
     ed_err, trk, harp = cat("ed_err"), cat("trk"), cat("harp")
     pg, ph = cat("pair_g"), cat("pair_h")
     n_det = sum(r["n_det"] for r in rows)
@@ -176,7 +178,10 @@ def summarise(rows):
     n_truth = sum(r["n_truth"] for r in rows)
     found = sum(r["found"] for r in rows)
     tt = np.concatenate([r["t_track"][1:] for r in rows])
-    q = lambda a, p: float(np.percentile(a, p)) if len(a) else None
+
+    def q(a, p):
+        return float(np.percentile(a, p)) if len(a) else None
+
     kept = [r["kept"] for r in rows if np.isfinite(r["kept"])]
     return {
         "slices": len(rows),
@@ -208,7 +213,6 @@ def main(argv=None):
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {"benchmark": "tags", "quick": bool(args.quick), "runs": {}}
-    musts = []
     for preset in args.presets.split(","):
         spacing = float(load_preset(preset)["imaging"]["tag_spacing_mm"])
         for snr_s in args.snr.split(","):

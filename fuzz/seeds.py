@@ -53,7 +53,7 @@ def dicom_seeds(out_dir: Path) -> list[Path]:
 
 
 def message_seeds(out_dir: Path) -> list[Path]:
-    """One valid serialised message per type, prefixed with the type's index (the target's selector)."""
+    """Write one valid serialised message per type, prefixed with its type index (the selector)."""
     from rclpy.serialization import serialize_message
 
     from mlv_ros import conversions

@@ -2,9 +2,9 @@
 
     ros2 launch mlv_ros pipeline.launch.py                                  # a phantom
     ros2 launch mlv_ros pipeline.launch.py source:=dicom path:=/data/study  # a DICOM study
-    ros2 launch mlv_ros pipeline.launch.py source:=bag path:=runs/old       # the frames of a recording
+    ros2 launch mlv_ros pipeline.launch.py source:=bag path:=runs/old       # a recording's frames
         [output_dir:=runs/mine] [namespace:=study2] [params_file:=/path/to/graph.yaml]
-        [live:=true [live_port:=8765]]                                      # ... watched in Foxglove
+        [live:=true [live_port:=8765]]                                      # watch in Foxglove
 
 Each launch records to a fresh ``runs/<YYYYmmdd-HHMMSS>/run.mcap`` under the directory it was
 started from unless ``output_dir`` says where (what the arguments become:
@@ -54,7 +54,7 @@ def generate_launch_description():
         DeclareLaunchArgument("namespace", default_value="",
                               description="ROS namespace of every node and topic (e.g. study2); empty: the root"),
         DeclareLaunchArgument("params_file", default_value=default_params,
-                              description="parameters of the whole graph (keys /**/<node>, as config/graph.yaml)"),
+                              description="parameters of the whole graph (keys /**/<node>, as in config/graph.yaml)"),
         DeclareLaunchArgument("live", default_value="false", choices=["true", "false"],
                               description="also start live_view: the run served to Foxglove over a WebSocket "
                                           "(layout config/foxglove_layout.json)"),

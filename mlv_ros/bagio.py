@@ -465,7 +465,7 @@ class BagWriter:
         return sum(t.count for t in self.topics.values())
 
     def metadata(self) -> dict:
-        """The bag metadata (version 9) of what has been written so far."""
+        """Return the bag metadata, version 9, of what has been written so far."""
         return bag_metadata(self.path.name, self.topics.values(), self.start_ns, self.end_ns,
                             {"recorded_by": f"mlv_ros {__version__}", **self.custom_data})
 
@@ -768,8 +768,10 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
 
 
 def deserialize(data: bytes, msg_class, missing: tuple | None = None):
-    """rclpy deserialisation of a recorded message, also of recordings made before fields were
-    appended to our message definitions (:data:`_APPENDED_FIELDS`: they read as their defaults).
+    """Deserialise a recorded message with rclpy, also one recorded before fields were appended.
+
+    Fields appended to our message definitions later (:data:`_APPENDED_FIELDS`) read as their
+    defaults.
 
     Parameters
     ----------

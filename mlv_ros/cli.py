@@ -42,7 +42,7 @@ SUBCOMMANDS = {
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """argparse whose errors are one line: the usage block it normally prints is ``--help``'s job."""
+    """An argparse parser whose errors are one line (the usage block is ``--help``'s job)."""
 
     def error(self, message):
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")

@@ -95,7 +95,7 @@ def _require_finite(name: str, values: np.ndarray) -> None:
 
 # --------------------------------------------------------------------------- Image
 def image_to_msg(image: np.ndarray, header: Header | None = None, encoding: str | None = None) -> Image:
-    """numpy image → ``sensor_msgs/Image``.
+    """Convert a numpy image to ``sensor_msgs/Image``.
 
     Parameters
     ----------
@@ -306,7 +306,7 @@ def geometry_to_msg(geometry: SliceGeometry) -> SliceGeometryMsg:
 
 
 def msg_to_geometry(msg: SliceGeometryMsg) -> SliceGeometry:
-    """``mlv_msgs/SliceGeometry`` → :class:`SliceGeometry` (validated: unit, orthogonal, positive)."""
+    """Convert ``mlv_msgs/SliceGeometry`` to :class:`SliceGeometry` (unit, orthogonal, > 0)."""
     return SliceGeometry(
         image_position=np.array(msg.image_position), row_direction=np.array(msg.row_direction),
         column_direction=np.array(msg.column_direction), row_spacing=msg.row_spacing,

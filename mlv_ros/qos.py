@@ -104,7 +104,7 @@ def namespace_error(namespace: str) -> str | None:
 
 
 def full_namespace(namespace: str | None) -> str:
-    """``namespace`` as ROS writes it: ``/study2`` for ``study2`` or ``/study2/``, ``/`` for none."""
+    """Write ``namespace`` as ROS does: ``/study2`` for ``study2`` or ``/study2/``, else ``/``."""
     ns = (namespace or "").strip("/")
     return "/" + ns if ns else "/"
 

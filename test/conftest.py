@@ -1,9 +1,9 @@
 """Shared test harness: ROS isolation and bounded spinning.
 
 Each pytest process claims its own ROS_DOMAIN_ID (``mlv_ros.domain``: an flock on a per-id file,
-so concurrent test runs on one machine never share a domain) and restricts discovery to localhost, before rclpy is
-used anywhere. Tests get a fresh rclpy Context and executor per test and wait on conditions with
-``spin_until`` — never a bare sleep.
+so concurrent test runs on one machine never share a domain) and restricts discovery to localhost,
+before rclpy is used anywhere. Tests get a fresh rclpy Context and executor per test and wait on
+conditions with ``spin_until`` — never a bare sleep.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def ros_context():
 
 @pytest.fixture
 def executor(ros_context):
-    """A single-threaded executor bound to ``ros_context``; nodes added to it are destroyed after."""
+    """Yield a single-threaded executor on ``ros_context``; its nodes are destroyed after."""
     from rclpy.executors import SingleThreadedExecutor
 
     ex = SingleThreadedExecutor(context=ros_context)

@@ -42,7 +42,7 @@ def interleave(valid: list, cases: list) -> list:
 
 
 def write_corpus(out_dir: Path, num_phases: int = 3, size: int = 48) -> dict:
-    """Write the corpus into ``out_dir`` (created; must not hold a corpus yet); returns the manifest."""
+    """Write the corpus into ``out_dir`` (created; must hold none yet); return the manifest."""
     from rclpy.serialization import serialize_message
 
     from mlv_ros import bagio, conversions, qos

@@ -30,11 +30,11 @@ class Host:
     ip: str
 
     def exec_argv(self, *argv: str) -> list[str]:
-        """``argv`` run inside this namespace (``ip netns exec`` execs it: same pid, signals reach it)."""
+        """Return ``argv`` run in this namespace (``ip netns exec``: same pid and signals)."""
         return ["ip", "netns", "exec", self.ns, *argv]
 
     def link_stats(self) -> dict:
-        """The veth's kernel counters: ``rx_bytes``, ``tx_bytes``, ``rx_packets``, ``tx_packets``, ..."""
+        """Return the veth's kernel counters: ``rx_bytes``, ``tx_bytes``, ``rx_packets``, ..."""
         out = _ip("-n", self.ns, "-s", "-j", "link", "show", "dev", self.dev)
         stats = json.loads(out)[0]["stats64"]
         return {f"{way}_{key}": value for way in ("rx", "tx") for key, value in stats[way].items()}
@@ -92,7 +92,7 @@ def _veth(one: Host, other: Host, prefix: int = 24) -> None:
 
 @contextmanager
 def veth_pair(tag: str = "mlv"):
-    """Yield ``(a, b)``: two :class:`Host` namespaces joined by a veth pair on one /24 (one LAN)."""
+    """Yield ``(a, b)``: two :class:`Host` namespaces joined by a veth pair on one /24 LAN."""
     token, x, y = _new_names()
     a = Host(f"{tag}-{token}-a", f"{tag}{token}a", f"10.{x}.{y}.1")
     b = Host(f"{tag}-{token}-b", f"{tag}{token}b", f"10.{x}.{y}.2")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mlv_ros.core.analysis.frame import LVFrame, cardiac_coordinates
+from mlv_ros.core.analysis.frame import cardiac_coordinates
 from mlv_ros.core.analysis.strain import (
     AHA_SEGMENT_NAMES,
     aha_segments,

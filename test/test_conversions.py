@@ -10,7 +10,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from mlv_msgs.msg import ModelState as ModelStateMsg
-from mlv_msgs.msg import MotionMetrics, TaggedFrame, TagPoints
+from mlv_msgs.msg import MotionMetrics, TaggedFrame
 from mlv_ros import conversions as cv
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import VIEW_LA, Frame, ModelState, TagPointSet

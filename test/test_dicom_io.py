@@ -10,7 +10,7 @@ import pytest
 from mlv_ros.core.io import (estimate_long_axis, load_groundtruth, read_dicom_dir,
                              write_groundtruth, write_study_dicom)
 from mlv_ros.core.sim import simulate_study
-from mlv_ros.core.types import VIEW_LA, VIEW_SA
+from mlv_ros.core.types import VIEW_SA
 
 
 @pytest.fixture(scope="module")

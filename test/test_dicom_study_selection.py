@@ -46,7 +46,7 @@ def _cine(paths: list[Path], folder: str) -> list[pydicom.Dataset]:
 
 
 def _save_series(datasets, out: Path, name: str, **tags) -> list[Path]:
-    """``datasets`` as a new series (new Series/SOP Instance UIDs) with ``tags`` set, under ``out``."""
+    """Save ``datasets`` as a new series (new Series/SOP UIDs) with ``tags`` set, under ``out``."""
     uid = generate_uid(entropy_srcs=["series", name])
     out.mkdir(parents=True, exist_ok=True)
     written = []

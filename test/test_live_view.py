@@ -61,8 +61,8 @@ class FoxgloveClient:
         deadline = time.monotonic() + 20
         while True:
             try:
-                # max_queue None: the awaited pong below is read behind every queued frame; with the default
-                # bound a burst of frames stopped the reading and the pong never came.
+                # max_queue None: the awaited pong below is read behind every queued frame; with
+                # the default bound a burst of frames stopped the reading and the pong never came.
                 return await websockets.connect(self.url, subprotocols=[SUBPROTOCOL], max_size=None, max_queue=None)
             except OSError:
                 if time.monotonic() > deadline:
@@ -132,7 +132,7 @@ class FoxgloveClient:
 
 
 def cloud_array(msg) -> np.ndarray:
-    """A decoded foxglove.PointCloud's points as a structured array (its fields, offsets, stride)."""
+    """Return a decoded foxglove.PointCloud's points as a structured array (fields, stride)."""
     dtype = np.dtype({"names": [f.name for f in msg.fields], "formats": [PACKED_TYPES[f.type] for f in msg.fields],
                       "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_stride})
     assert len(msg.data) % msg.point_stride == 0

@@ -16,7 +16,8 @@ from mlv_ros.core.sim import simulate_study
 from test_tracking import observed, referenced_tracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from reference_local import PhantomSystemReference, tracker_fit_error_matrix, tracker_local_solve  # noqa: E402
+from reference_local import PhantomSystemReference  # noqa: E402, I100
+from reference_local import tracker_fit_error_matrix, tracker_local_solve  # noqa: E402, I100
 
 
 @pytest.fixture(scope="module")

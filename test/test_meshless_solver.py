@@ -103,7 +103,7 @@ def test_control_points_as_positions(phantom):
     np.testing.assert_allclose(np.asarray(ctrl.weights.sum(axis=1)).ravel(), 1.0, atol=1e-12)
     np.testing.assert_allclose(ctrl.weights @ x, pts, atol=1e-10)   # affine reproduction
     y_pts = deform(pts, "combination")
-    res = model.fit(ctrl, y_pts, warm_start=False)
+    model.fit(ctrl, y_pts, warm_start=False)
     assert dense_rms(model, deform(x, "combination")) < 0.05
 
 

@@ -102,7 +102,7 @@ def test_domain_check_is_namespace_aware(ros_context, executor, tmp_path, capsys
 
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
-    """Two `mlv-ros run` of two studies at once, on this process's ROS domain, in two namespaces."""
+    """Run two studies at once (`mlv-ros run`), on this process's ROS domain, in two namespaces."""
     tmp = tmp_path_factory.mktemp("namespaces")
     domain = os.environ["ROS_DOMAIN_ID"]
     procs = {ns: subprocess.Popen([console_script("mlv-ros"), "run", "--phantom", preset, *SMALL, "--namespace", ns,

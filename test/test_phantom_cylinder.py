@@ -18,7 +18,11 @@ def test_shell_geometry_and_count():
 
 def test_deformations_analytic_properties():
     x = sample_cylinder_shell(2000, seed=1)
-    d = lambda a, b: np.linalg.norm(a[:, None] - a[None], axis=2)[:50, :50] - np.linalg.norm(b[:, None] - b[None], axis=2)[:50, :50]
+
+    def d(a, b):
+        return (np.linalg.norm(a[:, None] - a[None], axis=2)[:50, :50]
+                - np.linalg.norm(b[:, None] - b[None], axis=2)[:50, :50])
+
     # rotation is rigid
     assert np.abs(d(deform(x, "rotation"), x)).max() < 1e-12
     # twisting keeps radius and height, rotates by 15° at the top end

@@ -101,7 +101,7 @@ def test_report_from_the_recording(phantom_run, tmp_path):
 
 
 def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
-    """frame_source → tag_detector → registration/solver/analyzer → recorder, each its own process."""
+    """Run frame_source → tag_detector → registration/solver/analyzer → recorder, each alone."""
     from rclpy.node import Node
 
     from mlv_msgs.msg import TagPoints

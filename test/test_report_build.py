@@ -181,7 +181,8 @@ def test_twist_beyond_the_sa_slices_is_marked_extrapolated(tmp_path, normal, low
 
     monkeypatch.setattr(build, "plot_displacement_3d", lambda *a, **k: None)  # not what is checked
     phases, pos = normal
-    # SA slices from level 0.42 to 0.96: the apical bins (0.05…0.35) are extrapolated, the base is not.
+    # SA slices from level 0.42 to 0.96: the apical bins (0.05…0.35) are extrapolated, the base is
+    # not.
     build_report(tmp_path / "a", phases, X, pos, frame=FR, twist_span=(0.42, 0.96))
     s = read_summary(tmp_path / "a")["runs"][0]
     assert s["twist_measured_levels"] == [0.42, 0.96]

@@ -361,6 +361,7 @@ IMPORT_KEYS = {
     "threadpoolctl": None,  # mlv_ros/threads.py; rosdistro has no key
     "gdcm": None,  # python-gdcm (tests only); Debian's python3-gdcm has no rosdep key
     "highdicom": None,  # tests only
+    "ament_flake8": "ament_flake8", "ament_pep257": "ament_pep257",  # the lint tests
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     "pylibjpeg": None, "libjpeg": None, "openjpeg": None, "rle": None, "jpeg_ls": None,
 }

@@ -138,9 +138,9 @@ def check_interrupted(run_dir: Path, rc: int, lines: list[str], name: str, code:
 # ---------------------------------------------------------------------------------- signals
 def test_sigint_mid_run_keeps_every_solved_phase(tmp_path):
     run_dir = tmp_path / "run"
-    # Phase-major at half real time (the cine takes ~22 s to stream): phases are solved while frames
-    # still stream in, however long the registration takes on a loaded machine (3.7 s seen, when at
-    # twice real time every frame was out before phase 2 was analysed).
+    # Phase-major at half real time (the cine takes ~22 s to stream): phases are solved while
+    # frames still stream in, however long the registration takes on a loaded machine (3.7 s seen,
+    # when at twice real time every frame was out before phase 2 was analysed).
     params = params_file(tmp_path, {"frame_source": {"order": "phase_major", "rate_factor": 0.5}})
     run = Run([*SMALL, "--phases", "6", "--params", params, "--out", str(run_dir)])
     run.wait_for("[mlv-ros] phase 2/6 analysed")  # phase 1, the first one actually solved

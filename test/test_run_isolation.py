@@ -42,7 +42,8 @@ def cloud(stamp: float):
 
 
 # Two graphs on one domain: of two studies, or two runs of the same study (each run draws its own
-# run_id at its frame source), as (our study, our run), (their study, their run), how the other is named.
+# run_id at its frame source), as (our study, our run), (their study, their run), how the other is
+# named.
 OTHERS = {"another study": ((OURS, "run-a"), (THEIRS, "run-b"), THEIRS),
           "another run of the same study": ((OURS, "run-a"), (OURS, "run-b"), f"{OURS} run run-b")}
 

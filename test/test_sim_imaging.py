@@ -1,4 +1,4 @@
-"""Image formation: slice planning, material-carried SPAMM tags, blood, noise, through-plane motion."""
+"""Image formation: slice planning, material-carried SPAMM tags, blood, noise, through-plane."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Ground-truth motion of the phantom presets: invertibility, incompressibility, documented ranges."""
+"""Ground-truth motion of the presets: invertibility, incompressibility, documented ranges."""
 
 import numpy as np
 import pytest

@@ -28,8 +28,7 @@ class Monitor(Node):
                                  qos.diagnostics_qos())
 
     def events(self, message):
-        """The recorder's statuses with ``message``, once each: its heartbeat repeats the last one
-        with the running counts added (keys ``received <topic>`` ...), which are left out here."""
+        """Return the recorder's statuses with ``message``, once each, its counts left out."""
         seen = {}
         for s in self.statuses:
             if status_node(s) == "recorder" and s.message == message:

@@ -1,5 +1,7 @@
 """Bad images give an empty result with a reason, never an exception."""
 
+from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
 import numpy as np
 import pytest
 
@@ -75,9 +77,6 @@ def test_harp_with_bad_frames_reports_instead_of_raising():
     res = harp_track([np.zeros((64, 64))], det.pixel_rc, det.params)
     assert "constant" in res.reason
 
-
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
-from hypothesis.extra.numpy import arrays  # noqa: E402
 
 
 @settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])

@@ -145,7 +145,8 @@ def test_tracks_on_a_fading_thin_wall_follow_the_slice_own_confidence():
     # A wall 1.7 tag periods thick whose tags fade to 11 % of their ED contrast (T1 of 0.4 cycles)
     # at σ = 6 % noise: late, tags stand ~2σ out. A fixed threshold loses the slice at once;
     # one that follows the slice's own fading keeps the tracks on the right intersections.
-    # (Measured: phases 7–9 keep 15, 1, 0 of 44 ED tracks with follow_relative=0; 21, 18, 19 with it.)
+    # (Measured: phases 7–9 keep 15, 1, 0 of 44 ED tracks with follow_relative=0; 21, 18, 19 with
+    # it.)
     scene = TagScene(shape=(128, 128), ring=(20, 30), noise_sigma=0.06, t1_fraction=0.4)
     tr, out, _ = _run(scene)
     assert sum(len(ps) for ps in out[7:]) >= 0.3 * len(out[7:]) * len(out[0]) and tr.follow_threshold() < 0.4

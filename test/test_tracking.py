@@ -151,7 +151,7 @@ def test_twist_function_extrapolates_below_the_last_sa_slice(study):
 
 
 def sparse_sa_solve(study, sa_slices, **tracker_options):
-    """ES solve from the LA slices and only the given SA slices; (tracker, 3D error per particle)."""
+    """Solve ES from the LA and the given SA slices; return (tracker, 3D error per particle)."""
     m = study.motion
     X, tr = make_tracker(study, n=1000, **tracker_options)
     refs = grid_tags(study)

@@ -155,10 +155,14 @@ def _old_cdr(cls, cut: str, values: dict) -> bytes:
 
 
 def test_recordings_made_before_the_verdict_still_read():
-    """ModelState / MotionMetrics recorded before the verdict and the study fields, and before the
+    """
+    Read recordings made before the verdict and study fields were appended.
+
+    ModelState / MotionMetrics recorded before the verdict and the study fields, and before the
     study field alone, TaggedFrame / TagPoints before the study field (serialised by an
     independent writer, rosbags), read with the verdict ok, no study and every other field intact:
-    the order the fields were appended in decides how (mlv_ros.bagio._APPENDED_FIELDS)."""
+    the order the fields were appended in decides how (mlv_ros.bagio._APPENDED_FIELDS).
+    """
     from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
     from mlv_ros import bagio
 

@@ -477,7 +477,8 @@ class MotionTracker:
         ok = np.abs(Jg) > 1e-6
         C = np.zeros_like(Fg)
         C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
-        # Local longitudinal stretch (along the fitted long axis) costs kl; see longitudinal_weight.
+        # Local longitudinal stretch (along the fitted long axis) costs kl; see
+        # longitudinal_weight.
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
         if self.longitudinal_coupling:
             ax = self._coupled_axial(ax, Fg, x_global)
@@ -536,7 +537,8 @@ class MotionTracker:
         Returns
         -------
         ndarray, shape (N, 3)
-            ``x`` with the fitted twist applied (``x`` itself when the SA data cannot support it), mm.
+            ``x`` with the fitted twist applied (``x`` itself when the SA data cannot support it),
+            mm.
         """
         h_sa = np.asarray(phi[np.flatnonzero(sa)] @ self._height).ravel()
         if num_sa_slices < TWIST_MIN_SA or np.ptp(h_sa) < TWIST_MIN_SPAN:
@@ -553,7 +555,8 @@ class MotionTracker:
         r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
-        # Least squares on the stacked system: never singular-fails (e.g. all SA points at one level).
+        # Least squares on the stacked system: never singular-fails (e.g. all SA points at one
+        # level).
         self.twist_coefficients, *_ = np.linalg.lstsq(np.vstack([J, np.sqrt(lam) * D2]),
                                                       np.concatenate([r, np.zeros(m - 2)]), rcond=None)
         h = np.clip(self._height, h_sa.min() - TWIST_REACH, h_sa.max() + TWIST_REACH)

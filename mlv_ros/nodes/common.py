@@ -72,7 +72,7 @@ class Silence:
         self.seconds = 0.0
 
     def tick(self, now: float | None = None) -> float:
-        """Count the time since the last tick (at most two periods); return the silence, s."""
+        """Count the time since the last tick, at most two periods; return the silence, s."""
         now = time.monotonic() if now is None else now
         if self._tick_at is not None:
             self.seconds += min(max(now - self._tick_at, 0.0), 2.0 * self.period_s)
@@ -162,7 +162,7 @@ class GraphNode(Node):
 
     @property
     def status(self) -> DiagnosticStatus:
-        """The node's current status (the last one reported)."""
+        """Return the node's current status, the last one reported."""
         return self._status
 
     def stop(self) -> None:
@@ -264,9 +264,12 @@ class GraphNode(Node):
         return other
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
-        """A point cloud taken from graph topic ``topic`` whose model state (same stamp) is of ``other_study``:
-        reported on /diagnostics and counted as :meth:`foreign` does (the console has had the
-        state's line); the caller drops it."""
+        """
+        Report a cloud on ``topic`` whose model state (same stamp) is of ``other_study``.
+
+        It is reported on /diagnostics and counted as :meth:`foreign` does (the console has had
+        the state's line); the caller drops it.
+        """
         self.other_studies[other_study] += 1
         self._report(ERROR, "point cloud of another study ignored with its model state",
                      {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other_study,

@@ -63,7 +63,7 @@ def _digest(*parts) -> str:
 
 
 def images_digest(frames: list[Frame]) -> str:
-    """A hash of a study's images: indices, geometry and pixels of every frame, in a fixed order."""
+    """Hash a study's images: indices, geometry and pixels of every frame, in a fixed order."""
     parts = []
     for f in sorted(frames, key=lambda f: (f.view, f.slice_index, f.phase_index)):
         g = f.geometry
@@ -153,7 +153,7 @@ class FrameSource(GraphNode):
                     problems=len(self._reports), study=self.study_id, run=self.run_id, **extra)
 
     def _study_id(self) -> str:
-        """The study id every frame carries (frames of a recording keep theirs when they have one)."""
+        """Return the study id every frame carries (a recording's frames keep theirs if any)."""
         params = None
         if self.source == "phantom":
             from mlv_ros.core.sim import load_preset

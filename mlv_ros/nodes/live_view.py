@@ -24,8 +24,9 @@ own schemas, so its panels draw them without any message definition of ours:
 Under a namespace every channel name starts with it (``/study2/lv/motion``). Channels are served
 as phases are solved. A client that subscribes late gets, at once, the latest cloud and every
 phase shown so far of the slices it subscribes to (a few tenths of a second later: the executor
-serves them), then the phases from then on (the recording holds them all). ``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the
-first study taken is kept, model states of another are reported and their clouds dropped.
+serves them), then the phases from then on (the recording holds them all).
+``config/foxglove_layout.json`` arranges the panels. Run isolation as every node: the first study
+taken is kept, model states of another are reported and their clouds dropped.
 
 Parameters (``config/graph.yaml``): ``host``, ``port`` (0 = any free port), ``images``,
 ``catch_up``, ``max_unpaired``, ``message_backlog``. A port that cannot be bound (in use) stops
@@ -123,8 +124,8 @@ class LiveView(GraphNode):
             schema=foxglove.Schema(name="mlv_ros.PhaseCurves", encoding="jsonschema",
                                    data=json.dumps(conversions.curves_schema()).encode()),
             message_encoding="json")
-        # (view, slice) → {"image": channel, "tags": channel, "window": (lo, hi), "images": {phase: RawImage},
-        # "tags_by_phase": {phase: ImageAnnotations}}
+        # (view, slice) → {"image": channel, "tags": channel, "window": (lo, hi), "images": {phase:
+        # RawImage}, "tags_by_phase": {phase: ImageAnnotations}}
         self._slices: dict = {}
         self.phases_served: set[int] = set()  # phases whose cloud (or verdict) went out
         self._last_cloud = None  # the latest foxglove.PointCloud served (for a client that subscribes late)

@@ -89,7 +89,8 @@ class Recorder(GraphNode):
         self.dropped = 0  # messages received after the recording stopped on a write error
         self.ignored = 0  # messages of another study left out
         self.classes: dict = {}
-        self._held: dict = {}  # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
+        # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
+        self._held: dict = {}
         self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
         self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
         self.recorded: dict[str, str] = {}  # graph topic (root name) → the name recorded: as it resolves here

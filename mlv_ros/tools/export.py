@@ -291,7 +291,8 @@ def run(args) -> int:
     except ExportWriteError as exc:  # unwritable, read-only, full: said of --vtk DIR, not of a temporary name
         err = exc.error
         what = describe_os_error(OSError(err.errno, err.strerror, str(exc.out))) if err.errno else one_line(err)
-        print(f"mlv-ros export: cannot write --vtk {exc.out}: {what}; choose another --vtk directory", file=sys.stderr)
+        print(f"mlv-ros export: cannot write --vtk {exc.out}: {what}; choose another --vtk directory",
+              file=sys.stderr)
         return 2
     except (FileNotFoundError, ValueError) as exc:  # said with the fix by check_recording / check_out_dir
         print(f"mlv-ros export: {one_line(exc)}", file=sys.stderr)

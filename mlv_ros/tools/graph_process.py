@@ -5,8 +5,8 @@ The run starts the child with :meth:`ChildNode.start` (the same interpreter and 
 talks to it over the child's stdin and stdout, one JSON object a line:
 
 - run → child: the node's configuration (name, ROS domain, namespace, parameters file,
-  overrides, logging threshold), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps to; the node spins only after
-  it), then ``{"stop": true}`` (or end of file: the run is gone).
+  overrides, logging threshold), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps
+  to; the node spins only after it), then ``{"stop": true}`` (or end of file: the run is gone).
 - child → run: ``{"event": "started"}`` or ``{"event": "start_failed", "reason": ...}``,
   ``{"event": "ready"}``, then the node's counters whenever they change (at most every 0.1 s;
   :data:`STATE_FIELDS`), and last ``{"event": "stopped", ...}`` with the final counters, or

@@ -46,8 +46,9 @@ def run(args) -> int:
         return _fail(exc)
     if out.exists():
         what = "a directory" if out.is_dir() else "a file"
+        suggestion = out / "recovered.mcap" if out.is_dir() else out.with_name(out.stem + "-recovered.mcap")
         return _fail(f"{out} exists ({what}): give a new file name for the recovered recording, "
-                     f"e.g. {out / 'recovered.mcap' if out.is_dir() else out.with_name(out.stem + '-recovered.mcap')}")
+                     f"e.g. {suggestion}")
     try:
         result = recover(src, out)
     except OSError as exc:

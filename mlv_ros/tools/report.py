@@ -51,8 +51,11 @@ def check_recording(path: Path) -> None:
 
 
 def load_run_data(path: Path, label: str):
-    """RunData (per-phase metrics, ED and per-phase positions, LV frame) from a recording
-    (checked with :func:`check_recording` first: :func:`build` does)."""
+    """
+    Load a recording's RunData: per-phase metrics, ED and per-phase positions, LV frame.
+
+    Check it with :func:`check_recording` first (:func:`build` does).
+    """
     from mlv_ros.core.analysis import LVFrame, PhaseMetrics
     from mlv_ros.core.analysis.frame import plane_level_span
     from mlv_ros.core.report.summary import RunData

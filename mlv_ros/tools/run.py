@@ -1,7 +1,8 @@
 """``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap: the tag detector in a process of
 its own (:mod:`mlv_ros.tools.graph_process`), the other nodes in the run's process (one executor).
 
-    mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR [--namespace NS]
+    mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
+                [--namespace NS]
 
 Shows a progress bar over phases (on a terminal) and a short summary (:mod:`mlv_ros.tools.console`:
 what ran, how it ended, accuracy against the ground truth when the input is a phantom or a
@@ -165,9 +166,9 @@ def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
 
     The file is handed to rcl as ``--ros-args --params-file`` does, so its keys mean what they
     mean to every ROS node: ``/**`` (any node in any namespace), ``/**/frame_source`` (that node
-    in any namespace), ``frame_source`` (that node in the root namespace only), ``/study2/frame_source``
-    or the nested ``study2: {frame_source: ...}``; of several keys matching a node, the later
-    in the file wins.
+    in any namespace), ``frame_source`` (that node in the root namespace only),
+    ``/study2/frame_source`` or the nested ``study2: {frame_source: ...}``; of several keys
+    matching a node, the later in the file wins.
     """
     from rclpy.parameter import Parameter
 
@@ -488,7 +489,8 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
     if handle_signals:
         signals.install()
     try:
-        import mlv_ros.nodes.tag_detector  # noqa: F401  (OpenCV loaded first, so its pool is held too)
+        # OpenCV loaded first, so that its pool is held too
+        import mlv_ros.nodes.tag_detector  # noqa: F401
         from mlv_ros.threads import compute_threads
 
         with compute_threads():  # the same motion as any other layout of the graph (mlv_ros/threads.py)

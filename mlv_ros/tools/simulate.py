@@ -44,7 +44,7 @@ def _fail(msg) -> int:
 
 
 def _protocol(args):
-    """(protocol, preset) from --random/--protocol and the overriding options; raises ValueError."""
+    """Return (protocol, preset) from --random/--protocol and the overrides; raise ValueError."""
     from mlv_ros.core.sim.protocol import (SHAPES, check_items, complete_protocol, draw_protocol,
                                            load_protocol, protocol_preset)
 

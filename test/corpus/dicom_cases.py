@@ -95,7 +95,8 @@ class _Writer:
         path = self.out / f"{name}.dcm"
         if syntax is not None:
             ds.file_meta.TransferSyntaxUID = syntax
-        # Write what we are told even where pydicom would refuse or fix the value (that is the point).
+        # Write what we are told even where pydicom would refuse or fix the value (that is the
+        # point).
         old = dicom_config.settings.writing_validation_mode
         dicom_config.settings.writing_validation_mode = dicom_config.IGNORE
         try:
@@ -221,7 +222,8 @@ def _non_image(w: _Writer) -> None:
 
 
 def _transfer_syntax(w: _Writer) -> None:
-    # Declared compressed (or deflated, big endian, unknown) but stored as explicit VR little endian.
+    # Declared compressed (or deflated, big endian, unknown) but stored as explicit VR little
+    # endian.
     for name, uid, expect in (("jpeg_baseline", JPEGBaseline8Bit, "transfer syntax"),
                               ("jpeg_lossless", JPEGLossless, "transfer syntax"),
                               ("jpeg_ls", JPEGLSLossless, "transfer syntax"),
@@ -275,7 +277,8 @@ def _missing_tags(w: _Writer) -> None:
         ds = w.fresh(case)
         delattr(ds, tag)
         w.ds_case(case, ds, f"missing image tag(s): {tag.lower()}", "missing_tag")
-    # Implicit VR: pydicom resolves PixelData's VR (OB/OW) from these, and failed to (fuzz finding).
+    # Implicit VR: pydicom resolves PixelData's VR (OB/OW) from these, and failed to (fuzz
+    # finding).
     for tag in ("BitsAllocated", "PixelRepresentation"):
         case = f"missing_{tag}_implicit_vr"
         ds = w.fresh(case)
@@ -586,7 +589,7 @@ def _timing_tags(w: _Writer) -> None:
 
 # ------------------------------------------------------------------------------ entry point
 def frames_by_path(result) -> dict:
-    """The frame each file became in a :class:`~mlv_ros.core.io.dicom.DicomReadResult`, path → Frame."""
+    """Map each file to its frame in a :class:`~mlv_ros.core.io.dicom.DicomReadResult`."""
     out = {}
     for s in result.series:
         out.update(zip(s.files, [f for f in result.frames if (f.view, f.slice_index) == (s.view, s.slice_index)]))

@@ -325,8 +325,8 @@ class Findings:
 class SegmentFindings:
     """Streaming per-segment findings: feed each phase's metrics, read :attr:`findings`.
 
-    Example
-    -------
+    Examples
+    --------
     >>> sf = SegmentFindings()                                  # doctest: +SKIP
     >>> for x in positions: sf.update(analyzer.phase(x, ...))
     >>> sf.findings.classes[16]

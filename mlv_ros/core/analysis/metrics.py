@@ -5,8 +5,8 @@ segments, cardiac frame vectors, endocardial polygon stack, MLS neighbourhoods, 
 phase costs a few vectorised passes over the particles; :func:`phase_metrics` is the one-shot
 convenience wrapper.
 
-Example
--------
+Examples
+--------
 >>> an = LVAnalyzer(X_ed, frame, levels=10)            # doctest: +SKIP
 >>> m = an.phase(x, F=None, phase_index=7, num_phases=20)
 >>> m.twist_deg, m.cavity_volume_ml, m.segment_ecc
@@ -58,8 +58,9 @@ class PhaseMetrics:
         Rotation about the long axis relative to ED, degrees, + CCW seen from the apex.
     sa_radius_mm : ndarray, shape (L',)
         Average short-axis radius of the level, mm.
-    longitudinal_displacement_mm, radial_displacement_mm, circumferential_displacement_mm : ndarray, shape (L',)
-        Level means of the displacement components, mm (+ toward base / outward / CCW arc).
+    longitudinal_displacement_mm, radial_displacement_mm, circumferential_displacement_mm : ndarray
+        Level means of the displacement components, shape (L',), mm (+ toward base / outward /
+        CCW arc).
     la_radius_mm : float
         Apex → particle centroid along the long axis, mm (paper's "LA radius").
     torsion_deg_per_cm : float

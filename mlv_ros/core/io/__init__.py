@@ -9,8 +9,9 @@ write_study_dicom(study, out_dir, pixel_scale=1000, progress=None, *, bits_store
 read_dicom_dir(path, max_pixels=DEFAULT_MAX_PIXELS, study=None) -> DicomReadResult
     (``frames, problems = read_dicom_dir(path)``; also ``.warnings``, ``.series``,
     ``.long_axis``, and the study selection: ``.study_uid``, ``.studies``, ``.choice``,
-    ``.complete``, ``.left_out``, ``.not_used``; ``study`` = a StudyInstanceUID to load instead of the one with
-    the most tagged cines; raises DicomReadError when nothing is usable or ``study`` is absent)
+    ``.complete``, ``.left_out``, ``.not_used``; ``study`` = a StudyInstanceUID to load instead of
+    the one with the most tagged cines; raises DicomReadError when nothing is usable or ``study``
+    is absent)
 WORKING_DTYPES
     The frames' pixel types (uint8/uint16 stored without a rescale, float32 otherwise), each
     publishable as a sensor_msgs/Image

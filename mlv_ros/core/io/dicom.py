@@ -34,11 +34,10 @@ most clearly (tags on the heart alone; or the one asked for), its MR cines used 
 fails the tag test only where no tagged cine holds its place and it was acquired like them, with
 a warning), a slice acquired twice given by its later series, every cine given the study's phase
 count (by nearest trigger time, or left out); every series not used is listed once with its
-reason. Each used plane is classified from geometry alone: the largest group of parallel planes at distinct
-positions is the short-axis stack, every other plane is long-axis.
-The long axis is estimated from the LA planes' common line (or the SA normal), oriented apex →
-base with the anatomical prior that the base lies right-posterior-superior of the apex (LPS
-``(−1, 1, 1)`` side).
+reason. Each used plane is classified from geometry alone: the largest group of parallel planes at
+distinct positions is the short-axis stack, every other plane is long-axis. The long axis is
+estimated from the LA planes' common line (or the SA normal), oriented apex → base with the
+anatomical prior that the base lies right-posterior-superior of the apex (LPS ``(−1, 1, 1)`` side).
 """
 
 from __future__ import annotations
@@ -141,7 +140,7 @@ BITS_STORED = (8, 12, 16)
 
 
 def _random_paths(out: Path, n: int, seed: int) -> list[Path]:
-    """``n`` distinct random file paths 1–3 folders deep under ``out`` (hex names, mixed suffixes)."""
+    """Draw ``n`` distinct paths 1–3 folders deep under ``out`` (hex names, mixed suffixes)."""
     rng = np.random.default_rng(seed)
     pools = [[f"{rng.integers(1 << 24):06x}" for _ in range(3)] for _ in range(3)]
     paths: list[Path] = []
@@ -476,7 +475,7 @@ class _Skip(Exception):
 
 
 def _get(ds, name):
-    """Value of ``name`` or None; a value pydicom cannot convert (e.g. DS ``"abc"``) raises _Skip."""
+    """Return ``name``'s value or None; one pydicom cannot convert (DS ``"abc"``) raises _Skip."""
     try:
         return ds.get(name)
     except Exception as exc:  # pydicom converts lazily and raises whatever its parser raises
@@ -693,7 +692,7 @@ def _decoder_missing(ts) -> str | None:
 
 
 def _dicomdir_reason(path: str, ds) -> str:
-    """Reason a DICOMDIR is ignored: an index of files, which the reader finds by walking the folder."""
+    """Say why a DICOMDIR is ignored: it indexes files, which the reader finds by walking."""
     try:
         records = list(ds.get("DirectoryRecordSequence") or [])
         ids = [r.ReferencedFileID for r in records
@@ -917,7 +916,7 @@ def _macro_items(group) -> list:
 
 
 def _frame_views(ds, nframes: int) -> list[_FrameView]:
-    """A :class:`_FrameView` per frame; a malformed functional group is a reason to skip the file."""
+    """Return a :class:`_FrameView` per frame; a malformed functional group skips the file."""
     try:
         shared_seq = ds.get("SharedFunctionalGroupsSequence")
         per_seq = ds.get("PerFrameFunctionalGroupsSequence")

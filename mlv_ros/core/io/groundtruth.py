@@ -8,17 +8,17 @@ Format (version 1)
     :func:`motion_from_groundtruth`; a drawn protocol's preset also holds every imaging option
     and the protocol itself), ``num_phases``, ``cycle_duration_s``, ``times_s`` (list),
     ``es_phase`` (fractional), ``snr`` (null = noiseless), ``seed``, ``frame`` (``apex``,
-    ``base_centre``, ``long_axis`` apex → base, ``septum`` (θ = 0), ``e2``, ``length_mm``; LPS mm), ``slices`` (one entry per
-    slice in the npz order: ``view`` "SA"/"LA", ``slice_index``, ``series_uid``, ``description``,
-    ``rows``, ``columns``, ``geometry`` = ImagePositionPatient / ImageOrientationPatient /
-    PixelSpacing / SliceThickness), ``conventions`` (text), ``arrays`` (what each npz array is),
-    ``regional`` (:func:`mlv_ros.core.sim.regional.regional_truth`: the abnormal ``regions``,
-    and per AHA segment at the ES phase ``round(es_phase)`` the true Green–Lagrange ``err``,
-    ``ecc``, ``ell`` in the cylindrical frame of the true axis and septum, the prescribed
-    ``contraction`` and the truth ``class`` normal / hypokinetic / akinetic / dyskinetic with its
-    ``class_thresholds``; absent in files written before it), ``rv``
-    (:meth:`LVMotion.rv_insertions`: the true RV insertion points, θ in the phantom's frame and LPS
-    directions, and the septum's bisector; null without an RV, absent in files written before
+    ``base_centre``, ``long_axis`` apex → base, ``septum`` (θ = 0), ``e2``, ``length_mm``; LPS mm),
+    ``slices`` (one entry per slice in the npz order: ``view`` "SA"/"LA", ``slice_index``,
+    ``series_uid``, ``description``, ``rows``, ``columns``, ``geometry`` = ImagePositionPatient /
+    ImageOrientationPatient / PixelSpacing / SliceThickness), ``conventions`` (text), ``arrays``
+    (what each npz array is), ``regional`` (:func:`mlv_ros.core.sim.regional.regional_truth`: the
+    abnormal ``regions``, and per AHA segment at the ES phase ``round(es_phase)`` the true
+    Green–Lagrange ``err``, ``ecc``, ``ell`` in the cylindrical frame of the true axis and septum,
+    the prescribed ``contraction`` and the truth ``class`` normal / hypokinetic / akinetic /
+    dyskinetic with its ``class_thresholds``; absent in files written before it), ``rv``
+    (:meth:`LVMotion.rv_insertions`: the true RV insertion points, θ in the phantom's frame and
+    LPS directions, and the septum's bisector; null without an RV, absent in files written before
     it), and whatever the writer's ``extra`` adds (``mlv-ros simulate --random``: ``protocol``
     and ``dicom``, the writer's options).
 ``groundtruth.npz``:

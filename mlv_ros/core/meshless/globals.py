@@ -276,7 +276,7 @@ class GlobalParameters:
         return quat_to_matrix(self.rotation)
 
     def vector(self) -> np.ndarray:
-        """The 12-vector (c, q, a0..a3, τ)."""
+        """Return the parameters as one 12-vector: c, q, a0..a3, τ."""
         return np.concatenate([self.translation, self.rotation, self.a, [self.tau]])
 
     @classmethod

@@ -19,11 +19,12 @@ The local deformation ``u`` (N, 3) minimises ``½ uᵀ A u − bᵀ u`` with ``A
 Every per-phyxel term is a linear map of ``H_i`` to a stress-like ``S_i`` (a 9 × 9 tangent per
 particle, summed over the terms once per system), so one matrix–vector product is one sparse
 gradient, one batched 9 × 9 product, one sparse adjoint, one Laplacian product and the data
-springs — each a pass over the compact pair layout of :class:`~mlv_ros.core.meshless.mls.MLSOperator`.
-The preconditioner is the exact 3 × 3 diagonal block per particle (the incompressibility block
-uses the particle's own cofactor for its neighbours', which only the preconditioner sees),
-optionally plus an additive coarse correction (:class:`CoarseSpace`: affine fields per aggregate
-of particles, built once per model) that removes the smooth error block-Jacobi is slow on.
+springs — each a pass over the compact pair layout of
+:class:`~mlv_ros.core.meshless.mls.MLSOperator`. The preconditioner is the exact 3 × 3 diagonal
+block per particle (the incompressibility block uses the particle's own cofactor for its
+neighbours', which only the preconditioner sees), optionally plus an additive coarse correction
+(:class:`CoarseSpace`: affine fields per aggregate of particles, built once per model) that
+removes the smooth error block-Jacobi is slow on.
 
 Everything is float64: the fit-error penalty is a difference of two terms that nearly cancel
 for smooth fields, and float32 sparse products measured no faster here (1.6 vs 1.5 ms at 3000

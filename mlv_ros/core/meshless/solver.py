@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import elastic
 from mlv_ros.core.meshless.globals import (
-    NUM_GLOBAL, NUM_TANGENT, GlobalParameters, ModelCoordinates, ModelFrame, global_shape,
+    NUM_GLOBAL, GlobalParameters, ModelCoordinates, ModelFrame, global_shape,
     model_jacobian, reduce_rotation,
 )
 from mlv_ros.core.meshless.kernel import (

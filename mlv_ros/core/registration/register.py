@@ -233,8 +233,9 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         Particles of the model (≥ 100; paper-scale default 5000).
     masks : optional
         User myocardium masks: a ``{(view, slice_index): bool (rows, cols)}`` dict, e.g. the
-        first result of :func:`mlv_ros.core.registration.nifti.masks_for_frames` (NIfTI labels). Slices with a mask skip the
-        automatic segmentation; a mask whose shape differs from its image is rejected (reason).
+        first result of :func:`mlv_ros.core.registration.nifti.masks_for_frames` (NIfTI labels).
+        Slices with a mask skip the automatic segmentation; a mask whose shape differs from its
+        image is rejected (reason).
     seed : int
         Particle-sampling seed (deterministic output).
     landmarks_per_sa_slice : int
@@ -388,7 +389,8 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     if z_bases:
         z_base = float(np.median(z_bases))
         if z_base < z_sa_top:
-            # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice above it.
+            # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice
+            # above it.
             warnings.append(f"LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA slice; "
                             "the base is taken at that slice")
             z_base = z_sa_top

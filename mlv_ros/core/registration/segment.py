@@ -419,7 +419,8 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
         ok = np.isfinite(epi)
         if ok.sum() < 5:
             return nan, nan, None
-        # Clipped: on noise a run can start past a ray's last sample, which would leave its wall empty.
+        # Clipped: on noise a run can start past a ray's last sample, which would leave its wall
+        # empty.
         a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo)), n - 1)
         b = np.minimum(np.searchsorted(radii, np.nan_to_num(epi)), last)
         # A small cavity (apical slices) is sampled up to half its radius.

@@ -138,12 +138,12 @@ def _findings_html(summaries: list[dict]) -> str:
 
 
 def _extrapolated(summary: dict, key: str) -> str:
-    """' (extrapolated)' after a twist number that no SA slice measured (see the note below the table)."""
+    """Return ' (extrapolated)' for a twist no SA slice measured (see the note below the table)."""
     return " (extrapolated*)" if key in summary["key"].get("extrapolated", ()) else ""
 
 
 def _clean_rows(rows: list[dict]) -> list[dict]:
-    """NaN → None in the findings rows (so they print as —)."""
+    """Replace NaN with None in the findings rows (so they print as —)."""
     return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
 
 
@@ -213,8 +213,9 @@ def build_report(out_dir, phases: Sequence, ed_positions=None, positions_by_phas
         The run's per-phase metrics (any order; gaps allowed).
     ed_positions : array_like, shape (N, 3), optional
         ED particle positions, mm.
-    positions_by_phase : mapping phase_index -> (N, 3) array, or sequence indexed by phase, optional
-        Particle positions per phase (at least the ES phase is needed for the 3D figure).
+    positions_by_phase : mapping or sequence, optional
+        Phase index -> (N, 3) array, or a sequence indexed by phase: particle positions per
+        phase (at least the ES phase is needed for the 3D figure).
     compare : RunData or sequence of PhaseMetrics, optional
         A second run (e.g. hypertrophic) shown side by side.
     meta : dict, optional

@@ -32,8 +32,8 @@ draw_protocol(seed, fixed=None) -> dict, protocol_preset(protocol) -> dict
     turn a protocol into a preset for ``simulate_study``; ``dicom_options(protocol, study)``
     gives the matching ``write_study_dicom`` options.
 
-Example
--------
+Examples
+--------
 >>> from mlv_ros.core.sim import simulate_study
 >>> study = simulate_study("normal", snr=20, quick=True)
 >>> X = study.motion.sample_myocardium(1000, seed=0)

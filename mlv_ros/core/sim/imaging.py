@@ -230,7 +230,7 @@ def slab_profile(thickness: float, subplanes: int) -> tuple[np.ndarray, np.ndarr
 
 
 def plane_centre(geometry: SliceGeometry, shape: tuple[int, int]) -> np.ndarray:
-    """Patient position of the centre of a ``shape = (rows, cols)`` image (the tag-grid origin), mm."""
+    """Return the patient position of a ``(rows, cols)`` image's centre (tag-grid origin), mm."""
     rows, cols = shape
     return geometry.pixel_to_patient(np.array([(rows - 1) / 2.0, (cols - 1) / 2.0]))
 
@@ -318,7 +318,7 @@ class ImageSynthesizer:
         return tag_pattern(pts, self.plane.geometry, (self.size, self.size), self.spacing, self.tag_angle)
 
     def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:
-        """Slab-weighted myocardium and blood fractions at ``phase``, each (rows, cols) in [0, 1]."""
+        """Return slab-weighted myocardium and blood fractions at ``phase``, (rows, cols), 0..1."""
         myo = np.zeros(self.size * self.size)
         blood = np.zeros_like(myo)
         base = self.pix[self.cand]

@@ -672,5 +672,5 @@ class LVMotion:
 
 
 def make_motion(preset, num_phases: int | None = None) -> LVMotion:
-    """Build the ground-truth motion of a preset (name, YAML path or dict); see :class:`LVMotion`."""
+    """Build a preset's ground-truth motion (name, YAML path or dict); see :class:`LVMotion`."""
     return LVMotion(preset, num_phases=num_phases)

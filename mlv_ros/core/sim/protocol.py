@@ -12,8 +12,8 @@ Items are scalars or lists, except ``abnormal_regions``: a list of mappings
 * :func:`draw_protocol` draws every item from its documented range. Each item has its own
   random stream, keyed by ``(seed, item name)``, so fixing one item leaves every other item's
   draw unchanged, except where a range depends on another item (the matrix and the tag period on
-  the pixel spacing, the SA stack and the abnormal regions on the shape, the background intensity on its kind, the LA
-  angles and flips on the plane count, the intercept on the rescale).
+  the pixel spacing, the SA stack and the abnormal regions on the shape, the background intensity
+  on its kind, the LA angles and flips on the plane count, the intercept on the rescale).
 * :func:`complete_protocol` fills a partial protocol from the shape's preset (today's fixed
   protocol), so ``{}`` means the ``normal`` preset exactly.
 * :func:`protocol_preset` turns a protocol into a preset dict for
@@ -347,7 +347,7 @@ def _shape(shape: str) -> dict:
     """Preset facts a protocol needs: length, base descent, the preset's own protocol values and
     abnormal regions."""
     p = load_preset(shape)
-    g, m, o, im = p["geometry"], p["motion"], p["orientation"], p["imaging"]
+    g, m, im = p["geometry"], p["motion"], p["imaging"]
     L = float(g["length_mm"])
     n = int(im["sa_slices"])
     b, a = float(im["sa_base_gap_mm"]), float(im["sa_apex_gap_mm"])
@@ -719,7 +719,7 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
 
 # --------------------------------------------------------------------------- using one
 def _septum_hint(hint, axis, angle_deg: float) -> list[float]:
-    """``hint`` projected ⟂ ``axis`` and turned by ``angle_deg`` about it (CCW seen from the apex)."""
+    """Project ``hint`` ⟂ ``axis`` and turn it by ``angle_deg`` about it (CCW seen from apex)."""
     a = np.asarray(axis, dtype=np.float64)
     a = a / np.linalg.norm(a)
     h = np.asarray(hint, dtype=np.float64)

@@ -8,8 +8,8 @@ A *region* is a mapping (preset ``motion.regions`` list, protocol item ``abnorma
 
 * ``kind``: ``hypokinetic`` (reduced), ``akinetic`` (no contraction, no thickening: Err, Ecc,
   Ell ≈ 0, each level of the region moves rigidly; it still twists with the heart, so the
-  torsional shear E_cl of its neighbours remains) or ``dyskinetic`` (moves the wrong way: at ES its wall
-  thins and stretches and its endocardium bulges outward, e.g. an apical aneurysm).
+  torsional shear E_cl of its neighbours remains) or ``dyskinetic`` (moves the wrong way: at ES its
+  wall thins and stretches and its endocardium bulges outward, e.g. an apical aneurysm).
 * ``levels``: ``[lo, hi]`` fractions of the ED apex-to-base length from the epicardial apex
   (0 apex, 1 base plane). ``lo = 0`` takes in the apex tip fully, ``hi = 1`` the base plane.
 * ``centre_deg``, ``width_deg``: the sector, degrees, counter-clockwise seen from the apex from

@@ -2,7 +2,7 @@
 
 Public API
 ----------
-``detect_intersections(image, mask=None, spacing_px=None, angles=None, *, params=None, ...) -> Detection``
+``detect_intersections(image, mask=None, spacing_px=None, angles=None, *, ...) -> Detection``
     Stateless. Estimates the tag spacing and the two tag directions from the image spectrum
     (unless given), filters with a complex Gabor bank (3 orientations × 3 spacings per direction,
     zero-mean kernels, FFT), takes per pixel the strongest response, and returns the points where
@@ -10,8 +10,9 @@ Public API
     method on the two wrapped phases and then with kernels tuned to each point's local wave
     vectors (the bank's quantised tuning biases points next to the wall's border), with a
     confidence (response over local contrast) and grid labels (k1, k2). With a mask, the image is
-    zero-meaned locally inside it and zeroed outside first (removes the blood-pool edge bias). Bad input (constant image, NaN pixels, no tags, < 16×16 px …) gives an empty
-    :class:`Detection` whose ``reason`` says why; it never raises for image content.
+    zero-meaned locally inside it and zeroed outside first (removes the blood-pool edge bias). Bad
+    input (constant image, NaN pixels, no tags, < 16×16 px …) gives an empty :class:`Detection`
+    whose ``reason`` says why; it never raises for image content.
 
 ``SliceTracker(geometry=None, *, spacing_px=None, angles=None, max_gap=1, gate=0.4, ...)``
     Stateful, one per (view, slice). ``tracker.update(frame, mask=None) -> TagPointSet`` once per
@@ -20,8 +21,9 @@ Public API
     tracked). Later phases: prediction by the previous displacement, the ED mask carried along
     by a TPS through the tracks, detection near the prediction, TPS-RPM matching, then a second
     detection with the mask carried through the matched points that must confirm each match;
-    undetected points are dropped (after ``max_gap`` coasting phases), never invented. Points carry patient coordinates (mm) from the slice geometry. Never raises:
-    problems come back as an empty (or partial) set with ``status`` set.
+    undetected points are dropped (after ``max_gap`` coasting phases), never invented. Points carry
+    patient coordinates (mm) from the slice geometry. Never raises: problems come back as an empty
+    (or partial) set with ``status`` set.
 
 ``harp_track(images, start_rc, params) -> HarpTrack``
     HARP baseline (Osman et al. 1999): band-pass one spectral peak per direction, harmonic
@@ -40,8 +42,8 @@ Pixel coordinates are (row, col). A tag direction is the angle θ of its wave ve
 its tag lines) from the column axis toward the row axis, in [0, π); unit wave vector
 (sin θ, cos θ) in (row, col) order. Spacing = distance between tag lines, px.
 
-Example
--------
+Examples
+--------
 >>> from mlv_ros.core.tags import detect_intersections, SliceTracker
 >>> det = detect_intersections(frame.image, mask=myocardium)
 >>> det.pixel_rc, det.labels, det.confidence, det.reason

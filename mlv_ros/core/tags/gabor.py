@@ -75,7 +75,7 @@ class TagParameters:
 
     @property
     def wavevectors(self) -> np.ndarray:
-        """Angular wave vectors ``k_d = 2π/λ_d (sin θ_d, cos θ_d)``, rad/px, shape (2, 2), (row, col)."""
+        """Return wave vectors ``k_d = 2π/λ_d (sin θ_d, cos θ_d)``, rad/px, (2, 2), (row, col)."""
         a = np.asarray(self.angles, float)
         return (2 * np.pi / np.asarray(self.spacing_px, float))[:, None] * np.stack([np.sin(a), np.cos(a)], -1)
 
@@ -222,7 +222,10 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
 
 
 def _refine_peak(work: np.ndarray, f: np.ndarray, steps: int = 9) -> np.ndarray:
-    """Frequency (cycles/px, (row, col)) maximising ``|Σ work(x) e^{−2πi f·x}|`` within ±1 bin of ``f``.
+    """
+    Return the frequency (cycles/px, (row, col)) maximising ``|Σ work(x) e^{−2πi f·x}|``.
+
+    The search is within ±1 bin of ``f``.
 
     A thin tagged region spreads its tag peak over many bins and the parabola through three of
     them is then biased by the neighbouring copies; the region's own transform still peaks at the
@@ -318,7 +321,10 @@ def _kernel_bank_cached(shape, spacings, angles, sigma_u, sigma_v):
         fu = fr * ur + fc * uc                 # frequency component along the wave, cycles/px
         fv = -fr * uc + fc * ur
         f0 = 1.0 / lam
-        env = lambda a, b: np.exp(-2 * np.pi ** 2 * (su ** 2 * a ** 2 + sv ** 2 * b ** 2))
+
+        def env(a, b):
+            return np.exp(-2 * np.pi ** 2 * (su ** 2 * a ** 2 + sv ** 2 * b ** 2))
+
         # Continuous-domain transform of g(x)(exp(i2πf0·x) − c) with c = exp(−2π²σu²f0²):
         # the subtracted term removes the kernel mean (zero response to DC / smooth anatomy).
         out[j] = env(fu - f0, fv) - np.exp(-2 * np.pi ** 2 * su ** 2 * f0 ** 2) * env(fu, fv)

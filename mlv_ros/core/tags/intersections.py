@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from mlv_ros.core.filters import running_median
@@ -59,7 +58,8 @@ class Detection:
         deformed by less than half a spacing relative to straight lines, i.e. at ED).
     confidence : ndarray of float32, shape (N,)
         0..1: geometric mean over the two directions of ``|R_d| / (σ_local/√5)`` clipped to 1,
-        where ``σ_local`` is the local intensity standard deviation (1 for an ideal noise-free grid).
+        where ``σ_local`` is the local intensity standard deviation (1 for an ideal noise-free
+        grid).
     residual : ndarray of float32, shape (N,)
         Phase residual after refinement, rad.
     plain_confidence : ndarray of float32, shape (N,)
@@ -578,7 +578,7 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     psi = field_.psi[:, rr, cc].T
     jj = np.moveaxis(j[:, :, rr, cc], -1, 0)
     dd = det[rr, cc]
-    # One Newton step from each pixel: δ = −J⁻¹ψ; keep pixels whose predicted root is in their cell.
+    # One Newton step from each pixel: δ = −J⁻¹ψ; keep pixels whose predicted root is in its cell.
     step = -np.stack([jj[:, 1, 1] * psi[:, 0] - jj[:, 0, 1] * psi[:, 1],
                       -jj[:, 1, 0] * psi[:, 0] + jj[:, 0, 0] * psi[:, 1]], -1) / dd[:, None]
     cand = np.all(np.abs(step) <= 0.55, axis=1)

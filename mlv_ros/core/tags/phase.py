@@ -4,8 +4,8 @@ Both the Gabor intersection finder and the HARP baseline need the wrapped phase 
 complex fields at sub-pixel positions and its Jacobian. Interpolating a complex exponential
 bilinearly biases its phase (≈ 0.02 px at 5 px tag spacing), so instead the phase at ``x`` is
 extrapolated from the nearest pixel ``q``: ``ψ(x) ≈ ψ(q) + J(q)(x − q)``, exact for locally linear
-phase, with ``J`` the mean of the wrapped forward and backward differences (exact for linear phase while
-``|∇ψ| < π`` rad/px, i.e. spacing > 2 px; a wrapped central difference would fold already at
+phase, with ``J`` the mean of the wrapped forward and backward differences (exact for linear phase
+while ``|∇ψ| < π`` rad/px, i.e. spacing > 2 px; a wrapped central difference would fold already at
 spacing 4 px, and a derivative of the complex field would shrink it by sin(k)/k).
 """
 

@@ -249,8 +249,8 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
     while True:
         for _ in range(iterations_per_t):
             d2 = cdist(yn, xn, "sqeuclidean")
-            # Work relative to the outlier level: the outlier entry is exp(−od²/2T)·(T/T) so that at
-            # every temperature a point at distance od is as likely a match as an outlier.
+            # Work relative to the outlier level: the outlier entry is exp(−od²/2T)·(T/T) so that
+            # at every temperature a point at distance od is as likely a match as an outlier.
             m[:-1, :-1] = np.exp(-(d2 - od2) / (2 * t))
             m[-1, :] = 1.0
             m[:, -1] = 1.0

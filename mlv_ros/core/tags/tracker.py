@@ -162,7 +162,7 @@ class SliceTracker:
         except Exception as exc:  # the node must survive any bad frame; report instead of raising
             return self._result(frame, None, None, None, f"tag tracker error: {type(exc).__name__}: {exc}")
 
-    # -- internals ---------------------------------------------------------------------------------
+    # -- internals -----------------------------------------------------------------------------
 
     def _result(self, frame, rc, ids, conf, status) -> TagPointSet:
         geom = self.geometry if self.geometry is not None else getattr(frame, "geometry", None)
@@ -234,8 +234,9 @@ class SliceTracker:
                 det2 = final = detect_intersections(image, mask=region2, params=self.params, roi=roi,
                                                     accept_mask=accept2, coverage_normalised=self.follow_coverage,
                                                     **kwargs)
-                # Only points the second pass confirms (within confirm_px) count as detected: a first-
-                # pass point that came from tags just outside the predicted border is not one.
+                # Only points the second pass confirms (within confirm_px) count as detected: a
+                # first-pass point that came from tags just outside the predicted border is not
+                # one.
                 found = np.zeros(int(hit.sum()), bool)
                 j2 = np.zeros(int(hit.sum()), int)
                 if det2.ok and len(det2):
@@ -276,19 +277,22 @@ class SliceTracker:
         return float(np.clip(self.follow_relative * self._follow_conf, min(self.follow_floor, base), base))
 
     def _revive(self, matched, positions, det: Detection, spacing: float):
-        """Dropped tracks seen again: detections no live track claimed, within ``REVIVE_GATE`` spacings of
-        where the matched tracks' warp (ED → now) puts a dropped track. An intersection of two tag
-        planes ⟂ the ED image is one material line however the heart moves through the slab, so
-        that detection is the same line (a wrong one would be a whole spacing away). Returns
+        """
+        Revive dropped tracks that are seen again.
+
+        A track is revived by a detection no live track claimed, within ``REVIVE_GATE`` spacings
+        of where the matched tracks' warp (ED → now) puts the dropped track. An intersection of two
+        tag planes ⟂ the ED image is one material line however the heart moves through the slab,
+        so that detection is the same line (a wrong one would be a whole spacing away). Returns
         ``(indices, positions, confidences)`` of the revived tracks (already updated)."""
         lost = np.nonzero(self._dead)[0]
         none = (np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, np.float32))
         if not self.revive or lost.size == 0 or len(matched) < 6 or not det.ok or len(det) == 0:
             return none
-        # Tracks are mostly dropped where the phase is least reliable (the wall's border), and taken
-        # up again they are less accurate than followed ones (default study, in-plane: median 0.54
-        # vs 0.25 mm; ES p95 in 3D 1.59 → 1.77 mm when reviving at every phase), so only a slice
-        # starved of points (fewer than REVIVE_BELOW of its ED tracks alive) revives.
+        # Tracks are mostly dropped where the phase is least reliable (the wall's border), and
+        # taken up again they are less accurate than followed ones (default study, in-plane: median
+        # 0.54 vs 0.25 mm; ES p95 in 3D 1.59 → 1.77 mm when reviving at every phase), so only a
+        # slice starved of points (fewer than REVIVE_BELOW of its ED tracks alive) revives.
         if (~self._dead).sum() >= REVIVE_BELOW * len(self.track_id):
             return none
         # Taking a track up again is an association without a path to it: the detection must be
@@ -389,7 +393,10 @@ class SliceTracker:
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if not warped.any():
             return None, None
-        disk = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+        def disk(r):
+            return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
         acc_w = cv2.dilate(warped, disk(dilate)) if dilate > 0 else warped
         # The propagated border is uncertain: static background tags or blood just outside it
         # bias the phase more than a lost rim of myocardium does, hence the erosion.
