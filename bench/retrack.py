@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2

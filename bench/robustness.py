@@ -19,8 +19,8 @@ passing.
 
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal]
 
-The drawn abnormal regions and right ventricle (issue 20) are left out unless ``--abnormal``: the cases stay the
-normal hearts these seeds drew before, comparable with earlier runs.
+The drawn abnormal regions and right ventricle (issue 20) are left out unless ``--abnormal``: the
+cases stay the normal hearts these seeds drew before, comparable with earlier runs.
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
 """

@@ -33,8 +33,9 @@ def random_study_run(request, tmp_path_factory):
     seed = request.param
     root = tmp_path_factory.mktemp(f"random{seed}")
     study = root / "study"
-    # Displacement accuracy of normal hearts: no drawn abnormal regions nor RV (issue 20; the other items
-    # are drawn from their own streams, so the studies are the ones these seeds always drew).
+    # Displacement accuracy of normal hearts: no drawn abnormal regions nor RV (issue 20; the
+    # other items are drawn from their own streams, so the studies are the ones these seeds
+    # always drew).
     fixed = root / "no_regions.yaml"
     fixed.write_text("abnormal_regions: []\nright_ventricle: false\n")
     subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), "--protocol", str(fixed), "--phases", "16",

@@ -11,7 +11,14 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from retrack import ideal_targets  # noqa: E402
-from test_tracking import grid_tags, observed, study, tagset  # noqa: E402,F401
+from test_tracking import grid_tags, observed, tagset  # noqa: E402
+
+from mlv_ros.core.sim import simulate_study  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def study():
+    return simulate_study("normal", snr=20, quick=True)
 
 
 def test_ideal_targets_are_the_material_lines_crossing_the_planes(study):

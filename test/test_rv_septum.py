@@ -83,7 +83,9 @@ def test_rv_is_drawn_and_leaves_the_rest_of_the_protocol_and_the_lv_alone():
     draws = [draw_protocol(s)["right_ventricle"] for s in range(40)]
     assert 0 < sum(draws) < 40
     a, b = draw_protocol(7, {"right_ventricle": False}), draw_protocol(7, {"right_ventricle": True})
-    others = (lambda p: {k: v for k, v in p.items() if k != "right_ventricle"})
+    def others(p):
+        return {k: v for k, v in p.items() if k != "right_ventricle"}
+
     assert others(a) == others(b)
     assert complete_protocol({})["right_ventricle"] is False  # the presets' own studies have none
     ma = make_motion(protocol_preset(complete_protocol({"septum_deg": 40.0})))

@@ -126,7 +126,9 @@ class SeptumEstimate:
 
     def to_dict(self) -> dict:
         """JSON-friendly summary."""
-        vec = (lambda v: None if v is None else [round(float(x), 6) for x in v])
+        def vec(v):
+            return None if v is None else [round(float(x), 6) for x in v]
+
         return {"source": self.source, "septum_direction": vec(self.septum),
                 "anterior_insertion_direction": vec(self.anterior),
                 "inferior_insertion_direction": vec(self.inferior),
@@ -275,7 +277,9 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
     p = p - (p @ axis) * axis
     p = p / np.linalg.norm(p)
     e2 = np.cross(p, axis)  # θ grows CCW seen from the apex (mlv_ros.core.analysis.frame)
-    theta = (lambda v: math.atan2(float(v @ e2), float(v @ p)))
+    def theta(v):
+        return math.atan2(float(v @ e2), float(v @ p))
+
     found, reasons = [], []
     for image, seg, geom in slices:
         rv, why = find_rv(image, seg)
@@ -288,7 +292,9 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
         t_e = theta(_ray_direction(geom, seg.centre_rc, a[rv.end], axis))
         step = a[1] - a[0]
         t_m = theta(_ray_direction(geom, seg.centre_rc, a[0] + mid_idx * step, axis))
-        wrap = (lambda x: (x + math.pi) % (2 * math.pi) - math.pi)
+        def wrap(x):
+            return (x + math.pi) % (2 * math.pi) - math.pi
+
         if wrap(t_m - t_s) < 0:   # the rays run clockwise seen from the apex on this slice
             t_s, t_e = t_e, t_s
         # θ counter-clockwise from the anterior to the inferior insertion, bisector between them.
