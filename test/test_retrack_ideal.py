@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mlv_ros.core.sim import simulate_study
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from retrack import ideal_targets  # noqa: E402
 from test_tracking import grid_tags, observed, tagset  # noqa: E402
-
-from mlv_ros.core.sim import simulate_study  # noqa: E402
 
 
 @pytest.fixture(scope="module")
