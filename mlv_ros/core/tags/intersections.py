@@ -42,6 +42,10 @@ MIN_GRID_COHERENCE = 0.15
 # (noise alone reaches ≈ 2.7 band / 4.3 whitened: some noise candidates are expected and rejected).
 PERMISSIVE_PEAK_RATIO = 3.0
 PERMISSIVE_WHITENED_PEAK_RATIO = 2.5
+# Default largest move of the tuned refinement (:func:`refine_tuned`), px: beyond it the bank's and
+# the tuned kernels disagree (clutter, wrong tuning) and the point is dropped. Followers of known
+# tracks pass their own limit in tag periods (``max_tuned_move_periods``).
+TUNED_MAX_MOVE_PX = 0.5
 
 
 @dataclass
@@ -431,6 +435,7 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
                          sigma_u: float = 0.5, sigma_v: float = 0.6, max_residual: float = 0.3,
                          roi=None, accept_mask=None, normalise: bool = True, tuned: bool | None = None,
                          keep_maps: bool = False, coverage_normalised: bool = False,
+                         max_tuned_move_periods: float | None = None,
                          spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX)) -> Detection:
     """Find tag-grid intersections with sub-pixel accuracy (stateless; never raises on bad images).
 
@@ -482,6 +487,9 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         then rejects thin-wall tags that stand as far above the noise as thick-wall ones do.
         Normalised, noise scores the same whatever the wall thickness, and one threshold is one
         false-alarm rate (thick walls, c ≈ 1, are unchanged). Used to follow known tracks.
+    max_tuned_move_periods : float, optional
+        Largest move of the tuned refinement, in tag periods (default ``TUNED_MAX_MOVE_PX``
+        pixels); a point moved farther is dropped.
     spacing_range_px : (float, float)
         Tag periods the spectrum estimate considers, px (:func:`estimate_grid`).
 
@@ -596,11 +604,13 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     if tuned and len(x):
         kloc = np.moveaxis(field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0)  # (N, 2, 2) local wave vectors
         xt, _, okt = refine_tuned(img, x, kloc, sigma_u, sigma_v)
-        # A refinement that moves a point by more than half a pixel means the two filters
-        # disagree (clutter, wrong tuning): drop the point rather than guess.
+        # A refinement that moves a point far means the two filters disagree (clutter, wrong
+        # tuning): drop the point rather than guess.
         moved = np.linalg.norm(xt - x, axis=1)
         qt, inside_t = field_.nearest(xt)
-        keep = okt & (moved <= 0.5) & inside_t & valid[qt[:, 0], qt[:, 1]]
+        limit = (TUNED_MAX_MOVE_PX if max_tuned_move_periods is None
+                 else float(max_tuned_move_periods) * float(np.mean(params.spacing_px)))
+        keep = okt & (moved <= limit) & inside_t & valid[qt[:, 0], qt[:, 1]]
         x, res, q = xt[keep], res[keep], qt[keep]
     c, cp = conf[q[:, 0], q[:, 1]], plain[q[:, 0], q[:, 1]]
     if x.shape[0] == 0:
