@@ -17,10 +17,13 @@ myocardium (errors are measured on the particles, so a model short of the base w
 it has). The summary gives the worst and the median of each measure and the number of cases
 passing.
 
-    mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal]
+    mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal
+                              --rv on]
 
 The drawn abnormal regions and right ventricle (issue 20) are left out unless ``--abnormal``: the
-cases stay the normal hearts these seeds drew before, comparable with earlier runs.
+cases stay the normal hearts these seeds drew before, comparable with earlier runs. ``--rv
+drawn|on|off`` sets the right ventricle alone (e.g. ``--rv on``: every study with an RV beside the
+LV, as real studies have).
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
 """
@@ -65,15 +68,20 @@ def tag_points_per_slice(mcap: Path) -> dict:
     return {k: {"ed": v.get(0, 0), "min": min(v.values())} for k, v in sorted(counts.items())}
 
 
-def run_case(seed: int, out: Path, timeout: float, abnormal: bool = False) -> dict:
+def run_case(seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None) -> dict:
+    """One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
+    (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20)."""
     study, run_dir = out / "study", out / "run"
     case = {"seed": seed}
     t0 = time.monotonic()
     extra = []
-    if not abnormal:  # the studies these seeds drew before abnormal regions and the RV existed (issue 20)
+    rv = rv or ("drawn" if abnormal else "off")
+    fixed = ("" if abnormal else "abnormal_regions: []\n") + {"on": "right_ventricle: true\n", "off": "right_ventricle: false\n",
+                                                               "drawn": ""}[rv]
+    if fixed:  # without --abnormal: the studies these seeds drew before abnormal regions and the RV existed (issue 20)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "no_regions.yaml").write_text("abnormal_regions: []\nright_ventricle: false\n")
-        extra = ["--protocol", str(out / "no_regions.yaml")]
+        (out / "fixed.yaml").write_text(fixed)
+        extra = ["--protocol", str(out / "fixed.yaml")]
     sim = subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), *extra, "--out", str(study),
                           "--no-progress"], capture_output=True, text=True)
     case["simulate_seconds"] = round(time.monotonic() - t0, 1)
@@ -148,6 +156,9 @@ def main():
     ap.add_argument("--abnormal", action="store_true",
                     help="keep the drawn regional abnormalities (default: none, the studies these seeds drew "
                          "before; regional strain is `mlv-ros bench strain`)")
+    ap.add_argument("--rv", choices=("drawn", "on", "off"), default=None,
+                    help="right ventricle: as drawn (75 %% of studies), always, never (default: drawn with "
+                         "--abnormal, else off)")
     args = ap.parse_args()
     if args.cases < 1:
         ap.error("--cases must be >= 1")
@@ -155,7 +166,7 @@ def main():
     cases = []
 
     def one(seed):
-        case = run_case(seed, root / f"case-{seed}", args.timeout, args.abnormal)
+        case = run_case(seed, root / f"case-{seed}", args.timeout, args.abnormal, args.rv)
         print(json.dumps({k: case.get(k) for k in ("seed", "pass", "es", "phases_solved", "num_phases",
                                                    "run_seconds", "error") if k in case}),
               file=sys.stderr, flush=True)

@@ -11,7 +11,9 @@ intensity anywhere, so scaling an image changes nothing). Two local features (pi
 * ``energy`` E — the tag amplitude. The two tag wave vectors come from the spectrum (peaks in
   the band of plausible periods); the tag-free mean (below) is subtracted and a complex Gabor
   filter (Gaussian envelope σ = λ/2, which passes the grid's other harmonics at ≈ 0.7 %) is
-  demodulated at each. At ED the grid is undeformed, so the tags have one phase per
+  demodulated at each. A bright pool beside the wall (the right ventricle) can out-weigh the
+  tags in the plain spectrum; the segmenters also try the whitened one
+  (:func:`candidate_features`) and keep the estimate under which the wall stands out most. At ED the grid is undeformed, so the tags have one phase per
   direction over the whole image: E is the sum of the responses projected on those phases.
   That keeps the tags' amplitude, linear in the tagged fraction of a pixel, while most of the
   response to intensity steps — a bright blood pool's edge has spectral content in the tag
@@ -165,7 +167,7 @@ def tag_period_band_px(pixel_spacing_mm: float | None) -> tuple[float, float]:
 
 
 def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
-                    max_period_px: float = 30.0) -> np.ndarray:
+                    max_period_px: float = 30.0, whitened: bool = False) -> np.ndarray:
     """The two dominant tag wave vectors from the windowed magnitude spectrum.
 
     Parameters
@@ -175,6 +177,13 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
         Search band of tag periods, px. Keep the upper end near the longest plausible period
         (:func:`tag_period_band_px`): below it, the spectrum of a bright blood pool's outline
         (which falls off as 1/frequency) can out-weigh the tags.
+    whitened : bool
+        Search the spectrum times the frequency: an intensity step's spectrum falls off as
+        1/frequency, so its in-band maximum sits at the band's long-period end, where a bright
+        pool next to the wall (the right ventricle's blood crescent, thinner than the median
+        window below) can out-weigh the tags; whitened, a step is flat over the band and the
+        tags' peak stands out, at the cost of favouring the grid's higher harmonics.
+        :func:`segment_sa` / :func:`segment_la` try both (:func:`candidate_features`).
 
     Returns
     -------
@@ -203,7 +212,7 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
     FY, FX = np.meshgrid(fy, fx, indexing="ij")
     fr = np.hypot(FY, FX)
     band = (fr >= 1.0 / max_period_px) & (fr <= 1.0 / min_period_px)
-    s1 = np.where(band, found, 0.0)
+    s1 = np.where(band, found * fr if whitened else found, 0.0)
     i = np.unravel_index(int(np.argmax(s1)), s1.shape)
     k1 = np.array([FY[i], FX[i]])
     cosang = np.abs(FY * k1[0] + FX * k1[1]) / (fr * np.linalg.norm(k1) + 1e-12)
@@ -280,6 +289,42 @@ def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
     quadrature -= ndi.gaussian_filter(quadrature, 2.0 * lam)
     noise = 1.4826 * float(np.median(np.abs(quadrature - np.median(quadrature))))
     return TagFeatures(energy, mean[inner], lam, kv, sigma, noise)
+
+
+def candidate_features(image: np.ndarray, pixel_spacing_mm: float | None = None) -> list[TagFeatures]:
+    """:func:`tag_features` at the plain and the whitened spectral estimate (:func:`tag_wavevectors`).
+
+    One entry when both estimates agree (every wave vector within 5 % of the other's, sign and
+    order free), else two, plain first. The segmenters keep the one under which the wall stands
+    out most (:func:`_best_of`): the right tag frequency gives the wall its largest tag energy
+    over the noise, whichever spectrum found it.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    band = tag_period_band_px(pixel_spacing_mm)
+    a = tag_wavevectors(img, *band)
+    b = tag_wavevectors(img, *band, whitened=True)
+
+    def close(x, y):
+        return min(np.linalg.norm(x - y), np.linalg.norm(x + y)) <= 0.05 * np.linalg.norm(y)
+
+    same = (close(a[0], b[0]) and close(a[1], b[1])) or (close(a[0], b[1]) and close(a[1], b[0]))
+    return [tag_features(img, a)] if same else [tag_features(img, a), tag_features(img, b)]
+
+
+def _best_of(results: list) -> "SliceSegmentation":
+    """The segmentation (``(SliceSegmentation, wall contrast-to-noise)`` pairs) to keep: an ``ok``
+    one over a failure, then the highest wall contrast; the first failure's reason otherwise."""
+    ok = [r for r in results if r[0].ok]
+    if not ok:
+        return results[0][0]
+    return max(ok, key=lambda r: r[1])[0]
+
+
+def _wall_cnr(levels, feat: TagFeatures) -> float:
+    """Wall tag energy above the higher of cavity and outside, in units of the energy's noise."""
+    if levels is None:
+        return -np.inf
+    return float((levels.peak - max(levels.cavity, levels.outside)) / max(float(feat.noise), 1e-300))
 
 
 def _dominant_phase(z: np.ndarray) -> float:
@@ -740,8 +785,9 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
         Shortest myocardial run accepted on a ray, mm.
     max_invalid_fraction : float
         Reject the slice when more rays than this find no myocardium.
-    features : TagFeatures, optional
-        Precomputed :func:`tag_features`.
+    features : TagFeatures or list of TagFeatures, optional
+        Precomputed :func:`tag_features` (only that estimate is tried) or
+        :func:`candidate_features` (each tried, the better kept, as by default).
 
     Returns
     -------
@@ -753,14 +799,27 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
     if failed is not None:
         return failed
     c = np.asarray(centre_rc, dtype=np.float64)
-    feat = features if features is not None else tag_features(img, pixel_spacing_mm=pixel_spacing_mm)
-    rmax = max_radius_mm / pixel_spacing_mm
+    return _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, "SA",
+                               lambda angles, endo, epi: _sa_from_runs(
+                                   img.shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm,
+                                   min_wall_mm, max_invalid_fraction))
+
+
+def _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, finish):
+    """Wall runs around ``c`` under each of :func:`candidate_features` (or the given ``features``),
+    shaped by ``finish(angles, endo, epi)``; the best by :func:`_best_of`."""
+    feats = (candidate_features(img, pixel_spacing_mm) if features is None
+             else [features] if isinstance(features, TagFeatures) else list(features))
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi, lv = _wall_runs(feat, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
-    if lv is None:
-        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "SA")
-    return _sa_from_runs(img.shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm,
-                         max_invalid_fraction)
+    results = []
+    for feat in feats:
+        endo, epi, lv = _wall_runs(feat, c, angles, max_radius_mm / pixel_spacing_mm,
+                                   min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+        if lv is None:
+            results.append((_fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", view), -np.inf))
+        else:
+            results.append((finish(angles, endo, epi), _wall_cnr(lv, feat)))
+    return _best_of(results)
 
 
 def _sa_from_runs(shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction):
@@ -803,6 +862,7 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     min_arc_deg : float
         Reject when the contiguous arc of rays that meet myocardium is shorter than this.
     features : TagFeatures, optional
+        As :func:`segment_sa`.
 
     Returns
     -------
@@ -815,13 +875,10 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     c = np.asarray(centre_rc, dtype=np.float64)
     ax = np.asarray(axis_rc, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
-    feat = features if features is not None else tag_features(img, pixel_spacing_mm=pixel_spacing_mm)
     rmax = max_radius_mm / pixel_spacing_mm
-    angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi, lv = _wall_runs(feat, c, angles, rmax, min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
-    if lv is None:
-        return _fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", "LA")
-    return _la_from_runs(img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg)
+    return _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, "LA",
+                               lambda angles, endo, epi: _la_from_runs(
+                                   img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg))
 
 
 def _enclosed_gaps(valid: np.ndarray, allowed: np.ndarray) -> np.ndarray:

@@ -67,6 +67,14 @@ def cavity_centre(s: seg.SliceSegmentation) -> np.ndarray | None:
     return None
 
 
+def _finite_features(img: np.ndarray, sp: float) -> list:
+    """:func:`.segment.candidate_features` with finite energy and period: both spectral estimates
+    (a bright RV pool beside the wall can mislead the plain one), the plain one first (the
+    blood-pool search uses it); empty when none is finite."""
+    return [f for f in seg.candidate_features(img, pixel_spacing_mm=sp)
+            if np.all(np.isfinite(f.energy)) and np.isfinite(f.wavelength_px)]
+
+
 def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
                           max_candidates: int = 3) -> list[np.ndarray]:
     """Likely LV blood-pool centres of an ED tagged image, best first, (row, col) px.
@@ -358,9 +366,10 @@ class StreamingMasker:
 
     def _sa(self, frame: Frame, img: np.ndarray, sp: float):
         g = frame.geometry
-        feat = seg.tag_features(img, pixel_spacing_mm=sp)
-        if not np.all(np.isfinite(feat.energy)) or not np.isfinite(feat.wavelength_px):
+        feats = _finite_features(img, sp)
+        if not feats:
             return None, "no tag pattern found (tag features not finite)"
+        feat = feats[0]
         cands: list[tuple[str, np.ndarray]] = []
         ax = self.long_axis()
         if ax is not None:
@@ -375,7 +384,7 @@ class StreamingMasker:
         reasons: list[tuple[str, str]] = []
         fallback = None
         for how, c in cands:
-            s = seg.segment_sa(img, c, sp, features=feat)
+            s = seg.segment_sa(img, c, sp, features=feats)
             if not s.ok:
                 reasons.append((how, s.reason))
                 continue
@@ -383,7 +392,7 @@ class StreamingMasker:
             # square-on, and the centre feeds the long-axis estimate.
             cc = cavity_centre(s)
             if cc is not None and np.linalg.norm(cc - c) > 1.0:
-                s2 = seg.segment_sa(img, cc, sp, features=feat)
+                s2 = seg.segment_sa(img, cc, sp, features=feats)
                 if s2.ok:
                     s = s2
                     cc2 = cavity_centre(s2)
@@ -418,9 +427,10 @@ class StreamingMasker:
         centre_rc, off = g.patient_to_pixel(p)
         if abs(float(off)) > self.max_plane_offset_mm:
             return None, f"LA plane is {abs(float(off)):.1f} mm from the long axis"
-        feat = seg.tag_features(img, pixel_spacing_mm=sp)
-        if not np.all(np.isfinite(feat.energy)) or not np.isfinite(feat.wavelength_px):
+        feats = _finite_features(img, sp)
+        if not feats:
             return None, "no tag pattern found (tag features not finite)"
+        feat = feats[0]
         # Axis point: mid stack first; then toward the apex (a basal point can sit in the
         # open atrial end) and the base. An unknown sign (one SA slice) tries both directions.
         signs = (1.0,) if known else (1.0, -1.0)
@@ -429,7 +439,7 @@ class StreamingMasker:
             a_rc = sgn * axis_rc / np.linalg.norm(axis_rc)
             for shift_mm in (0.0, -10.0, 10.0):
                 c = centre_rc + a_rc * shift_mm / sp
-                s = seg.segment_la(img, c, a_rc, sp, features=feat)
+                s = seg.segment_la(img, c, a_rc, sp, features=feats)
                 if s.ok and s.mask.any():
                     return s.mask, ""
                 where = f"axis point {shift_mm:+g} mm" + ("" if known else f" (axis sign {sgn:+g})")
