@@ -4,39 +4,40 @@ from glob import glob
 
 from setuptools import find_packages, setup
 
-package_name = "mlv_ros"
+package_name = 'mlv_ros'
 
 NODES = [
-    "frame_source",
-    "tag_detector",
-    "registration",
-    "meshless_solver",
-    "motion_analyzer",
-    "recorder",
-    "replay",
-    "live_view",
+    'frame_source',
+    'tag_detector',
+    'registration',
+    'meshless_solver',
+    'motion_analyzer',
+    'recorder',
+    'replay',
+    'live_view',
 ]
 
 setup(
     name=package_name,
-    version="0.1.0",
-    packages=find_packages(exclude=["test", "test.*"]),
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
     data_files=[
-        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
-        ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.json")),
-        ("share/" + package_name + "/config/phantoms", glob("config/phantoms/*.yaml")),
-        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.json')),
+        ('share/' + package_name + '/config/phantoms', glob('config/phantoms/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
-    install_requires=["setuptools"],
+    install_requires=['setuptools'],
     zip_safe=True,
-    maintainer="mlv_ros developers",
-    maintainer_email="mlv-ros-dev@example.org",
-    description="Dense 3D LV motion from tagged MRI with meshless deformable models (ROS 2 Jazzy).",
-    license="Apache-2.0",
-    tests_require=["pytest"],
+    maintainer='mlv_ros developers',
+    maintainer_email='mlv-ros-dev@example.org',
+    description='Dense 3D LV motion from tagged MRI with meshless deformable models (ROS 2 '
+    'Jazzy).',
+    license='Apache-2.0',
+    tests_require=['pytest'],
     entry_points={
-        "console_scripts": [f"{n} = mlv_ros.nodes.{n}:main" for n in NODES]
-        + ["mlv-ros = mlv_ros.cli:main"],
+        'console_scripts': [f'{n} = mlv_ros.nodes.{n}:main' for n in NODES]
+        + ['mlv-ros = mlv_ros.cli:main'],
     },
 )

@@ -1,14 +1,15 @@
-"""Benchmark: numpy ⇄ message conversion speed (issue: ≤ 5 ms one way for a 256×256 image and
-a 100k-point cloud). Prints one JSON document; medians of repeated runs, in milliseconds."""
+"""
+Benchmark: numpy ⇄ message conversion speed (issue: ≤ 5 ms one way for a 256×256 image and
+a 100k-point cloud). Prints one JSON document; medians of repeated runs, in milliseconds.
+"""
 
 import json
 import statistics
 import time
 
+from mlv_ros import conversions as cv
 import numpy as np
 from rclpy.serialization import deserialize_message, serialize_message
-
-from mlv_ros import conversions as cv
 
 
 def median_ms(fn, repeats=30):
@@ -25,7 +26,7 @@ def main():
     rng = np.random.default_rng(0)
     img16 = rng.integers(0, 4096, (256, 256)).astype(np.uint16)
     img32 = rng.normal(size=(256, 256)).astype(np.float32)
-    cloud = cv.structured({k: rng.normal(size=100_000) for k in ("x", "y", "z", "dx", "dy", "dz")})
+    cloud = cv.structured({k: rng.normal(size=100_000) for k in ('x', 'y', 'z', 'dx', 'dy', 'dz')})
     m16, m32, mc = cv.image_to_msg(img16), cv.image_to_msg(img32), cv.cloud_to_msg(cloud)
     naive = np.frombuffer(img16.tobytes(), np.uint8)
 
@@ -33,22 +34,27 @@ def main():
         m16.data = naive
 
     result = {
-        "image_256x256_mono16_to_msg_ms": median_ms(lambda: cv.image_to_msg(img16)),
-        "image_256x256_mono16_from_msg_ms": median_ms(lambda: cv.msg_to_image(m16)),
-        "image_256x256_32FC1_to_msg_ms": median_ms(lambda: cv.image_to_msg(img32)),
-        "image_256x256_32FC1_from_msg_ms": median_ms(lambda: cv.msg_to_image(m32)),
-        "cloud_100k_6f32_to_msg_ms": median_ms(lambda: cv.cloud_to_msg(cloud)),
-        "cloud_100k_6f32_from_msg_ms": median_ms(lambda: cv.msg_to_cloud(mc, ("x", "y", "z"))),
-        "cloud_100k_cdr_serialize_ms": median_ms(lambda: serialize_message(mc), 10),
-        "cloud_100k_cdr_deserialize_ms": median_ms(lambda: deserialize_message(serialize_message(mc), type(mc)), 10),
-        "naive_numpy_assign_to_uint8_field_ms": median_ms(naive_assign, 5),
+        'image_256x256_mono16_to_msg_ms': median_ms(lambda: cv.image_to_msg(img16)),
+        'image_256x256_mono16_from_msg_ms': median_ms(lambda: cv.msg_to_image(m16)),
+        'image_256x256_32FC1_to_msg_ms': median_ms(lambda: cv.image_to_msg(img32)),
+        'image_256x256_32FC1_from_msg_ms': median_ms(lambda: cv.msg_to_image(m32)),
+        'cloud_100k_6f32_to_msg_ms': median_ms(lambda: cv.cloud_to_msg(cloud)),
+        'cloud_100k_6f32_from_msg_ms': median_ms(lambda: cv.msg_to_cloud(mc, ('x', 'y', 'z'))),
+        'cloud_100k_cdr_serialize_ms': median_ms(lambda: serialize_message(mc), 10),
+        'cloud_100k_cdr_deserialize_ms': median_ms(
+            lambda: deserialize_message(serialize_message(mc), type(mc)), 10
+        ),
+        'naive_numpy_assign_to_uint8_field_ms': median_ms(naive_assign, 5),
     }
-    result["naive_vs_fast_ratio"] = round(result["naive_numpy_assign_to_uint8_field_ms"]
-                                          / max(result["image_256x256_mono16_to_msg_ms"], 1e-6), 1)
-    result["target_ms"] = 5.0
-    result["meets_target"] = all(v <= 5.0 for k, v in result.items() if k.endswith("msg_ms"))
-    print(json.dumps({"benchmark": "conversions", "results": result}, indent=2))
+    result['naive_vs_fast_ratio'] = round(
+        result['naive_numpy_assign_to_uint8_field_ms']
+        / max(result['image_256x256_mono16_to_msg_ms'], 1e-6),
+        1,
+    )
+    result['target_ms'] = 5.0
+    result['meets_target'] = all(v <= 5.0 for k, v in result.items() if k.endswith('msg_ms'))
+    print(json.dumps({'benchmark': 'conversions', 'results': result}, indent=2))
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     main()

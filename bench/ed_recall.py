@@ -1,4 +1,5 @@
-"""ED tag-intersection recall and precision of a recorded run against the simulator's truth.
+"""
+ED tag-intersection recall and precision of a recorded run against the simulator's truth.
 
 Reads a kept bench case (``run/run.mcap`` of ``mlv-ros run --dicom`` and ``study/`` with
 ``groundtruth.json``), builds each ED mask as the tag detector node does
@@ -18,22 +19,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+import sys
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from retrack import recorded  # noqa: E402
-
-from mlv_ros.core.io.groundtruth import load_groundtruth  # noqa: E402
+from mlv_ros.core.io.groundtruth import load_groundtruth  # noqa: E402, I100
 from mlv_ros.core.registration.streaming import StreamingMasker  # noqa: E402
 from mlv_ros.core.sim.imaging import plane_centre  # noqa: E402
 from mlv_ros.core.tags import SliceTracker  # noqa: E402
+from retrack import recorded  # noqa: E402
 
 
-def true_intersections(geom, shape, spacing_mm: float, angle_deg: float, mask: np.ndarray) -> np.ndarray:
+def true_intersections(
+    geom, shape, spacing_mm: float, angle_deg: float, mask: np.ndarray
+) -> np.ndarray:
     """Pixel (row, col) of the simulator's ED tag intersections inside ``mask``, (N, 2)."""
     c0 = plane_centre(geom, shape)
     ca, sa = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
@@ -44,8 +46,11 @@ def true_intersections(geom, shape, spacing_mm: float, angle_deg: float, mask: n
     dr, dc = p0[1] - p0[0], p0[2] - p0[0]
     a_mat = np.array([[dr @ u, dc @ u], [dr @ v, dc @ v]])
     off = np.array([(p0[0] - c0) @ u, (p0[0] - c0) @ v])
-    n = int(np.ceil(np.hypot(*shape) * max(geom.row_spacing, geom.column_spacing) / spacing_mm)) + 2
-    i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing="ij")
+    n = (
+        int(np.ceil(np.hypot(*shape) * max(geom.row_spacing, geom.column_spacing) / spacing_mm))
+        + 2
+    )
+    i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing='ij')
     ab = spacing_mm * np.stack([i.ravel(), j.ravel()], -1).astype(float)
     rc = np.linalg.solve(a_mat, (ab - off).T).T
     q = np.rint(rc).astype(int)
@@ -55,10 +60,10 @@ def true_intersections(geom, shape, spacing_mm: float, angle_deg: float, mask: n
 
 
 def case_recall(case: Path, tol: float = 0.2, per_slice: bool = False, **tracker_kwargs) -> dict:
-    frames, _, _ = recorded(case / "run" / "run.mcap")
-    gt = load_groundtruth(case / "study")
-    spacing_mm = float(gt.meta["protocol"]["tag_spacing_mm"])
-    angle = float(gt.meta["protocol"]["tag_angle_deg"])
+    frames, _, _ = recorded(case / 'run' / 'run.mcap')
+    gt = load_groundtruth(case / 'study')
+    spacing_mm = float(gt.meta['protocol']['tag_spacing_mm'])
+    angle = float(gt.meta['protocol']['tag_angle_deg'])
     masker = StreamingMasker()
     for f in frames:
         masker.observe_geometry(f)
@@ -71,7 +76,9 @@ def case_recall(case: Path, tol: float = 0.2, per_slice: bool = False, **tracker
         mask, _ = masker.ed_mask(f)
         pts = SliceTracker(f.geometry, **tracker_kwargs).update(f, mask=mask)
         k = keys[int(np.argmin(np.linalg.norm(ipps - f.geometry.image_position, axis=1)))]
-        truth = true_intersections(gt.geometries[k], f.image.shape, spacing_mm, angle, gt.ed_masks[k])
+        truth = true_intersections(
+            gt.geometries[k], f.image.shape, spacing_mm, angle, gt.ed_masks[k]
+        )
         period = spacing_mm / f.geometry.row_spacing
         det = np.asarray(pts.pixel_rc, float).reshape(-1, 2)
         found = right = 0
@@ -79,32 +86,43 @@ def case_recall(case: Path, tol: float = 0.2, per_slice: bool = False, **tracker
             d_t, _ = cKDTree(det).query(truth)
             d_d, _ = cKDTree(truth).query(det)
             found, right = int(np.sum(d_t <= tol * period)), int(np.sum(d_d <= tol * period))
-        view = "SA" if f.view == 0 else "LA"
-        s = out.setdefault(view, {"truth": 0, "detected": 0, "found": 0, "right": 0})
-        s["truth"] += len(truth)
-        s["detected"] += len(det)
-        s["found"] += found
-        s["right"] += right
-        rows.append({"view": view, "slice": int(f.slice_index), "truth": len(truth), "detected": len(det),
-                     "found": found, "right": right, "status": pts.status[:80]})
+        view = 'SA' if f.view == 0 else 'LA'
+        s = out.setdefault(view, {'truth': 0, 'detected': 0, 'found': 0, 'right': 0})
+        s['truth'] += len(truth)
+        s['detected'] += len(det)
+        s['found'] += found
+        s['right'] += right
+        rows.append(
+            {
+                'view': view,
+                'slice': int(f.slice_index),
+                'truth': len(truth),
+                'detected': len(det),
+                'found': found,
+                'right': right,
+                'status': pts.status[:80],
+            }
+        )
     for s in out.values():
-        s["recall"] = round(s["found"] / max(s["truth"], 1), 3)
-        s["precision"] = round(s["right"] / max(s["detected"], 1), 3)
-    res = {"case": case.name, **out}
+        s['recall'] = round(s['found'] / max(s['truth'], 1), 3)
+        s['precision'] = round(s['right'] / max(s['detected'], 1), 3)
+    res = {'case': case.name, **out}
     if per_slice:
-        res["slices"] = rows
+        res['slices'] = rows
     return res
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cases", nargs="+", type=Path)
-    ap.add_argument("--tol", type=float, default=0.2, help="match radius, tag periods (default 0.2)")
-    ap.add_argument("--per-slice", action="store_true")
+    ap.add_argument('cases', nargs='+', type=Path)
+    ap.add_argument(
+        '--tol', type=float, default=0.2, help='match radius, tag periods (default 0.2)'
+    )
+    ap.add_argument('--per-slice', action='store_true')
     args = ap.parse_args()
     for case in args.cases:
         print(json.dumps(case_recall(case, args.tol, args.per_slice)), flush=True)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

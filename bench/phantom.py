@@ -1,4 +1,5 @@
-"""Cylinder-phantom benchmark of the meshless deformable model (paper §3.1, Fig. 4–5).
+"""
+Cylinder-phantom benchmark of the meshless deformable model (paper §3.1, Fig. 4–5).
 
 For each deformation (scaling, rotation, twisting, combination, bulge) and control fraction
 (100/50/25/10/5 %): iterations to reach 0.1 mm and 0.01 mm dense RMS error (over ALL particles),
@@ -15,17 +16,22 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from pathlib import Path
 import platform
 import sys
 import time
-from pathlib import Path
 
-import numpy as np
-
-from mlv_ros.core.meshless import MeshlessModel, cylindrical_frame
+from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
 from mlv_ros.core.phantom import (
-    DEFORMATIONS, H_CYL, R_INNER, R_OUTER, control_subset, deform, sample_cylinder_shell,
+    control_subset,
+    deform,
+    DEFORMATIONS,
+    H_CYL,
+    R_INNER,
+    R_OUTER,
+    sample_cylinder_shell,
 )
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_local import PhantomSystemReference  # noqa: E402
@@ -37,7 +43,9 @@ SIZES = (2000, 5000, 10000, 20000, 50000, 100000)
 def build(n: int, seed: int):
     x = sample_cylinder_shell(n, seed=seed)
     t0 = time.perf_counter()
-    model = MeshlessModel(x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2))
+    model = MeshlessModel(
+        x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2)
+    )
     return x, model, time.perf_counter() - t0
 
 
@@ -58,29 +66,37 @@ def run_case(x, model, name, fraction, seed, max_iterations):
     it01, it001 = first_below(errs, 0.1), first_below(errs, 0.01)
     timed = model.fit(idx, y[idx], warm_start=False, max_iterations=max_iterations)
     t_to = {}
-    for key, its in (("seconds_to_0.1mm", it01), ("seconds_to_0.01mm", it001)):
+    for key, its in (('seconds_to_0.1mm', it01), ('seconds_to_0.01mm', it001)):
         if its is not None:
             t_to[key] = model.fit(idx, y[idx], warm_start=False, max_iterations=its).wall_time
         else:
             t_to[key] = None
-    local_its = [h for h in traced.history if h["local"]]
+    local_its = [h for h in traced.history if h['local']]
     return {
-        "deformation": name, "control_fraction": fraction, "control_points": int(len(idx)),
-        "particles": int(len(x)),
-        "iterations_to_0.1mm": it01, "iterations_to_0.01mm": it001,
-        "iterations": traced.iterations, "converged": bool(traced.converged),
-        "dense_rms_mm": float(np.sqrt(np.mean(err ** 2))), "dense_max_mm": float(err.max()),
-        "control_residual_rms_mm": traced.residual,
-        "wall_time_s": timed.wall_time, **t_to,
-        "local_iterations": len(local_its),
-        "cg_iterations_total": int(sum(h["cg_iterations"] for h in local_its)),
-        "error_trace_mm": errs,
+        'deformation': name,
+        'control_fraction': fraction,
+        'control_points': int(len(idx)),
+        'particles': int(len(x)),
+        'iterations_to_0.1mm': it01,
+        'iterations_to_0.01mm': it001,
+        'iterations': traced.iterations,
+        'converged': bool(traced.converged),
+        'dense_rms_mm': float(np.sqrt(np.mean(err**2))),
+        'dense_max_mm': float(err.max()),
+        'control_residual_rms_mm': traced.residual,
+        'wall_time_s': timed.wall_time,
+        **t_to,
+        'local_iterations': len(local_its),
+        'cg_iterations_total': int(sum(h['cg_iterations'] for h in local_its)),
+        'error_trace_mm': errs,
     }
 
 
 def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
-    """(seconds per CG iteration, seconds to set the system up) of the local stage with 10 %
-    control points, medians of ``repeats`` solves of ``iterations`` CG iterations each."""
+    """
+    (seconds per CG iteration, seconds to set the system up) of the local stage with 10 %
+    control points, medians of ``repeats`` solves of ``iterations`` CG iterations each.
+    """
     n = model.num_particles
     idx = control_subset(n, 0.1, seed=0)
     phi = model.attach(idx).weights
@@ -98,14 +114,20 @@ def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
 
 
 def local_stage_comparison(model):
-    """Old (bench/reference_local.py) vs new local stage: seconds per CG iteration and per system
-    set-up, and the ratio old / new."""
+    """
+    Old (bench/reference_local.py) vs new local stage: seconds per CG iteration and per system
+    set-up, and the ratio old / new.
+    """
     model.local_operators  # noqa: B018 (built once per model; timed in build_local_s)
     new_it, new_setup = cg_iteration_seconds(model, model._local_system)
     old_it, old_setup = cg_iteration_seconds(model, lambda d: PhantomSystemReference(model, d))
-    return {"old_s_per_cg_iteration": old_it, "new_s_per_cg_iteration": new_it,
-            "ratio_per_cg_iteration": old_it / new_it,
-            "old_setup_s": old_setup, "new_setup_s": new_setup}
+    return {
+        'old_s_per_cg_iteration': old_it,
+        'new_s_per_cg_iteration': new_it,
+        'ratio_per_cg_iteration': old_it / new_it,
+        'old_setup_s': old_setup,
+        'new_setup_s': new_setup,
+    }
 
 
 def scaling_row(n, seed, compare_old=False):
@@ -114,51 +136,61 @@ def scaling_row(n, seed, compare_old=False):
     model.local_operators  # noqa: B018
     t_local = time.perf_counter() - t0
     idx = control_subset(len(x), 0.1, seed=seed)
-    y = deform(x, "combination")
+    y = deform(x, 'combination')
     g = model.fit(idx, y[idx], warm_start=False, local=False, max_iterations=6, tol=0.0)
-    glob = [h["seconds"] for h in g.history[1:]]
-    yb = deform(x, "bulge")
+    glob = [h['seconds'] for h in g.history[1:]]
+    yb = deform(x, 'bulge')
     loc = model.fit(idx, yb[idx], warm_start=False, max_iterations=12, tol=0.0)
-    lh = [h for h in loc.history if h["local"]]
+    lh = [h for h in loc.history if h['local']]
     new_it, _ = cg_iteration_seconds(model, model._local_system)
     return {
-        "particles": int(len(x)), "pairs": model.phyxels.num_pairs,
-        "mean_neighbours": float(model.phyxels.neighbour_counts().mean()),
-        "build_s": t_build, "build_local_s": t_local, "s_per_cg_iteration": new_it,
-        **({"old_vs_new": local_stage_comparison(model)} if compare_old else {}),
-        "global_s_per_iteration": float(np.median(glob)),
-        "local_s_per_iteration": float(np.median([h["seconds"] for h in lh])) if lh else None,
-        "local_cg_iterations_median": float(np.median([h["cg_iterations"] for h in lh])) if lh else None,
-        "local_s_per_cg_iteration": float(np.sum([h["seconds"] for h in lh]) / max(1, sum(h["cg_iterations"] for h in lh))) if lh else None,
+        'particles': int(len(x)),
+        'pairs': model.phyxels.num_pairs,
+        'mean_neighbours': float(model.phyxels.neighbour_counts().mean()),
+        'build_s': t_build,
+        'build_local_s': t_local,
+        's_per_cg_iteration': new_it,
+        **({'old_vs_new': local_stage_comparison(model)} if compare_old else {}),
+        'global_s_per_iteration': float(np.median(glob)),
+        'local_s_per_iteration': float(np.median([h['seconds'] for h in lh])) if lh else None,
+        'local_cg_iterations_median': float(np.median([h['cg_iterations'] for h in lh]))
+        if lh
+        else None,
+        'local_s_per_cg_iteration': float(
+            np.sum([h['seconds'] for h in lh]) / max(1, sum(h['cg_iterations'] for h in lh))
+        )
+        if lh
+        else None,
     }
 
 
 def plot(cases, out: Path):
     import matplotlib
-    matplotlib.use("Agg")
+
+    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for name in DEFORMATIONS:
-        rows = [c for c in cases if c["deformation"] == name]
-        fr = [100 * c["control_fraction"] for c in rows]
-        for ax, key in zip(axes, ("iterations_to_0.1mm", "iterations_to_0.01mm")):
+        rows = [c for c in cases if c['deformation'] == name]
+        fr = [100 * c['control_fraction'] for c in rows]
+        for ax, key in zip(axes, ('iterations_to_0.1mm', 'iterations_to_0.01mm')):
             its = [c[key] if c[key] is not None else np.nan for c in rows]
-            ax.plot(fr, its, "o-", label=name)
-    for ax, thr in zip(axes, ("0.1", "0.01")):
-        ax.set_xlabel("control points (% of particles)")
-        ax.set_ylabel(f"iterations to {thr} mm dense RMS")
-        ax.set_xscale("log")
-        ax.set_xticks([5, 10, 25, 50, 100], ["5", "10", "25", "50", "100"])
+            ax.plot(fr, its, 'o-', label=name)
+    for ax, thr in zip(axes, ('0.1', '0.01')):
+        ax.set_xlabel('control points (% of particles)')
+        ax.set_ylabel(f'iterations to {thr} mm dense RMS')
+        ax.set_xscale('log')
+        ax.set_xticks([5, 10, 25, 50, 100], ['5', '10', '25', '50', '100'])
         ax.grid(True, alpha=0.3)
-    axes[0].axhline(40, color="grey", ls=":", lw=1)
-    axes[0].axhline(160, color="grey", ls="--", lw=1)
-    axes[0].set_title("Fig. 5 analogue (paper: ~40 at 100 %, ~160 at 10 %)")
-    axes[1].set_title("(no point: threshold not reached)")
+    axes[0].axhline(40, color='grey', ls=':', lw=1)
+    axes[0].axhline(160, color='grey', ls='--', lw=1)
+    axes[0].set_title('Fig. 5 analogue (paper: ~40 at 100 %, ~160 at 10 %)')
+    axes[1].set_title('(no point: threshold not reached)')
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
-    path = out / "iterations_vs_control_fraction.png"
+    path = out / 'iterations_vs_control_fraction.png'
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return str(path)
@@ -166,67 +198,123 @@ def plot(cases, out: Path):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--n", type=int, default=5000, help="particles for the deformation table")
-    ap.add_argument("--fractions", default=",".join(str(f) for f in FRACTIONS))
-    ap.add_argument("--sizes", default=",".join(str(s) for s in SIZES), help="scaling table sizes ('' = skip)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--max-iterations", type=int, default=200)
-    ap.add_argument("--old-up-to", type=int, default=10000,
-                    help="scaling rows up to this size also time the old local stage (bench/reference_local.py)")
-    ap.add_argument("--out", default="out/bench/phantom")
+    ap.add_argument('--n', type=int, default=5000, help='particles for the deformation table')
+    ap.add_argument('--fractions', default=','.join(str(f) for f in FRACTIONS))
+    ap.add_argument(
+        '--sizes', default=','.join(str(s) for s in SIZES), help="scaling table sizes ('' = skip)"
+    )
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--max-iterations', type=int, default=200)
+    ap.add_argument(
+        '--old-up-to',
+        type=int,
+        default=10000,
+        help='scaling rows up to this size also time the old local stage '
+        '(bench/reference_local.py)',
+    )
+    ap.add_argument('--out', default='out/bench/phantom')
     args = ap.parse_args(argv)
 
     x, model, t_build = build(args.n, args.seed)
-    fractions = [float(f) for f in args.fractions.split(",") if f]
+    fractions = [float(f) for f in args.fractions.split(',') if f]
     cases = []
     for name in DEFORMATIONS:
         for fr in fractions:
             cases.append(run_case(x, model, name, fr, args.seed + 1, args.max_iterations))
-            print(f"{name} {fr}: {cases[-1]['iterations_to_0.1mm']} its, "
-                  f"{cases[-1]['dense_rms_mm']:.2e} mm, {cases[-1]['wall_time_s']:.2f} s", file=sys.stderr)
-    local_stage = {"particles": int(len(x)), **local_stage_comparison(model)}
-    for name, system in (("new", None), ("old", lambda d: PhantomSystemReference(model, d))):
+            print(
+                f'{name} {fr}: {cases[-1]["iterations_to_0.1mm"]} its, '
+                f'{cases[-1]["dense_rms_mm"]:.2e} mm, {cases[-1]["wall_time_s"]:.2f} s',
+                file=sys.stderr,
+            )
+    local_stage = {'particles': int(len(x)), **local_stage_comparison(model)}
+    for name, system in (('new', None), ('old', lambda d: PhantomSystemReference(model, d))):
         if system is not None:
             model._local_system = system
-        bulge = [run_case(x, model, "bulge", fr, args.seed + 1, args.max_iterations) for fr in (1.0, 0.1)]
-        model.__dict__.pop("_local_system", None)
-        local_stage[f"{name}_bulge"] = [{k: c[k] for k in ("control_fraction", "dense_rms_mm", "dense_max_mm",
-                                                            "wall_time_s", "cg_iterations_total")} for c in bulge]
-    local_stage["ratio_bulge_wall_time"] = [o["wall_time_s"] / nw["wall_time_s"] for o, nw in
-                                            zip(local_stage["old_bulge"], local_stage["new_bulge"])]
-    print(f"local stage old vs new: {local_stage}", file=sys.stderr)
+        bulge = [
+            run_case(x, model, 'bulge', fr, args.seed + 1, args.max_iterations)
+            for fr in (1.0, 0.1)
+        ]
+        model.__dict__.pop('_local_system', None)
+        local_stage[f'{name}_bulge'] = [
+            {
+                k: c[k]
+                for k in (
+                    'control_fraction',
+                    'dense_rms_mm',
+                    'dense_max_mm',
+                    'wall_time_s',
+                    'cg_iterations_total',
+                )
+            }
+            for c in bulge
+        ]
+    local_stage['ratio_bulge_wall_time'] = [
+        o['wall_time_s'] / nw['wall_time_s']
+        for o, nw in zip(local_stage['old_bulge'], local_stage['new_bulge'])
+    ]
+    print(f'local stage old vs new: {local_stage}', file=sys.stderr)
     scaling = []
-    for n in [int(s) for s in args.sizes.split(",") if s]:
+    for n in [int(s) for s in args.sizes.split(',') if s]:
         scaling.append(scaling_row(n, args.seed, compare_old=n <= args.old_up_to))
-        print(f"scaling {n}: {scaling[-1]}", file=sys.stderr)
+        print(f'scaling {n}: {scaling[-1]}', file=sys.stderr)
     png = plot(cases, Path(args.out)) if cases else None
 
-    fig4 = [c for c in cases if c["deformation"] != "bulge"]
+    fig4 = [c for c in cases if c['deformation'] != 'bulge']
     doc = {
-        "benchmark": "phantom",
-        "phantom": {"outer_radius_mm": R_OUTER, "inner_radius_mm": R_INNER, "height_mm": H_CYL,
-                    "particles": int(len(x)), "mean_neighbours": float(model.phyxels.neighbour_counts().mean()),
-                    "build_s": t_build},
-        "solver": {"global": "Gauss-Newton/LM step of eq. 15 (D = L^T P L)",
-                   "local": "block-Jacobi PCG on (kappa Phi^T P Phi + K_lin + fit-error penalty) after the global stage settles (mlv_ros.core.meshless.local)",
-                   "data_weight": 100.0, "youngs_modulus": 1.0, "poisson_ratio": 0.45},
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None},
-        "cases": cases,
-        "local_stage_old_vs_new": local_stage,
-        "scaling": scaling,
-        "targets": {
-            "fig4_below_0.1mm_within_5s": all(c["dense_rms_mm"] < 0.1 and c["wall_time_s"] < 5 for c in fig4),
-            "fig4_max_iterations_to_0.1mm_at_100pct": max(((c["iterations_to_0.1mm"] or 10 ** 9) for c in fig4 if c["control_fraction"] == 1.0), default=None),
-            "fig4_max_iterations_to_0.1mm_at_10pct": max((c["iterations_to_0.1mm"] or 10 ** 9) for c in fig4 if c["control_fraction"] == 0.1) if any(c["control_fraction"] == 0.1 for c in fig4) else None,
-            "fig4_max_seconds_to_0.01mm": max((c["seconds_to_0.01mm"] or float("inf")) for c in fig4) if fig4 else None,
+        'benchmark': 'phantom',
+        'phantom': {
+            'outer_radius_mm': R_OUTER,
+            'inner_radius_mm': R_INNER,
+            'height_mm': H_CYL,
+            'particles': int(len(x)),
+            'mean_neighbours': float(model.phyxels.neighbour_counts().mean()),
+            'build_s': t_build,
         },
-        "png": png,
+        'solver': {
+            'global': 'Gauss-Newton/LM step of eq. 15 (D = L^T P L)',
+            'local': 'block-Jacobi PCG on (kappa Phi^T P Phi + K_lin + fit-error penalty) '
+            'after the global stage settles (mlv_ros.core.meshless.local)',
+            'data_weight': 100.0,
+            'youngs_modulus': 1.0,
+            'poisson_ratio': 0.45,
+        },
+        'machine': {
+            'cpus': os.cpu_count(),
+            'platform': platform.platform(),
+            'loadavg_1min': os.getloadavg()[0] if hasattr(os, 'getloadavg') else None,
+        },
+        'cases': cases,
+        'local_stage_old_vs_new': local_stage,
+        'scaling': scaling,
+        'targets': {
+            'fig4_below_0.1mm_within_5s': all(
+                c['dense_rms_mm'] < 0.1 and c['wall_time_s'] < 5 for c in fig4
+            ),
+            'fig4_max_iterations_to_0.1mm_at_100pct': max(
+                (
+                    (c['iterations_to_0.1mm'] or 10**9)
+                    for c in fig4
+                    if c['control_fraction'] == 1.0
+                ),
+                default=None,
+            ),
+            'fig4_max_iterations_to_0.1mm_at_10pct': max(
+                (c['iterations_to_0.1mm'] or 10**9) for c in fig4 if c['control_fraction'] == 0.1
+            )
+            if any(c['control_fraction'] == 0.1 for c in fig4)
+            else None,
+            'fig4_max_seconds_to_0.01mm': max(
+                (c['seconds_to_0.01mm'] or float('inf')) for c in fig4
+            )
+            if fig4
+            else None,
+        },
+        'png': png,
     }
     json.dump(doc, sys.stdout, indent=1)
-    sys.stdout.write("\n")
+    sys.stdout.write('\n')
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

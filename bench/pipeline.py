@@ -1,4 +1,5 @@
-"""Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
+"""
+Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
 SNR 20) as ``mlv-ros run`` runs it (the tag detector in a child process; MLV_ROS_ONE_PROCESS=1:
 all in one). Prints one JSON document: total time, per-stage latency per phase
 (from the recording's receive times), peak RSS, messages published vs recorded, accuracy; then
@@ -11,32 +12,34 @@ builds it, every local solve timed with the new stage and with the old one
 
 import argparse
 import json
+from pathlib import Path
 import resource
 import statistics
+import sys
 import tempfile
 import time
-from pathlib import Path
-
-import sys
-
-import numpy as np
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import PointCloud2
 
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.tools.run import phantom_accuracy, run_graph
+import numpy as np
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_local import tracker_local_solve  # noqa: E402, I100
 
 
 def stage_latencies(mcap: Path) -> dict:
-    """Per-phase latencies (ms) from receive times in the recording: frame → tag points (per
-    frame), last tag points of a phase → its motion (solver), motion → metrics (analyzer)."""
+    """
+    Per-phase latencies (ms) from receive times in the recording: frame → tag points (per
+    frame), last tag points of a phase → its motion (solver), motion → metrics (analyzer).
+    """
     frame_t, tag_t, motion_t, metrics_t = {}, {}, {}, {}
-    for m in bagio.read_bag(mcap, topics=[qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE, qos.METRICS]):
+    for m in bagio.read_bag(
+        mcap, topics=[qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE, qos.METRICS]
+    ):
         if m.topic == qos.FRAMES:
             f = deserialize_message(m.data, TaggedFrame)
             frame_t[(f.view, f.slice_index, f.phase_index)] = m.log_time_ns
@@ -56,14 +59,22 @@ def stage_latencies(mcap: Path) -> dict:
     analyse_ms = [(metrics_t[ph] - t) / 1e6 for ph, t in motion_t.items() if ph in metrics_t]
 
     def stats(v):
-        return {"median": round(statistics.median(v), 1), "max": round(max(v), 1), "n": len(v)} if v else {}
+        return (
+            {'median': round(statistics.median(v), 1), 'max': round(max(v), 1), 'n': len(v)}
+            if v
+            else {}
+        )
 
-    return {"tag_detector_per_frame_ms": stats(tag_ms), "solver_per_phase_ms": stats(solve_ms),
-            "analyzer_per_phase_ms": stats(analyse_ms)}
+    return {
+        'tag_detector_per_frame_ms': stats(tag_ms),
+        'solver_per_phase_ms': stats(solve_ms),
+        'analyzer_per_phase_ms': stats(analyse_ms),
+    }
 
 
 def local_stage_replay(mcap: Path) -> dict:
-    """Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
+    """
+    Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
 
     The tracker is built from the recorded registration with the solver node's default
     parameters; each phase is solved as the node solves it, and every call of the local stage
@@ -72,7 +83,9 @@ def local_stage_replay(mcap: Path) -> dict:
     """
     cloud = state = None
     sets: dict = {}
-    for m in bagio.read_bag(mcap, topics=[qos.REGISTERED_CLOUD, qos.REGISTERED_STATE, qos.TAG_POINTS]):
+    for m in bagio.read_bag(
+        mcap, topics=[qos.REGISTERED_CLOUD, qos.REGISTERED_STATE, qos.TAG_POINTS]
+    ):
         if m.topic == qos.REGISTERED_CLOUD:
             cloud = conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2))
         elif m.topic == qos.REGISTERED_STATE:
@@ -81,9 +94,13 @@ def local_stage_replay(mcap: Path) -> dict:
             p = conversions.msg_to_tagpoints(deserialize_message(m.data, TagPoints))
             sets.setdefault(int(p.phase_index), {})[(int(p.view), int(p.slice_index))] = p
     t0 = time.perf_counter()
-    tr = MotionTracker(conversions.xyz(cloud), state.translation, state.rotation,
-                       polar=(cloud["alpha"], cloud["beta"], cloud["w"]),
-                       shape=(state.a0, state.a1, state.a2, state.a3, state.tau))
+    tr = MotionTracker(
+        conversions.xyz(cloud),
+        state.translation,
+        state.rotation,
+        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
+        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
+    )
     build_s = time.perf_counter() - t0
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
@@ -94,10 +111,19 @@ def local_stage_replay(mcap: Path) -> dict:
         t1 = time.perf_counter()
         new = new_solve(phi, targets, normals, x_global, weights, rtol)
         t2 = time.perf_counter()
-        kept, tr.cg_rtol = tr.cg_rtol, tr.cg_rtol if rtol is None else rtol  # the reference at the same tolerance
+        kept, tr.cg_rtol = (
+            tr.cg_rtol,
+            tr.cg_rtol if rtol is None else rtol,
+        )  # the reference at the same tolerance
         old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
         tr.cg_rtol = kept
-        calls.append((t2 - t1, time.perf_counter() - t2, float(np.median(np.linalg.norm(new - old, axis=1)))))
+        calls.append(
+            (
+                t2 - t1,
+                time.perf_counter() - t2,
+                float(np.median(np.linalg.norm(new - old, axis=1))),
+            )
+        )
         return new
 
     tr._local_solve = both
@@ -111,52 +137,76 @@ def local_stage_replay(mcap: Path) -> dict:
         phase_s.append(time.perf_counter() - t1 - sum(c[1] for c in calls[before:]))
     new_t, old_t, diff = (np.array(v) for v in zip(*calls))
     return {
-        "particles": tr.num_particles, "phases": len(phase_s), "local_solves": len(calls),
-        "model_build_s": round(build_s, 3), "first_phase_s": round(phase_s[0], 3),
-        "solver_per_phase_s_median": round(float(np.median(phase_s)), 3),
-        "cg_iterations_per_phase_median": float(np.median(phase_its)),
-        "new_local_s_median": round(float(np.median(new_t)), 4), "old_local_s_median": round(float(np.median(old_t[1:])), 4),
-        "ratio_local_median": round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
-        "old_first_local_s_with_matrix_build": round(float(old_t[0]), 3),
-        "position_difference_mm_median": round(float(np.median(diff)), 4),
-        "position_difference_mm_worst_solve": round(float(diff.max()), 4),
+        'particles': tr.num_particles,
+        'phases': len(phase_s),
+        'local_solves': len(calls),
+        'model_build_s': round(build_s, 3),
+        'first_phase_s': round(phase_s[0], 3),
+        'solver_per_phase_s_median': round(float(np.median(phase_s)), 3),
+        'cg_iterations_per_phase_median': float(np.median(phase_its)),
+        'new_local_s_median': round(float(np.median(new_t)), 4),
+        'old_local_s_median': round(float(np.median(old_t[1:])), 4),
+        'ratio_local_median': round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
+        'old_first_local_s_with_matrix_build': round(float(old_t[0]), 3),
+        'position_difference_mm_median': round(float(np.median(diff)), 4),
+        'position_difference_mm_worst_solve': round(float(diff.max()), 4),
     }
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--phases", type=int, default=25)
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--preset", default="normal")
-    ap.add_argument("--out", default=None)
-    ap.add_argument("--no-replay", action="store_true", help="skip the old-vs-new local stage replay")
+    ap.add_argument('--phases', type=int, default=25)
+    ap.add_argument('--size', type=int, default=256)
+    ap.add_argument('--preset', default='normal')
+    ap.add_argument('--out', default=None)
+    ap.add_argument(
+        '--no-replay', action='store_true', help='skip the old-vs-new local stage replay'
+    )
     args = ap.parse_args()
-    out = Path(args.out or tempfile.mkdtemp(prefix="mlv-bench-pipeline-"))
+    out = Path(args.out or tempfile.mkdtemp(prefix='mlv-bench-pipeline-'))
     t0 = time.perf_counter()
-    s = run_graph({"source": "phantom", "preset": args.preset, "size": args.size, "num_phases": args.phases},
-                  out, progress=lambda *_: None)
+    s = run_graph(
+        {'source': 'phantom', 'preset': args.preset, 'size': args.size, 'num_phases': args.phases},
+        out,
+        progress=lambda *_: None,
+    )
     wall = time.perf_counter() - t0
-    topics = bagio.bag_topics(out / "run.mcap")
-    acc = phantom_accuracy(out / "run.mcap", args.preset, args.phases) if s["complete"] else {}
-    published = {qos.FRAMES: s["frames_published"], qos.TAG_POINTS: s["tag_sets_published"],
-                 qos.MOTION: s["phases_solved"], qos.MODEL_STATE: s["phases_solved"],
-                 qos.METRICS: s["metrics_published"]}
+    topics = bagio.bag_topics(out / 'run.mcap')
+    acc = phantom_accuracy(out / 'run.mcap', args.preset, args.phases) if s['complete'] else {}
+    published = {
+        qos.FRAMES: s['frames_published'],
+        qos.TAG_POINTS: s['tag_sets_published'],
+        qos.MOTION: s['phases_solved'],
+        qos.MODEL_STATE: s['phases_solved'],
+        qos.METRICS: s['metrics_published'],
+    }
     result = {
-        "benchmark": "pipeline", "preset": args.preset, "size": args.size, "phases": args.phases,
-        "slices": 11, "total_s": round(wall, 2), "graph_s": s["seconds"],
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        'benchmark': 'pipeline',
+        'preset': args.preset,
+        'size': args.size,
+        'phases': args.phases,
+        'slices': 11,
+        'total_s': round(wall, 2),
+        'graph_s': s['seconds'],
+        'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         # the largest of the run's child processes (the tag detector's:
         # mlv_ros.tools.graph_process)
-        "peak_rss_mb_child_process": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
-        "latency": stage_latencies(out / "run.mcap"),
-        "published_vs_recorded": {t: [published[t], topics.get(t, {}).get("count", 0)] for t in published},
-        "all_recorded": all(published[t] == topics.get(t, {}).get("count", 0) for t in published),
-        "accuracy_es": acc.get("es"), "complete": s["complete"], "run_dir": str(out),
+        'peak_rss_mb_child_process': round(
+            resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1
+        ),
+        'latency': stage_latencies(out / 'run.mcap'),
+        'published_vs_recorded': {
+            t: [published[t], topics.get(t, {}).get('count', 0)] for t in published
+        },
+        'all_recorded': all(published[t] == topics.get(t, {}).get('count', 0) for t in published),
+        'accuracy_es': acc.get('es'),
+        'complete': s['complete'],
+        'run_dir': str(out),
     }
-    if not args.no_replay and s["complete"]:
-        result["local_stage"] = local_stage_replay(out / "run.mcap")
+    if not args.no_replay and s['complete']:
+        result['local_stage'] = local_stage_replay(out / 'run.mcap')
     print(json.dumps(result, indent=2))
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     main()

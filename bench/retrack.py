@@ -1,4 +1,5 @@
-"""Offline re-track and re-solve of a recorded run, with the code the nodes use.
+"""
+Offline re-track and re-solve of a recorded run, with the code the nodes use.
 
 Reads a run's recorded frames and registration (``run.mcap`` of ``mlv-ros run --dicom``),
 tracks every slice again as the tag detector does (:class:`StreamingMasker` ED masks +
@@ -27,14 +28,9 @@ import argparse
 import copy
 import dataclasses
 import json
+from pathlib import Path
 import sys
 import time
-from pathlib import Path
-
-import numpy as np
-import yaml
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import PointCloud2
 
 from mlv_msgs.msg import ModelState, TaggedFrame
 from mlv_ros import bagio, conversions, qos
@@ -44,19 +40,30 @@ from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import FAILED, OK
 from mlv_ros.tools.run import _accuracy
+import numpy as np
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
+import yaml
 
 
 def recorded(mcap: Path):
     """Frames in recorded order, the registered cloud and state."""
     frames, cloud, state = [], None, None
-    for m in bagio.read_bag(mcap, topics=[qos.FRAMES, qos.REGISTERED_CLOUD, qos.REGISTERED_STATE],
-                            any_namespace=True):
+    for m in bagio.read_bag(
+        mcap, topics=[qos.FRAMES, qos.REGISTERED_CLOUD, qos.REGISTERED_STATE], any_namespace=True
+    ):
         if m.topic == qos.FRAMES:
-            frames.append(conversions.msg_to_frame(deserialize_message(m.data, TaggedFrame), allow_nonfinite=True))
+            frames.append(
+                conversions.msg_to_frame(
+                    deserialize_message(m.data, TaggedFrame), allow_nonfinite=True
+                )
+            )
         elif m.topic == qos.REGISTERED_CLOUD:
             cloud = conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2))
         else:
-            state = conversions.msg_to_model_state(bagio.deserialize(m.data, ModelState, m.missing))
+            state = conversions.msg_to_model_state(
+                bagio.deserialize(m.data, ModelState, m.missing)
+            )
     return frames, cloud, state
 
 
@@ -82,18 +89,25 @@ def track(frames, **tracker_kwargs) -> dict:
 
 
 def solve(sets: dict, cloud, state, **solver_kwargs):
-    """Every phase solved as the solver node does; keywords MotionTracker does not take are set as
-    its attributes (``outlier_mm``, ``prescreen``, ...)."""
+    """
+    Every phase solved as the solver node does; keywords MotionTracker does not take are set as
+    its attributes (``outlier_mm``, ``prescreen``, ...).
+    """
     import inspect
 
     known = inspect.signature(MotionTracker).parameters
     attrs = {k: solver_kwargs.pop(k) for k in list(solver_kwargs) if k not in known}
-    tr = MotionTracker(conversions.xyz(cloud), state.translation, state.rotation,
-                       polar=(cloud["alpha"], cloud["beta"], cloud["w"]),
-                       shape=(state.a0, state.a1, state.a2, state.a3, state.tau), **solver_kwargs)
+    tr = MotionTracker(
+        conversions.xyz(cloud),
+        state.translation,
+        state.rotation,
+        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
+        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
+        **solver_kwargs,
+    )
     for k, v in attrs.items():
         if not hasattr(tr, k):
-            raise ValueError(f"MotionTracker has no parameter or attribute {k!r}")
+            raise ValueError(f'MotionTracker has no parameter or attribute {k!r}')
         setattr(tr, k, v)
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
@@ -103,23 +117,29 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
         try:
             sol = tr.solve(p, sets.get(p, {}), n)
         except ValueError as exc:
-            verdicts[p] = (FAILED, f"not solved: {exc}")
+            verdicts[p] = (FAILED, f'not solved: {exc}')
             continue
         positions[p] = sol.positions
         verdicts[p] = (sol.state.verdict, sol.state.verdict_reasons)
     return tr, positions, verdicts
 
 
-def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25,
-                  every_track: bool = False) -> tuple[dict, int]:
-    """``sets`` with every tracked point moved to where the truth puts it (see the module
+def ideal_targets(
+    sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25, every_track: bool = False
+) -> tuple[dict, int]:
+    """
+    ``sets`` with every tracked point moved to where the truth puts it (see the module
     docstring): the crossing of its ED material line ``p0 + s n`` with the image plane nearest
     ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly. Points whose
     line does not cross the plane within reach, and tracks without an ED point, keep their
     measured position. ``every_track``: every ED track at every phase (a tracker that loses
     nothing), those whose line does not cross left out. Returns the new sets and how many points
-    kept their measured position (or were left out)."""
-    ed = {key: dict(zip(map(int, pts.track_id), pts.position)) for key, pts in sets.get(0, {}).items()}
+    kept their measured position (or were left out).
+    """
+    ed = {
+        key: dict(zip(map(int, pts.track_id), pts.position))
+        for key, pts in sets.get(0, {}).items()
+    }
     s = np.arange(-reach_mm, reach_mm + 0.5 * step_mm, step_mm)
     out, kept = {0: sets.get(0, {})}, 0
     for phase, by_key in sets.items():
@@ -136,9 +156,10 @@ def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0
             if has.any():
                 n = pts.geometry.normal
                 p0 = np.array([ref[int(t)] for t in pts.track_id[has]])
-                line = motion.position((p0[:, None, :] + s[None, :, None] * n).reshape(-1, 3),
-                                       phase).reshape(len(p0), s.size, 3)
-                f = (line - p0[:, None, :]) @ n                  # signed distance to the plane, mm
+                line = motion.position(
+                    (p0[:, None, :] + s[None, :, None] * n).reshape(-1, 3), phase
+                ).reshape(len(p0), s.size, 3)
+                f = (line - p0[:, None, :]) @ n  # signed distance to the plane, mm
                 cross = np.diff(np.sign(f), axis=1) != 0
                 j = np.argmin(np.where(cross, np.abs(s[:-1]), np.inf), axis=1)
                 ok = cross[np.arange(len(p0)), j]
@@ -158,76 +179,132 @@ def ideal_targets(sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0
 
 def _subset(pts, rows):
     """``pts`` with only the points ``rows`` (every per-point array indexed alike)."""
-    return dataclasses.replace(pts, pixel_rc=pts.pixel_rc[rows], position=pts.position[rows],
-                               track_id=pts.track_id[rows],
-                               confidence=pts.confidence[rows] if len(pts.confidence) else pts.confidence)
+    return dataclasses.replace(
+        pts,
+        pixel_rc=pts.pixel_rc[rows],
+        position=pts.position[rows],
+        track_id=pts.track_id[rows],
+        confidence=pts.confidence[rows] if len(pts.confidence) else pts.confidence,
+    )
 
 
 def segment_errors(case: Path, rest, positions, motion) -> dict:
-    """ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
-    ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``."""
+    """
+    ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
+    ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``.
+    """
     from mlv_ros.core.sim.regional import truth_segments
 
-    gt = json.loads((case / "study" / "groundtruth.json").read_text()).get("regional") or {}
-    es = int(gt.get("phase", -1))
+    gt = json.loads((case / 'study' / 'groundtruth.json').read_text()).get('regional') or {}
+    es = int(gt.get('phase', -1))
     if es not in positions:
         return {}
     seg = truth_segments(motion, rest)
     err = np.linalg.norm(positions[es] - motion.position(rest, es), axis=1)
 
     def stats(k):
-        return [round(float(np.median(err[seg == k])), 3), round(float(np.percentile(err[seg == k], 95)), 3)]
+        return [
+            round(float(np.median(err[seg == k])), 3),
+            round(float(np.percentile(err[seg == k], 95)), 3),
+        ]
 
     present = [k for k in range(1, 18) if np.any(seg == k)]
     worst = max(present, key=lambda k: float(np.median(err[seg == k])))
-    return {"worst_segment": [worst, *stats(worst)],
-            **{f"segment_{sg['segment']}_{sg['class']}": stats(sg["segment"]) for sg in gt.get("segments", ())
-               if sg["class"] != "normal" and sg["segment"] in present}}
+    return {
+        'worst_segment': [worst, *stats(worst)],
+        **{
+            f'segment_{sg["segment"]}_{sg["class"]}': stats(sg['segment'])
+            for sg in gt.get('segments', ())
+            if sg['class'] != 'normal' and sg['segment'] in present
+        },
+    }
 
 
-def replay_case(case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None) -> dict:
+def replay_case(
+    case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None
+) -> dict:
     t0 = time.monotonic()
-    frames, cloud, state = recorded(case / "run" / "run.mcap")
+    frames, cloud, state = recorded(case / 'run' / 'run.mcap')
     sets = track(frames, **(tracker_kwargs or {}))
-    truth = motion_from_groundtruth(case / "study")
+    truth = motion_from_groundtruth(case / 'study')
     not_ideal = None
     if ideal:
-        sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == "every-track")
+        sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == 'every-track')
     t1 = time.monotonic()
     tr, positions, verdicts = solve(sets, cloud, state, **(solver_kwargs or {}))
-    sa_planes = [(p.geometry.image_position, p.geometry.normal) for (v, _), p in sets.get(0, {}).items()
-                 if v == TaggedFrame.VIEW_SA and len(p.track_id)]
-    run = {"ed": tr.rest, "rotation": state.rotation, "positions": positions, "sa_planes": sa_planes}
+    sa_planes = [
+        (p.geometry.image_position, p.geometry.normal)
+        for (v, _), p in sets.get(0, {}).items()
+        if v == TaggedFrame.VIEW_SA and len(p.track_id)
+    ]
+    run = {
+        'ed': tr.rest,
+        'rotation': state.rotation,
+        'positions': positions,
+        'sa_planes': sa_planes,
+    }
     acc = _accuracy(run, truth)
-    es = acc["es"] or {}
-    return {"case": case.name, **({"ideal": ideal, "points_not_ideal": not_ideal} if ideal else {}),
-            **{k: round(es[k], 3) for k in ("median_mm", "p95_mm", "twist_error_deg", "twist_error_measured_deg")
-               if k in es},
-            "coverage": round(acc["coverage"], 3),
-            "solved": f"{len(positions)}/{max(sets) + 1}",
-            "degraded": sorted(p for p, (v, _) in verdicts.items() if OK < v < FAILED),
-            "failed": sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
-            "worst_phase_median_mm": round(max(r["median_mm"] for r in acc["per_phase"]), 3),
-            **segment_errors(case, tr.rest, positions, truth),
-            "track_s": round(t1 - t0, 1), "solve_s": round(time.monotonic() - t1, 1)}
+    es = acc['es'] or {}
+    return {
+        'case': case.name,
+        **({'ideal': ideal, 'points_not_ideal': not_ideal} if ideal else {}),
+        **{
+            k: round(es[k], 3)
+            for k in ('median_mm', 'p95_mm', 'twist_error_deg', 'twist_error_measured_deg')
+            if k in es
+        },
+        'coverage': round(acc['coverage'], 3),
+        'solved': f'{len(positions)}/{max(sets) + 1}',
+        'degraded': sorted(p for p, (v, _) in verdicts.items() if OK < v < FAILED),
+        'failed': sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
+        'worst_phase_median_mm': round(max(r['median_mm'] for r in acc['per_phase']), 3),
+        **segment_errors(case, tr.rest, positions, truth),
+        'track_s': round(t1 - t0, 1),
+        'solve_s': round(time.monotonic() - t1, 1),
+    }
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cases", nargs="+", type=Path)
-    ap.add_argument("--tracker", action="append", default=[], metavar="KEY=VALUE",
-                    help="SliceTracker keyword (a number or true/false), repeatable")
-    ap.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
-                    help="MotionTracker keyword (a number or true/false), repeatable")
-    ap.add_argument("--ideal", nargs="?", const="tracks", choices=("tracks", "every-track"), default=None,
-                    help="replace the tracked points by where the truth puts them (no tracking error); "
-                         "every-track: every ED track at every phase as well (no track lost)")
+    ap.add_argument('cases', nargs='+', type=Path)
+    ap.add_argument(
+        '--tracker',
+        action='append',
+        default=[],
+        metavar='KEY=VALUE',
+        help='SliceTracker keyword (a number or true/false), repeatable',
+    )
+    ap.add_argument(
+        '--solver',
+        action='append',
+        default=[],
+        metavar='KEY=VALUE',
+        help='MotionTracker keyword (a number or true/false), repeatable',
+    )
+    ap.add_argument(
+        '--ideal',
+        nargs='?',
+        const='tracks',
+        choices=('tracks', 'every-track'),
+        default=None,
+        help='replace the tracked points by where the truth puts them (no tracking error); '
+        'every-track: every ED track at every phase as well (no track lost)',
+    )
     args = ap.parse_args()
-    kw = [{k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in opts)} for opts in (args.tracker, args.solver)]
+    kw = [
+        {k: yaml.safe_load(v) for k, v in (a.split('=', 1) for a in opts)}
+        for opts in (args.tracker, args.solver)
+    ]
     for case in args.cases:
-        print(json.dumps(replay_case(case, *kw, ideal=args.ideal) | ({"tracker": kw[0]} if kw[0] else {})
-                         | ({"solver": kw[1]} if kw[1] else {})), flush=True)
+        print(
+            json.dumps(
+                replay_case(case, *kw, ideal=args.ideal)
+                | ({'tracker': kw[0]} if kw[0] else {})
+                | ({'solver': kw[1]} if kw[1] else {})
+            ),
+            flush=True,
+        )
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

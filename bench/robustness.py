@@ -1,4 +1,5 @@
-"""Benchmark: randomized acquisition protocols through the real DICOM path, against ground truth.
+"""
+Benchmark: randomized acquisition protocols through the real DICOM path, against ground truth.
 
 Each case draws a protocol (``mlv-ros simulate --random SEED``: shape, LV orientation, grid angle
 and period, pixel size, matrix, slice thickness and spacing, SA/LA counts, LA rotations, phases,
@@ -31,25 +32,24 @@ About 1–3 minutes per case on 2 cores (the drawn study's size and phase count 
 from __future__ import annotations
 
 import argparse
+from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 import json
+from pathlib import Path
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
-
-import yaml
-from rclpy.serialization import deserialize_message
 
 from mlv_msgs.msg import TagPoints
 from mlv_ros import bagio, qos
 from mlv_ros.tools.run import groundtruth_accuracy
+from rclpy.serialization import deserialize_message
+import yaml
 
-MUST = {"median_mm": 1.0, "p95_mm": 2.5, "twist_error_deg": 2.0}
+MUST = {'median_mm': 1.0, 'p95_mm': 2.5, 'twist_error_deg': 2.0}
 # Errors are measured on the model's particles: a model that misses the base scores well on what
 # it has. Passing also needs the model to cover this much of the true myocardium.
 MIN_COVERAGE = 0.9
@@ -64,112 +64,221 @@ def tag_points_per_slice(mcap: Path) -> dict:
     counts = defaultdict(dict)
     for m in bagio.read_bag(mcap, topics=[qos.TAG_POINTS]):
         p = deserialize_message(m.data, TagPoints)
-        counts[f"{'SA' if p.view == 0 else 'LA'} {p.slice_index}"][p.phase_index] = len(p.track_id)
-    return {k: {"ed": v.get(0, 0), "min": min(v.values())} for k, v in sorted(counts.items())}
+        counts[f'{"SA" if p.view == 0 else "LA"} {p.slice_index}'][p.phase_index] = len(p.track_id)
+    return {k: {'ed': v.get(0, 0), 'min': min(v.values())} for k, v in sorted(counts.items())}
 
 
-def run_case(seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None) -> dict:
-    """One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
-    (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20)."""
-    study, run_dir = out / "study", out / "run"
-    case = {"seed": seed}
+def run_case(
+    seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None
+) -> dict:
+    """
+    One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
+    (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
+    """
+    study, run_dir = out / 'study', out / 'run'
+    case = {'seed': seed}
     t0 = time.monotonic()
     extra = []
-    rv = rv or ("drawn" if abnormal else "off")
-    fixed = ("" if abnormal else "abnormal_regions: []\n") + {"on": "right_ventricle: true\n", "off": "right_ventricle: false\n",
-                                                               "drawn": ""}[rv]
-    if fixed:  # without --abnormal: the studies these seeds drew before abnormal regions and the RV existed (issue 20)
+    rv = rv or ('drawn' if abnormal else 'off')
+    fixed = ('' if abnormal else 'abnormal_regions: []\n') + {
+        'on': 'right_ventricle: true\n',
+        'off': 'right_ventricle: false\n',
+        'drawn': '',
+    }[rv]
+    # Without --abnormal: the studies these seeds drew before abnormal regions and the RV existed.
+    if fixed:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "fixed.yaml").write_text(fixed)
-        extra = ["--protocol", str(out / "fixed.yaml")]
-    sim = subprocess.run([str(BIN / "mlv-ros"), "simulate", "--random", str(seed), *extra, "--out", str(study),
-                          "--no-progress"], capture_output=True, text=True)
-    case["simulate_seconds"] = round(time.monotonic() - t0, 1)
+        (out / 'fixed.yaml').write_text(fixed)
+        extra = ['--protocol', str(out / 'fixed.yaml')]
+    sim = subprocess.run(
+        [
+            str(BIN / 'mlv-ros'),
+            'simulate',
+            '--random',
+            str(seed),
+            *extra,
+            '--out',
+            str(study),
+            '--no-progress',
+        ],
+        capture_output=True,
+        text=True,
+    )
+    case['simulate_seconds'] = round(time.monotonic() - t0, 1)
     if sim.returncode != 0:
-        return case | {"error": f"simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}", "pass": False}
-    case["protocol"] = yaml.safe_load((study / "protocol.yaml").read_text())
+        return case | {
+            'error': f'simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}',
+            'pass': False,
+        }
+    case['protocol'] = yaml.safe_load((study / 'protocol.yaml').read_text())
     t0 = time.monotonic()
-    run = subprocess.run([str(BIN / "mlv-ros"), "run", "--dicom", str(study / "dicom"), "--out", str(run_dir),
-                          "--quiet", "--timeout", str(timeout)], capture_output=True, text=True)
-    case["run_seconds"] = round(time.monotonic() - t0, 1)
-    case["run_exit"] = run.returncode
-    mcap = run_dir / "run.mcap"
+    run = subprocess.run(
+        [
+            str(BIN / 'mlv-ros'),
+            'run',
+            '--dicom',
+            str(study / 'dicom'),
+            '--out',
+            str(run_dir),
+            '--quiet',
+            '--timeout',
+            str(timeout),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    case['run_seconds'] = round(time.monotonic() - t0, 1)
+    case['run_exit'] = run.returncode
+    mcap = run_dir / 'run.mcap'
     if not mcap.exists():
-        return case | {"error": f"run exited {run.returncode} without a recording: {run.stderr.strip()[-400:]}",
-                       "pass": False}
-    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else {}
-    case["phases_solved"] = summary.get("phases_solved")
-    case["num_phases"] = summary.get("num_phases")
-    case["tag_points"] = tag_points_per_slice(mcap)
+        return case | {
+            'error': f'run exited {run.returncode} without a recording: '
+            f'{run.stderr.strip()[-400:]}',
+            'pass': False,
+        }
+    summary = (
+        json.loads((run_dir / 'summary.json').read_text())
+        if (run_dir / 'summary.json').exists()
+        else {}
+    )
+    case['phases_solved'] = summary.get('phases_solved')
+    case['num_phases'] = summary.get('num_phases')
+    case['tag_points'] = tag_points_per_slice(mcap)
     acc = groundtruth_accuracy(mcap, study)
-    if "error" in acc:
-        return case | {"error": acc["error"], "pass": False}
-    es = acc["es"] or {}
-    case["es"] = {k: round(es[k], 3) for k in ("median_mm", "p95_mm", "twist_error_deg", "twist_error_measured_deg",
-                                                "radius_error_mm") if k in es}
-    case["inside_myocardium"] = round(acc["inside_myocardium"], 3)
-    case["coverage"] = round(acc["coverage"], 3)
-    case["worst_phase_median_mm"] = round(max(r["median_mm"] for r in acc["per_phase"]), 3)
+    if 'error' in acc:
+        return case | {'error': acc['error'], 'pass': False}
+    es = acc['es'] or {}
+    case['es'] = {
+        k: round(es[k], 3)
+        for k in (
+            'median_mm',
+            'p95_mm',
+            'twist_error_deg',
+            'twist_error_measured_deg',
+            'radius_error_mm',
+        )
+        if k in es
+    }
+    case['inside_myocardium'] = round(acc['inside_myocardium'], 3)
+    case['coverage'] = round(acc['coverage'], 3)
+    case['worst_phase_median_mm'] = round(max(r['median_mm'] for r in acc['per_phase']), 3)
     # Verdicts (mlv_ros.core.verdict): which phases the run flagged, and the wrong answers it did
     # not flag (median more than SILENT_MM off, delivered as ok) — the failure that must not be.
-    flagged = {int(p) for key in ("phases_degraded", "phases_failed") for p in summary.get(key) or {}}
-    case["phases_degraded"] = sorted(int(p) for p in summary.get("phases_degraded") or {})
-    case["phases_failed"] = sorted(int(p) for p in summary.get("phases_failed") or {})
-    case["silent_wrong_phases"] = [r["phase"] for r in acc["per_phase"]
-                                   if r["median_mm"] > SILENT_MM and r["phase"] not in flagged]
-    every_phase = case["phases_solved"] is not None and case["phases_solved"] == case["num_phases"]
-    case["pass"] = bool(every_phase and case["coverage"] >= MIN_COVERAGE
-                        and all(case["es"].get(k, float("inf")) <= v for k, v in MUST.items()))
+    flagged = {
+        int(p) for key in ('phases_degraded', 'phases_failed') for p in summary.get(key) or {}
+    }
+    case['phases_degraded'] = sorted(int(p) for p in summary.get('phases_degraded') or {})
+    case['phases_failed'] = sorted(int(p) for p in summary.get('phases_failed') or {})
+    case['silent_wrong_phases'] = [
+        r['phase']
+        for r in acc['per_phase']
+        if r['median_mm'] > SILENT_MM and r['phase'] not in flagged
+    ]
+    every_phase = case['phases_solved'] is not None and case['phases_solved'] == case['num_phases']
+    case['pass'] = bool(
+        every_phase
+        and case['coverage'] >= MIN_COVERAGE
+        and all(case['es'].get(k, float('inf')) <= v for k, v in MUST.items())
+    )
     return case
 
 
 def summarise(cases: list[dict]) -> dict:
     def col(key):
-        return [c["es"][key] for c in cases if key in c.get("es", {})]
+        return [c['es'][key] for c in cases if key in c.get('es', {})]
 
-    out = {"cases": len(cases), "passing_must": sum(c["pass"] for c in cases),
-           "every_phase_solved": sum(c.get("phases_solved") == c.get("num_phases") is not None for c in cases),
-           "errors": [f"seed {c['seed']}: {c['error']}" for c in cases if "error" in c]}
-    for key in ("median_mm", "p95_mm", "twist_error_deg", "twist_error_measured_deg", "radius_error_mm"):
+    out = {
+        'cases': len(cases),
+        'passing_must': sum(c['pass'] for c in cases),
+        'every_phase_solved': sum(
+            c.get('phases_solved') == c.get('num_phases') is not None for c in cases
+        ),
+        'errors': [f'seed {c["seed"]}: {c["error"]}' for c in cases if 'error' in c],
+    }
+    for key in (
+        'median_mm',
+        'p95_mm',
+        'twist_error_deg',
+        'twist_error_measured_deg',
+        'radius_error_mm',
+    ):
         v = col(key)
         if v:
-            out[key] = {"worst": max(v), "median": round(statistics.median(v), 3)}
-    for key in ("inside_myocardium", "coverage"):
+            out[key] = {'worst': max(v), 'median': round(statistics.median(v), 3)}
+    for key in ('inside_myocardium', 'coverage'):
         v = [c[key] for c in cases if key in c]
         if v:
-            out[key] = {"worst": min(v), "median": round(statistics.median(v), 3)}
-    out["at_goal_median"] = sum(c.get("es", {}).get("median_mm", 9e9) <= GOAL_MEDIAN_MM for c in cases)
-    out["failing_seeds"] = [c["seed"] for c in cases if not c["pass"]]
-    out["phases_flagged"] = sum(len(c.get("phases_degraded", [])) + len(c.get("phases_failed", [])) for c in cases)
-    out["silent_wrong_phases"] = {c["seed"]: c["silent_wrong_phases"] for c in cases if c.get("silent_wrong_phases")}
+            out[key] = {'worst': min(v), 'median': round(statistics.median(v), 3)}
+    out['at_goal_median'] = sum(
+        c.get('es', {}).get('median_mm', 9e9) <= GOAL_MEDIAN_MM for c in cases
+    )
+    out['failing_seeds'] = [c['seed'] for c in cases if not c['pass']]
+    out['phases_flagged'] = sum(
+        len(c.get('phases_degraded', [])) + len(c.get('phases_failed', [])) for c in cases
+    )
+    out['silent_wrong_phases'] = {
+        c['seed']: c['silent_wrong_phases'] for c in cases if c.get('silent_wrong_phases')
+    }
     return out
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=16)
-    ap.add_argument("--seed", type=int, default=1000, help="first protocol seed (cases use seed, seed+1, …)")
-    ap.add_argument("--out", default=None, help="keep studies and runs here (default: a temporary directory)")
-    ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
-    ap.add_argument("--timeout", type=float, default=900.0, help="per-run limit, seconds")
-    ap.add_argument("--jobs", type=int, default=1, help="cases run at once (each run claims its own ROS domain)")
-    ap.add_argument("--abnormal", action="store_true",
-                    help="keep the drawn regional abnormalities (default: none, the studies these seeds drew "
-                         "before; regional strain is `mlv-ros bench strain`)")
-    ap.add_argument("--rv", choices=("drawn", "on", "off"), default=None,
-                    help="right ventricle: as drawn (75 %% of studies), always, never (default: drawn with "
-                         "--abnormal, else off)")
+    ap.add_argument('--cases', type=int, default=16)
+    ap.add_argument(
+        '--seed', type=int, default=1000, help='first protocol seed (cases use seed, seed+1, …)'
+    )
+    ap.add_argument(
+        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
+    )
+    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
+    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+    ap.add_argument(
+        '--jobs',
+        type=int,
+        default=1,
+        help='cases run at once (each run claims its own ROS domain)',
+    )
+    ap.add_argument(
+        '--abnormal',
+        action='store_true',
+        help='keep the drawn regional abnormalities (default: none, the studies these seeds drew '
+        'before; regional strain is `mlv-ros bench strain`)',
+    )
+    ap.add_argument(
+        '--rv',
+        choices=('drawn', 'on', 'off'),
+        default=None,
+        help='right ventricle: as drawn (75 %% of studies), always, never (default: drawn with '
+        '--abnormal, else off)',
+    )
     args = ap.parse_args()
     if args.cases < 1:
-        ap.error("--cases must be >= 1")
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="mlv-bench-robustness-"))
+        ap.error('--cases must be >= 1')
+    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-robustness-'))
     cases = []
 
     def one(seed):
-        case = run_case(seed, root / f"case-{seed}", args.timeout, args.abnormal, args.rv)
-        print(json.dumps({k: case.get(k) for k in ("seed", "pass", "es", "phases_solved", "num_phases",
-                                                   "run_seconds", "error") if k in case}),
-              file=sys.stderr, flush=True)
+        case = run_case(seed, root / f'case-{seed}', args.timeout, args.abnormal, args.rv)
+        print(
+            json.dumps(
+                {
+                    k: case.get(k)
+                    for k in (
+                        'seed',
+                        'pass',
+                        'es',
+                        'phases_solved',
+                        'num_phases',
+                        'run_seconds',
+                        'error',
+                    )
+                    if k in case
+                }
+            ),
+            file=sys.stderr,
+            flush=True,
+        )
         return case
 
     try:
@@ -178,10 +287,19 @@ def main():
     finally:
         if not args.out and not args.keep:
             shutil.rmtree(root, ignore_errors=True)
-    print(json.dumps({"summary": summarise(cases), "must": MUST | {"coverage": MIN_COVERAGE}, "cases": cases,
-                      "out": str(root) if (args.out or args.keep) else None}, indent=1))
+    print(
+        json.dumps(
+            {
+                'summary': summarise(cases),
+                'must': MUST | {'coverage': MIN_COVERAGE},
+                'cases': cases,
+                'out': str(root) if (args.out or args.keep) else None,
+            },
+            indent=1,
+        )
+    )
     return 0  # the verdict is in the JSON (summary.passing_must); other benches still run
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""ED segmentation over a range of tagged-study protocols (prints JSON).
+"""
+ED segmentation over a range of tagged-study protocols (prints JSON).
 
 Each case is the ``normal`` preset (or another) with some keys overridden, one item varied at a
 time (grid angle, tag period, pixel size, SNR, T1, tagged or dark surroundings, blood
@@ -22,51 +23,58 @@ import argparse
 import json
 import time
 
-import numpy as np
-
 from mlv_ros.core.registration import segment as seg
 from mlv_ros.core.registration import segment_around_axis
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
-from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame
+from mlv_ros.core.types import Frame, VIEW_LA, VIEW_SA
+import numpy as np
 
 #: Field of view of the rendered images, mm (size = FOV / pixel, clipped to [96, 192] px).
 FOV_MM = 180.0
 
 #: Thin-wall variant of the normal LV: 6 mm wall (endo 33 / epi 39 mm, apical wall 6 mm).
-THIN = {"endo_radius_mm": 33.0, "epi_radius_mm": 39.0, "endo_depth_mm": 79.0}
+THIN = {'endo_radius_mm': 33.0, 'epi_radius_mm': 39.0, 'endo_depth_mm': 79.0}
 
 #: Another simulator's study: 9 mm wall, 8 mm grid at 45°, 1.4 mm pixels, only the heart tagged.
-FOREIGN = {"tag_angle_deg": 45.0, "tag_spacing_mm": 8.0, "pixel_spacing_mm": 1.4, "background_m0": 0.0}
+FOREIGN = {
+    'tag_angle_deg': 45.0,
+    'tag_spacing_mm': 8.0,
+    'pixel_spacing_mm': 1.4,
+    'background_m0': 0.0,
+}
 
 
 def cases() -> dict:
     """Named cases: ``{name: {"preset", "imaging", "geometry", "scale", "time_s"}}``."""
-    c = {"normal": {}}
+    c = {'normal': {}}
     for a in (20, 45, 70, 90, 135, 160):
-        c[f"angle{a}"] = {"imaging": {"tag_angle_deg": float(a)}}
+        c[f'angle{a}'] = {'imaging': {'tag_angle_deg': float(a)}}
     for p in (5.0, 6.0, 8.0, 10.0):
-        c[f"period{p:g}"] = {"imaging": {"tag_spacing_mm": p}}
+        c[f'period{p:g}'] = {'imaging': {'tag_spacing_mm': p}}
     for px in (1.0, 1.6, 2.0):
-        c[f"pixel{px:g}"] = {"imaging": {"pixel_spacing_mm": px}}
+        c[f'pixel{px:g}'] = {'imaging': {'pixel_spacing_mm': px}}
     for s in (10.0, 40.0):
-        c[f"snr{s:g}"] = {"imaging": {"snr": s}}
-    for t1 in (0.8, 1.2):  # at t = 0 (ED) T1 does not matter; at 60 ms the tags have faded a little
-        c[f"t1_{t1:g}"] = {"imaging": {"t1_s": t1}, "time_s": 0.06}
+        c[f'snr{s:g}'] = {'imaging': {'snr': s}}
+    for t1 in (
+        0.8,
+        1.2,
+    ):  # at t = 0 (ED) T1 does not matter; at 60 ms the tags have faded a little
+        c[f't1_{t1:g}'] = {'imaging': {'t1_s': t1}, 'time_s': 0.06}
     for b in (0.0, 0.2, 0.5):
-        c[f"bg{b:g}"] = {"imaging": {"background_m0": b}}
+        c[f'bg{b:g}'] = {'imaging': {'background_m0': b}}
     for b in (0.3, 0.8, 1.3):
-        c[f"blood{b:g}"] = {"imaging": {"blood_m0": b}}
-    c["blood0.3_bg0"] = {"imaging": {"blood_m0": 0.3, "background_m0": 0.0}}
-    c["wall6"] = {"geometry": THIN}
-    c["wall6_period10"] = {"geometry": THIN, "imaging": {"tag_spacing_mm": 10.0}}
-    c["hypertrophic"] = {"preset": "hypertrophic"}
-    c["scale1000"] = {"scale": 1000.0}
-    c["scale0.01"] = {"scale": 0.01}
-    c["foreign"] = {"imaging": dict(FOREIGN)}
-    c["px1.9_period10"] = {"imaging": {"pixel_spacing_mm": 1.9, "tag_spacing_mm": 10.0}}
+        c[f'blood{b:g}'] = {'imaging': {'blood_m0': b}}
+    c['blood0.3_bg0'] = {'imaging': {'blood_m0': 0.3, 'background_m0': 0.0}}
+    c['wall6'] = {'geometry': THIN}
+    c['wall6_period10'] = {'geometry': THIN, 'imaging': {'tag_spacing_mm': 10.0}}
+    c['hypertrophic'] = {'preset': 'hypertrophic'}
+    c['scale1000'] = {'scale': 1000.0}
+    c['scale0.01'] = {'scale': 0.01}
+    c['foreign'] = {'imaging': dict(FOREIGN)}
+    c['px1.9_period10'] = {'imaging': {'pixel_spacing_mm': 1.9, 'tag_spacing_mm': 10.0}}
     return c
 
 
@@ -77,19 +85,27 @@ def random_cases(n: int, seed: int) -> dict:
     for i in range(n):
         px = float(rng.uniform(1.0, 2.0))
         period = float(rng.uniform(max(5.0, 3.5 * px), 10.0))
-        im = {"tag_angle_deg": float(rng.uniform(0, 180)), "tag_spacing_mm": round(period, 2),
-              "pixel_spacing_mm": round(px, 2), "snr": float(rng.uniform(10, 40)),
-              "background_m0": float(rng.choice([0.0, rng.uniform(0.2, 0.5)])),
-              "blood_m0": float(rng.uniform(0.3, 1.3))}
-        wall = rng.choice(["normal", "thin", "hypertrophic"])
-        out[f"random{i}"] = {"preset": "hypertrophic" if wall == "hypertrophic" else "normal",
-                             "geometry": THIN if wall == "thin" else {}, "imaging": im,
-                             "scale": float(10 ** rng.uniform(-2, 3))}
+        im = {
+            'tag_angle_deg': float(rng.uniform(0, 180)),
+            'tag_spacing_mm': round(period, 2),
+            'pixel_spacing_mm': round(px, 2),
+            'snr': float(rng.uniform(10, 40)),
+            'background_m0': float(rng.choice([0.0, rng.uniform(0.2, 0.5)])),
+            'blood_m0': float(rng.uniform(0.3, 1.3)),
+        }
+        wall = rng.choice(['normal', 'thin', 'hypertrophic'])
+        out[f'random{i}'] = {
+            'preset': 'hypertrophic' if wall == 'hypertrophic' else 'normal',
+            'geometry': THIN if wall == 'thin' else {},
+            'imaging': im,
+            'scale': float(10 ** rng.uniform(-2, 3)),
+        }
     return out
 
 
 def render_ed(spec: dict, seed: int = 0):
-    """ED frames of every planned slice and their true myocardium masks.
+    """
+    ED frames of every planned slice and their true myocardium masks.
 
     Returns
     -------
@@ -97,25 +113,35 @@ def render_ed(spec: dict, seed: int = 0):
         SA base → apex, then LA.
     truth : dict
         ``(view, slice_index) -> bool (rows, cols)``.
+
     """
-    p = load_preset(spec.get("preset", "normal"))
-    p["geometry"].update(spec.get("geometry", {}))
-    im = p["imaging"]
-    im.update(spec.get("imaging", {}))
-    im["subplanes"] = 3
-    n = int(np.clip(round(FOV_MM / float(im["pixel_spacing_mm"])), 96, 192))
-    im["size"] = n
+    p = load_preset(spec.get('preset', 'normal'))
+    p['geometry'].update(spec.get('geometry', {}))
+    im = p['imaging']
+    im.update(spec.get('imaging', {}))
+    im['subplanes'] = 3
+    n = int(np.clip(round(FOV_MM / float(im['pixel_spacing_mm'])), 96, 192))
+    im['size'] = n
     motion = LVMotion(p)
     rng = np.random.default_rng(seed)
-    t = float(spec.get("time_s", 0.0))
-    scale = float(spec.get("scale", 1.0))
+    t = float(spec.get('time_s', 0.0))
+    scale = float(spec.get('scale', 1.0))
     frames, truth = [], {}
     for sl in plan_slices(motion, im, n):
         syn = ImageSynthesizer(motion, sl, n, im)
-        img = syn.render(0, t, float(im["snr"]), rng) * scale
-        frames.append(Frame(image=img, geometry=sl.geometry, view=sl.view, slice_index=sl.index,
-                            phase_index=0, num_phases=motion.num_phases, trigger_time=t,
-                            cycle_duration=motion.cycle_duration))
+        img = syn.render(0, t, float(im['snr']), rng) * scale
+        frames.append(
+            Frame(
+                image=img,
+                geometry=sl.geometry,
+                view=sl.view,
+                slice_index=sl.index,
+                phase_index=0,
+                num_phases=motion.num_phases,
+                trigger_time=t,
+                cycle_duration=motion.cycle_duration,
+            )
+        )
         truth[(sl.view, sl.index)] = syn.tissue_fractions(0)[0] >= 0.5
     return frames, truth
 
@@ -129,21 +155,25 @@ def stream_masks(frames: list) -> dict:
 def score(masks: dict, truth: dict) -> dict:
     """Per-view Dice summary; a failed slice scores 0 and its reason is kept."""
     out = {}
-    for view, name in ((VIEW_SA, "SA"), (VIEW_LA, "LA")):
+    for view, name in ((VIEW_SA, 'SA'), (VIEW_LA, 'LA')):
         keys = sorted(k for k in truth if k[0] == view)
         d = [seg.dice(masks[k][0], truth[k]) if masks[k][0] is not None else 0.0 for k in keys]
-        fails = {f"{name}{k[1]}": masks[k][1] for k in keys if masks[k][0] is None}
-        out[name] = {"min": round(min(d), 3), "mean": round(float(np.mean(d)), 3),
-                     "per_slice": [round(x, 3) for x in d], "failed": fails}
+        fails = {f'{name}{k[1]}': masks[k][1] for k in keys if masks[k][0] is None}
+        out[name] = {
+            'min': round(min(d), 3),
+            'mean': round(float(np.mean(d)), 3),
+            'per_slice': [round(x, 3) for x in d],
+            'failed': fails,
+        }
     return out
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", nargs="*", default=None, help="case names (default: all)")
-    ap.add_argument("--random", type=int, default=6, help="random combinations to add")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--paths", nargs="+", default=["stream", "batch"], choices=["stream", "batch"])
+    ap.add_argument('--cases', nargs='*', default=None, help='case names (default: all)')
+    ap.add_argument('--random', type=int, default=6, help='random combinations to add')
+    ap.add_argument('--seed', type=int, default=1)
+    ap.add_argument('--paths', nargs='+', default=['stream', 'batch'], choices=['stream', 'batch'])
     a = ap.parse_args()
     allc = {**cases(), **random_cases(a.random, a.seed)}
     names = a.cases if a.cases else list(allc)
@@ -152,18 +182,29 @@ def main():
     for name in names:
         spec = allc[name]
         frames, truth = render_ed(spec)
-        row = {"case": name, "spec": spec, "size": int(frames[0].image.shape[0])}
+        row = {'case': name, 'spec': spec, 'size': int(frames[0].image.shape[0])}
         for path in a.paths:
             t0 = time.perf_counter()
-            masks = stream_masks(frames) if path == "stream" else segment_around_axis(frames)
+            masks = stream_masks(frames) if path == 'stream' else segment_around_axis(frames)
             row[path] = score(masks, truth)
-            row[path]["seconds"] = round(time.perf_counter() - t0, 2)
+            row[path]['seconds'] = round(time.perf_counter() - t0, 2)
         results.append(row)
-    worst = {p: {v: min(r[p][v]["min"] for r in results) for v in ("SA", "LA")} for p in a.paths}
-    failed = {p: sum(len(r[p][v]["failed"]) for r in results for v in ("SA", "LA")) for p in a.paths}
-    print(json.dumps({"cases": results, "worst_min_dice": worst, "failed_slices": failed,
-                      "seconds": round(time.perf_counter() - t_all, 1)}, indent=1))
+    worst = {p: {v: min(r[p][v]['min'] for r in results) for v in ('SA', 'LA')} for p in a.paths}
+    failed = {
+        p: sum(len(r[p][v]['failed']) for r in results for v in ('SA', 'LA')) for p in a.paths
+    }
+    print(
+        json.dumps(
+            {
+                'cases': results,
+                'worst_min_dice': worst,
+                'failed_slices': failed,
+                'seconds': round(time.perf_counter() - t_all, 1),
+            },
+            indent=1,
+        )
+    )
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     main()

@@ -1,4 +1,5 @@
-"""Benchmark: simulate the default study (normal preset, 25 phases x 11 slices, 256^2).
+"""
+Benchmark: simulate the default study (normal preset, 25 phases x 11 slices, 256^2).
 
 Prints one JSON document: wall time of the simulation (and, separately, of writing it as DICOM),
 peak resident memory of the process, and whether the issue's limits (30 s, 2 GB) are met.
@@ -15,8 +16,8 @@ import time
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="normal")
-    ap.add_argument("--no-write", action="store_true", help="skip the DICOM write timing")
+    ap.add_argument('--preset', default='normal')
+    ap.add_argument('--no-write', action='store_true', help='skip the DICOM write timing')
     args = ap.parse_args(argv)
 
     from mlv_ros.core.io import write_study_dicom
@@ -34,23 +35,23 @@ def main(argv=None) -> int:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
     n = len(study.frames)
     out = {
-        "benchmark": "simulate",
-        "preset": args.preset,
-        "images": n,
-        "phases": study.num_phases,
-        "slices": len(study.slices),
-        "size": int(study.frames[0].image.shape[0]),
-        "simulate_s": round(t_sim, 3),
-        "ms_per_image": round(1000.0 * t_sim / n, 2),
-        "write_dicom_s": None if t_write is None else round(t_write, 3),
-        "peak_rss_mb": round(peak_mb, 1),
-        "limit_s": 30.0,
-        "limit_mb": 2048.0,
-        "ok": bool(t_sim <= 30.0 and peak_mb <= 2048.0),
+        'benchmark': 'simulate',
+        'preset': args.preset,
+        'images': n,
+        'phases': study.num_phases,
+        'slices': len(study.slices),
+        'size': int(study.frames[0].image.shape[0]),
+        'simulate_s': round(t_sim, 3),
+        'ms_per_image': round(1000.0 * t_sim / n, 2),
+        'write_dicom_s': None if t_write is None else round(t_write, 3),
+        'peak_rss_mb': round(peak_mb, 1),
+        'limit_s': 30.0,
+        'limit_mb': 2048.0,
+        'ok': bool(t_sim <= 30.0 and peak_mb <= 2048.0),
     }
     print(json.dumps(out))
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main(sys.argv[1:]))

@@ -1,4 +1,5 @@
-"""Benchmark: regional strain at end-systole against the analytic truth, randomized protocols.
+"""
+Benchmark: regional strain at end-systole against the analytic truth, randomized protocols.
 
 Each case draws a protocol (``mlv-ros simulate --random SEED``, abnormal regions included: the
 ``abnormal_regions`` item), runs the whole graph on the DICOM files (``mlv-ros run --dicom``) and
@@ -32,29 +33,30 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
 BIN = Path(sys.executable).parent
-COMPONENTS = ("err", "ecc", "ell")
+COMPONENTS = ('err', 'ecc', 'ell')
 #: The issue's must-criteria.
-MUST_GLOBAL = {"err": 0.05, "ecc": 0.02, "ell": 0.02}
+MUST_GLOBAL = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
 MUST_ECC_SEGMENT = 0.05
 MUST_ECC_FRACTION = 0.95
 #: A segment's sign must be right where the truth is at least this large.
 SIGN_ERR, SIGN_ECC = 0.05, 0.03
-ABNORMAL = ("akinetic", "dyskinetic")
+ABNORMAL = ('akinetic', 'dyskinetic')
 
 
 def ours_at_es(mcap: Path, es: int) -> dict:
-    """Published per-segment strain at phase ``es`` and the re-analysed global means.
+    """
+    Published per-segment strain at phase ``es`` and the re-analysed global means.
 
     Returns
     -------
@@ -62,184 +64,296 @@ def ours_at_es(mcap: Path, es: int) -> dict:
         ``segments`` {component: (17,) array}, ``count`` (17,) (None when not published),
         ``global`` {component: float}, ``reanalysis`` {component: (17,)}, ``classes``
         (17 names, or None when the run does not classify segments).
+
     """
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
     from mlv_ros.core.tracking import lv_frame_axes
     from mlv_ros.tools.run import read_run
 
     run = read_run(mcap)
-    if run["ed"] is None or es not in run["positions"]:
-        raise ValueError(f"the run has no registered model or no motion at the ES phase {es}")
-    apex, base, ref = lv_frame_axes(run["ed"], run["rotation"])
-    an = LVAnalyzer(run["ed"], LVFrame(apex, base, ref))
-    x = run["positions"][es]
+    if run['ed'] is None or es not in run['positions']:
+        raise ValueError(f'the run has no registered model or no motion at the ES phase {es}')
+    apex, base, ref = lv_frame_axes(run['ed'], run['rotation'])
+    an = LVAnalyzer(run['ed'], LVFrame(apex, base, ref))
+    x = run['positions'][es]
     st = an.strain(x)
     re = an.phase(x, phase_index=es)
-    reanalysis = {c: np.asarray(getattr(re, f"segment_{c}")) for c in COMPONENTS}
-    met = run["metrics"].get(es) or {}
-    published = all(np.asarray(met.get(f"segment_{c}", ())).size == 17 for c in COMPONENTS)
-    segs = {c: np.asarray(met[f"segment_{c}"]) for c in COMPONENTS} if published else reanalysis
-    count = np.asarray(met.get("segment_count", ())) if published else np.asarray(re.segment_count)
+    reanalysis = {c: np.asarray(getattr(re, f'segment_{c}')) for c in COMPONENTS}
+    met = run['metrics'].get(es) or {}
+    published = all(np.asarray(met.get(f'segment_{c}', ())).size == 17 for c in COMPONENTS)
+    segs = {c: np.asarray(met[f'segment_{c}']) for c in COMPONENTS} if published else reanalysis
+    count = np.asarray(met.get('segment_count', ())) if published else np.asarray(re.segment_count)
     # The findings a user reads (mlv-ros report): the recorded metrics of every phase, their
     # per-segment uncertainties as recorded (recomputed from the recorded motion for recordings
     # made before MotionMetrics carried them), streamed phase by phase as the analysis does.
     from mlv_ros.core.analysis import PhaseMetrics, segment_findings
     from mlv_ros.tools.report import with_segment_uncertainty
 
-    phases = with_segment_uncertainty([PhaseMetrics.from_dict(d) for _, d in sorted(run["metrics"].items())],
-                                      run, an.frame)
+    phases = with_segment_uncertainty(
+        [PhaseMetrics.from_dict(d) for _, d in sorted(run['metrics'].items())], run, an.frame
+    )
     found = segment_findings(phases)
-    return {"segments": segs, "count": count if count.size == 17 else None, "published": published,
-            "global": {c: float(np.nanmean(st[c[1:]])) for c in COMPONENTS},
-            "reanalysis": reanalysis, "classes": found.classes if phases else None, "findings": found}
+    return {
+        'segments': segs,
+        'count': count if count.size == 17 else None,
+        'published': published,
+        'global': {c: float(np.nanmean(st[c[1:]])) for c in COMPONENTS},
+        'reanalysis': reanalysis,
+        'classes': found.classes if phases else None,
+        'findings': found,
+    }
 
 
 def compare(truth: dict, ours: dict) -> dict:
     """Strain errors of one case (see the module docstring)."""
-    seg = truth["segments"]
+    seg = truth['segments']
     t = {c: np.array([s[c] for s in seg]) for c in COMPONENTS}
-    ok = np.array([s["count"] > 0 for s in seg])
-    if ours["count"] is not None:
-        ok &= ours["count"] > 0
-    out = {"global": {c: {"truth": round(truth["global"][c], 4), "ours": round(ours["global"][c], 4),
-                          "error": round(ours["global"][c] - truth["global"][c], 4)} for c in COMPONENTS},
-           "segments_compared": int(ok.sum()), "segments": {}}
+    ok = np.array([s['count'] > 0 for s in seg])
+    if ours['count'] is not None:
+        ok &= ours['count'] > 0
+    out = {
+        'global': {
+            c: {
+                'truth': round(truth['global'][c], 4),
+                'ours': round(ours['global'][c], 4),
+                'error': round(ours['global'][c] - truth['global'][c], 4),
+            }
+            for c in COMPONENTS
+        },
+        'segments_compared': int(ok.sum()),
+        'segments': {},
+    }
     for c in COMPONENTS:
-        e = np.abs(ours["segments"][c] - t[c])[ok]
-        out["segments"][c] = {"median": round(float(np.median(e)), 4),
-                              "p95": round(float(np.percentile(e, 95)), 4), "max": round(float(e.max()), 4),
-                              "worst_segment": int(np.flatnonzero(ok)[np.argmax(e)] + 1)}
-    ecc_err = np.abs(ours["segments"]["ecc"] - t["ecc"])[ok]
-    out["segments"]["ecc_within_0.05"] = round(float(np.mean(ecc_err <= MUST_ECC_SEGMENT)), 4)
-    out["reanalysis_segment_max_diff"] = round(float(max(
-        np.max(np.abs(ours["segments"][c] - ours["reanalysis"][c])[ok]) for c in COMPONENTS)), 4)
+        e = np.abs(ours['segments'][c] - t[c])[ok]
+        out['segments'][c] = {
+            'median': round(float(np.median(e)), 4),
+            'p95': round(float(np.percentile(e, 95)), 4),
+            'max': round(float(e.max()), 4),
+            'worst_segment': int(np.flatnonzero(ok)[np.argmax(e)] + 1),
+        }
+    ecc_err = np.abs(ours['segments']['ecc'] - t['ecc'])[ok]
+    out['segments']['ecc_within_0.05'] = round(float(np.mean(ecc_err <= MUST_ECC_SEGMENT)), 4)
+    out['reanalysis_segment_max_diff'] = round(
+        float(
+            max(
+                np.max(np.abs(ours['segments'][c] - ours['reanalysis'][c])[ok]) for c in COMPONENTS
+            )
+        ),
+        4,
+    )
     wrong, checked = [], 0
     for k in np.flatnonzero(ok):
-        for c, lim in (("err", SIGN_ERR), ("ecc", SIGN_ECC)):
+        for c, lim in (('err', SIGN_ERR), ('ecc', SIGN_ECC)):
             if abs(t[c][k]) > lim:
                 checked += 1
-                if np.sign(ours["segments"][c][k]) != np.sign(t[c][k]):
-                    wrong.append({"segment": int(k + 1), "component": c, "truth": round(float(t[c][k]), 4),
-                                  "ours": round(float(ours["segments"][c][k]), 4)})
-    out["signs"] = {"checked": checked, "right": checked - len(wrong),
-                    "fraction": round((checked - len(wrong)) / checked, 4) if checked else None, "wrong": wrong}
-    out["abnormal"] = [{"segment": s["segment"], "class": s["class"],
-                        **{f"{c}_truth": s[c] for c in COMPONENTS},
-                        **{f"{c}_ours": round(float(ours["segments"][c][s["segment"] - 1]), 4) for c in COMPONENTS}}
-                       for s in seg if s["class"] != "normal"]
-    out["truth_classes"] = {k: sum(s["class"] == k for s in seg) for k in ("normal", "hypokinetic", *ABNORMAL)}
-    out["classification"] = None
-    if ours["classes"] is not None and len(ours["classes"]) == 17:
-        pos = np.array([s["class"] in ABNORMAL for s in seg])[ok]
-        got = np.array([c in ABNORMAL for c in ours["classes"]])[ok]
-        ind = np.array([c == "indeterminate" for c in ours["classes"]])[ok]
+                if np.sign(ours['segments'][c][k]) != np.sign(t[c][k]):
+                    wrong.append(
+                        {
+                            'segment': int(k + 1),
+                            'component': c,
+                            'truth': round(float(t[c][k]), 4),
+                            'ours': round(float(ours['segments'][c][k]), 4),
+                        }
+                    )
+    out['signs'] = {
+        'checked': checked,
+        'right': checked - len(wrong),
+        'fraction': round((checked - len(wrong)) / checked, 4) if checked else None,
+        'wrong': wrong,
+    }
+    out['abnormal'] = [
+        {
+            'segment': s['segment'],
+            'class': s['class'],
+            **{f'{c}_truth': s[c] for c in COMPONENTS},
+            **{
+                f'{c}_ours': round(float(ours['segments'][c][s['segment'] - 1]), 4)
+                for c in COMPONENTS
+            },
+        }
+        for s in seg
+        if s['class'] != 'normal'
+    ]
+    out['truth_classes'] = {
+        k: sum(s['class'] == k for s in seg) for k in ('normal', 'hypokinetic', *ABNORMAL)
+    }
+    out['classification'] = None
+    if ours['classes'] is not None and len(ours['classes']) == 17:
+        pos = np.array([s['class'] in ABNORMAL for s in seg])[ok]
+        got = np.array([c in ABNORMAL for c in ours['classes']])[ok]
+        ind = np.array([c == 'indeterminate' for c in ours['classes']])[ok]
         # An indeterminate segment is not a finding: a missed abnormal one counts as a false
         # negative, a normal one as a true negative; how many there were is said beside.
-        out["classification"] = {
-            "true_positive": int(np.sum(pos & got)), "false_negative": int(np.sum(pos & ~got)),
-            "true_negative": int(np.sum(~pos & ~got)), "false_positive": int(np.sum(~pos & got)),
-            "indeterminate_abnormal": int(np.sum(pos & ind)), "indeterminate_other": int(np.sum(~pos & ind)),
-            "per_segment": [{"segment": int(k + 1), "truth": seg[k]["class"], "ours": ours["classes"][k]}
-                            for k in np.flatnonzero(ok) if seg[k]["class"] != "normal"
-                            or ours["classes"][k] != "normal"]}
-    out["must"] = bool(all(abs(out["global"][c]["error"]) <= v for c, v in MUST_GLOBAL.items())
-                       and out["segments"]["ecc_within_0.05"] >= MUST_ECC_FRACTION
-                       and not wrong)
+        out['classification'] = {
+            'true_positive': int(np.sum(pos & got)),
+            'false_negative': int(np.sum(pos & ~got)),
+            'true_negative': int(np.sum(~pos & ~got)),
+            'false_positive': int(np.sum(~pos & got)),
+            'indeterminate_abnormal': int(np.sum(pos & ind)),
+            'indeterminate_other': int(np.sum(~pos & ind)),
+            'per_segment': [
+                {'segment': int(k + 1), 'truth': seg[k]['class'], 'ours': ours['classes'][k]}
+                for k in np.flatnonzero(ok)
+                if seg[k]['class'] != 'normal' or ours['classes'][k] != 'normal'
+            ],
+        }
+    out['must'] = bool(
+        all(abs(out['global'][c]['error']) <= v for c, v in MUST_GLOBAL.items())
+        and out['segments']['ecc_within_0.05'] >= MUST_ECC_FRACTION
+        and not wrong
+    )
     return out
 
 
 def run_case(seed: int, out: Path, timeout: float, phases: int | None) -> dict:
-    study, run_dir = out / "study", out / "run"
-    case = {"seed": seed}
+    study, run_dir = out / 'study', out / 'run'
+    case = {'seed': seed}
     t0 = time.monotonic()
-    cmd = [str(BIN / "mlv-ros"), "simulate", "--random", str(seed), "--out", str(study), "--no-progress"]
+    cmd = [
+        str(BIN / 'mlv-ros'),
+        'simulate',
+        '--random',
+        str(seed),
+        '--out',
+        str(study),
+        '--no-progress',
+    ]
     if phases:
-        cmd += ["--phases", str(phases)]
+        cmd += ['--phases', str(phases)]
     sim = subprocess.run(cmd, capture_output=True, text=True)
     if sim.returncode != 0:
-        return case | {"error": f"simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}"}
-    truth = json.loads((study / "groundtruth.json").read_text())["regional"]
-    case["shape"] = json.loads((study / "groundtruth.json").read_text())["protocol"]["shape"]
-    case["regions"] = truth["regions"]
-    run = subprocess.run([str(BIN / "mlv-ros"), "run", "--dicom", str(study / "dicom"), "--out", str(run_dir),
-                          "--quiet", "--timeout", str(timeout)], capture_output=True, text=True)
-    case["seconds"] = round(time.monotonic() - t0, 1)
-    case["run_exit"] = run.returncode
-    if not (run_dir / "run.mcap").exists():
-        return case | {"error": f"run exited {run.returncode} without a recording: {run.stderr.strip()[-400:]}"}
+        return case | {'error': f'simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}'}
+    truth = json.loads((study / 'groundtruth.json').read_text())['regional']
+    case['shape'] = json.loads((study / 'groundtruth.json').read_text())['protocol']['shape']
+    case['regions'] = truth['regions']
+    run = subprocess.run(
+        [
+            str(BIN / 'mlv-ros'),
+            'run',
+            '--dicom',
+            str(study / 'dicom'),
+            '--out',
+            str(run_dir),
+            '--quiet',
+            '--timeout',
+            str(timeout),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    case['seconds'] = round(time.monotonic() - t0, 1)
+    case['run_exit'] = run.returncode
+    if not (run_dir / 'run.mcap').exists():
+        return case | {
+            'error': f'run exited {run.returncode} without a recording: '
+            f'{run.stderr.strip()[-400:]}'
+        }
     try:
-        ours = ours_at_es(run_dir / "run.mcap", int(truth["phase"]))
+        ours = ours_at_es(run_dir / 'run.mcap', int(truth['phase']))
     except ValueError as exc:
-        return case | {"error": str(exc)}
-    case["es_phase"] = int(truth["phase"])
-    case["published"] = ours["published"]
+        return case | {'error': str(exc)}
+    case['es_phase'] = int(truth['phase'])
+    case['published'] = ours['published']
     return case | compare(truth, ours)
 
 
 def summarise(cases: list[dict]) -> dict:
-    good = [c for c in cases if "error" not in c]
-    out = {"cases": len(cases), "passing_must": sum(c["must"] for c in good),
-           "errors": [f"seed {c['seed']}: {c['error']}" for c in cases if "error" in c]}
+    good = [c for c in cases if 'error' not in c]
+    out = {
+        'cases': len(cases),
+        'passing_must': sum(c['must'] for c in good),
+        'errors': [f'seed {c["seed"]}: {c["error"]}' for c in cases if 'error' in c],
+    }
     if not good:
         return out
     for comp in COMPONENTS:
-        g = [abs(c["global"][comp]["error"]) for c in good]
-        out[f"global_{comp}_error"] = {"worst": max(g), "median": round(statistics.median(g), 4)}
-        out[f"segment_{comp}_p95"] = {"worst": max(c["segments"][comp]["p95"] for c in good)}
-    n = sum(c["segments_compared"] for c in good)
-    out["ecc_within_0.05"] = round(sum(c["segments"]["ecc_within_0.05"] * c["segments_compared"] for c in good) / n, 4)
-    checked = sum(c["signs"]["checked"] for c in good)
-    out["signs_right"] = round(sum(c["signs"]["right"] for c in good) / checked, 4) if checked else None
-    out["abnormal_segments"] = sum(c["truth_classes"]["akinetic"] + c["truth_classes"]["dyskinetic"] for c in good)
-    cls = [c["classification"] for c in good if c["classification"]]
+        g = [abs(c['global'][comp]['error']) for c in good]
+        out[f'global_{comp}_error'] = {'worst': max(g), 'median': round(statistics.median(g), 4)}
+        out[f'segment_{comp}_p95'] = {'worst': max(c['segments'][comp]['p95'] for c in good)}
+    n = sum(c['segments_compared'] for c in good)
+    out['ecc_within_0.05'] = round(
+        sum(c['segments']['ecc_within_0.05'] * c['segments_compared'] for c in good) / n, 4
+    )
+    checked = sum(c['signs']['checked'] for c in good)
+    out['signs_right'] = (
+        round(sum(c['signs']['right'] for c in good) / checked, 4) if checked else None
+    )
+    out['abnormal_segments'] = sum(
+        c['truth_classes']['akinetic'] + c['truth_classes']['dyskinetic'] for c in good
+    )
+    cls = [c['classification'] for c in good if c['classification']]
     if cls:
-        tp, fn = sum(c["true_positive"] for c in cls), sum(c["false_negative"] for c in cls)
-        tn, fp = sum(c["true_negative"] for c in cls), sum(c["false_positive"] for c in cls)
-        out["sensitivity"] = round(tp / (tp + fn), 4) if tp + fn else None
-        out["specificity"] = round(tn / (tn + fp), 4) if tn + fp else None
-        out["indeterminate"] = {k: sum(c[f"indeterminate_{k}"] for c in cls) for k in ("abnormal", "other")}
+        tp, fn = sum(c['true_positive'] for c in cls), sum(c['false_negative'] for c in cls)
+        tn, fp = sum(c['true_negative'] for c in cls), sum(c['false_positive'] for c in cls)
+        out['sensitivity'] = round(tp / (tp + fn), 4) if tp + fn else None
+        out['specificity'] = round(tn / (tn + fp), 4) if tn + fp else None
+        out['indeterminate'] = {
+            k: sum(c[f'indeterminate_{k}'] for c in cls) for k in ('abnormal', 'other')
+        }
     else:
-        out["sensitivity"] = out["specificity"] = None  # no run had metrics to classify
+        out['sensitivity'] = out['specificity'] = None  # no run had metrics to classify
     return out
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=3)
-    ap.add_argument("--seed", type=int, default=2000, help="first protocol seed")
-    ap.add_argument("--abnormal-only", action="store_true",
-                    help="skip seeds whose protocol draws no abnormal region (cases still --cases)")
-    ap.add_argument("--phases", type=int, default=None, help="fix the phase count (shorter runs)")
-    ap.add_argument("--out", default=None, help="keep studies and runs here (default: a temporary directory)")
-    ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
-    ap.add_argument("--timeout", type=float, default=900.0, help="per-run limit, seconds")
+    ap.add_argument('--cases', type=int, default=3)
+    ap.add_argument('--seed', type=int, default=2000, help='first protocol seed')
+    ap.add_argument(
+        '--abnormal-only',
+        action='store_true',
+        help='skip seeds whose protocol draws no abnormal region (cases still --cases)',
+    )
+    ap.add_argument('--phases', type=int, default=None, help='fix the phase count (shorter runs)')
+    ap.add_argument(
+        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
+    )
+    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
+    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
     args = ap.parse_args()
     if args.cases < 1:
-        ap.error("--cases must be >= 1")
+        ap.error('--cases must be >= 1')
     from mlv_ros.core.sim.protocol import draw_protocol
 
     seeds, s = [], args.seed
     while len(seeds) < args.cases:
-        if not args.abnormal_only or draw_protocol(s)["abnormal_regions"]:
+        if not args.abnormal_only or draw_protocol(s)['abnormal_regions']:
             seeds.append(s)
         s += 1
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="mlv-bench-strain-"))
+    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-strain-'))
     cases = []
     try:
         for seed in seeds:
-            case = run_case(seed, root / f"case-{seed}", args.timeout, args.phases)
-            print(json.dumps({k: case.get(k) for k in ("seed", "must", "global", "error") if k in case}),
-                  file=sys.stderr, flush=True)
+            case = run_case(seed, root / f'case-{seed}', args.timeout, args.phases)
+            print(
+                json.dumps(
+                    {k: case.get(k) for k in ('seed', 'must', 'global', 'error') if k in case}
+                ),
+                file=sys.stderr,
+                flush=True,
+            )
             cases.append(case)
     finally:
         if not args.out and not args.keep:
             shutil.rmtree(root, ignore_errors=True)
-    print(json.dumps({"summary": summarise(cases),
-                      "must": {"global": MUST_GLOBAL, "ecc_segment": MUST_ECC_SEGMENT,
-                               "ecc_fraction": MUST_ECC_FRACTION, "sign_where": {"err": SIGN_ERR, "ecc": SIGN_ECC}},
-                      "cases": cases, "out": str(root) if (args.out or args.keep) else None}, indent=1))
+    print(
+        json.dumps(
+            {
+                'summary': summarise(cases),
+                'must': {
+                    'global': MUST_GLOBAL,
+                    'ecc_segment': MUST_ECC_SEGMENT,
+                    'ecc_fraction': MUST_ECC_FRACTION,
+                    'sign_where': {'err': SIGN_ERR, 'ecc': SIGN_ECC},
+                },
+                'cases': cases,
+                'out': str(root) if (args.out or args.keep) else None,
+            },
+            indent=1,
+        )
+    )
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

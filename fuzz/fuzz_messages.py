@@ -1,4 +1,5 @@
-"""atheris target: arbitrary bytes deserialised as each of our message types, then decoded.
+"""
+atheris target: arbitrary bytes deserialised as each of our message types, then decoded.
 
 The first byte picks the type; the rest goes through ``rclpy.serialization.deserialize_message``
 and then the matching ``mlv_ros.conversions.msg_to_*``. Allowed outcomes: a message that decodes,
@@ -12,28 +13,27 @@ import sys
 
 import atheris
 
-with atheris.instrument_imports(include=["mlv_ros"]):
+with atheris.instrument_imports(include=['mlv_ros']):
+    from mlv_msgs.msg import ModelState, MotionMetrics, SliceGeometry, TaggedFrame, TagPoints
+    from mlv_ros import conversions
     from rclpy._rclpy_pybind11 import RMWError
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import Image, PointCloud2
-
-    from mlv_msgs.msg import ModelState, MotionMetrics, SliceGeometry, TaggedFrame, TagPoints
-    from mlv_ros import conversions
 
 from seeds import MESSAGE_TYPES  # noqa: E402  (the selector order, shared with the seeds)
 
 #: Message type name → (type, decoder).
 TARGETS = {
-    "TaggedFrame": (TaggedFrame, conversions.msg_to_frame),
-    "TagPoints": (TagPoints, conversions.msg_to_tagpoints),
-    "ModelState": (ModelState, conversions.msg_to_model_state),
-    "MotionMetrics": (MotionMetrics, conversions.msg_to_metrics),
-    "SliceGeometry": (SliceGeometry, conversions.msg_to_geometry),
-    "Image": (Image, conversions.msg_to_image),
-    "PointCloud2": (PointCloud2, lambda m: conversions.msg_to_cloud(m, required=("x", "y", "z"))),
+    'TaggedFrame': (TaggedFrame, conversions.msg_to_frame),
+    'TagPoints': (TagPoints, conversions.msg_to_tagpoints),
+    'ModelState': (ModelState, conversions.msg_to_model_state),
+    'MotionMetrics': (MotionMetrics, conversions.msg_to_metrics),
+    'SliceGeometry': (SliceGeometry, conversions.msg_to_geometry),
+    'Image': (Image, conversions.msg_to_image),
+    'PointCloud2': (PointCloud2, lambda m: conversions.msg_to_cloud(m, required=('x', 'y', 'z'))),
 }
 if set(TARGETS) != set(MESSAGE_TYPES):
-    raise RuntimeError(f"fuzz_messages.TARGETS {sorted(TARGETS)} and seeds.MESSAGE_TYPES disagree")
+    raise RuntimeError(f'fuzz_messages.TARGETS {sorted(TARGETS)} and seeds.MESSAGE_TYPES disagree')
 _ORDER = [TARGETS[name] for name in MESSAGE_TYPES]
 
 
@@ -56,5 +56,5 @@ def main() -> None:
     atheris.Fuzz()
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     main()

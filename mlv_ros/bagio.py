@@ -1,4 +1,5 @@
-"""MCAP recordings the way rosbag2 writes them, without rosbag2 (not on PyPI).
+"""
+MCAP recordings the way rosbag2 writes them, without rosbag2 (not on PyPI).
 
 What ``ros2 bag record -s mcap`` (ROS 2 Jazzy) produces and what we reproduce, following
 rosbag2's ``jazzy`` branch (github.com/ros2/rosbag2, commit 64717ee8):
@@ -31,73 +32,85 @@ This module needs no rclpy: payloads are CDR bytes; message definitions come fro
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 import json
 import os
+from pathlib import Path
 import re
 import struct
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Iterator
 
-import yaml
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
-
 from mlv_ros import __version__, qos
 from mlv_ros.core.analysis.findings import FINDING_ARRAY_FIELDS
+import yaml
 
-ROS_DISTRO = "jazzy"
+ROS_DISTRO = 'jazzy'
 _PRIMITIVES = {
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
-    "uint32", "int64", "uint64", "string", "wstring",
+    'bool',
+    'byte',
+    'char',
+    'float32',
+    'float64',
+    'int8',
+    'uint8',
+    'int16',
+    'uint16',
+    'int32',
+    'uint32',
+    'int64',
+    'uint64',
+    'string',
+    'wstring',
 }
-_SEPARATOR = "=" * 80
+_SEPARATOR = '=' * 80
 
 
 # --------------------------------------------------------------------------- definitions
 def _share_dirs() -> list[Path]:
-    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
     import sys
 
     prefixes.append(sys.prefix)  # the venv is an ament prefix too
-    return [Path(p) / "share" for p in dict.fromkeys(prefixes)]
+    return [Path(p) / 'share' for p in dict.fromkeys(prefixes)]
 
 
-def _msg_file(pkg: str, name: str, suffix: str = ".msg") -> Path:
+def _msg_file(pkg: str, name: str, suffix: str = '.msg') -> Path:
     for share in _share_dirs():
-        path = share / pkg / "msg" / (name + suffix)
+        path = share / pkg / 'msg' / (name + suffix)
         if path.is_file():
             return path
-    raise FileNotFoundError(f"no {suffix} for {pkg}/msg/{name} under any AMENT_PREFIX_PATH share/")
+    raise FileNotFoundError(f'no {suffix} for {pkg}/msg/{name} under any AMENT_PREFIX_PATH share/')
 
 
 def _split_type(type_name: str) -> tuple[str, str]:
-    parts = type_name.split("/")
-    if len(parts) == 3 and parts[1] == "msg":
+    parts = type_name.split('/')
+    if len(parts) == 3 and parts[1] == 'msg':
         return parts[0], parts[2]
     if len(parts) == 2:
         return parts[0], parts[1]
-    raise ValueError(f"not a message type name: {type_name!r} (want pkg/msg/Type)")
+    raise ValueError(f'not a message type name: {type_name!r} (want pkg/msg/Type)')
 
 
 def _field_types(text: str, pkg: str) -> list[str]:
     """Complex field types ``pkg/Type`` referenced by a .msg text, in order."""
     out = []
     for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
+        line = line.split('#', 1)[0].strip()
         if not line:
             continue
-        ftype, _, rest = line.partition(" ")
-        if re.match(r"^\s*\w+\s*=", rest):  # constant: TYPE NAME=value
+        ftype, _, rest = line.partition(' ')
+        if re.match(r'^\s*\w+\s*=', rest):  # constant: TYPE NAME=value
             continue
-        base = re.sub(r"\[.*\]$", "", ftype)
-        base = re.sub(r"<=\d+$", "", base)
+        base = re.sub(r'\[.*\]$', '', ftype)
+        base = re.sub(r'<=\d+$', '', base)
         if base in _PRIMITIVES:
             continue
-        if base == "Header":
-            base = "std_msgs/Header"
-        if "/" not in base:
-            base = f"{pkg}/{base}"
+        if base == 'Header':
+            base = 'std_msgs/Header'
+        if '/' not in base:
+            base = f'{pkg}/{base}'
         out.append(base)
     return out
 
@@ -113,39 +126,49 @@ def message_definition(type_name: str) -> str:
             if dep in seen:
                 continue
             seen.add(dep)
-            dpkg, dname = dep.split("/")
+            dpkg, dname = dep.split('/')
             dtext = _msg_file(dpkg, dname).read_text()
-            parts.append(f"{_SEPARATOR}\nMSG: {dep}\n{dtext}")
+            parts.append(f'{_SEPARATOR}\nMSG: {dep}\n{dtext}')
             visit(dtext, dpkg)
 
     visit(root, pkg)
-    return "\n".join(parts)
+    return '\n'.join(parts)
 
 
 def type_hash(type_name: str) -> str:
     """``RIHS01_…`` type-description hash of ``pkg/msg/Type`` (from rosidl's generated .json)."""
     pkg, name = _split_type(type_name)
-    data = json.loads(_msg_file(pkg, name, ".json").read_text())
-    full = f"{pkg}/msg/{name}"
-    for entry in data.get("type_hashes", []):
-        if entry.get("type_name") == full:
-            return entry["hash_string"]
-    raise ValueError(f"no type hash for {full} in its .json")
+    data = json.loads(_msg_file(pkg, name, '.json').read_text())
+    full = f'{pkg}/msg/{name}'
+    for entry in data.get('type_hashes', []):
+        if entry.get('type_name') == full:
+            return entry['hash_string']
+    raise ValueError(f'no type hash for {full} in its .json')
 
 
 # rmw's RMW_DURATION_INFINITE, which rosbag2 writes for a publisher's unset deadline, lifespan
 # and liveliness lease duration.
-INFINITE_DURATION = {"sec": 9223372036, "nsec": 854775807}
+INFINITE_DURATION = {'sec': 9223372036, 'nsec': 854775807}
 # rosbag2 starts a bag's and a file's starting_time at std::chrono::nanoseconds::max() and lowers
 # it with each message (sequential_writer.cpp, init_metadata/write): an empty bag keeps it.
 _NO_MESSAGE_TIME = 2**63 - 1
 # Keys of one QoS profile, in the order qos.cpp's convert<rclcpp::QoS>::encode writes them.
-QOS_KEYS = ("history", "depth", "reliability", "durability", "deadline", "lifespan", "liveliness",
-            "liveliness_lease_duration", "avoid_ros_namespace_conventions")
+QOS_KEYS = (
+    'history',
+    'depth',
+    'reliability',
+    'durability',
+    'deadline',
+    'lifespan',
+    'liveliness',
+    'liveliness_lease_duration',
+    'avoid_ros_namespace_conventions',
+)
 
 
 class _RosbagYamlDumper(yaml.SafeDumper):
-    """Block YAML laid out as yaml-cpp emits it (what rosbag2 writes).
+    """
+    Block YAML laid out as yaml-cpp emits it (what rosbag2 writes).
 
     yaml-cpp indents a sequence under its key and writes an empty string as ``""`` and an empty
     node as ``~``; PyYAML's defaults differ only in layout, not in content.
@@ -159,18 +182,33 @@ class _RosbagYamlDumper(yaml.SafeDumper):
 
 
 _RosbagYamlDumper.add_representer(
-    str, lambda d, s: d.represent_scalar("tag:yaml.org,2002:str", s, style='"') if s == "" else d.represent_str(s))
-_RosbagYamlDumper.add_representer(type(None), lambda d, _: d.represent_scalar("tag:yaml.org,2002:null", "~"))
+    str,
+    lambda d, s: (
+        d.represent_scalar('tag:yaml.org,2002:str', s, style='"')
+        if s == ''
+        else d.represent_str(s)
+    ),
+)
+_RosbagYamlDumper.add_representer(
+    type(None), lambda d, _: d.represent_scalar('tag:yaml.org,2002:null', '~')
+)
 
 
 def rosbag2_yaml(data) -> str:
     """``data`` as YAML text the way rosbag2 serialises it (``YAML::Dump``: no final newline)."""
-    return yaml.dump(data, Dumper=_RosbagYamlDumper, sort_keys=False, default_flow_style=False,
-                     width=1 << 30, allow_unicode=True).rstrip("\n")
+    return yaml.dump(
+        data,
+        Dumper=_RosbagYamlDumper,
+        sort_keys=False,
+        default_flow_style=False,
+        width=1 << 30,
+        allow_unicode=True,
+    ).rstrip('\n')
 
 
 def offered_qos(profiles: list[dict]) -> list[dict]:
-    """``offered_qos_profiles`` as rosbag2 Jazzy writes them: one map per publisher.
+    """
+    ``offered_qos_profiles`` as rosbag2 Jazzy writes them: one map per publisher.
 
     Parameters
     ----------
@@ -184,32 +222,62 @@ def offered_qos(profiles: list[dict]) -> list[dict]:
     list of dict
         Maps with the keys of :data:`QOS_KEYS`, in that order: the durations infinite
         (``{sec, nsec}``), liveliness automatic, as rmw reports a publisher that sets none.
+
     """
-    return [{
-        "history": p.get("history", "keep_last"), "depth": int(p.get("depth", 10)),
-        "reliability": p.get("reliability", "reliable"), "durability": p.get("durability", "volatile"),
-        "deadline": dict(INFINITE_DURATION), "lifespan": dict(INFINITE_DURATION), "liveliness": "automatic",
-        "liveliness_lease_duration": dict(INFINITE_DURATION), "avoid_ros_namespace_conventions": False,
-    } for p in profiles]
+    return [
+        {
+            'history': p.get('history', 'keep_last'),
+            'depth': int(p.get('depth', 10)),
+            'reliability': p.get('reliability', 'reliable'),
+            'durability': p.get('durability', 'volatile'),
+            'deadline': dict(INFINITE_DURATION),
+            'lifespan': dict(INFINITE_DURATION),
+            'liveliness': 'automatic',
+            'liveliness_lease_duration': dict(INFINITE_DURATION),
+            'avoid_ros_namespace_conventions': False,
+        }
+        for p in profiles
+    ]
 
 
 def qos_yaml(profiles: list[dict]) -> str:
-    """The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
-    (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp)."""
+    """
+    The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
+    (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp).
+    """
     return rosbag2_yaml(offered_qos(profiles))
 
 
 # Policies as rosbag2 wrote them before version 9: rmw's enum values (rmw/types.h).
 _POLICY_NUMBERS = {
-    "history": {0: "system_default", 1: "keep_last", 2: "keep_all", 3: "unknown"},
-    "reliability": {0: "system_default", 1: "reliable", 2: "best_effort", 3: "unknown", 4: "best_available"},
-    "durability": {0: "system_default", 1: "transient_local", 2: "volatile", 3: "unknown", 4: "best_available"},
-    "liveliness": {0: "system_default", 1: "automatic", 3: "manual_by_topic", 4: "unknown", 5: "best_available"},
+    'history': {0: 'system_default', 1: 'keep_last', 2: 'keep_all', 3: 'unknown'},
+    'reliability': {
+        0: 'system_default',
+        1: 'reliable',
+        2: 'best_effort',
+        3: 'unknown',
+        4: 'best_available',
+    },
+    'durability': {
+        0: 'system_default',
+        1: 'transient_local',
+        2: 'volatile',
+        3: 'unknown',
+        4: 'best_available',
+    },
+    'liveliness': {
+        0: 'system_default',
+        1: 'automatic',
+        3: 'manual_by_topic',
+        4: 'unknown',
+        5: 'best_available',
+    },
 }
 
 
 def parse_offered_qos(value) -> list[dict]:
-    """Recorded ``offered_qos_profiles`` as a list of maps with policies by name.
+    """
+    Recorded ``offered_qos_profiles`` as a list of maps with policies by name.
 
     Accepts the version-9 sequence, the YAML string of MCAP channel metadata and of metadata.yaml
     before version 9 (our runs before the fix wrote the string form in version 9 too), and empty
@@ -228,7 +296,7 @@ def parse_offered_qos(value) -> list[dict]:
             p = dict(p)
             for key, names in _POLICY_NUMBERS.items():
                 if isinstance(p.get(key), int) and not isinstance(p[key], bool):
-                    p[key] = names.get(p[key], "unknown")
+                    p[key] = names.get(p[key], 'unknown')
             out.append(p)
     return out
 
@@ -244,9 +312,15 @@ class _Topic:
     count: int = 0
 
 
-def bag_metadata(file_name: str, topics, start_ns: int | None, end_ns: int,
-                 custom_data: dict[str, str] | None = None) -> dict:
-    """rosbag2 bag metadata, version 9, of a single-file MCAP bag.
+def bag_metadata(
+    file_name: str,
+    topics,
+    start_ns: int | None,
+    end_ns: int,
+    custom_data: dict[str, str] | None = None,
+) -> dict:
+    """
+    rosbag2 bag metadata, version 9, of a single-file MCAP bag.
 
     Keys and their order are those of ``convert<BagMetadata>::encode`` in rosbag2_storage's
     ``yaml.hpp`` (``jazzy``); it is what goes under ``rosbag2_bagfile_information`` in
@@ -263,42 +337,57 @@ def bag_metadata(file_name: str, topics, start_ns: int | None, end_ns: int,
         Receive times of the first and last message; ``start_ns`` None for a bag without
         messages (rosbag2 then leaves starting_time at its initial maximum).
     custom_data : dict of str to str, optional
+
     """
     topics = list(topics)
     start = _NO_MESSAGE_TIME if start_ns is None else start_ns
     duration = 0 if start_ns is None else max(0, end_ns - start_ns)
     count = sum(t.count for t in topics)
     return {
-        "version": 9,
-        "storage_identifier": "mcap",
-        "duration": {"nanoseconds": duration},
-        "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": count,
-        "topics_with_message_count": [
-            {"topic_metadata": {"name": t.name, "type": t.type_name, "serialization_format": "cdr",
-                                "offered_qos_profiles": [dict(q) for q in t.qos],
-                                "type_description_hash": t.type_hash},
-             "message_count": t.count}
-            for t in topics],
+        'version': 9,
+        'storage_identifier': 'mcap',
+        'duration': {'nanoseconds': duration},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': count,
+        'topics_with_message_count': [
+            {
+                'topic_metadata': {
+                    'name': t.name,
+                    'type': t.type_name,
+                    'serialization_format': 'cdr',
+                    'offered_qos_profiles': [dict(q) for q in t.qos],
+                    'type_description_hash': t.type_hash,
+                },
+                'message_count': t.count,
+            }
+            for t in topics
+        ],
         # MCAP compresses whole chunks inside the storage plugin: rosbag2 leaves these empty.
-        "compression_format": "",
-        "compression_mode": "",
-        "relative_file_paths": [file_name],
-        "files": [{"path": file_name, "starting_time": {"nanoseconds_since_epoch": start},
-                   "duration": {"nanoseconds": duration}, "message_count": count}],
+        'compression_format': '',
+        'compression_mode': '',
+        'relative_file_paths': [file_name],
+        'files': [
+            {
+                'path': file_name,
+                'starting_time': {'nanoseconds_since_epoch': start},
+                'duration': {'nanoseconds': duration},
+                'message_count': count,
+            }
+        ],
         # yaml-cpp writes an empty map as a null node (``custom_data: ~``).
-        "custom_data": dict(custom_data) if custom_data else None,
-        "ros_distro": ROS_DISTRO,
+        'custom_data': dict(custom_data) if custom_data else None,
+        'ros_distro': ROS_DISTRO,
     }
 
 
 def write_rosbag2_record(writer: Writer, metadata: dict) -> None:
     """Add the ``rosbag2`` MCAP metadata record (``MCAPStorage::update_metadata``)."""
-    writer.add_metadata("rosbag2", {"serialized_metadata": rosbag2_yaml(metadata)})
+    writer.add_metadata('rosbag2', {'serialized_metadata': rosbag2_yaml(metadata)})
 
 
 class _DiskFile:
-    """The MCAP writer's output: unbuffered, so it knows what reached the file.
+    """
+    The MCAP writer's output: unbuffered, so it knows what reached the file.
 
     Every ``write`` goes straight to the OS. When one fails (disk full ``ENOSPC``, file size limit
     ``EFBIG``, ``EIO``) everything written before it is in the file, and the record that failed
@@ -311,7 +400,7 @@ class _DiskFile:
         self.closed = False
 
     def write(self, data) -> int:
-        view = memoryview(data).cast("B")
+        view = memoryview(data).cast('B')
         while view:
             n = os.write(self._fd, view)
             self._pos += n
@@ -338,7 +427,8 @@ class _DiskFile:
 
 @dataclass
 class BagWriter:
-    """Write a rosbag2-compatible MCAP file.
+    """
+    Write a rosbag2-compatible MCAP file.
 
     Parameters
     ----------
@@ -358,21 +448,28 @@ class BagWriter:
         summary (``mlv-ros recover`` rewrites a complete file from it).
     custom_data : dict of str to str
         Extra ``custom_data`` of the bag metadata (``recorded_by`` is always there).
+
     """
 
     path: Path
     chunk_size: int = 1 << 20
-    compression: str = "zstd"
+    compression: str = 'zstd'
     topics: dict = field(default_factory=dict)
     custom_data: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.path = Path(self.path)
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+        comp = {
+            'zstd': CompressionType.ZSTD,
+            'lz4': CompressionType.LZ4,
+            'none': CompressionType.NONE,
+        }
         if self.compression not in comp:
-            raise ValueError(f"compression must be one of {sorted(comp)}, got {self.compression!r}")
+            raise ValueError(
+                f'compression must be one of {sorted(comp)}, got {self.compression!r}'
+            )
         if self.path.exists():
-            raise FileExistsError(f"refusing to overwrite existing recording {self.path}")
+            raise FileExistsError(f'refusing to overwrite existing recording {self.path}')
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh = _DiskFile(self.path)
         self._schemas: dict[str, int] = {}
@@ -381,8 +478,10 @@ class BagWriter:
         self.closed = False
         self.error: OSError | None = None
         try:
-            self._writer = Writer(self._fh, chunk_size=self.chunk_size, compression=comp[self.compression])
-            self._writer.start(profile="ros2", library=f"mlv_ros {__version__}")
+            self._writer = Writer(
+                self._fh, chunk_size=self.chunk_size, compression=comp[self.compression]
+            )
+            self._writer.start(profile='ros2', library=f'mlv_ros {__version__}')
             # rosbag2 writes the (still empty) bag metadata when it opens a file, so even a file
             # whose writer was killed carries its version, distro and custom data.
             write_rosbag2_record(self._writer, self.metadata())
@@ -391,10 +490,12 @@ class BagWriter:
             raise
 
     def _guarded(self, op, *args, **kwargs):
-        """Run one writer operation; on a write error cut the file back to where the operation
-        began (a whole record), close it and remember the error."""
+        """
+        Run one writer operation; on a write error cut the file back to where the operation
+        began (a whole record), close it and remember the error.
+        """
         if self.error is not None:
-            raise ValueError(f"recording {self.path} stopped after a write error: {self.error}")
+            raise ValueError(f'recording {self.path} stopped after a write error: {self.error}')
         mark = self._fh.tell()
         try:
             return op(*args, **kwargs)
@@ -407,8 +508,11 @@ class BagWriter:
             self._fh.close()
             raise
 
-    def add_topic(self, topic: str, type_name: str, qos_profiles: list[dict] | None = None) -> None:
-        """Register a topic (idempotent).
+    def add_topic(
+        self, topic: str, type_name: str, qos_profiles: list[dict] | None = None
+    ) -> None:
+        """
+        Register a topic (idempotent).
 
         Parameters
         ----------
@@ -417,22 +521,33 @@ class BagWriter:
             ``pkg/msg/Type``.
         qos_profiles : list of dict, optional
             The publishers' QoS (see :func:`offered_qos`); one default profile if omitted.
+
         """
         if topic in self.topics:
             return
         if type_name not in self._schemas:
             self._schemas[type_name] = self._guarded(
-                self._writer.register_schema, name=type_name, encoding="ros2msg",
-                data=message_definition(type_name).encode())
+                self._writer.register_schema,
+                name=type_name,
+                encoding='ros2msg',
+                data=message_definition(type_name).encode(),
+            )
         offered = offered_qos(qos_profiles or [{}])
         thash = type_hash(type_name)
         cid = self._guarded(
-            self._writer.register_channel, topic=topic, message_encoding="cdr", schema_id=self._schemas[type_name],
-            metadata={"offered_qos_profiles": rosbag2_yaml(offered), "topic_type_hash": thash})
+            self._writer.register_channel,
+            topic=topic,
+            message_encoding='cdr',
+            schema_id=self._schemas[type_name],
+            metadata={'offered_qos_profiles': rosbag2_yaml(offered), 'topic_type_hash': thash},
+        )
         self.topics[topic] = _Topic(topic, type_name, cid, offered, thash)
 
-    def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
-        """Append one CDR-serialised message received at ``log_time_ns`` and sent at
+    def write(
+        self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None
+    ) -> None:
+        """
+        Append one CDR-serialised message received at ``log_time_ns`` and sent at
         ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
         receive time), both in ns since the epoch.
 
@@ -440,20 +555,28 @@ class BagWriter:
         there) and ``ValueError`` once it has stopped or is closed.
         """
         if self.closed:
-            raise ValueError(f"recording {self.path} is closed")
+            raise ValueError(f'recording {self.path} is closed')
         t = self.topics.get(topic)
         if t is None:
-            raise ValueError(f"topic {topic!r} was not added to the recording")
-        self._guarded(self._writer.add_message, channel_id=t.channel_id, log_time=log_time_ns, data=bytes(data),
-                      publish_time=log_time_ns if publish_time_ns is None else publish_time_ns, sequence=0)
+            raise ValueError(f'topic {topic!r} was not added to the recording')
+        self._guarded(
+            self._writer.add_message,
+            channel_id=t.channel_id,
+            log_time=log_time_ns,
+            data=bytes(data),
+            publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
+            sequence=0,
+        )
         t.count += 1
         self.start_ns = log_time_ns if self.start_ns is None else min(self.start_ns, log_time_ns)
         self.end_ns = max(self.end_ns, log_time_ns)
 
     def flush(self) -> None:
-        """Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
+        """
+        Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
         this makes them survive a power loss). Does not close the current chunk. A failing sync
-        (EIO) is kept in :attr:`error` like a failing write; the next write reports it."""
+        (EIO) is kept in :attr:`error` like a failing write; the next write reports it.
+        """
         if self.error is None and not self.closed:
             try:
                 self._guarded(self._fh.flush)
@@ -466,11 +589,17 @@ class BagWriter:
 
     def metadata(self) -> dict:
         """Return the bag metadata, version 9, of what has been written so far."""
-        return bag_metadata(self.path.name, self.topics.values(), self.start_ns, self.end_ns,
-                            {"recorded_by": f"mlv_ros {__version__}", **self.custom_data})
+        return bag_metadata(
+            self.path.name,
+            self.topics.values(),
+            self.start_ns,
+            self.end_ns,
+            {'recorded_by': f'mlv_ros {__version__}', **self.custom_data},
+        )
 
     def close(self) -> None:
-        """Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
+        """
+        Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
         ``metadata.yaml`` beside it.
 
         After a write error (:attr:`error`, or one while finishing) the file keeps the records
@@ -498,8 +627,10 @@ class BagWriter:
         self.path.unlink(missing_ok=True)
 
     def _count_written(self) -> None:
-        """Set the topics' counts and the times to the messages that are in the file: those of
-        the chunks written whole, read from their message indexes (nothing is decompressed)."""
+        """
+        Set the topics' counts and the times to the messages that are in the file: those of
+        the chunks written whole, read from their message indexes (nothing is decompressed).
+        """
         from mcap.records import MessageIndex
         from mcap.stream_reader import StreamReader
 
@@ -507,13 +638,19 @@ class BagWriter:
         for t in by_channel.values():
             t.count = 0
         self.start_ns, self.end_ns = None, 0
-        with open(self.path, "rb") as fh:
+        with open(self.path, 'rb') as fh:
             try:
                 for rec in StreamReader(fh, emit_chunks=True).records:
-                    if isinstance(rec, MessageIndex) and rec.channel_id in by_channel and rec.records:
+                    if (
+                        isinstance(rec, MessageIndex)
+                        and rec.channel_id in by_channel
+                        and rec.records
+                    ):
                         by_channel[rec.channel_id].count += len(rec.records)
                         times = [t for t, _ in rec.records]
-                        self.start_ns = min(times) if self.start_ns is None else min(self.start_ns, *times)
+                        self.start_ns = (
+                            min(times) if self.start_ns is None else min(self.start_ns, *times)
+                        )
                         self.end_ns = max(self.end_ns, *times)
             except Exception as exc:  # the file has no footer: reading ends at its last record
                 if isinstance(exc, (KeyboardInterrupt, SystemExit)):
@@ -522,9 +659,9 @@ class BagWriter:
 
 def write_bag_metadata(mcap_path: Path, writer: BagWriter) -> Path:
     """rosbag2 ``metadata.yaml`` (version 9) for a single-file MCAP bag; returns its path."""
-    path = Path(mcap_path).parent / "metadata.yaml"
+    path = Path(mcap_path).parent / 'metadata.yaml'
     try:
-        path.write_text(rosbag2_yaml({"rosbag2_bagfile_information": writer.metadata()}))
+        path.write_text(rosbag2_yaml({'rosbag2_bagfile_information': writer.metadata()}))
     except OSError:
         path.unlink(missing_ok=True)  # a half-written file would pass for the bag's metadata
         raise
@@ -532,16 +669,19 @@ def write_bag_metadata(mcap_path: Path, writer: BagWriter) -> Path:
 
 
 def read_bag_metadata(directory) -> dict:
-    """``rosbag2_bagfile_information`` of a bag directory's ``metadata.yaml``, any version.
+    """
+    ``rosbag2_bagfile_information`` of a bag directory's ``metadata.yaml``, any version.
 
     Each topic's ``offered_qos_profiles`` comes back as a list of maps, whether the file stores
     the version-9 sequence or the older YAML string (our runs before this format fix, or rosbag2
     before version 9).
     """
-    info = yaml.safe_load((Path(directory) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    for entry in info.get("topics_with_message_count") or []:
-        meta = entry.get("topic_metadata", {})
-        meta["offered_qos_profiles"] = parse_offered_qos(meta.get("offered_qos_profiles", []))
+    info = yaml.safe_load((Path(directory) / 'metadata.yaml').read_text())[
+        'rosbag2_bagfile_information'
+    ]
+    for entry in info.get('topics_with_message_count') or []:
+        meta = entry.get('topic_metadata', {})
+        meta['offered_qos_profiles'] = parse_offered_qos(meta.get('offered_qos_profiles', []))
     return info
 
 
@@ -557,8 +697,11 @@ class BagMessage:
     missing: tuple | None = ()
 
 
-def read_bag(path, topics: list[str] | None = None, any_namespace: bool = False) -> Iterator[BagMessage]:
-    """Messages of an MCAP recording in log-time order (CDR bytes; deserialise with rclpy).
+def read_bag(
+    path, topics: list[str] | None = None, any_namespace: bool = False
+) -> Iterator[BagMessage]:
+    """
+    Messages of an MCAP recording in log-time order (CDR bytes; deserialise with rclpy).
 
     Parameters
     ----------
@@ -577,19 +720,21 @@ def read_bag(path, topics: list[str] | None = None, any_namespace: bool = False)
     ValueError
         A file that is not MCAP; with ``any_namespace``, a recording holding graph topics of
         more than one namespace (which one is meant cannot be told).
+
     """
     path = Path(path)
     if path.is_dir():
         path = _bag_file_in_dir(path)
-    with open(path, "rb") as fh:
+    with open(path, 'rb') as fh:
         try:
             reader = make_reader(fh)
             missing: dict = {}  # schema id → fields that schema lacks
             names: dict = {}  # channel id → the name to give its messages (None: not wanted)
             namespaces: dict = {}  # namespace → a topic recorded in it (any_namespace)
-            for schema, channel, message in reader.iter_messages(topics=None if any_namespace else topics,
-                                                                   log_time_order=True):
-                if channel.message_encoding != "cdr":
+            for schema, channel, message in reader.iter_messages(
+                topics=None if any_namespace else topics, log_time_order=True
+            ):
+                if channel.message_encoding != 'cdr':
                     continue
                 if any_namespace:
                     if channel.id not in names:
@@ -599,15 +744,23 @@ def read_bag(path, topics: list[str] | None = None, any_namespace: bool = False)
                         continue
                 else:
                     topic = channel.topic
-                name = schema.name if schema else ""
+                name = schema.name if schema else ''
                 if channel.schema_id not in missing:
-                    text = schema.data.decode(errors="replace") if schema and schema.encoding == "ros2msg" else ""
-                    missing[channel.schema_id] = fields_missing_from(name, text) if name in _APPENDED_FIELDS else ()
-                yield BagMessage(topic, name, message.data, message.log_time, missing[channel.schema_id])
+                    text = (
+                        schema.data.decode(errors='replace')
+                        if schema and schema.encoding == 'ros2msg'
+                        else ''
+                    )
+                    missing[channel.schema_id] = (
+                        fields_missing_from(name, text) if name in _APPENDED_FIELDS else ()
+                    )
+                yield BagMessage(
+                    topic, name, message.data, message.log_time, missing[channel.schema_id]
+                )
         except Exception as exc:  # mcap raises several private exception types
             if isinstance(exc, (KeyboardInterrupt, SystemExit, SeveralNamespacesError)):
                 raise
-            raise ValueError(f"cannot read {path} as MCAP: {exc}") from exc
+            raise ValueError(f'cannot read {path} as MCAP: {exc}') from exc
 
 
 class SeveralNamespacesError(ValueError):
@@ -615,8 +768,10 @@ class SeveralNamespacesError(ValueError):
 
 
 def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
-    """The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
-    not wanted); ``namespaces`` collects the namespaces of the graph topics seen."""
+    """
+    The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
+    not wanted); ``namespaces`` collects the namespaces of the graph topics seen.
+    """
     split = qos.split_graph_topic(recorded)
     if split is None:
         return recorded if wanted is None or recorded in wanted else None
@@ -624,9 +779,12 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
     namespaces.setdefault(namespace, recorded)
     if len(namespaces) > 1:
         raise SeveralNamespacesError(
-            f"{path} holds the graph's topics in several namespaces ({', '.join(sorted(namespaces))}): "
-            "read it with a tool that takes topic names (e.g. `ros2 bag play --topics ...`), or record "
-            "one graph per file")
+            f"{path} holds the graph's topics in several namespaces "
+            f'({", ".join(sorted(namespaces))}): '
+            'read it with a tool that takes topic names (e.g. `ros2 bag play --topics ...`), '
+            'or record '
+            'one graph per file'
+        )
     return topic if wanted is None or topic in wanted else None
 
 
@@ -637,27 +795,40 @@ _APPENDED_FIELDS = {
     # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
     # ...; then segment_origin (uint8 0 = unknown) and its confidence (issue 20); MotionMetrics
     # then the segment uncertainties and findings (empty, ES phase −1: none).
-    "mlv_msgs/msg/ModelState": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                ("study_id", "string", ""), ("run_id", "string", ""),
-                                ("segment_origin", "uint8", 0), ("segment_origin_confidence", "float64", 0.0)),
-    "mlv_msgs/msg/MotionMetrics": (("verdict", "uint8", 0), ("verdict_reasons", "string", ""),
-                                   ("study_id", "string", ""), ("run_id", "string", ""),
-                                   ("segment_origin", "uint8", 0), ("segment_origin_confidence", "float64", 0.0),
-                                   *((n, "sequence", ()) for n in ("segment_err_unc", "segment_ecc_unc",
-                                                                   "segment_ell_unc")),
-                                   ("findings_es_phase", "int32", -1),
-                                   *((n, "sequence", ()) for n in FINDING_ARRAY_FIELDS),
-                                   ("segment_class", "sequence", ())),
+    'mlv_msgs/msg/ModelState': (
+        ('verdict', 'uint8', 0),
+        ('verdict_reasons', 'string', ''),
+        ('study_id', 'string', ''),
+        ('run_id', 'string', ''),
+        ('segment_origin', 'uint8', 0),
+        ('segment_origin_confidence', 'float64', 0.0),
+    ),
+    'mlv_msgs/msg/MotionMetrics': (
+        ('verdict', 'uint8', 0),
+        ('verdict_reasons', 'string', ''),
+        ('study_id', 'string', ''),
+        ('run_id', 'string', ''),
+        ('segment_origin', 'uint8', 0),
+        ('segment_origin_confidence', 'float64', 0.0),
+        *((n, 'sequence', ()) for n in ('segment_err_unc', 'segment_ecc_unc', 'segment_ell_unc')),
+        ('findings_es_phase', 'int32', -1),
+        *((n, 'sequence', ()) for n in FINDING_ARRAY_FIELDS),
+        ('segment_class', 'sequence', ()),
+    ),
     # study_id (string ""); then run_id (string "")
-    "mlv_msgs/msg/TaggedFrame": (("study_id", "string", ""), ("run_id", "string", "")),
-    "mlv_msgs/msg/TagPoints": (("study_id", "string", ""), ("run_id", "string", "")),
+    'mlv_msgs/msg/TaggedFrame': (('study_id', 'string', ''), ('run_id', 'string', '')),
+    'mlv_msgs/msg/TagPoints': (('study_id', 'string', ''), ('run_id', 'string', '')),
 }
 
 
 # Fields appended together (one change of the definition), oldest first: an older recording
 # lacks whole groups only, so only these are tried when the schema is not known.
-_APPENDED_GROUPS = {"mlv_msgs/msg/ModelState": (2, 1, 1, 2), "mlv_msgs/msg/MotionMetrics": (2, 1, 1, 21),
-                    "mlv_msgs/msg/TaggedFrame": (1, 1), "mlv_msgs/msg/TagPoints": (1, 1)}
+_APPENDED_GROUPS = {
+    'mlv_msgs/msg/ModelState': (2, 1, 1, 2),
+    'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21),
+    'mlv_msgs/msg/TaggedFrame': (1, 1),
+    'mlv_msgs/msg/TagPoints': (1, 1),
+}
 
 
 def _older_definitions(type_name: str, n: int) -> list[int]:
@@ -670,17 +841,19 @@ def _field_names(definition: str) -> list[str]:
     """Field names of the top-level message of a ``ros2msg`` definition (constants left out)."""
     names = []
     for line in definition.split(_SEPARATOR)[0].splitlines():
-        line = line.split("#", 1)[0].strip()
+        line = line.split('#', 1)[0].strip()
         parts = line.split()
-        if len(parts) >= 2 and "=" not in parts[1] and "=" not in parts[0]:
+        if len(parts) >= 2 and '=' not in parts[1] and '=' not in parts[0]:
             names.append(parts[1])
     return names
 
 
 def fields_missing_from(type_name: str, definition: str) -> tuple | None:
-    """The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
+    """
+    The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
     ``type_name`` lacks: ``()`` for the current definition, ``None`` when it cannot tell (no
-    schema text, or not a known older definition)."""
+    schema text, or not a known older definition).
+    """
     appended = _APPENDED_FIELDS.get(type_name, ())
     names = _field_names(definition) if definition else []
     if not names:
@@ -692,50 +865,55 @@ def fields_missing_from(type_name: str, definition: str) -> tuple | None:
 
 
 def _cdr_defaults(data: bytes, fields) -> bytes:
-    """``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
+    """
+    ``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
     kind, default) each) appended, aligned as CDR aligns them (relative to the end of the
-    header)."""
+    header).
+    """
     little = data[1] & 1  # representation id 0x0001 = CDR little endian, 0x0000 big endian
-    order = "little" if little else "big"
+    order = 'little' if little else 'big'
     out = bytearray(data)
     for _name, kind, value in fields:
-        if kind == "uint8":
+        if kind == 'uint8':
             out += int(value).to_bytes(1, order)
-        elif kind == "int32":
-            out += b"\0" * (-(len(out) - 4) % 4)
+        elif kind == 'int32':
+            out += b'\0' * (-(len(out) - 4) % 4)
             out += int(value).to_bytes(4, order, signed=True)
-        elif kind == "float64":
-            out += b"\0" * (-(len(out) - 4) % 8)
-            out += struct.pack("<d" if little else ">d", float(value))
-        elif kind == "sequence":  # an empty sequence: its length 0
-            out += b"\0" * (-(len(out) - 4) % 4)
+        elif kind == 'float64':
+            out += b'\0' * (-(len(out) - 4) % 8)
+            out += struct.pack('<d' if little else '>d', float(value))
+        elif kind == 'sequence':  # an empty sequence: its length 0
+            out += b'\0' * (-(len(out) - 4) % 4)
             out += (0).to_bytes(4, order)
-        elif kind == "string":
-            raw = str(value).encode() + b"\0"
-            out += b"\0" * (-(len(out) - 4) % 4)
+        elif kind == 'string':
+            raw = str(value).encode() + b'\0'
+            out += b'\0' * (-(len(out) - 4) % 4)
             out += len(raw).to_bytes(4, order) + raw
         else:  # pragma: no cover - only the kinds above are ever appended
-            raise ValueError(f"no CDR default for {kind}")
+            raise ValueError(f'no CDR default for {kind}')
     return bytes(out)
 
 
 def _type_name(msg_class) -> str:
-    return f"{msg_class.__module__.split('.')[0]}/msg/{msg_class.__name__}"
+    return f'{msg_class.__module__.split(".")[0]}/msg/{msg_class.__name__}'
 
 
 def _reads_defaults(msg, fields) -> bool:
-    """Whether the appended ``fields`` read back as the defaults they were appended with: under a
+    """
+    Whether the appended ``fields`` read back as the defaults they were appended with: under a
     wrong older definition the bytes can parse yet shift, and a default then reads as part of
-    another field (e.g. a float from a string's length)."""
+    another field (e.g. a float from a string's length).
+    """
     for name, kind, value in fields:
         got = getattr(msg, name)
-        if (len(got) != 0) if kind == "sequence" else (got != value):
+        if (len(got) != 0) if kind == 'sequence' else (got != value):
             return False
     return True
 
 
 def _read_as(data: bytes, msg_class, missing: tuple | None):
-    """(message, the fields that were appended) for ``data``.
+    """
+    (message, the fields that were appended) for ``data``.
 
     With ``missing`` known (from the recording's schema, :func:`fields_missing_from`) those are
     appended. Without, the current definition is tried, then the one before the last group of
@@ -748,7 +926,9 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
     from rclpy.serialization import deserialize_message
 
     if missing is not None:
-        return deserialize_message(_cdr_defaults(data, missing) if missing else data, msg_class), missing
+        return deserialize_message(
+            _cdr_defaults(data, missing) if missing else data, msg_class
+        ), missing
     try:
         return deserialize_message(data, msg_class), ()
     except Exception as exc:  # rclpy raises its private RMWError
@@ -768,7 +948,8 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
 
 
 def deserialize(data: bytes, msg_class, missing: tuple | None = None):
-    """Deserialise a recorded message with rclpy, also one recorded before fields were appended.
+    """
+    Deserialise a recorded message with rclpy, also one recorded before fields were appended.
 
     Fields appended to our message definitions later (:data:`_APPENDED_FIELDS`) read as their
     defaults.
@@ -787,15 +968,17 @@ def deserialize(data: bytes, msg_class, missing: tuple | None = None):
     ------
     ValueError
         The bytes are not a ``msg_class`` message under any of its definitions.
+
     """
     try:
         return _read_as(data, msg_class, missing)[0]
     except Exception as exc:
-        raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+        raise ValueError(f'cannot deserialise {msg_class.__name__}: {exc}') from None
 
 
 def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
-    """``data`` as the current definition of ``msg_class`` serialises it: a message recorded
+    """
+    ``data`` as the current definition of ``msg_class`` serialises it: a message recorded
     before fields were appended gets their defaults appended (what a live subscriber can read);
     a current one comes back unchanged.
 
@@ -803,12 +986,13 @@ def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
     ------
     ValueError
         The bytes are not a ``msg_class`` message under any of its definitions.
+
     """
     if missing is None:
         try:
             missing = _read_as(data, msg_class, None)[1]
         except Exception as exc:
-            raise ValueError(f"cannot deserialise {msg_class.__name__}: {exc}") from None
+            raise ValueError(f'cannot deserialise {msg_class.__name__}: {exc}') from None
     return _cdr_defaults(data, missing) if missing else data
 
 
@@ -817,36 +1001,42 @@ def bag_topics(path) -> dict[str, dict]:
     path = Path(path)
     if path.is_dir():
         path = _bag_file_in_dir(path)
-    with open(path, "rb") as fh:
+    with open(path, 'rb') as fh:
         try:
             summary = make_reader(fh).get_summary()
         except Exception as exc:
-            raise ValueError(f"cannot read {path} as MCAP: {exc}") from exc
+            raise ValueError(f'cannot read {path} as MCAP: {exc}') from exc
     if summary is None:
-        raise ValueError(f"{path} has no MCAP summary (unfinished recording? try `mlv-ros recover`)")
+        raise ValueError(
+            f'{path} has no MCAP summary (unfinished recording? try `mlv-ros recover`)'
+        )
     counts = summary.statistics.channel_message_counts if summary.statistics else {}
     out = {}
     for cid, ch in summary.channels.items():
         schema = summary.schemas.get(ch.schema_id)
-        out[ch.topic] = {"type": schema.name if schema else "", "count": counts.get(cid, 0),
-                         "qos": ch.metadata.get("offered_qos_profiles", ""),
-                         "type_hash": ch.metadata.get("topic_type_hash", "")}
+        out[ch.topic] = {
+            'type': schema.name if schema else '',
+            'count': counts.get(cid, 0),
+            'qos': ch.metadata.get('offered_qos_profiles', ''),
+            'type_hash': ch.metadata.get('topic_type_hash', ''),
+        }
     return out
 
 
 def _bag_file_in_dir(directory: Path) -> Path:
-    if (directory / "metadata.yaml").is_file():
+    if (directory / 'metadata.yaml').is_file():
         # rosbag2 may store the path with the bag directory in front (older versions did).
-        return directory / Path(read_bag_metadata(directory)["relative_file_paths"][0]).name
-    files = sorted(directory.glob("*.mcap"))
+        return directory / Path(read_bag_metadata(directory)['relative_file_paths'][0]).name
+    files = sorted(directory.glob('*.mcap'))
     if not files:
-        raise ValueError(f"no .mcap file in {directory}")
+        raise ValueError(f'no .mcap file in {directory}')
     return files[0]
 
 
 # --------------------------------------------------------------------------- recovery
 def recover(damaged, out) -> dict:
-    """Rewrite a valid recording from a damaged one (e.g. the recorder was SIGKILLed).
+    """
+    Rewrite a valid recording from a damaged one (e.g. the recorder was SIGKILLed).
 
     Reads the file record by record from the start (no summary or index needed) and keeps every
     message of every chunk that is complete; reading stops at the first truncated or corrupt
@@ -863,15 +1053,15 @@ def recover(damaged, out) -> dict:
 
     damaged, out = Path(damaged), Path(out)
     if out.exists():
-        raise FileExistsError(f"refusing to overwrite {out}")
+        raise FileExistsError(f'refusing to overwrite {out}')
     schemas, channels, counts = {}, {}, {}
     topics: dict[int, _Topic] = {}
     custom_data = None
     start_ns, end_ns = None, 0
-    stopped = "end of file"
-    with open(damaged, "rb") as fh, open(out, "wb") as oh:
+    stopped = 'end of file'
+    with open(damaged, 'rb') as fh, open(out, 'wb') as oh:
         writer = Writer(oh, compression=CompressionType.ZSTD)
-        writer.start(profile="ros2", library=f"mlv_ros {__version__} (recovered)")
+        writer.start(profile='ros2', library=f'mlv_ros {__version__} (recovered)')
         sid_map, cid_map = {}, {}
         try:
             for rec in StreamReader(fh, validate_crcs=True).records:
@@ -879,21 +1069,35 @@ def recover(damaged, out) -> dict:
                     sid_map[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
                     schemas[rec.id] = rec.name
                 elif isinstance(rec, ChannelRec):
-                    cid_map[rec.id] = writer.register_channel(rec.topic, rec.message_encoding,
-                                                              sid_map.get(rec.schema_id, 0), rec.metadata)
+                    cid_map[rec.id] = writer.register_channel(
+                        rec.topic,
+                        rec.message_encoding,
+                        sid_map.get(rec.schema_id, 0),
+                        rec.metadata,
+                    )
                     channels[rec.id] = rec.topic
                     topics[rec.id] = _Topic(
-                        rec.topic, schemas.get(rec.schema_id, ""), cid_map[rec.id],
-                        parse_offered_qos(rec.metadata.get("offered_qos_profiles", "")),
-                        rec.metadata.get("topic_type_hash", ""))
-                elif isinstance(rec, MetadataRec) and rec.name == "rosbag2":
+                        rec.topic,
+                        schemas.get(rec.schema_id, ''),
+                        cid_map[rec.id],
+                        parse_offered_qos(rec.metadata.get('offered_qos_profiles', '')),
+                        rec.metadata.get('topic_type_hash', ''),
+                    )
+                elif isinstance(rec, MetadataRec) and rec.name == 'rosbag2':
                     try:
-                        custom_data = yaml.safe_load(rec.metadata.get("serialized_metadata", "")).get("custom_data")
+                        custom_data = yaml.safe_load(
+                            rec.metadata.get('serialized_metadata', '')
+                        ).get('custom_data')
                     except (yaml.YAMLError, AttributeError):
                         pass
                 elif isinstance(rec, MessageRec) and rec.channel_id in cid_map:
-                    writer.add_message(cid_map[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
-                                       rec.sequence)
+                    writer.add_message(
+                        cid_map[rec.channel_id],
+                        rec.log_time,
+                        rec.data,
+                        rec.publish_time,
+                        rec.sequence,
+                    )
                     topic = channels[rec.channel_id]
                     counts[topic] = counts.get(topic, 0) + 1
                     topics[rec.channel_id].count += 1
@@ -902,8 +1106,16 @@ def recover(damaged, out) -> dict:
         except Exception as exc:  # truncated or corrupt tail: keep what came before it
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
-            stopped = f"{type(exc).__name__}: {exc}"
-        write_rosbag2_record(writer, bag_metadata(out.name, topics.values(), start_ns, end_ns,
-                                                  custom_data if isinstance(custom_data, dict) else None))
+            stopped = f'{type(exc).__name__}: {exc}'
+        write_rosbag2_record(
+            writer,
+            bag_metadata(
+                out.name,
+                topics.values(),
+                start_ns,
+                end_ns,
+                custom_data if isinstance(custom_data, dict) else None,
+            ),
+        )
         writer.finish()
-    return {"messages": sum(counts.values()), "topics": counts, "stopped_at": stopped}
+    return {'messages': sum(counts.values()), 'topics': counts, 'stopped_at': stopped}

@@ -1,4 +1,5 @@
-"""numpy ⇄ ROS messages: the only module where arrays meet messages.
+"""
+numpy ⇄ ROS messages: the only module where arrays meet messages.
 
 Every converter validates what it reads and raises ``ValueError`` naming the problem (wrong
 encoding, step/size mismatch, missing fields, inconsistent array lengths, non-finite values where
@@ -13,31 +14,41 @@ import array
 import sys
 from typing import Iterable, Mapping
 
-import numpy as np
 from builtin_interfaces.msg import Time
-from sensor_msgs.msg import Image, PointCloud2, PointField
-from std_msgs.msg import Header
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics as MotionMetricsMsg
 from mlv_msgs.msg import SliceGeometry as SliceGeometryMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros.core.analysis.findings import CLASS_CODES, FINDING_ARRAY_FIELDS
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_LA, VIEW_SA, Frame, ModelState, TagPointSet
+from mlv_ros.core.types import (
+    Frame,
+    ModelState,
+    SEGMENT_ORIGIN_CODES,
+    TagPointSet,
+    VIEW_LA,
+    VIEW_SA,
+)
 from mlv_ros.core.verdict import checked_level
+import numpy as np
+from sensor_msgs.msg import Image, PointCloud2, PointField
+from std_msgs.msg import Header
 
-PATIENT_FRAME = "patient"
-_HOST_BIG_ENDIAN = sys.byteorder == "big"
+PATIENT_FRAME = 'patient'
+_HOST_BIG_ENDIAN = sys.byteorder == 'big'
 
 # Image encodings we read and write (sensor_msgs/image_encodings.hpp names).
 IMAGE_ENCODINGS = {
-    "mono8": np.dtype(np.uint8),
-    "mono16": np.dtype(np.uint16),
-    "16UC1": np.dtype(np.uint16),
-    "32FC1": np.dtype(np.float32),
+    'mono8': np.dtype(np.uint8),
+    'mono16': np.dtype(np.uint16),
+    '16UC1': np.dtype(np.uint16),
+    '32FC1': np.dtype(np.float32),
 }
-_DTYPE_TO_ENCODING = {np.dtype(np.uint8): "mono8", np.dtype(np.uint16): "mono16", np.dtype(np.float32): "32FC1"}
+_DTYPE_TO_ENCODING = {
+    np.dtype(np.uint8): 'mono8',
+    np.dtype(np.uint16): 'mono16',
+    np.dtype(np.float32): '32FC1',
+}
 
 # PointField datatypes (sensor_msgs/PointField constants) ⇄ numpy dtypes.
 _POINTFIELD_DTYPES = {
@@ -62,7 +73,7 @@ MAX_STUDY_ID = 128
 def to_time(seconds: float) -> Time:
     """Float seconds → ``builtin_interfaces/Time`` (nanosecond resolution)."""
     if not np.isfinite(seconds) or seconds < 0:
-        raise ValueError(f"stamp must be a finite, non-negative number of seconds, got {seconds}")
+        raise ValueError(f'stamp must be a finite, non-negative number of seconds, got {seconds}')
     ns = int(round(float(seconds) * 1e9))
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
@@ -74,7 +85,7 @@ def from_time(t: Time) -> float:
 
 def stamp_text(t: Time) -> str:
     """A stamp as exact ``sec.nanosec`` text (diagnostics name the offending message by it)."""
-    return f"{t.sec}.{t.nanosec:09d}"
+    return f'{t.sec}.{t.nanosec:09d}'
 
 
 def make_header(stamp: float | Time = 0.0, frame_id: str = PATIENT_FRAME) -> Header:
@@ -90,12 +101,15 @@ def _fast_array(typecode: str, values: np.ndarray, dtype) -> array.array:
 def _require_finite(name: str, values: np.ndarray) -> None:
     bad = np.size(values) - int(np.count_nonzero(np.isfinite(values)))
     if bad:
-        raise ValueError(f"{name} has {bad} non-finite value(s) (NaN/inf)")
+        raise ValueError(f'{name} has {bad} non-finite value(s) (NaN/inf)')
 
 
 # --------------------------------------------------------------------------- Image
-def image_to_msg(image: np.ndarray, header: Header | None = None, encoding: str | None = None) -> Image:
-    """Convert a numpy image to ``sensor_msgs/Image``.
+def image_to_msg(
+    image: np.ndarray, header: Header | None = None, encoding: str | None = None
+) -> Image:
+    """
+    Convert a numpy image to ``sensor_msgs/Image``.
 
     Parameters
     ----------
@@ -109,21 +123,30 @@ def image_to_msg(image: np.ndarray, header: Header | None = None, encoding: str 
     -------
     Image
         Tightly packed (``step = cols · itemsize``), host byte order flagged in ``is_bigendian``.
+
     """
     image = np.asarray(image)
     if image.ndim != 2:
-        raise ValueError(f"image must be 2-D (rows, cols), got shape {image.shape}")
+        raise ValueError(f'image must be 2-D (rows, cols), got shape {image.shape}')
     if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ValueError(f"image is empty: shape {image.shape}")
+        raise ValueError(f'image is empty: shape {image.shape}')
     if encoding is None:
         encoding = _DTYPE_TO_ENCODING.get(image.dtype)
         if encoding is None:
-            raise ValueError(f"no image encoding for dtype {image.dtype}; use uint8, uint16 or float32")
+            raise ValueError(
+                f'no image encoding for dtype {image.dtype}; use uint8, uint16 or float32'
+            )
     elif encoding not in IMAGE_ENCODINGS:
-        raise ValueError(f"unsupported image encoding {encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}")
+        raise ValueError(
+            f'unsupported image encoding {encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}'
+        )
     elif IMAGE_ENCODINGS[encoding] != image.dtype:
-        raise ValueError(f"encoding {encoding!r} needs dtype {IMAGE_ENCODINGS[encoding]}, got {image.dtype}")
-    msg = Image(header=header or Header(), height=image.shape[0], width=image.shape[1], encoding=encoding)
+        raise ValueError(
+            f'encoding {encoding!r} needs dtype {IMAGE_ENCODINGS[encoding]}, got {image.dtype}'
+        )
+    msg = Image(
+        header=header or Header(), height=image.shape[0], width=image.shape[1], encoding=encoding
+    )
     msg.is_bigendian = int(_HOST_BIG_ENDIAN)
     msg.step = image.shape[1] * image.dtype.itemsize
     msg.data = np.ascontiguousarray(image).tobytes()
@@ -131,7 +154,8 @@ def image_to_msg(image: np.ndarray, header: Header | None = None, encoding: str 
 
 
 def msg_to_image(msg: Image, allow_nonfinite: bool = False) -> np.ndarray:
-    """``sensor_msgs/Image`` → numpy array, shape (height, width).
+    """
+    ``sensor_msgs/Image`` → numpy array, shape (height, width).
 
     Honours ``step`` padding and ``is_bigendian``. The result may share memory with the message.
 
@@ -140,38 +164,48 @@ def msg_to_image(msg: Image, allow_nonfinite: bool = False) -> np.ndarray:
     ValueError
         Unsupported encoding, zero size, ``step`` smaller than a row, data length different from
         ``height · step``, or (float images, unless ``allow_nonfinite``) NaN/inf pixels.
+
     """
     dtype = IMAGE_ENCODINGS.get(msg.encoding)
     if dtype is None:
-        raise ValueError(f"unsupported image encoding {msg.encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}")
+        raise ValueError(
+            f'unsupported image encoding {msg.encoding!r}; supported: {sorted(IMAGE_ENCODINGS)}'
+        )
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h == 0 or w == 0:
-        raise ValueError(f"image has zero size ({h}×{w})")
+        raise ValueError(f'image has zero size ({h}×{w})')
     row_bytes = w * dtype.itemsize
     if step < row_bytes:
-        raise ValueError(f"image step {step} is smaller than width·bytes-per-pixel = {row_bytes}")
+        raise ValueError(f'image step {step} is smaller than width·bytes-per-pixel = {row_bytes}')
     if step % dtype.itemsize:
-        raise ValueError(f"image step {step} is not a multiple of the pixel size {dtype.itemsize}")
+        raise ValueError(f'image step {step} is not a multiple of the pixel size {dtype.itemsize}')
     if len(msg.data) != h * step:
-        raise ValueError(f"image data has {len(msg.data)} bytes, expected height·step = {h * step}")
+        raise ValueError(
+            f'image data has {len(msg.data)} bytes, expected height·step = {h * step}'
+        )
     if msg.is_bigendian not in (0, 1):
-        raise ValueError(f"image is_bigendian must be 0 or 1, got {msg.is_bigendian}")
+        raise ValueError(f'image is_bigendian must be 0 or 1, got {msg.is_bigendian}')
     if msg.is_bigendian:
-        dtype = dtype.newbyteorder(">")
+        dtype = dtype.newbyteorder('>')
     buf = np.frombuffer(msg.data, dtype=np.uint8)
-    img = np.lib.stride_tricks.as_strided(buf.view(dtype), shape=(h, w), strides=(step, dtype.itemsize))
+    img = np.lib.stride_tricks.as_strided(
+        buf.view(dtype), shape=(h, w), strides=(step, dtype.itemsize)
+    )
     if msg.is_bigendian != int(_HOST_BIG_ENDIAN):
-        img = img.astype(dtype.newbyteorder("="))
+        img = img.astype(dtype.newbyteorder('='))
     elif step != row_bytes:
         img = np.ascontiguousarray(img)
-    if img.dtype.kind == "f" and not allow_nonfinite:
-        _require_finite("image", img)
+    if img.dtype.kind == 'f' and not allow_nonfinite:
+        _require_finite('image', img)
     return img
 
 
 # --------------------------------------------------------------------------- PointCloud2
-def cloud_to_msg(points: np.ndarray | Mapping[str, np.ndarray], header: Header | None = None) -> PointCloud2:
-    """Structured array (or mapping name → 1-D array) → ``sensor_msgs/PointCloud2``.
+def cloud_to_msg(
+    points: np.ndarray | Mapping[str, np.ndarray], header: Header | None = None
+) -> PointCloud2:
+    """
+    Structured array (or mapping name → 1-D array) → ``sensor_msgs/PointCloud2``.
 
     Parameters
     ----------
@@ -184,24 +218,27 @@ def cloud_to_msg(points: np.ndarray | Mapping[str, np.ndarray], header: Header |
     -------
     PointCloud2
         ``height = 1``, ``width = N``, ``point_step`` = record size, little-endian on x86.
+
     """
     if isinstance(points, Mapping):
         points = structured(points)
     points = np.asarray(points)
     if points.dtype.names is None:
-        raise ValueError("point cloud must be a structured array with named fields")
+        raise ValueError('point cloud must be a structured array with named fields')
     if points.ndim != 1:
-        raise ValueError(f"point cloud must be 1-D (N,), got shape {points.shape}")
+        raise ValueError(f'point cloud must be 1-D (N,), got shape {points.shape}')
     fields = []
     for name in points.dtype.names:
         fdt, offset = points.dtype.fields[name][:2]
         if fdt.shape:
-            raise ValueError(f"field {name!r} has sub-array shape {fdt.shape}; use one scalar field per channel")
-        datatype = _DTYPE_TO_POINTFIELD.get(fdt.newbyteorder("="))
+            raise ValueError(
+                f'field {name!r} has sub-array shape {fdt.shape}; use one scalar field per channel'
+            )
+        datatype = _DTYPE_TO_POINTFIELD.get(fdt.newbyteorder('='))
         if datatype is None:
-            raise ValueError(f"field {name!r} has dtype {fdt}, which PointField cannot represent")
-        if fdt.kind == "f":
-            _require_finite(f"point field {name!r}", points[name])
+            raise ValueError(f'field {name!r} has dtype {fdt}, which PointField cannot represent')
+        if fdt.kind == 'f':
+            _require_finite(f'point field {name!r}', points[name])
         fields.append(PointField(name=name, offset=offset, datatype=datatype, count=1))
     n = points.shape[0]
     msg = PointCloud2(header=header or Header(), height=1, width=n, fields=fields)
@@ -213,8 +250,11 @@ def cloud_to_msg(points: np.ndarray | Mapping[str, np.ndarray], header: Header |
     return msg
 
 
-def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = (), finite: Iterable[str] = ()) -> np.ndarray:
-    """``sensor_msgs/PointCloud2`` → structured array, shape (height·width,).
+def msg_to_cloud(
+    msg: PointCloud2, required: Iterable[str] = (), finite: Iterable[str] = ()
+) -> np.ndarray:
+    """
+    ``sensor_msgs/PointCloud2`` → structured array, shape (height·width,).
 
     Parameters
     ----------
@@ -231,67 +271,83 @@ def msg_to_cloud(msg: PointCloud2, required: Iterable[str] = (), finite: Iterabl
         Missing required fields, unknown datatypes, ``count != 1``, overlapping or out-of-record
         fields, ``data`` whose length differs from ``row_step · height``, or a ``finite`` field
         that is not floating point or holds NaN/inf.
+
     """
     names = [f.name for f in msg.fields]
     finite = tuple(finite)
     missing = [r for r in (*required, *finite) if r not in names]
     if missing:
-        raise ValueError(f"point cloud lacks field(s) {missing}; has {names}")
+        raise ValueError(f'point cloud lacks field(s) {missing}; has {names}')
     if len(set(names)) != len(names):
-        raise ValueError(f"point cloud has duplicate field names: {names}")
+        raise ValueError(f'point cloud has duplicate field names: {names}')
     point_step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
-    spec = {"names": [], "formats": [], "offsets": [], "itemsize": point_step}
-    order = ">" if msg.is_bigendian else "<"
+    spec = {'names': [], 'formats': [], 'offsets': [], 'itemsize': point_step}
+    order = '>' if msg.is_bigendian else '<'
     for f in msg.fields:
         dt = _POINTFIELD_DTYPES.get(f.datatype)
         if dt is None:
-            raise ValueError(f"field {f.name!r} has unknown PointField datatype {f.datatype}")
+            raise ValueError(f'field {f.name!r} has unknown PointField datatype {f.datatype}')
         if f.count != 1:
-            raise ValueError(f"field {f.name!r} has count {f.count}; only scalar fields are supported")
+            raise ValueError(
+                f'field {f.name!r} has count {f.count}; only scalar fields are supported'
+            )
         if f.offset + dt.itemsize > point_step:
-            raise ValueError(f"field {f.name!r} (offset {f.offset}) does not fit in point_step {point_step}")
-        spec["names"].append(f.name)
-        spec["formats"].append(dt.newbyteorder(order))
-        spec["offsets"].append(f.offset)
+            raise ValueError(
+                f'field {f.name!r} (offset {f.offset}) does not fit in point_step {point_step}'
+            )
+        spec['names'].append(f.name)
+        spec['formats'].append(dt.newbyteorder(order))
+        spec['offsets'].append(f.offset)
     # numpy accepts overlapping fields (aliased bytes): refuse them here.
-    spans = sorted((f.offset, f.offset + _POINTFIELD_DTYPES[f.datatype].itemsize, f.name) for f in msg.fields)
+    spans = sorted(
+        (f.offset, f.offset + _POINTFIELD_DTYPES[f.datatype].itemsize, f.name) for f in msg.fields
+    )
     for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
         if start < end:
-            raise ValueError(f"point cloud fields {a!r} and {b!r} overlap")
+            raise ValueError(f'point cloud fields {a!r} and {b!r} overlap')
     try:
         dtype = np.dtype(spec)
     except ValueError as exc:
-        raise ValueError(f"point cloud fields are malformed: {exc}") from None
+        raise ValueError(f'point cloud fields are malformed: {exc}') from None
     if int(msg.row_step) < width * point_step:
-        raise ValueError(f"row_step {msg.row_step} is smaller than width·point_step = {width * point_step}")
+        raise ValueError(
+            f'row_step {msg.row_step} is smaller than width·point_step = {width * point_step}'
+        )
     if len(msg.data) != int(msg.row_step) * height:
-        raise ValueError(f"point cloud data has {len(msg.data)} bytes, expected row_step·height = {msg.row_step * height}")
-    buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(height, int(msg.row_step))[:, : width * point_step]
+        raise ValueError(
+            f'point cloud data has {len(msg.data)} bytes, expected row_step·height = '
+            f'{msg.row_step * height}'
+        )
+    buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(height, int(msg.row_step))[
+        :, :width * point_step
+    ]
     pts = np.ascontiguousarray(buf).view(dtype).reshape(-1)
     if msg.is_bigendian != int(_HOST_BIG_ENDIAN):
-        pts = pts.astype(pts.dtype.newbyteorder("="))
+        pts = pts.astype(pts.dtype.newbyteorder('='))
     for name in finite:
-        if pts.dtype[name].kind != "f":
-            raise ValueError(f"point field {name!r} must be FLOAT32 or FLOAT64, got {pts.dtype[name]}")
-        _require_finite(f"point field {name!r}", pts[name])
+        if pts.dtype[name].kind != 'f':
+            raise ValueError(
+                f'point field {name!r} must be FLOAT32 or FLOAT64, got {pts.dtype[name]}'
+            )
+        _require_finite(f'point field {name!r}', pts[name])
     return pts
 
 
 def structured(columns: Mapping[str, np.ndarray], dtype=np.float32) -> np.ndarray:
     """Mapping name → 1-D array (all length N) → packed structured array of ``dtype`` fields."""
     if not columns:
-        raise ValueError("no columns given for the point cloud")
+        raise ValueError('no columns given for the point cloud')
     lengths = {k: np.shape(v) for k, v in columns.items()}
     n = {s[0] if len(s) == 1 else None for s in lengths.values()}
     if len(n) != 1 or None in n:
-        raise ValueError(f"point cloud columns must be 1-D of equal length, got shapes {lengths}")
+        raise ValueError(f'point cloud columns must be 1-D of equal length, got shapes {lengths}')
     out = np.empty(n.pop(), dtype=[(k, dtype) for k in columns])
     for k, v in columns.items():
         out[k] = v
     return out
 
 
-def xyz(points: np.ndarray, names: tuple[str, str, str] = ("x", "y", "z")) -> np.ndarray:
+def xyz(points: np.ndarray, names: tuple[str, str, str] = ('x', 'y', 'z')) -> np.ndarray:
     """Three fields of a structured point array as a float64 (N, 3) array."""
     return np.stack([points[n].astype(np.float64) for n in names], axis=-1)
 
@@ -300,47 +356,61 @@ def xyz(points: np.ndarray, names: tuple[str, str, str] = ("x", "y", "z")) -> np
 def geometry_to_msg(geometry: SliceGeometry) -> SliceGeometryMsg:
     """:class:`SliceGeometry` → ``mlv_msgs/SliceGeometry``."""
     return SliceGeometryMsg(
-        image_position=geometry.image_position, row_direction=geometry.row_direction,
-        column_direction=geometry.column_direction, row_spacing=geometry.row_spacing,
-        column_spacing=geometry.column_spacing, slice_thickness=geometry.slice_thickness)
+        image_position=geometry.image_position,
+        row_direction=geometry.row_direction,
+        column_direction=geometry.column_direction,
+        row_spacing=geometry.row_spacing,
+        column_spacing=geometry.column_spacing,
+        slice_thickness=geometry.slice_thickness,
+    )
 
 
 def msg_to_geometry(msg: SliceGeometryMsg) -> SliceGeometry:
     """Convert ``mlv_msgs/SliceGeometry`` to :class:`SliceGeometry` (unit, orthogonal, > 0)."""
     return SliceGeometry(
-        image_position=np.array(msg.image_position), row_direction=np.array(msg.row_direction),
-        column_direction=np.array(msg.column_direction), row_spacing=msg.row_spacing,
-        column_spacing=msg.column_spacing, slice_thickness=msg.slice_thickness)
+        image_position=np.array(msg.image_position),
+        row_direction=np.array(msg.row_direction),
+        column_direction=np.array(msg.column_direction),
+        row_spacing=msg.row_spacing,
+        column_spacing=msg.column_spacing,
+        slice_thickness=msg.slice_thickness,
+    )
 
 
 def _check_view(view: int) -> int:
     if view not in (VIEW_SA, VIEW_LA):
-        raise ValueError(f"view must be VIEW_SA ({VIEW_SA}) or VIEW_LA ({VIEW_LA}), got {view}")
+        raise ValueError(f'view must be VIEW_SA ({VIEW_SA}) or VIEW_LA ({VIEW_LA}), got {view}')
     return int(view)
 
 
 def _check_phase(phase_index: int, num_phases: int) -> None:
     if num_phases < 1:
-        raise ValueError(f"num_phases must be ≥ 1, got {num_phases}")
+        raise ValueError(f'num_phases must be ≥ 1, got {num_phases}')
     if not 0 <= phase_index < num_phases:
-        raise ValueError(f"phase_index {phase_index} outside [0, {num_phases})")
+        raise ValueError(f'phase_index {phase_index} outside [0, {num_phases})')
 
 
 def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices: int) -> None:
     """A slice index must lie within its view's declared slice count (0 = count unknown)."""
-    count, name = (num_sa_slices, "num_sa_slices") if view == VIEW_SA else (num_la_slices, "num_la_slices")
+    count, name = (
+        (num_sa_slices, 'num_sa_slices') if view == VIEW_SA else (num_la_slices, 'num_la_slices')
+    )
     if count and not 0 <= slice_index < count:
-        raise ValueError(f"slice_index {slice_index} outside [0, {name} = {count}) for view {view}")
+        raise ValueError(
+            f'slice_index {slice_index} outside [0, {name} = {count}) for view {view}'
+        )
 
 
-def _check_study_id(study_id, name: str = "study_id") -> str:
-    """A message's ``study_id`` (or ``run_id``, by ``name``): text of printable characters, at most
-    :data:`MAX_STUDY_ID` long (empty = unknown)."""
+def _check_study_id(study_id, name: str = 'study_id') -> str:
+    """
+    A message's ``study_id`` (or ``run_id``, by ``name``): text of printable characters, at most
+    :data:`MAX_STUDY_ID` long (empty = unknown).
+    """
     study_id = str(study_id)
     if len(study_id) > MAX_STUDY_ID:
-        raise ValueError(f"{name} has {len(study_id)} characters, at most {MAX_STUDY_ID} allowed")
+        raise ValueError(f'{name} has {len(study_id)} characters, at most {MAX_STUDY_ID} allowed')
     if not study_id.isprintable():
-        raise ValueError(f"{name} {study_id!r} holds non-printable characters")
+        raise ValueError(f'{name} {study_id!r} holds non-printable characters')
     return study_id
 
 
@@ -351,12 +421,21 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
     _check_slice(frame.view, frame.slice_index, frame.num_sa_slices, frame.num_la_slices)
     header = make_header(stamp)
     return TaggedFrame(
-        header=header, image=image_to_msg(frame.image, header=header),
-        geometry=geometry_to_msg(frame.geometry), view=frame.view, slice_index=frame.slice_index,
-        phase_index=frame.phase_index, num_phases=frame.num_phases,
-        trigger_time=float(frame.trigger_time), cycle_duration=float(frame.cycle_duration),
-        series_uid=frame.series_uid, num_sa_slices=frame.num_sa_slices, num_la_slices=frame.num_la_slices,
-        study_id=_check_study_id(frame.study_id), run_id=_check_study_id(frame.run_id, "run_id"))
+        header=header,
+        image=image_to_msg(frame.image, header=header),
+        geometry=geometry_to_msg(frame.geometry),
+        view=frame.view,
+        slice_index=frame.slice_index,
+        phase_index=frame.phase_index,
+        num_phases=frame.num_phases,
+        trigger_time=float(frame.trigger_time),
+        cycle_duration=float(frame.cycle_duration),
+        series_uid=frame.series_uid,
+        num_sa_slices=frame.num_sa_slices,
+        num_la_slices=frame.num_la_slices,
+        study_id=_check_study_id(frame.study_id),
+        run_id=_check_study_id(frame.run_id, 'run_id'),
+    )
 
 
 def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
@@ -365,11 +444,20 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
     _check_phase(msg.phase_index, msg.num_phases)
     _check_slice(msg.view, msg.slice_index, msg.num_sa_slices, msg.num_la_slices)
     return Frame(
-        image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite), geometry=msg_to_geometry(msg.geometry),
-        view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
-        num_phases=msg.num_phases, trigger_time=msg.trigger_time, cycle_duration=msg.cycle_duration,
-        series_uid=msg.series_uid, num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
+        image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite),
+        geometry=msg_to_geometry(msg.geometry),
+        view=msg.view,
+        slice_index=msg.slice_index,
+        phase_index=msg.phase_index,
+        num_phases=msg.num_phases,
+        trigger_time=msg.trigger_time,
+        cycle_duration=msg.cycle_duration,
+        series_uid=msg.series_uid,
+        num_sa_slices=msg.num_sa_slices,
+        num_la_slices=msg.num_la_slices,
+        study_id=_check_study_id(msg.study_id),
+        run_id=_check_study_id(msg.run_id, 'run_id'),
+    )
 
 
 def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> TagPoints:
@@ -379,26 +467,38 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
     pos = np.asarray(points.position, dtype=np.float64).reshape(-1, 3)
     conf = np.asarray(points.confidence, dtype=np.float32).reshape(-1)
     if not (rc.shape[0] == pos.shape[0] == conf.shape[0] == n):
-        raise ValueError(f"tag point arrays disagree: pixel_rc {rc.shape[0]}, position {pos.shape[0]}, "
-                         f"track_id {n}, confidence {conf.shape[0]}")
-    _require_finite("tag pixel_rc", rc)
-    _require_finite("tag position", pos)
-    _require_finite("tag confidence", conf)
+        raise ValueError(
+            f'tag point arrays disagree: pixel_rc {rc.shape[0]}, position {pos.shape[0]}, '
+            f'track_id {n}, confidence {conf.shape[0]}'
+        )
+    _require_finite('tag pixel_rc', rc)
+    _require_finite('tag position', pos)
+    _require_finite('tag confidence', conf)
     _check_view(points.view)
     _check_phase(points.phase_index, points.num_phases)
     _check_slice(points.view, points.slice_index, points.num_sa_slices, points.num_la_slices)
     return TagPoints(
-        header=make_header(points.stamp if stamp is None else stamp), view=points.view,
-        slice_index=points.slice_index, phase_index=points.phase_index, num_phases=points.num_phases,
-        num_sa_slices=points.num_sa_slices, num_la_slices=points.num_la_slices, geometry=geometry_to_msg(points.geometry), pixel_rc=_fast_array("d", rc, np.float64),
-        position=_fast_array("d", pos, np.float64),
-        track_id=_fast_array("i", np.asarray(points.track_id).reshape(-1), np.int32),
-        confidence=_fast_array("f", conf, np.float32), status=points.status,
-        study_id=_check_study_id(points.study_id), run_id=_check_study_id(points.run_id, "run_id"))
+        header=make_header(points.stamp if stamp is None else stamp),
+        view=points.view,
+        slice_index=points.slice_index,
+        phase_index=points.phase_index,
+        num_phases=points.num_phases,
+        num_sa_slices=points.num_sa_slices,
+        num_la_slices=points.num_la_slices,
+        geometry=geometry_to_msg(points.geometry),
+        pixel_rc=_fast_array('d', rc, np.float64),
+        position=_fast_array('d', pos, np.float64),
+        track_id=_fast_array('i', np.asarray(points.track_id).reshape(-1), np.int32),
+        confidence=_fast_array('f', conf, np.float32),
+        status=points.status,
+        study_id=_check_study_id(points.study_id),
+        run_id=_check_study_id(points.run_id, 'run_id'),
+    )
 
 
 def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
-    """``mlv_msgs/TagPoints`` → :class:`TagPointSet`.
+    """
+    ``mlv_msgs/TagPoints`` → :class:`TagPointSet`.
 
     Array lengths must agree (2N, 3N, N, N), values be finite, confidences lie in [0, 1], and each
     position be its ``pixel_rc`` placed by ``geometry`` (within ``TAG_POSITION_TOL_MM``): a point
@@ -406,8 +506,12 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
     """
     n = len(msg.track_id)
     if len(msg.pixel_rc) != 2 * n or len(msg.position) != 3 * n or len(msg.confidence) != n:
-        raise ValueError(f"TagPoints arrays disagree: track_id {n}, pixel_rc {len(msg.pixel_rc)} (want {2 * n}), "
-                         f"position {len(msg.position)} (want {3 * n}), confidence {len(msg.confidence)} (want {n})")
+        raise ValueError(
+            f'TagPoints arrays disagree: track_id {n}, pixel_rc {len(msg.pixel_rc)} (want '
+            f'{2 * n}), '
+            f'position {len(msg.position)} (want {3 * n}), confidence {len(msg.confidence)} '
+            f'(want {n})'
+        )
     _check_view(msg.view)
     _check_phase(msg.phase_index, msg.num_phases)
     _check_slice(msg.view, msg.slice_index, msg.num_sa_slices, msg.num_la_slices)
@@ -415,21 +519,36 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
     rc = np.frombuffer(msg.pixel_rc, dtype=np.float64).reshape(n, 2).copy()
     pos = np.frombuffer(msg.position, dtype=np.float64).reshape(n, 3).copy()
     conf = np.frombuffer(msg.confidence, dtype=np.float32).copy()
-    _require_finite("tag pixel_rc", rc)
-    _require_finite("tag position", pos)
-    _require_finite("tag confidence", conf)
+    _require_finite('tag pixel_rc', rc)
+    _require_finite('tag position', pos)
+    _require_finite('tag confidence', conf)
     if n and (conf.min() < 0 or conf.max() > 1):
-        raise ValueError(f"tag confidence must lie in [0, 1], got [{conf.min():g}, {conf.max():g}]")
+        raise ValueError(
+            f'tag confidence must lie in [0, 1], got [{conf.min():g}, {conf.max():g}]'
+        )
     off = np.linalg.norm(pos - geometry.pixel_to_patient(rc), axis=1) if n else np.zeros(0)
     if np.any(off > TAG_POSITION_TOL_MM):
-        raise ValueError(f"{int(np.count_nonzero(off > TAG_POSITION_TOL_MM))} tag position(s) disagree with "
-                         f"pixel_rc placed by the geometry (up to {off.max():.3g} mm off)")
+        raise ValueError(
+            f'{int(np.count_nonzero(off > TAG_POSITION_TOL_MM))} tag position(s) disagree with '
+            f'pixel_rc placed by the geometry (up to {off.max():.3g} mm off)'
+        )
     return TagPointSet(
-        view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
-        num_phases=msg.num_phases, geometry=geometry, pixel_rc=rc, position=pos,
-        track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(), confidence=conf, status=msg.status,
-        stamp=from_time(msg.header.stamp), num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"))
+        view=msg.view,
+        slice_index=msg.slice_index,
+        phase_index=msg.phase_index,
+        num_phases=msg.num_phases,
+        geometry=geometry,
+        pixel_rc=rc,
+        position=pos,
+        track_id=np.frombuffer(msg.track_id, dtype=np.int32).copy(),
+        confidence=conf,
+        status=msg.status,
+        stamp=from_time(msg.header.stamp),
+        num_sa_slices=msg.num_sa_slices,
+        num_la_slices=msg.num_la_slices,
+        study_id=_check_study_id(msg.study_id),
+        run_id=_check_study_id(msg.run_id, 'run_id'),
+    )
 
 
 def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelStateMsg:
@@ -437,69 +556,130 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
     q = np.asarray(state.rotation, dtype=np.float64).reshape(-1)
     c = np.asarray(state.translation, dtype=np.float64).reshape(-1)
     if q.shape != (4,) or c.shape != (3,):
-        raise ValueError(f"model state needs translation (3,) and rotation quaternion (4,), got {c.shape}, {q.shape}")
-    scalars = np.array([state.a0, state.a1, state.a2, state.a3, state.tau, state.residual], dtype=np.float64)
-    _require_finite("model state", np.concatenate([q, c, scalars]))
+        raise ValueError(
+            f'model state needs translation (3,) and rotation quaternion (4,), got {c.shape}, '
+            f'{q.shape}'
+        )
+    scalars = np.array(
+        [state.a0, state.a1, state.a2, state.a3, state.tau, state.residual], dtype=np.float64
+    )
+    _require_finite('model state', np.concatenate([q, c, scalars]))
     if abs(np.linalg.norm(q) - 1.0) > 1e-6:
-        raise ValueError(f"model rotation must be a unit quaternion (norm {np.linalg.norm(q):.6g})")
+        raise ValueError(
+            f'model rotation must be a unit quaternion (norm {np.linalg.norm(q):.6g})'
+        )
     _check_phase(state.phase_index, state.num_phases)
     return ModelStateMsg(
-        header=make_header(stamp), phase_index=state.phase_index, num_phases=state.num_phases,
-        translation=c, rotation=q, a0=float(state.a0), a1=float(state.a1), a2=float(state.a2),
-        a3=float(state.a3), tau=float(state.tau), iterations=int(state.iterations),
-        residual=float(state.residual), converged=bool(state.converged),
-        num_particles=int(state.num_particles), num_control_points=int(state.num_control_points),
-        verdict=checked_level(state.verdict), verdict_reasons=str(state.verdict_reasons),
-        study_id=_check_study_id(state.study_id), run_id=_check_study_id(state.run_id, "run_id"),
-        segment_origin=_check_origin(getattr(state, "segment_origin", 0)),
-        segment_origin_confidence=_check_confidence(getattr(state, "segment_origin_confidence", 0.0)))
+        header=make_header(stamp),
+        phase_index=state.phase_index,
+        num_phases=state.num_phases,
+        translation=c,
+        rotation=q,
+        a0=float(state.a0),
+        a1=float(state.a1),
+        a2=float(state.a2),
+        a3=float(state.a3),
+        tau=float(state.tau),
+        iterations=int(state.iterations),
+        residual=float(state.residual),
+        converged=bool(state.converged),
+        num_particles=int(state.num_particles),
+        num_control_points=int(state.num_control_points),
+        verdict=checked_level(state.verdict),
+        verdict_reasons=str(state.verdict_reasons),
+        study_id=_check_study_id(state.study_id),
+        run_id=_check_study_id(state.run_id, 'run_id'),
+        segment_origin=_check_origin(getattr(state, 'segment_origin', 0)),
+        segment_origin_confidence=_check_confidence(
+            getattr(state, 'segment_origin_confidence', 0.0)
+        ),
+    )
 
 
 def _check_origin(v) -> int:
     """A ``segment_origin`` code (:data:`~mlv_ros.core.types.SEGMENT_ORIGIN_CODES`)."""
     if isinstance(v, bool) or int(v) != v or int(v) not in SEGMENT_ORIGIN_CODES.values():
-        raise ValueError(f"segment_origin must be one of {sorted(SEGMENT_ORIGIN_CODES.values())} "
-                         f"({', '.join(f'{c} {n}' for n, c in SEGMENT_ORIGIN_CODES.items())}), got {v!r}")
+        raise ValueError(
+            f'segment_origin must be one of {sorted(SEGMENT_ORIGIN_CODES.values())} '
+            f'({", ".join(f"{c} {n}" for n, c in SEGMENT_ORIGIN_CODES.items())}), got {v!r}'
+        )
     return int(v)
 
 
 def _check_confidence(v) -> float:
     v = float(v)
     if not 0.0 <= v <= 1.0:
-        raise ValueError(f"segment_origin_confidence must be in [0, 1], got {v}")
+        raise ValueError(f'segment_origin_confidence must be in [0, 1], got {v}')
     return v
 
 
 def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
     """``mlv_msgs/ModelState`` → :class:`ModelState` (finite, unit quaternion, phase in range)."""
     state = ModelState(
-        phase_index=msg.phase_index, num_phases=msg.num_phases, translation=np.array(msg.translation),
-        rotation=np.array(msg.rotation), a0=msg.a0, a1=msg.a1, a2=msg.a2, a3=msg.a3, tau=msg.tau,
-        iterations=msg.iterations, residual=msg.residual, converged=msg.converged,
-        num_particles=msg.num_particles, num_control_points=msg.num_control_points,
-        verdict=checked_level(msg.verdict), verdict_reasons=msg.verdict_reasons,
-        study_id=_check_study_id(msg.study_id), run_id=_check_study_id(msg.run_id, "run_id"),
+        phase_index=msg.phase_index,
+        num_phases=msg.num_phases,
+        translation=np.array(msg.translation),
+        rotation=np.array(msg.rotation),
+        a0=msg.a0,
+        a1=msg.a1,
+        a2=msg.a2,
+        a3=msg.a3,
+        tau=msg.tau,
+        iterations=msg.iterations,
+        residual=msg.residual,
+        converged=msg.converged,
+        num_particles=msg.num_particles,
+        num_control_points=msg.num_control_points,
+        verdict=checked_level(msg.verdict),
+        verdict_reasons=msg.verdict_reasons,
+        study_id=_check_study_id(msg.study_id),
+        run_id=_check_study_id(msg.run_id, 'run_id'),
         segment_origin=_check_origin(msg.segment_origin),
-        segment_origin_confidence=_check_confidence(msg.segment_origin_confidence))
-    _require_finite("model state", np.concatenate([state.translation, state.rotation,
-                                                   [state.a0, state.a1, state.a2, state.a3, state.tau,
-                                                    state.residual]]))
+        segment_origin_confidence=_check_confidence(msg.segment_origin_confidence),
+    )
+    _require_finite(
+        'model state',
+        np.concatenate(
+            [
+                state.translation,
+                state.rotation,
+                [state.a0, state.a1, state.a2, state.a3, state.tau, state.residual],
+            ]
+        ),
+    )
     if abs(np.linalg.norm(state.rotation) - 1.0) > 1e-6:
-        raise ValueError(f"model rotation must be a unit quaternion (norm {np.linalg.norm(state.rotation):.6g})")
+        raise ValueError(
+            f'model rotation must be a unit quaternion (norm {np.linalg.norm(state.rotation):.6g})'
+        )
     _check_phase(state.phase_index, state.num_phases)
     return state
 
 
 # MotionMetrics: per-level arrays share one length L; segment arrays are empty or 17 long.
-METRIC_LEVEL_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
-                       "radial_displacement_mm", "circumferential_displacement_mm")
-METRIC_SCALAR_FIELDS = ("time_fraction", "la_radius_mm", "torsion_deg_per_cm", "cavity_volume_ml",
-                        "ejection_fraction")
-METRIC_SEGMENT_FIELDS = ("segment_err", "segment_ecc", "segment_ell")
-METRIC_COUNT_FIELDS = ("level_count", "segment_count")  # optional in the input (default empty)
+METRIC_LEVEL_FIELDS = (
+    'level_position',
+    'twist_deg',
+    'sa_radius_mm',
+    'longitudinal_displacement_mm',
+    'radial_displacement_mm',
+    'circumferential_displacement_mm',
+)
+METRIC_SCALAR_FIELDS = (
+    'time_fraction',
+    'la_radius_mm',
+    'torsion_deg_per_cm',
+    'cavity_volume_ml',
+    'ejection_fraction',
+)
+METRIC_SEGMENT_FIELDS = ('segment_err', 'segment_ecc', 'segment_ell')
+METRIC_COUNT_FIELDS = ('level_count', 'segment_count')  # optional in the input (default empty)
 # Optional in the input (default empty): per-segment uncertainties and findings, 0 or 17 entries,
 # NaN allowed (not measured), and the wall-motion class codes.
-METRIC_NAN_SEGMENT_FIELDS = ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc") + FINDING_ARRAY_FIELDS
+METRIC_NAN_SEGMENT_FIELDS = (
+    'segment_err_unc',
+    'segment_ecc_unc',
+    'segment_ell_unc',
+) + FINDING_ARRAY_FIELDS
 
 
 def _metrics_value(metrics, name):
@@ -507,27 +687,29 @@ def _metrics_value(metrics, name):
 
 
 def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
-    """Per-phase motion metrics (mapping or object with the MotionMetrics field names) →
+    """
+    Per-phase motion metrics (mapping or object with the MotionMetrics field names) →
     ``mlv_msgs/MotionMetrics``. Per-level arrays must share one length; segment arrays must be
-    empty or have 17 entries; values must be finite."""
+    empty or have 17 entries; values must be finite.
+    """
     msg = MotionMetricsMsg(header=make_header(stamp))
-    msg.phase_index = int(_metrics_value(metrics, "phase_index"))
-    msg.num_phases = int(_metrics_value(metrics, "num_phases"))
+    msg.phase_index = int(_metrics_value(metrics, 'phase_index'))
+    msg.num_phases = int(_metrics_value(metrics, 'num_phases'))
     _check_phase(msg.phase_index, msg.num_phases)
     lengths = set()
     for name in METRIC_LEVEL_FIELDS:
         v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
         _require_finite(name, v)
         lengths.add(v.size)
-        setattr(msg, name, _fast_array("d", v, np.float64))
+        setattr(msg, name, _fast_array('d', v, np.float64))
     if len(lengths) > 1:
-        raise ValueError(f"per-level metric arrays have different lengths: {sorted(lengths)}")
+        raise ValueError(f'per-level metric arrays have different lengths: {sorted(lengths)}')
     for name in METRIC_SEGMENT_FIELDS:
         v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
         if v.size not in (0, 17):
-            raise ValueError(f"{name} must have 0 or 17 (AHA segments) entries, got {v.size}")
+            raise ValueError(f'{name} must have 0 or 17 (AHA segments) entries, got {v.size}')
         _require_finite(name, v)
-        setattr(msg, name, _fast_array("d", v, np.float64))
+        setattr(msg, name, _fast_array('d', v, np.float64))
     for name in METRIC_SCALAR_FIELDS:
         v = float(_metrics_value(metrics, name))
         _require_finite(name, np.array([v]))
@@ -538,28 +720,31 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         except (KeyError, AttributeError):
             v = np.zeros(0)
         if v.size not in (0, want):
-            raise ValueError(f"{name} must have 0 or {want} entries, got {v.size}")
+            raise ValueError(f'{name} must have 0 or {want} entries, got {v.size}')
         if v.size and (np.any(v < 0) or not np.all(np.isfinite(v))):
-            raise ValueError(f"{name} must hold non-negative counts")
-        setattr(msg, name, _fast_array("I", v, np.uint32))
-    for name in METRIC_NAN_SEGMENT_FIELDS + ("segment_class",):
+            raise ValueError(f'{name} must hold non-negative counts')
+        setattr(msg, name, _fast_array('I', v, np.uint32))
+    for name in METRIC_NAN_SEGMENT_FIELDS + ('segment_class',):
         try:
             v = np.asarray(_metrics_value(metrics, name), dtype=np.float64).reshape(-1)
         except (KeyError, AttributeError):
             v = np.zeros(0)
         _check_segment_extra(name, v)
-        if name == "segment_class":
-            msg.segment_class = _fast_array("B", v, np.uint8)
+        if name == 'segment_class':
+            msg.segment_class = _fast_array('B', v, np.uint8)
         else:
-            setattr(msg, name, _fast_array("d", v, np.float64))
+            setattr(msg, name, _fast_array('d', v, np.float64))
     # Optional in the input: metrics without a verdict are ok with no reasons, without a study
     # of no known study, without findings of an unknown segment origin and ES phase.
-    for name, default, check in (("verdict", 0, checked_level), ("verdict_reasons", "", str),
-                                 ("segment_origin", 0, _check_origin),
-                                 ("segment_origin_confidence", 0.0, _check_confidence),
-                                 ("findings_es_phase", -1, _check_es_phase),
-                                 ("study_id", "", _check_study_id),
-                                 ("run_id", "", lambda v: _check_study_id(v, "run_id"))):
+    for name, default, check in (
+        ('verdict', 0, checked_level),
+        ('verdict_reasons', '', str),
+        ('segment_origin', 0, _check_origin),
+        ('segment_origin_confidence', 0.0, _check_confidence),
+        ('findings_es_phase', -1, _check_es_phase),
+        ('study_id', '', _check_study_id),
+        ('run_id', '', lambda v: _check_study_id(v, 'run_id')),
+    ):
         try:
             value = _metrics_value(metrics, name)
         except (KeyError, AttributeError):
@@ -569,37 +754,52 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
 
 
 def _check_segment_extra(name: str, v: np.ndarray) -> None:
-    """Findings / uncertainty arrays: 0 or 17 entries; classes are codes 0…4; NaN (not
-    measured) is allowed, ±inf is not."""
+    """
+    Findings / uncertainty arrays: 0 or 17 entries; classes are codes 0…4; NaN (not
+    measured) is allowed, ±inf is not.
+    """
     if v.size not in (0, 17):
-        raise ValueError(f"{name} must have 0 or 17 (AHA segments) entries, got {v.size}")
+        raise ValueError(f'{name} must have 0 or 17 (AHA segments) entries, got {v.size}')
     if np.any(np.isinf(v)):
-        raise ValueError(f"{name} holds an infinite value")
-    if name == "segment_class" and v.size and (not np.all(np.isfinite(v)) or np.any(v != np.round(v))
-                                               or np.any((v < 0) | (v >= len(CLASS_CODES)))):
-        raise ValueError(f"segment_class must hold codes 0..{len(CLASS_CODES) - 1} "
-                         f"({', '.join(f'{c} {n}' for n, c in CLASS_CODES.items())})")
+        raise ValueError(f'{name} holds an infinite value')
+    if (
+        name == 'segment_class'
+        and v.size
+        and (
+            not np.all(np.isfinite(v))
+            or np.any(v != np.round(v))
+            or np.any((v < 0) | (v >= len(CLASS_CODES)))
+        )
+    ):
+        raise ValueError(
+            f'segment_class must hold codes 0..{len(CLASS_CODES) - 1} '
+            f'({", ".join(f"{c} {n}" for n, c in CLASS_CODES.items())})'
+        )
 
 
 def _check_es_phase(v) -> int:
     if isinstance(v, bool) or int(v) != v or int(v) < -1:
-        raise ValueError(f"findings_es_phase must be a phase index or -1 (none yet), got {v!r}")
+        raise ValueError(f'findings_es_phase must be a phase index or -1 (none yet), got {v!r}')
     return int(v)
 
 
 def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
     """``mlv_msgs/MotionMetrics`` → dict of numpy arrays and floats (validated lengths)."""
-    out = {"phase_index": msg.phase_index, "num_phases": msg.num_phases, "stamp": from_time(msg.header.stamp)}
+    out = {
+        'phase_index': msg.phase_index,
+        'num_phases': msg.num_phases,
+        'stamp': from_time(msg.header.stamp),
+    }
     lengths = set()
     for name in METRIC_LEVEL_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
         lengths.add(out[name].size)
     if len(lengths) > 1:
-        raise ValueError(f"per-level metric arrays have different lengths: {sorted(lengths)}")
+        raise ValueError(f'per-level metric arrays have different lengths: {sorted(lengths)}')
     for name in METRIC_SEGMENT_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
         if out[name].size not in (0, 17):
-            raise ValueError(f"{name} must have 0 or 17 entries, got {out[name].size}")
+            raise ValueError(f'{name} must have 0 or 17 entries, got {out[name].size}')
     for name in METRIC_SCALAR_FIELDS:
         out[name] = float(getattr(msg, name))
     for name in METRIC_COUNT_FIELDS:
@@ -607,23 +807,28 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
     for name in METRIC_NAN_SEGMENT_FIELDS:
         out[name] = np.frombuffer(getattr(msg, name), dtype=np.float64).copy()
         _check_segment_extra(name, out[name])
-    out["segment_class"] = np.frombuffer(msg.segment_class, dtype=np.uint8).astype(np.int64)
-    _check_segment_extra("segment_class", out["segment_class"].astype(np.float64))
-    out["segment_origin"] = _check_origin(msg.segment_origin)
-    out["segment_origin_confidence"] = _check_confidence(msg.segment_origin_confidence)
-    out["findings_es_phase"] = _check_es_phase(msg.findings_es_phase)
-    out["verdict"] = checked_level(msg.verdict)
-    out["verdict_reasons"] = msg.verdict_reasons
-    out["study_id"] = _check_study_id(msg.study_id)
-    out["run_id"] = _check_study_id(msg.run_id, "run_id")
+    out['segment_class'] = np.frombuffer(msg.segment_class, dtype=np.uint8).astype(np.int64)
+    _check_segment_extra('segment_class', out['segment_class'].astype(np.float64))
+    out['segment_origin'] = _check_origin(msg.segment_origin)
+    out['segment_origin_confidence'] = _check_confidence(msg.segment_origin_confidence)
+    out['findings_es_phase'] = _check_es_phase(msg.findings_es_phase)
+    out['verdict'] = checked_level(msg.verdict)
+    out['verdict_reasons'] = msg.verdict_reasons
+    out['study_id'] = _check_study_id(msg.study_id)
+    out['run_id'] = _check_study_id(msg.run_id, 'run_id')
     return out
 
 
 # --------------------------------------------------------------------------- Foxglove schemas
 # The live view (mlv_ros/nodes/live_view.py) serves the graph's results with Foxglove's own
 # schemas (foxglove-sdk; imported here on first use, so the graph runs without it).
-FOXGLOVE_CURVE_FIELDS = ("cavity_volume_ml", "ejection_fraction", "twist_apex_deg", "twist_base_deg",
-                         "torsion_deg_per_cm")
+FOXGLOVE_CURVE_FIELDS = (
+    'cavity_volume_ml',
+    'ejection_fraction',
+    'twist_apex_deg',
+    'twist_base_deg',
+    'torsion_deg_per_cm',
+)
 
 
 def foxglove_timestamp(stamp: Time):
@@ -634,7 +839,8 @@ def foxglove_timestamp(stamp: Time):
 
 
 def cloud_to_foxglove(points: np.ndarray, stamp: Time, frame_id: str = PATIENT_FRAME):
-    """Structured point array (as :func:`msg_to_cloud` returns it) → ``foxglove.PointCloud``.
+    """
+    Structured point array (as :func:`msg_to_cloud` returns it) → ``foxglove.PointCloud``.
 
     Parameters
     ----------
@@ -655,31 +861,60 @@ def cloud_to_foxglove(points: np.ndarray, stamp: Time, frame_id: str = PATIENT_F
     ------
     ValueError
         Not a 1-D structured array, or a field of a type PackedElementField cannot hold.
+
     """
-    from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud, Pose, Quaternion, \
-        Vector3
+    from foxglove.messages import (
+        PackedElementField,
+        PackedElementFieldNumericType,
+        PointCloud,
+        Pose,
+        Quaternion,
+        Vector3,
+    )
 
     points = np.asarray(points)
     if points.dtype.names is None or points.ndim != 1:
-        raise ValueError("a Foxglove point cloud needs a 1-D structured array of named fields")
-    kinds = {np.dtype(np.uint8): "Uint8", np.dtype(np.int8): "Int8", np.dtype(np.uint16): "Uint16",
-             np.dtype(np.int16): "Int16", np.dtype(np.uint32): "Uint32", np.dtype(np.int32): "Int32",
-             np.dtype(np.float32): "Float32", np.dtype(np.float64): "Float64"}
-    little = points.dtype.newbyteorder("<")
+        raise ValueError('a Foxglove point cloud needs a 1-D structured array of named fields')
+    kinds = {
+        np.dtype(np.uint8): 'Uint8',
+        np.dtype(np.int8): 'Int8',
+        np.dtype(np.uint16): 'Uint16',
+        np.dtype(np.int16): 'Int16',
+        np.dtype(np.uint32): 'Uint32',
+        np.dtype(np.int32): 'Int32',
+        np.dtype(np.float32): 'Float32',
+        np.dtype(np.float64): 'Float64',
+    }
+    little = points.dtype.newbyteorder('<')
     fields = []
     for name in points.dtype.names:
         fdt, offset = points.dtype.fields[name][:2]
-        kind = kinds.get(fdt.newbyteorder("="))
+        kind = kinds.get(fdt.newbyteorder('='))
         if kind is None or fdt.shape:
-            raise ValueError(f"field {name!r} has dtype {fdt}, which a Foxglove PackedElementField cannot hold")
-        fields.append(PackedElementField(name=name, offset=offset, type=getattr(PackedElementFieldNumericType, kind)))
-    return PointCloud(timestamp=foxglove_timestamp(stamp), frame_id=frame_id,
-                      pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
-                      point_stride=points.dtype.itemsize, fields=fields, data=points.astype(little).tobytes())
+            raise ValueError(
+                f'field {name!r} has dtype {fdt}, which a Foxglove PackedElementField cannot hold'
+            )
+        fields.append(
+            PackedElementField(
+                name=name, offset=offset, type=getattr(PackedElementFieldNumericType, kind)
+            )
+        )
+    return PointCloud(
+        timestamp=foxglove_timestamp(stamp),
+        frame_id=frame_id,
+        pose=Pose(
+            position=Vector3(x=0.0, y=0.0, z=0.0),
+            orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+        point_stride=points.dtype.itemsize,
+        fields=fields,
+        data=points.astype(little).tobytes(),
+    )
 
 
 def display_window(image: np.ndarray) -> tuple[float, float]:
-    """Grey-level window (low, high) for showing a slice: its 1st and 99.5th percentiles.
+    """
+    Grey-level window (low, high) for showing a slice: its 1st and 99.5th percentiles.
 
     Scale-free (any scanner's stored range, rescale or float image); taken once per slice (from
     its first frame) and kept, so the tags' fading over the cycle stays visible.
@@ -692,8 +927,11 @@ def display_window(image: np.ndarray) -> tuple[float, float]:
     return float(low), float(high if high > low else low + 1.0)
 
 
-def image_to_foxglove(image: np.ndarray, window: tuple[float, float], stamp: Time, frame_id: str = PATIENT_FRAME):
-    """A slice image → ``foxglove.RawImage`` (``mono8``), grey levels mapped linearly from
+def image_to_foxglove(
+    image: np.ndarray, window: tuple[float, float], stamp: Time, frame_id: str = PATIENT_FRAME
+):
+    """
+    A slice image → ``foxglove.RawImage`` (``mono8``), grey levels mapped linearly from
     ``window`` (low → 0, high → 255, clipped; NaN → 0).
 
     Parameters
@@ -704,24 +942,35 @@ def image_to_foxglove(image: np.ndarray, window: tuple[float, float], stamp: Tim
         Grey levels shown as black and white (:func:`display_window`).
     stamp : builtin_interfaces/Time
         The frame's header stamp (its tag points' annotations carry the same one).
+
     """
     from foxglove.messages import RawImage
 
     image = np.asarray(image)
     if image.ndim != 2 or not image.size:
-        raise ValueError(f"an image to show must be 2-D and not empty, got shape {image.shape}")
+        raise ValueError(f'an image to show must be 2-D and not empty, got shape {image.shape}')
     low, high = float(window[0]), float(window[1])
     if not (np.isfinite(low) and np.isfinite(high) and high > low):
-        raise ValueError(f"display window must be finite with high > low, got {window}")
+        raise ValueError(f'display window must be finite with high > low, got {window}')
     scaled = (np.nan_to_num(image.astype(np.float32), nan=low) - low) * (255.0 / (high - low))
     data = np.clip(scaled, 0.0, 255.0).astype(np.uint8)
     rows, cols = data.shape
-    return RawImage(timestamp=foxglove_timestamp(stamp), frame_id=frame_id, width=cols, height=rows,
-                    encoding="mono8", step=cols, data=data.tobytes())
+    return RawImage(
+        timestamp=foxglove_timestamp(stamp),
+        frame_id=frame_id,
+        width=cols,
+        height=rows,
+        encoding='mono8',
+        step=cols,
+        data=data.tobytes(),
+    )
 
 
-def tagpoints_to_foxglove(pixel_rc: np.ndarray, stamp: Time, color=(1.0, 0.3, 0.1, 1.0), size_px: float = 4.0):
-    """Tag points of one frame → ``foxglove.ImageAnnotations`` (one POINTS annotation).
+def tagpoints_to_foxglove(
+    pixel_rc: np.ndarray, stamp: Time, color=(1.0, 0.3, 0.1, 1.0), size_px: float = 4.0
+):
+    """
+    Tag points of one frame → ``foxglove.ImageAnnotations`` (one POINTS annotation).
 
     Parameters
     ----------
@@ -735,20 +984,37 @@ def tagpoints_to_foxglove(pixel_rc: np.ndarray, stamp: Time, color=(1.0, 0.3, 0.
         RGBA, 0..1.
     size_px : float
         Point size on screen, pixels.
+
     """
-    from foxglove.messages import Color, ImageAnnotations, Point2, PointsAnnotation, PointsAnnotationType
+    from foxglove.messages import (
+        Color,
+        ImageAnnotations,
+        Point2,
+        PointsAnnotation,
+        PointsAnnotationType,
+    )
 
     rc = np.asarray(pixel_rc, dtype=np.float64).reshape(-1, 2)
-    _require_finite("tag pixel_rc", rc)
+    _require_finite('tag pixel_rc', rc)
     ts = foxglove_timestamp(stamp)
     points = [Point2(x=float(c) + 0.5, y=float(r) + 0.5) for r, c in rc]
-    return ImageAnnotations(timestamp=ts, points=[PointsAnnotation(
-        timestamp=ts, type=PointsAnnotationType.Points, points=points,
-        outline_color=Color(r=color[0], g=color[1], b=color[2], a=color[3]), thickness=float(size_px))])
+    return ImageAnnotations(
+        timestamp=ts,
+        points=[
+            PointsAnnotation(
+                timestamp=ts,
+                type=PointsAnnotationType.Points,
+                points=points,
+                outline_color=Color(r=color[0], g=color[1], b=color[2], a=color[3]),
+                thickness=float(size_px),
+            )
+        ],
+    )
 
 
 def metrics_to_curves(metrics: Mapping) -> dict:
-    """One phase's metrics (:func:`msg_to_metrics`) → the live view's curve point, a JSON object
+    """
+    One phase's metrics (:func:`msg_to_metrics`) → the live view's curve point, a JSON object
     Foxglove's Plot panel reads (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
 
     Keys: ``phase_index``, ``num_phases``, ``time_fraction`` (0..1), ``verdict`` (0 ok,
@@ -757,26 +1023,44 @@ def metrics_to_curves(metrics: Mapping) -> dict:
     ``twist_base_deg`` (degrees, the most apical / basal level, + counter-clockwise seen from the
     apex) and ``torsion_deg_per_cm``.
     """
-    out = {"phase_index": int(metrics["phase_index"]), "num_phases": int(metrics["num_phases"]),
-           "time_fraction": float(metrics["time_fraction"]), "verdict": int(metrics["verdict"]),
-           "verdict_reasons": str(metrics["verdict_reasons"])}
-    if out["verdict"] >= 2:
+    out = {
+        'phase_index': int(metrics['phase_index']),
+        'num_phases': int(metrics['num_phases']),
+        'time_fraction': float(metrics['time_fraction']),
+        'verdict': int(metrics['verdict']),
+        'verdict_reasons': str(metrics['verdict_reasons']),
+    }
+    if out['verdict'] >= 2:
         return out
-    twist = np.asarray(metrics["twist_deg"], dtype=np.float64)
-    values = {"cavity_volume_ml": metrics["cavity_volume_ml"], "ejection_fraction": metrics["ejection_fraction"],
-              "twist_apex_deg": twist[0] if twist.size else None, "twist_base_deg": twist[-1] if twist.size else None,
-              "torsion_deg_per_cm": metrics["torsion_deg_per_cm"]}
+    twist = np.asarray(metrics['twist_deg'], dtype=np.float64)
+    values = {
+        'cavity_volume_ml': metrics['cavity_volume_ml'],
+        'ejection_fraction': metrics['ejection_fraction'],
+        'twist_apex_deg': twist[0] if twist.size else None,
+        'twist_base_deg': twist[-1] if twist.size else None,
+        'torsion_deg_per_cm': metrics['torsion_deg_per_cm'],
+    }
     out.update({k: float(v) for k, v in values.items() if v is not None and np.isfinite(v)})
     return out
 
 
 def curves_schema() -> dict:
-    """JSON schema of :func:`metrics_to_curves`'s objects (advertised with the channel, so
-    Foxglove offers the fields before the first phase)."""
-    number = {"type": "number"}
-    props = {"phase_index": {"type": "integer"}, "num_phases": {"type": "integer"}, "time_fraction": number,
-             "verdict": {"type": "integer", "description": "0 ok, 1 degraded, 2 failed (no values)"},
-             "verdict_reasons": {"type": "string"}}
+    """
+    JSON schema of :func:`metrics_to_curves`'s objects (advertised with the channel, so
+    Foxglove offers the fields before the first phase).
+    """
+    number = {'type': 'number'}
+    props = {
+        'phase_index': {'type': 'integer'},
+        'num_phases': {'type': 'integer'},
+        'time_fraction': number,
+        'verdict': {'type': 'integer', 'description': '0 ok, 1 degraded, 2 failed (no values)'},
+        'verdict_reasons': {'type': 'string'},
+    }
     props.update({k: number for k in FOXGLOVE_CURVE_FIELDS})
-    return {"type": "object", "title": "mlv_ros.PhaseCurves", "properties": props,
-            "required": ["phase_index", "num_phases", "time_fraction", "verdict"]}
+    return {
+        'type': 'object',
+        'title': 'mlv_ros.PhaseCurves',
+        'properties': props,
+        'required': ['phase_index', 'num_phases', 'time_fraction', 'verdict'],
+    }

@@ -1,4 +1,5 @@
-"""A private ROS_DOMAIN_ID for a run or a test process.
+"""
+A private ROS_DOMAIN_ID for a run or a test process.
 
 Two in-process graphs on one machine and one domain would hear each other's frames. A run (or a
 test process) therefore claims a domain id by holding an exclusive ``flock`` on a per-id file;
@@ -8,18 +9,18 @@ the lock is released when the process exits, so concurrent runs never share a do
 from __future__ import annotations
 
 import fcntl
-import tempfile
 from pathlib import Path
+import tempfile
 
 _HELD: list = []  # lock files kept open for the life of the process
 
 
 def claim_domain_id(first: int = 101) -> int:
     """Lowest free id in ``first``..232, then 1..first-1 (Fast DDS accepts 0..232)."""
-    lock_dir = Path(tempfile.gettempdir()) / "mlv_ros_domains"
+    lock_dir = Path(tempfile.gettempdir()) / 'mlv_ros_domains'
     lock_dir.mkdir(exist_ok=True)
     for domain in [*range(first, 233), *range(1, first)]:
-        fh = open(lock_dir / f"{domain}.lock", "w")
+        fh = open(lock_dir / f'{domain}.lock', 'w')
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -27,4 +28,4 @@ def claim_domain_id(first: int = 101) -> int:
             continue
         _HELD.append(fh)
         return domain
-    raise RuntimeError("no free ROS domain id (1..232) on this machine")
+    raise RuntimeError('no free ROS domain id (1..232) on this machine')

@@ -1,4 +1,5 @@
-"""What ``launch/pipeline.launch.py`` makes of its arguments, kept free of launch and launch_ros
+"""
+What ``launch/pipeline.launch.py`` makes of its arguments, kept free of launch and launch_ros
 (not on PyPI) so it can be tested without them.
 
 Each launch gets its own run directory unless ``output_dir`` names one: ``runs/<YYYYmmdd-HHMMSS>``
@@ -9,14 +10,14 @@ recording in its way.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
+import time
 
 from mlv_ros.qos import full_namespace, namespace_error
 
-SOURCES = ("phantom", "dicom", "bag")
-RUNS_DIR = "runs"
+SOURCES = ('phantom', 'dicom', 'bag')
+RUNS_DIR = 'runs'
 
 
 @dataclass
@@ -25,11 +26,14 @@ class GraphSettings:
 
     namespace: str  # "" for the root (launch_ros's spelling), else "/study2"
     output_dir: Path  # the run directory; the recorder writes output_dir/run.mcap
-    overrides: dict = field(default_factory=dict)  # node → {parameter: value}, over the params file
+    overrides: dict = field(
+        default_factory=dict
+    )  # node → {parameter: value}, over the params file
 
 
 def fresh_run_dir(base: str | Path = RUNS_DIR, now: float | None = None) -> Path:
-    """Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``... when
+    """
+    Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``... when
     taken).
 
     Parameters
@@ -43,23 +47,30 @@ def fresh_run_dir(base: str | Path = RUNS_DIR, now: float | None = None) -> Path
     -------
     Path
         The directory, created empty by this call (so two launches never get the same one).
+
     """
     base = Path(base)
     base.mkdir(parents=True, exist_ok=True)
-    stem = time.strftime("%Y%m%d-%H%M%S", time.localtime(time.time() if now is None else now))
+    stem = time.strftime('%Y%m%d-%H%M%S', time.localtime(time.time() if now is None else now))
     for n in range(1, 1000):
-        candidate = base / (stem if n == 1 else f"{stem}-{n}")
+        candidate = base / (stem if n == 1 else f'{stem}-{n}')
         try:
             candidate.mkdir()
         except FileExistsError:
             continue
         return candidate
-    raise FileExistsError(f"{base}: no free run directory for {stem}; give output_dir:=DIR")
+    raise FileExistsError(f'{base}: no free run directory for {stem}; give output_dir:=DIR')
 
 
-def graph_settings(source: str = "phantom", path: str = "", output_dir: str = "", namespace: str = "",
-                   cwd: str | Path | None = None) -> GraphSettings:
-    """The graph's namespace, run directory and parameter overrides for the launch arguments.
+def graph_settings(
+    source: str = 'phantom',
+    path: str = '',
+    output_dir: str = '',
+    namespace: str = '',
+    cwd: str | Path | None = None,
+) -> GraphSettings:
+    """
+    The graph's namespace, run directory and parameter overrides for the launch arguments.
 
     Parameters
     ----------
@@ -82,26 +93,43 @@ def graph_settings(source: str = "phantom", path: str = "", output_dir: str = ""
     ------
     ValueError
         An argument that cannot work, in one line with the fix.
+
     """
     cwd = Path.cwd() if cwd is None else Path(cwd)
     if source not in SOURCES:
-        raise ValueError(f"source:={source} is not one of {', '.join(SOURCES)}: e.g. source:=dicom path:=/data/study")
-    if source != "phantom" and not path:
-        what = "DICOM directory" if source == "dicom" else "recording"
-        raise ValueError(f"source:={source} needs path:= (the {what})")
+        raise ValueError(
+            f'source:={source} is not one of {", ".join(SOURCES)}: e.g. source:=dicom '
+            'path:=/data/study'
+        )
+    if source != 'phantom' and not path:
+        what = 'DICOM directory' if source == 'dicom' else 'recording'
+        raise ValueError(f'source:={source} needs path:= (the {what})')
     if namespace_error(namespace):
-        raise ValueError(f"namespace:={namespace_error(namespace)}")
+        raise ValueError(f'namespace:={namespace_error(namespace)}')
     ns = full_namespace(namespace)
-    overrides = {"frame_source": {"source": source}}
+    overrides = {'frame_source': {'source': source}}
     if path:
-        overrides["frame_source"]["path"] = str((cwd / Path(path).expanduser()).resolve())
-    out = (cwd / Path(output_dir).expanduser()).resolve() if output_dir else fresh_run_dir(cwd / RUNS_DIR)
-    if (out / "run.mcap").exists():
-        raise ValueError(f"output_dir:={out} already holds a run (run.mcap): give a new directory, or leave "
-                         "output_dir out for a fresh one under runs/")
-    overrides["recorder"] = {"output": str(out / "run.mcap")}
-    if ns != "/":  # /diagnostics is shared: name each status by the node's full name
-        for node in ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder",
-                     "live_view"):
-            overrides.setdefault(node, {})["diagnostic_updater.use_fqn"] = True
-    return GraphSettings(namespace="" if ns == "/" else ns, output_dir=out, overrides=overrides)
+        overrides['frame_source']['path'] = str((cwd / Path(path).expanduser()).resolve())
+    out = (
+        (cwd / Path(output_dir).expanduser()).resolve()
+        if output_dir
+        else fresh_run_dir(cwd / RUNS_DIR)
+    )
+    if (out / 'run.mcap').exists():
+        raise ValueError(
+            f'output_dir:={out} already holds a run (run.mcap): give a new directory, or leave '
+            'output_dir out for a fresh one under runs/'
+        )
+    overrides['recorder'] = {'output': str(out / 'run.mcap')}
+    if ns != '/':  # /diagnostics is shared: name each status by the node's full name
+        for node in (
+            'frame_source',
+            'tag_detector',
+            'registration',
+            'meshless_solver',
+            'motion_analyzer',
+            'recorder',
+            'live_view',
+        ):
+            overrides.setdefault(node, {})['diagnostic_updater.use_fqn'] = True
+    return GraphSettings(namespace='' if ns == '/' else ns, output_dir=out, overrides=overrides)

@@ -1,4 +1,5 @@
-"""Topic names and QoS profiles of the graph, in one place (as image_pipeline does).
+"""
+Topic names and QoS profiles of the graph, in one place (as image_pipeline does).
 
 Every stream that carries acquisition data or results is RELIABLE with a deep KEEP_LAST queue,
 so a whole study (25 phases × 11 slices = 275 frames) fits in flight without a drop. What late
@@ -18,25 +19,25 @@ import re
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 # Topics, by their names in the root namespace (nodes use them relative: see relative()).
-FRAMES = "/mlv/frames"                    # mlv_msgs/TaggedFrame
-TAG_POINTS = "/mlv/tag_points"            # mlv_msgs/TagPoints
-REGISTERED_CLOUD = "/mlv/registered_cloud"  # sensor_msgs/PointCloud2, ED particles (latched)
-REGISTERED_STATE = "/mlv/registered_state"  # mlv_msgs/ModelState at ED (latched)
-MOTION = "/lv/motion"                     # sensor_msgs/PointCloud2, one per phase
-MODEL_STATE = "/lv/model_state"           # mlv_msgs/ModelState, one per phase
-METRICS = "/lv/metrics"                   # mlv_msgs/MotionMetrics, one per phase
-DIAGNOSTICS = "/diagnostics"              # diagnostic_msgs/DiagnosticArray
+FRAMES = '/mlv/frames'  # mlv_msgs/TaggedFrame
+TAG_POINTS = '/mlv/tag_points'  # mlv_msgs/TagPoints
+REGISTERED_CLOUD = '/mlv/registered_cloud'  # sensor_msgs/PointCloud2, ED particles (latched)
+REGISTERED_STATE = '/mlv/registered_state'  # mlv_msgs/ModelState at ED (latched)
+MOTION = '/lv/motion'  # sensor_msgs/PointCloud2, one per phase
+MODEL_STATE = '/lv/model_state'  # mlv_msgs/ModelState, one per phase
+METRICS = '/lv/metrics'  # mlv_msgs/MotionMetrics, one per phase
+DIAGNOSTICS = '/diagnostics'  # diagnostic_msgs/DiagnosticArray
 
 # What each topic carries, as rosbag2 names types (pkg/msg/Type).
 TOPIC_TYPES = {
-    FRAMES: "mlv_msgs/msg/TaggedFrame",
-    TAG_POINTS: "mlv_msgs/msg/TagPoints",
-    REGISTERED_CLOUD: "sensor_msgs/msg/PointCloud2",
-    REGISTERED_STATE: "mlv_msgs/msg/ModelState",
-    MOTION: "sensor_msgs/msg/PointCloud2",
-    MODEL_STATE: "mlv_msgs/msg/ModelState",
-    METRICS: "mlv_msgs/msg/MotionMetrics",
-    DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+    FRAMES: 'mlv_msgs/msg/TaggedFrame',
+    TAG_POINTS: 'mlv_msgs/msg/TagPoints',
+    REGISTERED_CLOUD: 'sensor_msgs/msg/PointCloud2',
+    REGISTERED_STATE: 'mlv_msgs/msg/ModelState',
+    MOTION: 'sensor_msgs/msg/PointCloud2',
+    MODEL_STATE: 'mlv_msgs/msg/ModelState',
+    METRICS: 'mlv_msgs/msg/MotionMetrics',
+    DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
 }
 LATCHED_TOPICS = (REGISTERED_CLOUD, REGISTERED_STATE)
 # Inputs a restarted node must be able to catch up on: their publishers keep the whole study
@@ -45,14 +46,15 @@ HISTORY_TOPICS = (FRAMES, TAG_POINTS)
 
 # The topics a node resolves in its namespace (all but /diagnostics).
 GRAPH_TOPICS = tuple(t for t in TOPIC_TYPES if t != DIAGNOSTICS)
-_NAMESPACE = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+_NAMESPACE = re.compile(r'(/[A-Za-z_][A-Za-z0-9_]*)+')
 
 STREAM_DEPTH = 1000
 LATCHED_READER_DEPTH = 10  # subscriptions to the latched topics (see subscription_qos)
 
 
 def relative(topic: str) -> str:
-    """The name a node publishes or subscribes graph topic ``topic`` with.
+    """
+    The name a node publishes or subscribes graph topic ``topic`` with.
 
     Parameters
     ----------
@@ -64,12 +66,14 @@ def relative(topic: str) -> str:
     str
         ``mlv/frames`` for ``/mlv/frames`` (resolved in the node's namespace); any other name
         (``/diagnostics``, a topic not of the graph) unchanged.
+
     """
-    return topic.lstrip("/") if topic in GRAPH_TOPICS else topic
+    return topic.lstrip('/') if topic in GRAPH_TOPICS else topic
 
 
 def split_graph_topic(name: str) -> tuple[str, str] | None:
-    """The namespace and the graph topic of a resolved (recorded) topic name.
+    """
+    The namespace and the graph topic of a resolved (recorded) topic name.
 
     Parameters
     ----------
@@ -81,48 +85,61 @@ def split_graph_topic(name: str) -> tuple[str, str] | None:
     tuple of (str, str) or None
         ``("/study2", "/mlv/frames")``; ``("/", "/mlv/frames")`` for the root namespace; None
         for a name that is no graph topic (``/diagnostics`` included: it has no namespace).
+
     """
     for topic in GRAPH_TOPICS:
         if name == topic:
-            return "/", topic
+            return '/', topic
         if name.endswith(topic) and _NAMESPACE.fullmatch(name[:-len(topic)]):
             return name[:-len(topic)], topic
     return None
 
 
 def namespace_error(namespace: str) -> str | None:
-    """Why ``namespace`` is not a ROS namespace (None when it is).
+    """
+    Why ``namespace`` is not a ROS namespace (None when it is).
 
     Tokens of letters, digits and underscores, not starting with a digit, separated by ``/``;
     the leading ``/`` may be left out (``study2`` is ``/study2``).
     """
-    ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
-    if ns == "/" or (_NAMESPACE.fullmatch(ns) and "__" not in ns):
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
+    if ns == '/' or (_NAMESPACE.fullmatch(ns) and '__' not in ns):
         return None
-    return (f"{namespace!r} is not a ROS namespace: use letters, digits and underscores, tokens "
-            "separated by '/' and not starting with a digit (e.g. study2 or site_a/study2)")
+    return (
+        f'{namespace!r} is not a ROS namespace: use letters, digits and underscores, tokens '
+        "separated by '/' and not starting with a digit (e.g. study2 or site_a/study2)"
+    )
 
 
 def full_namespace(namespace: str | None) -> str:
     """Write ``namespace`` as ROS does: ``/study2`` for ``study2`` or ``/study2/``, else ``/``."""
-    ns = (namespace or "").strip("/")
-    return "/" + ns if ns else "/"
+    ns = (namespace or '').strip('/')
+    return '/' + ns if ns else '/'
 
 
 def stream_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
     """RELIABLE, VOLATILE, KEEP_LAST(depth): per-frame and per-phase data that must not be lost."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def latched_qos(depth: int = 1) -> QoSProfile:
     """RELIABLE, TRANSIENT_LOCAL: the last ``depth`` messages are delivered to late joiners."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
 
 
 def diagnostics_qos() -> QoSProfile:
-    """RELIABLE, VOLATILE, KEEP_LAST(1000).
+    """
+    RELIABLE, VOLATILE, KEEP_LAST(1000).
 
     diagnostic_updater publishes ``/diagnostics`` with depth 1 (one array of every task, once a
     period); our nodes publish each event the moment it happens as well, and a burst of bad input
@@ -134,25 +151,35 @@ def diagnostics_qos() -> QoSProfile:
 
 def history_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
     """RELIABLE, TRANSIENT_LOCAL, KEEP_LAST(depth): a stream whose history late joiners get."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
 
 
 def topic_qos(topic: str) -> QoSProfile:
-    """The profile a graph topic is published with: latched for the registration results, with
-    history for frames and tag points, a deep RELIABLE stream otherwise."""
+    """
+    The profile a graph topic is published with: latched for the registration results, with
+    history for frames and tag points, a deep RELIABLE stream otherwise.
+    """
     if topic in LATCHED_TOPICS:
         return latched_qos()
     return history_qos() if topic in HISTORY_TOPICS else stream_qos()
 
 
 def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
-    """The profile to subscribe with. VOLATILE matches any RELIABLE publisher (a bag player,
-    another tool); ``catch_up`` asks for the publisher's history (TRANSIENT_LOCAL, which only a
-    TRANSIENT_LOCAL publisher can serve) — the solver does so for tag points, so that a restarted
-    solver rebuilds the run. Latched topics are taken with a queue of ``LATCHED_READER_DEPTH``:
-    a publisher keeps only its last model, but a second one on the domain (another graph) must
-    not push ours out of the reader's queue before it is read."""
+    """
+    The profile to subscribe with.
+
+    VOLATILE matches any RELIABLE publisher (a bag player, another tool); ``catch_up`` asks for the
+    publisher's history (TRANSIENT_LOCAL, which only a TRANSIENT_LOCAL publisher can serve) — the
+    solver does so for tag points, so that a restarted solver rebuilds the run. Latched topics are
+    taken with a queue of ``LATCHED_READER_DEPTH``: a publisher keeps only its last model, but a
+    second one on the domain (another graph) must not push ours out of the reader's queue before it
+    is read.
+    """
     if topic in LATCHED_TOPICS:
         return latched_qos(LATCHED_READER_DEPTH)
     return history_qos() if catch_up and topic in HISTORY_TOPICS else stream_qos()
@@ -160,7 +187,13 @@ def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
 
 def qos_dict(profile: QoSProfile) -> dict:
     """A profile in rosbag2's offered_qos_profiles vocabulary."""
-    return {"history": "keep_all" if profile.history == HistoryPolicy.KEEP_ALL else "keep_last",
-            "depth": profile.depth,
-            "reliability": "best_effort" if profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
-            "durability": "transient_local" if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile"}
+    return {
+        'history': 'keep_all' if profile.history == HistoryPolicy.KEEP_ALL else 'keep_last',
+        'depth': profile.depth,
+        'reliability': 'best_effort'
+        if profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        else 'reliable',
+        'durability': 'transient_local'
+        if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        else 'volatile',
+    }

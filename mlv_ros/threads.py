@@ -1,4 +1,5 @@
-"""One compute thread in every graph process, whatever the environment says: the same study must
+"""
+One compute thread in every graph process, whatever the environment says: the same study must
 give the same motion, to the bit, however the graph is laid out (one process, a child process,
 one process per node under ``ros2 launch``, several hosts).
 
@@ -26,7 +27,8 @@ COMPUTE_THREADS = 1
 
 @contextlib.contextmanager
 def compute_threads():
-    """Hold every BLAS/OpenMP pool loaded in this process (numpy's, scipy's and OpenCV's
+    """
+    Hold every BLAS/OpenMP pool loaded in this process (numpy's, scipy's and OpenCV's
     OpenBLAS, any OpenMP runtime) and OpenCV's own pool at :data:`COMPUTE_THREADS` thread(s)
     while the block runs, then restore what they were.
 
@@ -37,7 +39,7 @@ def compute_threads():
     import scipy.linalg  # noqa: F401  (scipy's own OpenBLAS)
     from threadpoolctl import threadpool_limits
 
-    cv2 = sys.modules.get("cv2")
+    cv2 = sys.modules.get('cv2')
     cv_before = cv2.getNumThreads() if cv2 is not None else None
     with threadpool_limits(limits=COMPUTE_THREADS):
         if cv2 is not None:

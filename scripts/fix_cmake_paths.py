@@ -1,4 +1,5 @@
-"""Rewrite the wheel builder's baked include paths in the venv's cmake files.
+"""
+Rewrite the wheel builder's baked include paths in the venv's cmake files.
 
 Some ``share/*/cmake/*.cmake`` files installed by the ``ros-jazzy-*`` wheels name the Python and
 numpy include directories of the machine that built the wheels (``/opt/python/cp311-cp311/...``).
@@ -8,31 +9,31 @@ interpreter's. Idempotent: a second run finds nothing to rewrite.
 Usage: python fix_cmake_paths.py VENV
 """
 
+from pathlib import Path
 import re
 import sys
 import sysconfig
-from pathlib import Path
 
 import numpy
 
 
 def main(venv: str) -> int:
-    py_include = sysconfig.get_paths()["include"]
+    py_include = sysconfig.get_paths()['include']
     np_include = numpy.get_include()
     # Builder paths look like /opt/python/cp311-cp311/include/python3.11 and
     # /opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/..._core/include
-    np_pat = re.compile(r"/opt/python/cp311-cp311/[^\";)\s]*?/numpy/(?:_?core/)?include")
-    py_pat = re.compile(r"/opt/python/cp311-cp311/include/python3\.11")
+    np_pat = re.compile(r'/opt/python/cp311-cp311/[^\";)\s]*?/numpy/(?:_?core/)?include')
+    py_pat = re.compile(r'/opt/python/cp311-cp311/include/python3\.11')
     changed = 0
-    for path in Path(venv).glob("share/*/cmake/*.cmake"):
+    for path in Path(venv).glob('share/*/cmake/*.cmake'):
         text = path.read_text()
         new = py_pat.sub(py_include, np_pat.sub(np_include, text))
         if new != text:
             path.write_text(new)
             changed += 1
-    print(f"[bootstrap] rewrote builder include paths in {changed} cmake file(s)", file=sys.stderr)
+    print(f'[bootstrap] rewrote builder include paths in {changed} cmake file(s)', file=sys.stderr)
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main(sys.argv[1]))

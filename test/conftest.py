@@ -1,4 +1,5 @@
-"""Shared test harness: ROS isolation and bounded spinning.
+"""
+Shared test harness: ROS isolation and bounded spinning.
 
 Each pytest process claims its own ROS_DOMAIN_ID (``mlv_ros.domain``: an flock on a per-id file,
 so concurrent test runs on one machine never share a domain) and restricts discovery to localhost,
@@ -9,31 +10,31 @@ conditions with ``spin_until`` — never a bare sleep.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import sys
 import time
-from pathlib import Path
-
-import pytest
 
 from mlv_ros.domain import claim_domain_id
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)
 
 
-os.environ["ROS_DOMAIN_ID"] = str(claim_domain_id())
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("AMENT_PREFIX_PATH", str(VENV))
-os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
+os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
 def pytest_collection_modifyitems(config, items):
-    """Modules with a ``slow`` test run first, each module's tests kept together.
+    """
+    Modules with a ``slow`` test run first, each module's tests kept together.
 
     pytest-xdist (``-n 2 --dist loadfile``, pytest.ini) hands whole modules to its workers in
     this order; the long graph runs starting first keeps the two workers busy to the end.
     """
-    slow = {item.module.__name__ for item in items if item.get_closest_marker("slow")}
+    slow = {item.module.__name__ for item in items if item.get_closest_marker('slow')}
     items.sort(key=lambda item: item.module.__name__ not in slow)  # stable: modules stay whole
 
 
@@ -78,7 +79,7 @@ def spin():
 
 def console_script(name: str) -> str:
     """Path of one of our console scripts in the running venv."""
-    path = VENV / "bin" / name
+    path = VENV / 'bin' / name
     if not path.exists():
-        pytest.fail(f"console script {name} is not installed in {VENV}/bin (run make bootstrap)")
+        pytest.fail(f'console script {name} is not installed in {VENV}/bin (run make bootstrap)')
     return str(path)

@@ -1,4 +1,5 @@
-"""The in-process graph as tests and benchmarks drive it: the four processing nodes (and
+"""
+The in-process graph as tests and benchmarks drive it: the four processing nodes (and
 optionally the recorder) over real Fast DDS, and a probe node that publishes on any graph topic
 and collects every output.
 
@@ -8,44 +9,57 @@ imports ``conftest``, which claims a private ROS domain for the process.
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
+import time
 
 from conftest import spin_until
+from diagnostic_msgs.msg import DiagnosticArray
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
-from mlv_ros.nodes.frame_source import count_slices, order_frames
 from mlv_ros.nodes.common import status_node
+from mlv_ros.nodes.frame_source import count_slices, order_frames
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
 from mlv_ros.nodes.recorder import Recorder
 from mlv_ros.nodes.registration import Registration
 from mlv_ros.nodes.tag_detector import TagDetector
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
 
 # What the probe collects: key → (type, topic).
-OUTPUTS = {"diag": (DiagnosticArray, qos.DIAGNOSTICS), "points": (TagPoints, qos.TAG_POINTS),
-           "motion": (PointCloud2, qos.MOTION), "state": (ModelState, qos.MODEL_STATE),
-           "metrics": (MotionMetrics, qos.METRICS)}
-TOPIC_MSG = {qos.FRAMES: TaggedFrame, qos.TAG_POINTS: TagPoints, qos.REGISTERED_CLOUD: PointCloud2,
-             qos.REGISTERED_STATE: ModelState, qos.MOTION: PointCloud2, qos.MODEL_STATE: ModelState}
+OUTPUTS = {
+    'diag': (DiagnosticArray, qos.DIAGNOSTICS),
+    'points': (TagPoints, qos.TAG_POINTS),
+    'motion': (PointCloud2, qos.MOTION),
+    'state': (ModelState, qos.MODEL_STATE),
+    'metrics': (MotionMetrics, qos.METRICS),
+}
+TOPIC_MSG = {
+    qos.FRAMES: TaggedFrame,
+    qos.TAG_POINTS: TagPoints,
+    qos.REGISTERED_CLOUD: PointCloud2,
+    qos.REGISTERED_STATE: ModelState,
+    qos.MOTION: PointCloud2,
+    qos.MODEL_STATE: ModelState,
+}
 
 
 class Probe(Node):
-    """Publishes on any graph topic with the QoS the graph's own publisher offers there (so every
-    consumer matches it, TRANSIENT_LOCAL ones included) and collects every graph output."""
+    """
+    Publishes on any graph topic with the QoS the graph's own publisher offers there (so every
+    consumer matches it, TRANSIENT_LOCAL ones included) and collects every graph output.
+    """
 
-    def __init__(self, context, name: str = "probe"):
+    def __init__(self, context, name: str = 'probe'):
         super().__init__(name, context=context)
-        self.pubs = {t: self.create_publisher(m, t, qos.topic_qos(t)) for t, m in TOPIC_MSG.items()}
+        self.pubs = {
+            t: self.create_publisher(m, t, qos.topic_qos(t)) for t, m in TOPIC_MSG.items()
+        }
         self.out = {k: [] for k in OUTPUTS}
         self.sent: set = set()  # (topic, stamp) of what the probe published itself
         # Deep RELIABLE queues on every output, /diagnostics included: a burst of reports (one per
@@ -60,17 +74,31 @@ class Probe(Node):
     def received(self, key: str) -> list:
         """What the graph published on output ``key`` (the probe's own messages left out)."""
         topic = OUTPUTS[key][1]
-        return [m for m in self.out[key] if (topic, conversions.stamp_text(m.header.stamp)) not in self.sent]
+        return [
+            m
+            for m in self.out[key]
+            if (topic, conversions.stamp_text(m.header.stamp)) not in self.sent
+        ]
 
     def statuses(self) -> list[tuple[str, int, str, dict]]:
         """Every DiagnosticStatus received: (node name, level, message, values)."""
-        return [(status_node(s), s.level, s.message, {kv.key: kv.value for kv in s.values})
-                for d in self.out["diag"] for s in d.status]
+        return [
+            (status_node(s), s.level, s.message, {kv.key: kv.value for kv in s.values})
+            for d in self.out['diag']
+            for s in d.status
+        ]
 
 
-def graph_nodes(context, *, max_pixels: int = 1024 * 1024, num_particles: int = 1500,
-                timeout_s: float = 2.0, record_to: Path | None = None) -> dict[str, Node]:
-    """The processing graph in one process: name → node.
+def graph_nodes(
+    context,
+    *,
+    max_pixels: int = 1024 * 1024,
+    num_particles: int = 1500,
+    timeout_s: float = 2.0,
+    record_to: Path | None = None,
+) -> dict[str, Node]:
+    """
+    The processing graph in one process: name → node.
 
     Parameters
     ----------
@@ -83,32 +111,50 @@ def graph_nodes(context, *, max_pixels: int = 1024 * 1024, num_particles: int = 
         ``registration.ed_timeout_s`` and ``meshless_solver.incomplete_timeout_s``.
     record_to : Path, optional
         Also run a recorder writing every graph topic to this MCAP file.
+
     """
     nodes = {
-        "tag_detector": TagDetector(context=context, parameter_overrides=[Parameter("max_pixels", value=max_pixels)]),
-        "registration": Registration(context=context, parameter_overrides=[
-            Parameter("num_particles", value=num_particles), Parameter("ed_timeout_s", value=timeout_s)]),
-        "meshless_solver": MeshlessSolver(context=context, parameter_overrides=[
-            Parameter("incomplete_timeout_s", value=timeout_s)]),
-        "motion_analyzer": MotionAnalyzer(context=context),
+        'tag_detector': TagDetector(
+            context=context, parameter_overrides=[Parameter('max_pixels', value=max_pixels)]
+        ),
+        'registration': Registration(
+            context=context,
+            parameter_overrides=[
+                Parameter('num_particles', value=num_particles),
+                Parameter('ed_timeout_s', value=timeout_s),
+            ],
+        ),
+        'meshless_solver': MeshlessSolver(
+            context=context,
+            parameter_overrides=[Parameter('incomplete_timeout_s', value=timeout_s)],
+        ),
+        'motion_analyzer': MotionAnalyzer(context=context),
     }
     if record_to is not None:
-        nodes["recorder"] = Recorder(context=context, parameter_overrides=[Parameter("output", value=str(record_to))])
+        nodes['recorder'] = Recorder(
+            context=context, parameter_overrides=[Parameter('output', value=str(record_to))]
+        )
     return nodes
 
 
 def wait_matched(executor, probe: Probe, counts: dict[str, int], timeout: float = 30.0) -> None:
     """Spin until each topic's probe publisher has at least ``counts[topic]`` subscribers."""
-    ok = spin_until(executor, lambda: all(probe.pubs[t].get_subscription_count() >= n for t, n in counts.items()),
-                    timeout)
+    ok = spin_until(
+        executor,
+        lambda: all(probe.pubs[t].get_subscription_count() >= n for t, n in counts.items()),
+        timeout,
+    )
     if not ok:
         have = {t: probe.pubs[t].get_subscription_count() for t in counts}
-        raise TimeoutError(f"subscribers not matched within {timeout} s: want {counts}, have {have}")
+        raise TimeoutError(
+            f'subscribers not matched within {timeout} s: want {counts}, have {have}'
+        )
 
 
 @dataclass
 class LoadReport:
-    """Frames in vs out of one whole-study burst through the graph (counts are messages).
+    """
+    Frames in vs out of one whole-study burst through the graph (counts are messages).
 
     ``published`` frames were sent; ``detector_received`` reached the tag detector;
     ``tag_sets`` it published; ``recorded_frames`` / ``recorded_tag_sets`` are in the recording;
@@ -130,15 +176,19 @@ class LoadReport:
     @property
     def frames_lost(self) -> int:
         """Frames that did not make it through every stage (0 when nothing was lost)."""
-        return self.published - min(self.detector_received, self.tag_sets, self.recorded_frames, self.recorded_tag_sets)
+        return self.published - min(
+            self.detector_received, self.tag_sets, self.recorded_frames, self.recorded_tag_sets
+        )
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "frames_lost": self.frames_lost}
+        return {**asdict(self), 'frames_lost': self.frames_lost}
 
 
 def spin_until_stalled(executor, progress, done: tuple, timeout: float, stall_s: float) -> bool:
-    """Spin until ``progress()`` reaches ``done`` (element-wise ≥), has not changed for
-    ``stall_s`` seconds, or ``timeout`` passes; returns whether it reached ``done``."""
+    """
+    Spin until ``progress()`` reaches ``done`` (element-wise ≥), has not changed for
+    ``stall_s`` seconds, or ``timeout`` passes; returns whether it reached ``done``.
+    """
     deadline = time.monotonic() + timeout
     last, changed_at = progress(), time.monotonic()
     while time.monotonic() < deadline and time.monotonic() - changed_at < stall_s:
@@ -151,9 +201,17 @@ def spin_until_stalled(executor, progress, done: tuple, timeout: float, stall_s:
     return all(a >= b for a, b in zip(progress(), done))
 
 
-def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", timeout: float = 300.0,
-             stall_s: float = 30.0, num_particles: int = 1500) -> LoadReport:
-    """Publish a whole study at once, as fast as possible, into the graph plus a recorder, and
+def run_load(
+    frames: list[Frame],
+    out_dir: Path,
+    *,
+    order: str = 'slice_major',
+    timeout: float = 300.0,
+    stall_s: float = 30.0,
+    num_particles: int = 1500,
+) -> LoadReport:
+    """
+    Publish a whole study at once, as fast as possible, into the graph plus a recorder, and
     count frames in vs out at every stage.
 
     Parameters
@@ -175,11 +233,12 @@ def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", 
     -------
     LoadReport
         Also when the run timed out (then the counts show where messages stopped).
+
     """
     frames = order_frames(count_slices(list(frames)), order)
     num_phases = frames[0].num_phases
     msgs = [conversions.frame_to_msg(f, stamp=1.0 + i) for i, f in enumerate(frames)]
-    path = Path(out_dir) / "load.mcap"
+    path = Path(out_dir) / 'load.mcap'
     context = rclpy.Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
@@ -194,11 +253,17 @@ def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", 
         for m in msgs:
             probe.publish(qos.FRAMES, m)
         publish_s = time.monotonic() - t0
-        det, rec = nodes["tag_detector"], nodes["recorder"]
+        det, rec = nodes['tag_detector'], nodes['recorder']
 
         def progress():
-            return (det.messages_handled, det.frames_out, rec.writer.topics[qos.FRAMES].count,
-                    rec.writer.topics[qos.TAG_POINTS].count, len(probe.received("motion")), len(probe.received("metrics")))
+            return (
+                det.messages_handled,
+                det.frames_out,
+                rec.writer.topics[qos.FRAMES].count,
+                rec.writer.topics[qos.TAG_POINTS].count,
+                len(probe.received('motion')),
+                len(probe.received('metrics')),
+            )
 
         done = (len(msgs), len(msgs), len(msgs), len(msgs), num_phases, num_phases)
         spin_until_stalled(executor, progress, done, timeout, stall_s)
@@ -207,10 +272,18 @@ def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", 
         counts = {qos.FRAMES: 0, qos.TAG_POINTS: 0}
         for m in bagio.read_bag(path, topics=list(counts)):
             counts[m.topic] += 1
-        return LoadReport(published=len(msgs), detector_received=det.messages_handled, tag_sets=det.frames_out,
-                          recorded_frames=counts[qos.FRAMES], recorded_tag_sets=counts[qos.TAG_POINTS],
-                          phases_solved=len(probe.received("motion")), phases_analysed=len(probe.received("metrics")),
-                          num_phases=num_phases, publish_s=round(publish_s, 3), total_s=round(total_s, 3))
+        return LoadReport(
+            published=len(msgs),
+            detector_received=det.messages_handled,
+            tag_sets=det.frames_out,
+            recorded_frames=counts[qos.FRAMES],
+            recorded_tag_sets=counts[qos.TAG_POINTS],
+            phases_solved=len(probe.received('motion')),
+            phases_analysed=len(probe.received('metrics')),
+            num_phases=num_phases,
+            publish_s=round(publish_s, 3),
+            total_s=round(total_s, 3),
+        )
     finally:
         for n in (*nodes.values(), probe):
             executor.remove_node(n)
@@ -219,10 +292,10 @@ def run_load(frames: list[Frame], out_dir: Path, *, order: str = "slice_major", 
         context.try_shutdown()
 
 
-
 @dataclass
 class CorpusReport:
-    """What the graph made of a message corpus fed among a valid study.
+    """
+    What the graph made of a message corpus fed among a valid study.
 
     ``failures``: one line per case whose report is missing or wrong (or legal stand-in not
     processed); ``crashes``: exceptions that escaped a node callback into the executor;
@@ -242,8 +315,11 @@ class CorpusReport:
     seconds: float
 
 
-def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, timeout: float = 120.0) -> CorpusReport:
-    """Send ``valid`` frames with every corpus case interleaved and judge each case.
+def feed_corpus(
+    executor, probe: Probe, nodes: dict, valid: list, cases: list, timeout: float = 120.0
+) -> CorpusReport:
+    """
+    Send ``valid`` frames with every corpus case interleaved and judge each case.
 
     Corrupt frames go right after the frame they were copied from, stand-ins in place of the
     frame whose slot they take, corrupt tag points among the frames (after the first genuine set
@@ -253,9 +329,8 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
     ``expect`` fragment at WARN (``frame/content``) or ERROR; a legal stand-in passes if it comes
     out as a non-empty tag set with no error against it.
     """
-    from diagnostic_msgs.msg import DiagnosticStatus
-
     from corpus.message_cases import frames_with_cases
+    from diagnostic_msgs.msg import DiagnosticStatus
 
     t0 = time.monotonic()
     crashes: list = []
@@ -266,14 +341,14 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
             try:
                 executor.spin_once(timeout_sec=0.05)
             except Exception as exc:  # a callback raised: the crash the corpus must not cause
-                crashes.append(f"{type(exc).__name__}: {exc}")
+                crashes.append(f'{type(exc).__name__}: {exc}')
         return pred()
 
     frames = [c for c in cases if c.topic == qos.FRAMES]
     points = [c for c in cases if c.topic == qos.TAG_POINTS]
     outputs = [c for c in cases if c.topic in (qos.MOTION, qos.MODEL_STATE)]
     latched = [c for c in cases if c.topic in qos.LATCHED_TOPICS]
-    solver, analyzer = nodes["meshless_solver"], nodes["motion_analyzer"]
+    solver, analyzer = nodes['meshless_solver'], nodes['motion_analyzer']
     num_phases = valid[0].num_phases
     pending_points = list(points)
     for i, (frame, derived) in enumerate(frames_with_cases(valid, frames)):
@@ -291,41 +366,68 @@ def feed_corpus(executor, probe: Probe, nodes: dict, valid: list, cases: list, t
         probe.publish(c.topic, c.msg)
 
     def reports(case):
-        return [(lvl, f"{msg} {vals}".lower()) for node, lvl, msg, vals in probe.statuses()
-                if node == case.node and vals.get("stamp") == case.stamp]
+        return [
+            (lvl, f'{msg} {vals}'.lower())
+            for node, lvl, msg, vals in probe.statuses()
+            if node == case.node and vals.get('stamp') == case.stamp
+        ]
 
     for c in latched:
         probe.publish(c.topic, c.msg)
         spin(lambda c=c: reports(c), 60)
 
     def stamps_out():
-        return {conversions.stamp_text(p.header.stamp) for p in probe.received("points")}
+        return {conversions.stamp_text(p.header.stamp) for p in probe.received('points')}
 
     legal = [c for c in cases if not c.expect]
-    spin(lambda: len(probe.received("metrics")) >= num_phases and all(reports(c) for c in cases if c.expect)
-         and {c.stamp for c in legal} <= stamps_out(), timeout)
+    spin(
+        lambda: (
+            len(probe.received('metrics')) >= num_phases
+            and all(reports(c) for c in cases if c.expect)
+            and {c.stamp for c in legal} <= stamps_out()
+        ),
+        timeout,
+    )
 
     warn, error = DiagnosticStatus.WARN, DiagnosticStatus.ERROR
     failures = []
     for c in cases:
         got = reports(c)
         if c.expect:
-            want = warn if c.category == "frame/content" else error
+            want = warn if c.category == 'frame/content' else error
             if not any(lvl == want and c.expect in text for lvl, text in got):
-                failures.append(f"{c.name}: want level {want} with {c.expect!r}, got {got}")
+                failures.append(f'{c.name}: want level {want} with {c.expect!r}, got {got}')
         else:
-            out = [p for p in probe.received("points") if conversions.stamp_text(p.header.stamp) == c.stamp]
-            if any(lvl == error for lvl, _ in got) or not (len(out) == 1 and len(out[0].track_id) > 0):
-                failures.append(f"{c.name}: legal frame not processed: {got}, {[p.status for p in out]}")
+            out = [
+                p
+                for p in probe.received('points')
+                if conversions.stamp_text(p.header.stamp) == c.stamp
+            ]
+            if any(lvl == error for lvl, _ in got) or not (
+                len(out) == 1 and len(out[0].track_id) > 0
+            ):
+                failures.append(
+                    f'{c.name}: legal frame not processed: {got}, {[p.status for p in out]}'
+                )
     valid_stamps = {conversions.stamp_text(m.header.stamp) for m in valid}
-    false_alarms = [s for s in probe.statuses() if s[1] == error and s[3].get("stamp") in valid_stamps]
-    seen = len(probe.out["diag"])
+    false_alarms = [
+        s for s in probe.statuses() if s[1] == error and s[3].get('stamp') in valid_stamps
+    ]
+    seen = len(probe.out['diag'])
 
     def alive():
-        return {status_node(s) for d in probe.out["diag"][seen:] for s in d.status}
+        return {status_node(s) for d in probe.out['diag'][seen:] for s in d.status}
 
     spin(lambda: alive() >= set(nodes), 5)
-    return CorpusReport(cases=len(cases), reported=len(cases) - len(failures), failures=failures, crashes=crashes,
-                        nodes_down=sorted(set(nodes) - alive()), false_alarms=false_alarms,
-                        phases_analysed=len({m.phase_index for m in probe.received("metrics")}), num_phases=num_phases,
-                        tag_sets=nodes["tag_detector"].frames_out, seconds=round(time.monotonic() - t0, 2))
+    return CorpusReport(
+        cases=len(cases),
+        reported=len(cases) - len(failures),
+        failures=failures,
+        crashes=crashes,
+        nodes_down=sorted(set(nodes) - alive()),
+        false_alarms=false_alarms,
+        phases_analysed=len({m.phase_index for m in probe.received('metrics')}),
+        num_phases=num_phases,
+        tag_sets=nodes['tag_detector'].frames_out,
+        seconds=round(time.monotonic() - t0, 2),
+    )

@@ -1,4 +1,5 @@
-"""Write the whole bad-input corpus to disk: ``python test/make_bad_input_corpus.py OUT_DIR``.
+"""
+Write the whole bad-input corpus to disk: ``python test/make_bad_input_corpus.py OUT_DIR``.
 
 ``OUT_DIR/dicom/``     the DICOM cases beside a small valid study (``read_dicom_dir`` or
                        ``mlv-ros run --dicom OUT_DIR/dicom`` on it: every bad file reported, the
@@ -17,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+import sys
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -27,8 +28,10 @@ from corpus.message_cases import message_cases  # noqa: E402
 
 
 def interleave(valid: list, cases: list) -> list:
-    """(topic, msg) in sending order: each stand-in replaces its valid frame, each derived case
-    follows its source frame, and the other cases come after the study."""
+    """
+    (topic, msg) in sending order: each stand-in replaces its valid frame, each derived case
+    follows its source frame, and the other cases come after the study.
+    """
     from corpus.message_cases import frames_with_cases
     from mlv_ros import qos
 
@@ -43,24 +46,25 @@ def interleave(valid: list, cases: list) -> list:
 
 def write_corpus(out_dir: Path, num_phases: int = 3, size: int = 48) -> dict:
     """Write the corpus into ``out_dir`` (created; must hold none yet); return the manifest."""
-    from rclpy.serialization import serialize_message
-
     from mlv_ros import bagio, conversions, qos
     from mlv_ros.core.io import write_study_dicom
     from mlv_ros.core.sim import simulate_study
     from mlv_ros.nodes.frame_source import count_slices, order_frames
+    from rclpy.serialization import serialize_message
 
     out_dir = Path(out_dir)
-    if (out_dir / "manifest.json").exists():
-        raise FileExistsError(f"{out_dir} already holds a corpus")
-    study = simulate_study("normal", snr=20.0, size=size, num_phases=num_phases, subplanes=1, seed=2)
-    good = write_study_dicom(study, out_dir / "dicom" / "valid")
-    dicom = write_dicom_corpus(out_dir / "dicom", good)
+    if (out_dir / 'manifest.json').exists():
+        raise FileExistsError(f'{out_dir} already holds a corpus')
+    study = simulate_study(
+        'normal', snr=20.0, size=size, num_phases=num_phases, subplanes=1, seed=2
+    )
+    good = write_study_dicom(study, out_dir / 'dicom' / 'valid')
+    dicom = write_dicom_corpus(out_dir / 'dicom', good)
 
-    frames = order_frames(count_slices(list(study.frames)), "slice_major")
+    frames = order_frames(count_slices(list(study.frames)), 'slice_major')
     valid = [conversions.frame_to_msg(f, stamp=1.0 + i) for i, f in enumerate(frames)]
     messages = message_cases(valid)
-    writer = bagio.BagWriter(out_dir / "messages.mcap")
+    writer = bagio.BagWriter(out_dir / 'messages.mcap')
     for topic in sorted({c.topic for c in messages} | {qos.FRAMES}):
         writer.add_topic(topic, qos.TOPIC_TYPES[topic], [qos.qos_dict(qos.topic_qos(topic))])
     for i, (topic, msg) in enumerate(interleave(valid, messages)):
@@ -68,28 +72,53 @@ def write_corpus(out_dir: Path, num_phases: int = 3, size: int = 48) -> dict:
     writer.close()
 
     manifest = {
-        "valid_study": {"dicom_files": len(good), "frames": len(valid), "num_phases": num_phases, "size": size},
-        "cases": [{"name": c.name, "kind": "dicom", "category": c.category, "outcome": c.outcome,
-                   "files": [str(p.relative_to(out_dir)) for p in c.files], "expect": c.expect} for c in dicom]
-        + [{"name": c.name, "kind": "message", "category": c.category, "topic": c.topic, "stamp": c.stamp,
-            "node": c.node, "expect": c.expect, "replaces_valid_frame": c.replaces is not None} for c in messages],
+        'valid_study': {
+            'dicom_files': len(good),
+            'frames': len(valid),
+            'num_phases': num_phases,
+            'size': size,
+        },
+        'cases': [
+            {
+                'name': c.name,
+                'kind': 'dicom',
+                'category': c.category,
+                'outcome': c.outcome,
+                'files': [str(p.relative_to(out_dir)) for p in c.files],
+                'expect': c.expect,
+            }
+            for c in dicom
+        ]
+        + [
+            {
+                'name': c.name,
+                'kind': 'message',
+                'category': c.category,
+                'topic': c.topic,
+                'stamp': c.stamp,
+                'node': c.node,
+                'expect': c.expect,
+                'replaces_valid_frame': c.replaces is not None,
+            }
+            for c in messages
+        ],
     }
-    manifest["count"] = len(manifest["cases"])
-    (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    manifest['count'] = len(manifest['cases'])
+    (out_dir / 'manifest.json').write_text(json.dumps(manifest, indent=1))
     return manifest
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out_dir", type=Path)
+    parser.add_argument('out_dir', type=Path)
     args = parser.parse_args(argv)
     manifest = write_corpus(args.out_dir)
     kinds = {}
-    for c in manifest["cases"]:
-        kinds[c["kind"]] = kinds.get(c["kind"], 0) + 1
-    print(json.dumps({"out_dir": str(args.out_dir), "cases": manifest["count"], "by_kind": kinds}))
+    for c in manifest['cases']:
+        kinds[c['kind']] = kinds.get(c['kind'], 0) + 1
+    print(json.dumps({'out_dir': str(args.out_dir), 'cases': manifest['count'], 'by_kind': kinds}))
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     sys.exit(main())

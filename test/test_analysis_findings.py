@@ -1,34 +1,44 @@
-"""Per-segment findings (issue 20): the true motion of a simulated heart with an akinetic and a
+"""
+Per-segment findings (issue 20): the true motion of a simulated heart with an akinetic and a
 dyskinetic region, analysed phase by phase, names those segments and calls the remote ones
-normal; missing support gives 'indeterminate', never a class; the report draws the classes."""
+normal; missing support gives 'indeterminate', never a class; the report draws the classes.
+"""
 
 import json
 
+from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, segment_findings, SegmentFindings
+from mlv_ros.core.analysis.findings import classify, MIN_SEGMENT_PARTICLES, UNCERTAINTY_FLOOR
+from mlv_ros.core.sim import load_preset, make_motion
+from mlv_ros.core.sim.regional import regional_truth, truth_frame
 import numpy as np
 import pytest
 
-from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, SegmentFindings, segment_findings
-from mlv_ros.core.analysis.findings import MIN_SEGMENT_PARTICLES, UNCERTAINTY_FLOOR, classify
-from mlv_ros.core.sim import load_preset, make_motion
-from mlv_ros.core.sim.regional import regional_truth, truth_frame
-
 # Basal septum akinetic (AHA 2, 3), mid/apical lateral dyskinetic (AHA 11, 12, 16), apart.
-REGIONS = [{"kind": "akinetic", "levels": [0.65, 1.0], "centre_deg": 0.0, "width_deg": 120.0},
-           {"kind": "dyskinetic", "levels": [0.3, 0.6], "centre_deg": 180.0, "width_deg": 120.0,
-            "contraction": -0.5}]
+REGIONS = [
+    {'kind': 'akinetic', 'levels': [0.65, 1.0], 'centre_deg': 0.0, 'width_deg': 120.0},
+    {
+        'kind': 'dyskinetic',
+        'levels': [0.3, 0.6],
+        'centre_deg': 180.0,
+        'width_deg': 120.0,
+        'contraction': -0.5,
+    },
+]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def heart():
     """(motion, per-phase metrics of its true motion, truth classes)."""
-    p = load_preset("normal")
-    p["motion"]["regions"] = REGIONS
+    p = load_preset('normal')
+    p['motion']['regions'] = REGIONS
     m = make_motion(p, num_phases=16)
     X = m.sample_myocardium(2500, seed=1)
     an = LVAnalyzer(X, truth_frame(m))
-    phases = [an.phase(m.position(X, k), phase_index=k, num_phases=m.num_phases, residual_mm=0.3)
-              for k in range(int(round(m.es_phase)) + 2)]
-    truth = [s["class"] for s in regional_truth(m, n_points=3000)["segments"]]
+    phases = [
+        an.phase(m.position(X, k), phase_index=k, num_phases=m.num_phases, residual_mm=0.3)
+        for k in range(int(round(m.es_phase)) + 2)
+    ]
+    truth = [s['class'] for s in regional_truth(m, n_points=3000)['segments']]
     return m, phases, truth
 
 
@@ -39,23 +49,26 @@ def test_true_motion_names_the_abnormal_segments_and_remote_normal(heart):
         f = sf.update(p)
     assert f.es_phase == int(np.argmin([p.cavity_volume_ml for p in phases]))
     cls = f.classes
-    want_ak = {k + 1 for k, c in enumerate(truth) if c in ("akinetic", "dyskinetic")}
+    want_ak = {k + 1 for k, c in enumerate(truth) if c in ('akinetic', 'dyskinetic')}
     got_ak = set(f.abnormal())
     assert want_ak, truth
     # every segment the truth calls akinetic or dyskinetic is found, no other is called so
     assert got_ak == want_ak, (cls, truth)
     # the dyskinetic segments stretch circumferentially at ES (their means take in the blend
     # toward contracting wall, so the truth's own means read akinetic-to-dyskinetic too)
-    dys = [k for k in want_ak if truth[k - 1] == "dyskinetic"]
-    assert dys and all(f.es["ecc"][k - 1] > 0 for k in dys), f.es["ecc"]
+    dys = [k for k in want_ak if truth[k - 1] == 'dyskinetic']
+    assert dys and all(f.es['ecc'][k - 1] > 0 for k in dys), f.es['ecc']
     # remote: segments the truth calls normal, away from both regions, read normal
     remote = [1, 4, 7, 10, 13, 14]
-    assert [truth[k - 1] for k in remote] == ["normal"] * len(remote)
-    assert [cls[k - 1] for k in remote] == ["normal"] * len(remote), cls
+    assert [truth[k - 1] for k in remote] == ['normal'] * len(remote)
+    assert [cls[k - 1] for k in remote] == ['normal'] * len(remote), cls
     # peaks: Ecc of a remote segment shortens, uncertainty at least the floor
-    assert f.peak["ecc"][0] < -0.05 and f.peak_unc["ecc"][0] >= UNCERTAINTY_FLOOR["ecc"]
+    assert f.peak['ecc'][0] < -0.05 and f.peak_unc['ecc'][0] >= UNCERTAINTY_FLOOR['ecc']
     d = f.to_dict()
-    assert d["segments"][10]["class"] == cls[10] and set(d["thresholds"]) >= {"class_bounds", "stretch_z"}
+    assert d['segments'][10]['class'] == cls[10] and set(d['thresholds']) >= {
+        'class_bounds',
+        'stretch_z',
+    }
     # the one-shot function agrees with the stream
     assert segment_findings(phases).classes == cls
 
@@ -63,45 +76,51 @@ def test_true_motion_names_the_abnormal_segments_and_remote_normal(heart):
 def test_indeterminate_without_support(heart):
     _, phases, _ = heart
     # ED only: no systolic phase yet
-    assert set(segment_findings(phases[:1]).classes) == {"indeterminate"}
+    assert set(segment_findings(phases[:1]).classes) == {'indeterminate'}
     # segment 11 loses its particles; a failed phase is never used
     thin = []
     for p in phases:
         c = p.segment_count.copy()
         c[10] = MIN_SEGMENT_PARTICLES - 1
-        thin.append(PhaseMetrics.from_dict(p.to_dict() | {"segment_count": c}))
+        thin.append(PhaseMetrics.from_dict(p.to_dict() | {'segment_count': c}))
     f = segment_findings(thin)
-    assert f.classes[10] == "indeterminate" and np.isnan(f.es_unc["ecc"][10])
-    assert f.classes[0] == "normal"
-    bad = PhaseMetrics.from_dict(phases[-1].to_dict() | {"verdict": 2, "cavity_volume_ml": 1.0,
-                                                         "segment_ecc": np.full(17, 0.5)})
+    assert f.classes[10] == 'indeterminate' and np.isnan(f.es_unc['ecc'][10])
+    assert f.classes[0] == 'normal'
+    bad = PhaseMetrics.from_dict(
+        phases[-1].to_dict()
+        | {'verdict': 2, 'cavity_volume_ml': 1.0, 'segment_ecc': np.full(17, 0.5)}
+    )
     assert segment_findings([*phases, bad]).classes == segment_findings(phases).classes
     # too uncertain to classify: σ 0.2 in Ecc and Err against a normal heart's references
-    es = {"ecc": np.full(17, -0.15), "err": np.full(17, 0.45)}
-    es["ecc"][5], es["err"][5] = -0.02, 0.05
-    cls, f_idx, f_unc, _ = classify(es, {"ecc": np.full(17, 0.02), "err": np.full(17, 0.05)})
-    assert cls[5] == "akinetic" and cls[0] == "normal"
-    unc = {"ecc": np.full(17, 0.02), "err": np.full(17, 0.05)}
-    unc["ecc"][5], unc["err"][5] = 0.2, 0.5
+    es = {'ecc': np.full(17, -0.15), 'err': np.full(17, 0.45)}
+    es['ecc'][5], es['err'][5] = -0.02, 0.05
+    cls, f_idx, f_unc, _ = classify(es, {'ecc': np.full(17, 0.02), 'err': np.full(17, 0.05)})
+    assert cls[5] == 'akinetic' and cls[0] == 'normal'
+    unc = {'ecc': np.full(17, 0.02), 'err': np.full(17, 0.05)}
+    unc['ecc'][5], unc['err'][5] = 0.2, 0.5
     cls, _, f_unc, _ = classify(es, unc)
-    assert cls[5] == "indeterminate" and f_unc[5] > 0.33
+    assert cls[5] == 'indeterminate' and f_unc[5] > 0.33
     # support-only uncertainty when the metrics carry none (recordings of today's message)
-    bare = [PhaseMetrics.from_dict({k: v for k, v in p.to_dict().items() if not k.endswith("_unc")})
-            for p in phases]
+    bare = [
+        PhaseMetrics.from_dict({k: v for k, v in p.to_dict().items() if not k.endswith('_unc')})
+        for p in phases
+    ]
     assert bare[0].segment_ecc_unc.size == 0
-    assert segment_findings(bare).es_unc["ecc"][0] == pytest.approx(UNCERTAINTY_FLOOR["ecc"])
+    assert segment_findings(bare).es_unc['ecc'][0] == pytest.approx(UNCERTAINTY_FLOOR['ecc'])
 
 
 def test_report_draws_the_classes(heart, tmp_path, monkeypatch):
     from mlv_ros.core.report import build_report, figures
 
-    monkeypatch.setattr(figures, "DPI", 30)
+    monkeypatch.setattr(figures, 'DPI', 30)
     _, phases, _ = heart
-    index = build_report(tmp_path, phases, meta={"label": "regional"})
-    s = json.loads((tmp_path / "summary.json").read_text())
-    assert "segment_findings.png" in s["figures"], s["figures_skipped"]
-    found = s["runs"][0]["segment_findings"]
-    assert [r["class"] for r in found["segments"]] == segment_findings(phases).classes
-    assert s["runs"][0]["key"]["akinetic_segments"] == segment_findings(phases).abnormal(("akinetic",))
+    index = build_report(tmp_path, phases, meta={'label': 'regional'})
+    s = json.loads((tmp_path / 'summary.json').read_text())
+    assert 'segment_findings.png' in s['figures'], s['figures_skipped']
+    found = s['runs'][0]['segment_findings']
+    assert [r['class'] for r in found['segments']] == segment_findings(phases).classes
+    assert s['runs'][0]['key']['akinetic_segments'] == segment_findings(phases).abnormal(
+        ('akinetic',)
+    )
     page = index.read_text()
-    assert "Regional findings" in page and "akinetic" in page
+    assert 'Regional findings' in page and 'akinetic' in page

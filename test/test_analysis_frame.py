@@ -1,10 +1,15 @@
 """LV frame and cardiac coordinates: orientation, sign conventions, validation."""
 
+from mlv_ros.core.analysis.frame import (
+    angle_bin,
+    cardiac_coordinates,
+    estimate_frame,
+    level_bin,
+    LVFrame,
+)
+from mlv_ros.core.analysis.synthetic import cylinder_shell, oblique_frame, to_patient
 import numpy as np
 import pytest
-
-from mlv_ros.core.analysis.frame import LVFrame, angle_bin, cardiac_coordinates, estimate_frame, level_bin
-from mlv_ros.core.analysis.synthetic import cylinder_shell, oblique_frame, to_patient
 
 TOL = 1e-12
 
@@ -37,9 +42,9 @@ def test_unit_vectors_orthonormal_and_radial_outward():
     c = cardiac_coordinates(X, fr)
     for v in (c.e_r, c.e_c, c.e_l):
         np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=TOL)
-    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_r, c.e_c), 0, atol=TOL)
-    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_r, c.e_l), 0, atol=TOL)
-    np.testing.assert_allclose(np.einsum("ij,ij->i", c.e_c, c.e_l), 0, atol=TOL)
+    np.testing.assert_allclose(np.einsum('ij,ij->i', c.e_r, c.e_c), 0, atol=TOL)
+    np.testing.assert_allclose(np.einsum('ij,ij->i', c.e_r, c.e_l), 0, atol=TOL)
+    np.testing.assert_allclose(np.einsum('ij,ij->i', c.e_c, c.e_l), 0, atol=TOL)
     # radial: X − (point on axis at the same level) = ρ e_r
     foot = fr.apex + np.outer(c.axial, fr.axis)
     np.testing.assert_allclose(X - foot, c.rho[:, None] * c.e_r, atol=1e-9)
@@ -58,17 +63,27 @@ def test_transmural_from_radii_and_per_bin():
 
 
 def test_bins_clip_and_wrap():
-    np.testing.assert_array_equal(level_bin(np.array([-0.2, 0.0, 0.15, 0.999, 1.0, 1.3]), 10), [0, 0, 1, 9, 9, 9])
-    np.testing.assert_array_equal(angle_bin(np.radians([0, 5, 95, 180, -90, -1]), 4), [0, 0, 1, 2, 3, 3])
+    np.testing.assert_array_equal(
+        level_bin(np.array([-0.2, 0.0, 0.15, 0.999, 1.0, 1.3]), 10), [0, 0, 1, 9, 9, 9]
+    )
+    np.testing.assert_array_equal(
+        angle_bin(np.radians([0, 5, 95, 180, -90, -1]), 4), [0, 0, 1, 2, 3, 3]
+    )
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(apex=[0, 0, 0], base=[0, 0, 0], reference=[1, 0, 0]), "coincide"),
-    (dict(apex=[0, 0, 0], base=[0, 0, 1], reference=[0, 0, 2]), "parallel"),
-    (dict(apex=[0, 0, 0], base=[0, 0, 1], reference=[0, 0, 0]), "zero vector"),
-    (dict(apex=[0, 0, np.nan], base=[0, 0, 1], reference=[1, 0, 0]), "apex is not finite"),
-    (dict(apex=[0, 0], base=[0, 0, 1], reference=[1, 0, 0]), "3 components"),
-])
+@pytest.mark.parametrize(
+    'kwargs, match',
+    [
+        ({'apex': [0, 0, 0], 'base': [0, 0, 0], 'reference': [1, 0, 0]}, 'coincide'),
+        ({'apex': [0, 0, 0], 'base': [0, 0, 1], 'reference': [0, 0, 2]}, 'parallel'),
+        ({'apex': [0, 0, 0], 'base': [0, 0, 1], 'reference': [0, 0, 0]}, 'zero vector'),
+        (
+            {'apex': [0, 0, np.nan], 'base': [0, 0, 1], 'reference': [1, 0, 0]},
+            'apex is not finite',
+        ),
+        ({'apex': [0, 0], 'base': [0, 0, 1], 'reference': [1, 0, 0]}, '3 components'),
+    ],
+)
 def test_frame_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LVFrame(**kwargs)
@@ -76,11 +91,11 @@ def test_frame_validation(kwargs, match):
 
 def test_cardiac_coordinates_rejects_bad_points():
     fr = oblique_frame()
-    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+    with pytest.raises(ValueError, match=r'shape \(N, 3\)'):
         cardiac_coordinates(np.zeros((4, 2)), fr)
-    with pytest.raises(ValueError, match="non-finite rows .*row 1"):
+    with pytest.raises(ValueError, match='non-finite rows .*row 1'):
         cardiac_coordinates(np.array([[0, 0, 0], [np.nan, 0, 0]]), fr)
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(ValueError, match='empty'):
         cardiac_coordinates(np.zeros((0, 3)), fr)
 
 
@@ -97,16 +112,22 @@ def test_estimate_frame_recovers_axis_direction_of_a_prolate_cloud():
 
 
 def test_plane_levels_and_what_twist_is_extrapolated():
-    from mlv_ros.core.analysis.frame import levels_outside, plane_level_span, twist_extrapolation_note
+    from mlv_ros.core.analysis.frame import (
+        levels_outside,
+        plane_level_span,
+        twist_extrapolation_note,
+    )
 
     fr = oblique_frame()
     # SA planes ⟂ the axis at 40 % and 85 % of the length, one tilted 20° (its centre still on
     # level 0.6), and an LA plane holding the axis (no crossing: skipped).
     tilt = fr.axis * np.cos(np.radians(20)) + fr.e1 * np.sin(np.radians(20))
-    planes = [(fr.apex + 0.4 * fr.length * fr.axis + 7 * fr.e2, fr.axis),
-              (fr.apex + 0.85 * fr.length * fr.axis, -fr.axis),
-              (fr.apex + 0.6 * fr.length * fr.axis, tilt),
-              (fr.apex, fr.e1)]
+    planes = [
+        (fr.apex + 0.4 * fr.length * fr.axis + 7 * fr.e2, fr.axis),
+        (fr.apex + 0.85 * fr.length * fr.axis, -fr.axis),
+        (fr.apex + 0.6 * fr.length * fr.axis, tilt),
+        (fr.apex, fr.e1),
+    ]
     lo, hi = plane_level_span(fr, planes)
     assert lo == pytest.approx(0.4, abs=1e-12) and hi == pytest.approx(0.85, abs=1e-12)
     assert plane_level_span(fr, planes[3:]) is None
@@ -114,9 +135,11 @@ def test_plane_levels_and_what_twist_is_extrapolated():
     # Bins more than half a bin beyond the span: 0.05…0.35 below 0.42, 0.95 above 0.85.
     assert list(np.flatnonzero(levels_outside(centres, (0.42, hi)))) == [0, 1, 2, 3, 9]
     note = twist_extrapolation_note((lo, hi))
-    assert "0.40 and 0.85" in note and "apical and basal" in note and "torsion" in note
-    assert "apical" in twist_extrapolation_note((0.3, 0.97)) and "basal" not in twist_extrapolation_note((0.3, 0.97))
-    assert twist_extrapolation_note((0.04, 0.96)) == ""
-    assert "not measured at any level" in twist_extrapolation_note(None)
-    with pytest.raises(ValueError, match="plane normal"):
+    assert '0.40 and 0.85' in note and 'apical and basal' in note and 'torsion' in note
+    assert 'apical' in twist_extrapolation_note(
+        (0.3, 0.97)
+    ) and 'basal' not in twist_extrapolation_note((0.3, 0.97))
+    assert twist_extrapolation_note((0.04, 0.96)) == ''
+    assert 'not measured at any level' in twist_extrapolation_note(None)
+    with pytest.raises(ValueError, match='plane normal'):
         plane_level_span(fr, [(fr.apex, [0, np.nan, 1])])

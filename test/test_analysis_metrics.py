@@ -1,30 +1,33 @@
 """PhaseMetrics / LVAnalyzer: the MotionMetrics.msg content of one phase."""
 
-import re
 from pathlib import Path
+import re
 
+from mlv_ros.core.analysis import LVAnalyzer, phase_metrics, PhaseMetrics
+from mlv_ros.core.analysis.metrics import NOT_IN_MSG_YET
+from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
 import numpy as np
 import pytest
 
-from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, phase_metrics
-from mlv_ros.core.analysis.metrics import NOT_IN_MSG_YET
-from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
-
 FR = oblique_frame()
 X, ENDO = cylinder_shell(FR, r_in=20, r_out=30, n_r=5, n_theta=48, n_z=20)
-MSG = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg" / "MotionMetrics.msg"
+MSG = Path(__file__).resolve().parents[1] / 'msg_schemas' / 'msg' / 'MotionMetrics.msg'
 
 
 def test_fields_map_onto_motion_metrics_msg():
     names = []
     for line in MSG.read_text().splitlines():
-        m = re.match(r"^\s*[\w/]+(\[\])?\s+(\w+)", line)
-        if m and not line.lstrip().startswith("#") and "=" not in line.split("#")[0]:  # constants aside
+        m = re.match(r'^\s*[\w/]+(\[\])?\s+(\w+)', line)
+        if (
+            m and not line.lstrip().startswith('#') and '=' not in line.split('#')[0]
+        ):  # constants aside
             names.append(m.group(2))
-    names.remove("header")
+    names.remove('header')
     fields = set(PhaseMetrics.__dataclass_fields__) - set(NOT_IN_MSG_YET)
     assert set(names) == fields  # one-to-one, including level_count / segment_count
-    assert not set(names) & set(NOT_IN_MSG_YET)  # once the message has them, drop them from the list
+    assert not set(names) & set(
+        NOT_IN_MSG_YET
+    )  # once the message has them, drop them from the list
 
 
 def test_phase_metrics_of_an_analytic_motion_with_given_F():
@@ -59,8 +62,15 @@ def test_analyzer_estimates_strain_when_no_F_and_can_be_told_not_to():
 
 def test_ed_phase_is_all_zero_motion():
     m = LVAnalyzer(X, FR).phase(X)
-    for f in ("twist_deg", "longitudinal_displacement_mm", "radial_displacement_mm",
-              "circumferential_displacement_mm", "segment_err", "segment_ecc", "segment_ell"):
+    for f in (
+        'twist_deg',
+        'longitudinal_displacement_mm',
+        'radial_displacement_mm',
+        'circumferential_displacement_mm',
+        'segment_err',
+        'segment_ecc',
+        'segment_ell',
+    ):
         np.testing.assert_allclose(getattr(m, f), 0, atol=1e-12)
     assert m.ejection_fraction == 0.0
 
@@ -70,29 +80,30 @@ def test_to_dict_roundtrip_and_from_partial_dict():
     m = phase_metrics(X, x, FR, F=F)
     d = m.to_dict()
     import json
+
     back = PhaseMetrics.from_dict(json.loads(json.dumps(d)))
     for k, v in d.items():
         if isinstance(v, str):
             assert getattr(back, k) == v
         else:
             np.testing.assert_allclose(getattr(back, k), v)
-    assert back.verdict == 0 and back.verdict_reasons == ""  # an ordinary contraction is ok
-    partial = PhaseMetrics.from_dict({"phase_index": 3, "twist_deg": [1.0, 2.0], "unknown": 1})
+    assert back.verdict == 0 and back.verdict_reasons == ''  # an ordinary contraction is ok
+    partial = PhaseMetrics.from_dict({'phase_index': 3, 'twist_deg': [1.0, 2.0], 'unknown': 1})
     assert partial.phase_index == 3 and partial.segment_ecc.size == 0
 
 
 def test_bad_inputs():
     an = LVAnalyzer(X, FR)
-    with pytest.raises(ValueError, match="like X_ed"):
+    with pytest.raises(ValueError, match='like X_ed'):
         an.phase(X[:-1])
-    with pytest.raises(ValueError, match=r"F must have shape"):
+    with pytest.raises(ValueError, match=r'F must have shape'):
         an.phase(X, F=np.zeros((3, 3, 3)))
     bad = X.copy()
     bad[0] = np.inf
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match='non-finite'):
         an.phase(bad)
-    with pytest.raises(ValueError, match="LVFrame"):
-        LVAnalyzer(X, "frame")
+    with pytest.raises(ValueError, match='LVFrame'):
+        LVAnalyzer(X, 'frame')
     # NaN gradients (e.g. degenerate MLS) are skipped, never turned into NaN means
     F = np.broadcast_to(np.eye(3), (len(X), 3, 3)).copy()
     F[:100] = np.nan

@@ -1,8 +1,5 @@
 """Green–Lagrange strain in the cardiac frame, MLS deformation gradients, AHA segments."""
 
-import numpy as np
-import pytest
-
 from mlv_ros.core.analysis.frame import cardiac_coordinates
 from mlv_ros.core.analysis.strain import (
     AHA_SEGMENT_NAMES,
@@ -14,6 +11,8 @@ from mlv_ros.core.analysis.strain import (
     segment_means,
 )
 from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
+import numpy as np
+import pytest
 
 FR = oblique_frame()
 X, _ = cylinder_shell(FR, r_in=20, r_out=30, n_r=5, n_theta=48, n_z=20)
@@ -27,16 +26,18 @@ def strain_of(F):
 
 def test_green_lagrange_of_a_stretch_keeps_the_half():
     F = np.diag([1.2, 0.9, 1.0])[None]
-    np.testing.assert_allclose(green_lagrange(F)[0], np.diag([0.5 * (1.44 - 1), 0.5 * (0.81 - 1), 0]), atol=EXACT)
+    np.testing.assert_allclose(
+        green_lagrange(F)[0], np.diag([0.5 * (1.44 - 1), 0.5 * (0.81 - 1), 0]), atol=EXACT
+    )
 
 
 def test_pure_radial_contraction_strain_exact():
     s = 0.85
     _, F = cylindrical_motion(FR, X, s_r=s)
     e = strain_of(F)
-    np.testing.assert_allclose(e["rr"], 0.5 * (s * s - 1), atol=EXACT)
-    np.testing.assert_allclose(e["cc"], 0.5 * (s * s - 1), atol=EXACT)
-    for k in ("ll", "rc", "rl", "cl"):
+    np.testing.assert_allclose(e['rr'], 0.5 * (s * s - 1), atol=EXACT)
+    np.testing.assert_allclose(e['cc'], 0.5 * (s * s - 1), atol=EXACT)
+    for k in ('ll', 'rc', 'rl', 'cl'):
         np.testing.assert_allclose(e[k], 0, atol=EXACT)
 
 
@@ -44,8 +45,8 @@ def test_pure_longitudinal_shortening_strain_exact():
     s = 0.88
     _, F = cylindrical_motion(FR, X, s_l=s)
     e = strain_of(F)
-    np.testing.assert_allclose(e["ll"], 0.5 * (s * s - 1), atol=EXACT)
-    for k in ("rr", "cc", "rc", "rl", "cl"):
+    np.testing.assert_allclose(e['ll'], 0.5 * (s * s - 1), atol=EXACT)
+    for k in ('rr', 'cc', 'rc', 'rl', 'cl'):
         np.testing.assert_allclose(e[k], 0, atol=EXACT)
 
 
@@ -60,9 +61,9 @@ def test_linear_twist_gives_shear_and_longitudinal_strain():
     _, F = cylindrical_motion(FR, X, twist_apex_deg=10, twist_base_deg=-3)
     k = np.radians(-13.0) / FR.length
     e = strain_of(F)
-    np.testing.assert_allclose(e["cl"], 0.5 * C.rho * k, atol=1e-12)
-    np.testing.assert_allclose(e["ll"], 0.5 * (C.rho * k) ** 2, atol=1e-12)
-    np.testing.assert_allclose(e["cc"], 0, atol=EXACT)
+    np.testing.assert_allclose(e['cl'], 0.5 * C.rho * k, atol=1e-12)
+    np.testing.assert_allclose(e['ll'], 0.5 * (C.rho * k) ** 2, atol=1e-12)
+    np.testing.assert_allclose(e['cc'], 0, atol=EXACT)
 
 
 def test_mls_gradient_is_exact_for_affine_motion():
@@ -86,7 +87,7 @@ def test_mls_gradient_close_to_analytic_for_radial_contraction_with_twist():
     F = deformation_gradient_mls(X, x)
     # the motion is not affine (ρ-dependent rotation): first-order MLS error on a 2.5 mm lattice
     e_est, e_true = strain_of(F), strain_of(F_true)
-    for k in ("rr", "cc", "ll"):
+    for k in ('rr', 'cc', 'll'):
         assert np.max(np.abs(e_est[k] - e_true[k])) < 2e-3
 
 
@@ -97,11 +98,11 @@ def test_mls_degenerate_neighbourhood_is_nan_not_garbage():
 
 
 def test_mls_validation():
-    with pytest.raises(ValueError, match="at least 13 particles"):
+    with pytest.raises(ValueError, match='at least 13 particles'):
         deformation_gradient_mls(X[:5], X[:5])
-    with pytest.raises(ValueError, match="same shape"):
+    with pytest.raises(ValueError, match='same shape'):
         deformation_gradient_mls(X, X[:-1])
-    with pytest.raises(ValueError, match=r"\(N, 3, 3\)"):
+    with pytest.raises(ValueError, match=r'\(N, 3, 3\)'):
         green_lagrange(np.eye(3))
 
 
@@ -109,18 +110,33 @@ def test_aha_assignment_of_hand_placed_points():
     # Reference = inferior RV–LV junction (θ = 0); anterior insertion at θ = −120°.
     # ψ = θ + 120 (mod 360): anteroseptal 0–60, inferoseptal 60–120, inferior 120–180,
     # inferolateral 180–240, anterolateral 240–300, anterior 300–360.
-    theta_deg = np.array([-90, -30, 30, 90, 150, -150,  # ψ = 30, 90, 150, 210, 270, 330
-                          -90, 30,                         # mid ring: ψ = 30, 150
-                          -60, 30, 120, -150,              # apical: ψ = 60, 150, 240, 330
-                          0.0])
+    theta_deg = np.array(
+        [
+            -90,
+            -30,
+            30,
+            90,
+            150,
+            -150,  # ψ = 30, 90, 150, 210, 270, 330
+            -90,
+            30,  # mid ring: ψ = 30, 150
+            -60,
+            30,
+            120,
+            -150,  # apical: ψ = 60, 150, 240, 330
+            0.0,
+        ]
+    )
     h = np.array([0.95] * 6 + [0.55] * 2 + [0.2] * 4 + [0.05])
     seg = aha_segments(h, np.radians(theta_deg))
     np.testing.assert_array_equal(seg, [2, 3, 4, 5, 6, 1, 8, 10, 14, 15, 16, 13, 17])
-    assert AHA_SEGMENT_NAMES[seg[0] - 1] == "basal anteroseptal"
-    assert AHA_SEGMENT_NAMES[seg[8] - 1] == "apical septal"
+    assert AHA_SEGMENT_NAMES[seg[0] - 1] == 'basal anteroseptal'
+    assert AHA_SEGMENT_NAMES[seg[8] - 1] == 'apical septal'
     # level thirds above the cap: [0.1, 0.4) apical, [0.4, 0.7) mid, [0.7, 1] basal
-    np.testing.assert_array_equal(aha_segments(np.array([0.099, 0.1, 0.399, 0.4, 0.7, 1.2]), np.radians([-90.0] * 6)),
-                                  [17, 14, 14, 8, 2, 2])
+    np.testing.assert_array_equal(
+        aha_segments(np.array([0.099, 0.1, 0.399, 0.4, 0.7, 1.2]), np.radians([-90.0] * 6)),
+        [17, 14, 14, 8, 2, 2],
+    )
     # a mid-septum reference shifts the origin by 60°
     assert aha_segments(np.array([0.95]), np.radians([0.0]), aha_origin_deg=-60.0)[0] == 3
 
@@ -136,5 +152,5 @@ def test_segment_means_and_fill():
     np.testing.assert_allclose(means[:2], [0.2, -0.2], atol=EXACT)
     assert means[16] == 0.0 and cnt[16] == 0  # NaN skipped -> empty -> fill
     assert cnt.sum() == 3 and np.all(np.isfinite(means))
-    with pytest.raises(ValueError, match="1..17"):
+    with pytest.raises(ValueError, match='1..17'):
         segment_means(np.zeros(1), np.array([18]))

@@ -1,19 +1,20 @@
-"""Round trips (bit-exact) and bad input for every numpy ⇄ message conversion, including a pass
-through real CDR serialisation (what every rclpy hop does)."""
+"""
+Round trips (bit-exact) and bad input for every numpy ⇄ message conversion, including a pass
+through real CDR serialisation (what every rclpy hop does).
+"""
 
-import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from rclpy.serialization import deserialize_message, serialize_message
-from sensor_msgs.msg import Image, PointCloud2, PointField
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics, TaggedFrame
 from mlv_ros import conversions as cv
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import VIEW_LA, Frame, ModelState, TagPointSet
+from mlv_ros.core.types import Frame, ModelState, TagPointSet, VIEW_LA
+import numpy as np
+import pytest
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import Image, PointCloud2, PointField
 
 RNG = np.random.default_rng(7)
 
@@ -30,7 +31,9 @@ def oblique_geometry():
 
 
 # ----------------------------------------------------------------------------- Image
-@pytest.mark.parametrize("dtype,encoding", [(np.uint16, "mono16"), (np.float32, "32FC1"), (np.uint8, "mono8")])
+@pytest.mark.parametrize(
+    'dtype,encoding', [(np.uint16, 'mono16'), (np.float32, '32FC1'), (np.uint8, 'mono8')]
+)
 def test_image_round_trip_bit_exact(dtype, encoding):
     if dtype is np.float32:
         img = RNG.normal(size=(256, 200)).astype(dtype)
@@ -47,21 +50,26 @@ def test_image_round_trip_bit_exact(dtype, encoding):
 
 def test_image_with_row_padding_and_big_endian():
     img = RNG.integers(0, 65535, size=(5, 7)).astype(np.uint16)
-    padded = np.zeros((5, 9), dtype=">u2")
+    padded = np.zeros((5, 9), dtype='>u2')
     padded[:, :7] = img
-    msg = Image(height=5, width=7, encoding="mono16", is_bigendian=1, step=18, data=padded.tobytes())
+    msg = Image(
+        height=5, width=7, encoding='mono16', is_bigendian=1, step=18, data=padded.tobytes()
+    )
     back = cv.msg_to_image(msg)
     np.testing.assert_array_equal(back, img)
     assert back.dtype.isnative
 
 
-@pytest.mark.parametrize("mutate,match", [
-    (dict(encoding="rgb8"), "unsupported image encoding"),
-    (dict(step=100), "step 100 is smaller"),
-    (dict(step=129), "not a multiple"),
-    (dict(height=0), "zero size"),
-    (dict(data=b"\0" * 10), "expected height·step"),
-])
+@pytest.mark.parametrize(
+    'mutate,match',
+    [
+        ({'encoding': 'rgb8'}, 'unsupported image encoding'),
+        ({'step': 100}, 'step 100 is smaller'),
+        ({'step': 129}, 'not a multiple'),
+        ({'height': 0}, 'zero size'),
+        ({'data': b'\0' * 10}, 'expected height·step'),
+    ],
+)
 def test_image_bad_messages(mutate, match):
     msg = cv.image_to_msg(np.zeros((4, 64), np.uint16))
     for k, v in mutate.items():
@@ -74,24 +82,27 @@ def test_image_nan_rejected_unless_allowed():
     img = np.ones((4, 4), np.float32)
     img[1, 2] = np.nan
     msg = cv.image_to_msg(img)
-    with pytest.raises(ValueError, match="1 non-finite"):
+    with pytest.raises(ValueError, match='1 non-finite'):
         cv.msg_to_image(msg)
     assert np.isnan(cv.msg_to_image(msg, allow_nonfinite=True)[1, 2])
 
 
-@pytest.mark.parametrize("arr,match", [
-    (np.zeros((2, 3, 3), np.uint16), "2-D"),
-    (np.zeros((0, 3), np.uint16), "empty"),
-    (np.zeros((3, 3), np.int64), "no image encoding"),
-])
+@pytest.mark.parametrize(
+    'arr,match',
+    [
+        (np.zeros((2, 3, 3), np.uint16), '2-D'),
+        (np.zeros((0, 3), np.uint16), 'empty'),
+        (np.zeros((3, 3), np.int64), 'no image encoding'),
+    ],
+)
 def test_image_bad_arrays(arr, match):
     with pytest.raises(ValueError, match=match):
         cv.image_to_msg(arr)
 
 
 def test_image_encoding_must_match_dtype():
-    with pytest.raises(ValueError, match="needs dtype"):
-        cv.image_to_msg(np.zeros((3, 3), np.float32), encoding="mono16")
+    with pytest.raises(ValueError, match='needs dtype'):
+        cv.image_to_msg(np.zeros((3, 3), np.float32), encoding='mono16')
 
 
 @settings(max_examples=40, deadline=None)
@@ -102,84 +113,103 @@ def test_image_round_trip_property(img):
 
 # ----------------------------------------------------------------------------- PointCloud2
 def motion_cloud(n=1000):
-    return cv.structured({k: RNG.normal(size=n) * 30 for k in ("x", "y", "z", "dx", "dy", "dz", "err")})
+    return cv.structured(
+        {k: RNG.normal(size=n) * 30 for k in ('x', 'y', 'z', 'dx', 'dy', 'dz', 'err')}
+    )
 
 
 def test_cloud_round_trip_bit_exact():
     pts = motion_cloud()
     msg = cdr(cv.cloud_to_msg(pts, cv.make_header(1.5)))
     assert (msg.height, msg.width, msg.point_step) == (1, 1000, 28)
-    assert [f.name for f in msg.fields] == ["x", "y", "z", "dx", "dy", "dz", "err"]
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'dx', 'dy', 'dz', 'err']
     assert all(f.datatype == PointField.FLOAT32 and f.count == 1 for f in msg.fields)
-    assert msg.header.frame_id == "patient"
-    back = cv.msg_to_cloud(msg, required=("x", "y", "z"))
+    assert msg.header.frame_id == 'patient'
+    back = cv.msg_to_cloud(msg, required=('x', 'y', 'z'))
     assert back.tobytes() == pts.tobytes()
     np.testing.assert_array_equal(cv.xyz(back), cv.xyz(pts))
 
 
 def test_cloud_mixed_dtypes_and_empty():
-    pts = np.zeros(3, dtype=[("x", np.float32), ("id", np.int32), ("w", np.float64)])
-    pts["id"] = [4, -5, 6]
+    pts = np.zeros(3, dtype=[('x', np.float32), ('id', np.int32), ('w', np.float64)])
+    pts['id'] = [4, -5, 6]
     back = cv.msg_to_cloud(cdr(cv.cloud_to_msg(pts)))
     assert back.tobytes() == pts.tobytes()
-    empty = cv.msg_to_cloud(cdr(cv.cloud_to_msg(motion_cloud(0))), required=("x",))
+    empty = cv.msg_to_cloud(cdr(cv.cloud_to_msg(motion_cloud(0))), required=('x',))
     assert empty.shape == (0,)
 
 
 def test_cloud_reads_foreign_layout_with_padding():
     # A PointCloud2 as a PCL publisher writes it: x y z + 4 bytes padding, 2 rows.
-    rec = np.zeros((2, 3), dtype=np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3,
-                                           "offsets": [0, 4, 8], "itemsize": 16}))
-    rec["x"] = np.arange(6).reshape(2, 3)
-    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
-    msg = PointCloud2(height=2, width=3, fields=fields, point_step=16, row_step=48, data=rec.tobytes())
-    back = cv.msg_to_cloud(msg, required=("x", "y", "z"))
-    np.testing.assert_array_equal(back["x"], np.arange(6))
+    rec = np.zeros(
+        (2, 3),
+        dtype=np.dtype(
+            {
+                'names': ['x', 'y', 'z'],
+                'formats': ['<f4'] * 3,
+                'offsets': [0, 4, 8],
+                'itemsize': 16,
+            }
+        ),
+    )
+    rec['x'] = np.arange(6).reshape(2, 3)
+    fields = [
+        PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+        for i, n in enumerate('xyz')
+    ]
+    msg = PointCloud2(
+        height=2, width=3, fields=fields, point_step=16, row_step=48, data=rec.tobytes()
+    )
+    back = cv.msg_to_cloud(msg, required=('x', 'y', 'z'))
+    np.testing.assert_array_equal(back['x'], np.arange(6))
 
 
 def test_cloud_bad_messages():
     msg = cv.cloud_to_msg(motion_cloud(10))
     with pytest.raises(ValueError, match=r"lacks field\(s\) \['strain'\]"):
-        cv.msg_to_cloud(msg, required=("x", "strain"))
+        cv.msg_to_cloud(msg, required=('x', 'strain'))
     short = cv.cloud_to_msg(motion_cloud(10))
     short.data = short.data[:-4]
-    with pytest.raises(ValueError, match="expected row_step·height"):
+    with pytest.raises(ValueError, match='expected row_step·height'):
         cv.msg_to_cloud(short)
     bad = cv.cloud_to_msg(motion_cloud(10))
     bad.fields[1].offset = 26
-    with pytest.raises(ValueError, match="does not fit"):
+    with pytest.raises(ValueError, match='does not fit'):
         cv.msg_to_cloud(bad)
     counted = cv.cloud_to_msg(motion_cloud(10))
     counted.fields[0].count = 3
-    with pytest.raises(ValueError, match="count 3"):
+    with pytest.raises(ValueError, match='count 3'):
         cv.msg_to_cloud(counted)
     unknown = cv.cloud_to_msg(motion_cloud(10))
     unknown.fields[0].datatype = 42
-    with pytest.raises(ValueError, match="unknown PointField datatype 42"):
+    with pytest.raises(ValueError, match='unknown PointField datatype 42'):
         cv.msg_to_cloud(unknown)
 
 
 def test_cloud_bad_arrays():
     pts = motion_cloud(5)
-    pts["dx"][3] = np.inf
+    pts['dx'][3] = np.inf
     with pytest.raises(ValueError, match="'dx' has 1 non-finite"):
         cv.cloud_to_msg(pts)
-    with pytest.raises(ValueError, match="structured"):
+    with pytest.raises(ValueError, match='structured'):
         cv.cloud_to_msg(np.zeros((5, 3), np.float32))
-    with pytest.raises(ValueError, match="equal length"):
-        cv.structured({"x": np.zeros(3), "y": np.zeros(4)})
-    with pytest.raises(ValueError, match="cannot represent"):
-        cv.cloud_to_msg(np.zeros(2, dtype=[("x", np.complex64)]))
+    with pytest.raises(ValueError, match='equal length'):
+        cv.structured({'x': np.zeros(3), 'y': np.zeros(4)})
+    with pytest.raises(ValueError, match='cannot represent'):
+        cv.cloud_to_msg(np.zeros(2, dtype=[('x', np.complex64)]))
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 300), st.lists(st.sampled_from(["f4", "f8", "i4", "u2", "u1"]), min_size=1, max_size=5))
+@given(
+    st.integers(0, 300),
+    st.lists(st.sampled_from(['f4', 'f8', 'i4', 'u2', 'u1']), min_size=1, max_size=5),
+)
 def test_cloud_round_trip_property(n, formats):
-    dtype = np.dtype([(f"f{i}", fmt) for i, fmt in enumerate(formats)])
+    dtype = np.dtype([(f'f{i}', fmt) for i, fmt in enumerate(formats)])
     raw = np.random.default_rng(n).integers(0, 200, size=n * dtype.itemsize, dtype=np.uint8)
     pts = np.frombuffer(raw.tobytes(), dtype=dtype).copy()
     for name in dtype.names:  # keep floats finite
-        if dtype[name].kind == "f":
+        if dtype[name].kind == 'f':
             pts[name] = np.nan_to_num(pts[name], nan=0.0, posinf=0.0, neginf=0.0)
     assert cv.msg_to_cloud(cdr(cv.cloud_to_msg(pts))).tobytes() == pts.tobytes()
 
@@ -188,97 +218,161 @@ def test_cloud_round_trip_property(n, formats):
 def test_geometry_round_trip_and_validation():
     g = oblique_geometry()
     back = cv.msg_to_geometry(cdr(cv.geometry_to_msg(g)))
-    for name in ("image_position", "row_direction", "column_direction"):
+    for name in ('image_position', 'row_direction', 'column_direction'):
         assert getattr(back, name).tobytes() == getattr(g, name).tobytes()
     assert (back.row_spacing, back.column_spacing, back.slice_thickness) == (1.3, 1.25, 6.0)
     msg = cv.geometry_to_msg(g)
     msg.row_direction = np.array([1.0, 1.0, 0.0])
-    with pytest.raises(ValueError, match="unit vector"):
+    with pytest.raises(ValueError, match='unit vector'):
         cv.msg_to_geometry(msg)
     msg = cv.geometry_to_msg(g)
     msg.row_spacing = 0.0
-    with pytest.raises(ValueError, match="row_spacing must be a positive"):
+    with pytest.raises(ValueError, match='row_spacing must be a positive'):
         cv.msg_to_geometry(msg)
 
 
 def test_frame_round_trip():
     img = RNG.integers(0, 4096, size=(64, 48)).astype(np.uint16)
-    f = Frame(image=img, geometry=oblique_geometry(), view=VIEW_LA, slice_index=2, phase_index=7,
-              num_phases=25, trigger_time=0.336, cycle_duration=0.96, series_uid="1.2.3.4",
-              num_sa_slices=8, num_la_slices=3)
+    f = Frame(
+        image=img,
+        geometry=oblique_geometry(),
+        view=VIEW_LA,
+        slice_index=2,
+        phase_index=7,
+        num_phases=25,
+        trigger_time=0.336,
+        cycle_duration=0.96,
+        series_uid='1.2.3.4',
+        num_sa_slices=8,
+        num_la_slices=3,
+    )
     msg = cdr(cv.frame_to_msg(f, stamp=12.25))
     assert isinstance(msg, TaggedFrame) and cv.from_time(msg.header.stamp) == 12.25
     back = cv.msg_to_frame(msg)
     assert back.image.tobytes() == img.tobytes()
-    for name in ("view", "slice_index", "phase_index", "num_phases", "trigger_time", "cycle_duration",
-                 "series_uid", "num_sa_slices", "num_la_slices"):
+    for name in (
+        'view',
+        'slice_index',
+        'phase_index',
+        'num_phases',
+        'trigger_time',
+        'cycle_duration',
+        'series_uid',
+        'num_sa_slices',
+        'num_la_slices',
+    ):
         assert getattr(back, name) == getattr(f, name), name
 
 
 def test_frame_bad_indices():
-    f = Frame(image=np.zeros((4, 4), np.uint16), geometry=oblique_geometry(), view=5, slice_index=0,
-              phase_index=0, num_phases=2)
-    with pytest.raises(ValueError, match="view must be"):
+    f = Frame(
+        image=np.zeros((4, 4), np.uint16),
+        geometry=oblique_geometry(),
+        view=5,
+        slice_index=0,
+        phase_index=0,
+        num_phases=2,
+    )
+    with pytest.raises(ValueError, match='view must be'):
         cv.frame_to_msg(f)
     f.view, f.phase_index = VIEW_LA, 2
-    with pytest.raises(ValueError, match=r"phase_index 2 outside \[0, 2\)"):
+    with pytest.raises(ValueError, match=r'phase_index 2 outside \[0, 2\)'):
         cv.frame_to_msg(f)
 
 
 def make_points(n=50):
     g, rc = oblique_geometry(), RNG.uniform(0, 256, (n, 2))
-    return TagPointSet(view=0, slice_index=3, phase_index=4, num_phases=20, geometry=g,
-                       pixel_rc=rc, position=g.pixel_to_patient(rc),
-                       track_id=np.arange(n, dtype=np.int32)[::-1].copy(),
-                       confidence=RNG.uniform(0, 1, n).astype(np.float32), status="", stamp=3.5,
-                       num_sa_slices=8, num_la_slices=3)
+    return TagPointSet(
+        view=0,
+        slice_index=3,
+        phase_index=4,
+        num_phases=20,
+        geometry=g,
+        pixel_rc=rc,
+        position=g.pixel_to_patient(rc),
+        track_id=np.arange(n, dtype=np.int32)[::-1].copy(),
+        confidence=RNG.uniform(0, 1, n).astype(np.float32),
+        status='',
+        stamp=3.5,
+        num_sa_slices=8,
+        num_la_slices=3,
+    )
 
 
 def test_tagpoints_round_trip():
     p = make_points()
     back = cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(p)))
-    for name in ("pixel_rc", "position", "track_id", "confidence"):
+    for name in ('pixel_rc', 'position', 'track_id', 'confidence'):
         a, b = getattr(p, name), getattr(back, name)
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
     assert (back.view, back.slice_index, back.phase_index, back.stamp) == (0, 3, 4, 3.5)
-    empty = TagPointSet(view=0, slice_index=0, phase_index=0, num_phases=1, geometry=oblique_geometry(),
-                        status="no tags found")
+    empty = TagPointSet(
+        view=0,
+        slice_index=0,
+        phase_index=0,
+        num_phases=1,
+        geometry=oblique_geometry(),
+        status='no tags found',
+    )
     back = cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(empty)))
-    assert len(back) == 0 and back.status == "no tags found"
+    assert len(back) == 0 and back.status == 'no tags found'
 
 
 def test_tagpoints_inconsistent_lengths():
     p = make_points(5)
     p.confidence = p.confidence[:4]
-    with pytest.raises(ValueError, match="disagree"):
+    with pytest.raises(ValueError, match='disagree'):
         cv.tagpoints_to_msg(p)
     msg = cv.tagpoints_to_msg(make_points(5))
     msg.position = msg.position[:-1]
-    with pytest.raises(ValueError, match=r"position 14 \(want 15\)"):
+    with pytest.raises(ValueError, match=r'position 14 \(want 15\)'):
         cv.msg_to_tagpoints(msg)
     p = make_points(5)
     p.position[2, 1] = np.nan
-    with pytest.raises(ValueError, match="tag position has 1 non-finite"):
+    with pytest.raises(ValueError, match='tag position has 1 non-finite'):
         cv.tagpoints_to_msg(p)
 
 
 def test_model_state_round_trip_and_validation():
     q = RNG.normal(size=4)
-    s = ModelState(phase_index=3, num_phases=25, translation=np.array([1.5, -2.0, 30.25]), rotation=q / np.linalg.norm(q),
-                   a0=31.2, a1=0.9, a2=1.1, a3=2.7, tau=-0.031, iterations=17, residual=0.042, converged=True,
-                   num_particles=5000, num_control_points=812)
+    s = ModelState(
+        phase_index=3,
+        num_phases=25,
+        translation=np.array([1.5, -2.0, 30.25]),
+        rotation=q / np.linalg.norm(q),
+        a0=31.2,
+        a1=0.9,
+        a2=1.1,
+        a3=2.7,
+        tau=-0.031,
+        iterations=17,
+        residual=0.042,
+        converged=True,
+        num_particles=5000,
+        num_control_points=812,
+    )
     msg = cdr(cv.model_state_to_msg(s, stamp=2.0))
     assert isinstance(msg, ModelStateMsg)
     back = cv.msg_to_model_state(msg)
     assert back.rotation.tobytes() == s.rotation.tobytes()
     assert back.translation.tobytes() == s.translation.tobytes()
-    for name in ("a0", "a1", "a2", "a3", "tau", "iterations", "residual", "converged", "num_particles"):
+    for name in (
+        'a0',
+        'a1',
+        'a2',
+        'a3',
+        'tau',
+        'iterations',
+        'residual',
+        'converged',
+        'num_particles',
+    ):
         assert getattr(back, name) == getattr(s, name)
     s.rotation = np.array([1.0, 1.0, 0.0, 0.0])
-    with pytest.raises(ValueError, match="unit quaternion"):
+    with pytest.raises(ValueError, match='unit quaternion'):
         cv.model_state_to_msg(s)
     s.rotation, s.tau = np.array([1.0, 0, 0, 0]), np.nan
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match='non-finite'):
         cv.model_state_to_msg(s)
 
 
@@ -299,52 +393,86 @@ def test_metrics_round_trip():
         assert back[name].tobytes() == m[name].tobytes(), name
     for name in cv.METRIC_SCALAR_FIELDS:
         assert back[name] == m[name]
-    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg(make_metrics(segments=0))))["segment_ecc"].size == 0
+    assert (
+        cv.msg_to_metrics(cdr(cv.metrics_to_msg(make_metrics(segments=0))))['segment_ecc'].size
+        == 0
+    )
 
 
 def test_metrics_bad_input():
     m = make_metrics()
-    m["twist_deg"] = m["twist_deg"][:-1]
-    with pytest.raises(ValueError, match="different lengths"):
+    m['twist_deg'] = m['twist_deg'][:-1]
+    with pytest.raises(ValueError, match='different lengths'):
         cv.metrics_to_msg(m)
     m = make_metrics(segments=16)
-    with pytest.raises(ValueError, match="0 or 17"):
+    with pytest.raises(ValueError, match='0 or 17'):
         cv.metrics_to_msg(m)
     m = make_metrics()
-    m["sa_radius_mm"][0] = np.nan
-    with pytest.raises(ValueError, match="sa_radius_mm has 1 non-finite"):
+    m['sa_radius_mm'][0] = np.nan
+    with pytest.raises(ValueError, match='sa_radius_mm has 1 non-finite'):
         cv.metrics_to_msg(m)
 
 
 def test_study_id_round_trip_through_every_message():
-    """Run isolation: every message of a study carries its id, through CDR and back; an id a
-    message cannot carry sensibly is refused."""
-    study = "1.2.826.0.1.3680043.8.498.12345"
+    """
+    Run isolation: every message of a study carries its id, through CDR and back; an id a
+    message cannot carry sensibly is refused.
+    """
+    study = '1.2.826.0.1.3680043.8.498.12345'
     img = RNG.integers(0, 4096, size=(8, 8)).astype(np.uint16)
-    f = Frame(image=img, geometry=oblique_geometry(), view=VIEW_LA, slice_index=1, phase_index=2, num_phases=5,
-              study_id=study)
-    assert cdr(cv.frame_to_msg(f)).study_id == study and cv.msg_to_frame(cdr(cv.frame_to_msg(f))).study_id == study
+    f = Frame(
+        image=img,
+        geometry=oblique_geometry(),
+        view=VIEW_LA,
+        slice_index=1,
+        phase_index=2,
+        num_phases=5,
+        study_id=study,
+    )
+    assert (
+        cdr(cv.frame_to_msg(f)).study_id == study
+        and cv.msg_to_frame(cdr(cv.frame_to_msg(f))).study_id == study
+    )
     p = make_points(3)
     p.study_id = study
     assert cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(p))).study_id == study
     s = ModelState(phase_index=1, num_phases=5, study_id=study)
     assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(s))).study_id == study
     m = make_metrics()
-    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, "study_id": study})))["study_id"] == study
-    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))["study_id"] == ""  # optional: unknown study
+    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, 'study_id': study})))['study_id'] == study
+    assert (
+        cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))['study_id'] == ''
+    )  # optional: unknown study
     # ... and the run's id alongside.
-    f.run_id = p.run_id = s.run_id = "9f3a11c0d2e4b5a6"
+    f.run_id = p.run_id = s.run_id = '9f3a11c0d2e4b5a6'
     assert cv.msg_to_frame(cdr(cv.frame_to_msg(f))).run_id == f.run_id
     assert cv.msg_to_tagpoints(cdr(cv.tagpoints_to_msg(p))).run_id == f.run_id
     assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(s))).run_id == f.run_id
-    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, "run_id": f.run_id})))["run_id"] == f.run_id
-    s.run_id = "a\tb"
-    with pytest.raises(ValueError, match="run_id .* non-printable"):
+    assert (
+        cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, 'run_id': f.run_id})))['run_id'] == f.run_id
+    )
+    s.run_id = 'a\tb'
+    with pytest.raises(ValueError, match='run_id .* non-printable'):
         cv.model_state_to_msg(s)
-    s.run_id = ""
-    assert cv.msg_to_frame(cdr(cv.frame_to_msg(Frame(image=img, geometry=oblique_geometry(), view=0, slice_index=0,
-                                                     phase_index=0, num_phases=2)))).study_id == ""
-    for bad, why in (("x" * (cv.MAX_STUDY_ID + 1), "at most"), ("a\nb", "non-printable")):
+    s.run_id = ''
+    assert (
+        cv.msg_to_frame(
+            cdr(
+                cv.frame_to_msg(
+                    Frame(
+                        image=img,
+                        geometry=oblique_geometry(),
+                        view=0,
+                        slice_index=0,
+                        phase_index=0,
+                        num_phases=2,
+                    )
+                )
+            )
+        ).study_id
+        == ''
+    )
+    for bad, why in (('x' * (cv.MAX_STUDY_ID + 1), 'at most'), ('a\nb', 'non-printable')):
         s.study_id = bad
         with pytest.raises(ValueError, match=why):
             cv.model_state_to_msg(s)
@@ -355,38 +483,68 @@ def test_study_id_round_trip_through_every_message():
 
 
 def test_segment_origin_and_findings_round_trip():
-    """The registered state's segment origin and the per-segment findings (NaN = not measured,
-    classes as uint8 codes) survive CDR; bad codes and lengths are refused."""
+    """
+    The registered state's segment origin and the per-segment findings (NaN = not measured,
+    classes as uint8 codes) survive CDR; bad codes and lengths are refused.
+    """
     from mlv_ros.core.analysis.findings import CLASS_CODES, FINDING_ARRAY_FIELDS, Findings
     from mlv_ros.core.types import SEGMENT_ORIGIN_CODES
-    s = ModelState(phase_index=0, num_phases=20, segment_origin=SEGMENT_ORIGIN_CODES["detected"],
-                   segment_origin_confidence=0.73)
+
+    s = ModelState(
+        phase_index=0,
+        num_phases=20,
+        segment_origin=SEGMENT_ORIGIN_CODES['detected'],
+        segment_origin_confidence=0.73,
+    )
     back = cv.msg_to_model_state(cdr(cv.model_state_to_msg(s)))
     assert back.segment_origin == 2 and back.segment_origin_confidence == 0.73
-    assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(ModelState(num_phases=2)))).segment_origin == 0
-    with pytest.raises(ValueError, match="segment_origin must be one of"):
+    assert (
+        cv.msg_to_model_state(cdr(cv.model_state_to_msg(ModelState(num_phases=2)))).segment_origin
+        == 0
+    )
+    with pytest.raises(ValueError, match='segment_origin must be one of'):
         cv.model_state_to_msg(ModelState(num_phases=2, segment_origin=7))
 
-    vals = {c: RNG.normal(scale=0.1, size=17) for c in ("err", "ecc", "ell")}
-    vals["err"][16] = np.nan  # an unmeasured segment stays NaN
-    f = Findings(phases_used=[0, 3], es_phase=3, peak=vals, peak_unc={c: np.full(17, 0.02) for c in vals},
-                 es=vals, es_unc={c: np.full(17, 0.03) for c in vals}, function_index=RNG.normal(size=17),
-                 function_unc=np.full(17, 0.1), classes=["normal"] * 6 + ["akinetic", "dyskinetic"] + ["indeterminate"] * 9)
+    vals = {c: RNG.normal(scale=0.1, size=17) for c in ('err', 'ecc', 'ell')}
+    vals['err'][16] = np.nan  # an unmeasured segment stays NaN
+    f = Findings(
+        phases_used=[0, 3],
+        es_phase=3,
+        peak=vals,
+        peak_unc={c: np.full(17, 0.02) for c in vals},
+        es=vals,
+        es_unc={c: np.full(17, 0.03) for c in vals},
+        function_index=RNG.normal(size=17),
+        function_unc=np.full(17, 0.1),
+        classes=['normal'] * 6 + ['akinetic', 'dyskinetic'] + ['indeterminate'] * 9,
+    )
     m = make_metrics()
-    m.update(f.message_fields(), segment_origin=1, segment_origin_confidence=0.0,
-             segment_err_unc=np.full(17, 0.05), segment_ecc_unc=np.full(17, np.nan), segment_ell_unc=np.zeros(0))
+    m.update(
+        f.message_fields(),
+        segment_origin=1,
+        segment_origin_confidence=0.0,
+        segment_err_unc=np.full(17, 0.05),
+        segment_ecc_unc=np.full(17, np.nan),
+        segment_ell_unc=np.zeros(0),
+    )
     back = cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))
-    for name in FINDING_ARRAY_FIELDS + ("segment_err_unc", "segment_ecc_unc", "segment_ell_unc"):
+    for name in FINDING_ARRAY_FIELDS + ('segment_err_unc', 'segment_ecc_unc', 'segment_ell_unc'):
         assert back[name].tobytes() == np.asarray(m[name], np.float64).tobytes(), name
-    assert np.isnan(back["finding_peak_err"][16]) and back["findings_es_phase"] == 3
-    assert [list(CLASS_CODES)[c] for c in back["segment_class"]] == f.classes
-    assert back["segment_origin"] == 1
+    assert np.isnan(back['finding_peak_err'][16]) and back['findings_es_phase'] == 3
+    assert [list(CLASS_CODES)[c] for c in back['segment_class']] == f.classes
+    assert back['segment_origin'] == 1
     # Metrics without findings (recorded before them) read as empty / unknown.
     old = cv.msg_to_metrics(cdr(cv.metrics_to_msg(make_metrics())))
-    assert old["segment_class"].size == 0 and old["findings_es_phase"] == -1 and old["segment_origin"] == 0
-    for bad, match in ((dict(segment_class=np.full(17, 9)), "segment_class must hold codes"),
-                       (dict(finding_es_ecc=np.zeros(16)), "0 or 17"),
-                       (dict(finding_es_ecc=np.full(17, np.inf)), "infinite"),
-                       (dict(findings_es_phase=-3), "findings_es_phase")):
+    assert (
+        old['segment_class'].size == 0
+        and old['findings_es_phase'] == -1
+        and old['segment_origin'] == 0
+    )
+    for bad, match in (
+        ({'segment_class': np.full(17, 9)}, 'segment_class must hold codes'),
+        ({'finding_es_ecc': np.zeros(16)}, '0 or 17'),
+        ({'finding_es_ecc': np.full(17, np.inf)}, 'infinite'),
+        ({'findings_es_phase': -3}, 'findings_es_phase'),
+    ):
         with pytest.raises(ValueError, match=match):
             cv.metrics_to_msg({**m, **bad})

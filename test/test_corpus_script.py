@@ -1,32 +1,35 @@
-"""``test/make_bad_input_corpus.py`` writes the whole corpus (≥ 200 cases) to disk: DICOM files, a
+"""
+``test/make_bad_input_corpus.py`` writes the whole corpus (≥ 200 cases) to disk: DICOM files, a
 replayable MCAP of the bad messages among a valid study, and a manifest — all readable by
-independent tools (pydicom is not needed to check the files exist; rosbags reads the bag)."""
+independent tools (pydicom is not needed to check the files exist; rosbags reads the bag).
+"""
 
 import json
 
+from graphkit import TOPIC_MSG
+from make_bad_input_corpus import write_corpus
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 from rosbags.highlevel.anyreader import AnyReaderError
-from rosbags.typesys import Stores, get_typestore
-
-from graphkit import TOPIC_MSG
-from make_bad_input_corpus import write_corpus
+from rosbags.typesys import get_typestore, Stores
 
 
 def test_corpus_script_writes_every_case(tmp_path):
-    manifest = write_corpus(tmp_path / "corpus")
-    cases = manifest["cases"]
-    assert manifest["count"] == len(cases) >= 200
-    assert len({c["name"] for c in cases}) == len(cases)
-    assert {c["kind"] for c in cases} == {"dicom", "message"}
+    manifest = write_corpus(tmp_path / 'corpus')
+    cases = manifest['cases']
+    assert manifest['count'] == len(cases) >= 200
+    assert len({c['name'] for c in cases}) == len(cases)
+    assert {c['kind'] for c in cases} == {'dicom', 'message'}
     for c in cases:
-        if c["kind"] == "dicom":
-            assert c["files"] and all((tmp_path / "corpus" / f).is_file() for f in c["files"]), c["name"]
-    assert json.loads((tmp_path / "corpus" / "manifest.json").read_text())["count"] == len(cases)
+        if c['kind'] == 'dicom':
+            assert c['files'] and all((tmp_path / 'corpus' / f).is_file() for f in c['files']), c[
+                'name'
+            ]
+    assert json.loads((tmp_path / 'corpus' / 'manifest.json').read_text())['count'] == len(cases)
 
     # The bag: every message case plus every valid frame, none lost, readable by rosbags.
-    messages = [c for c in cases if c["kind"] == "message"]
-    bag = tmp_path / "corpus" / "messages.mcap"
+    messages = [c for c in cases if c['kind'] == 'message']
+    bag = tmp_path / 'corpus' / 'messages.mcap'
     stamps = []
     with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for conn, _t, raw in reader.messages():
@@ -37,9 +40,9 @@ def test_corpus_script_writes_every_case(tmp_path):
                 # sequence were 8-aligned and leaves those bytes at its end; rosbags accepts at
                 # most 3 trailing bytes. rclpy reads it; only such messages may fail here.
                 msg = deserialize_message(raw, TOPIC_MSG[conn.topic])
-                assert any(len(getattr(msg, f)) == 0 for f in ("pixel_rc", "position")), conn.topic
+                assert any(len(getattr(msg, f)) == 0 for f in ('pixel_rc', 'position')), conn.topic
                 header = msg.header
-            stamps.append(f"{header.stamp.sec}.{header.stamp.nanosec:09d}")
-    stand_ins = sum(c["replaces_valid_frame"] for c in messages)
-    assert len(stamps) == manifest["valid_study"]["frames"] - stand_ins + len(messages)
-    assert {c["stamp"] for c in messages} <= set(stamps)
+            stamps.append(f'{header.stamp.sec}.{header.stamp.nanosec:09d}')
+    stand_ins = sum(c['replaces_valid_frame'] for c in messages)
+    assert len(stamps) == manifest['valid_study']['frames'] - stand_ins + len(messages)
+    assert {c['stamp'] for c in messages} <= set(stamps)

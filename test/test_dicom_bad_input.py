@@ -1,22 +1,21 @@
 """The DICOM reader on damaged directories: every bad file is reported, the rest still loads."""
 
-import shutil
 from pathlib import Path
-
-import numpy as np
-import pydicom
-import pytest
-from pydicom.dataset import Dataset, FileMetaDataset
+import shutil
 
 from mlv_ros.core.io import DicomReadError, read_dicom_dir, write_study_dicom
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_LA
+import numpy as np
+import pydicom
+from pydicom.dataset import Dataset, FileMetaDataset
+import pytest
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def good(tmp_path_factory):
-    s = simulate_study("normal", snr=20.0, size=48, num_phases=3, subplanes=1, seed=2)
-    d = tmp_path_factory.mktemp("good")
+    s = simulate_study('normal', snr=20.0, size=48, num_phases=3, subplanes=1, seed=2)
+    d = tmp_path_factory.mktemp('good')
     return s, write_study_dicom(s, d)
 
 
@@ -24,7 +23,7 @@ def _copy_all(paths, dest: Path) -> list[Path]:
     dest.mkdir(parents=True, exist_ok=True)
     out = []
     for i, p in enumerate(paths):
-        q = dest / f"img{i:03d}"
+        q = dest / f'img{i:03d}'
         shutil.copy(p, q)
         out.append(q)
     return out
@@ -32,25 +31,25 @@ def _copy_all(paths, dest: Path) -> list[Path]:
 
 def test_bad_files_reported_rest_loads(good, tmp_path):
     study, paths = good
-    d = tmp_path / "study"
+    d = tmp_path / 'study'
     files = _copy_all(paths, d)
     # 1. corrupt: random bytes
-    (d / "corrupt.dcm").write_bytes(np.random.default_rng(0).bytes(3000))
+    (d / 'corrupt.dcm').write_bytes(np.random.default_rng(0).bytes(3000))
     # 2. truncated copy of a valid image (its original still loads)
     raw = files[0].read_bytes()
-    (d / "truncated.dcm").write_bytes(raw[: len(raw) * 2 // 3])
-    (d / "header_cut.dcm").write_bytes(raw[:1000])  # cut inside the header, before the pixels
+    (d / 'truncated.dcm').write_bytes(raw[:len(raw) * 2 // 3])
+    (d / 'header_cut.dcm').write_bytes(raw[:1000])  # cut inside the header, before the pixels
     # 3. non-image DICOM (no PixelData)
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.88.11"  # Basic Text SR
+    meta.MediaStorageSOPClassUID = '1.2.840.10008.5.1.4.1.1.88.11'  # Basic Text SR
     meta.MediaStorageSOPInstanceUID = pydicom.uid.generate_uid()
     meta.TransferSyntaxUID = pydicom.uid.ExplicitVRLittleEndian
     sr = Dataset()
     sr.file_meta = meta
     sr.SOPClassUID = meta.MediaStorageSOPClassUID
     sr.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-    sr.Modality = "SR"
-    sr.save_as(d / "report.dcm", enforce_file_format=True)
+    sr.Modality = 'SR'
+    sr.save_as(d / 'report.dcm', enforce_file_format=True)
     # 4. a whole series (LA 2) without ImagePositionPatient
     la2 = study.series_uids[(VIEW_LA, 2)]
     missing = []
@@ -62,8 +61,12 @@ def test_bad_files_reported_rest_loads(good, tmp_path):
             missing.append(str(f))
     # 5. one image of SA 1 replaced by a smaller one (same series and plane)
     sa1 = study.series_uids[(0, 1)]
-    odd = next(f for f in files if pydicom.dcmread(f, stop_before_pixels=True).SeriesInstanceUID == sa1
-               and pydicom.dcmread(f, stop_before_pixels=True).InstanceNumber == 2)
+    odd = next(
+        f
+        for f in files
+        if pydicom.dcmread(f, stop_before_pixels=True).SeriesInstanceUID == sa1
+        and pydicom.dcmread(f, stop_before_pixels=True).InstanceNumber == 2
+    )
     ds = pydicom.dcmread(odd)
     ds.Rows, ds.Columns = 32, 32
     ds.PixelData = np.zeros((32, 32), np.uint16).tobytes()
@@ -71,14 +74,14 @@ def test_bad_files_reported_rest_loads(good, tmp_path):
 
     res = read_dicom_dir(d)
     why = dict(res.problems)
-    assert "not a DICOM file" in why[str(d / "corrupt.dcm")]
-    assert "pixel data unreadable" in why[str(d / "truncated.dcm")]
-    assert "truncated" in why[str(d / "header_cut.dcm")]
-    assert "no pixel data" in why[str(d / "report.dcm")]
+    assert 'not a DICOM file' in why[str(d / 'corrupt.dcm')]
+    assert 'pixel data unreadable' in why[str(d / 'truncated.dcm')]
+    assert 'truncated' in why[str(d / 'header_cut.dcm')]
+    assert 'no pixel data' in why[str(d / 'report.dcm')]
     assert len(missing) == 3
     for f in missing:
-        assert why[f] == "missing geometry tag(s): ImagePositionPatient"
-    assert "image size 32x32 differs" in why[str(odd)]
+        assert why[f] == 'missing geometry tag(s): ImagePositionPatient'
+    assert 'image size 32x32 differs' in why[str(odd)]
     assert len(res.problems) == 4 + 3 + 1
     # everything valid still loads: 10 series; SA 1 has 2 phases left
     assert len(res.series) == 10
@@ -89,17 +92,17 @@ def test_bad_files_reported_rest_loads(good, tmp_path):
 
 
 def test_empty_directory_is_a_clear_error(tmp_path):
-    with pytest.raises(DicomReadError, match="no files under"):
+    with pytest.raises(DicomReadError, match='no files under'):
         read_dicom_dir(tmp_path)
-    with pytest.raises(FileNotFoundError, match="DICOM directory not found"):
-        read_dicom_dir(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match='DICOM directory not found'):
+        read_dicom_dir(tmp_path / 'missing')
 
 
 def test_only_junk_is_a_clear_error(tmp_path):
-    (tmp_path / "a.txt").write_text("hello")
-    with pytest.raises(DicomReadError, match="no usable DICOM image") as err:
+    (tmp_path / 'a.txt').write_text('hello')
+    with pytest.raises(DicomReadError, match='no usable DICOM image') as err:
         read_dicom_dir(tmp_path)
-    assert err.value.problems[0][0] == str(tmp_path / "a.txt")
+    assert err.value.problems[0][0] == str(tmp_path / 'a.txt')
 
 
 def test_missing_trigger_time_falls_back_to_instance_number(good, tmp_path):
@@ -110,8 +113,11 @@ def test_missing_trigger_time_falls_back_to_instance_number(good, tmp_path):
         if ds.SeriesInstanceUID != sa0:
             continue
         del ds.TriggerTime
-        ds.save_as(tmp_path / f"z{9 - i}")
+        ds.save_as(tmp_path / f'z{9 - i}')
     res = read_dicom_dir(tmp_path)
-    inst = [int(pydicom.dcmread(f, stop_before_pixels=True).InstanceNumber) for f in res.series[0].files]
+    inst = [
+        int(pydicom.dcmread(f, stop_before_pixels=True).InstanceNumber)
+        for f in res.series[0].files
+    ]
     assert inst == [1, 2, 3]
     np.testing.assert_allclose([f.trigger_time for f in res.frames], study.motion.times, atol=1e-9)

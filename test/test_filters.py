@@ -1,11 +1,12 @@
-"""The shared running median (``mlv_ros.core.filters``): scipy's median filter exactly, taken once
-per image and window (the tag detector and the registration both ask for it of each ED frame)."""
+"""
+The shared running median (``mlv_ros.core.filters``): scipy's median filter exactly, taken once
+per image and window (the tag detector and the registration both ask for it of each ED frame).
+"""
 
+from mlv_ros.core import filters
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
-
-from mlv_ros.core import filters
 
 
 def test_running_median_is_scipys_and_is_taken_once_per_image():
@@ -13,19 +14,21 @@ def test_running_median_is_scipys_and_is_taken_once_per_image():
     img = rng.normal(size=(40, 48))
     before = dict(filters.stats)
     first = filters.running_median(img, 7)
-    assert np.array_equal(first, ndi.median_filter(img, size=7, mode="reflect"))
+    assert np.array_equal(first, ndi.median_filter(img, size=7, mode='reflect'))
     again = filters.running_median(img.copy(), 7)  # same pixels, another array: the kept result
-    assert again is first and filters.stats["hits"] == before["hits"] + 1
+    assert again is first and filters.stats['hits'] == before['hits'] + 1
     assert not first.flags.writeable  # shared: callers cannot change it for the next one
     other = img.copy()
     other[3, 4] += 1e-9  # one pixel differs in its last bits: computed anew
-    assert np.array_equal(filters.running_median(other, 7), ndi.median_filter(other, size=7, mode="reflect"))
+    assert np.array_equal(
+        filters.running_median(other, 7), ndi.median_filter(other, size=7, mode='reflect')
+    )
     assert not np.array_equal(filters.running_median(img, 9), first)  # another window
-    assert filters.stats["misses"] == before["misses"] + 3
+    assert filters.stats['misses'] == before['misses'] + 3
 
 
 def test_running_median_keeps_a_bounded_number_of_images(monkeypatch):
-    monkeypatch.setattr(filters, "CACHE_SIZE", 2)
+    monkeypatch.setattr(filters, 'CACHE_SIZE', 2)
     imgs = [np.full((8, 8), float(i)) + np.eye(8) for i in range(4)]
     for im in imgs:
         filters.running_median(im, 3)

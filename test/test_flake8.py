@@ -20,13 +20,15 @@ PENDING = ['D205', 'D400', 'D401']
 @pytest.mark.linter
 def test_flake8(tmp_path, monkeypatch):
     config = configparser.ConfigParser()
-    config.read(Path(inspect.getfile(main_with_errors)).parent / 'configuration' / 'ament_flake8.ini')
+    config.read(
+        Path(inspect.getfile(main_with_errors)).parent / 'configuration' / 'ament_flake8.ini'
+    )
     config['flake8']['extend-ignore'] += ',' + ','.join(PENDING)
     with open(tmp_path / 'flake8.ini', 'w') as f:
         config.write(f)
     # ament_flake8 walks the working directory for AMENT_IGNORE markers: not the whole .venv
     monkeypatch.chdir(tmp_path)
     rc, errors = main_with_errors(
-        argv=['--config', str(tmp_path / 'flake8.ini'), *(str(REPO / s) for s in SOURCES)])
-    assert rc == 0, \
-        'Found %d code style errors / warnings:\n' % len(errors) + '\n'.join(errors)
+        argv=['--config', str(tmp_path / 'flake8.ini'), *(str(REPO / s) for s in SOURCES)]
+    )
+    assert rc == 0, 'Found %d code style errors / warnings:\n' % len(errors) + '\n'.join(errors)

@@ -1,12 +1,14 @@
-"""Load: a whole study published at once, as fast as possible, slice-major, into the graph plus
+"""
+Load: a whole study published at once, as fast as possible, slice-major, into the graph plus
 the recorder — no frame may be lost anywhere (published = received by the tag detector = tag
-sets out = recorded), and every phase must be solved and analysed."""
+sets out = recorded), and every phase must be solved and analysed.
+"""
 
 import json
 
-import pytest
 from graphkit import run_load
 from mlv_ros.core.sim import simulate_study
+import pytest
 
 pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
 
@@ -14,9 +16,9 @@ PHASES = 10
 
 
 def test_whole_study_burst_loses_nothing(tmp_path):
-    frames = list(simulate_study("normal", snr=20, size=128, num_phases=PHASES).frames)
-    report = run_load(frames, tmp_path, order="slice_major", timeout=240, stall_s=60)
-    print("\nload:", json.dumps(report.as_dict()))
+    frames = list(simulate_study('normal', snr=20, size=128, num_phases=PHASES).frames)
+    report = run_load(frames, tmp_path, order='slice_major', timeout=240, stall_s=60)
+    print('\nload:', json.dumps(report.as_dict()))
     assert report.published == len(frames) == 11 * PHASES
     assert report.detector_received == report.published, report
     assert report.tag_sets == report.published, report

@@ -1,28 +1,32 @@
-"""The local stage of :mod:`mlv_ros.core.meshless.local` against the reference copies of the
-stages it replaced (``bench/reference_local.py``): same operator, same solutions."""
+"""
+The local stage of :mod:`mlv_ros.core.meshless.local` against the reference copies of the
+stages it replaced (``bench/reference_local.py``): same operator, same solutions.
+"""
 
-import sys
 from pathlib import Path
+import sys
 
+from mlv_ros.core import tracking
+from mlv_ros.core.meshless import cylindrical_frame, elastic, MeshlessModel
+from mlv_ros.core.meshless.local import CoarseSpace, farthest_point_aggregates
+from mlv_ros.core.phantom import control_subset, deform, H_CYL, R_OUTER, sample_cylinder_shell
+from mlv_ros.core.sim import simulate_study
 import numpy as np
 import pytest
 import scipy.sparse as sp
-
-from mlv_ros.core import tracking
-from mlv_ros.core.meshless import MeshlessModel, cylindrical_frame, elastic
-from mlv_ros.core.meshless.local import CoarseSpace, farthest_point_aggregates
-from mlv_ros.core.phantom import H_CYL, R_OUTER, control_subset, deform, sample_cylinder_shell
-from mlv_ros.core.sim import simulate_study
 from test_tracking import observed, referenced_tracker
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from reference_local import PhantomSystemReference  # noqa: E402, I100
-from reference_local import tracker_fit_error_matrix, tracker_local_solve  # noqa: E402, I100
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
+from reference_local import (  # noqa: E402, I100
+    PhantomSystemReference,  # noqa: E402, I100
+    tracker_fit_error_matrix,
+    tracker_local_solve,
+)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    return simulate_study("normal", snr=20, quick=True)
+    return simulate_study('normal', snr=20, quick=True)
 
 
 def test_operators_equal_the_assembled_fit_error_and_matrix_free_stiffness(study):
@@ -32,19 +36,28 @@ def test_operators_equal_the_assembled_fit_error_and_matrix_free_stiffness(study
     np.testing.assert_allclose(tr._local.fit_error_diagonal, L.diagonal(), rtol=1e-10)
     system = tr._local.system(fit_error=2.0, eps=0.5)
     for u in (rng.normal(size=(tr.num_particles, 3)), np.sin(tr.rest / 15.0)):  # rough and smooth
-        ref = elastic.linear_stiffness_apply(m.operator, u, m.phyxels.volume, m.lam, m.mu) + 2.0 * (L @ u) + 0.5 * u
+        ref = (
+            elastic.linear_stiffness_apply(m.operator, u, m.phyxels.volume, m.lam, m.mu)
+            + 2.0 * (L @ u)
+            + 0.5 * u
+        )
         np.testing.assert_allclose(system.internal(u), ref, atol=1e-9 * np.abs(ref).max())
     # the paper model's stabilisation is the same penalty with other weights
     coef = m.stabilisation * m.mu * elastic.stabilisation_weights(m.operator, m.phyxels.volume)
     u = rng.normal(size=(tr.num_particles, 3))
     ref = elastic.stabilisation_apply(m.operator, u, coef)
-    np.testing.assert_allclose(m.stabilisation * m.mu * m.local_operators.fit_error_apply(u), ref,
-                               atol=1e-9 * np.abs(ref).max())
+    np.testing.assert_allclose(
+        m.stabilisation * m.mu * m.local_operators.fit_error_apply(u),
+        ref,
+        atol=1e-9 * np.abs(ref).max(),
+    )
 
 
 def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monkeypatch):
-    """Every local solve of three phases (two slice-following passes each) against the old one on
-    the same tag points, global fit and warm start: CG at rtol 1e-3 either way."""
+    """
+    Every local solve of three phases (two slice-following passes each) against the old one on
+    the same tag points, global fit and warm start: CG at rtol 1e-3 either way.
+    """
     m = study.motion
     X, tr, refs = referenced_tracker(study, n=1500)
     new_solve, cache, diffs = tracking.MotionTracker._local_solve, {}, []
@@ -60,7 +73,7 @@ def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monk
         diffs.append(np.linalg.norm(new - old, axis=1))
         return new
 
-    monkeypatch.setattr(tracking.MotionTracker, "_local_solve", both)
+    monkeypatch.setattr(tracking.MotionTracker, '_local_solve', both)
     for phase in (1, 2, int(round(m.es_phase))):
         tr.solve(phase, observed(study, refs, phase), m.num_phases)
     assert len(diffs) == 6
@@ -70,13 +83,17 @@ def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monk
 
 def test_paper_model_fit_matches_the_reference_local_stage():
     x = sample_cylinder_shell(1500, seed=0)
-    model = MeshlessModel(x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2))
+    model = MeshlessModel(
+        x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2)
+    )
     idx = control_subset(len(x), 0.1, seed=1)
-    y = deform(x, "bulge")
+    y = deform(x, 'bulge')
     new = model.fit(idx, y[idx], warm_start=False, max_iterations=60)
     model._local_system = lambda data: PhantomSystemReference(model, data)
     old = model.fit(idx, y[idx], warm_start=False, max_iterations=60)
-    rms_new, rms_old = (float(np.sqrt(np.mean(np.sum((r.positions - y) ** 2, axis=1)))) for r in (new, old))
+    rms_new, rms_old = (
+        float(np.sqrt(np.mean(np.sum((r.positions - y) ** 2, axis=1)))) for r in (new, old)
+    )
     assert abs(rms_new - rms_old) < 1e-3, (rms_new, rms_old)
     assert np.median(np.linalg.norm(new.positions - old.positions, axis=1)) < 0.02
 
@@ -91,38 +108,56 @@ def _coarse_basis(coarse, n):
 
 
 def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(study):
-    """The coarse matrix assembled from sparse products equals ``Zᵀ A Z`` taken column by column
+    """
+    The coarse matrix assembled from sparse products equals ``Zᵀ A Z`` taken column by column
     through the system's own matrix–vector product (every term: elasticity, volume at rest, axial,
-    fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``."""
+    fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``.
+    """
     _, tr, _ = referenced_tracker(study, n=800, coarse_aggregates=0)
     ops, n, rng = tr._local, tr.num_particles, np.random.default_rng(3)
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     coarse = CoarseSpace(ops, 6, fit_error=3.0, volume_weight=50.0, axial=(7.0, axis), eps=0.1)
     m = 40
-    phi = sp.random(m, n, density=0.02, random_state=1, format="csr")
+    phi = sp.random(m, n, density=0.02, random_state=1, format='csr')
     nrm = rng.normal(size=(m, 3))
     nrm /= np.linalg.norm(nrm, axis=1)[:, None]
-    metric = (np.eye(3) - nrm[:, :, None] * nrm[:, None, :]) * rng.uniform(0.5, 2.0, m)[:, None, None]
-    system = ops.system(fit_error=3.0, volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
-                        axial=(7.0, axis), data=(5.0, phi, metric), eps=0.1)
+    metric = (np.eye(3) - nrm[:, :, None] * nrm[:, None, :]) * rng.uniform(0.5, 2.0, m)[
+        :, None, None
+    ]
+    system = ops.system(
+        fit_error=3.0,
+        volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
+        axial=(7.0, axis),
+        data=(5.0, phi, metric),
+        eps=0.1,
+    )
     z = _coarse_basis(coarse, n)
     az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
-    galerkin = np.einsum("nec,ned->cd", z, az)
+    galerkin = np.einsum('nec,ned->cd', z, az)
     r = rng.normal(size=(n, 3))
-    want = np.einsum("nec,c->ne", z, np.linalg.solve(galerkin, np.einsum("nec,ne->c", z, r)))
+    want = np.einsum('nec,c->ne', z, np.linalg.solve(galerkin, np.einsum('nec,ne->c', z, r)))
     got = coarse.factor((5.0, phi, metric))(r)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
     # internal part alone (no data): the same against the system without springs
-    system = ops.system(fit_error=3.0, volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
-                        axial=(7.0, axis), eps=0.1)
+    system = ops.system(
+        fit_error=3.0,
+        volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
+        axial=(7.0, axis),
+        eps=0.1,
+    )
     az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
-    np.testing.assert_allclose(coarse.internal, np.einsum("nec,ned->cd", z, az),
-                               atol=1e-12 * np.abs(coarse.internal).max())
+    np.testing.assert_allclose(
+        coarse.internal,
+        np.einsum('nec,ned->cd', z, az),
+        atol=1e-12 * np.abs(coarse.internal).max(),
+    )
 
 
 def test_coarse_correction_keeps_the_solution_and_cuts_cg_iterations(study, monkeypatch):
-    """Two-level PCG converges to block-Jacobi's solution (tight tolerance), and at the
-    tracker's tolerance in fewer iterations, on the tracker's own systems at ES."""
+    """
+    Two-level PCG converges to block-Jacobi's solution (tight tolerance), and at the
+    tracker's tolerance in fewer iterations, on the tracker's own systems at ES.
+    """
     m = study.motion
     _, tr, refs = referenced_tracker(study, n=800)
     assert tr._coarse is not None
@@ -132,13 +167,13 @@ def test_coarse_correction_keeps_the_solution_and_cuts_cg_iterations(study, monk
         systems.append(kw)
         return build(**kw)
 
-    monkeypatch.setattr(tr._local, "system", keep)
+    monkeypatch.setattr(tr._local, 'system', keep)
     tr.solve(int(round(m.es_phase)), observed(study, refs, int(round(m.es_phase))), m.num_phases)
     its_bj = its_two = 0
     for kw in systems:
         with_coarse = build(**kw)
-        plain = build(**{k: v for k, v in kw.items() if k != "coarse"})
-        b = np.sin(tr.rest / 7.0) * kw["data"][0]
+        plain = build(**{k: v for k, v in kw.items() if k != 'coarse'})
+        b = np.sin(tr.rest / 7.0) * kw['data'][0]
         exact, _ = plain.solve(b, rtol=1e-10, maxiter=5000)
         two, _ = with_coarse.solve(b, rtol=1e-10, maxiter=5000)
         np.testing.assert_allclose(two, exact, atol=1e-6 * np.abs(exact).max())
@@ -155,7 +190,7 @@ def test_aggregates_cover_the_cloud_and_degenerate_ones_drop_directions():
     assert agg.shape == (500,) and set(agg.tolist()) == set(range(16))
     np.testing.assert_array_equal(agg, farthest_point_aggregates(x, 16))  # deterministic
     for bad in (0, 501):
-        with pytest.raises(ValueError, match="num_aggregates"):
+        with pytest.raises(ValueError, match='num_aggregates'):
             farthest_point_aggregates(x, bad)
 
     # a flat cloud: no aggregate spans z, so each keeps 1, x, y, orthonormal over its particles

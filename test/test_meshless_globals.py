@@ -1,13 +1,23 @@
 """Global deformation: shape (eq. 1–3), Jacobians B and J (eq. 7–8, 13) by finite differences."""
 
+from mlv_ros.core.meshless.globals import (
+    cylindrical_frame,
+    global_shape,
+    GlobalParameters,
+    matrix_to_quat,
+    model_jacobian,
+    ModelCoordinates,
+    polar_frame,
+    quat_from_axis_angle,
+    quat_normalize,
+    quat_to_matrix,
+    reduce_rotation,
+    rotation_jacobian,
+    shape_jacobian,
+    world_positions,
+)
 import numpy as np
 import pytest
-
-from mlv_ros.core.meshless.globals import (
-    GlobalParameters, ModelCoordinates, cylindrical_frame, global_shape, matrix_to_quat,
-    model_jacobian, polar_frame, quat_from_axis_angle, quat_normalize, quat_to_matrix,
-    reduce_rotation, rotation_jacobian, shape_jacobian, world_positions,
-)
 
 RNG = np.random.default_rng(7)
 N = 40
@@ -22,15 +32,31 @@ TAU = 0.07
 
 def test_polar_shape_matches_eq_1_2():
     s = global_shape(COORDS[0], A, TAU)
-    e = W[:, None] * A[0] * np.stack([A[1] * np.cos(ALPHA) * np.cos(BETA),
-                                      A[2] * np.cos(ALPHA) * np.sin(BETA), A[3] * np.sin(ALPHA)], 1)
+    e = (
+        W[:, None]
+        * A[0]
+        * np.stack(
+            [
+                A[1] * np.cos(ALPHA) * np.cos(BETA),
+                A[2] * np.cos(ALPHA) * np.sin(BETA),
+                A[3] * np.sin(ALPHA),
+            ],
+            1,
+        )
+    )
     phi = np.pi * TAU * np.sin(ALPHA)
-    ref = np.stack([e[:, 0] * np.cos(phi) - e[:, 1] * np.sin(phi),
-                    e[:, 0] * np.sin(phi) + e[:, 1] * np.cos(phi), e[:, 2]], 1)
+    ref = np.stack(
+        [
+            e[:, 0] * np.cos(phi) - e[:, 1] * np.sin(phi),
+            e[:, 0] * np.sin(phi) + e[:, 1] * np.cos(phi),
+            e[:, 2],
+        ],
+        1,
+    )
     np.testing.assert_allclose(s, ref, rtol=1e-13, atol=1e-12)
 
 
-@pytest.mark.parametrize("coords", COORDS, ids=["polar", "cylindrical"])
+@pytest.mark.parametrize('coords', COORDS, ids=['polar', 'cylindrical'])
 def test_shape_jacobian_matches_finite_differences(coords):
     jac = shape_jacobian(coords, A, TAU)
     qs = np.concatenate([A, [TAU]])
@@ -58,7 +84,7 @@ def test_rotation_jacobian_matches_finite_differences():
     np.testing.assert_allclose(b @ q, 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("coords", COORDS, ids=["polar", "cylindrical"])
+@pytest.mark.parametrize('coords', COORDS, ids=['polar', 'cylindrical'])
 def test_model_jacobian_and_tangent_step(coords):
     params = GlobalParameters([1.0, -2.0, 3.0], quat_from_axis_angle([1, 1, 0], 0.4), A, TAU)
     d = RNG.normal(size=(N, 3)) * 0.5
@@ -68,8 +94,10 @@ def test_model_jacobian_and_tangent_step(coords):
         h = 1e-6
         step = np.zeros(11)
         step[k] = h
-        fd = (world_positions(params.stepped(step), coords, d)
-              - world_positions(params.stepped(-step), coords, d)) / (2 * h)
+        fd = (
+            world_positions(params.stepped(step), coords, d)
+            - world_positions(params.stepped(-step), coords, d)
+        ) / (2 * h)
         np.testing.assert_allclose(lmat[:, :, k], fd, rtol=1e-5, atol=1e-6)
     assert np.all(np.isfinite(x0))
 
@@ -80,24 +108,24 @@ def test_quaternion_roundtrip_and_validation():
         r = quat_to_matrix(q)
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
         np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(r)), r, atol=1e-12)
-    with pytest.raises(ValueError, match="non-zero"):
+    with pytest.raises(ValueError, match='non-zero'):
         quat_normalize([0, 0, 0, 0])
-    with pytest.raises(ValueError, match="orthonormal"):
+    with pytest.raises(ValueError, match='orthonormal'):
         matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
 
 
-@pytest.mark.parametrize("maker", ["polar", "cylindrical"])
+@pytest.mark.parametrize('maker', ['polar', 'cylindrical'])
 def test_frames_reproduce_rest_positions(maker):
     pts = RNG.normal(size=(200, 3)) * [10, 8, 20] + [5, -3, 40]
     centre, axis, ref = [5, -3, 40], [0.2, 0.1, 1.0], [1, 0, 0]
-    if maker == "polar":
+    if maker == 'polar':
         frame = polar_frame(pts, centre, axis, ref)
         assert np.linalg.norm(frame.coords.basis, axis=1).max() == pytest.approx(1.0)  # w ∈ [0, 1]
     else:
         frame = cylindrical_frame(pts, centre, axis, ref)
     x = world_positions(frame.params, frame.coords, np.zeros((200, 3)))
     np.testing.assert_allclose(x, pts, atol=1e-10)
-    with pytest.raises(ValueError, match="axis"):
+    with pytest.raises(ValueError, match='axis'):
         polar_frame(pts, centre, [0, 0, 0])
-    with pytest.raises(ValueError, match="parallel"):
+    with pytest.raises(ValueError, match='parallel'):
         cylindrical_frame(pts, centre, axis, ref_direction=axis)

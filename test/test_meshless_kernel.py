@@ -1,16 +1,15 @@
 """Kernel, phyxels, MLS gradient and St Venant–Kirchhoff forces (paper eq. 4, 16–23)."""
 
-import numpy as np
-import pytest
-from scipy import integrate
-
 from mlv_ros.core.meshless import elastic
 from mlv_ros.core.meshless.globals import quat_from_axis_angle, quat_to_matrix
 from mlv_ros.core.meshless.kernel import build_phyxels, poly6
 from mlv_ros.core.meshless.mls import MLSOperator
+import numpy as np
+import pytest
+from scipy import integrate
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def cloud():
     rng = np.random.default_rng(0)
     g = np.mgrid[0:10, 0:9, 0:7].reshape(3, -1).T.astype(float)
@@ -29,6 +28,7 @@ def test_poly6_normalised_and_compact():
 def test_support_radius_and_volumes(cloud):
     x, ph, _ = cloud
     from scipy.spatial import cKDTree
+
     d, _ = cKDTree(x).query(x, k=11)
     np.testing.assert_allclose(ph.h, 3.0 * d[:, 1:].mean(axis=1))
     assert not ph.regrouped.any() and not ph.pinv.any()
@@ -88,13 +88,19 @@ def test_linear_stiffness_is_energy_hessian_and_diagonal(cloud):
     t = 1e-6
     # K v = −d/dt f_int(t v) at t = 0
     kv = -elastic.internal_forces(op, t * v, ph.volume, lam, mu) / t
-    np.testing.assert_allclose(elastic.linear_stiffness_apply(op, v, ph.volume, lam, mu), kv,
-                               rtol=1e-4, atol=1e-6 * np.abs(kv).max())
+    np.testing.assert_allclose(
+        elastic.linear_stiffness_apply(op, v, ph.volume, lam, mu),
+        kv,
+        rtol=1e-4,
+        atol=1e-6 * np.abs(kv).max(),
+    )
     kd = elastic.stiffness_diagonal(op, ph.volume, lam, mu)
     for j, a in [(3, 0), (200, 2)]:
         e = np.zeros_like(x)
         e[j, a] = 1.0
-        assert kd[j, a] == pytest.approx(elastic.linear_stiffness_apply(op, e, ph.volume, lam, mu)[j, a], rel=1e-12)
+        assert kd[j, a] == pytest.approx(
+            elastic.linear_stiffness_apply(op, e, ph.volume, lam, mu)[j, a], rel=1e-12
+        )
 
 
 def test_green_lagrange_half_convention():
@@ -103,28 +109,28 @@ def test_green_lagrange_half_convention():
     assert elastic.green_lagrange(h)[0, 0, 0] == pytest.approx(0.105)
 
 
-@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize('bad', [np.nan, np.inf])
 def test_non_finite_points_rejected(cloud, bad):
     x = cloud[0].copy()
     x[5, 1] = bad
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match='non-finite'):
         build_phyxels(x)
 
 
 def test_duplicate_particles_rejected(cloud):
     x = np.vstack([cloud[0], cloud[0][17]])
-    with pytest.raises(ValueError, match="duplicate particles"):
+    with pytest.raises(ValueError, match='duplicate particles'):
         build_phyxels(x)
 
 
 def test_bad_shapes_and_material_rejected():
-    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+    with pytest.raises(ValueError, match=r'shape \(N, 3\)'):
         build_phyxels(np.zeros((10, 2)))
-    with pytest.raises(ValueError, match="at least 5"):
+    with pytest.raises(ValueError, match='at least 5'):
         build_phyxels(np.eye(3))
-    with pytest.raises(ValueError, match="Poisson"):
+    with pytest.raises(ValueError, match='Poisson'):
         elastic.lame_parameters(1.0, 0.5)
-    with pytest.raises(ValueError, match="Young"):
+    with pytest.raises(ValueError, match='Young'):
         elastic.lame_parameters(-1.0, 0.3)
 
 
@@ -163,13 +169,16 @@ def test_stabilisation_penalty_is_zero_on_affine_and_exact_gradient(cloud):
     x, ph, op = cloud
     c = elastic.stabilisation_weights(op, ph.volume)
     rng = np.random.default_rng(4)
-    assert np.abs(elastic.stabilisation_apply(op, x @ rng.normal(size=(3, 3)).T + 2.0, c)).max() < 1e-12
+    assert (
+        np.abs(elastic.stabilisation_apply(op, x @ rng.normal(size=(3, 3)).T + 2.0, c)).max()
+        < 1e-12
+    )
     u = rng.normal(size=x.shape)
 
     def penalty(v):
         h = op.gradient(v)
-        r = v[ph.pair_j] - v[ph.pair_i] - np.einsum("pab,pb->pa", h[ph.pair_i], ph.xij)
-        return 0.5 * np.sum(c * np.sum(r ** 2, axis=1))
+        r = v[ph.pair_j] - v[ph.pair_i] - np.einsum('pab,pb->pa', h[ph.pair_i], ph.xij)
+        return 0.5 * np.sum(c * np.sum(r**2, axis=1))
 
     g = elastic.stabilisation_apply(op, u, c)
     eps = 1e-6

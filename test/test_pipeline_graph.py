@@ -1,82 +1,87 @@
-"""The whole graph end to end: in one process on a simulated phantom (accuracy against the
+"""
+The whole graph end to end: in one process on a simulated phantom (accuracy against the
 analytic ground truth; the recording read back by rosbags), and across processes started from
-the console scripts."""
+the console scripts.
+"""
 
 import json
 import subprocess
 
-import numpy as np
-import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_typestore
-
 from conftest import console_script, spin_until
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from mlv_ros import bagio, qos
 from mlv_ros.nodes.common import status_node
 from mlv_ros.tools.run import phantom_accuracy, read_run, run_graph
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
 
 pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
 
 # A reduced acquisition that runs in about a minute on 2 cores (the default study is
 # 256² × 25 phases; `mlv-ros bench pipeline` measures that one).
-PHANTOM = {"source": "phantom", "preset": "normal", "snr": 20.0, "size": 192, "num_phases": 16}
-PARTICLES = {"registration": {"num_particles": 2000}}
+PHANTOM = {'source': 'phantom', 'preset': 'normal', 'snr': 20.0, 'size': 192, 'num_phases': 16}
+PARTICLES = {'registration': {'num_particles': 2000}}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def phantom_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
+    out = tmp_path_factory.mktemp('run')
     summary = run_graph(PHANTOM, out, overrides=PARTICLES, timeout=400, progress=lambda *_: None)
     return out, summary
 
 
 def test_graph_completes_every_phase(phantom_run):
     _, s = phantom_run
-    assert s["complete"], s
-    assert s["frames_published"] == 11 * 16
-    assert s["tag_sets_published"] == s["frames_published"]
-    assert s["phases_solved"] == s["metrics_published"] == 16
+    assert s['complete'], s
+    assert s['frames_published'] == 11 * 16
+    assert s['tag_sets_published'] == s['frames_published']
+    assert s['phases_solved'] == s['metrics_published'] == 16
 
 
 def test_end_to_end_accuracy_against_ground_truth(phantom_run):
     out, s = phantom_run
-    acc = phantom_accuracy(out / "run.mcap", "normal", 16)
-    es = acc["es"]
+    acc = phantom_accuracy(out / 'run.mcap', 'normal', 16)
+    es = acc['es']
     # Issue acceptance (default study): median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist ≤ 2°.
-    assert acc["inside_myocardium"] >= 0.95
-    assert es["median_mm"] <= 1.0, es
-    assert es["p95_mm"] <= 2.5, es
-    assert es["twist_error_deg"] <= 2.0, es
-    worst = max(r["median_mm"] for r in acc["per_phase"])
-    assert worst <= 1.5, acc["per_phase"]
+    assert acc['inside_myocardium'] >= 0.95
+    assert es['median_mm'] <= 1.0, es
+    assert es['p95_mm'] <= 2.5, es
+    assert es['twist_error_deg'] <= 2.0, es
+    worst = max(r['median_mm'] for r in acc['per_phase'])
+    assert worst <= 1.5, acc['per_phase']
     # Every phase within 1.5 mm of the truth: none may be marked failed, and end-systole is ok;
     # anything not ok says why (mlv_ros.core.verdict).
-    metrics = read_run(out / "run.mcap")["metrics"]
+    metrics = read_run(out / 'run.mcap')['metrics']
     assert sorted(metrics) == list(range(16))
-    assert all(m["verdict"] < 2 for m in metrics.values()), {p: m["verdict_reasons"] for p, m in metrics.items()}
-    assert metrics[acc["es_phase"]]["verdict"] == 0, metrics[acc["es_phase"]]["verdict_reasons"]
-    assert all((m["verdict"] == 0) == (m["verdict_reasons"] == "") for m in metrics.values())
+    assert all(m['verdict'] < 2 for m in metrics.values()), {
+        p: m['verdict_reasons'] for p, m in metrics.items()
+    }
+    assert metrics[acc['es_phase']]['verdict'] == 0, metrics[acc['es_phase']]['verdict_reasons']
+    assert all((m['verdict'] == 0) == (m['verdict_reasons'] == '') for m in metrics.values())
 
 
 def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
     out, s = phantom_run
     counts, last = {}, {}
-    with AnyReader([out / "run.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+    with AnyReader(
+        [out / 'run.mcap'], default_typestore=get_typestore(Stores.ROS2_JAZZY)
+    ) as reader:
         for conn, _t, raw in reader.messages():
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
             if conn.topic == qos.MOTION and counts[conn.topic] == 1:
                 cloud = reader.deserialize(raw, conn.msgtype)
-                assert [f.name for f in cloud.fields][:6] == ["x", "y", "z", "dx", "dy", "dz"]
-                assert cloud.header.frame_id == "patient"
+                assert [f.name for f in cloud.fields][:6] == ['x', 'y', 'z', 'dx', 'dy', 'dz']
+                assert cloud.header.frame_id == 'patient'
             if conn.topic in (qos.METRICS, qos.REGISTERED_STATE):
                 last[conn.topic] = reader.deserialize(raw, conn.msgtype)
-    assert counts[qos.FRAMES] == s["frames_published"]
-    assert counts[qos.TAG_POINTS] == s["tag_sets_published"]
+    assert counts[qos.FRAMES] == s['frames_published']
+    assert counts[qos.TAG_POINTS] == s['tag_sets_published']
     assert counts[qos.MOTION] == counts[qos.MODEL_STATE] == counts[qos.METRICS] == 16
     assert counts[qos.REGISTERED_CLOUD] == counts[qos.REGISTERED_STATE] == 1
     assert counts[qos.DIAGNOSTICS] >= 1
-    assert sum(counts.values()) == s["recorded_messages"]
+    assert sum(counts.values()) == s['recorded_messages']
     # The findings and where the segments' origin came from, as rosbags reads them: this phantom
     # has no RV, so the anatomical prior, said in the registered state and every metrics message.
     m, reg = last[qos.METRICS], last[qos.REGISTERED_STATE]
@@ -84,52 +89,95 @@ def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
     assert len(m.segment_class) == 17 and set(m.segment_class) <= {0, 1, 2, 3, 4}
     assert len(m.finding_es_ecc) == len(m.finding_peak_err_unc) == len(m.segment_ecc_unc) == 17
     assert m.findings_es_phase > 0
-    run = read_run(out / "run.mcap")
-    assert sorted(run["positions"]) == list(range(16))
-    np.testing.assert_allclose(run["positions"][0], run["ed"], atol=1e-4)  # phase 0 = ED
+    run = read_run(out / 'run.mcap')
+    assert sorted(run['positions']) == list(range(16))
+    np.testing.assert_allclose(run['positions'][0], run['ed'], atol=1e-4)  # phase 0 = ED
 
 
 def test_report_from_the_recording(phantom_run, tmp_path):
     from mlv_ros.tools.report import build
 
     out, _ = phantom_run
-    index = build(out / "run.mcap", tmp_path / "report")
-    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
-    assert index.exists() and "<img" in index.read_text()
-    assert (tmp_path / "report" / "level_curves.png").stat().st_size > 10_000
+    index = build(out / 'run.mcap', tmp_path / 'report')
+    summary = json.loads((tmp_path / 'report' / 'summary.json').read_text())
+    assert index.exists() and '<img' in index.read_text()
+    assert (tmp_path / 'report' / 'level_curves.png').stat().st_size > 10_000
     assert summary
 
 
 def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
     """Run frame_source → tag_detector → registration/solver/analyzer → recorder, each alone."""
+    from mlv_msgs.msg import TagPoints
     from rclpy.node import Node
 
-    from mlv_msgs.msg import TagPoints
-
     diags, points = [], []
-    watcher = Node("watcher", context=ros_context)
-    watcher.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, diags.append, qos.diagnostics_qos())
+    watcher = Node('watcher', context=ros_context)
+    watcher.create_subscription(
+        DiagnosticArray, qos.DIAGNOSTICS, diags.append, qos.diagnostics_qos()
+    )
     watcher.create_subscription(TagPoints, qos.TAG_POINTS, points.append, qos.stream_qos())
     executor.add_node(watcher)
-    mcap = tmp_path / "run.mcap"
-    procs = [subprocess.Popen([console_script(n), "--ros-args", *args], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
-             for n, args in [("recorder", ["-p", f"output:={mcap}"]), ("tag_detector", []),
-                             ("registration", ["-p", "ed_timeout_s:=2.0"]), ("meshless_solver", []),
-                             ("motion_analyzer", [])]]
+    mcap = tmp_path / 'run.mcap'
+    procs = [
+        subprocess.Popen(
+            [console_script(n), '--ros-args', *args],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for n, args in [
+            ('recorder', ['-p', f'output:={mcap}']),
+            ('tag_detector', []),
+            ('registration', ['-p', 'ed_timeout_s:=2.0']),
+            ('meshless_solver', []),
+            ('motion_analyzer', []),
+        ]
+    ]
     try:
+
         def up(name):
             return any(status_node(st) == name for d in diags for st in d.status)
-        assert spin_until(executor, lambda: all(up(n) for n in ("recorder", "tag_detector", "registration",
-                                                                 "meshless_solver", "motion_analyzer")), 60)
-        src = subprocess.run([console_script("frame_source"), "--ros-args", "-p", "source:=pattern",
-                              "-p", "num_phases:=3", "-p", "wait_for_subscribers:=3"],
-                             capture_output=True, text=True, timeout=120)
+
+        assert spin_until(
+            executor,
+            lambda: all(
+                up(n)
+                for n in (
+                    'recorder',
+                    'tag_detector',
+                    'registration',
+                    'meshless_solver',
+                    'motion_analyzer',
+                )
+            ),
+            60,
+        )
+        src = subprocess.run(
+            [
+                console_script('frame_source'),
+                '--ros-args',
+                '-p',
+                'source:=pattern',
+                '-p',
+                'num_phases:=3',
+                '-p',
+                'wait_for_subscribers:=3',
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert src.returncode == 0, src.stderr
-        assert spin_until(executor, lambda: len(points) == 6, 60), f"{len(points)} tag point sets"
+        assert spin_until(executor, lambda: len(points) == 6, 60), f'{len(points)} tag point sets'
         # The pattern has no heart: registration must say so on /diagnostics, not crash.
-        assert spin_until(executor, lambda: any(status_node(st) == "registration" and st.level == DiagnosticStatus.ERROR
-                                                for d in diags for st in d.status), 30)
+        assert spin_until(
+            executor,
+            lambda: any(
+                status_node(st) == 'registration' and st.level == DiagnosticStatus.ERROR
+                for d in diags
+                for st in d.status
+            ),
+            30,
+        )
     finally:
         for p in procs:
             p.send_signal(2)
@@ -140,50 +188,88 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
                 if p.poll() is None:
                     p.kill()
     topics = bagio.bag_topics(mcap)
-    assert topics[qos.FRAMES]["count"] == 6
-    assert topics[qos.TAG_POINTS]["count"] == 6
+    assert topics[qos.FRAMES]['count'] == 6
+    assert topics[qos.TAG_POINTS]['count'] == 6
 
 
 def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
-    """Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
+    """
+    Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
     ``victim`` after three phases are solved, start it again, and return the model states and
-    tag sets published after the restart (the run must then complete)."""
+    tag sets published after the restart (the run must then complete).
+    """
+    from mlv_msgs.msg import ModelState, TagPoints
     from rclpy.node import Node
 
-    from mlv_msgs.msg import ModelState, TagPoints
-
     states, tag_sets = [], []
-    watcher = Node("restart_watcher", context=ros_context)
+    watcher = Node('restart_watcher', context=ros_context)
     watcher.create_subscription(ModelState, qos.MODEL_STATE, states.append, qos.stream_qos())
     # with history: a restarted tag detector publishes at once, before a VOLATILE reader matches it
-    watcher.create_subscription(TagPoints, qos.TAG_POINTS, tag_sets.append,
-                                qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
+    watcher.create_subscription(
+        TagPoints,
+        qos.TAG_POINTS,
+        tag_sets.append,
+        qos.subscription_qos(qos.TAG_POINTS, catch_up=True),
+    )
     executor.add_node(watcher)
-    common = ["--ros-args", "--params-file", "config/graph.yaml"]
+    common = ['--ros-args', '--params-file', 'config/graph.yaml']
     # the watcher is the solver's one subscriber here (no analyzer, no recorder)
-    extra = {"registration": ["-p", "num_particles:=1000"], "meshless_solver": ["-p", "wait_for_subscribers:=1"]}
-    procs = {n: subprocess.Popen([console_script(n), *common, *extra.get(n, [])], stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.DEVNULL)
-             for n in ("tag_detector", "registration", "meshless_solver")}
-    src = subprocess.Popen([console_script("frame_source"), *common, "-p", "size:=128", "-p", f"num_phases:={phases}",
-                            "-p", "wait_for_subscribers:=2", "-p", "exit_when_done:=false"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    extra = {
+        'registration': ['-p', 'num_particles:=1000'],
+        'meshless_solver': ['-p', 'wait_for_subscribers:=1'],
+    }
+    procs = {
+        n: subprocess.Popen(
+            [console_script(n), *common, *extra.get(n, [])],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for n in ('tag_detector', 'registration', 'meshless_solver')
+    }
+    src = subprocess.Popen(
+        [
+            console_script('frame_source'),
+            *common,
+            '-p',
+            'size:=128',
+            '-p',
+            f'num_phases:={phases}',
+            '-p',
+            'wait_for_subscribers:=2',
+            '-p',
+            'exit_when_done:=false',
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
-        assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= 3, 240), \
-            f"phases before the kill: {sorted({s.phase_index for s in states})}"
+        assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= 3, 240), (
+            f'phases before the kill: {sorted({s.phase_index for s in states})}'
+        )
         procs[victim].kill()
         procs[victim].wait(timeout=10)
         before, sets_before = len(states), len(tag_sets)
-        procs[victim] = subprocess.Popen([console_script(victim), *common, *extra.get(victim, [])],
-                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        procs[victim] = subprocess.Popen(
+            [console_script(victim), *common, *extra.get(victim, [])],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         done = set(range(phases))
-        assert spin_until(executor, lambda: {s.phase_index for s in states} == done and
-                          (victim != "meshless_solver" or {s.phase_index for s in states[before:]} == done), 300), \
-            f"after restart: {sorted({s.phase_index for s in states[before:]})}"
-        if victim == "tag_detector":  # every frame again, from the frame publisher's history
+        assert spin_until(
+            executor,
+            lambda: (
+                {s.phase_index for s in states} == done
+                and (
+                    victim != 'meshless_solver' or {s.phase_index for s in states[before:]} == done
+                )
+            ),
+            300,
+        ), f'after restart: {sorted({s.phase_index for s in states[before:]})}'
+        if victim == 'tag_detector':  # every frame again, from the frame publisher's history
             per_study = phases * (tag_sets[0].num_sa_slices + tag_sets[0].num_la_slices)
-            assert spin_until(executor, lambda: len(tag_sets) - sets_before >= per_study, 120), \
-                f"{len(tag_sets) - sets_before} of {per_study} tag sets after the restart"
+            assert spin_until(executor, lambda: len(tag_sets) - sets_before >= per_study, 120), (
+                f'{len(tag_sets) - sets_before} of {per_study} tag sets after the restart'
+            )
         return states[before:], tag_sets[sets_before:]
     finally:
         for p in [*procs.values(), src]:
@@ -196,12 +282,16 @@ def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
 
 
 def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
-    """A new solver process gets the latched registration and the tag-point history
-    (TRANSIENT_LOCAL) and solves every phase again."""
-    restart_mid_run(ros_context, executor, "meshless_solver")
+    """
+    A new solver process gets the latched registration and the tag-point history
+    (TRANSIENT_LOCAL) and solves every phase again.
+    """
+    restart_mid_run(ros_context, executor, 'meshless_solver')
 
 
 def test_tag_detector_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
-    """A new tag detector takes the frames' history (catch_up) and republishes every tag set;
-    the solver, still running, completes the phases it had not solved."""
-    restart_mid_run(ros_context, executor, "tag_detector")
+    """
+    A new tag detector takes the frames' history (catch_up) and republishes every tag set;
+    the solver, still running, completes the phases it had not solved.
+    """
+    restart_mid_run(ros_context, executor, 'tag_detector')

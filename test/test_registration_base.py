@@ -1,16 +1,15 @@
 """Where the ED model ends at the base when the LA views and the SA stack disagree."""
 
-import numpy as np
-import pytest
-
 from mlv_ros.core.registration import register_ed
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_LA, VIEW_SA
+import numpy as np
+import pytest
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    st = simulate_study("normal", snr=20, quick=True, num_phases=2)
+    st = simulate_study('normal', snr=20, quick=True, num_phases=2)
     return st, [f for f in st.frames if f.phase_index == 0]
 
 
@@ -47,8 +46,8 @@ def test_short_la_horseshoes_do_not_cut_off_segmented_sa_slices(study):
     res = register_ed(ed, num_particles=1500, masks=masks)
     z = axial(st, res.particles)
     assert z.max() >= top - 2.0, (z.max(), top)
-    assert any("LA views end" in w for w in res.warnings), res.warnings
+    assert any('LA views end' in w for w in res.warnings), res.warnings
     # and nothing changes when the views agree
     full = register_ed(ed, num_particles=1500, masks=st.ed_masks)
-    assert not any("LA views end" in w for w in full.warnings)
+    assert not any('LA views end' in w for w in full.warnings)
     assert axial(st, full.particles).max() >= top - 2.0

@@ -1,11 +1,15 @@
 """Curvature landmarks on analytic shapes; polar-coordinate round trips of the model frame."""
 
+from mlv_ros.core.registration.initialise import (
+    AxisFrame,
+    default_reference,
+    model_frame,
+    polar_to_patient,
+    reconstruct_shape,
+)
+from mlv_ros.core.registration.landmarks import curvature, curvature_landmarks, resample_contour
 import numpy as np
 import pytest
-
-from mlv_ros.core.registration.initialise import (AxisFrame, default_reference, model_frame,
-                                                  polar_to_patient, reconstruct_shape)
-from mlv_ros.core.registration.landmarks import curvature, curvature_landmarks, resample_contour
 
 
 def _ellipse(a=30.0, b=15.0, n=400):
@@ -28,14 +32,14 @@ def test_ellipse_landmarks_hit_the_four_vertices():
     pts, t = _ellipse()
     idx = curvature_landmarks(pts, 12)
     assert idx.size == 12 and np.all(np.diff(idx) > 0)
-    for vertex in (0, 100, 200, 300):   # t = 0, π/2, π, 3π/2
+    for vertex in (0, 100, 200, 300):  # t = 0, π/2, π, 3π/2
         d = np.abs(idx - vertex)
         assert np.min(np.minimum(d, 400 - d)) <= 2
 
 
 def test_circle_with_notch_landmarks_mark_the_notch_and_cover_the_rest():
     t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
-    r = np.where(np.abs(t - np.pi) < 0.15, 17.0, 20.0)      # 3 mm deep notch around t = π
+    r = np.where(np.abs(t - np.pi) < 0.15, 17.0, 20.0)  # 3 mm deep notch around t = π
     pts = resample_contour(np.stack([r * np.cos(t), r * np.sin(t)], 1), 360)
     idx = curvature_landmarks(pts, 25)
     ang = np.arctan2(pts[idx, 1], pts[idx, 0]) % (2 * np.pi)
@@ -49,9 +53,9 @@ def test_circle_with_notch_landmarks_mark_the_notch_and_cover_the_rest():
 
 def test_landmarks_reject_bad_input():
     pts, _ = _ellipse(n=20)
-    with pytest.raises(ValueError, match="number of landmarks"):
+    with pytest.raises(ValueError, match='number of landmarks'):
         curvature_landmarks(pts, 21)
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match='NaN'):
         curvature_landmarks(np.full((10, 2), np.nan), 3)
 
 
@@ -61,12 +65,13 @@ def _prolate_shape():
     frame = AxisFrame(np.zeros(3), axis, default_reference(axis))
     zs = np.linspace(0.5, 85, 60)
     th = np.linspace(-np.pi, np.pi, 48, endpoint=False)
-    Z, T = np.meshgrid(zs, th, indexing="ij")
+    Z, T = np.meshgrid(zs, th, indexing='ij')
 
     def pts(a, c):
         r = a * np.sqrt(np.clip(1 - ((85 - Z) / c) ** 2, 0, None))
         keep = r > 0
         return frame.from_cylindrical(r[keep], T[keep], Z[keep])
+
     return frame, pts(39.0, 85.0), pts(30.0, 76.0)
 
 
@@ -74,11 +79,15 @@ def test_polar_coordinate_round_trip():
     frame, epi, endo = _prolate_shape()
     shape = reconstruct_shape(frame, [endo], [epi], 85.0)
     rng = np.random.default_rng(0)
-    x = frame.from_cylindrical(rng.uniform(5, 35, 500), rng.uniform(-np.pi, np.pi, 500), rng.uniform(10, 80, 500))
+    x = frame.from_cylindrical(
+        rng.uniform(5, 35, 500), rng.uniform(-np.pi, np.pi, 500), rng.uniform(10, 80, 500)
+    )
     mf, polar = model_frame(shape, x)
-    assert np.all((polar["w"] >= 0) & (polar["w"] <= 1 + 1e-12)) and np.isclose(polar["w"].max(), 1.0)
-    assert np.all(np.abs(polar["beta"]) <= np.pi)
-    back = polar_to_patient(mf, polar["alpha"], polar["beta"], polar["w"])
+    assert np.all((polar['w'] >= 0) & (polar['w'] <= 1 + 1e-12)) and np.isclose(
+        polar['w'].max(), 1.0
+    )
+    assert np.all(np.abs(polar['beta']) <= np.pi)
+    back = polar_to_patient(mf, polar['alpha'], polar['beta'], polar['w'])
     assert np.max(np.abs(back - x)) < 1e-9
 
 
@@ -89,9 +98,9 @@ def test_reconstruction_of_analytic_prolate_and_alpha_range():
     # Radii within 0.5 mm at mid-ventricle.
     z, th = np.full(8, 45.0), np.linspace(-np.pi, np.pi, 8, endpoint=False)
     assert np.allclose(np.sqrt(shape.epi.r2(z, th)), 39 * np.sqrt(1 - (40 / 85) ** 2), atol=0.5)
-    ep = shape.surface_points("epi")
+    ep = shape.surface_points('epi')
     _, polar = model_frame(shape, ep)
     # α runs from −π/2 at the apex up to at most ≈ π/4 on the epicardial base rim (paper §2.1;
     # the least-squares ellipsoid leaves the rim slightly inside, so α_max is a little lower).
-    assert polar["alpha"].min() < -np.pi / 2 + 0.1
-    assert np.pi / 6 < polar["alpha"].max() <= np.pi / 4 + 0.05
+    assert polar['alpha'].min() < -np.pi / 2 + 0.1
+    assert np.pi / 6 < polar['alpha'].max() <= np.pi / 4 + 0.05

@@ -1,13 +1,12 @@
 """NIfTI label volumes as user myocardium masks for the ED registration (issue 7)."""
 
+from mlv_ros.core.registration import masks_for_frames, register_ed
+from mlv_ros.core.sim import simulate_study
+from mlv_ros.core.types import VIEW_LA, VIEW_SA
 import nibabel as nib
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from mlv_ros.core.registration import masks_for_frames, register_ed
-from mlv_ros.core.sim import simulate_study
-from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
 LPS_RAS = np.array([-1.0, -1.0, 1.0])
 
@@ -16,45 +15,50 @@ def dice(a, b):
     return 2.0 * np.logical_and(a, b).sum() / max(a.sum() + b.sum(), 1)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    st = simulate_study("normal", snr=20, quick=True, num_phases=2)
+    st = simulate_study('normal', snr=20, quick=True, num_phases=2)
     return st, [f for f in st.frames if f.phase_index == 0]
 
 
 def heart_box(st):
-    pts = [st.geometries[k].pixel_to_patient(np.argwhere(m).astype(float)) for k, m in st.ed_masks.items()]
+    pts = [
+        st.geometries[k].pixel_to_patient(np.argwhere(m).astype(float))
+        for k, m in st.ed_masks.items()
+    ]
     p = np.concatenate(pts)
     return 0.5 * (p.min(0) + p.max(0)), float(np.max(p.max(0) - p.min(0)))
 
 
 def voxelise(st, axes_lps, spacing, centre_lps, shape, dtype=np.int16):
-    """ACDC-style label volume (2 myocardium, 3 LV blood) on a grid whose voxel axes are the unit
-    LPS vectors ``axes_lps`` (columns), centred on ``centre_lps``; NIfTI affine in RAS."""
+    """
+    ACDC-style label volume (2 myocardium, 3 LV blood) on a grid whose voxel axes are the unit
+    LPS vectors ``axes_lps`` (columns), centred on ``centre_lps``; NIfTI affine in RAS.
+    """
     spacing, shape = np.asarray(spacing, float), np.asarray(shape)
-    M_lps = axes_lps * spacing                                    # voxel step -> LPS mm
+    M_lps = axes_lps * spacing  # voxel step -> LPS mm
     origin_lps = centre_lps - M_lps @ ((shape - 1) / 2.0)
-    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing='ij'), -1).reshape(-1, 3)
     X = origin_lps + ijk @ M_lps.T
     lab = np.zeros(len(X), dtype=dtype)
     lab[st.motion.inside_blood(X)] = 3
     lab[st.motion.inside_myocardium(X)] = 2
     aff = np.eye(4)
-    aff[:3, :3] = LPS_RAS[:, None] * M_lps                        # RAS = diag(-1,-1,1) · LPS
+    aff[:3, :3] = LPS_RAS[:, None] * M_lps  # RAS = diag(-1,-1,1) · LPS
     aff[:3, 3] = LPS_RAS * origin_lps
     return nib.Nifti1Image(lab.reshape(tuple(shape)), aff)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def oblique(study, tmp_path_factory):
     """Oblique (rotated) anisotropic 1.2 x 1.5 x 1.35 mm volume, saved as .nii.gz."""
     st, _ = study
     centre, size = heart_box(st)
-    R = Rotation.from_euler("zyx", [25, -35, 50], degrees=True).as_matrix()
+    R = Rotation.from_euler('zyx', [25, -35, 50], degrees=True).as_matrix()
     spacing = np.array([1.2, 1.5, 1.35])
     shape = np.ceil((size + 20) / spacing).astype(int)
     img = voxelise(st, R, spacing, centre, shape)
-    path = tmp_path_factory.mktemp("nifti") / "ed_seg.nii.gz"
+    path = tmp_path_factory.mktemp('nifti') / 'ed_seg.nii.gz'
     nib.save(img, str(path))
     return path
 
@@ -78,23 +82,34 @@ def test_register_ed_with_nifti_masks(study, oblique):
     masks, _ = masks_for_frames(str(oblique), ed)
     res = register_ed(ed, num_particles=1500, masks=masks)
     used = [r for r in res.slice_reports if r.ok]
-    assert sum(r.source == "mask" for r in used) >= len(used) - 1
+    assert sum(r.source == 'mask' for r in used) >= len(used) - 1
     inside = st.motion.inside_myocardium(res.particles).mean()
     assert inside >= 0.95, inside
 
 
 def sa_stack(st, ed, shift_mm=0.0):
-    """A stack of 2-D SA label slices (1.3 mm in-plane, one slice per tagged SA plane), like a
-    cine SA segmentation; ``shift_mm`` moves it along the SA normal."""
+    """
+    A stack of 2-D SA label slices (1.3 mm in-plane, one slice per tagged SA plane), like a
+    cine SA segmentation; ``shift_mm`` moves it along the SA normal.
+    """
     sa = sorted((f for f in ed if f.view == VIEW_SA), key=lambda f: f.slice_index)
     g0, g1 = sa[0].geometry, sa[1].geometry
     gap = float((g1.image_position - g0.image_position) @ g0.normal)
     axes = np.stack([g0.column_direction, g0.row_direction, g0.normal * np.sign(gap)], 1)
     rows, cols = sa[0].image.shape
-    centre = (g0.pixel_to_patient(np.array([(rows - 1) / 2, (cols - 1) / 2]))
-              + 0.5 * (len(sa) - 1) * gap * g0.normal + shift_mm * g0.normal)
-    return voxelise(st, axes, [g0.row_spacing, g0.column_spacing, abs(gap)], centre,
-                    (rows, cols, len(sa)), dtype=np.uint8), abs(gap)
+    centre = (
+        g0.pixel_to_patient(np.array([(rows - 1) / 2, (cols - 1) / 2]))
+        + 0.5 * (len(sa) - 1) * gap * g0.normal
+        + shift_mm * g0.normal
+    )
+    return voxelise(
+        st,
+        axes,
+        [g0.row_spacing, g0.column_spacing, abs(gap)],
+        centre,
+        (rows, cols, len(sa)),
+        dtype=np.uint8,
+    ), abs(gap)
 
 
 def test_slice_stack_serves_parallel_planes_only(study):
@@ -107,14 +122,14 @@ def test_slice_stack_serves_parallel_planes_only(study):
     for k in sa_keys:
         assert dice(masks[k], st.ed_masks[k]) >= 0.85
     la = {k for k in st.ed_masks if k[0] == VIEW_LA}
-    assert set(reasons) == la and all("crosses" in reasons[k] for k in la)
+    assert set(reasons) == la and all('crosses' in reasons[k] for k in la)
     # a generous tolerance accepts the LA staircase
     loose, _ = masks_for_frames(img, ed, max_distance_mm=gap)
     assert la <= set(loose)
     # the stack moved half a slice gap off the tagged planes: no SA plane is close enough
     off, why = masks_for_frames(sa_stack(st, ed, shift_mm=0.5 * gap)[0], ed)
     assert not any(k[0] == VIEW_SA for k in off)
-    assert all("parallel" in why[k] for k in sa_keys)
+    assert all('parallel' in why[k] for k in sa_keys)
 
 
 def test_planes_outside_or_without_label(study):
@@ -125,38 +140,42 @@ def test_planes_outside_or_without_label(study):
     data[0, 0, 0] = 2
     masks, reasons = masks_for_frames(nib.Nifti1Image(data, far.affine), ed)
     assert not masks and set(reasons) == set(st.ed_masks)
-    assert all("outside" in r for r in reasons.values())
+    assert all('outside' in r for r in reasons.values())
     # a volume covering the heart with the label only in a far corner: empty masks
     img = voxelise(st, np.eye(3), [4.0, 4.0, 4.0], centre, (40, 40, 40))
     d = np.asanyarray(img.dataobj).copy()
     d[d == 2] = 0
     d[0, 0, 0] = 2
     masks, reasons = masks_for_frames(nib.Nifti1Image(d, img.affine), ed)
-    assert not masks and all("no voxel with label 2" in r for r in reasons.values())
+    assert not masks and all('no voxel with label 2' in r for r in reasons.values())
 
 
 def test_bad_input(study, tmp_path):
     _, ed = study
     aff = np.diag([2.0, 2.0, 2.0, 1.0])
-    with pytest.raises(ValueError, match="missing.nii.gz: no such file"):
-        masks_for_frames(tmp_path / "missing.nii.gz", ed)
-    junk = tmp_path / "junk.nii"
-    junk.write_text("not an image at all\n" * 50)
-    with pytest.raises(ValueError, match="junk.nii: not a readable NIfTI"):
+    with pytest.raises(ValueError, match='missing.nii.gz: no such file'):
+        masks_for_frames(tmp_path / 'missing.nii.gz', ed)
+    junk = tmp_path / 'junk.nii'
+    junk.write_text('not an image at all\n' * 50)
+    with pytest.raises(ValueError, match='junk.nii: not a readable NIfTI'):
         masks_for_frames(junk, ed)
-    with pytest.raises(ValueError, match="not a NIfTI image"):
+    with pytest.raises(ValueError, match='not a NIfTI image'):
         masks_for_frames(np.zeros((4, 4, 4)), ed)
-    p4 = tmp_path / "cine.nii.gz"
+    p4 = tmp_path / 'cine.nii.gz'
     nib.save(nib.Nifti1Image(np.full((4, 4, 4, 3), 2, np.int16), aff), str(p4))
-    with pytest.raises(ValueError, match=r"cine.nii.gz: expected a 3-D label volume.*4-D"):
+    with pytest.raises(ValueError, match=r'cine.nii.gz: expected a 3-D label volume.*4-D'):
         masks_for_frames(p4, ed)
-    pf = tmp_path / "prob.nii.gz"
+    pf = tmp_path / 'prob.nii.gz'
     nib.save(nib.Nifti1Image(np.full((4, 4, 4), 0.5, np.float32), aff), str(pf))
-    with pytest.raises(ValueError, match="prob.nii.gz: labels must be integers"):
+    with pytest.raises(ValueError, match='prob.nii.gz: labels must be integers'):
         masks_for_frames(pf, ed)
-    pl = tmp_path / "labels.nii.gz"
-    nib.save(nib.Nifti1Image(np.array([0, 1, 3] * 21 + [0], np.uint8).reshape(4, 4, 4), aff), str(pl))
-    with pytest.raises(ValueError, match=r"labels.nii.gz: myocardium label 2 does not occur.*0, 1, 3"):
+    pl = tmp_path / 'labels.nii.gz'
+    nib.save(
+        nib.Nifti1Image(np.array([0, 1, 3] * 21 + [0], np.uint8).reshape(4, 4, 4), aff), str(pl)
+    )
+    with pytest.raises(
+        ValueError, match=r'labels.nii.gz: myocardium label 2 does not occur.*0, 1, 3'
+    ):
         masks_for_frames(pl, ed)
     # the same file with label=3 is fine (a tiny volume at the origin: mostly reasons); 4-D
     # with a trailing singleton axis and integral floats are accepted
@@ -164,5 +183,5 @@ def test_bad_input(study, tmp_path):
     assert len(masks) + len(reasons) == len({(f.view, f.slice_index) for f in ed}) and reasons
     ok = nib.Nifti1Image(np.full((4, 4, 4, 1), 2.0, np.float32), aff)
     assert masks_for_frames(ok, ed)[1]
-    with pytest.raises(ValueError, match="max_distance_mm"):
+    with pytest.raises(ValueError, match='max_distance_mm'):
         masks_for_frames(ok, ed, max_distance_mm=-1)

@@ -2,22 +2,21 @@
 
 import dataclasses
 
-import numpy as np
-import pytest
-
-from mlv_ros.core.registration.segment import dice
-from mlv_ros.core.registration.streaming import StreamingMasker, blood_pool_candidates
 from mlv_ros.core.registration import segment as seg
+from mlv_ros.core.registration.segment import dice
+from mlv_ros.core.registration.streaming import blood_pool_candidates, StreamingMasker
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.types import VIEW_LA, VIEW_SA
+import numpy as np
+import pytest
 
 MIN_DICE = 0.85
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def studies():
-    return {p: simulate_study(p, snr=20, quick=True) for p in ("normal", "hypertrophic")}
+    return {p: simulate_study(p, snr=20, quick=True) for p in ('normal', 'hypertrophic')}
 
 
 def _stream(frames):
@@ -31,22 +30,22 @@ def _stream(frames):
     return m, out
 
 
-@pytest.mark.parametrize("preset", ["normal", "hypertrophic"])
-@pytest.mark.parametrize("order", ["slice", "phase"])
+@pytest.mark.parametrize('preset', ['normal', 'hypertrophic'])
+@pytest.mark.parametrize('order', ['slice', 'phase'])
 def test_dice_every_slice(studies, preset, order):
     st = studies[preset]
-    frames = st.frames if order == "slice" else sorted(st.frames, key=lambda f: f.phase_index)
+    frames = st.frames if order == 'slice' else sorted(st.frames, key=lambda f: f.phase_index)
     assert frames[0].view == VIEW_SA and frames[0].slice_index == 0
     _, out = _stream(frames)
     assert set(out) == set(st.ed_masks)
     for k, (mask, why) in out.items():
-        assert mask is not None, f"{k}: {why}"
+        assert mask is not None, f'{k}: {why}'
         assert mask.dtype == bool and mask.shape == st.ed_masks[k].shape
         assert dice(mask, st.ed_masks[k]) >= MIN_DICE, k
 
 
 def test_tracks_survive_to_phase_1(studies):
-    st = studies["normal"]
+    st = studies['normal']
     _, out = _stream(st.frames)
     for k, (mask, _) in out.items():
         cine = [f for f in st.frames if (f.view, f.slice_index) == k]
@@ -60,7 +59,7 @@ def test_tracks_survive_to_phase_1(studies):
 
 
 def test_long_axis_apex_to_base(studies):
-    st = studies["normal"]
+    st = studies['normal']
     m, _ = _stream([f for f in st.frames if f.view == VIEW_SA])
     p, d, known = m.long_axis()
     assert known
@@ -74,8 +73,10 @@ def test_long_axis_apex_to_base(studies):
 
 def test_first_slice_off_centre_blood_pool(studies):
     """No axis yet and the heart off the FOV centre: the image-based blood pool finds it."""
-    st = studies["normal"]
-    f = next(f for f in st.frames if f.view == VIEW_SA and f.slice_index == 2 and f.phase_index == 0)
+    st = studies['normal']
+    f = next(
+        f for f in st.frames if f.view == VIEW_SA and f.slice_index == 2 and f.phase_index == 0
+    )
     shift = (18, -22)
     g = dataclasses.replace(f, image=np.roll(f.image, shift, axis=(0, 1)))
     truth = np.roll(st.ed_masks[(VIEW_SA, 2)], shift, axis=(0, 1))
@@ -87,22 +88,24 @@ def test_first_slice_off_centre_blood_pool(studies):
 
 
 def test_bad_input(studies):
-    st = studies["normal"]
+    st = studies['normal']
     sa0 = next(f for f in st.frames if f.view == VIEW_SA and f.phase_index == 0)
     la0 = next(f for f in st.frames if f.view == VIEW_LA and f.phase_index == 0)
     m = StreamingMasker()
     mask, why = m.ed_mask(la0)
-    assert mask is None and "no SA slice" in why
+    assert mask is None and 'no SA slice' in why
     mask, why = m.ed_mask(dataclasses.replace(sa0, image=np.full((128, 128), 7.0, np.float32)))
-    assert mask is None and "constant" in why
+    assert mask is None and 'constant' in why
     nan = sa0.image.copy()
     nan[5, 5] = np.nan
     mask, why = m.ed_mask(dataclasses.replace(sa0, image=nan))
-    assert mask is None and "non-finite" in why
+    assert mask is None and 'non-finite' in why
     mask, why = m.ed_mask(dataclasses.replace(sa0, image=np.zeros((4, 4))))
-    assert mask is None and "16x16" in why
+    assert mask is None and '16x16' in why
     rng = np.random.default_rng(0)
-    mask, why = m.ed_mask(dataclasses.replace(sa0, image=rng.normal(size=(128, 128)).astype(np.float32)))
+    mask, why = m.ed_mask(
+        dataclasses.replace(sa0, image=rng.normal(size=(128, 128)).astype(np.float32))
+    )
     assert mask is None and why
     assert not m.sa_centres  # failures add nothing to the axis
     # Still usable afterwards.
@@ -112,7 +115,7 @@ def test_bad_input(studies):
 
 def test_slice_off_the_axis(studies):
     """A slice whose cavity is far from the axis of the earlier slices is still found."""
-    st = studies["normal"]
+    st = studies['normal']
     ed = {f.slice_index: f for f in st.frames if f.view == VIEW_SA and f.phase_index == 0}
     m = StreamingMasker()
     for i in range(4):
@@ -125,7 +128,7 @@ def test_slice_off_the_axis(studies):
     # The misplaced centre does not bend the axis for the slices after it.
     for i in range(5, 8):
         mask, why = m.ed_mask(ed[i])
-        assert mask is not None and why == "", (i, why)
+        assert mask is not None and why == '', (i, why)
         assert dice(mask, st.ed_masks[(VIEW_SA, i)]) >= MIN_DICE
     la = next(f for f in st.frames if f.view == VIEW_LA and f.phase_index == 0)
     mask, why = m.ed_mask(la)

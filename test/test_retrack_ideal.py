@@ -1,24 +1,25 @@
-"""``bench/retrack.py --ideal``: tracked points replaced by where the truth puts them (their ED
+"""
+``bench/retrack.py --ideal``: tracked points replaced by where the truth puts them (their ED
 material line crossing the image plane), checked against an independent Newton solve of the same
-crossing on the analytic phantom."""
+crossing on the analytic phantom.
+"""
 
-import sys
 from pathlib import Path
+import sys
 
+from mlv_ros.core.sim import simulate_study
 import numpy as np
 import pytest
 
-from mlv_ros.core.sim import simulate_study
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 from retrack import ideal_targets  # noqa: E402
 from test_tracking import grid_tags, observed, tagset  # noqa: E402
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    return simulate_study("normal", snr=20, quick=True)
+    return simulate_study('normal', snr=20, quick=True)
 
 
 def test_ideal_targets_are_the_material_lines_crossing_the_planes(study):
@@ -26,13 +27,17 @@ def test_ideal_targets_are_the_material_lines_crossing_the_planes(study):
     refs = grid_tags(study)
     es = int(round(m.es_phase))
     truth = observed(study, refs, es)  # Newton on each ED line, kept where it stays in the wall
-    sets = {0: {k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k])))
-                for k, g in study.geometries.items()}}
+    sets = {
+        0: {
+            k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k])))
+            for k, g in study.geometries.items()
+        }
+    }
     rng = np.random.default_rng(0)
     sets[es] = {}
     for k, s in truth.items():  # tracked points off by up to 3 mm, one track unknown at ED
         s.position = s.position + rng.uniform(-3.0, 3.0, s.position.shape)
-        s.track_id = np.append(s.track_id[:-1], 10 ** 6).astype(np.int32)
+        s.track_id = np.append(s.track_id[:-1], 10**6).astype(np.int32)
         sets[es][k] = s
     ideal, kept = ideal_targets(sets, m)
     assert kept == len(truth)  # the unknown track of each plane keeps its measured position
@@ -48,7 +53,10 @@ def test_every_track_keeps_the_tracks_a_tracker_lost(study):
     m = study.motion
     refs = grid_tags(study)
     es = int(round(m.es_phase))
-    ed = {k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k]))) for k, g in study.geometries.items()}
+    ed = {
+        k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k])))
+        for k, g in study.geometries.items()
+    }
     tracked = observed(study, refs, es)
     for s in tracked.values():  # the tracker kept only every third track
         keep = np.arange(len(s.track_id)) % 3 == 0
@@ -61,5 +69,7 @@ def test_every_track_keeps_the_tracks_a_tracker_lost(study):
         want = dict(zip(exact[k].track_id, exact[k].position))
         common = [i for i, t in enumerate(s.track_id) if t in want]
         assert len(common) >= len(exact[k]) - 1  # every track the phantom keeps in the wall
-        err = np.linalg.norm(s.position[common] - np.array([want[s.track_id[i]] for i in common]), axis=1)
+        err = np.linalg.norm(
+            s.position[common] - np.array([want[s.track_id[i]] for i in common]), axis=1
+        )
         assert err.max() < 0.05, (k, err.max())

@@ -1,4 +1,5 @@
-"""ED segmentation next to a bright right ventricle (issue 14: real studies always have one).
+"""
+ED segmentation next to a bright right ventricle (issue 14: real studies always have one).
 
 Drawn protocols with the RV forced on and bright blood (1.26-1.28 x myocardium): the RV's blood
 crescent beside the septum has an outline whose spectrum, falling off as 1/frequency, used to
@@ -8,57 +9,65 @@ failed). Scored against the simulator's ED myocardium (tissue fraction >= 0.5) a
 long axis.
 """
 
-import numpy as np
-import pytest
-
 from mlv_ros.core.registration import segment as seg
 from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices
 from mlv_ros.core.sim.motion import make_motion
 from mlv_ros.core.sim.protocol import draw_protocol, protocol_preset
 from mlv_ros.core.types import VIEW_SA
+import numpy as np
+import pytest
 
 #: As test_segment_protocols: every slice segmented, Dice >= 0.8 SA and >= 0.75 LA.
-MIN_DICE = {"SA": 0.80, "LA": 0.75}
+MIN_DICE = {'SA': 0.80, 'LA': 0.75}
 
 
-@pytest.mark.parametrize("seed", [2002, 2004])
+@pytest.mark.parametrize('seed', [2002, 2004])
 def test_bright_rv_beside_the_lv(seed):
-    p = draw_protocol(seed, {"right_ventricle": True})
-    assert p["right_ventricle"] and p["blood_m0"] > 1.2
+    p = draw_protocol(seed, {'right_ventricle': True})
+    assert p['right_ventricle'] and p['blood_m0'] > 1.2
     pre = protocol_preset(p)
     m = make_motion(pre)
-    im, f = pre["imaging"], m.frame
+    im, f = pre['imaging'], m.frame
     rng = np.random.default_rng(0)
-    mid = f.apex + 0.55 * m.length * f.long_axis       # a long-axis point inside the cavity
-    scored = {"SA": 0, "LA": 0}
+    mid = f.apex + 0.55 * m.length * f.long_axis  # a long-axis point inside the cavity
+    scored = {'SA': 0, 'LA': 0}
     for s in plan_slices(m, im):
-        if s.view == VIEW_SA and s.index % 3:           # every third SA slice keeps it short
+        if s.view == VIEW_SA and s.index % 3:  # every third SA slice keeps it short
             continue
-        syn = ImageSynthesizer(m, s, im["size"], im, subplanes=1)
-        img = syn.render(0, 0.0, im["snr"], rng)
+        syn = ImageSynthesizer(m, s, im['size'], im, subplanes=1)
+        img = syn.render(0, 0.0, im['snr'], rng)
         truth = syn.tissue_fractions(0)[0] >= 0.5
         g = s.geometry
         if s.view == VIEW_SA:
-            x = f.apex + ((g.pixel_to_patient(np.zeros(2))[0] - f.apex) @ g.normal) / (f.long_axis @ g.normal) * f.long_axis
-            out, view = seg.segment_sa(img, g.patient_to_pixel(x)[0], g.row_spacing), "SA"
+            x = (
+                f.apex
+                + ((g.pixel_to_patient(np.zeros(2))[0] - f.apex) @ g.normal)
+                / (f.long_axis @ g.normal)
+                * f.long_axis
+            )
+            out, view = seg.segment_sa(img, g.patient_to_pixel(x)[0], g.row_spacing), 'SA'
         else:
             ax = np.array([f.long_axis @ g.column_direction, f.long_axis @ g.row_direction])
-            out, view = seg.segment_la(img, g.patient_to_pixel(mid)[0], ax, g.row_spacing), "LA"
-        assert out.ok, f"{view} {s.index}: {out.reason}"
+            out, view = seg.segment_la(img, g.patient_to_pixel(mid)[0], ax, g.row_spacing), 'LA'
+        assert out.ok, f'{view} {s.index}: {out.reason}'
         d = seg.dice(out.mask, truth)
-        assert d >= MIN_DICE[view], f"{view} {s.index}: Dice {d:.3f}"
+        assert d >= MIN_DICE[view], f'{view} {s.index}: Dice {d:.3f}'
         scored[view] += 1
-    assert scored["SA"] >= 2 and scored["LA"] >= 2
+    assert scored['SA'] >= 2 and scored['LA'] >= 2
 
 
 def test_candidate_features_agree_without_a_bright_pool():
-    """A grid alone: the plain and the whitened spectral estimates agree (one candidate), at the
-    grid's period and angle."""
+    """
+    A grid alone: the plain and the whitened spectral estimates agree (one candidate), at the
+    grid's period and angle.
+    """
     n, lam, ang = 128, 6.0, np.radians(30.0)
     rr, cc = np.mgrid[0:n, 0:n].astype(float)
     k1 = np.array([np.sin(ang), np.cos(ang)]) / lam
     k2 = np.array([np.cos(ang), -np.sin(ang)]) / lam
-    img = (1.0 + np.cos(2 * np.pi * (k1[0] * rr + k1[1] * cc))) * (1.0 + np.cos(2 * np.pi * (k2[0] * rr + k2[1] * cc)))
+    img = (1.0 + np.cos(2 * np.pi * (k1[0] * rr + k1[1] * cc))) * (
+        1.0 + np.cos(2 * np.pi * (k2[0] * rr + k2[1] * cc))
+    )
     img += np.random.default_rng(1).normal(0.0, 0.05, img.shape)
     feats = seg.candidate_features(img)
     assert len(feats) == 1

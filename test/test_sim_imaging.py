@@ -1,16 +1,15 @@
 """Image formation: slice planning, material-carried SPAMM tags, blood, noise, through-plane."""
 
+from mlv_ros.core.sim import ImageSynthesizer, plan_slices, simulate_study, slab_profile
+from mlv_ros.core.types import VIEW_LA, VIEW_SA
 import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from mlv_ros.core.sim import ImageSynthesizer, plan_slices, simulate_study, slab_profile
-from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
-
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    return simulate_study("normal", snr=None, quick=True, seed=0)
+    return simulate_study('normal', snr=None, quick=True, seed=0)
 
 
 def test_study_layout(study):
@@ -23,7 +22,7 @@ def test_study_layout(study):
     np.testing.assert_allclose([f.trigger_time for f in cine], m.times)
     assert all(f.image.shape == (128, 128) and f.image.dtype == np.float32 for f in cine)
     assert len(set(study.series_uids.values())) == 11
-    with pytest.raises(ValueError, match="no slice"):
+    with pytest.raises(ValueError, match='no slice'):
         study.cine(VIEW_SA, 99)
 
 
@@ -75,31 +74,37 @@ def _interior(m, X, margin=1.5):
     return ok
 
 
-@pytest.mark.parametrize("key", [(VIEW_SA, 2), (VIEW_SA, 5), (VIEW_LA, 0), (VIEW_LA, 2)])
+@pytest.mark.parametrize('key', [(VIEW_SA, 2), (VIEW_SA, 5), (VIEW_LA, 0), (VIEW_LA, 2)])
 def test_material_points_stay_on_tag_minima(study, key):
-    """Tag intersections and square centres laid at ED, moved by the ground truth, then sampled
+    """
+    Tag intersections and square centres laid at ED, moved by the ground truth, then sampled
     from the noiseless image: intersections stay dark, squares bright, through the whole cycle.
     ED points are taken on several planes parallel to the image (tags are planes ⟂ the image),
-    so that some are inside the slab core at every phase despite through-plane motion."""
+    so that some are inside the slab core at every phase despite through-plane motion.
+    """
     m = study.motion
-    im = study.preset["imaging"]
-    lam = im["tag_spacing_mm"]
+    im = study.preset['imaging']
+    lam = im['tag_spacing_mm']
     g = study.geometries[key]
     n = study.frames[0].image.shape[0]
     c = g.pixel_to_patient(np.array([(n - 1) / 2.0, (n - 1) / 2.0]))
     k = np.arange(-12, 13)
-    A, B, D = np.meshgrid(k, k, np.arange(-10.0, 10.5, 1.0), indexing="ij")
+    A, B, D = np.meshgrid(k, k, np.arange(-10.0, 10.5, 1.0), indexing='ij')
 
     def grid(shift):
-        X = (c + np.outer((A.ravel() + shift) * lam, g.row_direction)
-             + np.outer((B.ravel() + shift) * lam, g.column_direction) + np.outer(D.ravel(), g.normal))
+        X = (
+            c
+            + np.outer((A.ravel() + shift) * lam, g.row_direction)
+            + np.outer((B.ravel() + shift) * lam, g.column_direction)
+            + np.outer(D.ravel(), g.normal)
+        )
         return X[_interior(m, X)]
 
     X_int, X_sq = grid(0.0), grid(0.5)
     cine = study.cine(*key)
     contrast_moved, contrast_static = [], []
     for p in range(m.num_phases):
-        E = np.exp(-m.times[p] / im["t1_s"])
+        E = np.exp(-m.times[p] / im['t1_s'])
         vals = []
         for X, moved in ((X_int, True), (X_sq, True), (X_int, False), (X_sq, False)):
             x = m.position(X, p) if moved else X
@@ -119,13 +124,13 @@ def test_material_points_stay_on_tag_minima(study, key):
 
 def test_blood_untagged_and_background(study):
     m = study.motion
-    im = study.preset["imaging"]
+    im = study.preset['imaging']
     g = study.geometries[(VIEW_SA, 3)]
     rc, _ = g.patient_to_pixel(m.frame.apex + 0.5 * m.length * m.frame.long_axis)
     r, c = np.round(rc).astype(int)
     for f in study.cine(VIEW_SA, 3):
         patch = f.image[r - 3:r + 4, c - 3:c + 4]
-        np.testing.assert_allclose(patch, im["blood_m0"], atol=1e-4)  # no tag modulation
+        np.testing.assert_allclose(patch, im['blood_m0'], atol=1e-4)  # no tag modulation
 
 
 def test_ed_mask_area_matches_geometry(study):
@@ -142,7 +147,7 @@ def test_through_plane_motion_is_real(study):
     """The basal slice sees different material at ES: its ED level is higher than the plane."""
     m = study.motion
     sl = study.slices[0]
-    syn = ImageSynthesizer(m, sl, 128, study.preset["imaging"], subplanes=1)
+    syn = ImageSynthesizer(m, sl, 128, study.preset['imaging'], subplanes=1)
     pts = syn.pix[syn.cand]
     X = m.inverse(pts, m.es_phase)
     dz = (X - pts) @ m.frame.long_axis
@@ -156,10 +161,11 @@ def test_through_plane_motion_is_real(study):
 
 def test_rician_noise_and_determinism():
     from mlv_ros.core.sim import load_preset, make_motion
-    p = load_preset("normal")
+
+    p = load_preset('normal')
     m = make_motion(p)
-    sl = plan_slices(m, p["imaging"], 256)[3]
-    syn = ImageSynthesizer(m, sl, 256, p["imaging"], subplanes=1)
+    sl = plan_slices(m, p['imaging'], 256)[3]
+    syn = ImageSynthesizer(m, sl, 256, p['imaging'], subplanes=1)
     img = syn.render(0, 0.0, 20.0, np.random.default_rng(5))
     air = img[:12, :12]  # corners lie outside the body sphere: pure Rayleigh noise
     sigma = 1.0 / 20.0
@@ -167,12 +173,12 @@ def test_rician_noise_and_determinism():
     np.testing.assert_array_equal(img, syn.render(0, 0.0, 20.0, np.random.default_rng(5)))
     assert not np.array_equal(img, syn.render(0, 0.0, 20.0, np.random.default_rng(6)))
     assert np.all(syn.render(0, 0.0, None, None) >= 0)
-    with pytest.raises(ValueError, match="snr"):
+    with pytest.raises(ValueError, match='snr'):
         syn.render(0, 0.0, -1.0, np.random.default_rng(0))
 
 
 def test_presets_simulate(tmp_path):
-    for name in ("hypertrophic", "dilated", "infarct", "cylinder"):
+    for name in ('hypertrophic', 'dilated', 'infarct', 'cylinder'):
         s = simulate_study(name, snr=10.0, size=64, num_phases=3, subplanes=1)
         assert len(s.frames) == 33
         assert all(np.isfinite(f.image).all() for f in s.frames)

@@ -1,15 +1,14 @@
 """Ground-truth motion of the presets: invertibility, incompressibility, documented ranges."""
 
-import numpy as np
-import pytest
-
 from mlv_ros.core.sim import aha_segment_window, load_preset, make_motion
 from mlv_ros.core.sim.presets import PRESET_NAMES
+import numpy as np
+import pytest
 
 PRESETS = list(PRESET_NAMES)
 
 
-@pytest.fixture(scope="module", params=PRESETS)
+@pytest.fixture(scope='module', params=PRESETS)
 def motion(request):
     return make_motion(request.param)
 
@@ -17,16 +16,16 @@ def motion(request):
 def test_presets_load_and_validate():
     for name in PRESETS:
         p = load_preset(name)
-        assert p["name"] == name
-    with pytest.raises(FileNotFoundError, match="unknown phantom preset"):
-        load_preset("no_such_heart")
-    bad = load_preset("normal")
-    del bad["motion"]["twist_apex_deg"]
-    with pytest.raises(ValueError, match="motion.twist_apex_deg"):
+        assert p['name'] == name
+    with pytest.raises(FileNotFoundError, match='unknown phantom preset'):
+        load_preset('no_such_heart')
+    bad = load_preset('normal')
+    del bad['motion']['twist_apex_deg']
+    with pytest.raises(ValueError, match='motion.twist_apex_deg'):
         load_preset(bad)
-    bad = load_preset("normal")
-    bad["motion"]["es_fraction"] = 0.8
-    with pytest.raises(ValueError, match="es_fraction"):
+    bad = load_preset('normal')
+    bad['motion']['es_fraction'] = 0.8
+    with pytest.raises(ValueError, match='es_fraction'):
         load_preset(bad)
 
 
@@ -54,7 +53,7 @@ def test_identity_at_ed_and_periodic(motion):
 
 
 def test_det_f_within_documented_tolerance(motion):
-    tol = load_preset(motion.preset)["expected"]["det_f_tol"]
+    tol = load_preset(motion.preset)['expected']['det_f_tol']
     X = motion.sample_myocardium(1500, seed=2)
     for ph in range(0, motion.num_phases, 3):
         J = np.linalg.det(motion.deformation_gradient(X, ph))
@@ -68,43 +67,49 @@ def test_myocardial_volume_conserved_on_a_grid(motion):
     """Independent of F: count grid points that are myocardium at ED and (via inverse) at ES."""
     f = motion.frame
     R = 1.2 * motion.max_radius
-    h = 1.0 if motion.kind == "cylinder" else 1.5
+    h = 1.0 if motion.kind == 'cylinder' else 1.5
     g = np.arange(-R, R, h)
     zz = np.arange(-2.0, motion.length + 2.0, h)
-    A, B, Z = np.meshgrid(g, g, zz, indexing="ij")
-    pts = f.apex + np.outer(Z.ravel(), f.long_axis) + np.outer(A.ravel(), f.septum) \
+    A, B, Z = np.meshgrid(g, g, zz, indexing='ij')
+    pts = (
+        f.apex
+        + np.outer(Z.ravel(), f.long_axis)
+        + np.outer(A.ravel(), f.septum)
         + np.outer(B.ravel(), f.e2)
+    )
     v_ed = motion.inside_myocardium(pts).sum()
     v_es = motion.inside_myocardium(motion.inverse(pts, motion.es_phase)).sum()
     assert abs(v_es / v_ed - 1.0) < 0.01
 
 
 def test_documented_ranges(motion):
-    exp = load_preset(motion.preset)["expected"]
+    exp = load_preset(motion.preset)['expected']
     es = motion.es_phase
     c = motion.level_curves([0.05, 0.5, 0.95], [0, es])
 
     def within(key, value):
         lo, hi = exp[key]
-        assert lo <= value <= hi, f"{motion.preset['name']}: {key} = {value:.3f} not in [{lo}, {hi}]"
+        assert lo <= value <= hi, (
+            f'{motion.preset["name"]}: {key} = {value:.3f} not in [{lo}, {hi}]'
+        )
 
-    within("twist_apex_deg", c["twist_deg"][1, 0])
-    within("twist_base_deg", c["twist_deg"][1, 2])
-    within("net_twist_deg", c["twist_deg"][1, 0] - c["twist_deg"][1, 2])
-    within("wall_thickening", c["thickness_mm"][1, 1] / c["thickness_mm"][0, 1] - 1.0)
-    within("base_descent_mm", motion.base_descent_mm(es))
-    within("mid_endo_radius_ed_mm", c["endo_radius_mm"][0, 1])
-    within("mid_wall_ed_mm", c["thickness_mm"][0, 1])
-    if "es_fraction" in exp:
+    within('twist_apex_deg', c['twist_deg'][1, 0])
+    within('twist_base_deg', c['twist_deg'][1, 2])
+    within('net_twist_deg', c['twist_deg'][1, 0] - c['twist_deg'][1, 2])
+    within('wall_thickening', c['thickness_mm'][1, 1] / c['thickness_mm'][0, 1] - 1.0)
+    within('base_descent_mm', motion.base_descent_mm(es))
+    within('mid_endo_radius_ed_mm', c['endo_radius_mm'][0, 1])
+    within('mid_wall_ed_mm', c['thickness_mm'][0, 1])
+    if 'es_fraction' in exp:
         # ES = the phase of peak endocardial contraction, found on a fine time grid.
         ph = np.linspace(0, motion.num_phases, 201)
-        r = motion.level_curves([0.5], ph)["endo_radius_mm"][:, 0]
-        within("es_fraction", ph[np.argmin(r)] / motion.num_phases)
+        r = motion.level_curves([0.5], ph)['endo_radius_mm'][:, 0]
+        within('es_fraction', ph[np.argmin(r)] / motion.num_phases)
 
 
 def test_twist_sign_seen_from_apex():
     """Apex turns CCW as seen from the apex (looking toward the base), base CW (method notes)."""
-    m = make_motion("normal")
+    m = make_motion('normal')
     f = m.frame
     view = f.apex - f.base_centre  # points from the base toward the viewer at the apex
     for level, sign in ((0.1, +1), (0.95, -1)):
@@ -118,7 +123,7 @@ def test_twist_sign_seen_from_apex():
 
 
 def test_motion_smooth_in_time():
-    m = make_motion("normal")
+    m = make_motion('normal')
     X = m.sample_myocardium(300, seed=4)
     ph = np.linspace(0, m.num_phases, 401)
     x = np.stack([m.position(X, p) for p in ph])
@@ -130,8 +135,8 @@ def test_motion_smooth_in_time():
 
 
 def test_infarct_segment_is_akinetic_and_remote_normal():
-    m = make_motion("infarct")
-    exp = load_preset("infarct")["expected"]
+    m = make_motion('infarct')
+    exp = load_preset('infarct')['expected']
     out = {}
     for seg in (7, 10):
         cen, _, u0, u1 = aha_segment_window(seg)
@@ -141,12 +146,12 @@ def test_infarct_segment_is_akinetic_and_remote_normal():
         X = m.frame.from_local(np.array([r_en, r_ep]), np.array([th, th]), np.array([z, z]))
         r, _, _ = m.frame.to_local(m.position(X, m.es_phase))
         out[seg] = (r[1] - r[0]) / (r_ep - r_en) - 1.0
-    assert exp["infarct_thickening"][0] <= out[7] <= exp["infarct_thickening"][1]
-    assert exp["remote_thickening"][0] <= out[10] <= exp["remote_thickening"][1]
+    assert exp['infarct_thickening'][0] <= out[7] <= exp['infarct_thickening'][1]
+    assert exp['remote_thickening'][0] <= out[10] <= exp['remote_thickening'][1]
 
 
 def test_sample_myocardium_deterministic():
-    m = make_motion("normal")
+    m = make_motion('normal')
     np.testing.assert_array_equal(m.sample_myocardium(100, 7), m.sample_myocardium(100, 7))
     assert not np.array_equal(m.sample_myocardium(100, 7), m.sample_myocardium(100, 8))
     with pytest.raises(ValueError):

@@ -1,15 +1,14 @@
-"""Input silence is counted only while a node is spun (nodes.common.Silence): a stalled executor
+"""
+Input silence is counted only while a node is spun (nodes.common.Silence): a stalled executor
 (a publisher blocked on a slow RELIABLE reader, a long callback, a loaded machine) is not a
 stream that stopped. Before, a run on a 2-core machine at load 8 registered with 7 of 12 ED
 slices when the executor resumed and the registration's timer ran before the frames waiting in
-its queue, and delivered 14 wrong phases with verdict ok."""
+its queue, and delivered 14 wrong phases with verdict ok.
+"""
 
 from __future__ import annotations
 
 import time
-
-import pytest
-from rclpy.parameter import Parameter
 
 from conftest import spin_until
 from graphkit import Probe
@@ -18,6 +17,8 @@ from mlv_ros.core.sim import simulate_study
 from mlv_ros.nodes.common import Silence
 from mlv_ros.nodes.frame_source import count_slices
 from mlv_ros.nodes.registration import Registration
+import pytest
+from rclpy.parameter import Parameter
 
 
 def test_silence_counts_ticks_and_a_stall_as_two_periods_at_most():
@@ -32,15 +33,22 @@ def test_silence_counts_ticks_and_a_stall_as_two_periods_at_most():
     assert s.tick(130.0) == pytest.approx(0.25)  # a clock that goes back adds nothing
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def ed_frames():
-    frames = count_slices(list(simulate_study("normal", snr=20, quick=True, num_phases=2).frames))
+    frames = count_slices(list(simulate_study('normal', snr=20, quick=True, num_phases=2).frames))
     return [f for f in frames if f.phase_index == 0]
 
 
-def test_a_stalled_executor_does_not_register_without_the_waiting_ed_frame(ed_frames, ros_context, executor):
-    reg = Registration(context=ros_context, parameter_overrides=[Parameter("num_particles", value=400),
-                                                                 Parameter("ed_timeout_s", value=1.0)])
+def test_a_stalled_executor_does_not_register_without_the_waiting_ed_frame(
+    ed_frames, ros_context, executor
+):
+    reg = Registration(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter('num_particles', value=400),
+            Parameter('ed_timeout_s', value=1.0),
+        ],
+    )
     probe = Probe(ros_context)
     for node in (reg, probe):
         executor.add_node(node)

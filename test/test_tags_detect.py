@@ -1,16 +1,17 @@
 """Gabor tag-intersection detection on analytic 1-1 SPAMM grids with known geometry."""
 
+from mlv_ros.core.tags import detect_intersections, estimate_tag_parameters, TagParameters
+from mlv_ros.core.tags.synthetic import TagScene
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.tags import TagParameters, detect_intersections, estimate_tag_parameters
-from mlv_ros.core.tags.synthetic import TagScene
-
 
 def _grid(shape, spacing, angles, shift=(0.0, 0.0), affine=None):
-    """sin² grid: image(x) = P(X), X = A⁻¹(x − c − shift) + c; returns image and the true
-    intersections (image coordinates) at least 12 px from the border."""
+    """
+    sin² grid: image(x) = P(X), X = A⁻¹(x − c − shift) + c; returns image and the true
+    intersections (image coordinates) at least 12 px from the border.
+    """
     c = (np.asarray(shape, float) - 1) / 2
     a = np.eye(2) if affine is None else np.asarray(affine, float)
     k = 2 * np.pi / spacing * np.stack([np.sin(angles), np.cos(angles)], -1)
@@ -18,7 +19,7 @@ def _grid(shape, spacing, angles, shift=(0.0, 0.0), affine=None):
     X = (pix - c - shift) @ np.linalg.inv(a).T + c
     img = np.prod(np.sin(((X - c) @ k.T) / 2) ** 2, axis=1).reshape(shape)
     n = np.arange(-40, 41)
-    lab = np.stack(np.meshgrid(n, n, indexing="ij"), -1).reshape(-1, 2)
+    lab = np.stack(np.meshgrid(n, n, indexing='ij'), -1).reshape(-1, 2)
     Xi = c + np.linalg.solve(k, 2 * np.pi * lab.T).T
     xi = (Xi - c) @ a.T + c + shift
     inb = np.all((xi >= 12) & (xi <= np.asarray(shape) - 13), axis=1)
@@ -30,12 +31,15 @@ def _match(found, truth):
     return d
 
 
-@pytest.mark.parametrize("shift,angles,affine", [
-    ((0.0, 0.0), (0.3, 0.3 + np.pi / 2), None),                         # rotated grid
-    ((0.37, -1.81), (0.0, np.pi / 2), None),                            # sub-pixel shift
-    ((0.2, 0.4), (0.1, 0.1 + np.pi / 2), [[1.15, 0.0], [0.0, 0.88]]),  # anisotropic stretch
-    ((0.0, 0.0), (0.0, np.pi / 2), [[1.0, 0.2], [-0.1, 1.05]]),        # shear: non-orthogonal tags
-])
+@pytest.mark.parametrize(
+    'shift,angles,affine',
+    [
+        ((0.0, 0.0), (0.3, 0.3 + np.pi / 2), None),  # rotated grid
+        ((0.37, -1.81), (0.0, np.pi / 2), None),  # sub-pixel shift
+        ((0.2, 0.4), (0.1, 0.1 + np.pi / 2), [[1.15, 0.0], [0.0, 0.88]]),  # anisotropic stretch
+        ((0.0, 0.0), (0.0, np.pi / 2), [[1.0, 0.2], [-0.1, 1.05]]),  # shear: non-orthogonal tags
+    ],
+)
 def test_intersections_on_analytic_grids(shift, angles, affine):
     img, truth, _ = _grid((128, 128), 6.5, np.array(angles), np.array(shift), affine)
     det = detect_intersections(img)
@@ -60,12 +64,14 @@ def test_spectrum_estimate_recovers_spacing_and_angles():
 def test_overrides_are_used():
     img, truth, _ = _grid((96, 96), 6.0, np.array([0.0, np.pi / 2]))
     det = detect_intersections(img, spacing_px=6.0, angles=(0.0, np.pi / 2))
-    assert det.params.source == "override"
+    assert det.params.source == 'override'
     assert np.max(_match(det.pixel_rc, truth)) < 0.02
 
 
 def test_grid_labels_match_the_analytic_indices():
-    img, truth, lab = _grid((128, 128), 6.0, np.array([0.2, 0.2 + np.pi / 2]), np.array([0.3, 0.1]))
+    img, truth, lab = _grid(
+        (128, 128), 6.0, np.array([0.2, 0.2 + np.pi / 2]), np.array([0.3, 0.1])
+    )
     det = detect_intersections(img)
     _, i = cKDTree(truth).query(det.pixel_rc)
     inner = np.all((det.pixel_rc >= 12) & (det.pixel_rc <= 115), axis=1)
@@ -73,14 +79,21 @@ def test_grid_labels_match_the_analytic_indices():
     # vector points the other way): differences between points must agree.
     got = det.labels[inner] - det.labels[inner][0]
     want = lab[i[inner]] - lab[i[inner]][0]
-    ok = np.all(got == want) or np.all(got == -want) or np.all(got == want[:, ::-1]) or np.all(got == -want[:, ::-1])
+    ok = (
+        np.all(got == want)
+        or np.all(got == -want)
+        or np.all(got == want[:, ::-1])
+        or np.all(got == -want[:, ::-1])
+    )
     assert ok
 
 
 def test_myocardium_with_blood_pool_and_noise():
-    """Annulus of tagged myocardium around a bright untagged blood pool, noise σ = 1/20 of the
+    """
+    Annulus of tagged myocardium around a bright untagged blood pool, noise σ = 1/20 of the
     myocardium intensity (SNR 20): localisation within the Must of the issue (0.25 px median)
-    and no false positives."""
+    and no false positives.
+    """
     scene = TagScene(shape=(128, 128), ring=(17.5, 34.5), noise_sigma=0.05)
     img = scene.render(0.0, seed=3)
     mask = scene.myocardium_mask(0.0)
@@ -91,9 +104,9 @@ def test_myocardium_with_blood_pool_and_noise():
     X_wide, _ = scene.intersections(margin=-1.0)
     d, i = cKDTree(X_wide).query(det.pixel_rc)
     assert np.median(d) < 0.1
-    assert np.all(d < 1.0)                          # every detection is a true intersection
-    assert np.bincount(i).max() == 1                # ... found once
-    assert np.max(_match(det.pixel_rc, X)) < 1.0    # recall: every one inside the annulus
+    assert np.all(d < 1.0)  # every detection is a true intersection
+    assert np.bincount(i).max() == 1  # ... found once
+    assert np.max(_match(det.pixel_rc, X)) < 1.0  # recall: every one inside the annulus
     assert np.all((det.confidence > 0) & (det.confidence <= 1))
 
 
@@ -115,12 +128,15 @@ def test_no_mask_uses_tag_energy_to_skip_the_blood_pool():
 
 
 def test_kernels_have_no_dc_and_ignore_smooth_anatomy():
-    from mlv_ros.core.tags import TagParameters, gabor_filter_bank, kernel_bank
+    from mlv_ros.core.tags import gabor_filter_bank, kernel_bank, TagParameters
+
     params = TagParameters(spacing_px=np.array([6.0, 6.0]), angles=np.array([0.0, np.pi / 2]))
     for d in range(2):
         bank = kernel_bank((64, 64), params, d)
-        assert np.all(np.abs(bank[:, 0, 0]) < 1e-6)          # zero mean: no DC response
-        assert np.allclose(np.abs(bank).max(axis=(1, 2)), 1.0, atol=0.02)  # unit gain at the tuning
+        assert np.all(np.abs(bank[:, 0, 0]) < 1e-6)  # zero mean: no DC response
+        assert np.allclose(
+            np.abs(bank).max(axis=(1, 2)), 1.0, atol=0.02
+        )  # unit gain at the tuning
     # A smooth intensity ramp (anatomy, coil shading) gives ~no response next to a tag grid's.
     rr, cc = np.mgrid[0:96, 0:96]
     ramp = 0.5 + 0.004 * rr + 0.002 * cc
@@ -133,36 +149,47 @@ def test_kernels_have_no_dc_and_ignore_smooth_anatomy():
 def _thin_and_thick(noise_sigma, t1_fraction=np.inf, t=0.0, seed=1):
     """(image, mask, scene) of a thin (~0.7 tag period) and a thick (~3 periods) annulus."""
     out = {}
-    for name, ring in (("thin", (28.0, 32.5)), ("thick", (17.5, 36.5))):
-        scene = TagScene(shape=(128, 128), ring=ring, noise_sigma=noise_sigma, t1_fraction=t1_fraction,
-                         spacing_px=6.5)
+    for name, ring in (('thin', (28.0, 32.5)), ('thick', (17.5, 36.5))):
+        scene = TagScene(
+            shape=(128, 128),
+            ring=ring,
+            noise_sigma=noise_sigma,
+            t1_fraction=t1_fraction,
+            spacing_px=6.5,
+        )
         out[name] = (scene.render(t, seed=seed), scene.myocardium_mask(t), scene)
     return out
 
 
 def test_coverage_normalised_confidence_has_one_noise_floor_on_thin_and_thick_walls():
-    """Pure noise inside a mask: the plain confidence of what the detector finds falls with the
+    """
+    Pure noise inside a mask: the plain confidence of what the detector finds falls with the
     share of the filter inside the mask (a thin wall looks 'surer' of nothing than a thick one
     does, and of its real tags less sure); normalised by that share, noise scores the same on
-    both, so one threshold means one false-alarm rate whatever the wall thickness."""
+    both, so one threshold means one false-alarm rate whatever the wall thickness.
+    """
     params = TagParameters(spacing_px=np.array([6.5, 6.5]), angles=np.array([0.0, np.pi / 2]))
     med = {}
     for name, (img, mask, _) in _thin_and_thick(0.05, t1_fraction=1e-3, t=0.5).items():
         for norm in (False, True):
-            det = detect_intersections(img, mask, params=params, min_confidence=0.0, coverage_normalised=norm)
+            det = detect_intersections(
+                img, mask, params=params, min_confidence=0.0, coverage_normalised=norm
+            )
             assert det.ok and len(det) > 10, det.reason
             med[name, norm] = float(np.median(det.confidence))
-    assert med["thin", False] < 0.9 * med["thick", False], med     # the premise (measured 0.87)
-    assert 0.9 < med["thin", True] / med["thick", True] < 1.1, med  # measured 1.06
+    assert med['thin', False] < 0.9 * med['thick', False], med  # the premise (measured 0.87)
+    assert 0.9 < med['thin', True] / med['thick', True] < 1.1, med  # measured 1.06
 
 
 def test_coverage_normalised_confidence_keeps_faded_tags_on_a_thin_wall():
-    """Faded tags (contrast 0.3, SNR 20) on a thin wall: the plain confidence loses half the true
+    """
+    Faded tags (contrast 0.3, SNR 20) on a thin wall: the plain confidence loses half the true
     intersections at the default threshold (measured 15 of 32 found); normalised, most are kept
     (27), located as well (the median error, ~0.5 px, is the truncated pattern's bias on a wall
-    thinner than a tag period, the same for both)."""
+    thinner than a tag period, the same for both).
+    """
     params = TagParameters(spacing_px=np.array([6.5, 6.5]), angles=np.array([0.0, np.pi / 2]))
-    img, mask, scene = _thin_and_thick(0.05, t1_fraction=0.5 / np.log(1 / 0.3), t=0.5)["thin"]
+    img, mask, scene = _thin_and_thick(0.05, t1_fraction=0.5 / np.log(1 / 0.3), t=0.5)['thin']
     X, _ = scene.intersections(margin=-1.0)
     truth = scene.forward(X, 0.5)
     found, err = {}, {}

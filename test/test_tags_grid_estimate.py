@@ -1,4 +1,5 @@
-"""Tag directions and period from each image's own spectrum, over the acquisition range.
+"""
+Tag directions and period from each image's own spectrum, over the acquisition range.
 
 Simulated ED frames (the LV phantom, one sub-plane, SNR 20) with the grid laid at any in-plane
 angle, periods 3.5–8 px (5–10 mm tags on 1.0–2.0 mm pixels), with and without tagged tissue
@@ -6,30 +7,37 @@ around the heart. Truth: the simulator's grid (``tag_pattern``: tag planes throu
 centre at multiples of the period along directions rotated by ``tag_angle_deg``).
 """
 
-import numpy as np
-import pytest
-from scipy.spatial import cKDTree
-
 from mlv_ros.core.sim import load_preset, plan_slices
 from mlv_ros.core.sim.imaging import ImageSynthesizer
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.tags import detect_intersections, estimate_grid
 from mlv_ros.core.types import VIEW_SA
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
 
 pytestmark = pytest.mark.slow  # about a minute of simulation: scheduled first (conftest)
 
 FOV_MM = 200.0
 
 
-def _ed_frames(angle_deg, pixel_mm, period_mm, background_m0, preset="normal", seed=0, blood_m0=None):
+def _ed_frames(
+    angle_deg, pixel_mm, period_mm, background_m0, preset='normal', seed=0, blood_m0=None
+):
     """ED image and true myocardium mask of the mid SA slice and of one LA plane."""
     p = load_preset(preset)
-    im = p["imaging"]
+    im = p['imaging']
     size = int(round(FOV_MM / pixel_mm))
-    im.update(tag_angle_deg=angle_deg, pixel_spacing_mm=pixel_mm, tag_spacing_mm=period_mm,
-              background_m0=background_m0, size=size, subplanes=1)
+    im.update(
+        tag_angle_deg=angle_deg,
+        pixel_spacing_mm=pixel_mm,
+        tag_spacing_mm=period_mm,
+        background_m0=background_m0,
+        size=size,
+        subplanes=1,
+    )
     if blood_m0 is not None:
-        im["blood_m0"] = blood_m0
+        im['blood_m0'] = blood_m0
     motion = LVMotion(p)
     planes = plan_slices(motion, im, size)
     sa = [s for s in planes if s.view == VIEW_SA]
@@ -48,7 +56,7 @@ def _true_intersections(angle_deg, period_px, size):
     u = np.array([np.sin(a), np.cos(a)])
     v = np.array([np.cos(a), -np.sin(a)])
     n = np.arange(-60, 61)
-    i, j = np.meshgrid(n, n, indexing="ij")
+    i, j = np.meshgrid(n, n, indexing='ij')
     c = (size - 1) / 2.0
     return c + period_px * (i.ravel()[:, None] * u + j.ravel()[:, None] * v)
 
@@ -61,24 +69,39 @@ def _check_params(params, angle_deg, period_px):
 
 
 # (angle °, pixel mm, period mm): angles over 0–180°, periods 3.5–8 px.
-CASES = [(0.0, 2.0, 7.0), (17.0, 1.25, 10.0), (45.0, 1.4, 8.0), (63.0, 1.0, 5.0), (90.0, 1.6, 7.0),
-         (112.0, 1.0, 8.0), (135.0, 1.8, 7.0), (158.0, 1.2, 6.0),
-         (70.0, 1.9, 10.0)]  # a 9 mm wall is < 1 period across on the LA: the hardest here
+CASES = [
+    (0.0, 2.0, 7.0),
+    (17.0, 1.25, 10.0),
+    (45.0, 1.4, 8.0),
+    (63.0, 1.0, 5.0),
+    (90.0, 1.6, 7.0),
+    (112.0, 1.0, 8.0),
+    (135.0, 1.8, 7.0),
+    (158.0, 1.2, 6.0),
+    (70.0, 1.9, 10.0),
+]  # a 9 mm wall is < 1 period across on the LA: the hardest here
 
 
-@pytest.mark.parametrize("background_m0", [0.0, 0.35], ids=["only-heart-tagged", "tagged-surroundings"])
-@pytest.mark.parametrize("angle_deg,pixel_mm,period_mm", CASES)
-def test_grid_estimate_and_intersections_any_angle_and_period(angle_deg, pixel_mm, period_mm, background_m0):
+@pytest.mark.parametrize(
+    'background_m0', [0.0, 0.35], ids=['only-heart-tagged', 'tagged-surroundings']
+)
+@pytest.mark.parametrize('angle_deg,pixel_mm,period_mm', CASES)
+def test_grid_estimate_and_intersections_any_angle_and_period(
+    angle_deg, pixel_mm, period_mm, background_m0
+):
     period_px = period_mm / pixel_mm
     truth = None
-    for view, (img, mask, size) in zip(("SA", "LA"), _ed_frames(angle_deg, pixel_mm, period_mm, background_m0)):
+    for view, (img, mask, size) in zip(
+        ('SA', 'LA'), _ed_frames(angle_deg, pixel_mm, period_mm, background_m0)
+    ):
         # The estimate alone, and the scale-free claim: ×1000 or ×0.001 gives the same grid.
         params = estimate_grid(img, mask)
         _check_params(params, angle_deg, period_px)
         for scale in (1e3, 1e-3):
             p2 = estimate_grid(img * scale, mask)
             assert np.allclose(np.sort(p2.angles), np.sort(params.angles)) and np.allclose(
-                np.sort(p2.spacing_px), np.sort(params.spacing_px))
+                np.sort(p2.spacing_px), np.sort(params.spacing_px)
+            )
         det = detect_intersections(img, mask=mask)
         assert det.ok, (view, det.reason)
         _check_params(det.params, angle_deg, period_px)
@@ -96,8 +119,10 @@ def test_grid_estimate_and_intersections_any_angle_and_period(angle_deg, pixel_m
 
 
 def test_grid_estimate_picks_the_grid_not_its_cross_terms():
-    """A 45° grid's cross terms (k1 ± k2) sit on the image axes at 1/√2 of the period; the
-    estimate must return the grid itself."""
+    """
+    A 45° grid's cross terms (k1 ± k2) sit on the image axes at 1/√2 of the period; the
+    estimate must return the grid itself.
+    """
     img, mask, _ = _ed_frames(45.0, 1.9, 10.0, 0.35, seed=3)[0]
     _check_params(estimate_grid(img, mask), 45.0, 10.0 / 1.9)
 
@@ -105,15 +130,19 @@ def test_grid_estimate_picks_the_grid_not_its_cross_terms():
 def test_untagged_noise_has_no_grid():
     rng = np.random.default_rng(1)
     det = detect_intersections(rng.standard_normal((128, 128)) + 10.0)
-    assert not det.ok and "tag direction" in det.reason
+    assert not det.ok and 'tag direction' in det.reason
 
 
 def test_grid_estimate_bright_blood_thin_wall_long_axis():
-    """A dilated LV (thin wall, about one period across) with blood brighter than the wall: in
+    """
+    A dilated LV (thin wall, about one period across) with blood brighter than the wall: in
     the LA view the cavity's outline out-weighs the tags in the plain spectra (a 15 mm 'grid'
-    for 9 mm tags, and no intersection in the mask); the image less its running median finds it."""
+    for 9 mm tags, and no intersection in the mask); the image less its running median finds it.
+    """
     angle_deg, pixel_mm, period_mm = 20.0, 1.15, 9.0
-    img, mask, _ = _ed_frames(angle_deg, pixel_mm, period_mm, 0.0, preset="dilated", blood_m0=1.3)[1]
+    img, mask, _ = _ed_frames(angle_deg, pixel_mm, period_mm, 0.0, preset='dilated', blood_m0=1.3)[
+        1
+    ]
     _check_params(estimate_grid(img, mask), angle_deg, period_mm / pixel_mm)
     det = detect_intersections(img, mask=mask)
     assert det.ok and len(det) >= 6, det.reason

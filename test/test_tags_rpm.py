@@ -1,13 +1,16 @@
 """TPS-RPM: recovery of a known affine + smooth warp with outliers and missing points."""
 
-import numpy as np
-
 from mlv_ros.core.tags import ThinPlateSpline, tps_rpm
+import numpy as np
 
 
 def _warp(p):
     a = np.array([[1.1, 0.15], [-0.1, 0.92]])
-    return p @ a.T + np.array([4.0, -3.0]) + 2.5 * np.stack([np.sin(p[:, 1] / 25), np.cos(p[:, 0] / 30)], -1)
+    return (
+        p @ a.T
+        + np.array([4.0, -3.0])
+        + 2.5 * np.stack([np.sin(p[:, 1] / 25), np.cos(p[:, 0] / 30)], -1)
+    )
 
 
 def _problem(seed, k=80, missing=0.2, outliers=0.2, noise=0.2):
@@ -15,8 +18,12 @@ def _problem(seed, k=80, missing=0.2, outliers=0.2, noise=0.2):
     src = rng.uniform(-50, 50, (k, 2))
     dst = _warp(src)
     keep = np.sort(rng.permutation(k)[:int(round((1 - missing) * k))])
-    tgt = np.vstack([dst[keep] + rng.normal(0, noise, (len(keep), 2)),
-                     rng.uniform(-60, 60, (int(round(outliers * k)), 2))])
+    tgt = np.vstack(
+        [
+            dst[keep] + rng.normal(0, noise, (len(keep), 2)),
+            rng.uniform(-60, 60, (int(round(outliers * k)), 2)),
+        ]
+    )
     perm = rng.permutation(len(tgt))
     tgt = tgt[perm]
     truth = np.full(k, -1)

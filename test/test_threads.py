@@ -1,15 +1,16 @@
-"""mlv_ros.threads: every graph process computes with one BLAS/OpenMP/OpenCV thread whatever its
+"""
+mlv_ros.threads: every graph process computes with one BLAS/OpenMP/OpenCV thread whatever its
 libraries started with, because OpenBLAS's sums depend on its thread count and the same study
-must give the same motion in any process layout (test_multihost checks that end to end)."""
+must give the same motion in any process layout (test_multihost checks that end to end).
+"""
 
 import os
 
 import cv2
+from mlv_ros.threads import COMPUTE_THREADS, compute_threads
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
-
-from mlv_ros.threads import COMPUTE_THREADS, compute_threads
 
 
 def _product():
@@ -19,7 +20,7 @@ def _product():
     return (a * w[:, None]).T @ a
 
 
-@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: OpenBLAS runs one thread anyway")
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason='one core: OpenBLAS runs one thread anyway')
 def test_compute_threads_hold_every_pool_at_one_and_restore_them():
     with threadpool_limits(limits=1):
         one = _product()
@@ -28,24 +29,26 @@ def test_compute_threads_hold_every_pool_at_one_and_restore_them():
         two = _product()
         assert not np.array_equal(one, two)  # the premise: the bits depend on the thread count
         with compute_threads():
-            assert {p["num_threads"] for p in threadpool_info()} == {COMPUTE_THREADS}
+            assert {p['num_threads'] for p in threadpool_info()} == {COMPUTE_THREADS}
             assert cv2.getNumThreads() == COMPUTE_THREADS
             held = _product()
-        assert {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == {2}
+        assert {p['num_threads'] for p in threadpool_info() if p['user_api'] == 'blas'} == {2}
     assert cv2.getNumThreads() == cv_before
     np.testing.assert_array_equal(held, one)
 
 
 def test_a_node_process_computes_with_one_thread():
-    """run_node (every node's console script, so every process under ``ros2 launch``) holds the
-    pools while the node lives, whatever the process started with."""
+    """
+    run_node (every node's console script, so every process under ``ros2 launch``) holds the
+    pools while the node lives, whatever the process started with.
+    """
     from mlv_ros.nodes.common import run_node
 
     seen = []
 
     def factory():
-        seen.append({p["num_threads"] for p in threadpool_info()})
-        raise ValueError("built far enough")  # run_node: a node that cannot start exits 2
+        seen.append({p['num_threads'] for p in threadpool_info()})
+        raise ValueError('built far enough')  # run_node: a node that cannot start exits 2
 
     with threadpool_limits(limits=2):
         assert run_node(factory, args=[]) == 2

@@ -1,18 +1,19 @@
-"""The phase solver on its own: exact in-plane tag constraints from the analytic phantom (material
-lines through the slab, as SPAMM tags are), dense error against the ground truth."""
-
-import numpy as np
-import pytest
+"""
+The phase solver on its own: exact in-plane tag constraints from the analytic phantom (material
+lines through the slab, as SPAMM tags are), dense error against the ground truth.
+"""
 
 from mlv_ros.core.meshless import matrix_to_quat
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.tracking import MotionTracker, PhaseAssembler
 from mlv_ros.core.types import TagPointSet
+import numpy as np
+import pytest
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    return simulate_study("normal", snr=20, quick=True)
+    return simulate_study('normal', snr=20, quick=True)
 
 
 def grid_tags(study, spacing_px=5.3):
@@ -26,14 +27,26 @@ def grid_tags(study, spacing_px=5.3):
 
 
 def tagset(key, g, phase, num_phases, pos, ids):
-    return TagPointSet(view=key[0], slice_index=key[1], phase_index=phase, num_phases=num_phases, geometry=g,
-                       pixel_rc=g.patient_to_pixel(pos)[0], position=pos, track_id=ids.astype(np.int32),
-                       confidence=np.ones(len(ids), np.float32), num_sa_slices=8, num_la_slices=3)
+    return TagPointSet(
+        view=key[0],
+        slice_index=key[1],
+        phase_index=phase,
+        num_phases=num_phases,
+        geometry=g,
+        pixel_rc=g.patient_to_pixel(pos)[0],
+        position=pos,
+        track_id=ids.astype(np.int32),
+        confidence=np.ones(len(ids), np.float32),
+        num_sa_slices=8,
+        num_la_slices=3,
+    )
 
 
 def observed(study, refs, phase):
-    """Where each ED tag line crosses its (fixed) plane at ``phase``: the material point
-    p0 + s n that the true motion brings back into the plane."""
+    """
+    Where each ED tag line crosses its (fixed) plane at ``phase``: the material point
+    p0 + s n that the true motion brings back into the plane.
+    """
     m, sets = study.motion, {}
     for key, g in study.geometries.items():
         P, n = refs[key], study.geometries[key].normal
@@ -44,7 +57,9 @@ def observed(study, refs, phase):
             s -= ((x0 - g.image_position) @ n) / (((x1 - x0) @ n) / 0.5)
         X = P + s[:, None] * n
         ok = m.inside_myocardium(X)
-        sets[key] = tagset(key, g, phase, m.num_phases, m.position(X[ok], phase), np.flatnonzero(ok))
+        sets[key] = tagset(
+            key, g, phase, m.num_phases, m.position(X[ok], phase), np.flatnonzero(ok)
+        )
     return sets
 
 
@@ -84,13 +99,18 @@ def solve_es(study, **tracker_options):
 
 def es_error(study, slice_following):
     X, sol = solve_es(study, slice_following=slice_following)
-    return np.linalg.norm(sol.positions - study.motion.position(X, int(round(study.motion.es_phase))), axis=1), sol
+    return np.linalg.norm(
+        sol.positions - study.motion.position(X, int(round(study.motion.es_phase))), axis=1
+    ), sol
 
 
 def test_dense_motion_at_end_systole_from_exact_in_plane_tags(study):
     err, sol = es_error(study, slice_following=2)
     # Truth: displacements up to ~15 mm (base descent 12 mm, twist 10°, 40 % thickening).
-    assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (np.median(err), np.percentile(err, 95))
+    assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (
+        np.median(err),
+        np.percentile(err, 95),
+    )
     assert sol.state.residual < 0.5
     assert np.all(np.isfinite(sol.strain))
 
@@ -105,8 +125,12 @@ def test_no_usable_constraint_is_a_clear_error(study):
     m = study.motion
     _, tr = make_tracker(study, n=500)
     key, g = next(iter(study.geometries.items()))
-    with pytest.raises(ValueError, match="no tag point matches an ED reference"):
-        tr.solve(1, {key: tagset(key, g, 1, m.num_phases, np.zeros((1, 3)), np.array([0]))}, m.num_phases)
+    with pytest.raises(ValueError, match='no tag point matches an ED reference'):
+        tr.solve(
+            1,
+            {key: tagset(key, g, 1, m.num_phases, np.zeros((1, 3)), np.array([0]))},
+            m.num_phases,
+        )
     far = g.image_position + 500.0  # far outside the heart
     assert tr.set_reference(tagset(key, g, 0, m.num_phases, far[None], np.array([0]))) == 0
 
@@ -116,12 +140,23 @@ def test_phase_assembler_completeness_and_duplicates(study):
     asm = PhaseAssembler()
     keys = list(study.geometries)
     for key in keys[:-1]:
-        assert asm.add(tagset(key, study.geometries[key], 3, m.num_phases, np.zeros((0, 3)), np.array([]))) is False
+        assert (
+            asm.add(
+                tagset(key, study.geometries[key], 3, m.num_phases, np.zeros((0, 3)), np.array([]))
+            )
+            is False
+        )
     assert asm.expected_slices == 11 and not asm.complete(3)
     assert asm.missing(3, keys) == [keys[-1]]
-    assert asm.add(tagset(keys[0], study.geometries[keys[0]], 3, m.num_phases, np.zeros((0, 3)), np.array([])))
+    assert asm.add(
+        tagset(keys[0], study.geometries[keys[0]], 3, m.num_phases, np.zeros((0, 3)), np.array([]))
+    )
     assert asm.duplicates == 1
-    asm.add(tagset(keys[-1], study.geometries[keys[-1]], 3, m.num_phases, np.zeros((0, 3)), np.array([])))
+    asm.add(
+        tagset(
+            keys[-1], study.geometries[keys[-1]], 3, m.num_phases, np.zeros((0, 3)), np.array([])
+        )
+    )
     assert asm.complete(3) and len(asm.sets(3)) == 11
 
 
@@ -145,7 +180,12 @@ def test_twist_function_extrapolates_below_the_last_sa_slice(study):
     # motion: the twist there comes from the twist function of height, not from the elasticity.
     tau_only = apical_twist_error(study, twist_knots=0)
     function = apical_twist_error(study, twist_knots=11)
-    print("ES twist error per level, apex first; τ only:", np.round(tau_only, 2), "twist function:", np.round(function, 2))
+    print(
+        'ES twist error per level, apex first; τ only:',
+        np.round(tau_only, 2),
+        'twist function:',
+        np.round(function, 2),
+    )
     assert np.max(np.abs(function)) < 0.5, function
     assert abs(function[0]) < 0.5 * abs(tau_only[0]), (function[0], tau_only[0])
 
@@ -157,9 +197,15 @@ def sparse_sa_solve(study, sa_slices, **tracker_options):
     refs = grid_tags(study)
     keep = [k for k in study.geometries if k[0] == 1 or k[1] in sa_slices]
     for key in keep:
-        tr.set_reference(tagset(key, study.geometries[key], 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+        tr.set_reference(
+            tagset(
+                key, study.geometries[key], 0, m.num_phases, refs[key], np.arange(len(refs[key]))
+            )
+        )
     es = int(round(m.es_phase))
-    sol = tr.solve(es, {k: v for k, v in observed(study, refs, es).items() if k in keep}, m.num_phases)
+    sol = tr.solve(
+        es, {k: v for k, v in observed(study, refs, es).items() if k in keep}, m.num_phases
+    )
     return tr, np.linalg.norm(sol.positions - m.position(X, es), axis=1)
 
 
@@ -173,15 +219,19 @@ def test_twist_function_needs_enough_sa_slices(study):
     spread, spread_err = sparse_sa_solve(study, {1, 3, 5, 7})
     _, tau_err = sparse_sa_solve(study, {1, 3, 5, 7}, twist_knots=0)
     assert spread.twist_coefficients.size == 11
-    assert np.percentile(spread_err, 95) < np.percentile(tau_err, 95) + 0.1, (np.percentile(spread_err, 95),
-                                                                              np.percentile(tau_err, 95))
+    assert np.percentile(spread_err, 95) < np.percentile(tau_err, 95) + 0.1, (
+        np.percentile(spread_err, 95),
+        np.percentile(tau_err, 95),
+    )
 
 
-@pytest.mark.parametrize("prescreen", [False, True])
+@pytest.mark.parametrize('prescreen', [False, True])
 def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
-    """30 % of the tracks slip by one tag period (8 mm) at phase 4: screened against the previous
+    """
+    30 % of the tracks slip by one tag period (8 mm) at phase 4: screened against the previous
     phase's motion they are dropped before they drag the fit (without the screen the global fit
-    follows them: median 2.4 mm)."""
+    follows them: median 2.4 mm).
+    """
     m = study.motion
     X, tr, refs = referenced_tracker(study)
     tr.prescreen = prescreen
@@ -193,47 +243,62 @@ def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
         sol = tr.solve(phase, sets, m.num_phases)
     err = np.linalg.norm(sol.positions - m.position(X, 4), axis=1)
     if prescreen:
-        assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (np.median(err), np.percentile(err, 95))
+        assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5, (
+            np.median(err),
+            np.percentile(err, 95),
+        )
     else:  # the premise
         assert np.median(err) > 1.0, np.median(err)
 
 
-@pytest.mark.parametrize("option", [{"longitudinal_weight": -1.0}, {"longitudinal_weight": float("nan")},
-                                    {"longitudinal_coupling": -0.1}, {"longitudinal_coupling": float("nan")},
-                                    {"global_prior": -0.5}, {"global_prior": float("inf")}])
+@pytest.mark.parametrize(
+    'option',
+    [
+        {'longitudinal_weight': -1.0},
+        {'longitudinal_weight': float('nan')},
+        {'longitudinal_coupling': -0.1},
+        {'longitudinal_coupling': float('nan')},
+        {'global_prior': -0.5},
+        {'global_prior': float('inf')},
+    ],
+)
 def test_bad_solver_weights_are_clear_errors(study, option):
     with pytest.raises(ValueError, match=next(iter(option))):
         make_tracker(study, n=300, **option)
 
 
 def test_low_confidence_points_count_less(study):
-    """A third of the tag points is displaced by 1.5 mm in-plane (below the 3 mm outlier floor:
+    """
+    A third of the tag points is displaced by 1.5 mm in-plane (below the 3 mm outlier floor:
     the outlier screen keeps them) and reported with confidence 0.3, the rest with 0.9: weighted
     by confidence, the fit keeps less than 60 % of the error the bad points add unweighted
-    (measured ~45 %)."""
+    (measured ~45 %).
+    """
     m = study.motion
     es = int(round(m.es_phase))
     err = {}
-    for case in ("exact", "unweighted", "weighted"):
-        X, tr, refs = referenced_tracker(study, n=1000, confidence_weights=case == "weighted")
+    for case in ('exact', 'unweighted', 'weighted'):
+        X, tr, refs = referenced_tracker(study, n=1000, confidence_weights=case == 'weighted')
         sets = observed(study, refs, es)
         rng = np.random.default_rng(4)
         for key, s in sets.items():
-            bad = (rng.random(len(s.track_id)) < 1 / 3) & (case != "exact")
+            bad = (rng.random(len(s.track_id)) < 1 / 3) & (case != 'exact')
             s.position = s.position + bad[:, None] * 1.5 * study.geometries[key].row_direction
             s.confidence = np.where(bad, 0.3, 0.9).astype(np.float32)
         sol = tr.solve(es, sets, m.num_phases)
         err[case] = float(np.median(np.linalg.norm(sol.positions - m.position(X, es), axis=1)))
-    assert err["unweighted"] > err["exact"] + 0.1, err  # the premise: the bad points do pull
-    assert err["weighted"] - err["exact"] < 0.6 * (err["unweighted"] - err["exact"]), err
+    assert err['unweighted'] > err['exact'] + 0.1, err  # the premise: the bad points do pull
+    assert err['weighted'] - err['exact'] < 0.6 * (err['unweighted'] - err['exact']), err
 
 
 def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
-    """The graph hands the solver a phase's slices in the order they arrived, which depends on
+    """
+    The graph hands the solver a phase's slices in the order they arrived, which depends on
     the frame order and the process layout; the motion must not. Before the solver took the
     slices in (view, slice) order, the same sets in another order gave float sums in another
     order, then another CG iteration count: 0.015 mm at one phase of a recorded study. Compared
-    to the bit, over two phases (the second warm-started from the first)."""
+    to the bit, over two phases (the second warm-started from the first).
+    """
     m = study.motion
     solutions = []
     for order in (1, -1):
@@ -242,19 +307,23 @@ def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
             sets = observed(study, refs, phase)
             sol = tr.solve(phase, dict(list(sets.items())[::order]), m.num_phases)
         solutions.append(sol.positions)
-    assert list(observed(study, refs, 2)) != list(observed(study, refs, 2))[::-1]  # the premise: two orders
+    assert (
+        list(observed(study, refs, 2)) != list(observed(study, refs, 2))[::-1]
+    )  # the premise: two orders
     np.testing.assert_array_equal(solutions[0], solutions[1])
 
 
 def test_longitudinal_coupling_follows_an_akinetic_sector():
-    """The infarct phantom's akinetic sector (levels 0.4-0.7, AHA 7): SA tags see it not
+    """
+    The infarct phantom's akinetic sector (levels 0.4-0.7, AHA 7): SA tags see it not
     shortening around the axis, only three LA planes see anything along it. Coupled, the local
     longitudinal strain follows the circumferential one, and the basal wall above the sector
     (AHA 1) stops descending with the rest of the base: from exact tags its ES median error falls
-    from 1.61 to 1.37 mm (measured), the p95 from 1.93 to 1.77 mm."""
+    from 1.61 to 1.37 mm (measured), the p95 from 1.93 to 1.77 mm.
+    """
     from mlv_ros.core.sim.regional import truth_segments
 
-    study = simulate_study("infarct", snr=20, quick=True)
+    study = simulate_study('infarct', snr=20, quick=True)
     m = study.motion
     refs = grid_tags(study)
     es = int(round(m.es_phase))
@@ -268,6 +337,8 @@ def test_longitudinal_coupling_follows_an_akinetic_sector():
         err[coupling] = np.linalg.norm(sol.positions - m.position(X, es), axis=1)
     basal = truth_segments(m, X) == 1
     assert np.median(err[0.5][basal]) < 0.9 * np.median(err[0.0][basal]), (
-        np.median(err[0.0][basal]), np.median(err[0.5][basal]))
+        np.median(err[0.0][basal]),
+        np.median(err[0.5][basal]),
+    )
     assert np.percentile(err[0.5], 95) < np.percentile(err[0.0], 95)
     assert np.median(err[0.5]) < np.median(err[0.0]) + 0.05

@@ -1,20 +1,21 @@
-"""Quality verdicts (mlv_ros.core.verdict): each threshold tripped by a study built to trip it,
-and left alone by one that should pass — through the real solver and analyzer."""
-
-import numpy as np
-import pytest
+"""
+Quality verdicts (mlv_ros.core.verdict): each threshold tripped by a study built to trip it,
+and left alone by one that should pass — through the real solver and analyzer.
+"""
 
 from mlv_ros.core.analysis import LVAnalyzer
 from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.types import VIEW_SA
-from mlv_ros.core.verdict import DEGRADED, FAILED, OK, Verdict, metrics_verdict, phase_verdict
+from mlv_ros.core.verdict import DEGRADED, FAILED, metrics_verdict, OK, phase_verdict, Verdict
+import numpy as np
+import pytest
 from test_tracking import observed, referenced_tracker, slip
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope='module')
 def study():
-    return simulate_study("normal", snr=20, quick=True)
+    return simulate_study('normal', snr=20, quick=True)
 
 
 def solve(study, phase, edit=None, **tracker_options):
@@ -31,22 +32,27 @@ def keep(sets, fraction, seed=0):
     rng = np.random.default_rng(seed)
     for s in sets.values():
         k = rng.random(len(s.track_id)) < fraction
-        s.position, s.pixel_rc, s.track_id, s.confidence = s.position[k], s.pixel_rc[k], s.track_id[k], s.confidence[k]
+        s.position, s.pixel_rc, s.track_id, s.confidence = (
+            s.position[k],
+            s.pixel_rc[k],
+            s.track_id[k],
+            s.confidence[k],
+        )
     return sets
 
 
 def test_a_well_tracked_phase_is_ok(study):
     state = solve(study, int(round(study.motion.es_phase)))
-    assert state.verdict == OK and state.verdict_reasons == ""
+    assert state.verdict == OK and state.verdict_reasons == ''
 
 
 def test_few_tracked_points_degrade_then_fail(study):
     es = int(round(study.motion.es_phase))
     # Every slice keeps ~20 % of its points: each still has 3+, only the total trips.
     degraded = solve(study, es, lambda s: keep(s, 0.2))
-    assert degraded.verdict == DEGRADED and "ED tag points tracked" in degraded.verdict_reasons
+    assert degraded.verdict == DEGRADED and 'ED tag points tracked' in degraded.verdict_reasons
     failed = solve(study, es, lambda s: keep(s, 0.06))
-    assert failed.verdict == FAILED and "ED tag points tracked" in failed.verdict_reasons
+    assert failed.verdict == FAILED and 'ED tag points tracked' in failed.verdict_reasons
 
 
 def test_sa_slices_without_points_degrade_and_none_fails(study):
@@ -57,9 +63,9 @@ def test_sa_slices_without_points_degrade_and_none_fails(study):
         return lambda sets: {k: v for k, v in sets.items() if k[0] != VIEW_SA or k in sa[:n_left]}
 
     two = solve(study, es, drop_sa(2))  # 2 of 8 SA slices
-    assert two.verdict >= DEGRADED and f"2 of {len(sa)} SA slices" in two.verdict_reasons
+    assert two.verdict >= DEGRADED and f'2 of {len(sa)} SA slices' in two.verdict_reasons
     none = solve(study, es, drop_sa(0))  # long-axis views only
-    assert none.verdict == FAILED and "no SA slice" in none.verdict_reasons
+    assert none.verdict == FAILED and 'no SA slice' in none.verdict_reasons
 
 
 def test_a_fit_that_misses_its_tracks_by_half_a_pixel_is_degraded(study):
@@ -70,10 +76,14 @@ def test_a_fit_that_misses_its_tracks_by_half_a_pixel_is_degraded(study):
         for key, s in sets.items():
             g = study.geometries[key]
             s.position = s.position + rng.standard_normal((len(s.position), 2)) @ np.stack(
-                [g.row_direction * g.row_spacing, g.column_direction * g.column_spacing])
+                [g.row_direction * g.row_spacing, g.column_direction * g.column_spacing]
+            )
         return sets
+
     state = solve(study, es, jitter)
-    assert state.verdict == DEGRADED and "fit residual" in state.verdict_reasons, state.verdict_reasons
+    assert state.verdict == DEGRADED and 'fit residual' in state.verdict_reasons, (
+        state.verdict_reasons
+    )
 
 
 def test_many_outliers_degrade(study):
@@ -86,71 +96,112 @@ def test_many_outliers_degrade(study):
             slip(study, sets, 0.3, rng)
         state = tr.solve(phase, sets, m.num_phases).state
         assert (state.verdict == OK) == (phase < 3), (phase, state.verdict_reasons)
-    assert "rejected as outliers" in state.verdict_reasons
+    assert 'rejected as outliers' in state.verdict_reasons
 
 
 FR = oblique_frame()
 X, ENDO = cylinder_shell(FR, r_in=20, r_out=30, n_r=4, n_theta=36, n_z=12)
 
 
-@pytest.mark.parametrize("motion, level, reason", [
-    (dict(s_r=0.85, s_l=0.9, twist_apex_deg=10, twist_base_deg=-3), OK, ""),
-    (dict(s_r=1.4, s_l=1.0, twist_apex_deg=0, twist_base_deg=0), FAILED, "ejection fraction"),  # cavity ×2
-    (dict(s_r=1.06, s_l=1.0, twist_apex_deg=0, twist_base_deg=0), DEGRADED, "ejection fraction"),  # +12 %
-])
+@pytest.mark.parametrize(
+    'motion, level, reason',
+    [
+        ({'s_r': 0.85, 's_l': 0.9, 'twist_apex_deg': 10, 'twist_base_deg': -3}, OK, ''),
+        (
+            {'s_r': 1.4, 's_l': 1.0, 'twist_apex_deg': 0, 'twist_base_deg': 0},
+            FAILED,
+            'ejection fraction',
+        ),  # cavity ×2
+        (
+            {'s_r': 1.06, 's_l': 1.0, 'twist_apex_deg': 0, 'twist_base_deg': 0},
+            DEGRADED,
+            'ejection fraction',
+        ),  # +12 %
+    ],
+)
 def test_the_analyzer_marks_a_cavity_no_ventricle_has(motion, level, reason):
     x, F = cylindrical_motion(FR, X, **motion)
     m = LVAnalyzer(X, FR, endo_mask=ENDO).phase(x, F, phase_index=3, num_phases=10)
-    assert m.verdict == level and reason in m.verdict_reasons, (m.ejection_fraction, m.verdict_reasons)
+    assert m.verdict == level and reason in m.verdict_reasons, (
+        m.ejection_fraction,
+        m.verdict_reasons,
+    )
 
 
 def test_the_analyzer_marks_a_wall_point_that_travels_half_the_ventricle():
     x = X.copy()
     x[0] += 0.6 * FR.length * FR.axis  # one particle flung away
     m = LVAnalyzer(X, FR, endo_mask=ENDO).phase(x, phase_index=1, num_phases=10)
-    assert m.verdict == FAILED and "wall point moved" in m.verdict_reasons
+    assert m.verdict == FAILED and 'wall point moved' in m.verdict_reasons
 
 
 def test_verdict_arithmetic_and_bad_levels():
     v = phase_verdict(50, 100, {0: 5, 1: 5}, 0.1, 1.0)
-    assert v.level == OK and v.text == ""
-    w = Verdict.from_parts(DEGRADED, "a; b").merge(metrics_verdict(2.0, 1.0, 80.0))
-    assert w.level == FAILED and w.reasons[:2] == ["a", "b"] and "ejection fraction" in w.text
-    with pytest.raises(ValueError, match="verdict must be"):
-        Verdict.from_parts(3, "")
+    assert v.level == OK and v.text == ''
+    w = Verdict.from_parts(DEGRADED, 'a; b').merge(metrics_verdict(2.0, 1.0, 80.0))
+    assert w.level == FAILED and w.reasons[:2] == ['a', 'b'] and 'ejection fraction' in w.text
+    with pytest.raises(ValueError, match='verdict must be'):
+        Verdict.from_parts(3, '')
 
 
 def _old_cdr(cls, cut: str, values: dict) -> bytes:
-    """A ``cls`` message serialised by an independent writer (rosbags) under the definition that
-    ends before the line starting ``cut`` (the fields appended since left out)."""
+    """
+    A ``cls`` message serialised by an independent writer (rosbags) under the definition that
+    ends before the line starting ``cut`` (the fields appended since left out).
+    """
     from pathlib import Path
 
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
-    msgs = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
-    text = (msgs / f"{cls.__name__}.msg").read_text()
+    msgs = Path(__file__).resolve().parents[1] / 'msg_schemas' / 'msg'
+    text = (msgs / f'{cls.__name__}.msg').read_text()
     store = get_typestore(Stores.ROS2_JAZZY)
-    name = f"mlv_msgs/msg/{cls.__name__}"
-    store.register(get_types_from_msg((msgs / "SliceGeometry.msg").read_text(), "mlv_msgs/msg/SliceGeometry"))
+    name = f'mlv_msgs/msg/{cls.__name__}'
+    store.register(
+        get_types_from_msg((msgs / 'SliceGeometry.msg').read_text(), 'mlv_msgs/msg/SliceGeometry')
+    )
     store.register(get_types_from_msg(text[:text.index(cut)], name))
     Old, T = store.types[name], store.types
-    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="patient")
+    header = T['std_msgs/msg/Header'](
+        stamp=T['builtin_interfaces/msg/Time'](sec=1, nanosec=2), frame_id='patient'
+    )
     special = {
-        "header": header, "translation": np.zeros(3), "rotation": np.array([1.0, 0, 0, 0]),
-        "image": T["sensor_msgs/msg/Image"](header=header, height=2, width=3, encoding="mono8", is_bigendian=0,
-                                            step=3, data=np.arange(6, dtype=np.uint8)),
-        "geometry": T["mlv_msgs/msg/SliceGeometry"](
-            image_position=np.zeros(3), row_direction=np.array([1.0, 0, 0]), column_direction=np.array([0, 1.0, 0]),
-            row_spacing=1.0, column_spacing=1.0, slice_thickness=6.0),
-        "pixel_rc": np.zeros(0), "position": np.zeros(0), "track_id": np.zeros(0, np.int32),
-        "confidence": np.zeros(0, np.float32)}
+        'header': header,
+        'translation': np.zeros(3),
+        'rotation': np.array([1.0, 0, 0, 0]),
+        'image': T['sensor_msgs/msg/Image'](
+            header=header,
+            height=2,
+            width=3,
+            encoding='mono8',
+            is_bigendian=0,
+            step=3,
+            data=np.arange(6, dtype=np.uint8),
+        ),
+        'geometry': T['mlv_msgs/msg/SliceGeometry'](
+            image_position=np.zeros(3),
+            row_direction=np.array([1.0, 0, 0]),
+            column_direction=np.array([0, 1.0, 0]),
+            row_spacing=1.0,
+            column_spacing=1.0,
+            slice_thickness=6.0,
+        ),
+        'pixel_rc': np.zeros(0),
+        'position': np.zeros(0),
+        'track_id': np.zeros(0, np.int32),
+        'confidence': np.zeros(0, np.float32),
+    }
     kwargs = {}
     for f in Old.__dataclass_fields__:
-        if f.startswith("__"):
+        if f.startswith('__'):
             continue
         default = getattr(cls(), f)
-        kwargs[f] = values.get(f, special.get(f, default if isinstance(default, (int, float, bool, str))
-                                                else np.asarray(default)))
+        kwargs[f] = values.get(
+            f,
+            special.get(
+                f, default if isinstance(default, (int, float, bool, str)) else np.asarray(default)
+            ),
+        )
     return bytes(store.serialize_cdr(Old(**kwargs), name))
 
 
@@ -167,54 +218,114 @@ def test_recordings_made_before_the_verdict_still_read():
     from mlv_ros import bagio
 
     cases = [
-        (ModelState, "# Quality verdict", {"phase_index": 3, "num_phases": 9, "a0": 41.5, "num_control_points": 77}),
-        (MotionMetrics, "# Quality verdict", {"phase_index": 2, "num_phases": 9, "cavity_volume_ml": 101.25}),
-        (TaggedFrame, "# Run isolation", {"phase_index": 2, "num_phases": 9, "series_uid": "1.2.3"}),
-        (TagPoints, "# Run isolation", {"phase_index": 2, "num_phases": 9, "status": "abc"})]
-    for reasons in ("", "abc", "abcd"):  # every alignment of the end of the older message
-        cases += [(ModelState, "# Run isolation", {"phase_index": 3, "num_phases": 9, "verdict": 2,
-                                                   "verdict_reasons": reasons}),
-                  (MotionMetrics, "# Run isolation", {"phase_index": 2, "verdict": 1, "verdict_reasons": reasons})]
-    for sid in ("s", "abcd"):  # recorded before run_id alone
-        cases += [(cls, "# The run the message belongs to", {"phase_index": 1, "num_phases": 9, "study_id": sid})
-                  for cls in (ModelState, MotionMetrics, TaggedFrame, TagPoints)]
-    for sid in ("s", "abcd", "abcdefg"):  # recorded before the segment origin and findings (issue 20)
-        cases += [(ModelState, "# Where the circumferential reference",
-                   {"phase_index": 1, "num_phases": 9, "study_id": sid}),
-                  (MotionMetrics, "# Where the AHA segments'", {"phase_index": 1, "num_phases": 9, "study_id": sid,
-                                                                  "cavity_volume_ml": 90.5})]
+        (
+            ModelState,
+            '# Quality verdict',
+            {'phase_index': 3, 'num_phases': 9, 'a0': 41.5, 'num_control_points': 77},
+        ),
+        (
+            MotionMetrics,
+            '# Quality verdict',
+            {'phase_index': 2, 'num_phases': 9, 'cavity_volume_ml': 101.25},
+        ),
+        (
+            TaggedFrame,
+            '# Run isolation',
+            {'phase_index': 2, 'num_phases': 9, 'series_uid': '1.2.3'},
+        ),
+        (TagPoints, '# Run isolation', {'phase_index': 2, 'num_phases': 9, 'status': 'abc'}),
+    ]
+    for reasons in ('', 'abc', 'abcd'):  # every alignment of the end of the older message
+        cases += [
+            (
+                ModelState,
+                '# Run isolation',
+                {'phase_index': 3, 'num_phases': 9, 'verdict': 2, 'verdict_reasons': reasons},
+            ),
+            (
+                MotionMetrics,
+                '# Run isolation',
+                {'phase_index': 2, 'verdict': 1, 'verdict_reasons': reasons},
+            ),
+        ]
+    for sid in ('s', 'abcd'):  # recorded before run_id alone
+        cases += [
+            (
+                cls,
+                '# The run the message belongs to',
+                {'phase_index': 1, 'num_phases': 9, 'study_id': sid},
+            )
+            for cls in (ModelState, MotionMetrics, TaggedFrame, TagPoints)
+        ]
+    for sid in (
+        's',
+        'abcd',
+        'abcdefg',
+    ):  # recorded before the segment origin and findings (issue 20)
+        cases += [
+            (
+                ModelState,
+                '# Where the circumferential reference',
+                {'phase_index': 1, 'num_phases': 9, 'study_id': sid},
+            ),
+            (
+                MotionMetrics,
+                "# Where the AHA segments'",
+                {'phase_index': 1, 'num_phases': 9, 'study_id': sid, 'cavity_volume_ml': 90.5},
+            ),
+        ]
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
-        name = f"mlv_msgs/msg/{cls.__name__}"
-        text = (bagio._msg_file("mlv_msgs", cls.__name__).read_text())
+        name = f'mlv_msgs/msg/{cls.__name__}'
+        text = bagio._msg_file('mlv_msgs', cls.__name__).read_text()
         missing = bagio.fields_missing_from(name, text[:text.index(cut)])
-        for got in (bagio.deserialize(data, cls), bagio.deserialize(data, cls, missing)):  # by trying, by schema
-            assert got.study_id == values.get("study_id", "") and got.run_id == ""
-            if "verdict" not in values and hasattr(got, "verdict"):
-                assert got.verdict == 0 and got.verdict_reasons == ""
+        for got in (
+            bagio.deserialize(data, cls),
+            bagio.deserialize(data, cls, missing),
+        ):  # by trying, by schema
+            assert got.study_id == values.get('study_id', '') and got.run_id == ''
+            if 'verdict' not in values and hasattr(got, 'verdict'):
+                assert got.verdict == 0 and got.verdict_reasons == ''
             for k, v in values.items():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
-            if hasattr(got, "segment_origin"):  # unknown origin, no findings (ES phase −1)
+            if hasattr(got, 'segment_origin'):  # unknown origin, no findings (ES phase −1)
                 assert got.segment_origin == 0 and got.segment_origin_confidence == 0.0
-                assert getattr(got, "findings_es_phase", -1) == -1 and len(getattr(got, "segment_class", b"")) == 0
-        assert bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).run_id == ""  # what replay publishes
-    assert bagio.fields_missing_from("mlv_msgs/msg/ModelState", bagio.message_definition("mlv_msgs/msg/ModelState")) == ()
-    with pytest.raises(ValueError, match="cannot deserialise"):
-        bagio.deserialize(b"\x00\x01\x00\x00garbage", ModelState)
+                assert (
+                    getattr(got, 'findings_es_phase', -1) == -1
+                    and len(getattr(got, 'segment_class', b'')) == 0
+                )
+        assert (
+            bagio.deserialize(bagio.current_cdr(data, cls), cls, ()).run_id == ''
+        )  # what replay publishes
+    assert (
+        bagio.fields_missing_from(
+            'mlv_msgs/msg/ModelState', bagio.message_definition('mlv_msgs/msg/ModelState')
+        )
+        == ()
+    )
+    with pytest.raises(ValueError, match='cannot deserialise'):
+        bagio.deserialize(b'\x00\x01\x00\x00garbage', ModelState)
 
 
 def test_run_summary_names_flagged_phases_and_an_untracked_study():
     from mlv_ros.tools.run import untracked, verdict_line, verdict_summary
 
-    s = {"num_phases": 5, **verdict_summary({0: (0, ""), 1: (0, ""), 2: (1, "few points"), 3: (2, "no SA slice"),
-                                             4: (0, "")})}
-    assert s["phases_ok"] == [0, 1, 4] and s["phases_degraded"] == {"2": "few points"}
-    assert s["phases_failed"] == {"3": "no SA slice"}
+    s = {
+        'num_phases': 5,
+        **verdict_summary(
+            {0: (0, ''), 1: (0, ''), 2: (1, 'few points'), 3: (2, 'no SA slice'), 4: (0, '')}
+        ),
+    }
+    assert s['phases_ok'] == [0, 1, 4] and s['phases_degraded'] == {'2': 'few points'}
+    assert s['phases_failed'] == {'3': 'no SA slice'}
     line = verdict_line(s)
-    assert "1 degraded (2)" in line and "1 failed (3)" in line and "\n" not in line
+    assert '1 degraded (2)' in line and '1 failed (3)' in line and '\n' not in line
     assert not untracked(s)
-    lost = {"num_phases": 3, **verdict_summary({0: (0, ""), 1: (2, "x"), 2: (2, "y")})}
-    assert untracked(lost) and verdict_line({"num_phases": 2, **verdict_summary({0: (0, ""), 1: (0, "")})}) is None
+    lost = {'num_phases': 3, **verdict_summary({0: (0, ''), 1: (2, 'x'), 2: (2, 'y')})}
+    assert (
+        untracked(lost)
+        and verdict_line({'num_phases': 2, **verdict_summary({0: (0, ''), 1: (0, '')})}) is None
+    )
 
 
 def test_registration_and_ed_volume_verdicts():
@@ -222,44 +333,63 @@ def test_registration_and_ed_volume_verdicts():
 
     from mlv_ros.core.verdict import registration_verdict
 
-    ok = [R(view=0, slice_index=i, ok=True, reason="") for i in range(6)] + [R(view=1, slice_index=0, ok=True, reason="")]
+    ok = [R(view=0, slice_index=i, ok=True, reason='') for i in range(6)] + [
+        R(view=1, slice_index=0, ok=True, reason='')
+    ]
     assert registration_verdict(ok).level == OK
-    few = [R(view=0, slice_index=i, ok=i < 2, reason="") for i in range(6)] + [R(view=1, slice_index=0, ok=False, reason="")]
+    few = [R(view=0, slice_index=i, ok=i < 2, reason='') for i in range(6)] + [
+        R(view=1, slice_index=0, ok=False, reason='')
+    ]
     v = registration_verdict(few)
-    assert v.level == DEGRADED and "2 of 6 SA slices" in v.text and "none of the 1 LA views" in v.text
+    assert (
+        v.level == DEGRADED and '2 of 6 SA slices' in v.text and 'none of the 1 LA views' in v.text
+    )
     # Wall thickness: any adult heart passes, hypertrophic (20 mm, a 30 mm septum) and thinned
     # by a scar (3 mm over a tenth of the wall) included; a wall no heart has does not.
     rng = np.random.default_rng(0)
-    for wall in (rng.normal(8.0, 1.0, 2000), rng.normal(20.0, 2.0, 2000), np.r_[rng.normal(8.0, 1.0, 1800), [3.0] * 200],
-                 np.r_[rng.normal(18.0, 2.0, 1800), [30.0] * 200], rng.normal(5.0, 0.5, 2000)):
+    for wall in (
+        rng.normal(8.0, 1.0, 2000),
+        rng.normal(20.0, 2.0, 2000),
+        np.r_[rng.normal(8.0, 1.0, 1800), [3.0] * 200],
+        np.r_[rng.normal(18.0, 2.0, 1800), [30.0] * 200],
+        rng.normal(5.0, 0.5, 2000),
+    ):
         assert registration_verdict(ok, wall).level == OK, registration_verdict(ok, wall).text
     thick = registration_verdict(ok, rng.normal(35.0, 2.0, 2000))
-    assert thick.level == DEGRADED and "ED wall thickness 35" in thick.text
+    assert thick.level == DEGRADED and 'ED wall thickness 35' in thick.text
     assert registration_verdict(ok, np.full(100, 0.8)).level == FAILED
     assert registration_verdict(ok, np.full(100, 80.0)).level == FAILED
     holed = registration_verdict(ok, np.r_[rng.normal(8.0, 1.0, 1800), [0.5] * 200])
-    assert holed.level == DEGRADED and "thin over 5 %" in holed.text
+    assert holed.level == DEGRADED and 'thin over 5 %' in holed.text
     assert registration_verdict(ok, []).level == OK  # no surfaces: not checked
     # The issue's 40 605 ml EDV is not a heart; 1.2 l is a heart no adult has.
     assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=40605.0).level == FAILED
     huge = metrics_verdict(0.3, 5.0, 80.0, edv_ml=1200.0)
-    assert huge.level == DEGRADED and "ED cavity volume" in huge.text
+    assert huge.level == DEGRADED and 'ED cavity volume' in huge.text
     assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=140.0).level == OK
 
 
 def test_registration_of_a_wall_no_adult_has_is_degraded():
-    """A phantom whose wall is 33 mm thick everywhere (the segmentation takes it, each slice
+    """
+    A phantom whose wall is 33 mm thick everywhere (the segmentation takes it, each slice
     under its 35 mm bound): the registered model's mean wall is beyond the adult range, and the
-    verdict says so with the thickness."""
+    verdict says so with the thickness.
+    """
     from mlv_ros.core.registration import register_ed
     from mlv_ros.core.sim import load_preset
     from mlv_ros.core.verdict import registration_verdict
 
-    preset = load_preset("normal")
-    preset["geometry"].update(endo_radius_mm=22.0, epi_radius_mm=55.0, endo_depth_mm=52.0)  # 33 mm walls
+    preset = load_preset('normal')
+    preset['geometry'].update(
+        endo_radius_mm=22.0, epi_radius_mm=55.0, endo_depth_mm=52.0
+    )  # 33 mm walls
     thick = simulate_study(preset, snr=20, quick=True, num_phases=2)
     res = register_ed([f for f in thick.frames if f.phase_index == 0], num_particles=500, seed=0)
     wall = res.wall_thickness_mm()
     assert 28.0 < wall.mean() < 38.0
     v = registration_verdict(res.slice_reports, wall)
-    assert v.level == DEGRADED and "ED wall thickness" in v.text and "outside the adult range" in v.text
+    assert (
+        v.level == DEGRADED
+        and 'ED wall thickness' in v.text
+        and 'outside the adult range' in v.text
+    )

@@ -1,4 +1,5 @@
-"""Image filters shared by tag detection and segmentation.
+"""
+Image filters shared by tag detection and segmentation.
 
 :func:`running_median` is the image's running median over a square window (``scipy.ndimage``'s
 ``median_filter``, ``mode="reflect"``), kept for the images it was last asked for: the tag
@@ -11,9 +12,9 @@ frames). A result is returned for bit-identical input only (keyed by a digest of
 
 from __future__ import annotations
 
+from collections import OrderedDict
 import hashlib
 import threading
-from collections import OrderedDict
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -21,11 +22,12 @@ from scipy import ndimage as ndi
 CACHE_SIZE = 32  # images (a study's ED frames, each at one or two window sizes)
 _cache: OrderedDict = OrderedDict()
 _lock = threading.Lock()
-stats = {"hits": 0, "misses": 0}
+stats = {'hits': 0, 'misses': 0}
 
 
 def running_median(image: np.ndarray, size: int) -> np.ndarray:
-    """``ndi.median_filter(image, size=size, mode="reflect")`` of a 2-D float64 image, cached.
+    """
+    ``ndi.median_filter(image, size=size, mode="reflect")`` of a 2-D float64 image, cached.
 
     The caller must not modify the returned array (it is shared; it is marked read-only).
     """
@@ -36,12 +38,12 @@ def running_median(image: np.ndarray, size: int) -> np.ndarray:
         out = _cache.get(key)
         if out is not None:
             _cache.move_to_end(key)
-            stats["hits"] += 1
+            stats['hits'] += 1
             return out
-    out = ndi.median_filter(img, size=int(size), mode="reflect")
+    out = ndi.median_filter(img, size=int(size), mode='reflect')
     out.flags.writeable = False
     with _lock:
-        stats["misses"] += 1
+        stats['misses'] += 1
         _cache[key] = out
         while len(_cache) > CACHE_SIZE:
             _cache.popitem(last=False)

@@ -1,4 +1,5 @@
-"""Image-plane geometry in DICOM patient coordinates (LPS, millimetres).
+"""
+Image-plane geometry in DICOM patient coordinates (LPS, millimetres).
 
 A pixel at row ``r``, column ``c`` lies at ``IPP + c·Δc·F_row + r·Δr·F_col`` where ``IPP`` is
 ImagePositionPatient (centre of the first pixel), ``F_row``/``F_col`` are the two halves of
@@ -18,7 +19,8 @@ _ORTHO_TOL = 1e-4
 
 @dataclass(frozen=True)
 class SliceGeometry:
-    """Plane of one image in patient coordinates.
+    """
+    Plane of one image in patient coordinates.
 
     Attributes
     ----------
@@ -32,6 +34,7 @@ class SliceGeometry:
         Distance between adjacent rows / columns, mm.
     slice_thickness : float
         Slab thickness, mm.
+
     """
 
     image_position: np.ndarray
@@ -42,23 +45,25 @@ class SliceGeometry:
     slice_thickness: float
 
     def __post_init__(self):
-        for name in ("image_position", "row_direction", "column_direction"):
+        for name in ('image_position', 'row_direction', 'column_direction'):
             v = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
             if v.shape != (3,):
-                raise ValueError(f"SliceGeometry.{name} must have 3 components, got {v.shape[0]}")
+                raise ValueError(f'SliceGeometry.{name} must have 3 components, got {v.shape[0]}')
             if not np.all(np.isfinite(v)):
-                raise ValueError(f"SliceGeometry.{name} is not finite: {v}")
+                raise ValueError(f'SliceGeometry.{name} is not finite: {v}')
             object.__setattr__(self, name, v)
-        for name in ("row_direction", "column_direction"):
+        for name in ('row_direction', 'column_direction'):
             n = np.linalg.norm(getattr(self, name))
             if abs(n - 1.0) > _UNIT_TOL:
-                raise ValueError(f"SliceGeometry.{name} must be a unit vector (norm {n:.6f})")
+                raise ValueError(f'SliceGeometry.{name} must be a unit vector (norm {n:.6f})')
         if abs(float(self.row_direction @ self.column_direction)) > _ORTHO_TOL:
-            raise ValueError("SliceGeometry row_direction and column_direction are not orthogonal")
-        for name in ("row_spacing", "column_spacing", "slice_thickness"):
+            raise ValueError('SliceGeometry row_direction and column_direction are not orthogonal')
+        for name in ('row_spacing', 'column_spacing', 'slice_thickness'):
             v = float(getattr(self, name))
             if not np.isfinite(v) or v <= 0:
-                raise ValueError(f"SliceGeometry.{name} must be a positive finite number of mm, got {v}")
+                raise ValueError(
+                    f'SliceGeometry.{name} must be a positive finite number of mm, got {v}'
+                )
             object.__setattr__(self, name, v)
 
     @property
@@ -68,7 +73,8 @@ class SliceGeometry:
         return n / np.linalg.norm(n)
 
     def pixel_to_patient(self, rc: np.ndarray) -> np.ndarray:
-        """Map pixel coordinates to patient coordinates.
+        """
+        Map pixel coordinates to patient coordinates.
 
         Parameters
         ----------
@@ -79,16 +85,20 @@ class SliceGeometry:
         -------
         ndarray, shape (N, 3) or (3,)
             Patient coordinates, mm (LPS).
+
         """
         rc = np.asarray(rc, dtype=np.float64)
         flat = rc.reshape(-1, 2)
-        xyz = (self.image_position
-               + np.outer(flat[:, 1] * self.column_spacing, self.row_direction)
-               + np.outer(flat[:, 0] * self.row_spacing, self.column_direction))
+        xyz = (
+            self.image_position
+            + np.outer(flat[:, 1] * self.column_spacing, self.row_direction)
+            + np.outer(flat[:, 0] * self.row_spacing, self.column_direction)
+        )
         return xyz.reshape(rc.shape[:-1] + (3,))
 
     def patient_to_pixel(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Project patient coordinates onto the plane.
+        """
+        Project patient coordinates onto the plane.
 
         Parameters
         ----------
@@ -101,6 +111,7 @@ class SliceGeometry:
             (row, column) of the orthogonal projection, pixels.
         offset : ndarray, shape (N,) or ()
             Signed distance from the plane along :attr:`normal`, mm.
+
         """
         xyz = np.asarray(xyz, dtype=np.float64)
         d = xyz.reshape(-1, 3) - self.image_position
@@ -111,11 +122,15 @@ class SliceGeometry:
         return rc.reshape(xyz.shape[:-1] + (2,)), off.reshape(xyz.shape[:-1])
 
     def to_dicom(self) -> dict:
-        """DICOM attribute values: ImagePositionPatient, ImageOrientationPatient, PixelSpacing,
-        SliceThickness."""
+        """
+        DICOM attribute values: ImagePositionPatient, ImageOrientationPatient, PixelSpacing,
+        SliceThickness.
+        """
         return {
-            "ImagePositionPatient": [float(v) for v in self.image_position],
-            "ImageOrientationPatient": [float(v) for v in np.concatenate([self.row_direction, self.column_direction])],
-            "PixelSpacing": [self.row_spacing, self.column_spacing],
-            "SliceThickness": self.slice_thickness,
+            'ImagePositionPatient': [float(v) for v in self.image_position],
+            'ImageOrientationPatient': [
+                float(v) for v in np.concatenate([self.row_direction, self.column_direction])
+            ],
+            'PixelSpacing': [self.row_spacing, self.column_spacing],
+            'SliceThickness': self.slice_thickness,
         }

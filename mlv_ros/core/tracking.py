@@ -1,4 +1,5 @@
-"""Phase-by-phase dense motion from tracked tag points: the solver node's core (no rclpy).
+"""
+Phase-by-phase dense motion from tracked tag points: the solver node's core (no rclpy).
 
 Tag intersections give sparse 2D constraints: a track seen at ED at 3D position ``p0`` (in its
 image plane) and at phase t at ``m_t`` (in the same, fixed plane). SPAMM tag planes run through
@@ -23,15 +24,22 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
-import numpy as np
-from scipy.spatial import cKDTree
-
-from mlv_ros.core.meshless import (ControlPoints, GlobalParameters, MeshlessModel, ModelCoordinates,
-                                   ModelFrame, plane_projectors, polar_frame, quat_to_matrix)
+from mlv_ros.core.meshless import (
+    ControlPoints,
+    GlobalParameters,
+    MeshlessModel,
+    ModelCoordinates,
+    ModelFrame,
+    plane_projectors,
+    polar_frame,
+    quat_to_matrix,
+)
 from mlv_ros.core.meshless.local import CoarseSpace, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
-from mlv_ros.core.types import VIEW_SA, ModelState, TagPointSet
+from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
 from mlv_ros.core.verdict import phase_verdict
+import numpy as np
+from scipy.spatial import cKDTree
 
 SliceKey = tuple  # (view, slice_index)
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
@@ -43,7 +51,8 @@ COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
 
 
 def data_weights(confidence) -> np.ndarray:
-    """Data weight of each tag point from its detection confidence (0..1), shape (K,).
+    """
+    Data weight of each tag point from its detection confidence (0..1), shape (K,).
 
     A tag point's position error is its phase error times λ/2π, and the phase error falls as
     the Gabor response rises above the noise; the confidence is that response relative to the
@@ -58,13 +67,15 @@ def data_weights(confidence) -> np.ndarray:
 # --------------------------------------------------------------------------- assembling
 @dataclass
 class PhaseAssembler:
-    """Per-phase buffer of tag point sets.
+    """
+    Per-phase buffer of tag point sets.
 
     Parameters
     ----------
     expected_slices : int
         Slices (SA + LA) whose sets make a phase complete; 0 = unknown yet (taken from the sets'
         ``num_sa_slices + num_la_slices``).
+
     """
 
     expected_slices: int = 0
@@ -83,7 +94,9 @@ class PhaseAssembler:
         return dup
 
     def complete(self, phase: int) -> bool:
-        return bool(self.expected_slices) and len(self.phases.get(phase, {})) >= self.expected_slices
+        return (
+            bool(self.expected_slices) and len(self.phases.get(phase, {})) >= self.expected_slices
+        )
 
     def sets(self, phase: int) -> dict:
         return self.phases.get(phase, {})
@@ -97,7 +110,8 @@ class PhaseAssembler:
 # --------------------------------------------------------------------------- solving
 @dataclass
 class PhaseSolution:
-    """Dense motion at one phase.
+    """
+    Dense motion at one phase.
 
     Attributes
     ----------
@@ -111,6 +125,7 @@ class PhaseSolution:
         Global parameters and convergence record.
     num_constraints : int
         Control points used.
+
     """
 
     phase_index: int
@@ -122,20 +137,25 @@ class PhaseSolution:
 
 
 def twist_knots_error(twist_knots) -> str | None:
-    """Why ``twist_knots`` cannot define :class:`MotionTracker`'s twist function, else None.
+    """
+    Why ``twist_knots`` cannot define :class:`MotionTracker`'s twist function, else None.
 
     0 is the paper's single twist factor τ; a piecewise-linear function of height needs at least
     2 knots (one knot is no function of height) and at most 100.
     """
     if isinstance(twist_knots, bool) or not isinstance(twist_knots, (int, np.integer)):
-        return f"twist_knots must be an integer, got {type(twist_knots).__name__}"
+        return f'twist_knots must be an integer, got {type(twist_knots).__name__}'
     if int(twist_knots) not in (0, *range(2, 101)):
-        return "twist_knots must be 0 (the single twist factor) or 2..100 (one knot is no function of height)"
+        return (
+            'twist_knots must be 0 (the single twist factor) or 2..100 (one knot is no '
+            'function of height)'
+        )
     return None
 
 
 class MotionTracker:
-    """Dense LV motion through the cycle from tracked tag points.
+    """
+    Dense LV motion through the cycle from tracked tag points.
 
     Parameters
     ----------
@@ -209,25 +229,46 @@ class MotionTracker:
         (:class:`~mlv_ros.core.meshless.local.CoarseSpace`, built once with the model; 0 =
         block-Jacobi alone). Default: one per ``COARSE_PARTICLES`` particles, at most
         ``COARSE_MAX_AGGREGATES``. It changes only how fast CG converges, not what it converges to.
+
     """
 
-    def __init__(self, particles, centre, rotation, a0: float | None = None, *, polar=None, shape=None,
-                 data_weight: float = 1.0e4, slice_following: int = 1, max_attach_mm: float = 3.0,
-                 max_iterations: int = 100, tol: float = 1e-3, local: bool = True,
-                 hourglass_weight: float = 1.0e3, volume_weight: float = 1.0e3,
-                 longitudinal_weight: float = 3.0e3, global_prior: float = 1.0, twist_knots: int = 11,
-                 twist_smoothing: float = 0.3, confidence_weights: bool = True,
-                 coarse_aggregates: int | None = None, longitudinal_coupling: float = 0.0):
+    def __init__(
+        self,
+        particles,
+        centre,
+        rotation,
+        a0: float | None = None,
+        *,
+        polar=None,
+        shape=None,
+        data_weight: float = 1.0e4,
+        slice_following: int = 1,
+        max_attach_mm: float = 3.0,
+        max_iterations: int = 100,
+        tol: float = 1e-3,
+        local: bool = True,
+        hourglass_weight: float = 1.0e3,
+        volume_weight: float = 1.0e3,
+        longitudinal_weight: float = 3.0e3,
+        global_prior: float = 1.0,
+        twist_knots: int = 11,
+        twist_smoothing: float = 0.3,
+        confidence_weights: bool = True,
+        coarse_aggregates: int | None = None,
+        longitudinal_coupling: float = 0.0,
+    ):
         why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
         if why:
-            raise ValueError(f"twist_knots {twist_knots}: {why}")
+            raise ValueError(f'twist_knots {twist_knots}: {why}')
         if not 0.0 < twist_smoothing < 1e6:
-            raise ValueError(f"twist_smoothing must be in (0, 1e6), got {twist_smoothing}")
+            raise ValueError(f'twist_smoothing must be in (0, 1e6), got {twist_smoothing}')
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
         if polar is not None:
             a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
-            params = GlobalParameters(np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4])
+            params = GlobalParameters(
+                np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4]
+            )
             frame = ModelFrame(params, ModelCoordinates.polar(*polar))
         else:
             frame = polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
@@ -252,13 +293,17 @@ class MotionTracker:
         # for the next pass, which starts from their δ: a looser tolerance there cut the CG
         # iterations per phase by a quarter on the default study's recorded tag points.
         self.cg_rtol_following = 1e-2
-        self.cg_iterations = deque(maxlen=1000)  # CG iterations of the latest local solves (benchmarks)
+        self.cg_iterations = deque(
+            maxlen=1000
+        )  # CG iterations of the latest local solves (benchmarks)
         self.delta = None
         # The local stage's operators, built with the model; the fit-error penalty is weighted by
         # the normalised kernel weights and scaled against the elastic diagonal per solve.
         ph, lam, mu = self.model.phyxels, self.model.lam, self.model.mu
         self._local = LocalOperators(self.model.operator, ph.volume, lam, mu, 1.0 / ph.wij.max())
-        self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (mu + (mu + lam) / 3.0)
+        self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (
+            mu + (mu + lam) / 3.0
+        )
         self.data_weight, self.hourglass_weight = float(data_weight), hourglass_weight
         self.outlier_mm = 3.0
         self.prescreen = True
@@ -266,13 +311,17 @@ class MotionTracker:
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
         if not 0.0 <= longitudinal_weight < 1e12:
-            raise ValueError(f"longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}")
+            raise ValueError(
+                f'longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}'
+            )
         self.longitudinal_weight = float(longitudinal_weight)
         if not 0.0 <= longitudinal_coupling <= 2.0:
-            raise ValueError(f"longitudinal_coupling must be in [0, 2], got {longitudinal_coupling}")
+            raise ValueError(
+                f'longitudinal_coupling must be in [0, 2], got {longitudinal_coupling}'
+            )
         self.longitudinal_coupling = float(longitudinal_coupling)
         if not 0.0 <= global_prior < 1e6:
-            raise ValueError(f"global_prior must be in [0, 1e6), got {global_prior}")
+            raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
         self.global_prior = float(global_prior)
         self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
@@ -280,20 +329,31 @@ class MotionTracker:
         self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
         self.positions = self.rest.copy()
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
-        self.normals: dict = {}    # (view, slice) → (normal (3,), point on plane (3,))
-        self.offsets: dict = {}    # (view, slice, track_id) → s, mm along the normal
+        self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self.last_phase = 0
         if coarse_aggregates is None:
             coarse_aggregates = min(COARSE_MAX_AGGREGATES, self.rest.shape[0] // COARSE_PARTICLES)
         if not isinstance(coarse_aggregates, (int, np.integer)) or coarse_aggregates < 0:
-            raise ValueError(f"coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got {coarse_aggregates}")
+            raise ValueError(
+                'coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got '
+                f'{coarse_aggregates}'
+            )
         self._coarse = None
         if coarse_aggregates:
             # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
             kappa, alpha = self._multipliers()
-            self._coarse = CoarseSpace(self._local, min(int(coarse_aggregates), self.rest.shape[0]),
-                                       fit_error=alpha, volume_weight=self.volume_weight * mu,
-                                       axial=(self.longitudinal_weight * mu, quat_to_matrix(self.model.rest_params.rotation)[:, 2]), eps=1e-6 * kappa)
+            self._coarse = CoarseSpace(
+                self._local,
+                min(int(coarse_aggregates), self.rest.shape[0]),
+                fit_error=alpha,
+                volume_weight=self.volume_weight * mu,
+                axial=(
+                    self.longitudinal_weight * mu,
+                    quat_to_matrix(self.model.rest_params.rotation)[:, 2],
+                ),
+                eps=1e-6 * kappa,
+            )
 
     @property
     def num_particles(self) -> int:
@@ -307,15 +367,19 @@ class MotionTracker:
             return 0
         dist, _ = self._tree.query(points.position)
         keep = (dist <= self.max_attach_mm) & (points.track_id >= 0)
-        self.reference[key] = {int(t): p for t, p in zip(points.track_id[keep], points.position[keep])}
+        self.reference[key] = {
+            int(t): p for t, p in zip(points.track_id[keep], points.position[keep])
+        }
         self.normals[key] = (points.geometry.normal, points.geometry.image_position)
         return int(keep.sum())
 
     def _constraints(self, sets: dict):
-        """ED positions, targets, normals, keys and data weights of every track seen at this phase,
+        """
+        ED positions, targets, normals, keys and data weights of every track seen at this phase,
         slice by slice in (view, slice) order: the solution must not depend on the order the
         slices arrived in (float sums in another order, then an extra CG iteration, moved a
-        phase by 0.015 mm when the same sets were taken in another order)."""
+        phase by 0.015 mm when the same sets were taken in another order).
+        """
         keys, rest, targets, normals, conf = [], [], [], [], []
         for key, pts in sorted(sets.items(), key=lambda item: item[0]):
             ref = self.reference.get(key)
@@ -344,16 +408,20 @@ class MotionTracker:
         return pos, inside
 
     def solve(self, phase_index: int, sets: dict, num_phases: int = 0) -> PhaseSolution:
-        """Fit the model to one phase's tag points (``sets``: (view, slice) → TagPointSet).
+        """
+        Fit the model to one phase's tag points (``sets``: (view, slice) → TagPointSet).
 
         Raises
         ------
         ValueError
             No usable constraint at this phase (nothing inside the model, or no reference).
+
         """
         keys, rest, targets, normals, weights = self._constraints(sets)
         if not keys:
-            raise ValueError(f"phase {phase_index}: no tag point matches an ED reference inside the model")
+            raise ValueError(
+                f'phase {phase_index}: no tag point matches an ED reference inside the model'
+            )
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
         worst = (0, 0)  # (rejected, attached) of the pass that rejected the largest share
         passes = max(1, self.slice_following + 1)
@@ -362,45 +430,83 @@ class MotionTracker:
             pos, inside = self._attach(rest, normals, offsets)
             attached = int(inside.sum())
             if inside.sum() < 4:
-                raise ValueError(f"phase {phase_index}: only {int(inside.sum())} tag points lie inside the model")
+                raise ValueError(
+                    f'phase {phase_index}: only {int(inside.sum())} tag points lie inside the '
+                    'model'
+                )
             ctrl = self.model.attach(pos[inside])
             if self.prescreen:
                 # A track that slipped by a tag period sits a period away from where the previous
                 # phase's motion puts it, while its neighbours sit within the phase-to-phase
                 # motion: screen against that prediction before the first fit can be dragged.
-                pre = self._outliers(ctrl.weights @ self.positions, targets[inside], normals[inside])
+                pre = self._outliers(
+                    ctrl.weights @ self.positions, targets[inside], normals[inside]
+                )
                 if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
                     keep = np.flatnonzero(inside)[~pre]
                     inside = np.zeros_like(inside)
                     inside[keep] = True
                     self.rejected += int(pre.sum())
                     ctrl = _control_rows(ctrl, ~pre)
-            result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
-                                    tol=self.tol, local=False, global_prior=self.global_prior,
-                                    weights=weights[inside])
+            result = self.model.fit(
+                ctrl,
+                targets[inside],
+                normals[inside],
+                max_iterations=self.max_iterations,
+                tol=self.tol,
+                local=False,
+                global_prior=self.global_prior,
+                weights=weights[inside],
+            )
             # Robustness: a track that swapped identity or drifted leaves a residual far beyond
             # what the global fit leaves elsewhere; drop such points and refit.
-            outlier = self._outliers(ctrl.weights @ self.model.positions(), targets[inside], normals[inside])
+            outlier = self._outliers(
+                ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+            )
             if outlier.any() and (~outlier).sum() >= 4:
                 keep = np.flatnonzero(inside)[~outlier]
                 inside = np.zeros_like(inside)
                 inside[keep] = True
                 self.rejected += int(outlier.sum())
                 ctrl = _control_rows(ctrl, ~outlier)
-                result = self.model.fit(ctrl, targets[inside], normals[inside], max_iterations=self.max_iterations,
-                                        tol=self.tol, local=False, global_prior=self.global_prior,
-                                        weights=weights[inside])
+                result = self.model.fit(
+                    ctrl,
+                    targets[inside],
+                    normals[inside],
+                    max_iterations=self.max_iterations,
+                    tol=self.tol,
+                    local=False,
+                    global_prior=self.global_prior,
+                    weights=weights[inside],
+                )
             x_global = self.model.positions()
             if self.twist_knots:
                 sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
                 sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
-                x_global = self._twist_function(ctrl.weights, targets[inside], normals[inside], x_global,
-                                                sa, len(sa_slices), weights[inside])
+                x_global = self._twist_function(
+                    ctrl.weights,
+                    targets[inside],
+                    normals[inside],
+                    x_global,
+                    sa,
+                    len(sa_slices),
+                    weights[inside],
+                )
             self.positions = x_global
             if self.local:
-                rtol = self.cg_rtol if pass_index == passes - 1 else max(self.cg_rtol, self.cg_rtol_following)
-                self.delta = self._local_solve(ctrl.weights, targets[inside], normals[inside], x_global,
-                                               weights[inside], rtol=rtol)
+                rtol = (
+                    self.cg_rtol
+                    if pass_index == passes - 1
+                    else max(self.cg_rtol, self.cg_rtol_following)
+                )
+                self.delta = self._local_solve(
+                    ctrl.weights,
+                    targets[inside],
+                    normals[inside],
+                    x_global,
+                    weights[inside],
+                    rtol=rtol,
+                )
                 self.positions = x_global + self.delta
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
             if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
@@ -412,9 +518,9 @@ class MotionTracker:
         F = np.eye(3) + H
         E = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
         P = plane_projectors(normals[inside], int(inside.sum()))
-        res = np.einsum("kab,kb->ka", P, targets[inside] - ctrl.weights @ x)
+        res = np.einsum('kab,kb->ka', P, targets[inside] - ctrl.weights @ x)
         state = result.state
-        state.residual = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        state.residual = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
         state.phase_index, state.num_phases = int(phase_index), int(num_phases)
         state.num_control_points = int(inside.sum())
         verdict = self._verdict(sets, inside, state.residual, keys, *worst)
@@ -428,23 +534,42 @@ class MotionTracker:
         for k, ok in zip(keys, inside):
             if ok:
                 used_per_slice[k[:2]] = used_per_slice.get(k[:2], 0) + 1
-        sa_points = {key[1]: used_per_slice.get(key, 0) for key, ref in self.reference.items()
-                     if key[0] == VIEW_SA and ref}
-        spacing = [min(p.geometry.row_spacing, p.geometry.column_spacing) for p in sets.values()
-                   if getattr(p, "geometry", None) is not None]
-        return phase_verdict(int(inside.sum()), sum(len(r) for r in self.reference.values()), sa_points,
-                             residual_mm, float(np.median(spacing)) if spacing else 0.0,
-                             rejected=int(rejected), candidates=int(attached))
+        sa_points = {
+            key[1]: used_per_slice.get(key, 0)
+            for key, ref in self.reference.items()
+            if key[0] == VIEW_SA and ref
+        }
+        spacing = [
+            min(p.geometry.row_spacing, p.geometry.column_spacing)
+            for p in sets.values()
+            if getattr(p, 'geometry', None) is not None
+        ]
+        return phase_verdict(
+            int(inside.sum()),
+            sum(len(r) for r in self.reference.values()),
+            sa_points,
+            residual_mm,
+            float(np.median(spacing)) if spacing else 0.0,
+            rejected=int(rejected),
+            candidates=int(attached),
+        )
 
     def _multipliers(self) -> tuple[float, float]:
-        """The data springs' κ and the fit-error penalty's multiplier, both scaled against the
-        median elastic diagonal."""
+        """
+        The data springs' κ and the fit-error penalty's multiplier, both scaled against the
+        median elastic diagonal.
+        """
         kscale = float(np.median(self._kdiag))
-        return (self.data_weight * kscale,
-                self.hourglass_weight * kscale / max(float(np.median(self._local.fit_error_diagonal)), 1e-300))
+        return (
+            self.data_weight * kscale,
+            self.hourglass_weight
+            * kscale
+            / max(float(np.median(self._local.fit_error_diagonal)), 1e-300),
+        )
 
     def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None):
-        """Local deformation δ (paper: internal forces act on the local part only) at elastic
+        """
+        Local deformation δ (paper: internal forces act on the local part only) at elastic
         equilibrium under the in-plane tag forces: minimise
         ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)`` plus the MLS
         fit error, near-incompressibility and axial stiffness (:mod:`mlv_ros.core.meshless.local`),
@@ -467,6 +592,7 @@ class MotionTracker:
         -------
         ndarray, shape (N, 3)
             δ, mm.
+
         """
         op, mu = self.model.operator, self.model.mu
         kappa, alpha = self._multipliers()
@@ -482,34 +608,50 @@ class MotionTracker:
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
         if self.longitudinal_coupling:
             ax = self._coupled_axial(ax, Fg, x_global)
-        P = plane_projectors(normals, len(normals)) * control_weights(weights, len(targets))[:, None, None]
-        system = self._local.system(fit_error=alpha, volume=(self.volume_weight * mu, C, Jg - 1.0),
-                                    axial=(self.longitudinal_weight * mu, ax), data=(kappa, phi, P),
-                                    eps=1e-6 * kappa, coarse=self._coarse)
-        r = np.einsum("kab,kb->ka", P, targets - phi @ x_global)
+        P = (
+            plane_projectors(normals, len(normals))
+            * control_weights(weights, len(targets))[:, None, None]
+        )
+        system = self._local.system(
+            fit_error=alpha,
+            volume=(self.volume_weight * mu, C, Jg - 1.0),
+            axial=(self.longitudinal_weight * mu, ax),
+            data=(kappa, phi, P),
+            eps=1e-6 * kappa,
+            coarse=self._coarse,
+        )
+        r = np.einsum('kab,kb->ka', P, targets - phi @ x_global)
         rhs = kappa * (phi.T @ r) + system.constant_force()
-        delta, its = system.solve(rhs, self.delta, rtol=self.cg_rtol if rtol is None else rtol,
-                                  maxiter=self.cg_maxiter)
+        delta, its = system.solve(
+            rhs, self.delta, rtol=self.cg_rtol if rtol is None else rtol, maxiter=self.cg_maxiter
+        )
         self.cg_iterations.append(its)
         return delta
 
     def _coupled_axial(self, ax, Fg, x_global) -> np.ndarray:
-        """Per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term (see
+        """
+        Per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term (see
         ``longitudinal_coupling``), shape (N, 3, 3): ``M_i : H_i`` is the local longitudinal strain
         less ρ times the local circumferential one (``c_i`` the circumferential direction about
         the fitted axis ``a``). ρ = ``longitudinal_coupling`` × the global fit's median
         longitudinal over circumferential linear strain, within [0, 2]; 0 while the global
-        circumferential strain is above −0.02 (near ED: no ratio to read, no deviation to couple)."""
+        circumferential strain is above −0.02 (near ED: no ratio to read, no deviation to couple).
+        """
         circ = np.cross(ax, x_global - self.model.params.translation)
         circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
         hg = Fg - np.eye(3)
-        ell = float(np.median(np.einsum("a,nab,b->n", ax, hg, ax)))
-        ecc = float(np.median(np.einsum("na,nab,nb->n", circ, hg, circ)))
-        rho = self.longitudinal_coupling * float(np.clip(ell / ecc, 0.0, 2.0)) if ecc < -0.02 else 0.0
+        ell = float(np.median(np.einsum('a,nab,b->n', ax, hg, ax)))
+        ecc = float(np.median(np.einsum('na,nab,nb->n', circ, hg, circ)))
+        rho = (
+            self.longitudinal_coupling * float(np.clip(ell / ecc, 0.0, 2.0))
+            if ecc < -0.02
+            else 0.0
+        )
         return np.outer(ax, ax)[None] - rho * circ[:, :, None] * circ[:, None, :]
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
-        """Twist as a parameter function of height (the parameter functions of Park et al., which
+        """
+        Twist as a parameter function of height (the parameter functions of Park et al., which
         the paper's model builds on): rotate each particle about the model's long axis by
         ``Δφ(h)``, piecewise linear between ``twist_knots`` uniform knots in the material height
         h, fitted to the in-plane tag residuals of the global fit by penalised least squares
@@ -539,6 +681,7 @@ class MotionTracker:
         ndarray, shape (N, 3)
             ``x`` with the fitted twist applied (``x`` itself when the SA data cannot support it),
             mm.
+
         """
         h_sa = np.asarray(phi[np.flatnonzero(sa)] @ self._height).ravel()
         if num_sa_slices < TWIST_MIN_SA or np.ptp(h_sa) < TWIST_MIN_SPAN:
@@ -550,33 +693,50 @@ class MotionTracker:
         m = self.twist_knots
         knots = np.linspace(0.0, 1.0, m)
         hat = np.clip(1.0 - np.abs(self._height[:, None] - knots) * (m - 1), 0.0, None)  # (N, m)
-        P = plane_projectors(normals, len(normals)) * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
-        J = np.stack([np.einsum("kab,kb->ka", P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)], axis=1)
-        r = np.einsum("kab,kb->ka", P, targets - phi @ x).ravel()
+        P = (
+            plane_projectors(normals, len(normals))
+            * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
+        )
+        J = np.stack(
+            [np.einsum('kab,kb->ka', P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)],
+            axis=1,
+        )
+        r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
         # Least squares on the stacked system: never singular-fails (e.g. all SA points at one
         # level).
-        self.twist_coefficients, *_ = np.linalg.lstsq(np.vstack([J, np.sqrt(lam) * D2]),
-                                                      np.concatenate([r, np.zeros(m - 2)]), rcond=None)
+        self.twist_coefficients, *_ = np.linalg.lstsq(
+            np.vstack([J, np.sqrt(lam) * D2]), np.concatenate([r, np.zeros(m - 2)]), rcond=None
+        )
         h = np.clip(self._height, h_sa.min() - TWIST_REACH, h_sa.max() + TWIST_REACH)
-        angle = np.clip(1.0 - np.abs(h[:, None] - knots) * (m - 1), 0.0, None) @ self.twist_coefficients
+        angle = (
+            np.clip(1.0 - np.abs(h[:, None] - knots) * (m - 1), 0.0, None)
+            @ self.twist_coefficients
+        )
         v = x - centre
         along = (v @ axis)[:, None] * axis
         perp = v - along
-        return centre + along + perp * np.cos(angle)[:, None] + np.cross(axis, perp) * np.sin(angle)[:, None]
+        return (
+            centre
+            + along
+            + perp * np.cos(angle)[:, None]
+            + np.cross(axis, perp) * np.sin(angle)[:, None]
+        )
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
         P = plane_projectors(normals, len(normals))
-        r = np.linalg.norm(np.einsum("kab,kb->ka", P, targets - x), axis=1)
+        r = np.linalg.norm(np.einsum('kab,kb->ka', P, targets - x), axis=1)
         med = float(np.median(r))
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
         return r > max(self.outlier_mm, med + 5.0 * sigma)
 
     def _model_at(self, points) -> np.ndarray:
-        """Current model positions of rest points (M, 3), NaN for those farther than
-        ``max_attach_mm`` from every particle."""
+        """
+        Current model positions of rest points (M, 3), NaN for those farther than
+        ``max_attach_mm`` from every particle.
+        """
         out = np.full(points.shape, np.nan)
         ok = self._tree.query(points)[0] <= self.max_attach_mm
         if ok.any():
@@ -584,7 +744,8 @@ class MotionTracker:
         return out
 
     def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):
-        """Newton step on s per control point: bring the model position of the material line
+        """
+        Newton step on s per control point: bring the model position of the material line
         ``p0 + s n`` back onto the image plane (the plane through the measured target).
 
         ``ctrl``: the pass's attachment of ``p0 + s n`` for the points ``inside`` (in their order),
@@ -603,8 +764,8 @@ class MotionTracker:
         else:
             out = self._model_at(np.concatenate([base, probe]))  # each point is independent
             x0, x1 = out[:idx.size], out[idx.size:]
-        f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
-        df = np.einsum("ij,ij->i", x1 - x0, n)
+        f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
+        df = np.einsum('ij,ij->i', x1 - x0, n)
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
         step = np.zeros(idx.size)
         step[good] = -f0[good] / df[good]
@@ -619,8 +780,8 @@ class MotionTracker:
         if ok.any():
             out[ok] = self.model.attach(pos[ok]).weights @ self.positions
         x0, x1 = out[:idx.size], out[idx.size:]
-        f0 = np.einsum("ij,ij->i", x0 - targets[idx], n)
-        df = np.einsum("ij,ij->i", x1 - x0, n)
+        f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
+        df = np.einsum('ij,ij->i', x1 - x0, n)
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
         step = np.zeros(idx.size)
         step[good] = -f0[good] / df[good]
@@ -629,13 +790,16 @@ class MotionTracker:
 
 
 def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
-    """The control points ``keep`` (boolean, shape (M,)) of ``ctrl``: each point's weights depend
-    on its own position only, so this equals attaching those points again."""
+    """
+    The control points ``keep`` (boolean, shape (M,)) of ``ctrl``: each point's weights depend
+    on its own position only, so this equals attaching those points again.
+    """
     return ControlPoints(ctrl.weights[keep], ctrl.rest_positions[keep], None, ctrl.shepard[keep])
 
 
 def lv_frame_axes(particles, rotation):
-    """Apex, base centre and reference of the LV from a registered model (ED).
+    """
+    Apex, base centre and reference of the LV from a registered model (ED).
 
     The long axis is R's z column (apex → base) through the particles' centroid; apex and base
     are the extreme projections of the particles on it; the reference is R's x column.
@@ -643,6 +807,7 @@ def lv_frame_axes(particles, rotation):
     Returns
     -------
     apex, base, reference : ndarray, shape (3,)
+
     """
     pts = np.asarray(particles, dtype=np.float64)
     R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))

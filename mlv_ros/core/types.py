@@ -1,22 +1,24 @@
-"""Plain data records that flow through the pipeline (pure numpy; the conversion module maps
-each to its ROS message)."""
+"""
+Plain data records that flow through the pipeline (pure numpy; the conversion module maps
+each to its ROS message).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from mlv_ros.core.geometry import SliceGeometry
+import numpy as np
 
 VIEW_SA = 0
 VIEW_LA = 1
-VIEW_NAMES = {VIEW_SA: "SA", VIEW_LA: "LA"}
+VIEW_NAMES = {VIEW_SA: 'SA', VIEW_LA: 'LA'}
 
 
 @dataclass
 class Frame:
-    """One tagged cine image (one slice at one phase).
+    """
+    One tagged cine image (one slice at one phase).
 
     Attributes
     ----------
@@ -45,6 +47,7 @@ class Frame:
     run_id : str
         The run that published it (a nonce drawn once by the frame source; empty = unknown):
         two runs of one study differ in it, and a consumer keeps to one run too.
+
     """
 
     image: np.ndarray
@@ -55,16 +58,17 @@ class Frame:
     num_phases: int
     trigger_time: float = 0.0
     cycle_duration: float = 0.0
-    series_uid: str = ""
+    series_uid: str = ''
     num_sa_slices: int = 0
     num_la_slices: int = 0
-    study_id: str = ""
-    run_id: str = ""
+    study_id: str = ''
+    run_id: str = ''
 
 
 @dataclass
 class TagPointSet:
-    """Tag intersections of one frame.
+    """
+    Tag intersections of one frame.
 
     Attributes
     ----------
@@ -80,6 +84,7 @@ class TagPointSet:
         Empty when fine; otherwise why the set is empty or partial.
     study_id, run_id : str
         As in the source :class:`Frame`.
+
     """
 
     view: int
@@ -91,12 +96,12 @@ class TagPointSet:
     position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     track_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
-    status: str = ""
+    status: str = ''
     stamp: float = 0.0  # s, copied from the source frame's header
     num_sa_slices: int = 0  # as in Frame
     num_la_slices: int = 0
-    study_id: str = ""  # as in Frame
-    run_id: str = ""  # as in Frame
+    study_id: str = ''  # as in Frame
+    run_id: str = ''  # as in Frame
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
@@ -104,7 +109,8 @@ class TagPointSet:
 
 @dataclass
 class ModelState:
-    """Global parameters of the meshless deformable model at one phase (paper eq. 1–3).
+    """
+    Global parameters of the meshless deformable model at one phase (paper eq. 1–3).
 
     ``x = c + R p``, ``p = s + d``; ``rotation`` is the unit quaternion (w, x, y, z) of R
     (model-centred → patient); ``translation`` is c in mm; ``a0`` mm; ``a1..a3`` and ``tau``
@@ -131,16 +137,16 @@ class ModelState:
     num_particles: int = 0
     num_control_points: int = 0
     verdict: int = 0
-    verdict_reasons: str = ""
-    study_id: str = ""
-    run_id: str = ""
+    verdict_reasons: str = ''
+    study_id: str = ''
+    run_id: str = ''
     segment_origin: int = 0
     segment_origin_confidence: float = 0.0
 
 
 #: ModelState / MotionMetrics ``segment_origin`` codes: where the circumferential reference (and
 #: so the AHA segments) came from (mlv_ros/core/registration/anatomy.py).
-SEGMENT_ORIGIN_CODES = {"unknown": 0, "prior": 1, "detected": 2, "given": 3}
+SEGMENT_ORIGIN_CODES = {'unknown': 0, 'prior': 1, 'detected': 2, 'given': 3}
 
 
 class ForeignStudyError(ValueError):
@@ -153,7 +159,8 @@ class ForeignStudyError(ValueError):
 
 @dataclass
 class StudyShape:
-    """An acquisition's identity and dimensions as its messages declare them; every message must
+    """
+    An acquisition's identity and dimensions as its messages declare them; every message must
     agree.
 
     ``study_id``, ``run_id`` and each dimension are taken from the first message that declares
@@ -167,44 +174,49 @@ class StudyShape:
     num_phases: int = 0
     num_sa_slices: int = 0
     num_la_slices: int = 0
-    study_id: str = ""
-    run_id: str = ""
+    study_id: str = ''
+    run_id: str = ''
 
     @property
     def label(self) -> str:
         """The study (and run) kept to, for people: ``study`` or ``study run R``."""
-        return f"{self.study_id} run {self.run_id}" if self.run_id else self.study_id
+        return f'{self.study_id} run {self.run_id}' if self.run_id else self.study_id
 
-    def other(self, study_id: str, run_id: str = "") -> str | None:
-        """What makes ``study_id`` / ``run_id`` foreign, named for people (``study_id`` for another
+    def other(self, study_id: str, run_id: str = '') -> str | None:
+        """
+        What makes ``study_id`` / ``run_id`` foreign, named for people (``study_id`` for another
         study, ``'<study_id> run <run_id>'`` for another run of this one), or None when they are
-        this node's (an unknown id, on either side, is never foreign)."""
+        this node's (an unknown id, on either side, is never foreign).
+        """
         if self.study_id and study_id and study_id != self.study_id:
             return study_id
         if self.run_id and run_id and run_id != self.run_id:
-            return f"{study_id or self.study_id} run {run_id}"
+            return f'{study_id or self.study_id} run {run_id}'
         return None
 
-    def foreign(self, study_id: str, run_id: str = "") -> bool:
+    def foreign(self, study_id: str, run_id: str = '') -> bool:
         """Whether ``study_id`` / ``run_id`` name another study or run than the ones adopted."""
         return self.other(study_id, run_id) is not None
 
-    def adopt(self, study_id: str, run_id: str = "") -> None:
-        """Keep to ``study_id`` and ``run_id`` from now on (each when none is known yet).
+    def adopt(self, study_id: str, run_id: str = '') -> None:
+        """
+        Keep to ``study_id`` and ``run_id`` from now on (each when none is known yet).
 
         Raises
         ------
         ForeignStudyError
             Another study or run is already adopted.
+
         """
         other = self.other(study_id, run_id)
         if other is not None:
             raise ForeignStudyError(self.label, other)
-        self.study_id = self.study_id or str(study_id or "")
-        self.run_id = self.run_id or str(run_id or "")
+        self.study_id = self.study_id or str(study_id or '')
+        self.run_id = self.run_id or str(run_id or '')
 
     def check(self, item) -> None:
-        """Adopt or verify the study, run and dimensions of ``item`` (a :class:`Frame` or
+        """
+        Adopt or verify the study, run and dimensions of ``item`` (a :class:`Frame` or
         :class:`TagPointSet`; any object with these attributes, missing ones unknown).
 
         Raises
@@ -213,17 +225,22 @@ class StudyShape:
             ``item`` belongs to another study or run (checked first).
         ValueError
             ``item`` declares a dimension different from the one already known.
+
         """
-        study_id, run_id = getattr(item, "study_id", ""), getattr(item, "run_id", "")
+        study_id, run_id = getattr(item, 'study_id', ''), getattr(item, 'run_id', '')
         other = self.other(study_id, run_id)
         if other is not None:
             raise ForeignStudyError(self.label, other)
-        names = ("num_phases", "num_sa_slices", "num_la_slices")
-        clash = [f"{name} {getattr(item, name, 0)} (study: {getattr(self, name)})"
-                 for name in names
-                 if getattr(self, name) and getattr(item, name, 0) and getattr(item, name, 0) != getattr(self, name)]
+        names = ('num_phases', 'num_sa_slices', 'num_la_slices')
+        clash = [
+            f'{name} {getattr(item, name, 0)} (study: {getattr(self, name)})'
+            for name in names
+            if getattr(self, name)
+            and getattr(item, name, 0)
+            and getattr(item, name, 0) != getattr(self, name)
+        ]
         if clash:
-            raise ValueError("inconsistent with the study: " + ", ".join(clash))
+            raise ValueError('inconsistent with the study: ' + ', '.join(clash))
         for name in names:
             setattr(self, name, getattr(self, name) or int(getattr(item, name, 0)))
         self.adopt(study_id, run_id)

@@ -1,4 +1,5 @@
-"""Quality verdicts: ``ok``, ``degraded`` or ``failed`` for every phase's result, with reasons.
+"""
+Quality verdicts: ``ok``, ``degraded`` or ``failed`` for every phase's result, with reasons.
 
 A number delivered as if right when it is not is the worst failure this product can have, so
 each solved phase says how far its data supported it (:func:`phase_verdict`, from the solver)
@@ -21,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 OK, DEGRADED, FAILED = 0, 1, 2
-LEVEL_NAMES = ("ok", "degraded", "failed")
+LEVEL_NAMES = ('ok', 'degraded', 'failed')
 
 # Data support (solver).
 #: Below this fraction of the ED tag points still constraining the model: degraded / failed.
@@ -86,35 +87,45 @@ class Verdict:
         self.level = max(self.level, int(level))
         self.reasons.append(reason)
 
-    def merge(self, other: "Verdict") -> "Verdict":
+    def merge(self, other: 'Verdict') -> 'Verdict':
         """The worse of both levels, with both sets of reasons."""
         return Verdict(max(self.level, other.level), [*self.reasons, *other.reasons])
 
     @property
     def text(self) -> str:
-        return "; ".join(self.reasons)
+        return '; '.join(self.reasons)
 
     @classmethod
-    def from_parts(cls, level: int, text: str) -> "Verdict":
-        return cls(checked_level(level), [r for r in str(text).split("; ") if r])
+    def from_parts(cls, level: int, text: str) -> 'Verdict':
+        return cls(checked_level(level), [r for r in str(text).split('; ') if r])
 
 
 def checked_level(level) -> int:
-    """``level`` as an int if it is OK, DEGRADED or FAILED.
+    """
+    ``level`` as an int if it is OK, DEGRADED or FAILED.
 
     Raises
     ------
     ValueError
         Any other value.
+
     """
     if int(level) not in (OK, DEGRADED, FAILED):
-        raise ValueError(f"verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}")
+        raise ValueError(f'verdict must be 0 (ok), 1 (degraded) or 2 (failed), got {level}')
     return int(level)
 
 
-def phase_verdict(tracked: int, tracked_at_ed: int, sa_points: dict, residual_mm: float,
-                  pixel_mm: float, rejected: int = 0, candidates: int = 0) -> Verdict:
-    """How far one phase's tag data supports its solution.
+def phase_verdict(
+    tracked: int,
+    tracked_at_ed: int,
+    sa_points: dict,
+    residual_mm: float,
+    pixel_mm: float,
+    rejected: int = 0,
+    candidates: int = 0,
+) -> Verdict:
+    """
+    How far one phase's tag data supports its solution.
 
     Parameters
     ----------
@@ -136,36 +147,66 @@ def phase_verdict(tracked: int, tracked_at_ed: int, sa_points: dict, residual_mm
     Returns
     -------
     Verdict
+
     """
     v = Verdict()
     frac = tracked / tracked_at_ed if tracked_at_ed > 0 else 0.0
     if frac < TRACKED_FAILED:
-        v.flag(FAILED, f"{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < {TRACKED_FAILED:.0%})")
+        v.flag(
+            FAILED,
+            f'{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < '
+            f'{TRACKED_FAILED:.0%})',
+        )
     elif frac < TRACKED_DEGRADED:
-        v.flag(DEGRADED, f"{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < {TRACKED_DEGRADED:.0%})")
+        v.flag(
+            DEGRADED,
+            f'{tracked} of {tracked_at_ed} ED tag points tracked ({frac:.0%} < '
+            f'{TRACKED_DEGRADED:.0%})',
+        )
     if sa_points:
         live = sorted(k for k, n in sa_points.items() if n >= MIN_SLICE_POINTS)
         share = len(live) / len(sa_points)
         if not live:
-            v.flag(FAILED, f"no SA slice with {MIN_SLICE_POINTS}+ tag points (of {len(sa_points)}): twist and "
-                           f"circumferential motion unmeasured")
+            v.flag(
+                FAILED,
+                f'no SA slice with {MIN_SLICE_POINTS}+ tag points (of {len(sa_points)}): twist '
+                'and '
+                f'circumferential motion unmeasured',
+            )
         elif share < SA_SLICES_DEGRADED:
-            v.flag(DEGRADED, f"{len(live)} of {len(sa_points)} SA slices with {MIN_SLICE_POINTS}+ tag points "
-                             f"({share:.0%} < {SA_SLICES_DEGRADED:.0%})")
+            v.flag(
+                DEGRADED,
+                f'{len(live)} of {len(sa_points)} SA slices with {MIN_SLICE_POINTS}+ tag points '
+                f'({share:.0%} < {SA_SLICES_DEGRADED:.0%})',
+            )
     else:
-        v.flag(FAILED, "no SA slice has ED tag points: twist and circumferential motion unmeasured")
+        v.flag(
+            FAILED, 'no SA slice has ED tag points: twist and circumferential motion unmeasured'
+        )
     if pixel_mm > 0 and np.isfinite(residual_mm) and residual_mm / pixel_mm > RESIDUAL_DEGRADED_PX:
-        v.flag(DEGRADED, f"fit residual {residual_mm:.2f} mm = {residual_mm / pixel_mm:.2f} px "
-                         f"(> {RESIDUAL_DEGRADED_PX:g} px): tracks and model disagree")
+        v.flag(
+            DEGRADED,
+            f'fit residual {residual_mm:.2f} mm = {residual_mm / pixel_mm:.2f} px '
+            f'(> {RESIDUAL_DEGRADED_PX:g} px): tracks and model disagree',
+        )
     if candidates > 0 and rejected / candidates > REJECTED_DEGRADED:
-        v.flag(DEGRADED, f"{rejected} of {candidates} tag points rejected as outliers "
-                         f"(> {REJECTED_DEGRADED:.0%})")
+        v.flag(
+            DEGRADED,
+            f'{rejected} of {candidates} tag points rejected as outliers '
+            f'(> {REJECTED_DEGRADED:.0%})',
+        )
     return v
 
 
-def metrics_verdict(ejection_fraction: float, max_displacement_mm: float, long_axis_mm: float,
-                    segment_strains=(), edv_ml: float | None = None) -> Verdict:
-    """Whether one phase's motion is physiologically possible.
+def metrics_verdict(
+    ejection_fraction: float,
+    max_displacement_mm: float,
+    long_axis_mm: float,
+    segment_strains=(),
+    edv_ml: float | None = None,
+) -> Verdict:
+    """
+    Whether one phase's motion is physiologically possible.
 
     Parameters
     ----------
@@ -183,31 +224,50 @@ def metrics_verdict(ejection_fraction: float, max_displacement_mm: float, long_a
     Returns
     -------
     Verdict
+
     """
     v = Verdict()
     if edv_ml is not None:
         if not np.isfinite(edv_ml) or not EDV_FAILED_ML[0] <= edv_ml <= EDV_FAILED_ML[1]:
-            v.flag(FAILED, f"ED cavity volume {edv_ml:.4g} ml: not a heart (check pixel spacing and segmentation)")
+            v.flag(
+                FAILED,
+                f'ED cavity volume {edv_ml:.4g} ml: not a heart (check pixel spacing and '
+                'segmentation)',
+            )
         elif not EDV_DEGRADED_ML[0] <= edv_ml <= EDV_DEGRADED_ML[1]:
-            v.flag(DEGRADED, f"ED cavity volume {edv_ml:.4g} ml outside [{EDV_DEGRADED_ML[0]:g}, "
-                             f"{EDV_DEGRADED_ML[1]:g}] ml (check pixel spacing and segmentation)")
+            v.flag(
+                DEGRADED,
+                f'ED cavity volume {edv_ml:.4g} ml outside [{EDV_DEGRADED_ML[0]:g}, '
+                f'{EDV_DEGRADED_ML[1]:g}] ml (check pixel spacing and segmentation)',
+            )
     ef = float(ejection_fraction)
     if not np.isfinite(ef) or not EF_FAILED[0] <= ef <= EF_FAILED[1]:
-        v.flag(FAILED, f"ejection fraction {ef:.2f} outside [{EF_FAILED[0]:g}, {EF_FAILED[1]:g}]: not a ventricle's volume")
+        v.flag(
+            FAILED,
+            f'ejection fraction {ef:.2f} outside [{EF_FAILED[0]:g}, {EF_FAILED[1]:g}]: not a '
+            "ventricle's volume",
+        )
     elif not EF_DEGRADED[0] <= ef <= EF_DEGRADED[1]:
-        v.flag(DEGRADED, f"ejection fraction {ef:.2f} outside [{EF_DEGRADED[0]:g}, {EF_DEGRADED[1]:g}]")
+        v.flag(
+            DEGRADED,
+            f'ejection fraction {ef:.2f} outside [{EF_DEGRADED[0]:g}, {EF_DEGRADED[1]:g}]',
+        )
     if long_axis_mm > 0 and max_displacement_mm > DISPLACEMENT_FAILED * long_axis_mm:
-        v.flag(FAILED, f"a wall point moved {max_displacement_mm:.1f} mm, more than {DISPLACEMENT_FAILED:.0%} of "
-                       f"the {long_axis_mm:.0f} mm long axis")
+        v.flag(
+            FAILED,
+            f'a wall point moved {max_displacement_mm:.1f} mm, more than '
+            f'{DISPLACEMENT_FAILED:.0%} of '
+            f'the {long_axis_mm:.0f} mm long axis',
+        )
     worst = max((float(np.max(np.abs(s))) for s in segment_strains if np.size(s)), default=0.0)
     if worst > STRAIN_DEGRADED:
-        v.flag(DEGRADED, f"segment strain {worst:.2f} beyond ±{STRAIN_DEGRADED:g}")
+        v.flag(DEGRADED, f'segment strain {worst:.2f} beyond ±{STRAIN_DEGRADED:g}')
     return v
 
 
 def registration_verdict(slice_reports, wall_thickness_mm=None) -> Verdict:
-    """How well the ED model is supported by the segmented slices, and whether its wall is a
-    heart's.
+    """
+    How well the ED model is supported by the segmented slices, and whether its wall is a heart's.
 
     Parameters
     ----------
@@ -223,6 +283,7 @@ def registration_verdict(slice_reports, wall_thickness_mm=None) -> Verdict:
     Returns
     -------
     Verdict
+
     """
     v = Verdict()
     wall = np.asarray(wall_thickness_mm if wall_thickness_mm is not None else [], float).ravel()
@@ -230,20 +291,39 @@ def registration_verdict(slice_reports, wall_thickness_mm=None) -> Verdict:
     if wall.size:
         mean, thin = float(wall.mean()), float(np.percentile(wall, 5))
         if not WALL_MEAN_FAILED_MM[0] <= mean <= WALL_MEAN_FAILED_MM[1]:
-            v.flag(FAILED, f"ED wall thickness {mean:.1f} mm on average, outside [{WALL_MEAN_FAILED_MM[0]:g}, "
-                           f"{WALL_MEAN_FAILED_MM[1]:g}] mm: not a heart (check pixel spacing and segmentation)")
+            v.flag(
+                FAILED,
+                f'ED wall thickness {mean:.1f} mm on average, outside '
+                f'[{WALL_MEAN_FAILED_MM[0]:g}, '
+                f'{WALL_MEAN_FAILED_MM[1]:g}] mm: not a heart (check pixel spacing and '
+                'segmentation)',
+            )
         elif not WALL_MEAN_DEGRADED_MM[0] <= mean <= WALL_MEAN_DEGRADED_MM[1]:
-            v.flag(DEGRADED, f"ED wall thickness {mean:.1f} mm on average, outside the adult range "
-                             f"[{WALL_MEAN_DEGRADED_MM[0]:g}, {WALL_MEAN_DEGRADED_MM[1]:g}] mm "
-                             "(check pixel spacing and segmentation)")
+            v.flag(
+                DEGRADED,
+                f'ED wall thickness {mean:.1f} mm on average, outside the adult range '
+                f'[{WALL_MEAN_DEGRADED_MM[0]:g}, {WALL_MEAN_DEGRADED_MM[1]:g}] mm '
+                '(check pixel spacing and segmentation)',
+            )
         if thin < WALL_THIN_DEGRADED_MM:
-            v.flag(DEGRADED, f"ED wall {thin:.1f} mm thin over 5 % of the model (< {WALL_THIN_DEGRADED_MM:g} mm): "
-                             "the model misses part of the wall")
+            v.flag(
+                DEGRADED,
+                f'ED wall {thin:.1f} mm thin over 5 % of the model (< '
+                f'{WALL_THIN_DEGRADED_MM:g} mm): '
+                'the model misses part of the wall',
+            )
     sa = [r for r in slice_reports if int(r.view) == 0]
     la = [r for r in slice_reports if int(r.view) != 0]
     sa_ok = sum(bool(r.ok) for r in sa)
     if sa and sa_ok / len(sa) < SA_SEGMENTED_DEGRADED:
-        v.flag(DEGRADED, f"{sa_ok} of {len(sa)} SA slices segmented at ED (< {SA_SEGMENTED_DEGRADED:.0%})")
+        v.flag(
+            DEGRADED,
+            f'{sa_ok} of {len(sa)} SA slices segmented at ED (< {SA_SEGMENTED_DEGRADED:.0%})',
+        )
     if la and not any(r.ok for r in la):
-        v.flag(DEGRADED, f"none of the {len(la)} LA views segmented at ED: base and apex from the SA stack alone")
+        v.flag(
+            DEGRADED,
+            f'none of the {len(la)} LA views segmented at ED: base and apex from the SA stack '
+            'alone',
+        )
     return v

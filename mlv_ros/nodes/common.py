@@ -1,42 +1,50 @@
-"""What every node shares: declared parameters with descriptors, /diagnostics reporting, the
+"""
+What every node shares: declared parameters with descriptors, /diagnostics reporting, the
 study a node keeps to (messages of another study are reported and ignored), and a ``main()``
-runner with clean shutdown on SIGINT/SIGTERM."""
+runner with clean shutdown on SIGINT/SIGTERM.
+"""
 
 from __future__ import annotations
 
+from collections import Counter
+from dataclasses import dataclass
 import inspect
 import signal
 import sys
 import time
-from collections import Counter
-from dataclasses import dataclass
 from typing import Callable
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.exceptions import ParameterException
+from mlv_ros import qos
+from mlv_ros.core.types import StudyShape
+from mlv_ros.threads import compute_threads
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+import rclpy
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.qos import QoSPolicyKind
 from rclpy.signals import SignalHandlerOptions
-from rclpy.node import Node
 from rclpy.task import Future
 
-from mlv_ros import qos
-from mlv_ros.threads import compute_threads
-from mlv_ros.core.types import StudyShape
-
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
-USE_FQN = "diagnostic_updater.use_fqn"
+USE_FQN = 'diagnostic_updater.use_fqn'
 # diagnostic_updater's hardware_id for what has no hardware of its own ("set this value to none").
-HARDWARE_ID = "none"
+HARDWARE_ID = 'none'
 
 
 @dataclass
 class StreamCount:
-    """What one subscription has seen: messages received, and messages its publisher sent that
-    never arrived (sequence-number gaps) or were sent before it matched (``missed``)."""
+    """
+    What one subscription has seen: messages received, and messages its publisher sent that
+    never arrived (sequence-number gaps) or were sent before it matched (``missed``).
+    """
 
     received: int = 0
     lost: int = 0
@@ -51,7 +59,8 @@ def stamp_key(stamp) -> tuple[int, int]:
 
 
 class Silence:
-    """Seconds an input stream has been silent, counted only while the node was spun.
+    """
+    Seconds an input stream has been silent, counted only while the node was spun.
 
     A wall-clock gap since the last message mistakes a stalled executor for a stream that
     stopped: a frame publisher blocked on a slow RELIABLE reader, a long solve, or a loaded
@@ -81,9 +90,11 @@ class Silence:
 
 
 class RecentKeys:
-    """The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
+    """
+    The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
     another study's model states → that study, whose point clouds (which cannot carry a study
-    id) are dropped with them."""
+    id) are dropped with them.
+    """
 
     def __init__(self, size: int = 1000):
         self.size = size
@@ -102,29 +113,39 @@ class RecentKeys:
 
 
 class GraphNode(Node):
-    """A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
-    every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`)."""
+    """
+    A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
+    every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`).
+    """
 
     # What this node's one diagnostic task is called: statuses are named "<node>: <task>", as
     # diagnostic_updater names them (subclasses say what they do).
-    DIAGNOSTIC_TASK = "status"
+    DIAGNOSTIC_TASK = 'status'
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
         self._topics: dict[str, str] = {}
-        self._diag_pub = self.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos())
+        self._diag_pub = self.create_publisher(
+            DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos()
+        )
         self.diagnostics_sent = 0
         # As diagnostic_updater: "<node name>: <task>", the node's fully qualified name when
         # diagnostic_updater.use_fqn is true (two graphs in two namespaces share /diagnostics).
-        use_fqn = self.param(USE_FQN, False, "name diagnostic statuses by the node's fully qualified name "
-                             "(as diagnostic_updater's parameter of that name)")
+        use_fqn = self.param(
+            USE_FQN,
+            False,
+            "name diagnostic statuses by the node's fully qualified name "
+            "(as diagnostic_updater's parameter of that name)",
+        )
         node = self.get_fully_qualified_name() if use_fqn else self.get_name()
-        self.diagnostic_name = f"{node}: {self.DIAGNOSTIC_TASK}"
+        self.diagnostic_name = f'{node}: {self.DIAGNOSTIC_TASK}'
         # Like diagnostic_updater: the node's current status is republished every second, so a
         # monitor that joins late still sees it; events are also published the moment they occur.
-        self._status = self.diagnostic_status(OK, "starting")
+        self._status = self.diagnostic_status(OK, 'starting')
         self.streams: dict[str, StreamCount] = {}
-        self._heartbeat = self.create_timer(1.0, lambda: self._publish(self._with_counts(self._status)))
+        self._heartbeat = self.create_timer(
+            1.0, lambda: self._publish(self._with_counts(self._status))
+        )
         self.finished = Future()  # completed when the node's job is over (run_node then exits)
         self.last_error: DiagnosticStatus | None = None  # the latest ERROR reported
         self.failure: str | None = None  # why the node gave up (see fail)
@@ -140,19 +161,25 @@ class GraphNode(Node):
             check = self._parameter_checks.get(p.name)
             why = check(p.value) if check is not None else None
             if why:
-                return SetParametersResult(successful=False, reason=f"{p.name}={p.value!r}: {why}")
+                return SetParametersResult(successful=False, reason=f'{p.name}={p.value!r}: {why}')
         return SetParametersResult(successful=True)
 
     def topic_name(self, topic: str) -> str:
-        """Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
-        ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied)."""
+        """
+        Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
+        ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied).
+        """
         if topic not in self._topics:
             self._topics[topic] = self.resolve_topic_name(qos.relative(topic))
         return self._topics[topic]
 
-    def diagnostic_status(self, level: int, message: str, values: dict | None = None) -> DiagnosticStatus:
+    def diagnostic_status(
+        self, level: int, message: str, values: dict | None = None
+    ) -> DiagnosticStatus:
         """A status of this node's task, named and identified as diagnostic_updater does."""
-        status = DiagnosticStatus(level=level, name=self.diagnostic_name, message=message, hardware_id=HARDWARE_ID)
+        status = DiagnosticStatus(
+            level=level, name=self.diagnostic_name, message=message, hardware_id=HARDWARE_ID
+        )
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
         return status
 
@@ -171,7 +198,8 @@ class GraphNode(Node):
             self.finished.set_result(True)
 
     def fail(self, message: str, **values) -> None:
-        """Give up: report ``message`` as an ERROR, keep it as :attr:`failure` and stop.
+        """
+        Give up: report ``message`` as an ERROR, keep it as :attr:`failure` and stop.
 
         For what the node cannot go on from (not for a bad message it can skip): ``run_node``
         then exits 1, and ``mlv-ros run`` ends the run at once with this reason.
@@ -180,9 +208,20 @@ class GraphNode(Node):
         self.failure = status_text(self._status)
         self.stop()
 
-    def param(self, name: str, default, description: str, *, min_value=None, max_value=None,
-              choices: tuple | None = None, read_only: bool = True, check: Callable | None = None):
-        """Declare a parameter with a descriptor (and range) and return its value.
+    def param(
+        self,
+        name: str,
+        default,
+        description: str,
+        *,
+        min_value=None,
+        max_value=None,
+        choices: tuple | None = None,
+        read_only: bool = True,
+        check: Callable | None = None,
+    ):
+        """
+        Declare a parameter with a descriptor (and range) and return its value.
 
         Integer/float ranges are enforced by rclpy when set at start-up or at run time.
         ``check(value)`` returns why a value inside the range is still refused (None: accepted),
@@ -191,28 +230,34 @@ class GraphNode(Node):
         and a refused run-time set is answered unsuccessful.
         """
         if check is not None:
-            if not hasattr(self, "_parameter_checks"):
+            if not hasattr(self, '_parameter_checks'):
                 self._parameter_checks: dict[str, Callable] = {}
                 self.add_on_set_parameters_callback(self._checked_parameters)
             self._parameter_checks[name] = check
         desc = ParameterDescriptor(description=description, read_only=read_only)
         if choices:
-            desc.additional_constraints = "one of: " + ", ".join(map(str, choices))
+            desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
         if min_value is not None or max_value is not None:
             if isinstance(default, bool):
-                raise TypeError("bool parameters take no range")
+                raise TypeError('bool parameters take no range')
             if isinstance(default, int):
-                desc.integer_range = [IntegerRange(from_value=int(min_value), to_value=int(max_value), step=0)]
+                desc.integer_range = [
+                    IntegerRange(from_value=int(min_value), to_value=int(max_value), step=0)
+                ]
             else:
-                desc.floating_point_range = [FloatingPointRange(
-                    from_value=float(min_value), to_value=float(max_value), step=0.0)]
+                desc.floating_point_range = [
+                    FloatingPointRange(
+                        from_value=float(min_value), to_value=float(max_value), step=0.0
+                    )
+                ]
         value = self.declare_parameter(name, default, desc).value
         if choices and value not in choices:
-            raise ValueError(f"parameter {name}={value!r} must be one of {choices}")
+            raise ValueError(f'parameter {name}={value!r} must be one of {choices}')
         return value
 
     def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
-        """``Node.create_subscription`` that also accounts for loss on ``topic``.
+        """
+        ``Node.create_subscription`` that also accounts for loss on ``topic``.
 
         DDS does not tell a subscriber that its own queue overflowed or that a KEEP_LAST writer
         dropped samples it had not delivered; the writer's sequence numbers do: a gap between two
@@ -233,18 +278,29 @@ class GraphNode(Node):
             wants_info = True
 
         def counted(msg, info):
-            self._account(topic, count, info.get("publication_sequence_number"))
+            self._account(topic, count, info.get('publication_sequence_number'))
             return callback(msg, info) if wants_info else callback(msg)
 
         # A publisher whose QoS cannot serve this subscription (e.g. VOLATILE where history is
         # asked for) never connects: nothing would arrive, so say why.
-        kwargs.setdefault("event_callbacks", SubscriptionEventCallbacks(incompatible_qos=lambda event: self.report(
-            ERROR, "a publisher's QoS is incompatible with this subscription: its messages cannot arrive",
-            topic=topic, policy=QoSPolicyKind(event.last_policy_kind).name, publishers=event.total_count)))
+        kwargs.setdefault(
+            'event_callbacks',
+            SubscriptionEventCallbacks(
+                incompatible_qos=lambda event: self.report(
+                    ERROR,
+                    "a publisher's QoS is incompatible with this subscription: its messages "
+                    'cannot arrive',
+                    topic=topic,
+                    policy=QoSPolicyKind(event.last_policy_kind).name,
+                    publishers=event.total_count,
+                )
+            ),
+        )
         return super().create_subscription(msg_type, name, counted, qos_profile, **kwargs)
 
-    def foreign(self, study_id: str, topic: str, run_id: str = "", **where) -> str:
-        """Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
+    def foreign(self, study_id: str, topic: str, run_id: str = '', **where) -> str:
+        """
+        Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
         another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
         never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
 
@@ -255,12 +311,20 @@ class GraphNode(Node):
         """
         other = self.study.other(study_id, run_id)
         if other is None:
-            return ""
+            return ''
         first = other not in self.other_studies
         self.other_studies[other] += 1
-        self._report(ERROR, "message of another study ignored (another graph on this ROS_DOMAIN_ID?)",
-                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other, **where},
-                     log=first)
+        self._report(
+            ERROR,
+            'message of another study ignored (another graph on this ROS_DOMAIN_ID?)',
+            {
+                'topic': self.topic_name(topic),
+                'study': self.study.label,
+                'other_study': other,
+                **where,
+            },
+            log=first,
+        )
         return other
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
@@ -271,10 +335,17 @@ class GraphNode(Node):
         the state's line); the caller drops it.
         """
         self.other_studies[other_study] += 1
-        self._report(ERROR, "point cloud of another study ignored with its model state",
-                     {"topic": self.topic_name(topic), "study": self.study.label, "other_study": other_study,
-                      "stamp": stamp},
-                     log=False)
+        self._report(
+            ERROR,
+            'point cloud of another study ignored with its model state',
+            {
+                'topic': self.topic_name(topic),
+                'study': self.study.label,
+                'other_study': other_study,
+                'stamp': stamp,
+            },
+            log=False,
+        )
 
     def _account(self, topic: str, count: StreamCount, seq: int | None) -> None:
         count.received += 1
@@ -287,40 +358,72 @@ class GraphNode(Node):
         if last is None:
             if seq > 1:
                 count.missed += seq - 1
-                self.report(WARN, "messages published before this node subscribed were not received",
-                            topic=topic, missed=seq - 1, first_sequence=seq)
+                self.report(
+                    WARN,
+                    'messages published before this node subscribed were not received',
+                    topic=topic,
+                    missed=seq - 1,
+                    first_sequence=seq,
+                )
         elif seq <= last:
             count.publisher_restarts += 1
             count.missed += seq - 1
-            self.report(WARN if seq > 1 else OK, "a new publisher started on the topic",
-                        topic=topic, sequence=seq, previous_sequence=last)
+            self.report(
+                WARN if seq > 1 else OK,
+                'a new publisher started on the topic',
+                topic=topic,
+                sequence=seq,
+                previous_sequence=last,
+            )
         elif seq > last + 1:
             count.lost += seq - last - 1
-            self.report(ERROR, "messages lost", topic=topic, lost=seq - last - 1, total_lost=count.lost,
-                        after_sequence=last, received=count.received)
+            self.report(
+                ERROR,
+                'messages lost',
+                topic=topic,
+                lost=seq - last - 1,
+                total_lost=count.lost,
+                after_sequence=last,
+                received=count.received,
+            )
 
     def _with_counts(self, status: DiagnosticStatus) -> DiagnosticStatus:
-        """``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
-        so, once messages of another study were ignored)."""
+        """
+        ``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
+        so, once messages of another study were ignored).
+        """
         extra = []
         for topic, c in self.streams.items():
-            extra += [KeyValue(key=f"received {topic}", value=str(c.received)),
-                      KeyValue(key=f"lost {topic}", value=str(c.lost)),
-                      KeyValue(key=f"missed {topic}", value=str(c.missed))]
+            extra += [
+                KeyValue(key=f'received {topic}', value=str(c.received)),
+                KeyValue(key=f'lost {topic}', value=str(c.lost)),
+                KeyValue(key=f'missed {topic}', value=str(c.missed)),
+            ]
         level, message = status.level, status.message
         if self.other_studies:
             ignored = sum(self.other_studies.values())
             level = max(level, ERROR)
-            message = f"{message}; {ignored} message(s) of another study ignored"
-            extra += [KeyValue(key="study", value=self.study.label),
-                      KeyValue(key="other studies ignored", value=", ".join(
-                          f"{sid}: {n}" for sid, n in self.other_studies.most_common(5)))]
-        return DiagnosticStatus(level=level, name=status.name, message=message,
-                                hardware_id=status.hardware_id, values=list(status.values) + extra)
+            message = f'{message}; {ignored} message(s) of another study ignored'
+            extra += [
+                KeyValue(key='study', value=self.study.label),
+                KeyValue(
+                    key='other studies ignored',
+                    value=', '.join(f'{sid}: {n}' for sid, n in self.other_studies.most_common(5)),
+                ),
+            ]
+        return DiagnosticStatus(
+            level=level,
+            name=status.name,
+            message=message,
+            hardware_id=status.hardware_id,
+            values=list(status.values) + extra,
+        )
 
     def report(self, level: int, message: str, **values) -> None:
-        """Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
-        current status, and log it."""
+        """
+        Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
+        current status, and log it.
+        """
         self._report(level, message, values)
 
     def _report(self, level: int, message: str, values: dict, log: bool = True) -> None:
@@ -330,7 +433,7 @@ class GraphNode(Node):
         if level == ERROR:
             self.last_error = status
         self._publish(status)
-        text = f"{message} " + " ".join(f"{k}={v}" for k, v in values.items())
+        text = f'{message} ' + ' '.join(f'{k}={v}' for k, v in values.items())
         # rclpy ties a severity to each call site, so each level needs its own line.
         if not log:
             self.get_logger().debug(text.strip())
@@ -349,30 +452,35 @@ class GraphNode(Node):
 
 
 def status_node(status: DiagnosticStatus) -> str:
-    """The name of the node that published ``status`` (``tag_detector`` for
-    ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``)."""
-    return status.name.partition(": ")[0].rpartition("/")[2]
+    """
+    The name of the node that published ``status`` (``tag_detector`` for
+    ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``).
+    """
+    return status.name.partition(': ')[0].rpartition('/')[2]
 
 
 def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
-    """(namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
+    """
+    (namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
     for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
-    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown)."""
-    node = status.name.partition(": ")[0]
-    if not node.startswith("/"):
+    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown).
+    """
+    node = status.name.partition(': ')[0]
+    if not node.startswith('/'):
         return None, node
-    ns, _, name = node.rpartition("/")
+    ns, _, name = node.rpartition('/')
     return qos.full_namespace(ns), name
 
 
 def status_text(status: DiagnosticStatus) -> str:
     """One line for people: ``message (key: value, ...)``."""
-    values = ", ".join(f"{kv.key}: {kv.value}" for kv in status.values)
-    return f"{status.message} ({values})" if values else status.message
+    values = ', '.join(f'{kv.key}: {kv.value}' for kv in status.values)
+    return f'{status.message} ({values})' if values else status.message
 
 
 def run_node(factory: Callable[..., Node], args=None) -> int:
-    """Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
+    """
+    Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
     then drain what has already arrived and shut down cleanly. Returns 0, 2 for a node that
     could not start (bad parameters or paths), 1 for one that gave up (:meth:`GraphNode.fail`).
 
@@ -396,35 +504,47 @@ def _run_node(factory, args) -> int:
     try:
         try:
             node = factory()
-        except (ValueError, ParameterException, OSError) as exc:  # bad parameters or paths: say so, exit 2
-            print(f"error: {exc}", file=sys.stderr)
+        except (
+            ValueError,
+            ParameterException,
+            OSError,
+        ) as exc:  # bad parameters or paths: say so, exit 2
+            print(f'error: {exc}', file=sys.stderr)
             return 2
         executor.add_node(node)
-        while not stop_requested and not getattr(node, "done", False) and rclpy.ok():
+        while not stop_requested and not getattr(node, 'done', False) and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
         # Drain: keep taking queued messages until none has arrived for 0.2 s. After a signal a
         # node may wait longer for what is still coming (upstream_alive: under `ros2 launch`
         # every node gets the signal at once and the upstream ones still publish what they had
         # queued), at most its shutdown_wait_s; a second signal ends the wait at once.
         signalled = len(stop_requested)
-        waits = signalled and getattr(node, "upstream_alive", None)
-        end = time.monotonic() + (getattr(node, "shutdown_wait_s", 0.0) if waits else 0.0)
+        waits = signalled and getattr(node, 'upstream_alive', None)
+        end = time.monotonic() + (getattr(node, 'shutdown_wait_s', 0.0) if waits else 0.0)
         if waits and waits():
-            node.get_logger().info(f"{signal.Signals(stop_requested[0]).name}: taking what the graph still sends "
-                                   f"(at most {node.shutdown_wait_s:g} s; a second signal stops now)")
-        handled = getattr(node, "messages_handled", 0)
+            node.get_logger().info(
+                f'{signal.Signals(stop_requested[0]).name}: taking what the graph still sends '
+                f'(at most {node.shutdown_wait_s:g} s; a second signal stops now)'
+            )
+        handled = getattr(node, 'messages_handled', 0)
         quiet_since = time.monotonic()
-        while rclpy.ok() and len(stop_requested) <= max(signalled, 1) and (
-                time.monotonic() - quiet_since < 0.2 or (waits and time.monotonic() < end and waits())):
+        while (
+            rclpy.ok()
+            and len(stop_requested) <= max(signalled, 1)
+            and (
+                time.monotonic() - quiet_since < 0.2
+                or (waits and time.monotonic() < end and waits())
+            )
+        ):
             executor.spin_once(timeout_sec=0.05)
-            if getattr(node, "messages_handled", 0) != handled:
+            if getattr(node, 'messages_handled', 0) != handled:
                 handled, quiet_since = node.messages_handled, time.monotonic()
     finally:
         if node is not None:
-            if hasattr(node, "finish"):
+            if hasattr(node, 'finish'):
                 node.finish()
             executor.remove_node(node)
             node.destroy_node()
         executor.shutdown()
         rclpy.try_shutdown()
-    return 1 if getattr(node, "failure", None) else 0
+    return 1 if getattr(node, 'failure', None) else 0

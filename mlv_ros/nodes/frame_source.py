@@ -1,4 +1,5 @@
-"""frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames) from a
+"""
+frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames) from a
 simulator preset, a DICOM directory, a recorded bag, or the built-in test pattern.
 
 Order is slice-major (as scanners acquire: each slice's whole cine in one breath-hold) or
@@ -24,41 +25,44 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 import secrets
 import time
-from pathlib import Path
 
-from rclpy.duration import Duration
-
+from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
-from mlv_msgs.msg import TaggedFrame
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
+from rclpy.duration import Duration
 
-SOURCES = ("phantom", "dicom", "bag", "pattern")
-ORDERS = ("slice_major", "phase_major")
+SOURCES = ('phantom', 'dicom', 'bag', 'pattern')
+ORDERS = ('slice_major', 'phase_major')
 
 
 def order_frames(frames: list[Frame], order: str) -> list[Frame]:
     """Sort frames slice-major (view, slice, phase) or phase-major (phase, view, slice)."""
-    if order == "slice_major":
+    if order == 'slice_major':
         return sorted(frames, key=lambda f: (f.view, f.slice_index, f.phase_index))
     return sorted(frames, key=lambda f: (f.phase_index, f.view, f.slice_index))
 
 
 def read_bag_frames(path) -> list[Frame]:
-    """Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
+    """
+    Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
     Frames (also of recordings made before fields were appended to TaggedFrame: their
-    ``study_id`` is empty)."""
-    return [conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
-            for m in bagio.read_bag(path, topics=[qos.FRAMES], any_namespace=True)]
+    ``study_id`` is empty).
+    """
+    return [
+        conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
+        for m in bagio.read_bag(path, topics=[qos.FRAMES], any_namespace=True)
+    ]
 
 
 def _digest(*parts) -> str:
     h = hashlib.blake2b(digest_size=10)
     for part in parts:
         h.update(part if isinstance(part, (bytes, bytearray, memoryview)) else str(part).encode())
-        h.update(b"\0")
+        h.update(b'\0')
     return h.hexdigest()
 
 
@@ -67,15 +71,28 @@ def images_digest(frames: list[Frame]) -> str:
     parts = []
     for f in sorted(frames, key=lambda f: (f.view, f.slice_index, f.phase_index)):
         g = f.geometry
-        parts += [f"{f.view} {f.slice_index} {f.phase_index} {f.num_phases} {f.series_uid}",
-                  g.image_position.tobytes(), g.row_direction.tobytes(), g.column_direction.tobytes(),
-                  str(f.image.dtype), str(f.image.shape), f.image.tobytes()]
+        parts += [
+            f'{f.view} {f.slice_index} {f.phase_index} {f.num_phases} {f.series_uid}',
+            g.image_position.tobytes(),
+            g.row_direction.tobytes(),
+            g.column_direction.tobytes(),
+            str(f.image.dtype),
+            str(f.image.shape),
+            f.image.tobytes(),
+        ]
     return _digest(*parts)
 
 
-def study_id_for(source: str, frames: list[Frame], *, params: dict | None = None, path: str = "",
-                 study_uids: dict | None = None) -> str:
-    """The study id of a source's frames (``TaggedFrame.study_id``).
+def study_id_for(
+    source: str,
+    frames: list[Frame],
+    *,
+    params: dict | None = None,
+    path: str = '',
+    study_uids: dict | None = None,
+) -> str:
+    """
+    The study id of a source's frames (``TaggedFrame.study_id``).
 
     Parameters
     ----------
@@ -90,18 +107,21 @@ def study_id_for(source: str, frames: list[Frame], *, params: dict | None = None
     study_uids : dict, optional
         dicom: StudyInstanceUID → images (the most frequent is the study; a hash of the images
         when there is none).
+
     """
-    if source in ("phantom", "pattern"):
-        return f"{source}-{_digest(json.dumps(params or {}, sort_keys=True, default=str))}"
-    if source == "dicom":
-        return next(iter(study_uids or {}), "") or f"dicom-{images_digest(frames)}"
-    carried = next((f.study_id for f in frames if f.study_id), "")
-    return carried or f"bag-{_digest(Path(path).resolve())}"
+    if source in ('phantom', 'pattern'):
+        return f'{source}-{_digest(json.dumps(params or {}, sort_keys=True, default=str))}'
+    if source == 'dicom':
+        return next(iter(study_uids or {}), '') or f'dicom-{images_digest(frames)}'
+    carried = next((f.study_id for f in frames if f.study_id), '')
+    return carried or f'bag-{_digest(Path(path).resolve())}'
 
 
 def count_slices(frames: list[Frame]) -> list[Frame]:
-    """Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
-    know when a phase is complete)."""
+    """
+    Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
+    know when a phase is complete).
+    """
     from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
     sa = len({f.slice_index for f in frames if f.view == VIEW_SA})
@@ -112,29 +132,83 @@ def count_slices(frames: list[Frame]) -> list[Frame]:
 
 
 class FrameSource(GraphNode):
-    DIAGNOSTIC_TASK = "input"
+    DIAGNOSTIC_TASK = 'input'
 
     def __init__(self, **node_kwargs):
-        super().__init__("frame_source", **node_kwargs)
-        self.source = self.param("source", "phantom", "where frames come from", choices=SOURCES)
-        self.preset = self.param("preset", "normal", "simulator preset (source: phantom)")
-        self.snr = self.param("snr", 20.0, "simulated SNR; 0 = noise-free (source: phantom)", min_value=0.0, max_value=1000.0)
-        self.size = self.param("size", 256, "simulated image size, pixels (source: phantom)", min_value=32, max_value=1024)
+        super().__init__('frame_source', **node_kwargs)
+        self.source = self.param('source', 'phantom', 'where frames come from', choices=SOURCES)
+        self.preset = self.param('preset', 'normal', 'simulator preset (source: phantom)')
+        self.snr = self.param(
+            'snr',
+            20.0,
+            'simulated SNR; 0 = noise-free (source: phantom)',
+            min_value=0.0,
+            max_value=1000.0,
+        )
+        self.size = self.param(
+            'size',
+            256,
+            'simulated image size, pixels (source: phantom)',
+            min_value=32,
+            max_value=1024,
+        )
         # 2..200: what the simulator accepts (one phase has no motion to track)
-        self.num_phases = self.param("num_phases", 25, "simulated phases per cycle (source: phantom, pattern)", min_value=2, max_value=200)
-        self.seed = self.param("seed", 0, "simulator noise seed", min_value=0, max_value=2**31 - 1)
-        self.path = self.param("path", "", "DICOM directory (source: dicom) or MCAP file (source: bag)")
-        self.order = self.param("order", "slice_major", "publication order", choices=ORDERS)
-        self.rate_factor = self.param("rate_factor", 0.0, "real time × factor; 0 = as fast as possible", min_value=0.0, max_value=1000.0)
-        self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers to wait for before publishing", min_value=0, max_value=100)
-        self.wait_timeout_s = self.param("wait_timeout_s", 30.0, "give up waiting for subscribers after this long", min_value=0.0, max_value=3600.0)
-        self.exit_when_done = self.param("exit_when_done", True, "stop the node once every frame is acknowledged")
-        self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest DICOM image accepted (rows × cols); larger files are skipped before their pixels are read (source: dicom)", min_value=64, max_value=16384 * 16384)
-        self.dicom_study = self.param("study", "", "StudyInstanceUID to load from the DICOM directory; empty = the study with the most tagged cines (source: dicom)")
+        self.num_phases = self.param(
+            'num_phases',
+            25,
+            'simulated phases per cycle (source: phantom, pattern)',
+            min_value=2,
+            max_value=200,
+        )
+        self.seed = self.param('seed', 0, 'simulator noise seed', min_value=0, max_value=2**31 - 1)
+        self.path = self.param(
+            'path', '', 'DICOM directory (source: dicom) or MCAP file (source: bag)'
+        )
+        self.order = self.param('order', 'slice_major', 'publication order', choices=ORDERS)
+        self.rate_factor = self.param(
+            'rate_factor',
+            0.0,
+            'real time × factor; 0 = as fast as possible',
+            min_value=0.0,
+            max_value=1000.0,
+        )
+        self.wait_for_subscribers = self.param(
+            'wait_for_subscribers',
+            1,
+            'matched subscribers to wait for before publishing',
+            min_value=0,
+            max_value=100,
+        )
+        self.wait_timeout_s = self.param(
+            'wait_timeout_s',
+            30.0,
+            'give up waiting for subscribers after this long',
+            min_value=0.0,
+            max_value=3600.0,
+        )
+        self.exit_when_done = self.param(
+            'exit_when_done', True, 'stop the node once every frame is acknowledged'
+        )
+        self.max_pixels = self.param(
+            'max_pixels',
+            1024 * 1024,
+            'largest DICOM image accepted (rows × cols); larger files are skipped before their '
+            'pixels are read (source: dicom)',
+            min_value=64,
+            max_value=16384 * 16384,
+        )
+        self.dicom_study = self.param(
+            'study',
+            '',
+            'StudyInstanceUID to load from the DICOM directory; empty = the study with the '
+            'most tagged cines (source: dicom)',
+        )
         # dicom: which study was taken and why, whether all of it was used, and what was not.
-        self.dicom_choice, self.input_complete, self.left_out, self.not_used = "", True, [], []
+        self.dicom_choice, self.input_complete, self.left_out, self.not_used = '', True, [], []
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
-        self.pub = self.create_publisher(TaggedFrame, qos.relative(qos.FRAMES), qos.topic_qos(qos.FRAMES))
+        self.pub = self.create_publisher(
+            TaggedFrame, qos.relative(qos.FRAMES), qos.topic_qos(qos.FRAMES)
+        )
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.study_id = self._study_id()
@@ -148,68 +222,130 @@ class FrameSource(GraphNode):
         self._t0 = time.monotonic()
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
-        extra = {"input_complete": self.input_complete, "left_out": len(self.left_out)} if self.source == "dicom" else {}
-        self.report(OK, "frames loaded", source=self.source, frames=len(self.frames), order=self.order,
-                    problems=len(self._reports), study=self.study_id, run=self.run_id, **extra)
+        extra = (
+            {'input_complete': self.input_complete, 'left_out': len(self.left_out)}
+            if self.source == 'dicom'
+            else {}
+        )
+        self.report(
+            OK,
+            'frames loaded',
+            source=self.source,
+            frames=len(self.frames),
+            order=self.order,
+            problems=len(self._reports),
+            study=self.study_id,
+            run=self.run_id,
+            **extra,
+        )
 
     def _study_id(self) -> str:
         """Return the study id every frame carries (a recording's frames keep theirs if any)."""
         params = None
-        if self.source == "phantom":
+        if self.source == 'phantom':
             from mlv_ros.core.sim import load_preset
 
-            params = {"preset": load_preset(self.preset), "snr": self.snr, "size": self.size,
-                      "num_phases": self.num_phases, "seed": self.seed}
-        elif self.source == "pattern":
-            params = {"pattern": 1, "num_phases": self.num_phases}
-        study_id = study_id_for(self.source, self.frames, params=params, path=self.path, study_uids=self.study_uids)
+            params = {
+                'preset': load_preset(self.preset),
+                'snr': self.snr,
+                'size': self.size,
+                'num_phases': self.num_phases,
+                'seed': self.seed,
+            }
+        elif self.source == 'pattern':
+            params = {'pattern': 1, 'num_phases': self.num_phases}
+        study_id = study_id_for(
+            self.source, self.frames, params=params, path=self.path, study_uids=self.study_uids
+        )
         if len(self.study_uids) > 1:
-            self._reports.append(("DICOM files of several studies; published as one", {
-                "study": study_id, "others": ", ".join(list(self.study_uids)[1:4]),
-                "images": ", ".join(map(str, self.study_uids.values()))}))
+            self._reports.append(
+                (
+                    'DICOM files of several studies; published as one',
+                    {
+                        'study': study_id,
+                        'others': ', '.join(list(self.study_uids)[1:4]),
+                        'images': ', '.join(map(str, self.study_uids.values())),
+                    },
+                )
+            )
         for f in self.frames:
             f.study_id = f.study_id or study_id
         return study_id
 
     def _load(self) -> list[Frame]:
-        if self.source == "pattern":
+        if self.source == 'pattern':
             from mlv_ros.core.pattern import pattern_frames
 
             return pattern_frames(num_phases=self.num_phases)
-        if self.source == "phantom":
+        if self.source == 'phantom':
             from mlv_ros.core.sim import load_preset, simulate_study
 
-            study = simulate_study(load_preset(self.preset), snr=self.snr or None, size=self.size,
-                                   num_phases=self.num_phases, seed=self.seed)
+            study = simulate_study(
+                load_preset(self.preset),
+                snr=self.snr or None,
+                size=self.size,
+                num_phases=self.num_phases,
+                seed=self.seed,
+            )
             return list(study.frames)
-        if self.source == "dicom":
+        if self.source == 'dicom':
             from mlv_ros.core.io.dicom import read_dicom_dir
 
-            res = read_dicom_dir(self.path, max_pixels=self.max_pixels, study=self.dicom_study or None)
+            res = read_dicom_dir(
+                self.path, max_pixels=self.max_pixels, study=self.dicom_study or None
+            )
             self.dicom_choice, self.input_complete = res.choice, res.complete
             self.left_out, self.not_used = list(res.left_out), list(res.not_used)
             unused = set(res.not_used)
-            self._reports += [("skipped DICOM file", {"file": path, "reason": reason})
-                              for path, reason in res.problems if (path, reason) not in unused]
-            self._reports += [("DICOM series not used", {"file": path, "reason": reason}) for path, reason in res.not_used]
-            self._reports += [("DICOM series used with a warning", {"file": path, "reason": reason})
-                              for path, reason in res.warnings]
-            fallback = bool(res.frames) and res.study_uid in res.studies and not res.studies[res.study_uid]
+            self._reports += [
+                ('skipped DICOM file', {'file': path, 'reason': reason})
+                for path, reason in res.problems
+                if (path, reason) not in unused
+            ]
+            self._reports += [
+                ('DICOM series not used', {'file': path, 'reason': reason})
+                for path, reason in res.not_used
+            ]
+            self._reports += [
+                ('DICOM series used with a warning', {'file': path, 'reason': reason})
+                for path, reason in res.warnings
+            ]
+            fallback = (
+                bool(res.frames)
+                and res.study_uid in res.studies
+                and not res.studies[res.study_uid]
+            )
             if len(res.studies) > 1 or self.dicom_study or not res.complete or fallback:
-                self._reports.append(("DICOM study chosen", {"choice": res.choice, "complete": str(res.complete).lower(),
-                                                             "left_out": "; ".join(why for _, why in res.left_out)}))
+                self._reports.append(
+                    (
+                        'DICOM study chosen',
+                        {
+                            'choice': res.choice,
+                            'complete': str(res.complete).lower(),
+                            'left_out': '; '.join(why for _, why in res.left_out),
+                        },
+                    )
+                )
             self.study_uids = dict(res.study_uids)
             return res.frames
         return read_bag_frames(self.path)
 
     def halt(self, reason: str) -> None:
-        """Stop publishing now (a run being interrupted): frames already sent stay sent, the
-        rest never go out, and the node's job is over."""
+        """
+        Stop publishing now (a run being interrupted): frames already sent stay sent, the
+        rest never go out, and the node's job is over.
+        """
         if self.done:
             return
         self.timer.cancel()
         self.halted = reason
-        self.report(OK, "input stopped", reason=reason, frames_published=self.published, frames=len(self.frames))
+        self.report(
+            OK,
+            'input stopped',
+            reason=reason,
+            frames_published=self.published,
+            frames=len(self.frames),
+        )
         self.stop()
 
     def _frame_interval(self, frame: Frame) -> float:
@@ -223,20 +359,33 @@ class FrameSource(GraphNode):
             matched = self.pub.get_subscription_count()
             # Reports made before anyone listens on /diagnostics (VOLATILE) would be lost: with
             # problems to report, wait for a listener there too (the recorder, a monitor).
-            heard = not self._reports or not self.wait_for_subscribers or self.count_subscribers(qos.DIAGNOSTICS) > 0
+            heard = (
+                not self._reports
+                or not self.wait_for_subscribers
+                or self.count_subscribers(qos.DIAGNOSTICS) > 0
+            )
             if matched < self.wait_for_subscribers or not heard:
                 if time.monotonic() - self._t0 <= self.wait_timeout_s:
                     return
                 if matched == 0:
-                    self.report(ERROR, "no subscriber appeared; not publishing", waited_s=self.wait_timeout_s)
+                    self.report(
+                        ERROR,
+                        'no subscriber appeared; not publishing',
+                        waited_s=self.wait_timeout_s,
+                    )
                     self.timer.cancel()
                     self.stop()
                     return
                 # Frames are kept for late joiners (TRANSIENT_LOCAL), but a VOLATILE subscriber
                 # that appears later misses them: say so rather than wait for ever.
                 if matched < self.wait_for_subscribers:
-                    self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
-                                expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
+                    self.report(
+                        WARN,
+                        'fewer subscribers than expected; publishing anyway',
+                        matched=matched,
+                        expected=self.wait_for_subscribers,
+                        waited_s=self.wait_timeout_s,
+                    )
             self._started = time.monotonic()
             self._next_at = self._started
         if self._reports:
@@ -249,7 +398,9 @@ class FrameSource(GraphNode):
             if time.monotonic() < self._next_at:
                 return
             frame = self.frames[self.published]
-            self.pub.publish(conversions.frame_to_msg(frame, stamp=self.get_clock().now().to_msg()))
+            self.pub.publish(
+                conversions.frame_to_msg(frame, stamp=self.get_clock().now().to_msg())
+            )
             self.published += 1
             self._next_at += self._frame_interval(frame)
             return
@@ -257,9 +408,17 @@ class FrameSource(GraphNode):
         # RELIABLE: make sure every subscriber holds every frame before we may exit.
         acked = self.pub.wait_for_all_acked(Duration(seconds=self.wait_timeout_s))
         if not acked:
-            self.report(WARN, "not every frame was acknowledged by every subscriber", timeout_s=self.wait_timeout_s)
-        self.report(OK, "all frames published", frames=self.published,
-                    seconds=round(time.monotonic() - self._started, 3))
+            self.report(
+                WARN,
+                'not every frame was acknowledged by every subscriber',
+                timeout_s=self.wait_timeout_s,
+            )
+        self.report(
+            OK,
+            'all frames published',
+            frames=self.published,
+            seconds=round(time.monotonic() - self._started, 3),
+        )
         if self.exit_when_done:
             self.stop()
 
@@ -268,5 +427,5 @@ def main(args=None):
     return run_node(FrameSource, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""live_view: the run, live in Foxglove — a ``foxglove_bridge``-style node on foxglove-sdk.
+"""
+live_view: the run, live in Foxglove — a ``foxglove_bridge``-style node on foxglove-sdk.
 
 It subscribes to the graph's results and serves them over a Foxglove WebSocket (``host``:``port``,
 default ``ws://127.0.0.1:8765``; Foxglove → Open connection → Foxglove WebSocket), in Foxglove's
@@ -37,37 +38,45 @@ from __future__ import annotations
 
 import json
 
-from sensor_msgs.msg import PointCloud2
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.verdict import DEGRADED, FAILED, Verdict
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
+from sensor_msgs.msg import PointCloud2
 
-CLOUD_CHANNEL = "lv/motion"   # foxglove.PointCloud, relative to the node's namespace
-CURVES_CHANNEL = "lv/curves"  # JSON (conversions.curves_schema)
-SLICE_CHANNEL = "mlv/{name}/{kind}"  # kind: image (foxglove.RawImage) | tags (foxglove.ImageAnnotations)
+CLOUD_CHANNEL = 'lv/motion'  # foxglove.PointCloud, relative to the node's namespace
+CURVES_CHANNEL = 'lv/curves'  # JSON (conversions.curves_schema)
+SLICE_CHANNEL = (
+    'mlv/{name}/{kind}'  # kind: image (foxglove.RawImage) | tags (foxglove.ImageAnnotations)
+)
 
 
 def slice_name(view: int, slice_index: int) -> str:
     """``sa_02`` / ``la_00``: the slice's part of its channel names."""
-    return f"{'la' if view == TaggedFrame.VIEW_LA else 'sa'}_{slice_index:02d}"
+    return f'{"la" if view == TaggedFrame.VIEW_LA else "sa"}_{slice_index:02d}'
 
 
 def port_error(host: str, port: int, exc: Exception) -> str:
     """One line for a server that could not listen, with the fix."""
     text = str(exc)
-    if "in use" in text or "os error 98" in text:
-        return (f"live view: port {port} on {host} is in use (another live view or Foxglove bridge?); "
-                f"choose a free one (port:=N; mlv-ros run --live-port N)")
-    return f"live view: cannot listen on {host}:{port}: {text.removeprefix('FoxgloveError: ')}; check host and port"
+    if 'in use' in text or 'os error 98' in text:
+        return (
+            f'live view: port {port} on {host} is in use (another live view or Foxglove bridge?); '
+            f'choose a free one (port:=N; mlv-ros run --live-port N)'
+        )
+    return (
+        f'live view: cannot listen on {host}:{port}: '
+        f'{text.removeprefix("FoxgloveError: ")}; check host and port'
+    )
 
 
 class _Subscriptions:
-    """foxglove ServerListener: notes each subscription with what had been served when it came
+    """
+    foxglove ServerListener: notes each subscription with what had been served when it came
     (``state()``: clouds served, phases served), called from the server's thread; the node serves
-    what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`)."""
+    what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`).
+    """
 
     def __init__(self, state):
         self.state = state
@@ -83,82 +92,151 @@ class _Subscriptions:
 
 
 class LiveView(GraphNode):
-    DIAGNOSTIC_TASK = "live view"
+    DIAGNOSTIC_TASK = 'live view'
 
     def __init__(self, **node_kwargs):
-        super().__init__("live_view", **node_kwargs)
+        super().__init__('live_view', **node_kwargs)
         try:
             import foxglove
             from foxglove.channels import PointCloudChannel
         except ImportError as exc:  # a ROS install without the pip-only SDK
-            raise ValueError(f"the live view needs Foxglove's SDK ({exc}): pip install foxglove-sdk==0.30.3") from None
+            raise ValueError(
+                f"the live view needs Foxglove's SDK ({exc}): pip install foxglove-sdk==0.30.3"
+            ) from None
 
-        self.host = self.param("host", "127.0.0.1", "address the Foxglove WebSocket listens on "
-                               "(127.0.0.1: this machine only; 0.0.0.0: every interface)")
-        port = self.param("port", 8765, "Foxglove WebSocket port (0 = any free port)", min_value=0, max_value=65535)
-        self.images = self.param("images", True, "serve each slice's images and tag points")
-        catch_up = self.param("catch_up", True, "take frames and tag points with their history (TRANSIENT_LOCAL); "
-                              "false for a publisher without history")
-        self.max_unpaired = self.param("max_unpaired", 200, "motion clouds / model states held while waiting for "
-                                       "their pair", min_value=1, max_value=100000)
-        backlog = self.param("message_backlog", 1024, "messages queued per Foxglove client (the oldest go when a "
-                             "slow client falls behind)", min_value=16, max_value=1000000)
+        self.host = self.param(
+            'host',
+            '127.0.0.1',
+            'address the Foxglove WebSocket listens on '
+            '(127.0.0.1: this machine only; 0.0.0.0: every interface)',
+        )
+        port = self.param(
+            'port',
+            8765,
+            'Foxglove WebSocket port (0 = any free port)',
+            min_value=0,
+            max_value=65535,
+        )
+        self.images = self.param('images', True, "serve each slice's images and tag points")
+        catch_up = self.param(
+            'catch_up',
+            True,
+            'take frames and tag points with their history (TRANSIENT_LOCAL); '
+            'false for a publisher without history',
+        )
+        self.max_unpaired = self.param(
+            'max_unpaired',
+            200,
+            'motion clouds / model states held while waiting for their pair',
+            min_value=1,
+            max_value=100000,
+        )
+        backlog = self.param(
+            'message_backlog',
+            1024,
+            'messages queued per Foxglove client (the oldest go when a slow client falls behind)',
+            min_value=16,
+            max_value=1000000,
+        )
         self._fox = foxglove
         self.fox_context = foxglove.Context()
-        prefix = self.get_namespace().rstrip("/")
-        self._channel_name = lambda rel: f"{prefix}/{rel}"
+        prefix = self.get_namespace().rstrip('/')
+        self._channel_name = lambda rel: f'{prefix}/{rel}'
         self.clouds_served = 0
-        self._served = frozenset()  # phases served, replaced (not changed) as phases go out: read by the listener
+        self._served = (
+            frozenset()
+        )  # phases served, replaced (not changed) as phases go out: read by the listener
         self._fox_listener = _Subscriptions(lambda: (self.clouds_served, self._served))
         try:
-            self.server = foxglove.start_server(name="mlv_ros live view", host=self.host, port=port,
-                                                context=self.fox_context, message_backlog_size=backlog,
-                                                server_listener=self._fox_listener)
+            self.server = foxglove.start_server(
+                name='mlv_ros live view',
+                host=self.host,
+                port=port,
+                context=self.fox_context,
+                message_backlog_size=backlog,
+                server_listener=self._fox_listener,
+            )
         except RuntimeError as exc:
             raise ValueError(port_error(self.host, port, exc)) from None
         self.port = self.server.port
-        self.url = f"ws://{self.host}:{self.port}"
-        self.cloud_channel = PointCloudChannel(self._channel_name(CLOUD_CHANNEL), context=self.fox_context)
+        self.url = f'ws://{self.host}:{self.port}'
+        self.cloud_channel = PointCloudChannel(
+            self._channel_name(CLOUD_CHANNEL), context=self.fox_context
+        )
         self.curves_channel = foxglove.Channel(
-            self._channel_name(CURVES_CHANNEL), context=self.fox_context,
-            schema=foxglove.Schema(name="mlv_ros.PhaseCurves", encoding="jsonschema",
-                                   data=json.dumps(conversions.curves_schema()).encode()),
-            message_encoding="json")
+            self._channel_name(CURVES_CHANNEL),
+            context=self.fox_context,
+            schema=foxglove.Schema(
+                name='mlv_ros.PhaseCurves',
+                encoding='jsonschema',
+                data=json.dumps(conversions.curves_schema()).encode(),
+            ),
+            message_encoding='json',
+        )
         # (view, slice) → {"image": channel, "tags": channel, "window": (lo, hi), "images": {phase:
         # RawImage}, "tags_by_phase": {phase: ImageAnnotations}}
         self._slices: dict = {}
         self.phases_served: set[int] = set()  # phases whose cloud (or verdict) went out
-        self._last_cloud = None  # the latest foxglove.PointCloud served (for a client that subscribes late)
+        self._last_cloud = (
+            None  # the latest foxglove.PointCloud served (for a client that subscribes late)
+        )
         self._clouds: dict = {}  # stamp → (points, stamp msg) waiting for its model state
         self._states: dict = {}  # stamp → model state waiting for its cloud
         self._foreign_stamps = RecentKeys()
         self.phases_not_shown: dict[int, str] = {}  # failed phase → reasons
         self.curves_served = 0
         self.messages_handled = 0
-        self.create_subscription(PointCloud2, qos.relative(qos.MOTION), self._on_motion, qos.subscription_qos(qos.MOTION))
-        self.create_subscription(ModelStateMsg, qos.relative(qos.MODEL_STATE), self._on_state,
-                                 qos.subscription_qos(qos.MODEL_STATE))
-        self.create_subscription(MotionMetrics, qos.relative(qos.METRICS), self._on_metrics,
-                                 qos.subscription_qos(qos.METRICS))
+        self.create_subscription(
+            PointCloud2,
+            qos.relative(qos.MOTION),
+            self._on_motion,
+            qos.subscription_qos(qos.MOTION),
+        )
+        self.create_subscription(
+            ModelStateMsg,
+            qos.relative(qos.MODEL_STATE),
+            self._on_state,
+            qos.subscription_qos(qos.MODEL_STATE),
+        )
+        self.create_subscription(
+            MotionMetrics,
+            qos.relative(qos.METRICS),
+            self._on_metrics,
+            qos.subscription_qos(qos.METRICS),
+        )
         if self.images:
-            self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
-                                     qos.subscription_qos(qos.FRAMES, catch_up=catch_up))
-            self.create_subscription(TagPoints, qos.relative(qos.TAG_POINTS), self._on_tags,
-                                     qos.subscription_qos(qos.TAG_POINTS, catch_up=catch_up))
+            self.create_subscription(
+                TaggedFrame,
+                qos.relative(qos.FRAMES),
+                self._on_frame,
+                qos.subscription_qos(qos.FRAMES, catch_up=catch_up),
+            )
+            self.create_subscription(
+                TagPoints,
+                qos.relative(qos.TAG_POINTS),
+                self._on_tags,
+                qos.subscription_qos(qos.TAG_POINTS, catch_up=catch_up),
+            )
         self.create_timer(0.2, self._serve_subscribed)
-        self.report(OK, "serving", url=self.url)
+        self.report(OK, 'serving', url=self.url)
 
     def _serve_subscribed(self) -> None:
-        """Serve what a client that just subscribed missed: the latest cloud, unless a newer one
+        """
+        Serve what a client that just subscribed missed: the latest cloud, unless a newer one
         went out since it subscribed; a slice's images and tag points of the phases shown before
-        it subscribed (others subscribed then see them again, with the same stamps)."""
+        it subscribed (others subscribed then see them again, with the same stamps).
+        """
         topics = self._fox_listener.topics
         while topics:
             topic, clouds_then, served_then = topics.pop(0)
-            if topic == self.cloud_channel.topic() and clouds_then and clouds_then == self.clouds_served:
+            if (
+                topic == self.cloud_channel.topic()
+                and clouds_then
+                and clouds_then == self.clouds_served
+            ):
                 self.cloud_channel.log(self._last_cloud)
             for ch in list(self._slices.values()):
-                for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
+                for kind, held in (('image', ch['images']), ('tags', ch['tags_by_phase'])):
                     if ch[kind].topic() == topic:
                         for phase in sorted(served_then & set(held)):
                             ch[kind].log(held[phase])
@@ -168,21 +246,29 @@ class LiveView(GraphNode):
         self.messages_handled += 1
         key = stamp_key(msg.header.stamp)
         if key in self._foreign_stamps:
-            self.cloud_of_other_study(qos.MOTION, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key))
+            self.cloud_of_other_study(
+                qos.MOTION, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key)
+            )
             return
         try:
-            points = conversions.msg_to_cloud(msg, finite=("x", "y", "z"))
+            points = conversions.msg_to_cloud(msg, finite=('x', 'y', 'z'))
         except ValueError as exc:
-            self.report(ERROR, "bad motion cloud not shown", stamp=conversions.stamp_text(msg.header.stamp),
-                        reason=str(exc))
+            self.report(
+                ERROR,
+                'bad motion cloud not shown',
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
             return
-        self._hold(self._clouds, "motion cloud", key, (points, msg.header))
+        self._hold(self._clouds, 'motion cloud', key, (points, msg.header))
 
     def _on_state(self, msg: ModelStateMsg) -> None:
         self.messages_handled += 1
         stamp = conversions.stamp_text(msg.header.stamp)
         key = stamp_key(msg.header.stamp)
-        other = self.foreign(msg.study_id, qos.MODEL_STATE, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp)
+        other = self.foreign(
+            msg.study_id, qos.MODEL_STATE, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp
+        )
         if other:
             self._foreign_stamps.add(key, other)
             if self._clouds.pop(key, None) is not None:
@@ -191,15 +277,22 @@ class LiveView(GraphNode):
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad model state: its phase is not shown", phase=msg.phase_index, stamp=stamp,
-                        reason=str(exc))
+            self.report(
+                ERROR,
+                'bad model state: its phase is not shown',
+                phase=msg.phase_index,
+                stamp=stamp,
+                reason=str(exc),
+            )
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold(self._states, "model state", key, state)
+        self._hold(self._states, 'model state', key, state)
 
     def _hold(self, held: dict, what: str, key, item) -> None:
-        """Keep ``item`` until its pair (same stamp) is in, then serve the phase; the oldest goes
-        (said on /diagnostics) when more than ``max_unpaired`` wait."""
+        """
+        Keep ``item`` until its pair (same stamp) is in, then serve the phase; the oldest goes
+        (said on /diagnostics) when more than ``max_unpaired`` wait.
+        """
         held[key] = item
         if key in self._clouds and key in self._states:
             (points, header), state = self._clouds.pop(key), self._states.pop(key)
@@ -207,7 +300,9 @@ class LiveView(GraphNode):
         while len(held) > self.max_unpaired:
             old = next(iter(held))
             held.pop(old)
-            self.report(WARN, f"unpaired {what} not shown", stamp=f"{old[0]}.{old[1]:09d}", held=len(held))
+            self.report(
+                WARN, f'unpaired {what} not shown', stamp=f'{old[0]}.{old[1]:09d}', held=len(held)
+            )
 
     def _serve_phase(self, points, header, state) -> None:
         from foxglove import StatusLevel
@@ -217,34 +312,58 @@ class LiveView(GraphNode):
         self.phases_served.add(phase)
         self._served = frozenset(self.phases_served)
         for ch in self._slices.values():  # the images of this phase, with their tag points
-            for kind, held in (("image", ch["images"]), ("tags", ch["tags_by_phase"])):
+            for kind, held in (('image', ch['images']), ('tags', ch['tags_by_phase'])):
                 if phase in held:
                     ch[kind].log(held[phase])
         if verdict.level >= FAILED:
             # Not a measurement: never drawn. Foxglove's problems list says why.
             self.phases_not_shown[phase] = verdict.text
-            self.server.publish_status(f"phase {phase} failed, not shown: {verdict.text}", StatusLevel.Error,
-                                       id=f"phase {phase}")
+            self.server.publish_status(
+                f'phase {phase} failed, not shown: {verdict.text}',
+                StatusLevel.Error,
+                id=f'phase {phase}',
+            )
             return
         if verdict.level == DEGRADED:
-            self.server.publish_status(f"phase {phase} degraded (use with care): {verdict.text}", StatusLevel.Warning,
-                                       id=f"phase {phase}")
-        self._last_cloud = conversions.cloud_to_foxglove(points, header.stamp,
-                                                         header.frame_id or conversions.PATIENT_FRAME)
+            self.server.publish_status(
+                f'phase {phase} degraded (use with care): {verdict.text}',
+                StatusLevel.Warning,
+                id=f'phase {phase}',
+            )
+        self._last_cloud = conversions.cloud_to_foxglove(
+            points, header.stamp, header.frame_id or conversions.PATIENT_FRAME
+        )
         self.cloud_channel.log(self._last_cloud)
         self.clouds_served += 1
-        self.report(OK, "serving", url=self.url, phases_shown=self.clouds_served,
-                    phases_not_shown=len(self.phases_not_shown), client_subscriptions=self._fox_listener.count)
+        self.report(
+            OK,
+            'serving',
+            url=self.url,
+            phases_shown=self.clouds_served,
+            phases_not_shown=len(self.phases_not_shown),
+            client_subscriptions=self._fox_listener.count,
+        )
 
     # ------------------------------------------------------------------ curves
     def _on_metrics(self, msg: MotionMetrics) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.METRICS, run_id=msg.run_id, phase=msg.phase_index, stamp=conversions.stamp_text(msg.header.stamp)):
+        if self.foreign(
+            msg.study_id,
+            qos.METRICS,
+            run_id=msg.run_id,
+            phase=msg.phase_index,
+            stamp=conversions.stamp_text(msg.header.stamp),
+        ):
             return
         try:
             curves = conversions.metrics_to_curves(conversions.msg_to_metrics(msg))
         except ValueError as exc:
-            self.report(ERROR, "bad metrics not shown", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad metrics not shown',
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
             return
         self.curves_channel.log(curves)
         self.curves_served += 1
@@ -257,11 +376,18 @@ class LiveView(GraphNode):
 
             name = slice_name(*key)
             self._slices[key] = {
-                "image": RawImageChannel(self._channel_name(SLICE_CHANNEL.format(name=name, kind="image")),
-                                         context=self.fox_context),
-                "tags": ImageAnnotationsChannel(self._channel_name(SLICE_CHANNEL.format(name=name, kind="tags")),
-                                                context=self.fox_context),
-                "window": None, "images": {}, "tags_by_phase": {}}
+                'image': RawImageChannel(
+                    self._channel_name(SLICE_CHANNEL.format(name=name, kind='image')),
+                    context=self.fox_context,
+                ),
+                'tags': ImageAnnotationsChannel(
+                    self._channel_name(SLICE_CHANNEL.format(name=name, kind='tags')),
+                    context=self.fox_context,
+                ),
+                'window': None,
+                'images': {},
+                'tags_by_phase': {},
+            }
         return self._slices[key]
 
     def _on_frame(self, msg: TaggedFrame) -> None:
@@ -272,15 +398,19 @@ class LiveView(GraphNode):
         try:
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
             ch = self._slice(frame.view, frame.slice_index)
-            ch["window"] = ch["window"] or conversions.display_window(frame.image)
-            image = conversions.image_to_foxglove(frame.image, ch["window"], msg.header.stamp,
-                                                  msg.header.frame_id or conversions.PATIENT_FRAME)
+            ch['window'] = ch['window'] or conversions.display_window(frame.image)
+            image = conversions.image_to_foxglove(
+                frame.image,
+                ch['window'],
+                msg.header.stamp,
+                msg.header.frame_id or conversions.PATIENT_FRAME,
+            )
         except ValueError as exc:
-            self.report(WARN, "frame not shown", stamp=stamp, reason=str(exc))
+            self.report(WARN, 'frame not shown', stamp=stamp, reason=str(exc))
             return
-        ch["images"][frame.phase_index] = image
+        ch['images'][frame.phase_index] = image
         if frame.phase_index in self.phases_served:  # a late frame of a phase already shown
-            ch["image"].log(image)
+            ch['image'].log(image)
 
     def _on_tags(self, msg: TagPoints) -> None:
         self.messages_handled += 1
@@ -291,15 +421,15 @@ class LiveView(GraphNode):
             points = conversions.msg_to_tagpoints(msg)
             ann = conversions.tagpoints_to_foxglove(points.pixel_rc, msg.header.stamp)
         except ValueError as exc:
-            self.report(WARN, "tag points not shown", stamp=stamp, reason=str(exc))
+            self.report(WARN, 'tag points not shown', stamp=stamp, reason=str(exc))
             return
         ch = self._slice(points.view, points.slice_index)
-        ch["tags_by_phase"][points.phase_index] = ann
+        ch['tags_by_phase'][points.phase_index] = ann
         if points.phase_index in self.phases_served:
-            ch["tags"].log(ann)
+            ch['tags'].log(ann)
 
     def destroy_node(self):
-        server = getattr(self, "server", None)
+        server = getattr(self, 'server', None)
         if server is not None:
             server.stop()
             self.server = None
@@ -310,5 +440,5 @@ def main(args=None):
     return run_node(LiveView, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""meshless_solver: dense LV motion phase by phase (``/mlv/tag_points`` + the registered model →
+"""
+meshless_solver: dense LV motion phase by phase (``/mlv/tag_points`` + the registered model →
 ``/lv/motion``, ``/lv/model_state``).
 
 Tag point sets are assembled per phase as slices arrive, in any order (a duplicate replaces its
@@ -20,50 +21,144 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-from sensor_msgs.msg import PointCloud2
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
-from mlv_ros.core.analysis import LVFrame, cardiac_coordinates, cardiac_strain
+from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import plane_level_span
-from mlv_ros.core.tracking import MotionTracker, PhaseAssembler, lv_frame_axes, twist_knots_error
+from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, PhaseAssembler, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, Silence, run_node, stamp_key
+from mlv_ros.nodes.common import (
+    ERROR,
+    GraphNode,
+    OK,
+    RecentKeys,
+    run_node,
+    Silence,
+    stamp_key,
+    WARN,
+)
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
+import numpy as np
+from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
-MOTION_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "err", "ecc", "ell")
+MOTION_FIELDS = ('x', 'y', 'z', 'dx', 'dy', 'dz', 'err', 'ecc', 'ell')
 
 
 class MeshlessSolver(GraphNode):
-    DIAGNOSTIC_TASK = "motion solve"
+    DIAGNOSTIC_TASK = 'motion solve'
 
     def __init__(self, **node_kwargs):
-        super().__init__("meshless_solver", **node_kwargs)
-        self.data_weight = self.param("data_weight", 1.0e4, "tag-force stiffness relative to elasticity", min_value=1e-3, max_value=1e9)
-        self.hourglass_weight = self.param("hourglass_weight", 1.0e3, "MLS fit-error (zero-energy mode) stiffness relative to elasticity", min_value=0.0, max_value=1e9)
-        self.volume_weight = self.param("volume_weight", 1.0e3, "near-incompressibility penalty, in units of the shear modulus (0 = off)", min_value=0.0, max_value=1e9)
-        self.global_prior = self.param("global_prior", 1.0, "prior holding the global parameters at the previous phase, counted like this many control points (0 = off)", min_value=0.0, max_value=1e5)
-        self.longitudinal_weight = self.param("longitudinal_weight", 3.0e3, "stiffness against local stretch along the long axis, in units of the shear modulus (0 = off): only LA tags measure it", min_value=0.0, max_value=1e9)
-        self.twist_knots = self.param("twist_knots", 11, "knots of the twist function of height (0 = the single twist factor τ)", min_value=0, max_value=100, check=twist_knots_error)
-        self.twist_smoothing = self.param("twist_smoothing", 0.3, "curvature penalty of the twist function", min_value=1e-6, max_value=1e5)
-        self.slice_following = self.param("slice_following", 1, "re-attachment passes keeping tag points on their planes", min_value=0, max_value=10)
-        self.max_iterations = self.param("max_iterations", 100, "solver iterations per phase", min_value=1, max_value=10000)
-        self.incomplete_timeout_s = self.param("incomplete_timeout_s", 5.0, "solve an incomplete phase after this long without input", min_value=0.1, max_value=3600.0)
-        self.wait_for_subscribers = self.param("wait_for_subscribers", 1, "matched subscribers of the motion and state topics to wait for before publishing", min_value=0, max_value=100)
-        self.wait_timeout_s = self.param("wait_timeout_s", 10.0, "then publish to those present, with a warning", min_value=0.0, max_value=3600.0)
+        super().__init__('meshless_solver', **node_kwargs)
+        self.data_weight = self.param(
+            'data_weight',
+            1.0e4,
+            'tag-force stiffness relative to elasticity',
+            min_value=1e-3,
+            max_value=1e9,
+        )
+        self.hourglass_weight = self.param(
+            'hourglass_weight',
+            1.0e3,
+            'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
+            min_value=0.0,
+            max_value=1e9,
+        )
+        self.volume_weight = self.param(
+            'volume_weight',
+            1.0e3,
+            'near-incompressibility penalty, in units of the shear modulus (0 = off)',
+            min_value=0.0,
+            max_value=1e9,
+        )
+        self.global_prior = self.param(
+            'global_prior',
+            1.0,
+            'prior holding the global parameters at the previous phase, counted like this many '
+            'control points (0 = off)',
+            min_value=0.0,
+            max_value=1e5,
+        )
+        self.longitudinal_weight = self.param(
+            'longitudinal_weight',
+            3.0e3,
+            'stiffness against local stretch along the long axis, in units of the shear '
+            'modulus (0 = off): only LA tags measure it',
+            min_value=0.0,
+            max_value=1e9,
+        )
+        self.twist_knots = self.param(
+            'twist_knots',
+            11,
+            'knots of the twist function of height (0 = the single twist factor τ)',
+            min_value=0,
+            max_value=100,
+            check=twist_knots_error,
+        )
+        self.twist_smoothing = self.param(
+            'twist_smoothing',
+            0.3,
+            'curvature penalty of the twist function',
+            min_value=1e-6,
+            max_value=1e5,
+        )
+        self.slice_following = self.param(
+            'slice_following',
+            1,
+            're-attachment passes keeping tag points on their planes',
+            min_value=0,
+            max_value=10,
+        )
+        self.max_iterations = self.param(
+            'max_iterations', 100, 'solver iterations per phase', min_value=1, max_value=10000
+        )
+        self.incomplete_timeout_s = self.param(
+            'incomplete_timeout_s',
+            5.0,
+            'solve an incomplete phase after this long without input',
+            min_value=0.1,
+            max_value=3600.0,
+        )
+        self.wait_for_subscribers = self.param(
+            'wait_for_subscribers',
+            1,
+            'matched subscribers of the motion and state topics to wait for before publishing',
+            min_value=0,
+            max_value=100,
+        )
+        self.wait_timeout_s = self.param(
+            'wait_timeout_s',
+            10.0,
+            'then publish to those present, with a warning',
+            min_value=0.0,
+            max_value=3600.0,
+        )
         self._waiting_since = None
-        self.motion_pub = self.create_publisher(PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION))
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.MODEL_STATE),
-                                               qos.topic_qos(qos.MODEL_STATE))
-        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_cloud,
-                                 qos.subscription_qos(qos.REGISTERED_CLOUD))
-        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_state,
-                                 qos.subscription_qos(qos.REGISTERED_STATE))
-        self.create_subscription(TagPoints, qos.relative(qos.TAG_POINTS), self._on_points,
-                                 qos.subscription_qos(qos.TAG_POINTS, catch_up=True))
+        self.motion_pub = self.create_publisher(
+            PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION)
+        )
+        self.state_pub = self.create_publisher(
+            ModelStateMsg, qos.relative(qos.MODEL_STATE), qos.topic_qos(qos.MODEL_STATE)
+        )
+        self.create_subscription(
+            PointCloud2,
+            qos.relative(qos.REGISTERED_CLOUD),
+            self._on_cloud,
+            qos.subscription_qos(qos.REGISTERED_CLOUD),
+        )
+        self.create_subscription(
+            ModelStateMsg,
+            qos.relative(qos.REGISTERED_STATE),
+            self._on_state,
+            qos.subscription_qos(qos.REGISTERED_STATE),
+        )
+        self.create_subscription(
+            TagPoints,
+            qos.relative(qos.TAG_POINTS),
+            self._on_points,
+            qos.subscription_qos(qos.TAG_POINTS, catch_up=True),
+        )
         self.assembler = PhaseAssembler()
         self.cloud = None
         self.rest_state = None
@@ -75,11 +170,13 @@ class MeshlessSolver(GraphNode):
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
         self.next_phase = 0
         self.num_phases = 0
-        self.silence = Silence(TIMER_PERIOD_S)  # on the tag points, counted while this node is spun
+        self.silence = Silence(
+            TIMER_PERIOD_S
+        )  # on the tag points, counted while this node is spun
         self.phases_published = 0
         self.messages_handled = 0
         self.create_timer(TIMER_PERIOD_S, self._on_timer)
-        self.report(OK, "waiting for the registered model")
+        self.report(OK, 'waiting for the registered model')
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -90,7 +187,7 @@ class MeshlessSolver(GraphNode):
         try:
             cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
         except ValueError as exc:
-            self.report(ERROR, "bad registered cloud", stamp=stamp, reason=str(exc))
+            self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
             return
         self._reg_clouds[key] = cloud
         while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
@@ -108,7 +205,7 @@ class MeshlessSolver(GraphNode):
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad registered state", stamp=stamp, reason=str(exc))
+            self.report(ERROR, 'bad registered state', stamp=stamp, reason=str(exc))
             return
         self.study.adopt(state.study_id, state.run_id)
         self.rest_state, self._rest_key = state, key
@@ -124,40 +221,77 @@ class MeshlessSolver(GraphNode):
         pts = conversions.xyz(c)
         try:
             self.tracker = MotionTracker(
-                pts, s.translation, s.rotation, polar=(c["alpha"], c["beta"], c["w"]),
-                shape=(s.a0, s.a1, s.a2, s.a3, s.tau), data_weight=self.data_weight, hourglass_weight=self.hourglass_weight,
-                volume_weight=self.volume_weight, longitudinal_weight=self.longitudinal_weight, global_prior=self.global_prior, twist_knots=self.twist_knots, twist_smoothing=self.twist_smoothing,
-                slice_following=self.slice_following, max_iterations=self.max_iterations)
+                pts,
+                s.translation,
+                s.rotation,
+                polar=(c['alpha'], c['beta'], c['w']),
+                shape=(s.a0, s.a1, s.a2, s.a3, s.tau),
+                data_weight=self.data_weight,
+                hourglass_weight=self.hourglass_weight,
+                volume_weight=self.volume_weight,
+                longitudinal_weight=self.longitudinal_weight,
+                global_prior=self.global_prior,
+                twist_knots=self.twist_knots,
+                twist_smoothing=self.twist_smoothing,
+                slice_following=self.slice_following,
+                max_iterations=self.max_iterations,
+            )
         except ValueError as exc:
-            self.report(ERROR, "cannot build the model from the registration", reason=str(exc))
+            self.report(ERROR, 'cannot build the model from the registration', reason=str(exc))
             return
         apex, base, ref = lv_frame_axes(pts, s.rotation)
         self.frame = LVFrame(apex, base, ref)
         self.cardiac = cardiac_coordinates(pts, self.frame)
-        self.report(OK, "model ready", particles=len(pts))
+        self.report(OK, 'model ready', particles=len(pts))
         self._advance()
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.TAG_POINTS, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
-                        stamp=conversions.stamp_text(msg.header.stamp)):
+        if self.foreign(
+            msg.study_id,
+            qos.TAG_POINTS,
+            run_id=msg.run_id,
+            view=msg.view,
+            slice=msg.slice_index,
+            phase=msg.phase_index,
+            stamp=conversions.stamp_text(msg.header.stamp),
+        ):
             return  # another graph's tag points (nor are they input to wait on)
         self.silence.heard()
         try:
             points = conversions.msg_to_tagpoints(msg)
             self.study.check(points)
         except ValueError as exc:
-            self.report(ERROR, "bad tag points dropped", view=msg.view, slice=msg.slice_index,
-                        phase=msg.phase_index, stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad tag points dropped',
+                view=msg.view,
+                slice=msg.slice_index,
+                phase=msg.phase_index,
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
             return
         self.num_phases = max(self.num_phases, points.num_phases)
         if points.phase_index < self.next_phase:
-            self.report(WARN, "tag points for an already solved phase ignored", view=points.view,
-                        slice=points.slice_index, phase=points.phase_index, stamp=conversions.stamp_text(msg.header.stamp))
+            self.report(
+                WARN,
+                'tag points for an already solved phase ignored',
+                view=points.view,
+                slice=points.slice_index,
+                phase=points.phase_index,
+                stamp=conversions.stamp_text(msg.header.stamp),
+            )
             return
         if self.assembler.add(points):
-            self.report(WARN, "duplicate tag points replace the earlier set", view=points.view,
-                        slice=points.slice_index, phase=points.phase_index, stamp=conversions.stamp_text(msg.header.stamp))
+            self.report(
+                WARN,
+                'duplicate tag points replace the earlier set',
+                view=points.view,
+                slice=points.slice_index,
+                phase=points.phase_index,
+                stamp=conversions.stamp_text(msg.header.stamp),
+            )
         self._advance()
 
     def _on_timer(self) -> None:
@@ -170,10 +304,14 @@ class MeshlessSolver(GraphNode):
             self._advance()
 
     def _outputs_ready(self) -> bool:
-        """Whether the results may go out: outputs are VOLATILE streams, so a phase published
+        """
+        Whether the results may go out: outputs are VOLATILE streams, so a phase published
         before a subscriber has matched (e.g. by a solver restarted mid-run, which solves its
-        first phases at once) never reaches it."""
-        matched = min(self.motion_pub.get_subscription_count(), self.state_pub.get_subscription_count())
+        first phases at once) never reaches it.
+        """
+        matched = min(
+            self.motion_pub.get_subscription_count(), self.state_pub.get_subscription_count()
+        )
         if matched >= self.wait_for_subscribers:
             self._waiting_since = None
             return True
@@ -181,8 +319,13 @@ class MeshlessSolver(GraphNode):
             self._waiting_since = time.monotonic()
         if time.monotonic() - self._waiting_since < self.wait_timeout_s:
             return False
-        self.report(WARN, "fewer subscribers than expected; publishing anyway", matched=matched,
-                    expected=self.wait_for_subscribers, waited_s=self.wait_timeout_s)
+        self.report(
+            WARN,
+            'fewer subscribers than expected; publishing anyway',
+            matched=matched,
+            expected=self.wait_for_subscribers,
+            waited_s=self.wait_timeout_s,
+        )
         self.wait_for_subscribers = matched  # once: do not wait again for the same absentees
         return True
 
@@ -193,14 +336,21 @@ class MeshlessSolver(GraphNode):
             return
         while self.num_phases and self.next_phase < self.num_phases:
             p = self.next_phase
-            later_complete = any(self.assembler.complete(q) for q in self.assembler.phases if q > p)
+            later_complete = any(
+                self.assembler.complete(q) for q in self.assembler.phases if q > p
+            )
             if not (self.assembler.complete(p) or later_complete or force):
                 return
             force = False
             sets = self.assembler.sets(p)
             if not self.assembler.complete(p):
-                self.report(WARN, "solving an incomplete phase", phase=p, slices=len(sets),
-                            expected=self.assembler.expected_slices)
+                self.report(
+                    WARN,
+                    'solving an incomplete phase',
+                    phase=p,
+                    slices=len(sets),
+                    expected=self.assembler.expected_slices,
+                )
             self._solve(p, sets)
             self.assembler.phases.pop(p, None)
             self.next_phase = p + 1
@@ -212,41 +362,71 @@ class MeshlessSolver(GraphNode):
         if phase == 0:
             used = sum(tr.set_reference(pts) for pts in sets.values())
             # Only SA tags see twist: beyond the SA planes with ED points it is extrapolated.
-            self.twist_span = plane_level_span(self.frame, [
-                (p.geometry.image_position, p.geometry.normal) for (view, _), p in sets.items()
-                if view == TaggedFrame.VIEW_SA and len(p) and p.geometry is not None])
-            self.report(OK, "twist measured where SA slices hold tag points",
-                        levels="none" if self.twist_span is None else
-                        f"{self.twist_span[0]:.2f}..{self.twist_span[1]:.2f}")
+            self.twist_span = plane_level_span(
+                self.frame,
+                [
+                    (p.geometry.image_position, p.geometry.normal)
+                    for (view, _), p in sets.items()
+                    if view == TaggedFrame.VIEW_SA and len(p) and p.geometry is not None
+                ],
+            )
+            self.report(
+                OK,
+                'twist measured where SA slices hold tag points',
+                levels='none'
+                if self.twist_span is None
+                else f'{self.twist_span[0]:.2f}..{self.twist_span[1]:.2f}',
+            )
             x, E = tr.rest, np.zeros((tr.num_particles, 3, 3))
             state = self.rest_state
-            state.phase_index, state.num_phases, state.num_control_points = 0, self.num_phases, used
+            state.phase_index, state.num_phases, state.num_control_points = (
+                0,
+                self.num_phases,
+                used,
+            )
             state.converged = True
         else:
             try:
                 sol = tr.solve(phase, sets, self.num_phases)
             except ValueError as exc:
-                self.report(ERROR, "phase not solved", phase=phase, reason=str(exc))
+                self.report(ERROR, 'phase not solved', phase=phase, reason=str(exc))
                 return
             x, E, state = sol.positions, sol.strain, sol.state
         state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
         d = x - tr.rest
-        cloud = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2],
-                 "err": strain["rr"], "ecc": strain["cc"], "ell": strain["ll"]}
+        cloud = {
+            'x': x[:, 0],
+            'y': x[:, 1],
+            'z': x[:, 2],
+            'dx': d[:, 0],
+            'dy': d[:, 1],
+            'dz': d[:, 2],
+            'err': strain['rr'],
+            'ecc': strain['cc'],
+            'ell': strain['ll'],
+        }
         stamp = self.get_clock().now().to_msg()
-        self.motion_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp)))
+        self.motion_pub.publish(
+            conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp))
+        )
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         self.phases_published += 1
-        self.report(OK, "phase solved", phase=phase, verdict=LEVEL_NAMES[state.verdict],
-                    control_points=state.num_control_points,
-                    residual_mm=round(float(state.residual), 3), iterations=state.iterations,
-                    seconds=round(time.monotonic() - t0, 3))
+        self.report(
+            OK,
+            'phase solved',
+            phase=phase,
+            verdict=LEVEL_NAMES[state.verdict],
+            control_points=state.num_control_points,
+            residual_mm=round(float(state.residual), 3),
+            iterations=state.iterations,
+            seconds=round(time.monotonic() - t0, 3),
+        )
 
 
 def main(args=None):
     return run_node(MeshlessSolver, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
+"""
+motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
 ``/lv/metrics``, ``mlv_msgs/MotionMetrics``).
 
 Each motion cloud is paired with the model state of identical header stamp (the solver stamps
@@ -22,9 +23,6 @@ wall-motion class) and where the AHA segments' circumferential origin came from
 
 from __future__ import annotations
 
-import numpy as np
-from sensor_msgs.msg import PointCloud2
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
@@ -32,30 +30,63 @@ from mlv_ros.core.analysis import LVAnalyzer, LVFrame, SegmentFindings
 from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, RecentKeys, run_node, stamp_key
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
 from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
-
+import numpy as np
+from sensor_msgs.msg import PointCloud2
 
 _key = stamp_key
 
 
 class MotionAnalyzer(GraphNode):
-    DIAGNOSTIC_TASK = "motion analysis"
+    DIAGNOSTIC_TASK = 'motion analysis'
 
     def __init__(self, **node_kwargs):
-        super().__init__("motion_analyzer", **node_kwargs)
-        self.levels = self.param("levels", 10, "level bins apex → base", min_value=2, max_value=100)
-        self.endo_fraction = self.param("endo_fraction", 0.2, "transmural depth counted as endocardium (cavity volume)", min_value=0.01, max_value=1.0)
-        self.max_unpaired = self.param("max_unpaired", 200, "motion clouds / model states held while waiting for their pair", min_value=1, max_value=100000)
-        self.pub = self.create_publisher(MotionMetrics, qos.relative(qos.METRICS), qos.topic_qos(qos.METRICS))
-        self.create_subscription(PointCloud2, qos.relative(qos.REGISTERED_CLOUD), self._on_registered_cloud,
-                                 qos.subscription_qos(qos.REGISTERED_CLOUD))
-        self.create_subscription(ModelStateMsg, qos.relative(qos.REGISTERED_STATE), self._on_registered_state,
-                                 qos.subscription_qos(qos.REGISTERED_STATE))
-        self.create_subscription(PointCloud2, qos.relative(qos.MOTION), self._on_motion,
-                                 qos.subscription_qos(qos.MOTION))
-        self.create_subscription(ModelStateMsg, qos.relative(qos.MODEL_STATE), self._on_state,
-                                 qos.subscription_qos(qos.MODEL_STATE))
+        super().__init__('motion_analyzer', **node_kwargs)
+        self.levels = self.param(
+            'levels', 10, 'level bins apex → base', min_value=2, max_value=100
+        )
+        self.endo_fraction = self.param(
+            'endo_fraction',
+            0.2,
+            'transmural depth counted as endocardium (cavity volume)',
+            min_value=0.01,
+            max_value=1.0,
+        )
+        self.max_unpaired = self.param(
+            'max_unpaired',
+            200,
+            'motion clouds / model states held while waiting for their pair',
+            min_value=1,
+            max_value=100000,
+        )
+        self.pub = self.create_publisher(
+            MotionMetrics, qos.relative(qos.METRICS), qos.topic_qos(qos.METRICS)
+        )
+        self.create_subscription(
+            PointCloud2,
+            qos.relative(qos.REGISTERED_CLOUD),
+            self._on_registered_cloud,
+            qos.subscription_qos(qos.REGISTERED_CLOUD),
+        )
+        self.create_subscription(
+            ModelStateMsg,
+            qos.relative(qos.REGISTERED_STATE),
+            self._on_registered_state,
+            qos.subscription_qos(qos.REGISTERED_STATE),
+        )
+        self.create_subscription(
+            PointCloud2,
+            qos.relative(qos.MOTION),
+            self._on_motion,
+            qos.subscription_qos(qos.MOTION),
+        )
+        self.create_subscription(
+            ModelStateMsg,
+            qos.relative(qos.MODEL_STATE),
+            self._on_state,
+            qos.subscription_qos(qos.MODEL_STATE),
+        )
         self.reg_cloud = self.reg_state = self.analyzer = None
         self.findings = SegmentFindings()  # per-segment findings of the cycle so far
         self._findings_said = None  # the abnormal segments last reported
@@ -68,26 +99,35 @@ class MotionAnalyzer(GraphNode):
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
         self.volumes: dict = {}  # phase → cavity volume, ml, of the latest metrics
         self.messages_handled = 0
-        self.report(OK, "waiting for the registered model")
+        self.report(OK, 'waiting for the registered model')
 
     def _other_study_cloud(self, topic: str, msg) -> bool:
-        """Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
-        dropped with it (reported on /diagnostics, counted)."""
+        """
+        Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
+        dropped with it (reported on /diagnostics, counted).
+        """
         key = _key(msg.header.stamp)
         if key not in self._foreign_stamps:
             return False
-        self.cloud_of_other_study(topic, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key))
+        self.cloud_of_other_study(
+            topic, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key)
+        )
         return True
 
     def _state_of_other_study(self, msg, topic: str) -> bool:
         """Whether the model state ``msg`` is of another study (reported); its cloud goes too."""
         stamp = conversions.stamp_text(msg.header.stamp)
-        other = self.foreign(msg.study_id, topic, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp)
+        other = self.foreign(
+            msg.study_id, topic, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp
+        )
         if not other:
             return False
         key = _key(msg.header.stamp)
         self._foreign_stamps.add(key, other)
-        for cloud_topic, held in ((qos.REGISTERED_CLOUD, self._reg_clouds), (qos.MOTION, self.clouds)):
+        for cloud_topic, held in (
+            (qos.REGISTERED_CLOUD, self._reg_clouds),
+            (qos.MOTION, self.clouds),
+        ):
             if held.pop(key, None) is not None:
                 self.cloud_of_other_study(cloud_topic, stamp, other)
         return True
@@ -96,9 +136,16 @@ class MotionAnalyzer(GraphNode):
         if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
             return
         try:
-            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
+            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_cloud(
+                msg, finite=REQUIRED_CLOUD_FIELDS
+            )
         except ValueError as exc:
-            self.report(ERROR, "bad registered cloud", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad registered cloud',
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
         while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
             self._reg_clouds.pop(next(iter(self._reg_clouds)))
         self._build()
@@ -109,7 +156,12 @@ class MotionAnalyzer(GraphNode):
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad registered state", stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad registered state',
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
         else:
             self.study.adopt(state.study_id, state.run_id)
             self.reg_state, self._reg_key = state, _key(msg.header.stamp)
@@ -124,15 +176,17 @@ class MotionAnalyzer(GraphNode):
         X = conversions.xyz(self.reg_cloud)
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
         endo = None
-        if "transmural" in self.reg_cloud.dtype.names:
-            endo = self.reg_cloud["transmural"] <= self.endo_fraction
+        if 'transmural' in self.reg_cloud.dtype.names:
+            endo = self.reg_cloud['transmural'] <= self.endo_fraction
             endo = endo if endo.sum() >= 20 else None
         try:
-            self.analyzer = LVAnalyzer(X, LVFrame(apex, base, ref), levels=self.levels, endo_mask=endo)
+            self.analyzer = LVAnalyzer(
+                X, LVFrame(apex, base, ref), levels=self.levels, endo_mask=endo
+            )
         except ValueError as exc:
-            self.report(ERROR, "cannot analyse this model", reason=str(exc))
+            self.report(ERROR, 'cannot analyse this model', reason=str(exc))
             return
-        self.report(OK, "analyzer ready", particles=len(X), edv_ml=round(self.analyzer.edv_ml, 1))
+        self.report(OK, 'analyzer ready', particles=len(X), edv_ml=round(self.analyzer.edv_ml, 1))
         self._pair()
 
     def _on_motion(self, msg: PointCloud2):
@@ -141,15 +195,20 @@ class MotionAnalyzer(GraphNode):
         if self._other_study_cloud(qos.MOTION, msg):
             return
         try:
-            x = conversions.xyz(conversions.msg_to_cloud(msg, finite=("x", "y", "z")))
+            x = conversions.xyz(conversions.msg_to_cloud(msg, finite=('x', 'y', 'z')))
         except ValueError as exc:
-            self.report(ERROR, "bad motion cloud dropped", stamp=stamp, reason=str(exc))
+            self.report(ERROR, 'bad motion cloud dropped', stamp=stamp, reason=str(exc))
             return
         if self.analyzer is not None and x.shape[0] != self.analyzer.X.shape[0]:
-            self.report(ERROR, "motion cloud does not match the registered model", stamp=stamp,
-                        points=x.shape[0], expected=self.analyzer.X.shape[0])
+            self.report(
+                ERROR,
+                'motion cloud does not match the registered model',
+                stamp=stamp,
+                points=x.shape[0],
+                expected=self.analyzer.X.shape[0],
+            )
             return
-        self._hold(self.clouds, "motion cloud", msg.header.stamp, x)
+        self._hold(self.clouds, 'motion cloud', msg.header.stamp, x)
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
@@ -158,21 +217,30 @@ class MotionAnalyzer(GraphNode):
         try:
             state = conversions.msg_to_model_state(msg)
         except ValueError as exc:
-            self.report(ERROR, "bad model state dropped", phase=msg.phase_index,
-                        stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad model state dropped',
+                phase=msg.phase_index,
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold(self.states, "model state", msg.header.stamp, msg)
+        self._hold(self.states, 'model state', msg.header.stamp, msg)
 
     def _hold(self, held: dict, what: str, stamp, item) -> None:
-        """Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
-        (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so."""
+        """
+        Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
+        (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so.
+        """
         held[_key(stamp)] = item
         self._pair()
         while len(held) > self.max_unpaired:
             sec, nanosec = next(iter(held))
             held.pop((sec, nanosec))
-            self.report(WARN, f"unpaired {what} dropped", stamp=f"{sec}.{nanosec:09d}", held=len(held))
+            self.report(
+                WARN, f'unpaired {what} dropped', stamp=f'{sec}.{nanosec:09d}', held=len(held)
+            )
 
     def _pair(self):
         if self.analyzer is None:
@@ -180,16 +248,26 @@ class MotionAnalyzer(GraphNode):
         for key in [k for k in self.clouds if k in self.states]:
             x, state = self.clouds.pop(key), self.states.pop(key)
             if x.shape[0] != self.analyzer.X.shape[0]:
-                self.report(ERROR, "motion cloud does not match the registered model", phase=state.phase_index,
-                            stamp=conversions.stamp_text(state.header.stamp), points=x.shape[0],
-                            expected=self.analyzer.X.shape[0])
+                self.report(
+                    ERROR,
+                    'motion cloud does not match the registered model',
+                    phase=state.phase_index,
+                    stamp=conversions.stamp_text(state.header.stamp),
+                    points=x.shape[0],
+                    expected=self.analyzer.X.shape[0],
+                )
                 continue
             try:
-                metrics = self.analyzer.phase(x, phase_index=state.phase_index, num_phases=state.num_phases,
-                                              residual_mm=state.residual)
+                metrics = self.analyzer.phase(
+                    x,
+                    phase_index=state.phase_index,
+                    num_phases=state.num_phases,
+                    residual_mm=state.residual,
+                )
                 # The solver's data support first, then this phase's physiological bounds.
                 verdict = Verdict.from_parts(state.verdict, state.verdict_reasons).merge(
-                    Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
+                    Verdict.from_parts(metrics.verdict, metrics.verdict_reasons)
+                )
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 metrics.study_id = state.study_id or self.study.study_id
                 metrics.run_id = state.run_id or self.study.run_id
@@ -202,35 +280,56 @@ class MotionAnalyzer(GraphNode):
                     setattr(metrics, name, value)
                 out = conversions.metrics_to_msg(metrics, stamp=state.header.stamp)
             except ValueError as exc:
-                self.report(ERROR, "metrics not computed", phase=state.phase_index, reason=str(exc))
+                self.report(
+                    ERROR, 'metrics not computed', phase=state.phase_index, reason=str(exc)
+                )
                 continue
             self.pub.publish(out)
             self.published += 1
             self.verdicts[int(state.phase_index)] = (verdict.level, verdict.text)
             self.volumes[int(state.phase_index)] = float(metrics.cavity_volume_ml)
-            values = dict(phase=state.phase_index, verdict=verdict.name, volume_ml=round(metrics.cavity_volume_ml, 1),
-                          twist_range_deg=round(float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2))
+            values = {
+                'phase': state.phase_index,
+                'verdict': verdict.name,
+                'volume_ml': round(metrics.cavity_volume_ml, 1),
+                'twist_range_deg': round(
+                    float(np.ptp(metrics.twist_deg)) if metrics.twist_deg.size else 0.0, 2
+                ),
+            }
             # A result the user must not take at face value is said so (WARN degraded, ERROR
             # failed), with why.
             level = {OK_VERDICT: OK, DEGRADED: WARN}.get(verdict.level, ERROR)
-            self.report(level, "metrics", **values, **({"reasons": verdict.text} if verdict.level else {}))
+            self.report(
+                level, 'metrics', **values, **({'reasons': verdict.text} if verdict.level else {})
+            )
             self._say_findings(findings)
 
     def _say_findings(self, f) -> None:
-        """Say which segments read akinetic / dyskinetic whenever that changes (the findings
-        themselves go out in MotionMetrics)."""
-        said = (tuple(f.abnormal(("akinetic",))), tuple(f.abnormal(("dyskinetic",))),
-                f.classes.count("indeterminate"))
+        """
+        Say which segments read akinetic / dyskinetic whenever that changes (the findings
+        themselves go out in MotionMetrics).
+        """
+        said = (
+            tuple(f.abnormal(('akinetic',))),
+            tuple(f.abnormal(('dyskinetic',))),
+            f.classes.count('indeterminate'),
+        )
         if f.es_phase is None or said == self._findings_said:
             return
         self._findings_said = said
-        self.report(OK, "regional findings", es_phase=f.es_phase, akinetic=list(said[0]) or "none",
-                    dyskinetic=list(said[1]) or "none", indeterminate_segments=said[2])
+        self.report(
+            OK,
+            'regional findings',
+            es_phase=f.es_phase,
+            akinetic=list(said[0]) or 'none',
+            dyskinetic=list(said[1]) or 'none',
+            indeterminate_segments=said[2],
+        )
 
 
 def main(args=None):
     return run_node(MotionAnalyzer, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

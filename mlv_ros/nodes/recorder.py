@@ -1,4 +1,5 @@
-"""recorder: writes every graph topic to MCAP the way rosbag2 does (see :mod:`mlv_ros.bagio`).
+"""
+recorder: writes every graph topic to MCAP the way rosbag2 does (see :mod:`mlv_ros.bagio`).
 
 It subscribes to the graph's topics in its own namespace and records them under the names they
 resolve to there (``/mlv/frames`` at the root, ``/study2/mlv/frames`` under ``/study2``), as
@@ -33,14 +34,22 @@ from __future__ import annotations
 
 import errno
 import importlib
-import time
 from pathlib import Path
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.serialization import deserialize_message, serialize_message
-
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.nodes.common import USE_FQN, ERROR, OK, GraphNode, RecentKeys, run_node, stamp_key, status_place
+from mlv_ros.nodes.common import (
+    ERROR,
+    GraphNode,
+    OK,
+    RecentKeys,
+    run_node,
+    stamp_key,
+    status_place,
+    USE_FQN,
+)
+from rclpy.serialization import deserialize_message, serialize_message
 
 # Topics whose messages carry study_id, and the point clouds paired with a model state by stamp.
 STUDY_TOPICS = (qos.FRAMES, qos.TAG_POINTS, qos.REGISTERED_STATE, qos.MODEL_STATE, qos.METRICS)
@@ -48,43 +57,87 @@ CLOUD_STATES = {qos.REGISTERED_CLOUD: qos.REGISTERED_STATE, qos.MOTION: qos.MODE
 MAX_HELD_CLOUDS = 64
 # The nodes of an mlv_ros graph (as the launch file and mlv-ros run name them): their statuses on
 # the shared /diagnostics are the ones a recording keeps.
-GRAPH_NODE_NAMES = ("frame_source", "tag_detector", "registration", "meshless_solver", "motion_analyzer", "recorder",
-                    "replay", "live_view")
+GRAPH_NODE_NAMES = (
+    'frame_source',
+    'tag_detector',
+    'registration',
+    'meshless_solver',
+    'motion_analyzer',
+    'recorder',
+    'replay',
+    'live_view',
+)
 
 
 def message_class(type_name: str):
     """``pkg/msg/Type`` → the generated Python message class."""
-    pkg, _, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+    pkg, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{pkg}.msg'), name)
 
 
 class Recorder(GraphNode):
-    DIAGNOSTIC_TASK = "recording"
+    DIAGNOSTIC_TASK = 'recording'
 
     def __init__(self, **node_kwargs):
-        super().__init__("recorder", **node_kwargs)
-        self.output = self.param("output", "runs/latest/run.mcap", "MCAP file to write (its directory is created)")
-        topics = self.param("topics", list(qos.TOPIC_TYPES), "graph topics to record, by their root names "
-                            "(/mlv/frames; recorded as they resolve in the recorder's namespace)")
-        self.flush_period_s = self.param("flush_period_s", 1.0, "sync completed chunks to disk (fsync) this often", min_value=0.05, max_value=60.0)
-        chunk_kib = self.param("chunk_size_kib", 1024, "MCAP chunk size, KiB", min_value=16, max_value=65536)
-        compression = self.param("compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"))
+        super().__init__('recorder', **node_kwargs)
+        self.output = self.param(
+            'output', 'runs/latest/run.mcap', 'MCAP file to write (its directory is created)'
+        )
+        topics = self.param(
+            'topics',
+            list(qos.TOPIC_TYPES),
+            'graph topics to record, by their root names '
+            "(/mlv/frames; recorded as they resolve in the recorder's namespace)",
+        )
+        self.flush_period_s = self.param(
+            'flush_period_s',
+            1.0,
+            'sync completed chunks to disk (fsync) this often',
+            min_value=0.05,
+            max_value=60.0,
+        )
+        chunk_kib = self.param(
+            'chunk_size_kib', 1024, 'MCAP chunk size, KiB', min_value=16, max_value=65536
+        )
+        compression = self.param(
+            'compression', 'zstd', 'chunk compression', choices=('zstd', 'lz4', 'none')
+        )
         # A recorder that matches a publisher late (across a network, discovery takes a moment)
         # would miss what was sent before; frames and tag points keep their history for it.
-        catch_up = self.param("catch_up", True, "take frames and tag points with their history (TRANSIENT_LOCAL); "
-                              "false for a publisher without history")
+        catch_up = self.param(
+            'catch_up',
+            True,
+            'take frames and tag points with their history (TRANSIENT_LOCAL); '
+            'false for a publisher without history',
+        )
         self.shutdown_wait_s = self.param(
-            "shutdown_wait_s", 10.0, "after SIGINT/SIGTERM, keep recording while the graph's nodes still publish "
-            "on the recorded topics, at most this long (a second signal closes at once)", min_value=0.0, max_value=3600.0)
+            'shutdown_wait_s',
+            10.0,
+            "after SIGINT/SIGTERM, keep recording while the graph's nodes still publish "
+            'on the recorded topics, at most this long (a second signal closes at once)',
+            min_value=0.0,
+            max_value=3600.0,
+        )
         self.all_diagnostics = self.param(
-            "all_diagnostics", False, "record every status on /diagnostics (false: only this graph's: the graph's "
-            "node names in this namespace)")
-        self.other_graph_statuses = 0  # statuses of other graphs' (or other) nodes left out of /diagnostics
-        self._arrays_left_out = 0  # /diagnostics messages left out whole (none of their statuses ours)
+            'all_diagnostics',
+            False,
+            "record every status on /diagnostics (false: only this graph's: the graph's "
+            'node names in this namespace)',
+        )
+        self.other_graph_statuses = (
+            0  # statuses of other graphs' (or other) nodes left out of /diagnostics
+        )
+        self._arrays_left_out = (
+            0  # /diagnostics messages left out whole (none of their statuses ours)
+        )
         unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
         if unknown:
-            raise ValueError(f"cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}")
-        self.writer = bagio.BagWriter(Path(self.output), chunk_size=chunk_kib * 1024, compression=compression)
+            raise ValueError(
+                f'cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}'
+            )
+        self.writer = bagio.BagWriter(
+            Path(self.output), chunk_size=chunk_kib * 1024, compression=compression
+        )
         self.messages_handled = 0
         self.dropped = 0  # messages received after the recording stopped on a write error
         self.ignored = 0  # messages of another study left out
@@ -93,29 +146,41 @@ class Recorder(GraphNode):
         self._held: dict = {}
         self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
         self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
-        self.recorded: dict[str, str] = {}  # graph topic (root name) → the name recorded: as it resolves here
+        self.recorded: dict[
+            str, str
+        ] = {}  # graph topic (root name) → the name recorded: as it resolves here
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
             self.classes[topic] = message_class(type_name)
             self.recorded[topic] = self.topic_name(topic)
-            self.writer.add_topic(self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))])
-            self.create_subscription(message_class(type_name), qos.relative(topic),
-                                     lambda data, info, topic=topic: self._on_message(topic, data, info),
-                                     qos.subscription_qos(topic, catch_up=catch_up), raw=True)
+            self.writer.add_topic(
+                self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))]
+            )
+            self.create_subscription(
+                message_class(type_name),
+                qos.relative(topic),
+                lambda data, info, topic=topic: self._on_message(topic, data, info),
+                qos.subscription_qos(topic, catch_up=catch_up),
+                raw=True,
+            )
         self.create_timer(self.flush_period_s, self.writer.flush)
-        self.report(OK, "recording", output=self.output, topics=len(topics))
+        self.report(OK, 'recording', output=self.output, topics=len(topics))
 
     def upstream_alive(self) -> bool:
-        """Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
-        node and this one publish, aside): after a signal the recording stays open for it."""
-        return any(self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS)
+        """
+        Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
+        node and this one publish, aside): after a signal the recording stays open for it.
+        """
+        return any(
+            self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS
+        )
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.messages_handled += 1
         if self.writer.error is not None or self.writer.closed:
             self.dropped += 1
             return
-        now, published = time.time_ns(), info.get("source_timestamp") or None
+        now, published = time.time_ns(), info.get('source_timestamp') or None
         if topic == qos.DIAGNOSTICS and not self.all_diagnostics:
             data = self._own_statuses(data)
             if data is None:
@@ -130,21 +195,25 @@ class Recorder(GraphNode):
         self._write(self.recorded[topic], data, now, published)
 
     def ours(self, status) -> bool:
-        """Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
+        """
+        Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
         this recorder's namespace. A status named by the node's name alone (no namespace) counts
         as ours at the root, or when this graph does not name its statuses by namespace
         (``diagnostic_updater.use_fqn`` false here): then another graph's in another namespace
-        cannot be told apart, and is kept."""
+        cannot be told apart, and is kept.
+        """
         ns, node = status_place(status)
         if node not in GRAPH_NODE_NAMES:
             return False
         if ns is None:
-            return self.get_namespace() == "/" or not self.get_parameter(USE_FQN).value
+            return self.get_namespace() == '/' or not self.get_parameter(USE_FQN).value
         return ns == qos.full_namespace(self.get_namespace())
 
     def _own_statuses(self, data: bytes) -> bytes | None:
-        """``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
-        when all are, re-serialised when some are not, None when none is."""
+        """
+        ``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
+        when all are, re-serialised when some are not, None when none is.
+        """
         try:
             arr = deserialize_message(data, DiagnosticArray)
         except Exception:  # not ours to judge: recorded as it came
@@ -160,8 +229,10 @@ class Recorder(GraphNode):
         return serialize_message(arr)
 
     def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
-        """Whether ``msg`` is written now (False: left out as another study's, or a cloud held
-        until its state is in)."""
+        """
+        Whether ``msg`` is written now (False: left out as another study's, or a cloud held
+        until its state is in).
+        """
         key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
         if topic in CLOUD_STATES:
             pair = (CLOUD_STATES[topic], key)
@@ -211,44 +282,65 @@ class Recorder(GraphNode):
         code = errno.errorcode.get(exc.errno, str(exc.errno))
         try:
             self.writer.close()  # metadata.yaml for the messages in the file
-            kept = "metadata.yaml written"
+            kept = 'metadata.yaml written'
         except OSError as again:
-            kept = f"metadata.yaml not written: {again.strerror or again}"
-        fix = {errno.ENOSPC: "free space on that disk", errno.EDQUOT: "free space within your disk quota",
-               errno.EFBIG: "raise the file size limit (ulimit -f)"}.get(exc.errno, "check that disk")
-        self.fail(f"recording stopped: {exc.strerror or exc} ({code}); the file keeps the "
-                  f"{self.writer.message_count} messages written before, {kept}", output=self.output,
-                  fix=f"{fix}; `mlv-ros recover` adds the missing index to this file")
+            kept = f'metadata.yaml not written: {again.strerror or again}'
+        fix = {
+            errno.ENOSPC: 'free space on that disk',
+            errno.EDQUOT: 'free space within your disk quota',
+            errno.EFBIG: 'raise the file size limit (ulimit -f)',
+        }.get(exc.errno, 'check that disk')
+        self.fail(
+            f'recording stopped: {exc.strerror or exc} ({code}); the file keeps the '
+            f'{self.writer.message_count} messages written before, {kept}',
+            output=self.output,
+            fix=f'{fix}; `mlv-ros recover` adds the missing index to this file',
+        )
 
     def finish(self) -> None:
-        """Close the recording (every message already taken is in it, clouds still waiting for
-        their state too) and report the counts."""
+        """
+        Close the recording (every message already taken is in it, clouds still waiting for
+        their state too) and report the counts.
+        """
         if self.writer.closed:
             return
         while self._held:
             self._write(*self._held.pop(next(iter(self._held))))
         try:
             self.writer.close()
-            if self.writer.error is not None:  # failed while finishing: the file has what it could take
-                self.fail(f"recording stopped: {self.writer.error.strerror or self.writer.error}",
-                          output=self.output, messages_in_file=self.writer.message_count)
+            if (
+                self.writer.error is not None
+            ):  # failed while finishing: the file has what it could take
+                self.fail(
+                    f'recording stopped: {self.writer.error.strerror or self.writer.error}',
+                    output=self.output,
+                    messages_in_file=self.writer.message_count,
+                )
                 return
             received = sum(c.received for c in self.streams.values())
             lost = sum(c.lost for c in self.streams.values())
-            other = {"other_study": self.ignored} if self.ignored else {}
+            other = {'other_study': self.ignored} if self.ignored else {}
             if self.other_graph_statuses:
-                other["other_graph_statuses"] = self.other_graph_statuses
+                other['other_graph_statuses'] = self.other_graph_statuses
             left_out = self.ignored + self._arrays_left_out
-            self.report(OK if received == self.writer.message_count + left_out and not lost else ERROR,
-                        "recording closed", output=self.output, messages=self.writer.message_count,
-                        received=received, lost=lost, **other)
+            self.report(
+                OK if received == self.writer.message_count + left_out and not lost else ERROR,
+                'recording closed',
+                output=self.output,
+                messages=self.writer.message_count,
+                received=received,
+                lost=lost,
+                **other,
+            )
         except OSError as exc:
-            self.report(ERROR, "could not finalise the recording", output=self.output, reason=str(exc))
+            self.report(
+                ERROR, 'could not finalise the recording', output=self.output, reason=str(exc)
+            )
 
 
 def main(args=None):
     return run_node(Recorder, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""registration: registers the meshless model to the end-diastolic images
+"""
+registration: registers the meshless model to the end-diastolic images
 (``/mlv/frames`` → ``/mlv/registered_cloud``, ``/mlv/registered_state``, both latched).
 
 Collects the ED frame (phase 0) of every slice; once all ``num_sa_slices + num_la_slices`` are
@@ -18,57 +19,97 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-from sensor_msgs.msg import PointCloud2
-
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, Silence, run_node
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
+import numpy as np
+from sensor_msgs.msg import PointCloud2
 
 CHECK_PERIOD_S = 0.25  # how often the ED timeout is looked at
-CLOUD_FIELDS = ("x", "y", "z", "alpha", "beta", "w", "transmural")
+CLOUD_FIELDS = ('x', 'y', 'z', 'alpha', 'beta', 'w', 'transmural')
 # What consumers need of the cloud (finite, floating point): position and polar model coordinates;
 # ``transmural`` is optional.
 REQUIRED_CLOUD_FIELDS = CLOUD_FIELDS[:6]
 
 
 class Registration(GraphNode):
-    DIAGNOSTIC_TASK = "ED registration"
+    DIAGNOSTIC_TASK = 'ED registration'
 
     def __init__(self, **node_kwargs):
-        super().__init__("registration", **node_kwargs)
-        self.num_particles = self.param("num_particles", 3000, "model particles", min_value=100, max_value=200000)
-        self.seed = self.param("seed", 0, "particle sampling seed", min_value=0, max_value=2**31 - 1)
-        self.ed_timeout_s = self.param("ed_timeout_s", 5.0, "register with the ED slices present once frames stop arriving for this long", min_value=0.1, max_value=3600.0)
-        self.min_sa_slices = self.param("min_sa_slices", 3, "fewest SA slices to register from", min_value=2, max_value=100)
-        self.mask_path = self.param("mask_path", "", "optional NIfTI label image of the ED myocardium (empty = automatic segmentation)")
-        self.mask_label = self.param("mask_label", 2, "myocardium label in mask_path (ACDC: 2)", min_value=0, max_value=65535)
-        self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
-                                   "gets the frames already sent; false for a publisher without history")
-        self.cloud_pub = self.create_publisher(PointCloud2, qos.relative(qos.REGISTERED_CLOUD),
-                                               qos.topic_qos(qos.REGISTERED_CLOUD))
-        self.state_pub = self.create_publisher(ModelStateMsg, qos.relative(qos.REGISTERED_STATE),
-                                               qos.topic_qos(qos.REGISTERED_STATE))
-        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
-                                 qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
+        super().__init__('registration', **node_kwargs)
+        self.num_particles = self.param(
+            'num_particles', 3000, 'model particles', min_value=100, max_value=200000
+        )
+        self.seed = self.param(
+            'seed', 0, 'particle sampling seed', min_value=0, max_value=2**31 - 1
+        )
+        self.ed_timeout_s = self.param(
+            'ed_timeout_s',
+            5.0,
+            'register with the ED slices present once frames stop arriving for this long',
+            min_value=0.1,
+            max_value=3600.0,
+        )
+        self.min_sa_slices = self.param(
+            'min_sa_slices', 3, 'fewest SA slices to register from', min_value=2, max_value=100
+        )
+        self.mask_path = self.param(
+            'mask_path',
+            '',
+            'optional NIfTI label image of the ED myocardium (empty = automatic segmentation)',
+        )
+        self.mask_label = self.param(
+            'mask_label',
+            2,
+            'myocardium label in mask_path (ACDC: 2)',
+            min_value=0,
+            max_value=65535,
+        )
+        self.catch_up = self.param(
+            'catch_up',
+            True,
+            'take frames with their history (TRANSIENT_LOCAL), so a restart '
+            'gets the frames already sent; false for a publisher without history',
+        )
+        self.cloud_pub = self.create_publisher(
+            PointCloud2, qos.relative(qos.REGISTERED_CLOUD), qos.topic_qos(qos.REGISTERED_CLOUD)
+        )
+        self.state_pub = self.create_publisher(
+            ModelStateMsg, qos.relative(qos.REGISTERED_STATE), qos.topic_qos(qos.REGISTERED_STATE)
+        )
+        self.create_subscription(
+            TaggedFrame,
+            qos.relative(qos.FRAMES),
+            self._on_frame,
+            qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up),
+        )
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
-        self.silence = Silence(CHECK_PERIOD_S)  # on the frame stream, counted while this node is spun
+        self.silence = Silence(
+            CHECK_PERIOD_S
+        )  # on the frame stream, counted while this node is spun
         self.registered = False
         self.result = None
         self.verdict = None  # registration_verdict of the ED model, once registered
         self.messages_handled = 0
         self.create_timer(CHECK_PERIOD_S, self._check_timeout)
-        self.report(OK, "waiting for ED frames")
+        self.report(OK, 'waiting for ED frames')
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
-        if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, view=msg.view, slice=msg.slice_index, phase=msg.phase_index,
-                        stamp=conversions.stamp_text(msg.header.stamp)):
+        if self.foreign(
+            msg.study_id,
+            qos.FRAMES,
+            run_id=msg.run_id,
+            view=msg.view,
+            slice=msg.slice_index,
+            phase=msg.phase_index,
+            stamp=conversions.stamp_text(msg.header.stamp),
+        ):
             return  # another graph's frame (nor does it count as activity on our stream)
         self.silence.heard()
         if msg.phase_index != 0 or self.registered:
@@ -77,19 +118,34 @@ class Registration(GraphNode):
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
             self.study.check(frame)
         except ValueError as exc:
-            self.report(ERROR, "bad ED frame ignored", view=msg.view, slice=msg.slice_index,
-                        stamp=conversions.stamp_text(msg.header.stamp), reason=str(exc))
+            self.report(
+                ERROR,
+                'bad ED frame ignored',
+                view=msg.view,
+                slice=msg.slice_index,
+                stamp=conversions.stamp_text(msg.header.stamp),
+                reason=str(exc),
+            )
             return
         key = (frame.view, frame.slice_index)
         if key in self.ed_frames:
             old = self.ed_frames[key]
-            if old.image.shape == frame.image.shape and np.array_equal(old.image, frame.image, equal_nan=True):
+            if old.image.shape == frame.image.shape and np.array_equal(
+                old.image, frame.image, equal_nan=True
+            ):
                 # A re-sent copy (a restarted source replays its history): nothing changes.
-                self.get_logger().debug(f"identical ED frame received again view={key[0]} slice={key[1]}")
+                self.get_logger().debug(
+                    f'identical ED frame received again view={key[0]} slice={key[1]}'
+                )
             else:
-                self.report(WARN, "a different ED frame for a slice already received replaces it (another "
-                            "study on this ROS_DOMAIN_ID?)", view=key[0], slice=key[1],
-                            stamp=conversions.stamp_text(msg.header.stamp))
+                self.report(
+                    WARN,
+                    'a different ED frame for a slice already received replaces it (another '
+                    'study on this ROS_DOMAIN_ID?)',
+                    view=key[0],
+                    slice=key[1],
+                    stamp=conversions.stamp_text(msg.header.stamp),
+                )
         self.ed_frames[key] = frame
         self.expected = max(self.expected, frame.num_sa_slices + frame.num_la_slices)
         self.first_at = self.first_at or time.monotonic()
@@ -104,7 +160,12 @@ class Registration(GraphNode):
             return
         sa = sum(1 for v, _ in self.ed_frames if v == VIEW_SA)
         if sa >= self.min_sa_slices:
-            self.report(WARN, "registering without every ED slice", have=len(self.ed_frames), expected=self.expected)
+            self.report(
+                WARN,
+                'registering without every ED slice',
+                have=len(self.ed_frames),
+                expected=self.expected,
+            )
             self._register()
 
     def _register(self) -> None:
@@ -120,28 +181,52 @@ class Registration(GraphNode):
             try:
                 masks, reasons = masks_for_frames(self.mask_path, frames, label=self.mask_label)
             except ValueError as exc:
-                self.report(ERROR, "user mask unusable; segmenting automatically", path=self.mask_path, reason=str(exc))
+                self.report(
+                    ERROR,
+                    'user mask unusable; segmenting automatically',
+                    path=self.mask_path,
+                    reason=str(exc),
+                )
             else:
                 if reasons:  # one line for all of them: the same fix (the mask file) for each
-                    self.report(WARN, "the user mask does not cover every slice; segmenting those automatically",
-                                path=self.mask_path, slices="; ".join(
-                                    f"{'SA' if view == VIEW_SA else 'LA'} {idx}: {why}"
-                                    for (view, idx), why in sorted(reasons.items())))
+                    self.report(
+                        WARN,
+                        'the user mask does not cover every slice; segmenting those automatically',
+                        path=self.mask_path,
+                        slices='; '.join(
+                            f'{"SA" if view == VIEW_SA else "LA"} {idx}: {why}'
+                            for (view, idx), why in sorted(reasons.items())
+                        ),
+                    )
         try:
-            res = register_ed(frames, num_particles=self.num_particles, seed=self.seed, masks=masks)
+            res = register_ed(
+                frames, num_particles=self.num_particles, seed=self.seed, masks=masks
+            )
         except ValueError as exc:
-            self.report(ERROR, "registration failed", reason=str(exc), slices=len(self.ed_frames))
+            self.report(ERROR, 'registration failed', reason=str(exc), slices=len(self.ed_frames))
             return
-        left_out = [f"{'SA' if rep.view == VIEW_SA else 'LA'} {rep.slice_index}: {rep.reason}"
-                    for rep in res.slice_reports if not rep.ok]
+        left_out = [
+            f'{"SA" if rep.view == VIEW_SA else "LA"} {rep.slice_index}: {rep.reason}'
+            for rep in res.slice_reports
+            if not rep.ok
+        ]
         self.result = res
         coords = res.frame.coords
-        cloud = {"x": res.particles[:, 0], "y": res.particles[:, 1], "z": res.particles[:, 2],
-                 "alpha": res.polar["alpha"], "beta": res.polar["beta"], "w": res.polar["w"],
-                 "transmural": res.polar.get("transmural", np.zeros(len(coords)))}
+        cloud = {
+            'x': res.particles[:, 0],
+            'y': res.particles[:, 1],
+            'z': res.particles[:, 2],
+            'alpha': res.polar['alpha'],
+            'beta': res.polar['beta'],
+            'w': res.polar['w'],
+            'transmural': res.polar.get('transmural', np.zeros(len(coords))),
+        }
         stamp = self.get_clock().now().to_msg()
-        self.cloud_pub.publish(conversions.cloud_to_msg(conversions.structured(cloud, np.float64),
-                                                        conversions.make_header(stamp)))
+        self.cloud_pub.publish(
+            conversions.cloud_to_msg(
+                conversions.structured(cloud, np.float64), conversions.make_header(stamp)
+            )
+        )
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
         verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
@@ -154,25 +239,35 @@ class Registration(GraphNode):
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         extra = {}
         if res.warnings:
-            extra["warnings"] = " | ".join(res.warnings)
+            extra['warnings'] = ' | '.join(res.warnings)
         if left_out:
-            extra["not_segmented"] = "; ".join(left_out)
+            extra['not_segmented'] = '; '.join(left_out)
         if verdict.level:
-            extra["verdict"] = f"{verdict.name}: {verdict.text}"
+            extra['verdict'] = f'{verdict.name}: {verdict.text}'
         # Where the AHA segments' origin came from; not a warning (nothing to act on), but said.
         where = {}
         if septum is not None:
-            where["segment_origin"] = (f"RV detected on {septum.slices_used} of {septum.slices_total} SA slices "
-                                       f"(confidence {septum.confidence:.2f})" if septum.source == "detected" else
-                                       f"{septum.source}: not tied to the anatomy ({septum.reason})")
-        self.report(WARN if extra else OK, "registered", **where, particles=len(res.particles),
-                    slices=len(self.ed_frames),
-                    seconds=round(time.monotonic() - t0, 2), residual_mm=round(float(state.residual), 3), **extra)
+            where['segment_origin'] = (
+                f'RV detected on {septum.slices_used} of {septum.slices_total} SA slices '
+                f'(confidence {septum.confidence:.2f})'
+                if septum.source == 'detected'
+                else f'{septum.source}: not tied to the anatomy ({septum.reason})'
+            )
+        self.report(
+            WARN if extra else OK,
+            'registered',
+            **where,
+            particles=len(res.particles),
+            slices=len(self.ed_frames),
+            seconds=round(time.monotonic() - t0, 2),
+            residual_mm=round(float(state.residual), 3),
+            **extra,
+        )
 
 
 def main(args=None):
     return run_node(Registration, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""tag_detector: tag intersections per frame, tracked through each slice's cine
+"""
+tag_detector: tag intersections per frame, tracked through each slice's cine
 (``/mlv/frames`` → ``/mlv/tag_points``).
 
 One :class:`~mlv_ros.core.tags.SliceTracker` per (view, slice). Frames may arrive in any order
@@ -25,8 +26,8 @@ until the run ends.
 
 from __future__ import annotations
 
-import hashlib
 from collections import Counter
+import hashlib
 
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
@@ -34,50 +35,78 @@ from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tags.gabor import TagInputError, validate_image
 from mlv_ros.core.types import TagPointSet
-from mlv_ros.nodes.common import ERROR, OK, WARN, GraphNode, run_node
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
 
-VIEW_NAME = {TaggedFrame.VIEW_SA: "SA", TaggedFrame.VIEW_LA: "LA"}
+VIEW_NAME = {TaggedFrame.VIEW_SA: 'SA', TaggedFrame.VIEW_LA: 'LA'}
 
 
 def _slice_name(key) -> str:
-    return f"{VIEW_NAME.get(key[0], key[0])} {key[1]}"
+    return f'{VIEW_NAME.get(key[0], key[0])} {key[1]}'
 
 
 def _digest(msg: TaggedFrame) -> bytes:
     """What tells a re-sent frame from a different one in the same slot."""
     h = hashlib.blake2b(digest_size=16)
-    h.update(f"{msg.image.encoding} {msg.image.height}x{msg.image.width}".encode())
+    h.update(f'{msg.image.encoding} {msg.image.height}x{msg.image.width}'.encode())
     h.update(bytes(msg.image.data))
     return h.digest()
 
 
 class TagDetector(GraphNode):
-    DIAGNOSTIC_TASK = "tag tracking"
+    DIAGNOSTIC_TASK = 'tag tracking'
 
     def __init__(self, **node_kwargs):
-        super().__init__("tag_detector", **node_kwargs)
-        self.spacing_px = self.param("spacing_px", 0.0, "tag spacing override, pixels (0 = estimate from the ED spectrum)", min_value=0.0, max_value=100.0)
-        self.max_pending = self.param("max_pending", 3, "later phases allowed to wait for a missing one", min_value=1, max_value=100)
-        self.max_pixels = self.param("max_pixels", 1024 * 1024, "largest image accepted (rows × cols)", min_value=64, max_value=16384 * 16384)
-        self.catch_up = self.param("catch_up", True, "take frames with their history (TRANSIENT_LOCAL), so a restart "
-                                   "gets the frames already sent; false for a publisher without history")
-        self.pub = self.create_publisher(TagPoints, qos.relative(qos.TAG_POINTS), qos.topic_qos(qos.TAG_POINTS))
-        self.create_subscription(TaggedFrame, qos.relative(qos.FRAMES), self._on_frame,
-                                 qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up))
+        super().__init__('tag_detector', **node_kwargs)
+        self.spacing_px = self.param(
+            'spacing_px',
+            0.0,
+            'tag spacing override, pixels (0 = estimate from the ED spectrum)',
+            min_value=0.0,
+            max_value=100.0,
+        )
+        self.max_pending = self.param(
+            'max_pending',
+            3,
+            'later phases allowed to wait for a missing one',
+            min_value=1,
+            max_value=100,
+        )
+        self.max_pixels = self.param(
+            'max_pixels',
+            1024 * 1024,
+            'largest image accepted (rows × cols)',
+            min_value=64,
+            max_value=16384 * 16384,
+        )
+        self.catch_up = self.param(
+            'catch_up',
+            True,
+            'take frames with their history (TRANSIENT_LOCAL), so a restart '
+            'gets the frames already sent; false for a publisher without history',
+        )
+        self.pub = self.create_publisher(
+            TagPoints, qos.relative(qos.TAG_POINTS), qos.topic_qos(qos.TAG_POINTS)
+        )
+        self.create_subscription(
+            TaggedFrame,
+            qos.relative(qos.FRAMES),
+            self._on_frame,
+            qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up),
+        )
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
-        self.trackers: dict = {}   # (view, slice) → SliceTracker
+        self.trackers: dict = {}  # (view, slice) → SliceTracker
         self.next_phase: dict = {}  # (view, slice) → next phase to process
-        self.pending: dict = {}    # (view, slice) → {phase: (frame, stamp)}
+        self.pending: dict = {}  # (view, slice) → {phase: (frame, stamp)}
         self.messages_handled = 0
         self.frames_out = 0
-        self.digests: dict = {}    # (view, slice, phase) → image digest of the frame taken
-        self.counts = Counter()    # routine and notable events, carried by the heartbeat
-        self.no_tags: dict = {}    # (view, slice) → why its ED detection failed
-        self.report(OK, "ready")
+        self.digests: dict = {}  # (view, slice, phase) → image digest of the frame taken
+        self.counts = Counter()  # routine and notable events, carried by the heartbeat
+        self.no_tags: dict = {}  # (view, slice) → why its ED detection failed
+        self.report(OK, 'ready')
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
-        where = f"view {msg.view} slice {msg.slice_index} phase {msg.phase_index}"
+        where = f'view {msg.view} slice {msg.slice_index} phase {msg.phase_index}'
         stamp = conversions.stamp_text(msg.header.stamp)
         try:
             self._take(msg, where, stamp)
@@ -88,17 +117,23 @@ class TagDetector(GraphNode):
         if self.foreign(msg.study_id, qos.FRAMES, run_id=msg.run_id, frame=where, stamp=stamp):
             return  # another graph's frame: nothing of it goes downstream
         if msg.image.height * msg.image.width > self.max_pixels:
-            self.counts["frames_refused"] += 1
-            self.report(ERROR, "frame refused: image too large", frame=where, stamp=stamp,
-                        size=f"{msg.image.height}x{msg.image.width}", limit=self.max_pixels)
-            return self._publish_empty(msg, "image too large")
+            self.counts['frames_refused'] += 1
+            self.report(
+                ERROR,
+                'frame refused: image too large',
+                frame=where,
+                stamp=stamp,
+                size=f'{msg.image.height}x{msg.image.width}',
+                limit=self.max_pixels,
+            )
+            return self._publish_empty(msg, 'image too large')
         try:
             frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
             self.study.check(frame)
         except ValueError as exc:
-            self.counts["frames_refused"] += 1
-            self.report(ERROR, "bad frame", frame=where, stamp=stamp, reason=str(exc))
-            return self._publish_empty(msg, f"bad frame: {exc}")
+            self.counts['frames_refused'] += 1
+            self.report(ERROR, 'bad frame', frame=where, stamp=stamp, reason=str(exc))
+            return self._publish_empty(msg, f'bad frame: {exc}')
         key = (frame.view, frame.slice_index)
         self.masker.observe_geometry(frame)
         nxt = self.next_phase.setdefault(key, 0)
@@ -116,23 +151,34 @@ class TagDetector(GraphNode):
         known = self.digests.get(slot)
         if known is None:
             # Its slot was given up (skipped as missing, or filled in for a refused frame).
-            self.counts["late_frames_dropped"] += 1
-            self.report(WARN, "frame came after its slot was given up; dropped", frame=where, stamp=stamp)
+            self.counts['late_frames_dropped'] += 1
+            self.report(
+                WARN, 'frame came after its slot was given up; dropped', frame=where, stamp=stamp
+            )
             return
         if known != digest:
             # Same slot, other pixels: a second study on this ROS domain, or a source sending
             # two acquisitions as one. The first frame stays; the user must find out why.
-            self.counts["conflicting_frames"] += 1
-            self.report(WARN, "a different frame for a slot already taken; dropped (another study on "
-                        "this ROS_DOMAIN_ID?)", frame=where, stamp=stamp)
+            self.counts['conflicting_frames'] += 1
+            self.report(
+                WARN,
+                'a different frame for a slot already taken; dropped (another study on '
+                'this ROS_DOMAIN_ID?)',
+                frame=where,
+                stamp=stamp,
+            )
             return
         # A re-sent copy (a restarted source replays its history) changes nothing: said once.
-        self.counts["duplicates_dropped"] += 1
-        if self.counts["duplicates_dropped"] == 1:
-            self.report(OK, "duplicate frame dropped (further ones are counted in the heartbeat)",
-                        frame=where, stamp=stamp)
+        self.counts['duplicates_dropped'] += 1
+        if self.counts['duplicates_dropped'] == 1:
+            self.report(
+                OK,
+                'duplicate frame dropped (further ones are counted in the heartbeat)',
+                frame=where,
+                stamp=stamp,
+            )
         else:
-            self.get_logger().debug(f"duplicate frame dropped frame={where} stamp={stamp}")
+            self.get_logger().debug(f'duplicate frame dropped frame={where} stamp={stamp}')
 
     def _drain(self, key) -> None:
         waiting = self.pending[key]
@@ -141,8 +187,8 @@ class TagDetector(GraphNode):
             if nxt not in waiting:
                 if len(waiting) < self.max_pending:
                     return
-                self.counts["frames_missing"] += 1
-                self.report(WARN, "frame missing; skipped", view=key[0], slice=key[1], phase=nxt)
+                self.counts['frames_missing'] += 1
+                self.report(WARN, 'frame missing; skipped', view=key[0], slice=key[1], phase=nxt)
                 self.next_phase[key] = nxt + 1
                 continue
             frame, stamp = waiting.pop(nxt)
@@ -154,7 +200,9 @@ class TagDetector(GraphNode):
         mask = None
         started = tracker is None or frame.phase_index == 0
         if started:
-            tracker = self.trackers[key] = SliceTracker(frame.geometry, spacing_px=self.spacing_px or None)
+            tracker = self.trackers[key] = SliceTracker(
+                frame.geometry, spacing_px=self.spacing_px or None
+            )
             self.no_tags.pop(key, None)
             mask, why = self.masker.ed_mask(frame)
         points = tracker.update(frame, mask=mask)
@@ -163,9 +211,14 @@ class TagDetector(GraphNode):
         if started and mask is None and tracker.params is not None:
             # Its tag points may include blood or background: worth a look, once. (Without a
             # grid at ED the slice gives no points at all, and that is what _judge says.)
-            self.counts["slices_without_mask"] += 1
-            self.report(WARN, "no ED myocardium mask; detecting on tag energy alone", view=key[0],
-                        slice=key[1], reason=why)
+            self.counts['slices_without_mask'] += 1
+            self.report(
+                WARN,
+                'no ED myocardium mask; detecting on tag energy alone',
+                view=key[0],
+                slice=key[1],
+                reason=why,
+            )
         self._judge(key, frame, points, started, conversions.stamp_text(stamp))
         self.pub.publish(conversions.tagpoints_to_msg(points, stamp=stamp))
         self.frames_out += 1
@@ -176,77 +229,125 @@ class TagDetector(GraphNode):
         if started and self.trackers[key].params is None:
             # No grid read at ED: this slice gives no tag points for the whole cine.
             self.no_tags[key] = points.status
-            self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index, stamp=stamp,
-                        points=0, status=points.status + "; this slice gives no tag points")
+            self.report(
+                WARN,
+                'tag detection',
+                view=key[0],
+                slice=key[1],
+                phase=frame.phase_index,
+                stamp=stamp,
+                points=0,
+                status=points.status + '; this slice gives no tag points',
+            )
             return
         if key in self.no_tags:  # already said once; its later frames cannot add tag points
-            self.counts["frames_in_slices_without_tags"] += 1
-            self.get_logger().debug(f"tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} "
-                                    f"stamp={stamp} status={points.status}")
+            self.counts['frames_in_slices_without_tags'] += 1
+            self.get_logger().debug(
+                f'tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} '
+                f'stamp={stamp} status={points.status}'
+            )
             return
-        unusable = ""
+        unusable = ''
         if points.status and not started:
             try:
                 validate_image(frame.image)
             except TagInputError as exc:
                 unusable = str(exc)
-        if unusable or points.status.startswith("tag tracker error"):
-            self.counts["unusable_frames"] += 1
-            self.report(WARN, "tag detection", view=key[0], slice=key[1], phase=frame.phase_index, stamp=stamp,
-                        points=len(points), status=points.status)
+        if unusable or points.status.startswith('tag tracker error'):
+            self.counts['unusable_frames'] += 1
+            self.report(
+                WARN,
+                'tag detection',
+                view=key[0],
+                slice=key[1],
+                phase=frame.phase_index,
+                stamp=stamp,
+                points=len(points),
+                status=points.status,
+            )
             return
         if len(points) == 0:
-            self.counts["frames_without_points"] += 1
+            self.counts['frames_without_points'] += 1
         elif len(points) < n_ed:
-            self.counts["frames_with_ended_tracks"] += 1
+            self.counts['frames_with_ended_tracks'] += 1
         if points.status:
-            self.get_logger().debug(f"tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} "
-                                    f"stamp={stamp} points={len(points)} status={points.status}")
+            self.get_logger().debug(
+                f'tag detection view={key[0]} slice={key[1]} phase={frame.phase_index} '
+                f'stamp={stamp} points={len(points)} status={points.status}'
+            )
 
     def _update_status(self) -> None:
-        """The heartbeat's status: the counts, at OK unless something needs the user's eye.
+        """
+        The heartbeat's status: the counts, at OK unless something needs the user's eye.
 
         Set without publishing or logging (the heartbeat republishes it every second); events
-        that need saying were already reported when they happened."""
+        that need saying were already reported when they happened.
+        """
         c = self.counts
         problems = []
         lost = sum(s.lost for s in self.streams.values())
         if lost:
-            problems.append(f"{lost} message(s) lost in transport")
-        if c["frames_refused"]:
-            problems.append(f"{c['frames_refused']} frame(s) refused")
+            problems.append(f'{lost} message(s) lost in transport')
+        if c['frames_refused']:
+            problems.append(f'{c["frames_refused"]} frame(s) refused')
         level = ERROR if problems else OK
         if self.no_tags:
-            problems.append(f"no tag points from {', '.join(map(_slice_name, sorted(self.no_tags)))} "
-                            "(ED detection failed)")
-        for name, what in (("unusable_frames", "unusable frame(s)"), ("frames_missing", "frame(s) never came"),
-                           ("conflicting_frames", "different frame(s) for a taken slot"),
-                           ("late_frames_dropped", "frame(s) too late for their slot"),
-                           ("slices_without_mask", "slice(s) without an ED myocardium mask")):
+            problems.append(
+                f'no tag points from {", ".join(map(_slice_name, sorted(self.no_tags)))} '
+                '(ED detection failed)'
+            )
+        for name, what in (
+            ('unusable_frames', 'unusable frame(s)'),
+            ('frames_missing', 'frame(s) never came'),
+            ('conflicting_frames', 'different frame(s) for a taken slot'),
+            ('late_frames_dropped', 'frame(s) too late for their slot'),
+            ('slices_without_mask', 'slice(s) without an ED myocardium mask'),
+        ):
             if c[name]:
-                problems.append(f"{c[name]} {what}")
+                problems.append(f'{c[name]} {what}')
         level = max(level, WARN) if problems else OK
         ed_tracks = sum(len(t.track_id) for t in self.trackers.values())
         alive = sum(len(t.alive) for t in self.trackers.values())
-        values = {"frames": self.frames_out, "slices": len(self.trackers), "tracks_at_ed": ed_tracks,
-                  "tracks_alive": alive, **{k: v for k, v in sorted(c.items())}}
-        message = "; ".join(problems) if problems else f"tracking: {self.frames_out} frames, {len(self.trackers)} slices"
+        values = {
+            'frames': self.frames_out,
+            'slices': len(self.trackers),
+            'tracks_at_ed': ed_tracks,
+            'tracks_alive': alive,
+            **dict(sorted(c.items())),
+        }
+        message = (
+            '; '.join(problems)
+            if problems
+            else f'tracking: {self.frames_out} frames, {len(self.trackers)} slices'
+        )
         status = self.diagnostic_status(level, message, values)
         # GraphNode's heartbeat republishes _status (with the per-topic stream counts) at 1 Hz.
         self._status = status
 
     def _publish_empty(self, msg: TaggedFrame, reason: str) -> None:
-        """An empty set standing in for a frame that could not be used, if its indices are usable
-        and its slot is the next one its slice expects (a filled or later slot keeps its own)."""
+        """
+        An empty set standing in for a frame that could not be used, if its indices are usable
+        and its slot is the next one its slice expects (a filled or later slot keeps its own).
+        """
         key = (msg.view, msg.slice_index)
-        if msg.phase_index != self.next_phase.get(key, 0) or msg.phase_index in self.pending.get(key, {}):
+        if msg.phase_index != self.next_phase.get(key, 0) or msg.phase_index in self.pending.get(
+            key, {}
+        ):
             return
         try:
             geometry = conversions.msg_to_geometry(msg.geometry)
-            points = TagPointSet(view=msg.view, slice_index=msg.slice_index, phase_index=msg.phase_index,
-                                 num_phases=msg.num_phases, geometry=geometry, status=reason,
-                                 num_sa_slices=msg.num_sa_slices, num_la_slices=msg.num_la_slices,
-                                 study_id=msg.study_id, run_id=msg.run_id)
+            points = TagPointSet(
+                view=msg.view,
+                slice_index=msg.slice_index,
+                phase_index=msg.phase_index,
+                num_phases=msg.num_phases,
+                geometry=geometry,
+                status=reason,
+                num_sa_slices=msg.num_sa_slices,
+                num_la_slices=msg.num_la_slices,
+                study_id=msg.study_id,
+                run_id=msg.run_id,
+            )
             out = conversions.tagpoints_to_msg(points, stamp=msg.header.stamp)
         except ValueError:
             return  # geometry or indices unusable: nothing meaningful to forward
@@ -261,5 +362,5 @@ def main(args=None):
     return run_node(TagDetector, args)
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     raise SystemExit(main())

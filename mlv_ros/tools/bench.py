@@ -2,33 +2,36 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 import runpy
 import sys
-from pathlib import Path
 
-BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
+BENCH_DIR = Path(__file__).resolve().parents[2] / 'bench'
 
 
 def available() -> list[str]:
-    return sorted(p.stem for p in BENCH_DIR.glob("*.py") if not p.stem.startswith("_"))
+    return sorted(p.stem for p in BENCH_DIR.glob('*.py') if not p.stem.startswith('_'))
 
 
 def add_arguments(parser):
-    parser.add_argument("name", help="benchmark name (a file in bench/), or 'all'")
-    parser.add_argument("extra", nargs="*", help="arguments passed to the benchmark")
+    parser.add_argument('name', help="benchmark name (a file in bench/), or 'all'")
+    parser.add_argument('extra', nargs='*', help='arguments passed to the benchmark')
 
 
 def run(args) -> int:
-    names = available() if args.name == "all" else [args.name]
+    names = available() if args.name == 'all' else [args.name]
     for name in names:
-        path = BENCH_DIR / f"{name}.py"
+        path = BENCH_DIR / f'{name}.py'
         if name not in available():  # a name, never a path: "../x" must not run another script
-            print(f"mlv-ros bench: no benchmark {name!r}; choose one of: all, {', '.join(available())}",
-                  file=sys.stderr)
+            print(
+                f'mlv-ros bench: no benchmark {name!r}; choose one of: all, '
+                f'{", ".join(available())}',
+                file=sys.stderr,
+            )
             return 2
         sys.argv = [str(path), *args.extra]
         try:
-            runpy.run_path(str(path), run_name="__main__")
+            runpy.run_path(str(path), run_name='__main__')
         except SystemExit as exc:
             if exc.code not in (None, 0):
                 return int(exc.code) if isinstance(exc.code, int) else 1

@@ -1,4 +1,5 @@
-"""The console of ``mlv-ros run`` and ``mlv-ros demo``: one progress bar over phases while the
+"""
+The console of ``mlv-ros run`` and ``mlv-ros demo``: one progress bar over phases while the
 graph runs, then a short summary of the run.
 
 By default a run shows:
@@ -27,12 +28,13 @@ MAX_SUMMARY_LINES = 30
 #: Reason groups shown per verdict level (the rest are counted; summary.json has them all).
 MAX_REASON_GROUPS = 4
 #: Event lines shown without --verbose too: what the user needs while the run goes on.
-ALWAYS_SHOWN = ("[mlv-ros] live view:",)
-_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+ALWAYS_SHOWN = ('[mlv-ros] live view:',)
+_NUMBER = re.compile(r'[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?')
 
 
 class RunConsole:
-    """What a run prints while it runs: the progress bar (:meth:`phase`) and, with ``verbose``,
+    """
+    What a run prints while it runs: the progress bar (:meth:`phase`) and, with ``verbose``,
     the run's event lines (:meth:`line`).
 
     Parameters
@@ -43,6 +45,7 @@ class RunConsole:
         Show the bar (still only when ``stream`` is a terminal).
     stream : file, optional
         Where both go (default ``sys.stderr``).
+
     """
 
     def __init__(self, verbose: bool = False, progress: bool = True, stream=None):
@@ -52,7 +55,8 @@ class RunConsole:
         self.bar = None
 
     def quiet_nodes(self):
-        """Keep the nodes' INFO lines off the console unless verbose (WARN and ERROR stay: what a
+        """
+        Keep the nodes' INFO lines off the console unless verbose (WARN and ERROR stay: what a
         user must act on); returns what puts the level back (the process may run more after).
 
         The threshold is the default level of every ROS logger in this process, which also
@@ -61,15 +65,17 @@ class RunConsole:
         """
         if self.verbose:
             return lambda: None
-        from rclpy.logging import LoggingSeverity, get_logger_effective_level, set_logger_level
+        from rclpy.logging import get_logger_effective_level, LoggingSeverity, set_logger_level
 
-        before = get_logger_effective_level("")
-        set_logger_level("", LoggingSeverity.WARN)
-        return lambda: set_logger_level("", before)
+        before = get_logger_effective_level('')
+        set_logger_level('', LoggingSeverity.WARN)
+        return lambda: set_logger_level('', before)
 
     def line(self, text: str) -> None:
-        """An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
-        the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address)."""
+        """
+        An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
+        the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address).
+        """
         if not self.verbose and not text.startswith(ALWAYS_SHOWN):
             return
         if self.bar is not None:
@@ -84,8 +90,15 @@ class RunConsole:
         if self.bar is None:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, unit="phase", desc="phases analysed", file=self.stream, leave=False,
-                            dynamic_ncols=True, mininterval=0)  # phases are seconds apart: draw each
+            self.bar = tqdm(
+                total=total,
+                unit='phase',
+                desc='phases analysed',
+                file=self.stream,
+                leave=False,
+                dynamic_ncols=True,
+                mininterval=0,
+            )  # phases are seconds apart: draw each
         self.bar.total = total
         self.bar.update(max(0, min(done, total) - self.bar.n))
 
@@ -104,24 +117,28 @@ def _isatty(stream) -> bool:
 
 
 def phase_ranges(phases, max_items: int = 8) -> str:
-    """``[3, 4, 5, 9]`` → ``'3-5, 9'``; past ``max_items`` runs, the rest are counted
-    (``'1, 3, 5, ... (50 phases)'``)."""
+    """
+    ``[3, 4, 5, 9]`` → ``'3-5, 9'``; past ``max_items`` runs, the rest are counted (``'1, 3, 5, ...
+
+    (50 phases)'``).
+    """
     items, run = [], []
-    ordered = sorted(set(int(p) for p in phases))
+    ordered = sorted({int(p) for p in phases})
     for p in ordered + [None]:
         if p is not None and run and p == run[-1] + 1:
             run.append(p)
             continue
         if run:
-            items += [f"{run[0]}-{run[-1]}"] if len(run) > 2 else [str(r) for r in run]
+            items += [f'{run[0]}-{run[-1]}'] if len(run) > 2 else [str(r) for r in run]
         run = [p]
     if len(items) > max_items:
-        return ", ".join(items[:max_items]) + f", ... ({len(ordered)} phases)"
-    return ", ".join(items)
+        return ', '.join(items[:max_items]) + f', ... ({len(ordered)} phases)'
+    return ', '.join(items)
 
 
 def reason_groups(phases: dict) -> list[tuple[list[int], str]]:
-    """Phases → reasons (``"reason; reason"``, as in summary.json) grouped by kind of reason.
+    """
+    Phases → reasons (``"reason; reason"``, as in summary.json) grouped by kind of reason.
 
     Reasons that differ only in their numbers are one kind (``12 of 160 ED tag points tracked
     (8% < 10%)`` and ``3 of 160 ...``); each group is shown with the first phase's wording.
@@ -129,8 +146,8 @@ def reason_groups(phases: dict) -> list[tuple[list[int], str]]:
     """
     groups: dict[str, tuple[list[int], str]] = {}
     for phase, text in sorted(phases.items(), key=lambda kv: int(kv[0])):
-        for reason in [r for r in str(text).split("; ") if r] or ["no reason given"]:
-            kind = _NUMBER.sub("#", reason)
+        for reason in [r for r in str(text).split('; ') if r] or ['no reason given']:
+            kind = _NUMBER.sub('#', reason)
             members, first = groups.setdefault(kind, ([], reason))
             if int(phase) not in members:
                 members.append(int(phase))
@@ -138,78 +155,112 @@ def reason_groups(phases: dict) -> list[tuple[list[int], str]]:
 
 
 def _clip(text: str, width: int = 160) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= width else text[:width - 1] + "…"
+    text = ' '.join(str(text).split())
+    return text if len(text) <= width else text[:width - 1] + '…'
 
 
 def source_text(source: dict) -> str:
-    kind = source.get("source")
-    if kind == "phantom":
-        extra = ", ".join(f"{k} {source[k]:g}" for k in ("size", "num_phases", "snr") if k in source)
-        return f"phantom {source.get('preset')}" + (f" ({extra})" if extra else "")
-    if kind in ("dicom", "bag"):
-        return f"{kind} {source.get('path')}" + (f" (study {source['study']})" if source.get("study") else "")
+    kind = source.get('source')
+    if kind == 'phantom':
+        extra = ', '.join(
+            f'{k} {source[k]:g}' for k in ('size', 'num_phases', 'snr') if k in source
+        )
+        return f'phantom {source.get("preset")}' + (f' ({extra})' if extra else '')
+    if kind in ('dicom', 'bag'):
+        return f'{kind} {source.get("path")}' + (
+            f' (study {source["study"]})' if source.get('study') else ''
+        )
     return str(kind)
 
 
 def volumes_text(volumes: dict, failed=()) -> str | None:
-    """ED / ES cavity volume and the ejection fraction from phase → volume (ml), leaving out
-    failed phases (ES: the smallest volume)."""
-    kept = {int(p): float(v) for p, v in (volumes or {}).items() if str(p) not in {str(f) for f in failed}}
+    """
+    ED / ES cavity volume and the ejection fraction from phase → volume (ml), leaving out
+    failed phases (ES: the smallest volume).
+    """
+    kept = {
+        int(p): float(v)
+        for p, v in (volumes or {}).items()
+        if str(p) not in {str(f) for f in failed}
+    }
     if 0 not in kept or len(kept) < 2:
         return None
     edv = kept[0]
     es, esv = min(kept.items(), key=lambda kv: kv[1])
-    ef = (edv - esv) / edv if edv > 0 else float("nan")
-    return f"volumes: ED {edv:.1f} ml, ES {esv:.1f} ml (phase {es}), ejection fraction {100 * ef:.0f} %"
+    ef = (edv - esv) / edv if edv > 0 else float('nan')
+    return (
+        f'volumes: ED {edv:.1f} ml, ES {esv:.1f} ml (phase {es}), ejection fraction '
+        f'{100 * ef:.0f} %'
+    )
 
 
 def accuracy_text(accuracy: dict | None) -> list[str]:
     """The accuracy against the ground truth, in at most two lines."""
     if not accuracy:
         return []
-    if accuracy.get("error"):
-        return [f"accuracy: not evaluated ({accuracy['error']})"]
-    es = accuracy.get("es") or {}
+    if accuracy.get('error'):
+        return [f'accuracy: not evaluated ({accuracy["error"]})']
+    es = accuracy.get('es') or {}
     lines = []
     if es:
-        twist = es.get("twist_error_deg")
-        lines.append(f"accuracy at end-systole (phase {es.get('phase', accuracy.get('es_phase'))}): median "
-                     f"{es['median_mm']:.2f} mm, p95 {es['p95_mm']:.2f} mm"
-                     + (f", twist {twist:.2f}°" if twist is not None else "") + " (3D error against the truth)")
-    per_phase = accuracy.get("per_phase") or []
+        twist = es.get('twist_error_deg')
+        lines.append(
+            f'accuracy at end-systole (phase {es.get("phase", accuracy.get("es_phase"))}): median '
+            f'{es["median_mm"]:.2f} mm, p95 {es["p95_mm"]:.2f} mm'
+            + (f', twist {twist:.2f}°' if twist is not None else '')
+            + ' (3D error against the truth)'
+        )
+    per_phase = accuracy.get('per_phase') or []
     if per_phase:
-        worst = max(per_phase, key=lambda r: r.get("median_mm", 0.0))
-        lines.append(f"worst phase: {worst.get('phase')}, median {worst['median_mm']:.2f} mm"
-                     + (f"; myocardium covered {100 * accuracy['coverage']:.0f} %" if accuracy.get("coverage") else ""))
+        worst = max(per_phase, key=lambda r: r.get('median_mm', 0.0))
+        lines.append(
+            f'worst phase: {worst.get("phase")}, median {worst["median_mm"]:.2f} mm'
+            + (
+                f'; myocardium covered {100 * accuracy["coverage"]:.0f} %'
+                if accuracy.get('coverage')
+                else ''
+            )
+        )
     return lines
 
 
 def verdict_lines(summary: dict) -> list[str]:
     """Verdict counts, then the degraded and failed phases grouped by reason (a few lines)."""
-    ok = summary.get("phases_ok") or []
-    degraded, failed = summary.get("phases_degraded") or {}, summary.get("phases_failed") or {}
+    ok = summary.get('phases_ok') or []
+    degraded, failed = summary.get('phases_degraded') or {}, summary.get('phases_failed') or {}
     if not (ok or degraded or failed):
-        lines = ["verdicts: no phase analysed"]
+        lines = ['verdicts: no phase analysed']
     else:
-        lines = [f"verdicts: {len(ok)} ok, {len(degraded)} degraded, {len(failed)} failed"
-                 + ("" if degraded or failed else " (every phase analysed is ok)")]
-    for name, phases in (("failed", failed), ("degraded", degraded)):
+        lines = [
+            f'verdicts: {len(ok)} ok, {len(degraded)} degraded, {len(failed)} failed'
+            + ('' if degraded or failed else ' (every phase analysed is ok)')
+        ]
+    for name, phases in (('failed', failed), ('degraded', degraded)):
         groups = reason_groups(phases)
         for members, reason in groups[:MAX_REASON_GROUPS]:
-            lines.append(f"  {name} {phase_ranges(members)}: {_clip(reason, 130)}")
+            lines.append(f'  {name} {phase_ranges(members)}: {_clip(reason, 130)}')
         if len(groups) > MAX_REASON_GROUPS:
-            lines.append(f"  ... {len(groups) - MAX_REASON_GROUPS} more reason(s) for {name} phases: "
-                         f"phases_{name} in summary.json")
-    reg = summary.get("registration_verdict")
-    if reg and reg.get("verdict") not in (None, "ok"):
-        lines.append(f"registration: {reg['verdict']}: {_clip(reg.get('reasons'), 140)}")
+            lines.append(
+                f'  ... {len(groups) - MAX_REASON_GROUPS} more reason(s) for {name} phases: '
+                f'phases_{name} in summary.json'
+            )
+    reg = summary.get('registration_verdict')
+    if reg and reg.get('verdict') not in (None, 'ok'):
+        lines.append(f'registration: {reg["verdict"]}: {_clip(reg.get("reasons"), 140)}')
     return lines
 
 
-def summary_lines(summary: dict, *, exit_status: int, exit_reason: str | None, accuracy: dict | None = None,
-                  report: str | None = None, volumes: dict | None = None) -> list[str]:
-    """The run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
+def summary_lines(
+    summary: dict,
+    *,
+    exit_status: int,
+    exit_reason: str | None,
+    accuracy: dict | None = None,
+    report: str | None = None,
+    volumes: dict | None = None,
+) -> list[str]:
+    """
+    The run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
 
     Parameters
     ----------
@@ -225,43 +276,67 @@ def summary_lines(summary: dict, *, exit_status: int, exit_reason: str | None, a
         The report's index file, when one was built.
     volumes : dict, optional
         Phase → cavity volume, ml (default ``summary["cavity_volume_ml"]``).
+
     """
-    n, solved, analysed = summary.get("num_phases", 0), summary.get("phases_solved", 0), summary.get("metrics_published", 0)
-    if summary.get("interrupted"):
-        how = f"interrupted by {summary['interrupted']}"
-    elif summary.get("failed"):
-        how = "failed"
+    n, solved, analysed = (
+        summary.get('num_phases', 0),
+        summary.get('phases_solved', 0),
+        summary.get('metrics_published', 0),
+    )
+    if summary.get('interrupted'):
+        how = f'interrupted by {summary["interrupted"]}'
+    elif summary.get('failed'):
+        how = 'failed'
     else:
-        how = "complete" if summary.get("complete") else "incomplete"
-    lines = [f"run: {source_text(summary.get('source') or {})}, study {summary.get('study_id') or '?'}"
-             + (f" (run {summary['run_id']})" if summary.get("run_id") else ""),
-             f"result: {how} after {summary.get('seconds', 0):.1f} s: {solved} of {n} phases solved, {analysed} analysed, "
-             f"{summary.get('frames_published', 0)} frames"]
-    if summary.get("failed"):
-        lines.append(f"failure: {_clip(summary['failed'], 200)}")
+        how = 'complete' if summary.get('complete') else 'incomplete'
+    lines = [
+        f'run: {source_text(summary.get("source") or {})}, study {summary.get("study_id") or "?"}'
+        + (f' (run {summary["run_id"]})' if summary.get('run_id') else ''),
+        f'result: {how} after {summary.get("seconds", 0):.1f} s: {solved} of {n} phases '
+        f'solved, {analysed} analysed, '
+        f'{summary.get("frames_published", 0)} frames',
+    ]
+    if summary.get('failed'):
+        lines.append(f'failure: {_clip(summary["failed"], 200)}')
     lines += accuracy_text(accuracy)
-    vol = volumes_text(volumes if volumes is not None else summary.get("cavity_volume_ml") or {},
-                       failed=(summary.get("phases_failed") or {}).keys())
+    vol = volumes_text(
+        volumes if volumes is not None else summary.get('cavity_volume_ml') or {},
+        failed=(summary.get('phases_failed') or {}).keys(),
+    )
     if vol:
         lines.append(vol)
     lines += verdict_lines(summary)
-    if summary.get("left_out"):
-        lines.append(f"input: {len(summary['left_out'])} part(s) of the study left out (left_out in summary.json)")
-    other = sum((summary.get("messages_of_other_studies") or {}).values())
-    statuses = summary.get("statuses_of_other_graphs") or 0
+    if summary.get('left_out'):
+        lines.append(
+            f'input: {len(summary["left_out"])} part(s) of the study left out (left_out in '
+            'summary.json)'
+        )
+    other = sum((summary.get('messages_of_other_studies') or {}).values())
+    statuses = summary.get('statuses_of_other_graphs') or 0
     if other or statuses:
-        lines.append(f"isolation: {other} message(s) of another study or run ignored, {statuses} /diagnostics "
-                     "status(es) of other graphs left out of the recording")
-    view = summary.get("live_view")
+        lines.append(
+            f'isolation: {other} message(s) of another study or run ignored, {statuses} '
+            '/diagnostics '
+            'status(es) of other graphs left out of the recording'
+        )
+    view = summary.get('live_view')
     if view:
-        lines.append(f"live view: {view.get('url')}, {view.get('phases_shown', 0)} phase(s) shown")
-    if summary.get("recording_error"):
-        lines.append(f"recording: stopped early: {_clip(summary['recording_error'], 150)}")
-    run_dir = summary.get("run_dir", "")
-    where = (f"{run_dir}/summary.json" if not summary.get("summary_error")
-             else f"no summary.json ({summary['summary_error'].removeprefix('summary.json not written: ')})")
-    lines.append(f"results: {summary.get('mcap')} and {where}" + (f"; report {report}" if report else ""))
-    lines.append(f"exit {exit_status}" + (f": {_clip(exit_reason, 200)}" if exit_reason else ": complete"))
+        lines.append(f'live view: {view.get("url")}, {view.get("phases_shown", 0)} phase(s) shown')
+    if summary.get('recording_error'):
+        lines.append(f'recording: stopped early: {_clip(summary["recording_error"], 150)}')
+    run_dir = summary.get('run_dir', '')
+    where = (
+        f'{run_dir}/summary.json'
+        if not summary.get('summary_error')
+        else 'no summary.json '
+        f'({summary["summary_error"].removeprefix("summary.json not written: ")})'
+    )
+    lines.append(
+        f'results: {summary.get("mcap")} and {where}' + (f'; report {report}' if report else '')
+    )
+    lines.append(
+        f'exit {exit_status}' + (f': {_clip(exit_reason, 200)}' if exit_reason else ': complete')
+    )
     if len(lines) > MAX_SUMMARY_LINES:  # keep the head and the exit line
-        lines = lines[:MAX_SUMMARY_LINES - 2] + ["... (see summary.json)", lines[-1]]
+        lines = lines[:MAX_SUMMARY_LINES - 2] + ['... (see summary.json)', lines[-1]]
     return lines

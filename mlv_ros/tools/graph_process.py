@@ -1,4 +1,5 @@
-"""A node of ``mlv-ros run``'s graph in a process of its own, so that it computes on another core
+"""
+A node of ``mlv-ros run``'s graph in a process of its own, so that it computes on another core
 than the rest of the graph (the tag detector beside the registration and the solver).
 
 The run starts the child with :meth:`ChildNode.start` (the same interpreter and environment) and
@@ -24,17 +25,17 @@ process ended, when it ended on its own or a callback raised).
 
 from __future__ import annotations
 
+from collections import Counter
 import json
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections import Counter
-from pathlib import Path
 
-STATE_FIELDS = ("frames_out", "messages_handled", "diagnostics_sent", "published")
+STATE_FIELDS = ('frames_out', 'messages_handled', 'diagnostics_sent', 'published')
 REPORT_PERIOD_S = 0.1
 DRAIN_QUIET_S = 0.2  # as run_node: queued messages are taken until none came for this long
 
@@ -43,9 +44,13 @@ def _status_dict(status) -> dict | None:
     if status is None:
         return None
     level = status.level
-    return {"level": level[0] if isinstance(level, (bytes, bytearray)) else int(level),
-            "name": status.name, "message": status.message, "hardware_id": status.hardware_id,
-            "values": [[kv.key, kv.value] for kv in status.values]}
+    return {
+        'level': level[0] if isinstance(level, (bytes, bytearray)) else int(level),
+        'name': status.name,
+        'message': status.message,
+        'hardware_id': status.hardware_id,
+        'values': [[kv.key, kv.value] for kv in status.values],
+    }
 
 
 def _status_msg(d: dict | None):
@@ -53,18 +58,23 @@ def _status_msg(d: dict | None):
 
     if d is None:
         return None
-    return DiagnosticStatus(level=bytes([int(d["level"])]), name=d["name"], message=d["message"],
-                            hardware_id=d["hardware_id"], values=[KeyValue(key=k, value=v) for k, v in d["values"]])
+    return DiagnosticStatus(
+        level=bytes([int(d['level'])]),
+        name=d['name'],
+        message=d['message'],
+        hardware_id=d['hardware_id'],
+        values=[KeyValue(key=k, value=v) for k, v in d['values']],
+    )
 
 
 class _Study:
     """``node.study`` of a child: adopting a study sends it and waits until the node has it."""
 
-    def __init__(self, child: "ChildNode"):
+    def __init__(self, child: 'ChildNode'):
         self._child = child
-        self.study_id = self.run_id = ""
+        self.study_id = self.run_id = ''
 
-    def adopt(self, study_id: str, run_id: str = "") -> None:
+    def adopt(self, study_id: str, run_id: str = '') -> None:
         self.study_id, self.run_id = study_id, run_id
         self._child._adopt(study_id, run_id)
 
@@ -82,36 +92,55 @@ class ChildNode:
         self.status = None
         self.other_studies: Counter = Counter()
         self.streams: dict = {}
-        self._events: dict[str, threading.Event] = {e: threading.Event() for e in
-                                                   ("started", "start_failed", "ready", "stopped", "eof")}
+        self._events: dict[str, threading.Event] = {
+            e: threading.Event() for e in ('started', 'start_failed', 'ready', 'stopped', 'eof')
+        }
         self.start_error: str | None = None
-        self._reader = threading.Thread(target=self._read, name=f"{name}-child", daemon=True)
+        self._reader = threading.Thread(target=self._read, name=f'{name}-child', daemon=True)
         self._reader.start()
 
     @classmethod
-    def start(cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict) -> "ChildNode":
-        """Start node ``name`` in a child process (this interpreter, this environment, the
-        directory holding ``mlv_ros`` on its path)."""
-        from rclpy.logging import get_logger_effective_level
-
+    def start(
+        cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict
+    ) -> 'ChildNode':
+        """
+        Start node ``name`` in a child process (this interpreter, this environment, the
+        directory holding ``mlv_ros`` on its path).
+        """
         import mlv_ros
+        from rclpy.logging import get_logger_effective_level
 
         env = dict(os.environ)
         root = str(Path(mlv_ros.__file__).resolve().parents[1])
-        env["PYTHONPATH"] = os.pathsep.join([root, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
-        proc = subprocess.Popen([sys.executable, "-m", "mlv_ros.tools.graph_process"], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, env=env, text=True, start_new_session=True)
+        env['PYTHONPATH'] = os.pathsep.join(
+            [root, *([env['PYTHONPATH']] if env.get('PYTHONPATH') else [])]
+        )
+        proc = subprocess.Popen(
+            [sys.executable, '-m', 'mlv_ros.tools.graph_process'],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+            text=True,
+            start_new_session=True,
+        )
         child = cls(name, proc)
-        child._send({"node": name, "domain_id": int(domain_id), "namespace": namespace,
-                     "params_file": str(params_file), "overrides": overrides,
-                     # the run's logging threshold (e.g. WARN: the console shows no INFO lines)
-                     "log_level": int(get_logger_effective_level(""))})
+        child._send(
+            {
+                'node': name,
+                'domain_id': int(domain_id),
+                'namespace': namespace,
+                'params_file': str(params_file),
+                'overrides': overrides,
+                # the run's logging threshold (e.g. WARN: the console shows no INFO lines)
+                'log_level': int(get_logger_effective_level('')),
+            }
+        )
         return child
 
     # ------------------------------------------------------------------ run side
     def _send(self, obj: dict) -> None:
         try:
-            self.proc.stdin.write(json.dumps(obj) + "\n")
+            self.proc.stdin.write(json.dumps(obj) + '\n')
             self.proc.stdin.flush()
         except (BrokenPipeError, OSError, ValueError):
             pass  # the child is gone: its reader says why
@@ -122,55 +151,61 @@ class ChildNode:
                 msg = json.loads(line)
             except ValueError:
                 continue
-            event = msg.get("event")
+            event = msg.get('event')
             for key in STATE_FIELDS:
                 if key in msg:
                     setattr(self, key, int(msg[key]))
-            if "failure" in msg:
-                self.failure = msg["failure"]
-            if "last_error" in msg:
-                self.last_error = _status_msg(msg["last_error"])
-            if "status" in msg:
-                self.status = _status_msg(msg["status"])
-            if "other_studies" in msg:
-                self.other_studies = Counter(msg["other_studies"])
-            if event == "start_failed":
-                self.start_error = msg.get("reason", "could not start")
-            elif event == "crashed":
-                self.crash = msg.get("reason", "raised")
+            if 'failure' in msg:
+                self.failure = msg['failure']
+            if 'last_error' in msg:
+                self.last_error = _status_msg(msg['last_error'])
+            if 'status' in msg:
+                self.status = _status_msg(msg['status'])
+            if 'other_studies' in msg:
+                self.other_studies = Counter(msg['other_studies'])
+            if event == 'start_failed':
+                self.start_error = msg.get('reason', 'could not start')
+            elif event == 'crashed':
+                self.crash = msg.get('reason', 'raised')
             if event in self._events:
                 self._events[event].set()
         rc = self.proc.wait()
-        if not self._events["stopped"].is_set() and self.crash is None and self.start_error is None:
-            why = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
-            self.crash = f"its process ended unexpectedly ({why})"
-        self._events["eof"].set()
+        if (
+            not self._events['stopped'].is_set()
+            and self.crash is None
+            and self.start_error is None
+        ):
+            why = f'killed by {signal.Signals(-rc).name}' if rc < 0 else f'exit status {rc}'
+            self.crash = f'its process ended unexpectedly ({why})'
+        self._events['eof'].set()
 
     def wait_started(self, timeout: float = 120.0) -> str | None:
         """Block until the node is created; returns why it could not start, else None."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            if self._events["started"].wait(0.05):
+            if self._events['started'].wait(0.05):
                 return None
-            if self.start_error or self._events["eof"].is_set():
-                return self.start_error or self.crash or "its process ended before the node started"
-        return f"not started after {timeout:g} s"
+            if self.start_error or self._events['eof'].is_set():
+                return (
+                    self.start_error or self.crash or 'its process ended before the node started'
+                )
+        return f'not started after {timeout:g} s'
 
     def _adopt(self, study_id: str, run_id: str, timeout: float = 30.0) -> None:
-        self._send({"study": study_id, "run": run_id})
+        self._send({'study': study_id, 'run': run_id})
         end = time.monotonic() + timeout
-        while time.monotonic() < end and not self._events["eof"].is_set():
-            if self._events["ready"].wait(0.05):
+        while time.monotonic() < end and not self._events['eof'].is_set():
+            if self._events['ready'].wait(0.05):
                 return
 
     @property
     def done(self) -> bool:
-        return self._events["eof"].is_set()
+        return self._events['eof'].is_set()
 
     def stop(self, timeout: float = 10.0) -> None:
         """Let the node take what is queued, then end the process (killed after ``timeout``)."""
         if self.proc.poll() is None:
-            self._send({"stop": True})
+            self._send({'stop': True})
             try:
                 self.proc.stdin.close()
             except OSError:
@@ -180,7 +215,7 @@ class ChildNode:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        self._events["eof"].wait(5.0)  # the last counters are read
+        self._events['eof'].wait(5.0)  # the last counters are read
 
     def destroy_node(self) -> None:
         self.stop()
@@ -190,65 +225,68 @@ class ChildNode:
 def _node_classes() -> dict:
     from mlv_ros.nodes.tag_detector import TagDetector
 
-    return {"tag_detector": TagDetector}
+    return {'tag_detector': TagDetector}
 
 
 def _emit(out, obj: dict) -> None:
-    out.write(json.dumps(obj) + "\n")
+    out.write(json.dumps(obj) + '\n')
     out.flush()
 
 
 def _state(node) -> dict:
     state = {k: int(getattr(node, k, 0)) for k in STATE_FIELDS}
-    state["failure"] = node.failure
-    state["last_error"] = _status_dict(node.last_error)
-    state["status"] = _status_dict(node.status)
-    state["other_studies"] = dict(node.other_studies)
+    state['failure'] = node.failure
+    state['last_error'] = _status_dict(node.last_error)
+    state['status'] = _status_dict(node.status)
+    state['other_studies'] = dict(node.other_studies)
     return state
 
 
 def main() -> int:
     # The protocol owns stdout: anything else printed there goes to stderr instead.
-    out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
+    out = os.fdopen(os.dup(sys.stdout.fileno()), 'w')
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    config = json.loads(sys.stdin.readline() or "{}")
+    config = json.loads(sys.stdin.readline() or '{}')
+    from mlv_ros.tools.run import _error_text
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
-    from mlv_ros.tools.run import _error_text
-
-    name = config.get("node", "")
+    name = config.get('node', '')
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(config.get("domain_id", 0)))
-    if config.get("log_level") is not None:
+    rclpy.init(context=ctx, domain_id=int(config.get('domain_id', 0)))
+    if config.get('log_level') is not None:
         from rclpy.logging import LoggingSeverity, set_logger_level
 
-        set_logger_level("", LoggingSeverity(int(config["log_level"])))
+        set_logger_level('', LoggingSeverity(int(config['log_level'])))
     node = None
     try:
         try:
             node = _node_classes()[name](
-                context=ctx, namespace=config.get("namespace", "/"),
-                cli_args=["--ros-args", "--params-file", config["params_file"]],
-                parameter_overrides=[Parameter(k, value=v) for k, v in (config.get("overrides") or {}).items()])
+                context=ctx,
+                namespace=config.get('namespace', '/'),
+                cli_args=['--ros-args', '--params-file', config['params_file']],
+                parameter_overrides=[
+                    Parameter(k, value=v) for k, v in (config.get('overrides') or {}).items()
+                ],
+            )
         except Exception as exc:
-            _emit(out, {"event": "start_failed", "reason": _error_text(exc)})
+            _emit(out, {'event': 'start_failed', 'reason': _error_text(exc)})
             return 2
-        _emit(out, {"event": "started"})
+        _emit(out, {'event': 'started'})
         line = sys.stdin.readline()
         if not line:
             return 0  # the run ended while starting
         study = json.loads(line)
-        node.study.adopt(study.get("study", ""), study.get("run", ""))
-        _emit(out, {"event": "ready"})
+        node.study.adopt(study.get('study', ''), study.get('run', ''))
+        _emit(out, {'event': 'ready'})
 
         def watch_stdin():
             for text in sys.stdin:
-                if json.loads(text or "{}").get("stop"):
+                if json.loads(text or '{}').get('stop'):
                     break
             stop.set()
 
@@ -265,7 +303,7 @@ def main() -> int:
                 break
             state = _state(node)
             if state != last and time.monotonic() - sent_at >= REPORT_PERIOD_S:
-                _emit(out, {"event": "counts", **state})
+                _emit(out, {'event': 'counts', **state})
                 last, sent_at = state, time.monotonic()
         if crashed is None and not node.done:
             # Drain: what arrived before the stop is still taken and published.
@@ -279,9 +317,9 @@ def main() -> int:
                 if node.messages_handled != handled:
                     handled, quiet_since = node.messages_handled, time.monotonic()
         if crashed is not None:
-            _emit(out, {"event": "crashed", "reason": crashed, **_state(node)})
+            _emit(out, {'event': 'crashed', 'reason': crashed, **_state(node)})
             return 1
-        _emit(out, {"event": "stopped", **_state(node)})
+        _emit(out, {'event': 'stopped', **_state(node)})
         return 1 if node.failure else 0
     finally:
         if node is not None:
@@ -289,7 +327,7 @@ def main() -> int:
         ctx.try_shutdown()
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     from mlv_ros.threads import compute_threads
 
     _node_classes()  # imported first: OpenCV's pool is held only if loaded before

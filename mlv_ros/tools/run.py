@@ -1,4 +1,5 @@
-"""``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap: the tag detector in a process of
+"""
+``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap: the tag detector in a process of
 its own (:mod:`mlv_ros.tools.graph_process`), the other nodes in the run's process (one executor).
 
     mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
@@ -32,45 +33,53 @@ from __future__ import annotations
 import json
 import math
 import os
+from pathlib import Path
 import re
 import signal
 import sys
 import tempfile
 import threading
 import time
-from pathlib import Path
-
-import yaml
 
 from mlv_ros.tools.console import RunConsole, summary_lines
+import yaml
 
-GRAPH = ["recorder", "motion_analyzer", "meshless_solver", "registration", "tag_detector", "frame_source"]
+GRAPH = [
+    'recorder',
+    'motion_analyzer',
+    'meshless_solver',
+    'registration',
+    'tag_detector',
+    'frame_source',
+]
 # Node names of an mlv_ros graph (the launch file and console scripts use them too): one of them
 # on a domain means a graph is using it.
-GRAPH_NODE_NAMES = (*GRAPH, "replay")
+GRAPH_NODE_NAMES = (*GRAPH, 'replay')
 # Nodes run in a child process each (on a machine with more than one core), so that they compute
 # beside the others: the tag detector's work per frame is as large as the rest of the graph's.
 # Measured on the 2-core machine, `bench pipeline` (default study), alternated: 20.9, 19.9,
 # 23.1 s with the tag detector in its own process, 23.4, 23.3 s all in one (load 1.4-2.5); the
 # graph in one process with a MultiThreadedExecutor instead took 44 s (the GIL). Set
 # MLV_ROS_ONE_PROCESS=1 to keep every node in the run's process.
-CHILD_NODES = ("tag_detector",)
+CHILD_NODES = ('tag_detector',)
 # How long discovery is given to show another graph's nodes before a chosen domain counts as free
 # (on one host they show within about 0.1 s; longer when discovery reaches other hosts).
 DOMAIN_PROBE_S = 1.0
 DOMAIN_PROBE_NETWORK_S = 2.0
-PROBE_PREFIX = "_mlv_ros_run_"  # the node a run looks at its domain with (see graph_nodes_on)
+PROBE_PREFIX = '_mlv_ros_run_'  # the node a run looks at its domain with (see graph_nodes_on)
 EXIT_INCOMPLETE, EXIT_USAGE, EXIT_UNTRACKED = 1, 2, 3
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_UID = re.compile(r"[0-9]+(\.[0-9]+)*")
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_UID = re.compile(r'[0-9]+(\.[0-9]+)*')
 QUIET_S = 0.5  # no graph activity for this long: the phases in flight are done
 DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is queued
 
 
 class RunStartError(ValueError):
-    """The graph could not start (a node refused its parameters, the input has no frames, the
-    run directory cannot be written); nothing was recorded and nothing is left behind."""
+    """
+    The graph could not start (a node refused its parameters, the input has no frames, the
+    run directory cannot be written); nothing was recorded and nothing is left behind.
+    """
 
 
 class DomainBusyError(RunStartError):
@@ -83,11 +92,12 @@ class RunInterrupted(Exception):
     def __init__(self, signum: int):
         self.signum = signum
         self.name = signal.Signals(signum).name
-        super().__init__(f"interrupted by {self.name} while starting")
+        super().__init__(f'interrupted by {self.name} while starting')
 
 
 class _Signals:
-    """SIGINT/SIGTERM handling for one run.
+    """
+    SIGINT/SIGTERM handling for one run.
 
     While the graph starts the first signal raises :class:`RunInterrupted` (loading a study can
     take a while, and there is nothing to keep yet). Once it runs a signal only sets a flag,
@@ -101,7 +111,7 @@ class _Signals:
         self.starting = True
         self._previous: dict = {}
 
-    def install(self) -> "_Signals":
+    def install(self) -> '_Signals':
         if threading.current_thread() is threading.main_thread():  # Python allows no other
             for sig in SIGNAL_EXIT:
                 self._previous[sig] = signal.signal(sig, self._handle)
@@ -129,39 +139,102 @@ class _Signals:
 
 def add_arguments(parser):
     src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--phantom", metavar="PRESET", help="simulate a preset (normal, hypertrophic, dilated, infarct, cylinder)")
-    src.add_argument("--dicom", metavar="DIR", help="read a DICOM directory")
-    src.add_argument("--bag", metavar="FILE", help="replay the frames of a recorded MCAP")
-    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (must not hold a run.mcap)")
-    parser.add_argument("--study", metavar="UID", default=None,
-                        help="with --dicom: the StudyInstanceUID to analyse (default: the study with the most tagged cines)")
-    parser.add_argument("--params", default=None, help="graph parameters YAML (default config/graph.yaml)")
-    parser.add_argument("--snr", type=float, default=None, help="phantom SNR, 0..1000, 0 = noise-free (default from the params file)")
-    parser.add_argument("--size", type=int, default=None, help="phantom image size, pixels (32..1024)")
-    parser.add_argument("--phases", type=int, default=None, help="phantom phases per cycle (2..200)")
-    parser.add_argument("--order", choices=("slice_major", "phase_major"), default=None)
-    parser.add_argument("--particles", type=int, default=None, help="model particles (100..200000)")
-    parser.add_argument("--masks", default=None, help="NIfTI label image of the ED myocardium (label 2) instead of automatic segmentation")
-    parser.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
-    parser.add_argument("--grace", type=float, default=10.0,
-                        help="on SIGINT/SIGTERM, wait at most this many seconds for the phases in flight (default 10)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
-    parser.add_argument("--quiet", action="store_true", help="the same as --no-progress")
-    parser.add_argument("--verbose", action="store_true",
-                        help="also the nodes' INFO lines, one line per event and the whole summary as JSON")
-    parser.add_argument("--domain-id", type=int, default=None,
-                        help="ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free private one)")
-    parser.add_argument("--namespace", metavar="NS", default=None,
-                        help="run every node and topic under this ROS namespace (e.g. study2: /study2/mlv/frames); "
-                             "graphs in different namespaces can share a domain")
-    parser.add_argument("--live", action="store_true",
-                        help="serve the run live to Foxglove (ws://127.0.0.1:8765; layout config/foxglove_layout.json)")
-    parser.add_argument("--live-port", type=int, default=None, metavar="N",
-                        help="the live view's port (implies --live; default 8765 from the params file, 0 = any free)")
+    src.add_argument(
+        '--phantom',
+        metavar='PRESET',
+        help='simulate a preset (normal, hypertrophic, dilated, infarct, cylinder)',
+    )
+    src.add_argument('--dicom', metavar='DIR', help='read a DICOM directory')
+    src.add_argument('--bag', metavar='FILE', help='replay the frames of a recorded MCAP')
+    parser.add_argument(
+        '--out', required=True, metavar='RUN_DIR', help='run directory (must not hold a run.mcap)'
+    )
+    parser.add_argument(
+        '--study',
+        metavar='UID',
+        default=None,
+        help='with --dicom: the StudyInstanceUID to analyse (default: the study with the most '
+        'tagged cines)',
+    )
+    parser.add_argument(
+        '--params', default=None, help='graph parameters YAML (default config/graph.yaml)'
+    )
+    parser.add_argument(
+        '--snr',
+        type=float,
+        default=None,
+        help='phantom SNR, 0..1000, 0 = noise-free (default from the params file)',
+    )
+    parser.add_argument(
+        '--size', type=int, default=None, help='phantom image size, pixels (32..1024)'
+    )
+    parser.add_argument(
+        '--phases', type=int, default=None, help='phantom phases per cycle (2..200)'
+    )
+    parser.add_argument('--order', choices=('slice_major', 'phase_major'), default=None)
+    parser.add_argument(
+        '--particles', type=int, default=None, help='model particles (100..200000)'
+    )
+    parser.add_argument(
+        '--masks',
+        default=None,
+        help='NIfTI label image of the ED myocardium (label 2) instead of automatic segmentation',
+    )
+    parser.add_argument(
+        '--timeout', type=float, default=600.0, help='give up after this many seconds'
+    )
+    parser.add_argument(
+        '--grace',
+        type=float,
+        default=10.0,
+        help='on SIGINT/SIGTERM, wait at most this many seconds for the phases in flight '
+        '(default 10)',
+    )
+    parser.add_argument(
+        '--no-progress',
+        action='store_true',
+        help='no progress bar (there is none when stderr is not a terminal)',
+    )
+    parser.add_argument('--quiet', action='store_true', help='the same as --no-progress')
+    parser.add_argument(
+        '--verbose',
+        action='store_true',
+        help="also the nodes' INFO lines, one line per event and the whole summary as JSON",
+    )
+    parser.add_argument(
+        '--domain-id',
+        type=int,
+        default=None,
+        help='ROS domain to run on, 0..232 (default: $ROS_DOMAIN_ID if set, else a free '
+        'private one)',
+    )
+    parser.add_argument(
+        '--namespace',
+        metavar='NS',
+        default=None,
+        help='run every node and topic under this ROS namespace (e.g. study2: '
+        '/study2/mlv/frames); '
+        'graphs in different namespaces can share a domain',
+    )
+    parser.add_argument(
+        '--live',
+        action='store_true',
+        help='serve the run live to Foxglove (ws://127.0.0.1:8765; layout '
+        'config/foxglove_layout.json)',
+    )
+    parser.add_argument(
+        '--live-port',
+        type=int,
+        default=None,
+        metavar='N',
+        help="the live view's port (implies --live; default 8765 from the params file, 0 = any "
+        'free)',
+    )
 
 
 def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
-    """{node: rclpy Node keyword arguments} giving each graph node the parameters file and the
+    """
+    {node: rclpy Node keyword arguments} giving each graph node the parameters file and the
     overrides {node: {name: value}} (which win over the file).
 
     The file is handed to rcl as ``--ros-args --params-file`` does, so its keys mean what they
@@ -172,13 +245,20 @@ def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
     """
     from rclpy.parameter import Parameter
 
-    return {node: {"cli_args": ["--ros-args", "--params-file", str(params_file)],
-                   "parameter_overrides": [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]}
-            for node in names}
+    return {
+        node: {
+            'cli_args': ['--ros-args', '--params-file', str(params_file)],
+            'parameter_overrides': [
+                Parameter(k, value=v) for k, v in overrides.get(node, {}).items()
+            ],
+        }
+        for node in names
+    }
 
 
-def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = "/") -> list[str]:
-    """Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` that discovery finds
+def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = '/') -> list[str]:
+    """
+    Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` that discovery finds
     on ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
 
     A graph in another namespace talks on other topics (``/a/mlv/frames``, ``/b/mlv/frames``):
@@ -202,13 +282,15 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
     -------
     list of str
         Their fully qualified names, sorted (empty: the domain looks free).
+
     """
     import rclpy
     from rclpy.node import Node
 
     if wait_s is None:
-        local = (os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST").upper() == "LOCALHOST"
-                 and not os.environ.get("ROS_STATIC_PEERS"))
+        local = os.environ.get(
+            'ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'
+        ).upper() == 'LOCALHOST' and not os.environ.get('ROS_STATIC_PEERS')
         wait_s = DOMAIN_PROBE_S if local else DOMAIN_PROBE_NETWORK_S
     me = (time.time_ns(), os.getpid())
     from mlv_ros.qos import full_namespace
@@ -216,7 +298,7 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
     namespace = full_namespace(namespace)
 
     def earlier_run(name: str) -> bool:
-        started, _, pid = name.removeprefix(PROBE_PREFIX).partition("_")
+        started, _, pid = name.removeprefix(PROBE_PREFIX).partition('_')
         if not name.startswith(PROBE_PREFIX) or not (started.isdigit() and pid.isdigit()):
             return False
         return (int(started), int(pid)) < me
@@ -226,12 +308,23 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
     node = None
     try:
         # Hidden (leading underscore), without parameter services or /rosout.
-        node = Node(f"{PROBE_PREFIX}{me[0]}_{me[1]}", namespace=namespace, context=ctx, enable_rosout=False,
-                    start_parameter_services=False)
+        node = Node(
+            f'{PROBE_PREFIX}{me[0]}_{me[1]}',
+            namespace=namespace,
+            context=ctx,
+            enable_rosout=False,
+            start_parameter_services=False,
+        )
         end = time.monotonic() + wait_s
         while True:
-            found = sorted({f"{ns.rstrip('/')}/{name}" for name, ns in node.get_node_names_and_namespaces()
-                            if full_namespace(ns) == namespace and (name in GRAPH_NODE_NAMES or earlier_run(name))})
+            found = sorted(
+                {
+                    f'{ns.rstrip("/")}/{name}'
+                    for name, ns in node.get_node_names_and_namespaces()
+                    if full_namespace(ns) == namespace
+                    and (name in GRAPH_NODE_NAMES or earlier_run(name))
+                }
+            )
             if found or time.monotonic() >= end:
                 return found
             time.sleep(0.02)
@@ -241,22 +334,30 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
         ctx.try_shutdown()
 
 
-def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = "/") -> str:
+def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = '/') -> str:
     """The one line refusing a busy domain, with how to choose another (or another namespace)."""
-    shown = ", ".join(f"another mlv-ros run starting" if PROBE_PREFIX in n else n for n in nodes[:4])
-    shown += ", ..." if len(nodes) > 4 else ""
-    where = "the root namespace" if namespace == "/" else f"namespace {namespace}"
-    return (f"ROS domain {domain_id} is busy: another mlv_ros graph is running on it in {where} ({shown}); "
-            f"choose another with --domain-id N or export ROS_DOMAIN_ID=N (0..232), or another --namespace NS, "
-            f"or set no domain and mlv-ros run takes a free private one")
+    shown = ', '.join(
+        'another mlv-ros run starting' if PROBE_PREFIX in n else n for n in nodes[:4]
+    )
+    shown += ', ...' if len(nodes) > 4 else ''
+    where = 'the root namespace' if namespace == '/' else f'namespace {namespace}'
+    return (
+        f'ROS domain {domain_id} is busy: another mlv_ros graph is running on it in {where} '
+        f'({shown}); '
+        'choose another with --domain-id N or export ROS_DOMAIN_ID=N (0..232), or another '
+        '--namespace NS, '
+        f'or set no domain and mlv-ros run takes a free private one'
+    )
 
 
 def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
-    """(the domain the user chose: ``domain_id`` or ``$ROS_DOMAIN_ID``, or None; whether one was
-    chosen)."""
+    """
+    (the domain the user chose: ``domain_id`` or ``$ROS_DOMAIN_ID``, or None; whether one was
+    chosen).
+    """
     if domain_id is not None:
         return int(domain_id), True
-    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    text = os.environ.get('ROS_DOMAIN_ID', '').strip()
     if not text:
         return None, False
     try:
@@ -264,19 +365,27 @@ def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
     except ValueError:
         value = -1
     if not 0 <= value <= 232:
-        raise RunStartError(f"ROS_DOMAIN_ID={text!r} is not a ROS domain id: set it to a number from 0 to 232, "
-                            "or unset it and mlv-ros run takes a free private one")
+        raise RunStartError(
+            f'ROS_DOMAIN_ID={text!r} is not a ROS domain id: set it to a number from 0 to 232, '
+            'or unset it and mlv-ros run takes a free private one'
+        )
     return value, True
 
 
 def _prepare_out(out_dir: Path) -> list[Path]:
-    """Create the run directory and check it takes files; returns the directories created (the
-    deepest first), for a failed start to remove."""
-    if (out_dir / "run.mcap").exists():
-        raise FileExistsError(f"{out_dir} already holds a run (run.mcap): choose a new --out directory "
-                              "(runs are never overwritten)")
+    """
+    Create the run directory and check it takes files; returns the directories created (the
+    deepest first), for a failed start to remove.
+    """
+    if (out_dir / 'run.mcap').exists():
+        raise FileExistsError(
+            f'{out_dir} already holds a run (run.mcap): choose a new --out directory '
+            '(runs are never overwritten)'
+        )
     if out_dir.exists() and not out_dir.is_dir():
-        raise RunStartError(f"--out {out_dir} is a file, not a directory: choose a new --out directory")
+        raise RunStartError(
+            f'--out {out_dir} is a file, not a directory: choose a new --out directory'
+        )
     missing = [d for d in (out_dir, *out_dir.parents) if not d.exists()]
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -284,8 +393,10 @@ def _prepare_out(out_dir: Path) -> list[Path]:
             pass
     except OSError as exc:
         _remove_dirs(missing)
-        raise RunStartError(f"cannot write in --out {out_dir}: {exc.strerror or exc}; "
-                            "choose a directory you can write to") from exc
+        raise RunStartError(
+            f'cannot write in --out {out_dir}: {exc.strerror or exc}; '
+            'choose a directory you can write to'
+        ) from exc
     return missing
 
 
@@ -298,31 +409,33 @@ def _remove_dirs(created: list[Path]) -> None:
 
 
 def _error_text(exc: BaseException) -> str:
-    """An exception as one line: expected errors by their message, anything else (a bug) with
-    its type and where it was raised."""
+    """
+    An exception as one line: expected errors by their message, anything else (a bug) with
+    its type and where it was raised.
+    """
     from rclpy.exceptions import InvalidParameterValueException, ParameterException
 
     if isinstance(exc, InvalidParameterValueException):  # rclpy's text ends in ": <name>"
-        reason = str(exc).partition("Reason: ")[2].rpartition(": ")[0]
-        return f"{reason or exc} (see --params)"
-    if type(exc).__name__ == "RCLInvalidROSArgsError":  # rcl refusing the parameters file
-        reason = str(exc).partition("Error: ")[2].partition(", at /")[0]
-        return f"the parameters file cannot be read by ROS: {reason or exc} (see --params)"
+        reason = str(exc).partition('Reason: ')[2].rpartition(': ')[0]
+        return f'{reason or exc} (see --params)'
+    if type(exc).__name__ == 'RCLInvalidROSArgsError':  # rcl refusing the parameters file
+        reason = str(exc).partition('Error: ')[2].partition(', at /')[0]
+        return f'the parameters file cannot be read by ROS: {reason or exc} (see --params)'
     if isinstance(exc, (ValueError, OSError, ParameterException)):
         return str(exc)
     tb = exc.__traceback__
     while tb is not None and tb.tb_next is not None:
         tb = tb.tb_next
-    where = f" (at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno})" if tb else ""
-    return f"{type(exc).__name__}: {exc}{where}"
+    where = f' (at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno})' if tb else ''
+    return f'{type(exc).__name__}: {exc}{where}'
 
 
 def _raising_node(exc: BaseException, nodes: dict) -> str:
     """Name of the graph node whose callback raised ``exc`` (the innermost node method)."""
-    found = "a node"
+    found = 'a node'
     tb = exc.__traceback__
     while tb is not None:
-        owner = tb.tb_frame.f_locals.get("self")
+        owner = tb.tb_frame.f_locals.get('self')
         for name, node in nodes.items():
             if owner is node:
                 found = name
@@ -338,9 +451,14 @@ def _reason(node) -> str:
 
 
 def child_nodes() -> tuple[str, ...]:
-    """The nodes a run starts in processes of their own (:data:`CHILD_NODES`; none on one core
-    or with ``MLV_ROS_ONE_PROCESS=1``)."""
-    if os.environ.get("MLV_ROS_ONE_PROCESS", "").strip() not in ("", "0") or (os.cpu_count() or 1) < 2:
+    """
+    The nodes a run starts in processes of their own (:data:`CHILD_NODES`; none on one core
+    or with ``MLV_ROS_ONE_PROCESS=1``).
+    """
+    if (
+        os.environ.get('MLV_ROS_ONE_PROCESS', '').strip() not in ('', '0')
+        or (os.cpu_count() or 1) < 2
+    ):
         return ()
     return CHILD_NODES
 
@@ -348,39 +466,49 @@ def child_nodes() -> tuple[str, ...]:
 def _stuck(nodes: dict) -> str | None:
     """Why the graph cannot go on, when one of its nodes gave up or is left with nothing to do."""
     for name, node in nodes.items():
-        if getattr(node, "crash", None):  # a node in a child process raised, or its process ended
-            return f"{name} failed: {node.crash}"
+        if getattr(node, 'crash', None):  # a node in a child process raised, or its process ended
+            return f'{name} failed: {node.crash}'
     for name, node in nodes.items():
-        if getattr(node, "failure", None):
-            return f"{name}: {node.failure}"
-    src = nodes["frame_source"]
+        if getattr(node, 'failure', None):
+            return f'{name}: {node.failure}'
+    src = nodes['frame_source']
     if src.done and src.halted is None and src.published < len(src.frames):
-        return f"frame_source stopped publishing: {_reason(src)}"
-    reg = nodes["registration"]
+        return f'frame_source stopped publishing: {_reason(src)}'
+    reg = nodes['registration']
     if reg.registered and reg.result is None:
-        return f"registration: {_reason(reg)}"
+        return f'registration: {_reason(reg)}'
     # A solver or analyzer that has the registered model but could not build on it waits for ever.
-    solver, analyzer = nodes["meshless_solver"], nodes["motion_analyzer"]
-    if (getattr(solver, "cloud", None) is not None and getattr(solver, "rest_state", None) is not None
-            and getattr(solver, "tracker", True) is None):
-        return f"meshless_solver: {_reason(solver)}"
-    if (getattr(analyzer, "reg_cloud", None) is not None and getattr(analyzer, "reg_state", None) is not None
-            and getattr(analyzer, "analyzer", True) is None):
-        return f"motion_analyzer: {_reason(analyzer)}"
+    solver, analyzer = nodes['meshless_solver'], nodes['motion_analyzer']
+    if (
+        getattr(solver, 'cloud', None) is not None
+        and getattr(solver, 'rest_state', None) is not None
+        and getattr(solver, 'tracker', True) is None
+    ):
+        return f'meshless_solver: {_reason(solver)}'
+    if (
+        getattr(analyzer, 'reg_cloud', None) is not None
+        and getattr(analyzer, 'reg_state', None) is not None
+        and getattr(analyzer, 'analyzer', True) is None
+    ):
+        return f'motion_analyzer: {_reason(analyzer)}'
     return None
 
 
 def _activity(nodes: dict) -> int:
-    """A number that grows whenever the graph does something (frames, tag points, phases,
-    messages taken); /diagnostics heartbeats are left out."""
+    """
+    A number that grows whenever the graph does something (frames, tag points, phases,
+    messages taken); /diagnostics heartbeats are left out.
+    """
     from mlv_ros import qos
 
     total = 0
     for name, node in nodes.items():
-        if name == "recorder":
-            total += sum(c.received for topic, c in node.streams.items() if topic != qos.DIAGNOSTICS)
+        if name == 'recorder':
+            total += sum(
+                c.received for topic, c in node.streams.items() if topic != qos.DIAGNOSTICS
+            )
             continue
-        for attr in ("published", "frames_out", "phases_published", "messages_handled"):
+        for attr in ('published', 'frames_out', 'phases_published', 'messages_handled'):
             value = getattr(node, attr, 0)
             total += value if isinstance(value, int) else 0
     return total
@@ -396,37 +524,67 @@ def _statuses(nodes: dict) -> str:
     """The nodes' latest errors (or, without any, their warnings) on one line."""
     from mlv_ros.nodes.common import OK, status_text
 
-    said = [f"{name}: {status_text(n.last_error)}" for name, n in nodes.items() if n.last_error is not None]
-    said = said or [f"{name}: {status_text(n.status)}" for name, n in nodes.items()
-                    if n.status is not None and n.status.level != OK]
-    return "; ".join(said) if said else "no node reported a problem"
+    said = [
+        f'{name}: {status_text(n.last_error)}'
+        for name, n in nodes.items()
+        if n.last_error is not None
+    ]
+    said = said or [
+        f'{name}: {status_text(n.status)}'
+        for name, n in nodes.items()
+        if n.status is not None and n.status.level != OK
+    ]
+    return '; '.join(said) if said else 'no node reported a problem'
 
 
 def _no_frames(src, source: dict) -> str:
     """Why the input gave no frame, for a start that ends there."""
     from mlv_ros import bagio, qos
 
-    path = source.get("path", "")
-    if source.get("source") == "bag":
+    path = source.get('path', '')
+    if source.get('source') == 'bag':
         try:
             topics = sorted(bagio.bag_topics(path))
         except (ValueError, OSError):
             topics = []
-        has = f" (its topics: {', '.join(topics[:6])}{', ...' if len(topics) > 6 else ''})" if topics else ""
-        return (f"--bag {path} has no {qos.FRAMES} messages{has}: give a recording made by mlv-ros "
-                "(`mlv-ros run` or the recorder)")
-    if source.get("source") == "dicom":
-        problems = getattr(src, "_reports", [])
-        first = f"; first: {problems[0][1].get('file')}: {problems[0][1].get('reason')}" if problems else ""
-        return f"--dicom {path}: no usable tagged cine image ({len(problems)} file(s) skipped{first})"
-    return f"the {source.get('source')} source produced no frames"
+        has = (
+            f' (its topics: {", ".join(topics[:6])}{", ..." if len(topics) > 6 else ""})'
+            if topics
+            else ''
+        )
+        return (
+            f'--bag {path} has no {qos.FRAMES} messages{has}: give a recording made by mlv-ros '
+            '(`mlv-ros run` or the recorder)'
+        )
+    if source.get('source') == 'dicom':
+        problems = getattr(src, '_reports', [])
+        first = (
+            f'; first: {problems[0][1].get("file")}: {problems[0][1].get("reason")}'
+            if problems
+            else ''
+        )
+        return (
+            f'--dicom {path}: no usable tagged cine image ({len(problems)} file(s) skipped{first})'
+        )
+    return f'the {source.get("source")} source produced no frames'
 
 
-def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, overrides: dict | None = None,
-              timeout: float = 600.0, progress=print, domain_id: int | None = None, grace: float = 10.0,
-              handle_signals: bool = True, namespace: str | None = None, live: dict | None = None,
-              on_phase=None) -> dict:
-    """Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
+def run_graph(
+    source: dict,
+    out_dir: Path,
+    params_file: Path | None = None,
+    overrides: dict | None = None,
+    timeout: float = 600.0,
+    progress=print,
+    domain_id: int | None = None,
+    grace: float = 10.0,
+    handle_signals: bool = True,
+    namespace: str | None = None,
+    live: dict | None = None,
+    on_phase=None,
+) -> dict:
+    """
+    Run the graph on ``source`` and record it to ``out_dir/run.mcap``.
 
     Parameters
     ----------
@@ -484,6 +642,7 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         (:class:`DomainBusyError`: the chosen domain holds another mlv_ros graph).
     RunInterrupted
         SIGINT/SIGTERM while it was starting (nothing left behind either).
+
     """
     signals = _Signals()
     if handle_signals:
@@ -493,53 +652,86 @@ def run_graph(source: dict, out_dir: Path, params_file: Path | None = None, over
         import mlv_ros.nodes.tag_detector  # noqa: F401
         from mlv_ros.threads import compute_threads
 
-        with compute_threads():  # the same motion as any other layout of the graph (mlv_ros/threads.py)
-            return _run_graph(source, Path(out_dir), params_file, overrides, timeout, progress, domain_id,
-                              grace, signals, namespace, live, on_phase or (lambda done, total: None))
+        with (
+            compute_threads()
+        ):  # the same motion as any other layout of the graph (mlv_ros/threads.py)
+            return _run_graph(
+                source,
+                Path(out_dir),
+                params_file,
+                overrides,
+                timeout,
+                progress,
+                domain_id,
+                grace,
+                signals,
+                namespace,
+                live,
+                on_phase or (lambda done, total: None),
+            )
     finally:
         signals.restore()
 
 
-def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domain_id, grace, signals,
-               namespace, live=None, on_phase=lambda done, total: None) -> dict:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
+def _run_graph(
+    source,
+    out_dir,
+    params_file,
+    overrides,
+    timeout,
+    progress,
+    domain_id,
+    grace,
+    signals,
+    namespace,
+    live=None,
+    on_phase=lambda done, total: None,
+) -> dict:
     from mlv_ros import bagio, qos
     from mlv_ros.domain import claim_domain_id
+    from mlv_ros.nodes.common import status_text
     from mlv_ros.nodes.frame_source import FrameSource
     from mlv_ros.nodes.meshless_solver import MeshlessSolver
-    from mlv_ros.nodes.common import status_text
     from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
     from mlv_ros.nodes.recorder import Recorder
     from mlv_ros.nodes.registration import Registration
     from mlv_ros.nodes.tag_detector import TagDetector
     from mlv_ros.resources import config_file
     from mlv_ros.tools.graph_process import ChildNode
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
 
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    mcap = out_dir / "run.mcap"
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    mcap = out_dir / 'run.mcap'
     overrides = {k: dict(v) for k, v in (overrides or {}).items()}
-    overrides.setdefault("frame_source", {}).update(source)
-    overrides.setdefault("recorder", {})["output"] = str(mcap)
-    names = GRAPH if live is None else ["live_view", *GRAPH]  # the live view first: it sees every phase
+    overrides.setdefault('frame_source', {}).update(source)
+    overrides.setdefault('recorder', {})['output'] = str(mcap)
+    names = (
+        GRAPH if live is None else ['live_view', *GRAPH]
+    )  # the live view first: it sees every phase
     if live is not None:
-        overrides["live_view"] = {**dict(live), **overrides.get("live_view", {})}
+        overrides['live_view'] = {**dict(live), **overrides.get('live_view', {})}
     namespace = qos.full_namespace(namespace)
-    if namespace != "/":  # /diagnostics is shared: say which graph's node each status is
+    if namespace != '/':  # /diagnostics is shared: say which graph's node each status is
         for name in names:
-            overrides.setdefault(name, {})["diagnostic_updater.use_fqn"] = True
-    params_path = Path(params_file) if params_file else config_file("graph.yaml")
+            overrides.setdefault(name, {})['diagnostic_updater.use_fqn'] = True
+    params_path = Path(params_file) if params_file else config_file('graph.yaml')
     bad_params = _params_error(params_path)
     if bad_params:
         raise RunStartError(bad_params)
     params = node_parameters(params_path, overrides, names)
-    classes = {"recorder": Recorder, "motion_analyzer": MotionAnalyzer, "meshless_solver": MeshlessSolver,
-               "registration": Registration, "tag_detector": TagDetector, "frame_source": FrameSource}
+    classes = {
+        'recorder': Recorder,
+        'motion_analyzer': MotionAnalyzer,
+        'meshless_solver': MeshlessSolver,
+        'registration': Registration,
+        'tag_detector': TagDetector,
+        'frame_source': FrameSource,
+    }
     if live is not None:
         from mlv_ros.nodes.live_view import LiveView
 
-        classes["live_view"] = LiveView
+        classes['live_view'] = LiveView
     domain_id, chosen = _chosen_domain(domain_id)
     if chosen:
         # A domain the user chose may hold another graph (a second run, a launched one): refuse
@@ -560,23 +752,30 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         for name in names:  # downstream first, so every subscriber exists before frames flow
             if name in separate:  # started now, so it starts while the others do
                 try:
-                    nodes[name] = ChildNode.start(name, domain_id, namespace, params_path, overrides.get(name, {}))
+                    nodes[name] = ChildNode.start(
+                        name, domain_id, namespace, params_path, overrides.get(name, {})
+                    )
                 except OSError as exc:
-                    raise RunStartError(f"{name} could not start: {exc.strerror or exc}") from exc
+                    raise RunStartError(f'{name} could not start: {exc.strerror or exc}') from exc
                 continue
             try:
                 nodes[name] = classes[name](context=ctx, namespace=namespace, **params[name])
             except RunInterrupted:
                 raise
             except Exception as exc:
-                raise RunStartError(f"{name} could not start: {_error_text(exc)}") from exc
+                raise RunStartError(f'{name} could not start: {_error_text(exc)}') from exc
             ex.add_node(nodes[name])
-        src, solver, analyzer, rec = nodes["frame_source"], nodes["meshless_solver"], nodes["motion_analyzer"], nodes["recorder"]
+        src, solver, analyzer, rec = (
+            nodes['frame_source'],
+            nodes['meshless_solver'],
+            nodes['motion_analyzer'],
+            nodes['recorder'],
+        )
         for name, node in nodes.items():
             if isinstance(node, ChildNode):
                 why = node.wait_started()
                 if why:
-                    raise RunStartError(f"{name} could not start: {why}")
+                    raise RunStartError(f'{name} could not start: {why}')
         if not src.frames:
             raise RunStartError(_no_frames(src, source))
         # Every node keeps to this study from the start, so another graph's messages are never
@@ -588,8 +787,8 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     except (RunStartError, RunInterrupted):
         # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
         signals.starting = False
-        if "recorder" in nodes:
-            nodes["recorder"].writer.discard()
+        if 'recorder' in nodes:
+            nodes['recorder'].writer.discard()
         mcap.unlink(missing_ok=True)  # a signal may have come before the recorder was in `nodes`
         _remove_dirs(created)
         for node in nodes.values():
@@ -597,22 +796,37 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         ctx.try_shutdown()
         raise
     num_phases = max((f.num_phases for f in src.frames), default=0)
-    where = "" if namespace == "/" else f", namespace {namespace}"
-    progress(f"[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} (ROS_DOMAIN_ID={domain_id}{where}, "
-             f"study {src.study_id}, run {src.run_id})")
+    where = '' if namespace == '/' else f', namespace {namespace}'
+    progress(
+        f'[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} '
+        f'(ROS_DOMAIN_ID={domain_id}{where}, '
+        f'study {src.study_id}, run {src.run_id})'
+    )
     if live is not None:
-        progress(f"[mlv-ros] live view: {nodes['live_view'].url} (Foxglove: Open connection, Foxglove WebSocket; "
-                 f"layout config/foxglove_layout.json)")
-    if src.not_used or src.left_out or source.get("study"):
-        progress(f"[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, "
-                 f"{len(src.left_out)} part(s) of the study left out (see not_used / left_out in summary.json)")
+        progress(
+            f'[mlv-ros] live view: {nodes["live_view"].url} (Foxglove: Open connection, '
+            'Foxglove WebSocket; '
+            f'layout config/foxglove_layout.json)'
+        )
+    if src.not_used or src.left_out or source.get('study'):
+        progress(
+            f'[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, '
+            f'{len(src.left_out)} part(s) of the study left out (see not_used / left_out in '
+            'summary.json)'
+        )
     on_phase(0, num_phases)
     # Longest a healthy graph stays idle: registration and the solver wait this long for input
     # that may still come before acting on what they have (the solver also for its subscribers),
     # and the source, before publishing, for its subscribers.
-    waits = [getattr(nodes["registration"], "ed_timeout_s", 5.0), getattr(solver, "incomplete_timeout_s", 5.0),
-             getattr(solver, "wait_timeout_s", 10.0)]
-    stall_after = {False: 15.0 + max(waits + [getattr(src, "wait_timeout_s", 30.0)]), True: 15.0 + max(waits)}
+    waits = [
+        getattr(nodes['registration'], 'ed_timeout_s', 5.0),
+        getattr(solver, 'incomplete_timeout_s', 5.0),
+        getattr(solver, 'wait_timeout_s', 10.0),
+    ]
+    stall_after = {
+        False: 15.0 + max(waits + [getattr(src, 'wait_timeout_s', 30.0)]),
+        True: 15.0 + max(waits),
+    }
     interrupted = failed = None
     try:
         seen = 0
@@ -622,11 +836,13 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
                 ex.spin_once(timeout_sec=0.05)
             except Exception as exc:  # a callback raised: that node is gone
                 name = _raising_node(exc, nodes)
-                failed = f"{name} failed: {_error_text(exc)}"
+                failed = f'{name} failed: {_error_text(exc)}'
                 break
             if analyzer.published > seen:
                 seen = analyzer.published
-                progress(f"[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)")
+                progress(
+                    f'[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)'
+                )
                 on_phase(seen, num_phases)
             if signals.received:
                 interrupted = signals.first
@@ -636,29 +852,56 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
                 break
             if src.done and num_phases and analyzer.published >= num_phases:
                 break
-            if (src.done and num_phases and solver.next_phase >= num_phases and not analyzer.clouds
-                    and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.phases_published):
+            if (
+                src.done
+                and num_phases
+                and solver.next_phase >= num_phases
+                and not analyzer.clouds
+                and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.phases_published
+            ):
                 break  # every phase attempted (some may have failed; diagnostics say which)
             now = time.monotonic()
             if _activity(nodes) != activity:
                 activity, active_at = _activity(nodes), now
             elif now - active_at > stall_after[src.done]:
-                waiting = (f"after the last frame, the solver still waiting for phase {solver.next_phase} of "
-                           f"{num_phases} (is the input cut short?)" if src.done else "before the input ended")
-                failed = f"nothing happened for {now - active_at:.0f} s {waiting}; {_statuses(nodes)}"
+                waiting = (
+                    'after the last frame, the solver still waiting for phase '
+                    f'{solver.next_phase} of '
+                    f'{num_phases} (is the input cut short?)'
+                    if src.done
+                    else 'before the input ended'
+                )
+                failed = (
+                    f'nothing happened for {now - active_at:.0f} s {waiting}; {_statuses(nodes)}'
+                )
                 break
             if now - t0 > timeout:
-                failed = f"timed out after {timeout:g} s (--timeout); {_statuses(nodes)}"
+                failed = f'timed out after {timeout:g} s (--timeout); {_statuses(nodes)}'
                 break
         if interrupted:
-            src.halt(f"{interrupted} received")
-            progress(f"[mlv-ros] {interrupted}: input stopped after {src.published} of {len(src.frames)} frames; "
-                     f"finishing the phases in flight (at most {grace:g} s; {interrupted} again stops now)")
-            _settle(ex, nodes, lambda: len(signals.received) > 1, quiet_s=QUIET_S, max_s=grace,
-                    on_phase=lambda n: (progress(f"[mlv-ros] phase {n}/{num_phases} analysed "
-                                                 f"({time.monotonic() - t0:.1f} s)"), on_phase(n, num_phases)))
+            src.halt(f'{interrupted} received')
+            progress(
+                f'[mlv-ros] {interrupted}: input stopped after {src.published} of '
+                f'{len(src.frames)} frames; '
+                f'finishing the phases in flight (at most {grace:g} s; {interrupted} again '
+                'stops now)'
+            )
+            _settle(
+                ex,
+                nodes,
+                lambda: len(signals.received) > 1,
+                quiet_s=QUIET_S,
+                max_s=grace,
+                on_phase=lambda n: (
+                    progress(
+                        f'[mlv-ros] phase {n}/{num_phases} analysed '
+                        f'({time.monotonic() - t0:.1f} s)'
+                    ),
+                    on_phase(n, num_phases),
+                ),
+            )
         elif failed:
-            src.halt("the run failed")
+            src.halt('the run failed')
         else:  # ended by itself: let the last results reach their subscribers
             _settle(ex, nodes, lambda: bool(signals.received), quiet_s=QUIET_S, max_s=grace)
         # Only the recorder from here: it takes what was sent, nothing new is computed (a node in
@@ -666,17 +909,36 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
         for name, node in nodes.items():
             if isinstance(node, ChildNode):
                 node.stop()
-            elif name != "recorder":
+            elif name != 'recorder':
                 ex.remove_node(node)
-        _settle(ex, {"recorder": rec}, lambda: False, quiet_s=DRAIN_QUIET_S, max_s=DRAIN_MAX_S,
-                count=lambda: rec.messages_handled)
+        _settle(
+            ex,
+            {'recorder': rec},
+            lambda: False,
+            quiet_s=DRAIN_QUIET_S,
+            max_s=DRAIN_MAX_S,
+            count=lambda: rec.messages_handled,
+        )
+
         # The bag's metadata (metadata.yaml and the file's rosbag2 record) says how the run
         # ended, so the recording alone tells an unfinished run.
         def outcome():
-            why = failed or (f"recorder: {rec.failure}" if rec.failure else None)
-            done = not interrupted and not why and bool(num_phases) and analyzer.published >= num_phases
-            return done, why, {"complete": str(done).lower(), **({"interrupted": interrupted} if interrupted else {}),
-                               **({"failed": why} if why else {})}
+            why = failed or (f'recorder: {rec.failure}' if rec.failure else None)
+            done = (
+                not interrupted
+                and not why
+                and bool(num_phases)
+                and analyzer.published >= num_phases
+            )
+            return (
+                done,
+                why,
+                {
+                    'complete': str(done).lower(),
+                    **({'interrupted': interrupted} if interrupted else {}),
+                    **({'failed': why} if why else {}),
+                },
+            )
 
         was_closed = rec.writer.closed  # by a write error, before the marks
         rec.writer.custom_data.update(outcome()[2])
@@ -689,43 +951,65 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
             except OSError:
                 pass  # a full disk: the recorder reported it, the summary says so
         summary = {
-            "source": source, "run_dir": str(out_dir), "mcap": str(mcap), "ros_domain_id": domain_id,
-            "namespace": namespace,
-            "study_id": src.study_id, "run_id": src.run_id,
-            "seconds": round(time.monotonic() - t0, 2),
-            "frames_published": src.published, "tag_sets_published": nodes["tag_detector"].frames_out,
-            "phases_solved": solver.phases_published, "metrics_published": analyzer.published,
-            "num_phases": num_phases, "recorded_messages": rec.writer.message_count,
-            "diagnostics_sent": sum(n.diagnostics_sent for n in nodes.values()),
-            "complete": complete and src.input_complete, "interrupted": interrupted, "failed": failed,
-            "phases_complete": complete,
+            'source': source,
+            'run_dir': str(out_dir),
+            'mcap': str(mcap),
+            'ros_domain_id': domain_id,
+            'namespace': namespace,
+            'study_id': src.study_id,
+            'run_id': src.run_id,
+            'seconds': round(time.monotonic() - t0, 2),
+            'frames_published': src.published,
+            'tag_sets_published': nodes['tag_detector'].frames_out,
+            'phases_solved': solver.phases_published,
+            'metrics_published': analyzer.published,
+            'num_phases': num_phases,
+            'recorded_messages': rec.writer.message_count,
+            'diagnostics_sent': sum(n.diagnostics_sent for n in nodes.values()),
+            'complete': complete and src.input_complete,
+            'interrupted': interrupted,
+            'failed': failed,
+            'phases_complete': complete,
             **verdict_summary(analyzer.verdicts),
-            "cavity_volume_ml": {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
-            "registration_verdict": registration_summary(nodes["registration"]),
-            "segment_origin": segment_origin_summary(nodes["registration"]),
+            'cavity_volume_ml': {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
+            'registration_verdict': registration_summary(nodes['registration']),
+            'segment_origin': segment_origin_summary(nodes['registration']),
             **twist_summary(solver, analyzer),
             # the latest ERROR of each node that had one: why an incomplete run is incomplete
-            "last_errors": {name: status_text(n.last_error) for name, n in nodes.items() if n.last_error is not None},
+            'last_errors': {
+                name: status_text(n.last_error)
+                for name, n in nodes.items()
+                if n.last_error is not None
+            },
         }
-        if source.get("source") == "dicom":
+        if source.get('source') == 'dicom':
             # What of the input was used: the study taken and why, what of it was left out (then
             # the run is not complete), and every series under the folder not used, with why.
-            summary["input_complete"] = src.input_complete
-            summary["dicom_study"] = src.dicom_choice
-            summary["left_out"] = [f"{path}: {why}" for path, why in src.left_out]
-            summary["not_used"] = [f"{path}: {why}" for path, why in src.not_used]
-        other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
+            summary['input_complete'] = src.input_complete
+            summary['dicom_study'] = src.dicom_choice
+            summary['left_out'] = [f'{path}: {why}' for path, why in src.left_out]
+            summary['not_used'] = [f'{path}: {why}' for path, why in src.not_used]
+        other = {
+            name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies
+        }
         if other:  # another graph on the domain: its messages were reported and left out
-            summary["messages_of_other_studies"] = other
-        if rec.other_graph_statuses:  # /diagnostics of other graphs' nodes, left out of the recording
-            summary["statuses_of_other_graphs"] = rec.other_graph_statuses
+            summary['messages_of_other_studies'] = other
+        if (
+            rec.other_graph_statuses
+        ):  # /diagnostics of other graphs' nodes, left out of the recording
+            summary['statuses_of_other_graphs'] = rec.other_graph_statuses
         if live is not None:
-            view = nodes["live_view"]
-            summary["live_view"] = {"url": view.url, "phases_shown": view.clouds_served,
-                                    "phases_not_shown": {str(p): why for p, why in sorted(view.phases_not_shown.items())}}
+            view = nodes['live_view']
+            summary['live_view'] = {
+                'url': view.url,
+                'phases_shown': view.clouds_served,
+                'phases_not_shown': {
+                    str(p): why for p, why in sorted(view.phases_not_shown.items())
+                },
+            }
         if rec.writer.error is not None:
-            summary["recording_error"] = str(rec.writer.error)
-            summary["messages_not_recorded"] = rec.dropped
+            summary['recording_error'] = str(rec.writer.error)
+            summary['messages_not_recorded'] = rec.dropped
     finally:
         for node in nodes.values():
             node.destroy_node()
@@ -734,14 +1018,17 @@ def _run_graph(source, out_dir, params_file, overrides, timeout, progress, domai
     return summary
 
 
-def _settle(ex, nodes: dict, stop, quiet_s: float, max_s: float, count=None, on_phase=None) -> None:
-    """Spin until nothing has happened for ``quiet_s``, ``max_s`` have passed, or ``stop()``.
+def _settle(
+    ex, nodes: dict, stop, quiet_s: float, max_s: float, count=None, on_phase=None
+) -> None:
+    """
+    Spin until nothing has happened for ``quiet_s``, ``max_s`` have passed, or ``stop()``.
 
     A callback that computes for long (a phase being solved) blocks ``spin_once``, and what it
     publishes counts as activity as soon as it returns, so a phase in flight is waited for.
     """
     count = count or (lambda: _activity(nodes))
-    analyzer = nodes.get("motion_analyzer")
+    analyzer = nodes.get('motion_analyzer')
     seen = analyzer.published if analyzer is not None else 0
     last, last_at = count(), time.monotonic()
     end = time.monotonic() + max_s
@@ -758,114 +1045,148 @@ def _settle(ex, nodes: dict, stop, quiet_s: float, max_s: float, count=None, on_
 
 
 def verdict_summary(verdicts: dict) -> dict:
-    """``phases_ok`` and the ``degraded`` / ``failed`` phases with their reasons
-    (:mod:`mlv_ros.core.verdict`) from the analyzer's phase → (level, reasons)."""
-    out = {"phases_ok": sorted(p for p, (v, _) in verdicts.items() if v == 0)}
-    for level, name in ((1, "phases_degraded"), (2, "phases_failed")):
+    """
+    ``phases_ok`` and the ``degraded`` / ``failed`` phases with their reasons
+    (:mod:`mlv_ros.core.verdict`) from the analyzer's phase → (level, reasons).
+    """
+    out = {'phases_ok': sorted(p for p, (v, _) in verdicts.items() if v == 0)}
+    for level, name in ((1, 'phases_degraded'), (2, 'phases_failed')):
         out[name] = {str(p): why for p, (v, why) in sorted(verdicts.items()) if v == level}
     return out
 
 
 def twist_summary(solver, analyzer) -> dict:
-    """``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points
+    """
+    ``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points
     cross; None without any) and ``twist_extrapolated`` (what of the twist and torsion is
-    extrapolated, one sentence; '' when nothing is), once the solver has taken its ED phase."""
+    extrapolated, one sentence; '' when nothing is), once the solver has taken its ED phase.
+    """
     from mlv_ros.core.analysis.frame import twist_extrapolation_note
 
-    if getattr(solver, "frame", None) is None or solver.next_phase == 0:
+    if getattr(solver, 'frame', None) is None or solver.next_phase == 0:
         return {}
     span = solver.twist_span
-    return {"twist_measured_levels": None if span is None else [round(span[0], 3), round(span[1], 3)],
-            "twist_extrapolated": twist_extrapolation_note(span, analyzer.levels)}
+    return {
+        'twist_measured_levels': None if span is None else [round(span[0], 3), round(span[1], 3)],
+        'twist_extrapolated': twist_extrapolation_note(span, analyzer.levels),
+    }
 
 
 def registration_summary(node) -> dict | None:
     """The ED registration's verdict and reasons (None before it registered)."""
-    v = getattr(node, "verdict", None)
-    return None if v is None else {"verdict": v.name, "reasons": v.text}
+    v = getattr(node, 'verdict', None)
+    return None if v is None else {'verdict': v.name, 'reasons': v.text}
 
 
 def segment_origin_summary(node) -> dict | None:
-    """Where the AHA segments' circumferential origin came from (None before it registered):
+    """
+    Where the AHA segments' circumferential origin came from (None before it registered):
     ``source`` detected (the RV in the ED SA images) / prior (not tied to the anatomy) / given,
-    the insertion directions and confidence (:meth:`SeptumEstimate.to_dict`)."""
-    res = getattr(node, "result", None)
-    septum = getattr(res, "septum", None)
+    the insertion directions and confidence (:meth:`SeptumEstimate.to_dict`).
+    """
+    res = getattr(node, 'result', None)
+    septum = getattr(res, 'septum', None)
     return None if septum is None else septum.to_dict()
 
 
 def verdict_line(summary: dict) -> str | None:
     """Which phases are not to be taken at face value, in one line (None when all are ok)."""
-    bad = [(name, sorted(int(p) for p in summary.get(key) or {})) for name, key in
-           (("degraded", "phases_degraded"), ("failed", "phases_failed"))]
+    bad = [
+        (name, sorted(int(p) for p in summary.get(key) or {}))
+        for name, key in (('degraded', 'phases_degraded'), ('failed', 'phases_failed'))
+    ]
     if not any(phases for _, phases in bad):
         return None
-    parts = [f"{len(phases)} {name} ({', '.join(map(str, phases))})" for name, phases in bad if phases]
-    return (f"of {summary['num_phases']} phases, {' and '.join(parts)}: see phases_degraded / phases_failed in "
-            f"summary.json for why; a failed phase is not a measurement")
+    parts = [
+        f'{len(phases)} {name} ({", ".join(map(str, phases))})' for name, phases in bad if phases
+    ]
+    return (
+        f'of {summary["num_phases"]} phases, {" and ".join(parts)}: see phases_degraded / '
+        'phases_failed in '
+        f'summary.json for why; a failed phase is not a measurement'
+    )
 
 
 def untracked(summary: dict) -> bool:
     """The study could not be tracked: every phase after ED that was analysed failed."""
-    after_ed = [p for p in summary.get("phases_ok", []) if int(p) > 0]
-    after_ed += [p for key in ("phases_degraded", "phases_failed") for p in summary.get(key) or {} if int(p) > 0]
-    failed = [p for p in summary.get("phases_failed") or {} if int(p) > 0]
+    after_ed = [p for p in summary.get('phases_ok', []) if int(p) > 0]
+    after_ed += [
+        p
+        for key in ('phases_degraded', 'phases_failed')
+        for p in summary.get(key) or {}
+        if int(p) > 0
+    ]
+    failed = [p for p in summary.get('phases_failed') or {} if int(p) > 0]
     return bool(after_ed) and len(failed) == len(after_ed)
 
 
 def write_summary(out_dir: Path, summary: dict) -> None:
-    """``summary.json`` in the run directory, whole or not at all (written beside, then renamed:
+    """
+    ``summary.json`` in the run directory, whole or not at all (written beside, then renamed:
     a full disk left an empty file); on a write error the summary says so instead
-    (``summary_error``) and an earlier summary.json stays as it was."""
-    path = Path(out_dir) / "summary.json"
-    part = path.with_name(".summary.json.part")
+    (``summary_error``) and an earlier summary.json stays as it was.
+    """
+    path = Path(out_dir) / 'summary.json'
+    part = path.with_name('.summary.json.part')
     try:
         part.write_text(json.dumps(summary, indent=2))
         os.replace(part, path)
     except OSError as exc:
         part.unlink(missing_ok=True)
-        summary["summary_error"] = f"summary.json not written: {exc.strerror or exc}"
+        summary['summary_error'] = f'summary.json not written: {exc.strerror or exc}'
 
 
 def read_run(mcap: Path) -> dict:
     """Registered cloud/state, motion positions and metrics per phase from a recording."""
+    from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
+    from mlv_ros import bagio, conversions, qos
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import PointCloud2
 
-    from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
-    from mlv_ros import bagio, conversions, qos
-
-    run = {"positions": {}, "states": {}, "metrics": {}, "ed": None, "rotation": None, "frames": 0,
-           "sa_planes": [],  # (point, normal) of every SA plane with ED tag points
-           "ed_tag_sets": 0}  # ED tag point sets recorded (any view, empty ones too)
+    run = {
+        'positions': {},
+        'states': {},
+        'metrics': {},
+        'ed': None,
+        'rotation': None,
+        'frames': 0,
+        'sa_planes': [],  # (point, normal) of every SA plane with ED tag points
+        'ed_tag_sets': 0,
+    }  # ED tag point sets recorded (any view, empty ones too)
     stamps = {}
     clouds = {}
     for m in bagio.read_bag(mcap, any_namespace=True):
         if m.topic == qos.REGISTERED_CLOUD:
-            run["ed"] = conversions.xyz(conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2)))
+            run['ed'] = conversions.xyz(
+                conversions.msg_to_cloud(deserialize_message(m.data, PointCloud2))
+            )
         elif m.topic == qos.REGISTERED_STATE:
-            run["rotation"] = conversions.msg_to_model_state(bagio.deserialize(m.data, ModelState, m.missing)).rotation
+            run['rotation'] = conversions.msg_to_model_state(
+                bagio.deserialize(m.data, ModelState, m.missing)
+            ).rotation
         elif m.topic == qos.MOTION:
             msg = deserialize_message(m.data, PointCloud2)
-            clouds[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = conversions.xyz(conversions.msg_to_cloud(msg))
+            clouds[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = conversions.xyz(
+                conversions.msg_to_cloud(msg)
+            )
         elif m.topic == qos.MODEL_STATE:
             msg = bagio.deserialize(m.data, ModelState, m.missing)
             stamps[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = msg.phase_index
-            run["states"][msg.phase_index] = conversions.msg_to_model_state(msg)
+            run['states'][msg.phase_index] = conversions.msg_to_model_state(msg)
         elif m.topic == qos.METRICS:
             d = conversions.msg_to_metrics(bagio.deserialize(m.data, MotionMetrics, m.missing))
-            run["metrics"][d["phase_index"]] = d
+            run['metrics'][d['phase_index']] = d
         elif m.topic == qos.FRAMES:
-            run["frames"] += 1
+            run['frames'] += 1
         elif m.topic == qos.TAG_POINTS:
             msg = bagio.deserialize(m.data, TagPoints, m.missing)
-            run["ed_tag_sets"] += msg.phase_index == 0
+            run['ed_tag_sets'] += msg.phase_index == 0
             if msg.view == TaggedFrame.VIEW_SA and msg.phase_index == 0 and len(msg.track_id):
                 g = conversions.msg_to_geometry(msg.geometry)
-                run["sa_planes"].append((g.image_position, g.normal))
+                run['sa_planes'].append((g.image_position, g.normal))
     for key, x in clouds.items():
         if key in stamps:
-            run["positions"][stamps[key]] = x
+            run['positions'][stamps[key]] = x
     return run
 
 
@@ -874,8 +1195,8 @@ def phantom_accuracy(mcap: Path, preset: str, num_phases: int) -> dict:
     from mlv_ros.core.sim import load_preset, make_motion
 
     run = read_run(mcap)
-    if run["ed"] is None or not run["positions"]:
-        return {"error": "the run has no registered model or no motion to evaluate"}
+    if run['ed'] is None or not run['positions']:
+        return {'error': 'the run has no registered model or no motion to evaluate'}
     return _accuracy(run, make_motion(load_preset(preset), num_phases=num_phases))
 
 
@@ -885,67 +1206,81 @@ def _accuracy(run: dict, motion) -> dict:
     from mlv_ros.core.evaluation import evaluate_run
     from mlv_ros.core.tracking import lv_frame_axes
 
-    frame = LVFrame(*lv_frame_axes(run["ed"], run["rotation"]))
-    analyzer = LVAnalyzer(run["ed"], frame)
-    span = plane_level_span(frame, run.get("sa_planes") or [])
-    return evaluate_run(run["ed"], run["positions"], motion, analyzer, sa_span=span)
+    frame = LVFrame(*lv_frame_axes(run['ed'], run['rotation']))
+    analyzer = LVAnalyzer(run['ed'], frame)
+    span = plane_level_span(frame, run.get('sa_planes') or [])
+    return evaluate_run(run['ed'], run['positions'], motion, analyzer, sa_span=span)
 
 
 def groundtruth_accuracy(mcap: Path, groundtruth: Path) -> dict:
-    """Accuracy of a recorded run against a simulated study's ``groundtruth.json`` (its directory
-    or the file), as :func:`phantom_accuracy` does for a preset."""
+    """
+    Accuracy of a recorded run against a simulated study's ``groundtruth.json`` (its directory
+    or the file), as :func:`phantom_accuracy` does for a preset.
+    """
     from mlv_ros.core.io.groundtruth import motion_from_groundtruth
 
     run = read_run(mcap)
-    if run["ed"] is None or not run["positions"]:
-        return {"error": "the run has no registered model or no motion to evaluate"}
+    if run['ed'] is None or not run['positions']:
+        return {'error': 'the run has no registered model or no motion to evaluate'}
     return _accuracy(run, motion_from_groundtruth(groundtruth))
 
 
 def find_groundtruth(dicom_dir: Path) -> Path | None:
     """``groundtruth.json`` of a simulated study: in the DICOM directory or its parent."""
     for d in (dicom_dir, dicom_dir.parent):
-        if (d / "groundtruth.json").is_file():
-            return d / "groundtruth.json"
+        if (d / 'groundtruth.json').is_file():
+            return d / 'groundtruth.json'
     return None
 
 
-def _number_error(name: str, value, low, high, what: str = "") -> str | None:
+def _number_error(name: str, value, low, high, what: str = '') -> str | None:
     """The one-line complaint for an option outside ``low..high`` (or not finite), else None."""
     if value is None or (math.isfinite(value) and low <= value <= high):
         return None
-    return f"{name} must be from {low:g} to {high:g}{what}, got {value}"
+    return f'{name} must be from {low:g} to {high:g}{what}, got {value}'
 
 
 def check_args(args) -> str | None:
     """The first mistake in ``mlv-ros run``'s arguments as one line with the fix, else None."""
     problems = [
-        _number_error("--snr", args.snr, 0, 1000, " (0 = noise-free)"),
-        _number_error("--size", args.size, 32, 1024, " pixels"),
-        _number_error("--phases", args.phases, 2, 200),
-        _number_error("--particles", args.particles, 100, 200000),
-        _number_error("--domain-id", args.domain_id, 0, 232),
-        _number_error("--live-port", args.live_port, 0, 65535, " (0 = any free port)"),
+        _number_error('--snr', args.snr, 0, 1000, ' (0 = noise-free)'),
+        _number_error('--size', args.size, 32, 1024, ' pixels'),
+        _number_error('--phases', args.phases, 2, 200),
+        _number_error('--particles', args.particles, 100, 200000),
+        _number_error('--domain-id', args.domain_id, 0, 232),
+        _number_error('--live-port', args.live_port, 0, 65535, ' (0 = any free port)'),
         None if args.namespace is None else _namespace_error(args.namespace),
-        None if math.isfinite(args.timeout) and args.timeout > 0 else f"--timeout must be a positive number of seconds, got {args.timeout}",
-        None if math.isfinite(args.grace) and args.grace >= 0 else f"--grace must be a number of seconds ≥ 0, got {args.grace}",
+        None
+        if math.isfinite(args.timeout) and args.timeout > 0
+        else f'--timeout must be a positive number of seconds, got {args.timeout}',
+        None
+        if math.isfinite(args.grace) and args.grace >= 0
+        else f'--grace must be a number of seconds ≥ 0, got {args.grace}',
     ]
     out = Path(args.out)
-    if (out / "run.mcap").exists():
-        problems.append(f"{out} already holds a run (run.mcap): choose a new --out directory (runs are never overwritten)")
+    if (out / 'run.mcap').exists():
+        problems.append(
+            f'{out} already holds a run (run.mcap): choose a new --out directory (runs are '
+            'never overwritten)'
+        )
     elif out.exists() and not out.is_dir():
-        problems.append(f"--out {out} is a file, not a directory: choose a new --out directory")
+        problems.append(f'--out {out} is a file, not a directory: choose a new --out directory')
     if args.dicom and not Path(args.dicom).is_dir():
-        problems.append(f"--dicom {args.dicom}: no such directory")
+        problems.append(f'--dicom {args.dicom}: no such directory')
     if args.study is not None and not args.dicom:
-        problems.append("--study chooses a study of a --dicom folder: give --dicom DIR, or leave --study out")
+        problems.append(
+            '--study chooses a study of a --dicom folder: give --dicom DIR, or leave --study out'
+        )
     elif args.study is not None and not _UID.fullmatch(args.study.strip()):
-        problems.append(f"--study {args.study!r} is not a DICOM UID (digits and dots, e.g. 1.2.840.113619.2.1): "
-                        "give the StudyInstanceUID the run's summary or 'DICOM study chosen' names")
+        problems.append(
+            f'--study {args.study!r} is not a DICOM UID (digits and dots, e.g. '
+            '1.2.840.113619.2.1): '
+            "give the StudyInstanceUID the run's summary or 'DICOM study chosen' names"
+        )
     if args.bag:
         problems.append(_bag_error(Path(args.bag)))
     if args.masks and not Path(args.masks).is_file():
-        problems.append(f"--masks {args.masks}: no such file")
+        problems.append(f'--masks {args.masks}: no such file')
     if args.params:
         problems.append(_params_error(Path(args.params)))
     return next((p for p in problems if p), None)
@@ -955,22 +1290,24 @@ def _namespace_error(namespace: str) -> str | None:
     from mlv_ros.qos import namespace_error
 
     error = namespace_error(namespace)
-    return f"--namespace {error}" if error else None
+    return f'--namespace {error}' if error else None
 
 
 def _bag_error(path: Path) -> str | None:
     if path.is_dir():  # a rosbag2 directory: its .mcap
-        if not any(path.glob("*.mcap")):
-            return f"--bag {path}: no .mcap file in that directory"
+        if not any(path.glob('*.mcap')):
+            return f'--bag {path}: no .mcap file in that directory'
         return None
     try:
-        with open(path, "rb") as fh:
+        with open(path, 'rb') as fh:
             head = fh.read(len(MCAP_MAGIC))
     except OSError as exc:
-        return f"--bag {path}: {exc.strerror or exc}"
+        return f'--bag {path}: {exc.strerror or exc}'
     if head != MCAP_MAGIC:
-        return (f"--bag {path} is not an MCAP recording; give the run.mcap of an earlier run "
-                "(or a rosbag2 MCAP bag holding /mlv/frames)")
+        return (
+            f'--bag {path} is not an MCAP recording; give the run.mcap of an earlier run '
+            '(or a rosbag2 MCAP bag holding /mlv/frames)'
+        )
     return None
 
 
@@ -978,131 +1315,186 @@ def _params_error(path: Path) -> str | None:
     try:
         data = yaml.safe_load(path.read_text())
     except OSError as exc:
-        return f"--params {path}: {exc.strerror or exc}"
+        return f'--params {path}: {exc.strerror or exc}'
     except yaml.YAMLError as exc:
-        return f"--params {path} is not valid YAML: {str(exc).splitlines()[0]}"
+        return f'--params {path} is not valid YAML: {str(exc).splitlines()[0]}'
     if data is not None and not (isinstance(data, dict) and _params_shape(data)):
-        return (f"--params {path}: want /**/node: {{ros__parameters: {{name: value}}}} "
-                "(a ROS parameters file, as config/graph.yaml)")
+        return (
+            f'--params {path}: want /**/node: {{ros__parameters: {{name: value}}}} '
+            '(a ROS parameters file, as config/graph.yaml)'
+        )
     return None
 
 
 def _params_shape(data: dict) -> bool:
-    """Whether ``data`` is shaped as a ROS parameters file: node (or namespace) keys down to
-    ``ros__parameters`` maps."""
-    return all(isinstance(value, dict) or value is None if key == "ros__parameters"
-               else isinstance(value, dict) and _params_shape(value) for key, value in data.items())
+    """
+    Whether ``data`` is shaped as a ROS parameters file: node (or namespace) keys down to
+    ``ros__parameters`` maps.
+    """
+    return all(
+        isinstance(value, dict) or value is None
+        if key == 'ros__parameters'
+        else isinstance(value, dict) and _params_shape(value)
+        for key, value in data.items()
+    )
 
 
 def run(args) -> int:
     try:
         return _run(args)
     except KeyboardInterrupt:  # outside the graph (starting up, or computing the accuracy)
-        print("mlv-ros run: interrupted (SIGINT)", file=sys.stderr)
+        print('mlv-ros run: interrupted (SIGINT)', file=sys.stderr)
         return SIGNAL_EXIT[signal.SIGINT]
 
 
 def _run(args) -> int:
     mistake = check_args(args)
     if mistake:
-        print(f"mlv-ros run: {mistake}", file=sys.stderr)
+        print(f'mlv-ros run: {mistake}', file=sys.stderr)
         return EXIT_USAGE
     if args.phantom:
-        source = {"source": "phantom", "preset": args.phantom}
-        for key, val in (("snr", args.snr), ("size", args.size), ("num_phases", args.phases)):
+        source = {'source': 'phantom', 'preset': args.phantom}
+        for key, val in (('snr', args.snr), ('size', args.size), ('num_phases', args.phases)):
             if val is not None:
-                source[key] = float(val) if key == "snr" else int(val)
+                source[key] = float(val) if key == 'snr' else int(val)
     elif args.dicom:
-        source = {"source": "dicom", "path": str(Path(args.dicom).resolve())}
+        source = {'source': 'dicom', 'path': str(Path(args.dicom).resolve())}
         if args.study:
-            source["study"] = args.study.strip()
+            source['study'] = args.study.strip()
     else:
-        source = {"source": "bag", "path": str(Path(args.bag).resolve())}
+        source = {'source': 'bag', 'path': str(Path(args.bag).resolve())}
     if args.order:
-        source["order"] = args.order
-    overrides = {"registration": {}}
+        source['order'] = args.order
+    overrides = {'registration': {}}
     if args.particles is not None:
-        overrides["registration"]["num_particles"] = args.particles
+        overrides['registration']['num_particles'] = args.particles
     if args.masks:
-        overrides["registration"]["mask_path"] = str(Path(args.masks).resolve())
+        overrides['registration']['mask_path'] = str(Path(args.masks).resolve())
     console = RunConsole(verbose=args.verbose, progress=not (args.no_progress or args.quiet))
     restore = console.quiet_nodes()
     try:
-        summary = run_graph(source, Path(args.out), args.params, overrides, args.timeout, progress=console.line,
-                            domain_id=args.domain_id, grace=args.grace, namespace=args.namespace,
-                            live=({} if args.live_port is None else {"port": args.live_port})
-                            if args.live or args.live_port is not None else None,
-                            on_phase=console.phase)
+        summary = run_graph(
+            source,
+            Path(args.out),
+            args.params,
+            overrides,
+            args.timeout,
+            progress=console.line,
+            domain_id=args.domain_id,
+            grace=args.grace,
+            namespace=args.namespace,
+            live=({} if args.live_port is None else {'port': args.live_port})
+            if args.live or args.live_port is not None
+            else None,
+            on_phase=console.phase,
+        )
     except RunInterrupted as exc:
-        print(f"mlv-ros run: {exc}; nothing recorded", file=sys.stderr)
+        print(f'mlv-ros run: {exc}; nothing recorded', file=sys.stderr)
         return SIGNAL_EXIT[exc.signum]
-    except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RunStartError is a ValueError
-        print(f"mlv-ros run: {exc}", file=sys.stderr)
+    except (
+        FileExistsError,
+        FileNotFoundError,
+        ValueError,
+    ) as exc:  # RunStartError is a ValueError
+        print(f'mlv-ros run: {exc}', file=sys.stderr)
         return EXIT_USAGE
     finally:
         console.close()
         restore()
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
-    if (args.phantom or truth) and summary["phases_complete"]:
-        acc = (phantom_accuracy(Path(summary["mcap"]), args.phantom, summary["num_phases"]) if args.phantom
-               else groundtruth_accuracy(Path(summary["mcap"]), truth))
-        summary["accuracy"] = {"es_phase": acc.get("es_phase"), "es": acc.get("es"),
-                               "inside_myocardium": acc.get("inside_myocardium"),
-                               "coverage": acc.get("coverage"),
-                               "per_phase": acc.get("per_phase")}
+    if (args.phantom or truth) and summary['phases_complete']:
+        acc = (
+            phantom_accuracy(Path(summary['mcap']), args.phantom, summary['num_phases'])
+            if args.phantom
+            else groundtruth_accuracy(Path(summary['mcap']), truth)
+        )
+        summary['accuracy'] = {
+            'es_phase': acc.get('es_phase'),
+            'es': acc.get('es'),
+            'inside_myocardium': acc.get('inside_myocardium'),
+            'coverage': acc.get('coverage'),
+            'per_phase': acc.get('per_phase'),
+        }
         write_summary(Path(args.out), summary)
     if args.verbose:
-        print(json.dumps({k: v for k, v in summary.items() if k != "accuracy"} | (
-            {"accuracy_es": summary["accuracy"]["es"]} if "accuracy" in summary else {}), indent=2))
+        print(
+            json.dumps(
+                {k: v for k, v in summary.items() if k != 'accuracy'}
+                | ({'accuracy_es': summary['accuracy']['es']} if 'accuracy' in summary else {}),
+                indent=2,
+            )
+        )
     code, how = exit_status(summary)
-    print("\n".join(summary_lines(summary, exit_status=code, exit_reason=how, accuracy=summary.get("accuracy"))),
-          flush=True)
+    print(
+        '\n'.join(
+            summary_lines(
+                summary, exit_status=code, exit_reason=how, accuracy=summary.get('accuracy')
+            )
+        ),
+        flush=True,
+    )
     line = outcome_line(summary)
     if line:
-        print(f"mlv-ros run: {line}", file=sys.stderr)
+        print(f'mlv-ros run: {line}', file=sys.stderr)
     quality = verdict_line(summary)
     if quality:
-        print(f"mlv-ros run: {quality}", file=sys.stderr)
+        print(f'mlv-ros run: {quality}', file=sys.stderr)
     if code == EXIT_UNTRACKED:
-        print("mlv-ros run: the study could not be tracked: every phase after end-diastole failed "
-              "(check the tags are visible in the images and the study's protocol)", file=sys.stderr)
-    elif (not summary["interrupted"] and summary["phases_complete"] and not summary["failed"]
-          and summary.get("twist_extrapolated")):
+        print(
+            'mlv-ros run: the study could not be tracked: every phase after end-diastole failed '
+            "(check the tags are visible in the images and the study's protocol)",
+            file=sys.stderr,
+        )
+    elif (
+        not summary['interrupted']
+        and summary['phases_complete']
+        and not summary['failed']
+        and summary.get('twist_extrapolated')
+    ):
         # How to read the twist of a run that ended normally (an interrupted or failed run says
         # only why, in one line).
-        print(f"mlv-ros run: {summary['twist_extrapolated']}", file=sys.stderr)
+        print(f'mlv-ros run: {summary["twist_extrapolated"]}', file=sys.stderr)
     return code
 
 
 def exit_status(summary: dict) -> tuple[int, str]:
     """What ``mlv-ros run`` exits with for ``summary``, and in a few words why."""
-    if summary["interrupted"]:
-        return SIGNAL_EXIT[signal.Signals[summary["interrupted"]]], f"interrupted by {summary['interrupted']}"
-    if summary["phases_complete"] and untracked(summary):
-        return EXIT_UNTRACKED, "the study could not be tracked"
-    if summary["complete"]:
-        return 0, "complete"
-    return EXIT_INCOMPLETE, "not complete (why: the line below)"
+    if summary['interrupted']:
+        return SIGNAL_EXIT[
+            signal.Signals[summary['interrupted']]
+        ], f'interrupted by {summary["interrupted"]}'
+    if summary['phases_complete'] and untracked(summary):
+        return EXIT_UNTRACKED, 'the study could not be tracked'
+    if summary['complete']:
+        return 0, 'complete'
+    return EXIT_INCOMPLETE, 'not complete (why: the line below)'
 
 
 def outcome_line(summary: dict) -> str | None:
     """How a run that did not complete ended, in one line (None for a complete run)."""
-    kept = (f"{summary['phases_solved']} of {summary['num_phases']} phases solved, "
-            f"{summary['metrics_published']} analysed; {summary['recorded_messages']} messages in {summary['mcap']}")
-    if summary.get("recording_error") and not str(summary.get("failed")).startswith("recorder:"):
-        kept += f" (recording stopped: {summary['recording_error']})"
-    if summary.get("summary_error"):
-        kept += f" ({summary['summary_error']})"
-    if summary["interrupted"]:
-        return f"interrupted by {summary['interrupted']}: {kept}, marked incomplete"
-    if summary["failed"]:
-        return f"{summary['failed']}. Kept: {kept}"
-    if summary.get("phases_complete") and summary.get("input_complete") is False:
-        left = summary.get("left_out") or []
-        return (f"incomplete input: every phase analysed, but {len(left)} part(s) of the study were left out "
-                f"(first: {left[0] if left else '?'}): see left_out in summary.json, and complete the folder")
-    if not summary["complete"]:
-        errors = summary.get("last_errors") or {}
-        why = "; ".join(f"{name}: {text}" for name, text in errors.items())
-        return f"incomplete: {kept}" + (f" (last errors: {why})" if why else "")
+    kept = (
+        f'{summary["phases_solved"]} of {summary["num_phases"]} phases solved, '
+        f'{summary["metrics_published"]} analysed; {summary["recorded_messages"]} messages in '
+        f'{summary["mcap"]}'
+    )
+    if summary.get('recording_error') and not str(summary.get('failed')).startswith('recorder:'):
+        kept += f' (recording stopped: {summary["recording_error"]})'
+    if summary.get('summary_error'):
+        kept += f' ({summary["summary_error"]})'
+    if summary['interrupted']:
+        return f'interrupted by {summary["interrupted"]}: {kept}, marked incomplete'
+    if summary['failed']:
+        return f'{summary["failed"]}. Kept: {kept}'
+    if summary.get('phases_complete') and summary.get('input_complete') is False:
+        left = summary.get('left_out') or []
+        return (
+            f'incomplete input: every phase analysed, but {len(left)} part(s) of the study '
+            'were left out '
+            f'(first: {left[0] if left else "?"}): see left_out in summary.json, and complete '
+            'the folder'
+        )
+    if not summary['complete']:
+        errors = summary.get('last_errors') or {}
+        why = '; '.join(f'{name}: {text}' for name, text in errors.items())
+        return f'incomplete: {kept}' + (f' (last errors: {why})' if why else '')
     return None

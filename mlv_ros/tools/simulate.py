@@ -1,4 +1,5 @@
-"""``mlv-ros simulate``: write a simulated tagged-MRI study (DICOM + ground truth).
+"""
+``mlv-ros simulate``: write a simulated tagged-MRI study (DICOM + ground truth).
 
 ``--random SEED`` draws an acquisition protocol (:mod:`mlv_ros.core.sim.protocol`), ``--protocol
 FILE`` fixes any of its items (alone: the items it lacks take the preset's values); either way
@@ -7,69 +8,115 @@ FILE`` fixes any of its items (alone: the items it lacks take the preset's value
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
+import sys
 
 from mlv_ros.cli import describe_os_error, number, one_line
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default=None,
-                        help="normal | hypertrophic | dilated | infarct | cylinder, or a preset YAML "
-                             "path (default normal); with --random/--protocol it fixes the shape")
-    parser.add_argument("--out", required=True, type=Path,
-                        help="output directory (DICOM under OUT/dicom, ground truth in OUT)")
-    parser.add_argument("--random", type=number(int, 0), default=None, metavar="SEED",
-                        help="draw every acquisition item from its documented range (README, "
-                             "'Random protocols'); writes OUT/protocol.yaml")
-    parser.add_argument("--protocol", type=Path, default=None, metavar="FILE",
-                        help="protocol YAML fixing any items (with --random the rest are drawn, "
-                             "alone they take the preset's values)")
-    parser.add_argument("--snr", type=number(float, 0.0), default=None,
-                        help="myocardium / noise sigma (default: the preset's, 20); 0 = noiseless")
-    parser.add_argument("--size", type=number(int, 16), default=None, help="rows = columns (default 256)")
-    parser.add_argument("--phases", type=number(int, 2), default=None, help="phases per cycle (default 25)")
-    parser.add_argument("--subplanes", type=number(int, 1), default=None,
-                        help="through-slice sub-planes (default 5)")
-    parser.add_argument("--seed", type=number(int, 0), default=None,
-                        help="noise, UID and file-name seed (default: the --random SEED, else 0)")
-    parser.add_argument("--points", type=number(int, 0), default=2000,
-                        help="material points with stored trajectories")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        '--preset',
+        default=None,
+        help='normal | hypertrophic | dilated | infarct | cylinder, or a preset YAML '
+        'path (default normal); with --random/--protocol it fixes the shape',
+    )
+    parser.add_argument(
+        '--out',
+        required=True,
+        type=Path,
+        help='output directory (DICOM under OUT/dicom, ground truth in OUT)',
+    )
+    parser.add_argument(
+        '--random',
+        type=number(int, 0),
+        default=None,
+        metavar='SEED',
+        help='draw every acquisition item from its documented range (README, '
+        "'Random protocols'); writes OUT/protocol.yaml",
+    )
+    parser.add_argument(
+        '--protocol',
+        type=Path,
+        default=None,
+        metavar='FILE',
+        help='protocol YAML fixing any items (with --random the rest are drawn, '
+        "alone they take the preset's values)",
+    )
+    parser.add_argument(
+        '--snr',
+        type=number(float, 0.0),
+        default=None,
+        help="myocardium / noise sigma (default: the preset's, 20); 0 = noiseless",
+    )
+    parser.add_argument(
+        '--size', type=number(int, 16), default=None, help='rows = columns (default 256)'
+    )
+    parser.add_argument(
+        '--phases', type=number(int, 2), default=None, help='phases per cycle (default 25)'
+    )
+    parser.add_argument(
+        '--subplanes',
+        type=number(int, 1),
+        default=None,
+        help='through-slice sub-planes (default 5)',
+    )
+    parser.add_argument(
+        '--seed',
+        type=number(int, 0),
+        default=None,
+        help='noise, UID and file-name seed (default: the --random SEED, else 0)',
+    )
+    parser.add_argument(
+        '--points',
+        type=number(int, 0),
+        default=2000,
+        help='material points with stored trajectories',
+    )
+    parser.add_argument('--no-progress', action='store_true', help='hide the progress bar')
 
 
 def _fail(msg) -> int:
-    print(f"mlv-ros simulate: {one_line(msg)}", file=sys.stderr)
+    print(f'mlv-ros simulate: {one_line(msg)}', file=sys.stderr)
     return 2
 
 
 def _protocol(args):
     """Return (protocol, preset) from --random/--protocol and the overrides; raise ValueError."""
-    from mlv_ros.core.sim.protocol import (SHAPES, check_items, complete_protocol, draw_protocol,
-                                           load_protocol, protocol_preset)
+    from mlv_ros.core.sim.protocol import (
+        check_items,
+        complete_protocol,
+        draw_protocol,
+        load_protocol,
+        protocol_preset,
+        SHAPES,
+    )
 
     fixed = load_protocol(args.protocol) if args.protocol else {}
     if args.preset is not None:
         if args.preset not in SHAPES:
-            raise ValueError(f"with --random/--protocol, --preset names the shape: one of "
-                             f"{', '.join(SHAPES)} (got {args.preset!r})")
-        fixed["shape"] = args.preset
+            raise ValueError(
+                f'with --random/--protocol, --preset names the shape: one of '
+                f'{", ".join(SHAPES)} (got {args.preset!r})'
+            )
+        fixed['shape'] = args.preset
     if args.size is not None:
-        fixed["size"] = args.size
+        fixed['size'] = args.size
     if args.phases is not None:
-        fixed["num_phases"] = args.phases
+        fixed['num_phases'] = args.phases
     if args.snr is not None:
-        fixed["snr"] = None if args.snr == 0 else args.snr
+        fixed['snr'] = None if args.snr == 0 else args.snr
     fixed = check_items(fixed)
-    protocol = draw_protocol(args.random, fixed) if args.random is not None else complete_protocol(fixed)
+    protocol = (
+        draw_protocol(args.random, fixed) if args.random is not None else complete_protocol(fixed)
+    )
     return protocol, protocol_preset(protocol)
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from mlv_ros.core.io import write_groundtruth, write_study_dicom
     from mlv_ros.core.sim import load_preset, simulate_study
+    from tqdm import tqdm
 
     randomised = args.random is not None or args.protocol is not None
     seed = args.seed if args.seed is not None else (args.random if args.random is not None else 0)
@@ -78,19 +125,19 @@ def run(args) -> int:
         if randomised:
             protocol, preset = _protocol(args)
         else:
-            preset = load_preset(args.preset or "normal")
+            preset = load_preset(args.preset or 'normal')
     except (FileNotFoundError, ValueError) as exc:
         return _fail(exc)
     try:  # before the simulation: an --out that cannot be written fails now, not minutes later
         Path(args.out).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        return _fail(f"cannot write --out: {describe_os_error(exc)}")
+        return _fail(f'cannot write --out: {describe_os_error(exc)}')
     if protocol is not None:
-        snr = protocol["snr"]
+        snr = protocol['snr']
     else:
-        snr = preset["imaging"]["snr"] if args.snr is None else args.snr
+        snr = preset['imaging']['snr'] if args.snr is None else args.snr
         snr = None if snr == 0 else snr
-    bar = tqdm(total=1, unit="img", desc=f"simulate {preset['name']}", disable=args.no_progress)
+    bar = tqdm(total=1, unit='img', desc=f'simulate {preset["name"]}', disable=args.no_progress)
 
     def progress(done, total):
         bar.total = total
@@ -98,11 +145,19 @@ def run(args) -> int:
 
     try:
         if protocol is not None:  # size and phases are protocol items
-            study = simulate_study(preset, snr=snr, seed=seed, subplanes=args.subplanes,
-                                   progress=progress)
+            study = simulate_study(
+                preset, snr=snr, seed=seed, subplanes=args.subplanes, progress=progress
+            )
         else:
-            study = simulate_study(preset, snr=snr, size=args.size, num_phases=args.phases,
-                                   seed=seed, subplanes=args.subplanes, progress=progress)
+            study = simulate_study(
+                preset,
+                snr=snr,
+                size=args.size,
+                num_phases=args.phases,
+                seed=seed,
+                subplanes=args.subplanes,
+                progress=progress,
+            )
     except ValueError as exc:
         bar.close()
         return _fail(exc)
@@ -111,26 +166,43 @@ def run(args) -> int:
     extra, options = None, {}
     if protocol is not None:
         from mlv_ros.core.sim.protocol import dicom_options, save_protocol
+
         options = dicom_options(protocol, study, names_seed=seed)
-        extra = {"protocol": protocol, "dicom": options}
-    wbar = tqdm(total=len(study.frames), unit="file", desc="write DICOM", disable=args.no_progress)
+        extra = {'protocol': protocol, 'dicom': options}
+    wbar = tqdm(total=len(study.frames), unit='file', desc='write DICOM', disable=args.no_progress)
     try:
-        files = write_study_dicom(study, out / "dicom",
-                                  progress=lambda done, total: wbar.update(done - wbar.n), **options)
+        files = write_study_dicom(
+            study,
+            out / 'dicom',
+            progress=lambda done, total: wbar.update(done - wbar.n),
+            **options,
+        )
         jpath, npath = write_groundtruth(study, out, n_points=args.points, extra=extra)
     except OSError as exc:  # e.g. the disk filled up while writing
         wbar.close()
-        return _fail(f"writing the study failed: {describe_os_error(exc)}")
+        return _fail(f'writing the study failed: {describe_os_error(exc)}')
     finally:
         wbar.close()
-    msg = f"wrote {len(files)} DICOM files to {out / 'dicom'}; ground truth {jpath.name}, {npath.name}"
+    msg = (
+        f'wrote {len(files)} DICOM files to {out / "dicom"}; ground truth {jpath.name}, '
+        f'{npath.name}'
+    )
     if protocol is not None:
-        how = f"--random {args.random}" if args.random is not None else f"--protocol {args.protocol}"
-        sub = f" --subplanes {args.subplanes}" if args.subplanes is not None else ""
-        save_protocol(protocol, out / "protocol.yaml", header=(
-            f"Acquisition protocol of this study (mlv-ros simulate {how}; noise seed {seed}).\n"
-            f"Reproduce: mlv-ros simulate --protocol protocol.yaml --seed {seed}{sub} --out DIR\n"
-            f"Items and ranges: README.md, 'Random protocols'."))
-        msg += ", protocol.yaml"
+        how = (
+            f'--random {args.random}' if args.random is not None else f'--protocol {args.protocol}'
+        )
+        sub = f' --subplanes {args.subplanes}' if args.subplanes is not None else ''
+        save_protocol(
+            protocol,
+            out / 'protocol.yaml',
+            header=(
+                f'Acquisition protocol of this study (mlv-ros simulate {how}; noise seed '
+                f'{seed}).\n'
+                f'Reproduce: mlv-ros simulate --protocol protocol.yaml --seed {seed}{sub} '
+                '--out DIR\n'
+                f"Items and ranges: README.md, 'Random protocols'."
+            ),
+        )
+        msg += ', protocol.yaml'
     print(msg)
     return 0

@@ -1,4 +1,5 @@
-"""A corpus of bad (and legal-but-odd) DICOM files for the reader, generated from valid ones.
+"""
+A corpus of bad (and legal-but-odd) DICOM files for the reader, generated from valid ones.
 
 :func:`write_dicom_corpus` writes every case into one directory and says, per case, what the
 reader must do with it: skip each of its files with a reason containing ``expect``
@@ -15,9 +16,9 @@ own, so that a file the reader wrongly accepts cannot pass as a duplicate of a v
 from __future__ import annotations
 
 import copy
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
+import warnings
 
 import numpy as np
 import pydicom
@@ -26,18 +27,30 @@ from pydicom.dataelem import DataElement, RawDataElement
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.encaps import encapsulate
 from pydicom.filebase import DicomBytesIO
-from pydicom.uid import (DeflatedExplicitVRLittleEndian, ExplicitVRBigEndian, ExplicitVRLittleEndian,
-                         HTJ2K, ImplicitVRLittleEndian, JPEG2000, JPEG2000Lossless, JPEGBaseline8Bit,
-                         JPEGLossless, JPEGLSLossless, RLELossless, generate_uid)
+from pydicom.uid import (
+    DeflatedExplicitVRLittleEndian,
+    ExplicitVRBigEndian,
+    ExplicitVRLittleEndian,
+    generate_uid,
+    HTJ2K,
+    ImplicitVRLittleEndian,
+    JPEG2000,
+    JPEG2000Lossless,
+    JPEGBaseline8Bit,
+    JPEGLossless,
+    JPEGLSLossless,
+    RLELossless,
+)
 
-OUTCOMES = ("error", "warn", "loads")
+OUTCOMES = ('error', 'warn', 'loads')
 #: What the tag detector says about an image with nothing to detect (mlv_ros.core.tags).
-CONSTANT_STATUS = "image is constant"
+CONSTANT_STATUS = 'image is constant'
 
 
 @dataclass
 class DicomCase:
-    """One corpus case.
+    """
+    One corpus case.
 
     Attributes
     ----------
@@ -54,20 +67,21 @@ class DicomCase:
         ``"error"``, ``"warn"`` or ``"loads"`` (see the module docstring).
     detector_status : str
         For ``"loads"``: lowercase fragment of the tag detector's status for these frames.
+
     """
 
     name: str
     files: list[Path]
     expect: str
     category: str
-    outcome: str = "error"
-    detector_status: str = ""
+    outcome: str = 'error'
+    detector_status: str = ''
 
     def __post_init__(self):
         if self.outcome not in OUTCOMES:
-            raise ValueError(f"outcome must be one of {OUTCOMES}, got {self.outcome!r}")
+            raise ValueError(f'outcome must be one of {OUTCOMES}, got {self.outcome!r}')
         if self.expect != self.expect.lower():
-            raise ValueError(f"expect must be lowercase, got {self.expect!r}")
+            raise ValueError(f'expect must be lowercase, got {self.expect!r}')
 
 
 class _Writer:
@@ -81,18 +95,21 @@ class _Writer:
     def fresh(self, name: str) -> Dataset:
         """A copy of the template in a series of its own (one image, CardiacNumberOfImages 1)."""
         ds = copy.deepcopy(self.template)
-        ds.SeriesInstanceUID = generate_uid(entropy_srcs=["corpus series", name])
+        ds.SeriesInstanceUID = generate_uid(entropy_srcs=['corpus series', name])
         ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(
-            entropy_srcs=["corpus instance", name])
+            entropy_srcs=['corpus instance', name]
+        )
         ds.InstanceNumber = 1
         ds.CardiacNumberOfImages = 1
-        ds.SeriesDescription = f"corpus {name}"
+        ds.SeriesDescription = f'corpus {name}'
         return ds
 
     def save(self, name: str, ds: Dataset, *, syntax=None, declare=None) -> Path:
-        """Write ``ds`` encoded as ``syntax`` (default: its file meta's); ``declare`` then
-        replaces the transfer syntax the file meta announces, leaving the body as written."""
-        path = self.out / f"{name}.dcm"
+        """
+        Write ``ds`` encoded as ``syntax`` (default: its file meta's); ``declare`` then
+        replaces the transfer syntax the file meta announces, leaving the body as written.
+        """
+        path = self.out / f'{name}.dcm'
         if syntax is not None:
             ds.file_meta.TransferSyntaxUID = syntax
         # Write what we are told even where pydicom would refuse or fix the value (that is the
@@ -107,20 +124,38 @@ class _Writer:
             _redeclare(path, declare)
         return path
 
-    def add(self, name: str, files, expect: str, category: str, outcome: str = "error", detector_status: str = ""):
+    def add(
+        self,
+        name: str,
+        files,
+        expect: str,
+        category: str,
+        outcome: str = 'error',
+        detector_status: str = '',
+    ):
         if any(c.name == name for c in self.cases):
-            raise ValueError(f"duplicate corpus case name {name!r}")
+            raise ValueError(f'duplicate corpus case name {name!r}')
         files = [files] if isinstance(files, Path) else list(files)
         self.cases.append(DicomCase(name, files, expect, category, outcome, detector_status))
 
     def bytes_case(self, name: str, data: bytes, expect: str, category: str):
-        path = self.out / f"{name}.dcm"
+        path = self.out / f'{name}.dcm'
         path.write_bytes(data)
         self.add(name, path, expect, category)
 
-    def ds_case(self, name: str, ds: Dataset, expect: str, category: str, outcome: str = "error",
-                detector_status: str = "", **save_kwargs):
-        self.add(name, self.save(name, ds, **save_kwargs), expect, category, outcome, detector_status)
+    def ds_case(
+        self,
+        name: str,
+        ds: Dataset,
+        expect: str,
+        category: str,
+        outcome: str = 'error',
+        detector_status: str = '',
+        **save_kwargs,
+    ):
+        self.add(
+            name, self.save(name, ds, **save_kwargs), expect, category, outcome, detector_status
+        )
 
 
 def _redeclare(path: Path, syntax: str) -> None:
@@ -132,71 +167,99 @@ def _redeclare(path: Path, syntax: str) -> None:
     buf = DicomBytesIO()
     buf.is_little_endian, buf.is_implicit_VR = True, False
     pydicom.filewriter.write_file_meta_info(buf, meta, enforce_standard=True)
-    path.write_bytes(raw[:128] + b"DICM" + buf.getvalue() + raw[body:])
+    path.write_bytes(raw[:128] + b'DICM' + buf.getvalue() + raw[body:])
 
 
 def _set_raw(ds: Dataset, keyword: str, vr: str, value) -> None:
-    """Set an element with an explicit VR and a value pydicom would not accept as typed; values
-    it cannot even hold (DS ``"abc"``) go in as raw bytes, converted only when read back."""
+    """
+    Set an element with an explicit VR and a value pydicom would not accept as typed; values
+    it cannot even hold (DS ``"abc"``) go in as raw bytes, converted only when read back.
+    """
     tag = pydicom.tag.Tag(pydicom.datadict.tag_for_keyword(keyword))
     try:
         ds[tag] = DataElement(tag, vr, value)
     except ValueError:
-        text = "\\".join(value) if isinstance(value, (list, tuple)) else str(value)
-        data = text.encode("ascii")
-        data += b" " * (len(data) % 2)
+        text = '\\'.join(value) if isinstance(value, (list, tuple)) else str(value)
+        data = text.encode('ascii')
+        data += b' ' * (len(data) % 2)
         ds[tag] = RawDataElement(tag, vr, len(data), data, 0, False, True, True, False)
 
 
 def _pixels(ds: Dataset) -> np.ndarray:
-    return np.frombuffer(ds.PixelData, dtype="<u2").reshape(int(ds.Rows), int(ds.Columns))
+    return np.frombuffer(ds.PixelData, dtype='<u2').reshape(int(ds.Rows), int(ds.Columns))
 
 
 def _pixel_offset(raw: bytes) -> int:
     """Byte offset of the (7FE0,0010) PixelData tag in an explicit VR little endian file."""
-    at = raw.rfind(b"\xe0\x7f\x10\x00")
+    at = raw.rfind(b'\xe0\x7f\x10\x00')
     if at < 0:
-        raise ValueError("template file has no PixelData element")
+        raise ValueError('template file has no PixelData element')
     return at
 
 
 # ------------------------------------------------------------------------------ categories
 def _corrupt(w: _Writer) -> None:
     rng = np.random.default_rng(1234)
-    w.bytes_case("corrupt_empty", b"", "empty file", "corrupt")
+    w.bytes_case('corrupt_empty', b'', 'empty file', 'corrupt')
     for n in (1, 64, 131, 132, 500, 3000, 20000):
-        w.bytes_case(f"corrupt_random_{n}", rng.bytes(n), "not a dicom file", "corrupt")
+        w.bytes_case(f'corrupt_random_{n}', rng.bytes(n), 'not a dicom file', 'corrupt')
     for n in (1, 128, 132, 4096):
-        w.bytes_case(f"corrupt_zeros_{n}", bytes(n), "not a dicom file", "corrupt")
-    w.bytes_case("corrupt_text", b"PatientName: not a DICOM file\n" * 20, "not a dicom file", "corrupt")
+        w.bytes_case(f'corrupt_zeros_{n}', bytes(n), 'not a dicom file', 'corrupt')
+    w.bytes_case(
+        'corrupt_text', b'PatientName: not a DICOM file\n' * 20, 'not a dicom file', 'corrupt'
+    )
     # A valid preamble and magic followed by garbage: pydicom parses nothing usable.
     for n in (0, 1, 4, 16, 200, 3000):
-        w.bytes_case(f"corrupt_dicm_then_garbage_{n}", bytes(128) + b"DICM" + rng.bytes(n),
-                     "damaged or truncated", "corrupt")
+        w.bytes_case(
+            f'corrupt_dicm_then_garbage_{n}',
+            bytes(128) + b'DICM' + rng.bytes(n),
+            'damaged or truncated',
+            'corrupt',
+        )
 
 
 def _truncated(w: _Writer, raw: bytes) -> None:
     pix = _pixel_offset(raw)
     for cut in (64, 128, 131):  # inside the preamble or the magic
-        w.bytes_case(f"truncated_at_{cut}", raw[:cut], "not a dicom file", "truncated")
-    cuts = sorted({132, 136, 140, 150, 200, 300, 400, 600, 800, 1000, pix - 1, pix, pix + 2, pix + 4,
-                   pix + 8, pix + 12, pix + 100} | {pix + 12 + int(f * (len(raw) - pix - 12))
-                                                    for f in (0.25, 0.5, 0.75, 0.99)} | {len(raw) - 1})
+        w.bytes_case(f'truncated_at_{cut}', raw[:cut], 'not a dicom file', 'truncated')
+    cuts = sorted(
+        {
+            132,
+            136,
+            140,
+            150,
+            200,
+            300,
+            400,
+            600,
+            800,
+            1000,
+            pix - 1,
+            pix,
+            pix + 2,
+            pix + 4,
+            pix + 8,
+            pix + 12,
+            pix + 100,
+        }
+        | {pix + 12 + int(f * (len(raw) - pix - 12)) for f in (0.25, 0.5, 0.75, 0.99)}
+        | {len(raw) - 1}
+    )
     for cut in cuts:
         if not 132 <= cut < len(raw):
-            raise ValueError(f"cut offset {cut} outside the template file ({len(raw)} bytes)")
-        w.bytes_case(f"truncated_at_{cut}", raw[:cut], "truncated", "truncated")
+            raise ValueError(f'cut offset {cut} outside the template file ({len(raw)} bytes)')
+        w.bytes_case(f'truncated_at_{cut}', raw[:cut], 'truncated', 'truncated')
 
 
 _NON_IMAGE_CLASSES = {
-    "basic_text_sr": "1.2.840.10008.5.1.4.1.1.88.11",
-    "enhanced_sr": "1.2.840.10008.5.1.4.1.1.88.22",
-    "comprehensive_sr": "1.2.840.10008.5.1.4.1.1.88.33",
-    "key_object_selection": "1.2.840.10008.5.1.4.1.1.88.59",
-    "grayscale_presentation_state": "1.2.840.10008.5.1.4.1.1.11.1",
-    "rt_structure_set": "1.2.840.10008.5.1.4.1.1.481.3",
-    "encapsulated_pdf": "1.2.840.10008.5.1.4.1.1.104.1",
-    "raw_data": "1.2.840.10008.5.1.4.1.1.66",
+    'basic_text_sr': '1.2.840.10008.5.1.4.1.1.88.11',
+    'enhanced_sr': '1.2.840.10008.5.1.4.1.1.88.22',
+    'comprehensive_sr': '1.2.840.10008.5.1.4.1.1.88.33',
+    'key_object_selection': '1.2.840.10008.5.1.4.1.1.88.59',
+    'grayscale_presentation_state': '1.2.840.10008.5.1.4.1.1.11.1',
+    'rt_structure_set': '1.2.840.10008.5.1.4.1.1.481.3',
+    'encapsulated_pdf': '1.2.840.10008.5.1.4.1.1.104.1',
+    'raw_data': '1.2.840.10008.5.1.4.1.1.66',
 }
 
 
@@ -204,101 +267,127 @@ def _non_image(w: _Writer) -> None:
     for name, sop in _NON_IMAGE_CLASSES.items():
         meta = FileMetaDataset()
         meta.MediaStorageSOPClassUID = sop
-        meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=["corpus", name])
+        meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=['corpus', name])
         meta.TransferSyntaxUID = ExplicitVRLittleEndian
         ds = Dataset()
         ds.file_meta = meta
         ds.SOPClassUID, ds.SOPInstanceUID = sop, meta.MediaStorageSOPInstanceUID
-        ds.Modality = "SR" if "sr" in name or "key" in name else "OT"
-        ds.SeriesInstanceUID = generate_uid(entropy_srcs=["corpus series", name])
-        if name == "encapsulated_pdf":
-            ds.MIMETypeOfEncapsulatedDocument = "application/pdf"
-            ds.EncapsulatedDocument = b"%PDF-1.4\n%%EOF\n"
-        w.ds_case(f"non_image_{name}", ds, "no pixel data", "non_image")
+        ds.Modality = 'SR' if 'sr' in name or 'key' in name else 'OT'
+        ds.SeriesInstanceUID = generate_uid(entropy_srcs=['corpus series', name])
+        if name == 'encapsulated_pdf':
+            ds.MIMETypeOfEncapsulatedDocument = 'application/pdf'
+            ds.EncapsulatedDocument = b'%PDF-1.4\n%%EOF\n'
+        w.ds_case(f'non_image_{name}', ds, 'no pixel data', 'non_image')
     # A complete MR image object whose pixel data was left out.
-    ds = w.fresh("non_image_mr_without_pixels")
+    ds = w.fresh('non_image_mr_without_pixels')
     del ds.PixelData
-    w.ds_case("non_image_mr_without_pixels", ds, "no pixel data", "non_image")
+    w.ds_case('non_image_mr_without_pixels', ds, 'no pixel data', 'non_image')
 
 
 def _transfer_syntax(w: _Writer) -> None:
     # Declared compressed (or deflated, big endian, unknown) but stored as explicit VR little
     # endian.
-    for name, uid, expect in (("jpeg_baseline", JPEGBaseline8Bit, "transfer syntax"),
-                              ("jpeg_lossless", JPEGLossless, "transfer syntax"),
-                              ("jpeg_ls", JPEGLSLossless, "transfer syntax"),
-                              ("jpeg2000", JPEG2000, "transfer syntax"),
-                              ("jpeg2000_lossless", JPEG2000Lossless, "transfer syntax"),
-                              ("htj2k", HTJ2K, "transfer syntax"),
-                              ("rle", RLELossless, "transfer syntax"),
-                              ("deflated", DeflatedExplicitVRLittleEndian, "damaged or truncated"),
-                              ("big_endian", ExplicitVRBigEndian, "transfer syntax"),
-                              ("unknown_uid", "1.2.3.4.5.6.7", "unknown transfer syntax")):
-        case = f"syntax_declared_{name}_stored_raw"
-        w.ds_case(case, w.fresh(case), expect, "transfer_syntax", declare=uid)
+    for name, uid, expect in (
+        ('jpeg_baseline', JPEGBaseline8Bit, 'transfer syntax'),
+        ('jpeg_lossless', JPEGLossless, 'transfer syntax'),
+        ('jpeg_ls', JPEGLSLossless, 'transfer syntax'),
+        ('jpeg2000', JPEG2000, 'transfer syntax'),
+        ('jpeg2000_lossless', JPEG2000Lossless, 'transfer syntax'),
+        ('htj2k', HTJ2K, 'transfer syntax'),
+        ('rle', RLELossless, 'transfer syntax'),
+        ('deflated', DeflatedExplicitVRLittleEndian, 'damaged or truncated'),
+        ('big_endian', ExplicitVRBigEndian, 'transfer syntax'),
+        ('unknown_uid', '1.2.3.4.5.6.7', 'unknown transfer syntax'),
+    ):
+        case = f'syntax_declared_{name}_stored_raw'
+        w.ds_case(case, w.fresh(case), expect, 'transfer_syntax', declare=uid)
     # Properly encapsulated, but the fragments are not a codestream (or no decoder is installed).
-    for name, uid in (("jpeg2000", JPEG2000), ("jpeg_baseline", JPEGBaseline8Bit), ("rle", RLELossless)):
-        case = f"syntax_{name}_garbage_fragments"
+    for name, uid in (
+        ('jpeg2000', JPEG2000),
+        ('jpeg_baseline', JPEGBaseline8Bit),
+        ('rle', RLELossless),
+    ):
+        case = f'syntax_{name}_garbage_fragments'
         ds = w.fresh(case)
         ds.PixelData = encapsulate([np.random.default_rng(7).bytes(256)])
-        ds["PixelData"].VR = "OB"
-        w.ds_case(case, ds, "pixel data unreadable", "transfer_syntax", syntax=uid)
+        ds['PixelData'].VR = 'OB'
+        w.ds_case(case, ds, 'pixel data unreadable', 'transfer_syntax', syntax=uid)
     # Legal encodings other than the writer's: these must load, with the same pixels.
-    case = "syntax_implicit_vr_little_endian"
-    w.ds_case(case, w.fresh(case), "", "transfer_syntax", "loads", syntax=ImplicitVRLittleEndian)
-    case = "syntax_big_endian_proper"
+    case = 'syntax_implicit_vr_little_endian'
+    w.ds_case(case, w.fresh(case), '', 'transfer_syntax', 'loads', syntax=ImplicitVRLittleEndian)
+    case = 'syntax_big_endian_proper'
     ds = w.fresh(case)
-    ds.PixelData = _pixels(ds).astype(">u2").tobytes()
-    w.ds_case(case, ds, "", "transfer_syntax", "loads", syntax=ExplicitVRBigEndian)
-    case = "syntax_deflated_proper"
-    w.ds_case(case, w.fresh(case), "", "transfer_syntax", "loads", syntax=DeflatedExplicitVRLittleEndian)
-    case = "syntax_rle_proper"
+    ds.PixelData = _pixels(ds).astype('>u2').tobytes()
+    w.ds_case(case, ds, '', 'transfer_syntax', 'loads', syntax=ExplicitVRBigEndian)
+    case = 'syntax_deflated_proper'
+    w.ds_case(
+        case, w.fresh(case), '', 'transfer_syntax', 'loads', syntax=DeflatedExplicitVRLittleEndian
+    )
+    case = 'syntax_rle_proper'
     ds = w.fresh(case)
-    ds.compress(RLELossless, encoding_plugin="pydicom")
-    w.ds_case(case, ds, "", "transfer_syntax", "loads")
+    ds.compress(RLELossless, encoding_plugin='pydicom')
+    w.ds_case(case, ds, '', 'transfer_syntax', 'loads')
 
 
-_IMAGE_TAGS = ("Rows", "Columns", "BitsAllocated", "BitsStored", "SamplesPerPixel",
-               "PhotometricInterpretation", "PixelRepresentation")
+_IMAGE_TAGS = (
+    'Rows',
+    'Columns',
+    'BitsAllocated',
+    'BitsStored',
+    'SamplesPerPixel',
+    'PhotometricInterpretation',
+    'PixelRepresentation',
+)
 
 
 def _missing_tags(w: _Writer) -> None:
-    for tag in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"):
-        case = f"missing_{tag}"
+    for tag in ('ImagePositionPatient', 'ImageOrientationPatient', 'PixelSpacing'):
+        case = f'missing_{tag}'
         ds = w.fresh(case)
         delattr(ds, tag)
-        w.ds_case(case, ds, f"missing geometry tag(s): {tag.lower()}", "missing_tag")
-        case = f"empty_{tag}"
+        w.ds_case(case, ds, f'missing geometry tag(s): {tag.lower()}', 'missing_tag')
+        case = f'empty_{tag}'
         ds = w.fresh(case)
         ds[tag].value = None
-        w.ds_case(case, ds, f"missing geometry tag(s): {tag.lower()}", "missing_tag")
+        w.ds_case(case, ds, f'missing geometry tag(s): {tag.lower()}', 'missing_tag')
     for tag in _IMAGE_TAGS:
-        case = f"missing_{tag}"
+        case = f'missing_{tag}'
         ds = w.fresh(case)
         delattr(ds, tag)
-        w.ds_case(case, ds, f"missing image tag(s): {tag.lower()}", "missing_tag")
+        w.ds_case(case, ds, f'missing image tag(s): {tag.lower()}', 'missing_tag')
     # Implicit VR: pydicom resolves PixelData's VR (OB/OW) from these, and failed to (fuzz
     # finding).
-    for tag in ("BitsAllocated", "PixelRepresentation"):
-        case = f"missing_{tag}_implicit_vr"
+    for tag in ('BitsAllocated', 'PixelRepresentation'):
+        case = f'missing_{tag}_implicit_vr'
         ds = w.fresh(case)
         delattr(ds, tag)
-        w.ds_case(case, ds, f"missing image tag(s): {tag.lower()}", "missing_tag", syntax=ImplicitVRLittleEndian)
+        w.ds_case(
+            case,
+            ds,
+            f'missing image tag(s): {tag.lower()}',
+            'missing_tag',
+            syntax=ImplicitVRLittleEndian,
+        )
     # SliceThickness is type 2 in MR: absent = unknown, the in-plane spacing stands in.
-    case = "missing_SliceThickness"
+    case = 'missing_SliceThickness'
     ds = w.fresh(case)
     del ds.SliceThickness
-    w.ds_case(case, ds, "", "missing_tag", "loads")
+    w.ds_case(case, ds, '', 'missing_tag', 'loads')
     # Wrong value multiplicity or non-numbers.
-    for tag, values in (("ImagePositionPatient", ["1", "2"]), ("ImagePositionPatient", ["1", "2", "3", "4"]),
-                        ("ImageOrientationPatient", ["1", "0", "0", "0", "1"]),
-                        ("ImageOrientationPatient", ["1", "0", "0"]),
-                        ("PixelSpacing", ["1.5"]), ("PixelSpacing", ["1.5", "1.5", "1.5"]),
-                        ("ImagePositionPatient", ["a", "b", "c"]), ("PixelSpacing", ["x", "1"])):
-        case = f"malformed_{tag}_{'_'.join(values)}"
+    for tag, values in (
+        ('ImagePositionPatient', ['1', '2']),
+        ('ImagePositionPatient', ['1', '2', '3', '4']),
+        ('ImageOrientationPatient', ['1', '0', '0', '0', '1']),
+        ('ImageOrientationPatient', ['1', '0', '0']),
+        ('PixelSpacing', ['1.5']),
+        ('PixelSpacing', ['1.5', '1.5', '1.5']),
+        ('ImagePositionPatient', ['a', 'b', 'c']),
+        ('PixelSpacing', ['x', '1']),
+    ):
+        case = f'malformed_{tag}_{"_".join(values)}'
         ds = w.fresh(case)
-        _set_raw(ds, tag, "DS", values)
-        w.ds_case(case, ds, tag.lower(), "malformed_geometry")
+        _set_raw(ds, tag, 'DS', values)
+        w.ds_case(case, ds, tag.lower(), 'malformed_geometry')
 
 
 def _contradictory_geometry(w: _Writer) -> None:
@@ -311,54 +400,76 @@ def _contradictory_geometry(w: _Writer) -> None:
         return np.cos(t) * col + np.sin(t) * normal
 
     orientations = {
-        "row_norm_2": (2 * row, col, "unit vector"),
-        "row_norm_half": (0.5 * row, col, "unit vector"),
-        "column_norm_1_1": (row, 1.1 * col, "unit vector"),
-        "zero_row": (0 * row, col, "unit vector"),
-        "zero_column": (row, 0 * col, "unit vector"),
-        "parallel": (row, row, "parallel"),
-        "antiparallel": (row, -row, "parallel"),
-        "skew_45deg": (row, np.cos(np.radians(45)) * row + np.sin(np.radians(45)) * col, "not orthogonal"),
-        "skew_10deg": (row, np.sin(np.radians(10)) * row + np.cos(np.radians(10)) * col, "not orthogonal"),
-        "skew_3deg": (row, np.sin(np.radians(3)) * row + np.cos(np.radians(3)) * col, "not orthogonal"),
-        "nan_row": (np.array([np.nan, row[1], row[2]]), col, "not finite"),
-        "inf_column": (row, np.array([col[0], np.inf, col[2]]), "not finite"),
+        'row_norm_2': (2 * row, col, 'unit vector'),
+        'row_norm_half': (0.5 * row, col, 'unit vector'),
+        'column_norm_1_1': (row, 1.1 * col, 'unit vector'),
+        'zero_row': (0 * row, col, 'unit vector'),
+        'zero_column': (row, 0 * col, 'unit vector'),
+        'parallel': (row, row, 'parallel'),
+        'antiparallel': (row, -row, 'parallel'),
+        'skew_45deg': (
+            row,
+            np.cos(np.radians(45)) * row + np.sin(np.radians(45)) * col,
+            'not orthogonal',
+        ),
+        'skew_10deg': (
+            row,
+            np.sin(np.radians(10)) * row + np.cos(np.radians(10)) * col,
+            'not orthogonal',
+        ),
+        'skew_3deg': (
+            row,
+            np.sin(np.radians(3)) * row + np.cos(np.radians(3)) * col,
+            'not orthogonal',
+        ),
+        'nan_row': (np.array([np.nan, row[1], row[2]]), col, 'not finite'),
+        'inf_column': (row, np.array([col[0], np.inf, col[2]]), 'not finite'),
     }
     for name, (r, c, expect) in orientations.items():
-        case = f"orientation_{name}"
+        case = f'orientation_{name}'
         ds = w.fresh(case)
-        _set_raw(ds, "ImageOrientationPatient", "DS", [repr(float(v)) for v in np.concatenate([r, c])])
-        w.ds_case(case, ds, expect, "contradictory_geometry")
+        _set_raw(
+            ds, 'ImageOrientationPatient', 'DS', [repr(float(v)) for v in np.concatenate([r, c])]
+        )
+        w.ds_case(case, ds, expect, 'contradictory_geometry')
     # Within the scanners' rounding: re-orthonormalised and loaded.
-    for name, (r, c) in {"rounded_6_digits": (np.round(row, 6), np.round(col, 6)),
-                         "tilted_0_1deg": (row, tilted(0.1))}.items():
-        case = f"orientation_{name}"
+    for name, (r, c) in {
+        'rounded_6_digits': (np.round(row, 6), np.round(col, 6)),
+        'tilted_0_1deg': (row, tilted(0.1)),
+    }.items():
+        case = f'orientation_{name}'
         ds = w.fresh(case)
-        _set_raw(ds, "ImageOrientationPatient", "DS", [f"{v:.8f}" for v in np.concatenate([r, c])])
-        w.ds_case(case, ds, "", "contradictory_geometry", "loads")
+        _set_raw(ds, 'ImageOrientationPatient', 'DS', [f'{v:.8f}' for v in np.concatenate([r, c])])
+        w.ds_case(case, ds, '', 'contradictory_geometry', 'loads')
     ps = [float(v) for v in w.template.PixelSpacing]
-    for name, spacing in {"zero_row": ["0", ps[1]], "zero_column": [ps[0], "0"], "both_zero": ["0", "0"],
-                          "negative_row": ["-1.5", ps[1]], "negative_column": [ps[0], "-0.5"],
-                          "nan": ["nan", ps[1]], "inf": [ps[0], "inf"]}.items():
-        case = f"spacing_{name}"
+    for name, spacing in {
+        'zero_row': ['0', ps[1]],
+        'zero_column': [ps[0], '0'],
+        'both_zero': ['0', '0'],
+        'negative_row': ['-1.5', ps[1]],
+        'negative_column': [ps[0], '-0.5'],
+        'nan': ['nan', ps[1]],
+        'inf': [ps[0], 'inf'],
+    }.items():
+        case = f'spacing_{name}'
         ds = w.fresh(case)
-        _set_raw(ds, "PixelSpacing", "DS", [str(v) for v in spacing])
-        w.ds_case(case, ds, "pixelspacing", "contradictory_geometry")
-    for value in ("-2", "nan", "inf"):
-        case = f"thickness_{value.lstrip('-') if value[0] != '-' else 'negative'}"
+        _set_raw(ds, 'PixelSpacing', 'DS', [str(v) for v in spacing])
+        w.ds_case(case, ds, 'pixelspacing', 'contradictory_geometry')
+    for value in ('-2', 'nan', 'inf'):
+        case = f'thickness_{value.lstrip("-") if value[0] != "-" else "negative"}'
         ds = w.fresh(case)
-        _set_raw(ds, "SliceThickness", "DS", value)
-        w.ds_case(case, ds, "slicethickness", "contradictory_geometry")
-    case = "thickness_zero"  # SliceThickness 0 = unknown (as empty): loads
+        _set_raw(ds, 'SliceThickness', 'DS', value)
+        w.ds_case(case, ds, 'slicethickness', 'contradictory_geometry')
+    case = 'thickness_zero'  # SliceThickness 0 = unknown (as empty): loads
     ds = w.fresh(case)
-    _set_raw(ds, "SliceThickness", "DS", "0")
-    w.ds_case(case, ds, "", "contradictory_geometry", "loads")
+    _set_raw(ds, 'SliceThickness', 'DS', '0')
+    w.ds_case(case, ds, '', 'contradictory_geometry', 'loads')
     ipp = [str(float(v)) for v in w.template.ImagePositionPatient]
-    for i, value in enumerate(("nan", "inf", "-inf")):
-        case = f"position_{value.replace('-', 'minus_')}"
+    for i, value in enumerate(('nan', 'inf', '-inf')):
+        case = f'position_{value.replace("-", "minus_")}'
         ds = w.fresh(case)
-        _set_raw(ds, "ImagePositionPatient", "DS", ipp[:i] + [value] + ipp[i + 1:])
-        w.ds_case(case, ds, "imagepositionpatient", "contradictory_geometry")
+        _set_raw(ds, 'ImagePositionPatient', 'DS', ipp[:i] + [value] + ipp[i + 1:])
+        w.ds_case(case, ds, 'imagepositionpatient', 'contradictory_geometry')
 
 
 def _mixed_sizes(w: _Writer, good: list[Path]) -> None:
@@ -370,29 +481,41 @@ def _mixed_sizes(w: _Writer, good: list[Path]) -> None:
     firsts = list(series.values())
     for n, shape in enumerate(((32, 32), (64, 64), (48, 40), (40, 48), (47, 48))):
         if n >= len(firsts):
-            raise ValueError("the valid study has too few series for the mixed-size cases")
-        case = f"mixed_size_{shape[0]}x{shape[1]}"
+            raise ValueError('the valid study has too few series for the mixed-size cases')
+        case = f'mixed_size_{shape[0]}x{shape[1]}'
         ds = copy.deepcopy(firsts[n])
-        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=[case])
+        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(
+            entropy_srcs=[case]
+        )
         ds.InstanceNumber = 100 + n
         ds.Rows, ds.Columns = shape
         ds.PixelData = np.full(shape, 500, np.uint16).tobytes()
-        w.ds_case(case, ds, "differs from the rest of its series", "mixed_sizes")
+        w.ds_case(case, ds, 'differs from the rest of its series', 'mixed_sizes')
 
 
 def set_float_pixels(ds: Dataset, values: np.ndarray, double: bool) -> None:
-    """Replace an integer image's pixels by (Double)FloatPixelData (its integer and rescale
-    tags removed, as a float image has none)."""
+    """
+    Replace an integer image's pixels by (Double)FloatPixelData (its integer and rescale
+    tags removed, as a float image has none).
+    """
     del ds.PixelData
-    for tag in ("BitsStored", "HighBit", "PixelRepresentation", "RescaleSlope", "RescaleIntercept",
-                "RescaleType", "WindowCenter", "WindowWidth"):
+    for tag in (
+        'BitsStored',
+        'HighBit',
+        'PixelRepresentation',
+        'RescaleSlope',
+        'RescaleIntercept',
+        'RescaleType',
+        'WindowCenter',
+        'WindowWidth',
+    ):
         if tag in ds:
             delattr(ds, tag)
     ds.BitsAllocated = 64 if double else 32
     if double:
-        ds.DoubleFloatPixelData = np.asarray(values, "<f8").tobytes()
+        ds.DoubleFloatPixelData = np.asarray(values, '<f8').tobytes()
     else:
-        ds.FloatPixelData = np.asarray(values, "<f4").tobytes()
+        ds.FloatPixelData = np.asarray(values, '<f4').tobytes()
 
 
 def _float_pixels(w: _Writer) -> None:
@@ -403,33 +526,49 @@ def _float_pixels(w: _Writer) -> None:
         set_float_pixels(ds, values, double)
         return ds
 
-    for kind in ("float", "double"):
-        for name, poke in (("nan_pixel", lambda a: a.__setitem__((3, 4), np.nan)),
-                           ("all_nan", lambda a: a.fill(np.nan)),
-                           ("pos_inf", lambda a: a.__setitem__((0, 0), np.inf)),
-                           ("neg_inf", lambda a: a.__setitem__((-1, -1), -np.inf))):
-            case = f"{kind}_pixels_{name}"
+    for kind in ('float', 'double'):
+        for name, poke in (
+            ('nan_pixel', lambda a: a.__setitem__((3, 4), np.nan)),
+            ('all_nan', lambda a: a.fill(np.nan)),
+            ('pos_inf', lambda a: a.__setitem__((0, 0), np.inf)),
+            ('neg_inf', lambda a: a.__setitem__((-1, -1), -np.inf)),
+        ):
+            case = f'{kind}_pixels_{name}'
             vals = base.copy()
             poke(vals)
-            w.ds_case(case, float_ds(case, vals, kind == "double"), "non-finite", "float_pixels")
-        case = f"{kind}_pixels_finite"
-        w.ds_case(case, float_ds(case, base, kind == "double"), "", "float_pixels", "loads")
-    case = "double_pixels_beyond_float32"
-    w.ds_case(case, float_ds(case, np.full(base.shape, 1e300), True), "not finite as float32", "float_pixels")
-    case = "float_and_integer_pixels"
+            w.ds_case(case, float_ds(case, vals, kind == 'double'), 'non-finite', 'float_pixels')
+        case = f'{kind}_pixels_finite'
+        w.ds_case(case, float_ds(case, base, kind == 'double'), '', 'float_pixels', 'loads')
+    case = 'double_pixels_beyond_float32'
+    w.ds_case(
+        case,
+        float_ds(case, np.full(base.shape, 1e300), True),
+        'not finite as float32',
+        'float_pixels',
+    )
+    case = 'float_and_integer_pixels'
     ds = float_ds(case, base, False)
     ds.PixelData = w.template.PixelData
-    ds["PixelData"].VR = "OW"
-    w.ds_case(case, ds, "more than one pixel data element", "float_pixels")
-    for name, slope, intercept in (("slope_nan", "nan", "0"), ("slope_inf", "inf", "0"),
-                                   ("slope_zero", "0", "0"), ("intercept_nan", "1", "nan"),
-                                   ("overflow", "1e38", "0")):
-        case = f"rescale_{name}"
+    ds['PixelData'].VR = 'OW'
+    w.ds_case(case, ds, 'more than one pixel data element', 'float_pixels')
+    for name, slope, intercept in (
+        ('slope_nan', 'nan', '0'),
+        ('slope_inf', 'inf', '0'),
+        ('slope_zero', '0', '0'),
+        ('intercept_nan', '1', 'nan'),
+        ('overflow', '1e38', '0'),
+    ):
+        case = f'rescale_{name}'
         ds = w.fresh(case)
-        _set_raw(ds, "RescaleSlope", "DS", slope)
-        _set_raw(ds, "RescaleIntercept", "DS", intercept)
-        expect = {"slope_zero": "rescaleslope is 0", "overflow": "not finite as float32"}.get(name)
-        w.ds_case(case, ds, expect or ("rescaleslope" if "slope" in name else "rescaleintercept"), "float_pixels")
+        _set_raw(ds, 'RescaleSlope', 'DS', slope)
+        _set_raw(ds, 'RescaleIntercept', 'DS', intercept)
+        expect = {'slope_zero': 'rescaleslope is 0', 'overflow': 'not finite as float32'}.get(name)
+        w.ds_case(
+            case,
+            ds,
+            expect or ('rescaleslope' if 'slope' in name else 'rescaleintercept'),
+            'float_pixels',
+        )
 
 
 def _cines(good: list[Path]) -> list[list[Dataset]]:
@@ -442,149 +581,168 @@ def _cines(good: list[Path]) -> list[list[Dataset]]:
 
 
 def _constant_images(w: _Writer, good: list[Path]) -> None:
-    """Legal cines with nothing in them: the reader loads them, the tag detector must say so.
+    """
+    Legal cines with nothing in them: the reader loads them, the tag detector must say so.
 
     Each is a whole cine (a series of its own with the study's phase count), as a scanner would
     send a failed acquisition, so that downstream takes its frames as part of the study.
     """
     cine = _cines(good)[0]
     rows, cols = int(w.template.Rows), int(w.template.Columns)
-    for name, value in (("all_zero", 0), ("constant", 600), ("saturated", 65535)):
-        case = f"image_{name}"
+    for name, value in (('all_zero', 0), ('constant', 600), ('saturated', 65535)):
+        case = f'image_{name}'
         files = _copy_cine(w, case, cine, pixels=np.full((rows, cols), value, np.uint16).tobytes())
-        w.add(case, files, "", "constant_image", "loads", detector_status=CONSTANT_STATUS)
+        w.add(case, files, '', 'constant_image', 'loads', detector_status=CONSTANT_STATUS)
 
 
-def _copy_cine(w: _Writer, case: str, cine: list[Dataset], skip: int | None = None,
-               pixels: bytes | None = None) -> list[Path]:
-    """Write ``cine`` as a new series named after ``case``, without phase ``skip`` and with
-    ``pixels`` in every image if given; returns the files."""
-    uid = generate_uid(entropy_srcs=["corpus series", case])
+def _copy_cine(
+    w: _Writer,
+    case: str,
+    cine: list[Dataset],
+    skip: int | None = None,
+    pixels: bytes | None = None,
+) -> list[Path]:
+    """
+    Write ``cine`` as a new series named after ``case``, without phase ``skip`` and with
+    ``pixels`` in every image if given; returns the files.
+    """
+    uid = generate_uid(entropy_srcs=['corpus series', case])
     files = []
     for k, src in enumerate(cine):
         if k == skip:
             continue
         ds = copy.deepcopy(src)
         ds.SeriesInstanceUID = uid
-        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=[case, str(k)])
+        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(
+            entropy_srcs=[case, str(k)]
+        )
         if pixels is not None:
             ds.PixelData = pixels
-        files.append(w.save(f"{case}_IM{k + 1}", ds))
+        files.append(w.save(f'{case}_IM{k + 1}', ds))
     return files
 
 
 def _dimensions(w: _Writer) -> None:
     for r, c in ((0, 48), (48, 0), (0, 0)):
-        case = f"zero_size_{r}x{c}"
+        case = f'zero_size_{r}x{c}'
         ds = w.fresh(case)
         ds.Rows, ds.Columns = r, c
         if r * c == 0:
-            ds.PixelData = b""
-        w.ds_case(case, ds, "zero size", "dimensions")
+            ds.PixelData = b''
+        w.ds_case(case, ds, 'zero size', 'dimensions')
     # Declared sizes nobody should allocate; the pixel data present stays small.
     for r, c in ((65535, 65535), (20000, 20000), (4097, 4097), (1, 2**31), (100000, 100000)):
-        case = f"absurd_size_{r}x{c}"
+        case = f'absurd_size_{r}x{c}'
         ds = w.fresh(case)
         if r > 65535 or c > 65535:  # beyond US: stored as UL (a VR violation readers meet anyway)
-            _set_raw(ds, "Rows", "UL", r)
-            _set_raw(ds, "Columns", "UL", c)
+            _set_raw(ds, 'Rows', 'UL', r)
+            _set_raw(ds, 'Columns', 'UL', c)
         else:
             ds.Rows, ds.Columns = r, c
-        w.ds_case(case, ds, "max_pixels", "dimensions")
-    for frames in ("2", "0", "100000"):
-        case = f"number_of_frames_{frames}"
+        w.ds_case(case, ds, 'max_pixels', 'dimensions')
+    for frames in ('2', '0', '100000'):
+        case = f'number_of_frames_{frames}'
         ds = w.fresh(case)
         ds.NumberOfFrames = frames
-        if frames == "2":
+        if frames == '2':
             ds.PixelData = ds.PixelData * 2
-        w.ds_case(case, ds, "numberofframes", "dimensions")
-    case = "number_of_frames_1"  # explicit single frame: legal
+        w.ds_case(case, ds, 'numberofframes', 'dimensions')
+    case = 'number_of_frames_1'  # explicit single frame: legal
     ds = w.fresh(case)
-    ds.NumberOfFrames = "1"
-    w.ds_case(case, ds, "", "dimensions", "loads")
-    for name, extra in (("pixel_data_2_bytes_long", 2), ("pixel_data_2_bytes_short", -2)):
+    ds.NumberOfFrames = '1'
+    w.ds_case(case, ds, '', 'dimensions', 'loads')
+    for name, extra in (('pixel_data_2_bytes_long', 2), ('pixel_data_2_bytes_short', -2)):
         ds = w.fresh(name)
         ds.PixelData = ds.PixelData + bytes(extra) if extra > 0 else ds.PixelData[:extra]
-        w.ds_case(name, ds, "too long" if extra > 0 else "truncated", "dimensions")
+        w.ds_case(name, ds, 'too long' if extra > 0 else 'truncated', 'dimensions')
 
 
 def _pixel_encoding(w: _Writer) -> None:
-    cases = [("BitsAllocated", v, "bitsallocated") for v in (0, 1, 7, 12, 24, 64)]
-    cases += [("BitsStored", v, "bitsstored") for v in (0, 17, 40)]
-    cases += [("HighBit", v, "highbit") for v in (7, 16)]
-    cases += [("PixelRepresentation", v, "pixelrepresentation") for v in (2, 255)]
-    cases += [("SamplesPerPixel", v, "samplesperpixel") for v in (0, 3)]
-    cases += [("PhotometricInterpretation", v, "photometricinterpretation")
-              for v in ("RGB", "PALETTE COLOR", "YBR_FULL", "NONSENSE")]
+    cases = [('BitsAllocated', v, 'bitsallocated') for v in (0, 1, 7, 12, 24, 64)]
+    cases += [('BitsStored', v, 'bitsstored') for v in (0, 17, 40)]
+    cases += [('HighBit', v, 'highbit') for v in (7, 16)]
+    cases += [('PixelRepresentation', v, 'pixelrepresentation') for v in (2, 255)]
+    cases += [('SamplesPerPixel', v, 'samplesperpixel') for v in (0, 3)]
+    cases += [
+        ('PhotometricInterpretation', v, 'photometricinterpretation')
+        for v in ('RGB', 'PALETTE COLOR', 'YBR_FULL', 'NONSENSE')
+    ]
     for tag, value, expect in cases:
-        case = f"encoding_{tag}_{str(value).replace(' ', '_')}"
+        case = f'encoding_{tag}_{str(value).replace(" ", "_")}'
         ds = w.fresh(case)
         setattr(ds, tag, value)
-        w.ds_case(case, ds, expect, "pixel_encoding")
+        w.ds_case(case, ds, expect, 'pixel_encoding')
     # A consistent 8-bit header over 16-bit data: the length gives it away.
-    case = "encoding_8bit_header_16bit_data"
+    case = 'encoding_8bit_header_16bit_data'
     ds = w.fresh(case)
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
-    w.ds_case(case, ds, "too long", "pixel_encoding")
-    case = "encoding_32bit_header_16bit_data"
+    w.ds_case(case, ds, 'too long', 'pixel_encoding')
+    case = 'encoding_32bit_header_16bit_data'
     ds = w.fresh(case)
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 32, 32, 31
-    w.ds_case(case, ds, "truncated", "pixel_encoding")
+    w.ds_case(case, ds, 'truncated', 'pixel_encoding')
     # Legal variants that must load: signed pixels (our values fit), 12 bits stored, MONOCHROME1.
-    for name, changes in (("signed", {"PixelRepresentation": 1}),
-                          ("12_bits_stored", {"BitsStored": 12, "HighBit": 11}),
-                          ("monochrome1", {"PhotometricInterpretation": "MONOCHROME1"})):
-        case = f"encoding_{name}"
+    for name, changes in (
+        ('signed', {'PixelRepresentation': 1}),
+        ('12_bits_stored', {'BitsStored': 12, 'HighBit': 11}),
+        ('monochrome1', {'PhotometricInterpretation': 'MONOCHROME1'}),
+    ):
+        case = f'encoding_{name}'
         ds = w.fresh(case)
         for tag, v in changes.items():
             setattr(ds, tag, v)
-        if name == "12_bits_stored":
-            ds.PixelData = np.minimum(_pixels(ds), 4095).astype("<u2").tobytes()
-        w.ds_case(case, ds, "", "pixel_encoding", "loads")
+        if name == '12_bits_stored':
+            ds.PixelData = np.minimum(_pixels(ds), 4095).astype('<u2').tobytes()
+        w.ds_case(case, ds, '', 'pixel_encoding', 'loads')
 
 
 def _series_structure(w: _Writer, good: list[Path]) -> None:
     """Duplicated instances of valid series, and cines that lost phases."""
     cines = _cines(good)
     if len(cines) < 3 or min(len(c) for c in cines) < 3:
-        raise ValueError("the series cases need at least 3 valid series of at least 3 phases")
+        raise ValueError('the series cases need at least 3 valid series of at least 3 phases')
     # Byte-identical copy of a valid file.
     for n, p in enumerate(good[:2]):
-        case = f"duplicate_byte_copy_{n}"
-        path = w.out / f"{case}.dcm"
+        case = f'duplicate_byte_copy_{n}'
+        path = w.out / f'{case}.dcm'
         path.write_bytes(p.read_bytes())
-        w.add(case, path, "duplicate", "duplicates")
+        w.add(case, path, 'duplicate', 'duplicates')
     # Same SOPInstanceUID, other pixels (conflicting copies of one instance).
-    case = "duplicate_sop_uid_other_pixels"
+    case = 'duplicate_sop_uid_other_pixels'
     ds = copy.deepcopy(cines[1][1])
-    ds.PixelData = (_pixels(ds) // 2).astype("<u2").tobytes()
-    w.ds_case(case, ds, "duplicate", "duplicates")
+    ds.PixelData = (_pixels(ds) // 2).astype('<u2').tobytes()
+    w.ds_case(case, ds, 'duplicate', 'duplicates')
     # Re-sent instance: new SOPInstanceUID, same series, plane, TriggerTime and InstanceNumber.
-    case = "duplicate_phase_new_uid"
+    case = 'duplicate_phase_new_uid'
     ds = copy.deepcopy(cines[2][0])
     ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=[case])
-    w.ds_case(case, ds, "duplicate", "duplicates")
+    w.ds_case(case, ds, 'duplicate', 'duplicates')
     # A cine (new series) with one phase missing: present phases keep their indices.
     num = len(cines[0])
     for missing in (0, num // 2, num - 1):
-        case = f"missing_phase_{missing + 1}_of_{num}"
+        case = f'missing_phase_{missing + 1}_of_{num}'
         files = _copy_cine(w, case, cines[0], skip=missing)
-        w.add(case, files, f"phase(s) {missing + 1} of {num} missing", "missing_phases", "warn")
+        w.add(case, files, f'phase(s) {missing + 1} of {num} missing', 'missing_phases', 'warn')
 
 
 def _timing_tags(w: _Writer) -> None:
     """Malformed optional identity/timing attributes: treated as absent, the image loads."""
-    for tag, vr, value in (("TriggerTime", "DS", "abc"), ("InstanceNumber", "IS", "x1"),
-                           ("SeriesNumber", "IS", "?"), ("NominalInterval", "DS", "-"),
-                           ("CardiacNumberOfImages", "IS", "many"), ("TriggerTime", "DS", "nan")):
-        case = f"malformed_{tag}_{value.replace('-', 'dash').replace('?', 'q')}"
+    for tag, vr, value in (
+        ('TriggerTime', 'DS', 'abc'),
+        ('InstanceNumber', 'IS', 'x1'),
+        ('SeriesNumber', 'IS', '?'),
+        ('NominalInterval', 'DS', '-'),
+        ('CardiacNumberOfImages', 'IS', 'many'),
+        ('TriggerTime', 'DS', 'nan'),
+    ):
+        case = f'malformed_{tag}_{value.replace("-", "dash").replace("?", "q")}'
         ds = w.fresh(case)
         _set_raw(ds, tag, vr, value)
-        w.ds_case(case, ds, "", "timing_tags", "loads")
-    case = "missing_SeriesInstanceUID"
+        w.ds_case(case, ds, '', 'timing_tags', 'loads')
+    case = 'missing_SeriesInstanceUID'
     ds = w.fresh(case)
     del ds.SeriesInstanceUID
-    w.ds_case(case, ds, "", "timing_tags", "loads")
+    w.ds_case(case, ds, '', 'timing_tags', 'loads')
 
 
 # ------------------------------------------------------------------------------ entry point
@@ -592,12 +750,18 @@ def frames_by_path(result) -> dict:
     """Map each file to its frame in a :class:`~mlv_ros.core.io.dicom.DicomReadResult`."""
     out = {}
     for s in result.series:
-        out.update(zip(s.files, [f for f in result.frames if (f.view, f.slice_index) == (s.view, s.slice_index)]))
+        out.update(
+            zip(
+                s.files,
+                [f for f in result.frames if (f.view, f.slice_index) == (s.view, s.slice_index)],
+            )
+        )
     return out
 
 
 def write_dicom_corpus(out_dir: Path, good_paths: list[Path]) -> list[DicomCase]:
-    """Write every bad-input case into ``out_dir``; returns the cases (at least 110).
+    """
+    Write every bad-input case into ``out_dir``; returns the cases (at least 110).
 
     Parameters
     ----------
@@ -611,18 +775,26 @@ def write_dicom_corpus(out_dir: Path, good_paths: list[Path]) -> list[DicomCase]
     Returns
     -------
     list of DicomCase
+
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     good = [Path(p) for p in good_paths]
     if not good:
-        raise ValueError("write_dicom_corpus needs at least one valid DICOM file")
+        raise ValueError('write_dicom_corpus needs at least one valid DICOM file')
     template = pydicom.dcmread(good[0])
-    if template.file_meta.TransferSyntaxUID != ExplicitVRLittleEndian or template.BitsAllocated != 16:
-        raise ValueError(f"{good[0]}: template must be explicit VR little endian with 16-bit pixels")
+    if (
+        template.file_meta.TransferSyntaxUID != ExplicitVRLittleEndian
+        or template.BitsAllocated != 16
+    ):
+        raise ValueError(
+            f'{good[0]}: template must be explicit VR little endian with 16-bit pixels'
+        )
     w = _Writer(out, template)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # pydicom warns about every invalid value we write on purpose
+        warnings.simplefilter(
+            'ignore'
+        )  # pydicom warns about every invalid value we write on purpose
         _corrupt(w)
         _truncated(w, good[0].read_bytes())
         _non_image(w)

@@ -1,4 +1,5 @@
-"""Motion analysis of the dense LV point cloud (issue 9): cardiac frame, displacement
+"""
+Motion analysis of the dense LV point cloud (issue 9): cardiac frame, displacement
 decomposition, per-level twist / radius, cavity volume, Lagrangian strain and AHA segments, and
 per-segment findings (peak strain with an uncertainty, wall-motion class: :mod:`.findings`).
 
@@ -11,9 +12,14 @@ toward the base, radial is positive outward, strains are Green–Lagrange ``E = 
 """
 
 from mlv_ros.core.analysis.findings import CLASSES as FINDING_CLASSES
-from mlv_ros.core.analysis.findings import Findings, SegmentFindings, segment_findings
-from mlv_ros.core.analysis.frame import CardiacCoordinates, LVFrame, cardiac_coordinates, estimate_frame
-from mlv_ros.core.analysis.metrics import LVAnalyzer, PhaseMetrics, phase_metrics
+from mlv_ros.core.analysis.findings import Findings, segment_findings, SegmentFindings
+from mlv_ros.core.analysis.frame import (
+    cardiac_coordinates,
+    CardiacCoordinates,
+    estimate_frame,
+    LVFrame,
+)
+from mlv_ros.core.analysis.metrics import LVAnalyzer, phase_metrics, PhaseMetrics
 from mlv_ros.core.analysis.motion import (
     cavity_volume,
     decompose_displacement,
@@ -33,28 +39,28 @@ from mlv_ros.core.analysis.strain import (
 )
 
 __all__ = [
-    "AHA_SEGMENT_NAMES",
-    "CardiacCoordinates",
-    "FINDING_CLASSES",
-    "Findings",
-    "LVAnalyzer",
-    "LVFrame",
-    "PhaseMetrics",
-    "SegmentFindings",
-    "aha_segments",
-    "cardiac_coordinates",
-    "cardiac_strain",
-    "cavity_volume",
-    "decompose_displacement",
-    "deformation_gradient_mls",
-    "endocardial_mask",
-    "estimate_frame",
-    "green_lagrange",
-    "la_radius",
-    "level_metrics",
-    "mls_neighbourhood",
-    "phase_metrics",
-    "segment_findings",
-    "segment_means",
-    "torsion",
+    'AHA_SEGMENT_NAMES',
+    'CardiacCoordinates',
+    'FINDING_CLASSES',
+    'Findings',
+    'LVAnalyzer',
+    'LVFrame',
+    'PhaseMetrics',
+    'SegmentFindings',
+    'aha_segments',
+    'cardiac_coordinates',
+    'cardiac_strain',
+    'cavity_volume',
+    'decompose_displacement',
+    'deformation_gradient_mls',
+    'endocardial_mask',
+    'estimate_frame',
+    'green_lagrange',
+    'la_radius',
+    'level_metrics',
+    'mls_neighbourhood',
+    'phase_metrics',
+    'segment_findings',
+    'segment_means',
+    'torsion',
 ]

@@ -1,4 +1,5 @@
-"""Per-segment findings a reader uses: peak strain with an uncertainty and a wall-motion class.
+"""
+Per-segment findings a reader uses: peak strain with an uncertainty and a wall-motion class.
 
 For each AHA segment (1–17) the analysis keeps, phase by phase (streaming: the findings of the
 cycle so far), the signed peak Err, Ecc, Ell, their values at end-systole (ES: the phase of
@@ -61,31 +62,32 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-
-import numpy as np
+import math
 
 from mlv_ros.core.analysis.strain import AHA_SEGMENT_NAMES
 from mlv_ros.core.verdict import DEGRADED, FAILED
+import numpy as np
 
-COMPONENTS = ("err", "ecc", "ell")
+COMPONENTS = ('err', 'ecc', 'ell')
 #: Smallest uncertainty of a segment mean, per component: the spread between experienced readers
 #: of tagged MRI (issue 20's goal); we do not claim to measure better than they read.
-UNCERTAINTY_FLOOR = {"err": 0.05, "ecc": 0.02, "ell": 0.02}
+UNCERTAINTY_FLOOR = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
 #: Fewer particles with strain than this in a segment: not measured (two MLS neighbourhoods).
 MIN_SEGMENT_PARTICLES = 24
 #: A degraded phase (the solver's data support or physiological bounds) counts as half as sure.
 VERDICT_INFLATION = 2.0
 #: Smallest magnitude of the heart's reference Ecc / Err: below it the heart barely contracts
 #: anywhere and "relative to the rest of the heart" would divide by noise.
-REF_MIN = {"ecc": 0.03, "err": 0.05}
+REF_MIN = {'ecc': 0.03, 'err': 0.05}
 #: Expected share of the heart's median Err / Ecc a normal segment reaches (index = segment − 1);
 #: None = the component is not used for that segment. From the simulator's normal, dilated and
 #: hypertrophic hearts' truth (apical ring 0.6–0.85 of the median in Err, 0.15–0.8 in Ecc; cap Err
 #: 0.17–0.24 of the median, cap Ecc of either sign: the cylindrical frame degenerates at the tip).
-NORMAL_PATTERN = {"err": (1.0,) * 12 + (0.75,) * 4 + (0.2,),
-                  "ecc": (1.0,) * 12 + (0.6,) * 4 + (None,)}
+NORMAL_PATTERN = {
+    'err': (1.0,) * 12 + (0.75,) * 4 + (0.2,),
+    'ecc': (1.0,) * 12 + (0.6,) * 4 + (None,),
+}
 #: Classes on the function index f (share of the heart's normal function the segment keeps), the
 #: first whose lower bound f reaches. Looser than the truth's contraction bounds (0.75 / 0.2 /
 #: −0.2, :data:`mlv_ros.core.sim.regional.CLASS_THRESHOLDS`): normal segments vary 0.55–1.45
@@ -93,13 +95,19 @@ NORMAL_PATTERN = {"err": (1.0,) * 12 + (0.75,) * 4 + (0.2,),
 #: neighbours, so an akinetic segment's mean keeps up to ~0.35 of normal (truth: 95 % below 0.53,
 #: hypokinetic 95 % above 0.38; on the truth's strain the 0.35 bound finds 92 % of akinetic or
 #: dyskinetic segments at 96 % specificity).
-CLASS_BOUNDS = (("normal", 0.6), ("hypokinetic", 0.35), ("akinetic", -0.2), ("dyskinetic", -math.inf))
-CLASSES = tuple(n for n, _ in CLASS_BOUNDS) + ("indeterminate",)
+CLASS_BOUNDS = (
+    ('normal', 0.6),
+    ('hypokinetic', 0.35),
+    ('akinetic', -0.2),
+    ('dyskinetic', -math.inf),
+)
+CLASSES = tuple(n for n, _ in CLASS_BOUNDS) + ('indeterminate',)
 #: "Beyond the uncertainty": stretching by more than this many σ makes a segment dyskinetic.
 STRETCH_Z = 2.0
 #: The per-segment findings arrays of MotionMetrics (17 each or empty; NaN = not measured).
-FINDING_ARRAY_FIELDS = tuple(f"finding_{w}_{c}{u}" for w in ("peak", "es") for u in ("", "_unc") for c in COMPONENTS) \
-    + ("finding_function_index", "finding_function_unc")
+FINDING_ARRAY_FIELDS = tuple(
+    f'finding_{w}_{c}{u}' for w in ('peak', 'es') for u in ('', '_unc') for c in COMPONENTS
+) + ('finding_function_index', 'finding_function_unc')
 #: Wall-motion class codes of MotionMetrics.segment_class (index in :data:`CLASSES`).
 CLASS_CODES = {name: k for k, name in enumerate(CLASSES)}
 #: Largest σ_f a class is given with: a normal segment (f ≈ 1) is then called akinetic (f < 0.35)
@@ -107,9 +115,11 @@ CLASS_CODES = {name: k for k, name in enumerate(CLASSES)}
 MAX_SIGMA_F = 0.33
 
 
-def segment_uncertainty(values, segments, count, floor: float, length_mm, residual_mm: float = 0.0,
-                        mls_k: int = 12) -> np.ndarray:
-    """Uncertainty of each segment's mean strain at one phase (module docstring formula).
+def segment_uncertainty(
+    values, segments, count, floor: float, length_mm, residual_mm: float = 0.0, mls_k: int = 12
+) -> np.ndarray:
+    """
+    Uncertainty of each segment's mean strain at one phase (module docstring formula).
 
     Parameters
     ----------
@@ -132,6 +142,7 @@ def segment_uncertainty(values, segments, count, floor: float, length_mm, residu
     -------
     ndarray, shape (17,)
         σ (dimensionless); NaN where the segment has fewer than :data:`MIN_SEGMENT_PARTICLES`.
+
     """
     v = np.asarray(values, dtype=np.float64)
     s = np.asarray(segments)
@@ -140,15 +151,16 @@ def segment_uncertainty(values, segments, count, floor: float, length_mm, residu
     tot = np.bincount(s[ok] - 1, weights=v[ok], minlength=17)
     tot2 = np.bincount(s[ok] - 1, weights=v[ok] ** 2, minlength=17)
     mean = tot / np.maximum(cnt, 1)
-    spread2 = np.maximum(tot2 / np.maximum(cnt, 1) - mean ** 2, 0.0)
+    spread2 = np.maximum(tot2 / np.maximum(cnt, 1) - mean**2, 0.0)
     n_eff = np.maximum(cnt / max(int(mls_k), 1), 1.0)
     ell = np.maximum(np.asarray(length_mm, dtype=np.float64), 1e-3)
-    sig = np.sqrt(floor ** 2 + 2.0 * (float(residual_mm) / ell) ** 2 + spread2 / n_eff)
+    sig = np.sqrt(floor**2 + 2.0 * (float(residual_mm) / ell) ** 2 + spread2 / n_eff)
     return np.where(cnt >= MIN_SEGMENT_PARTICLES, sig, np.nan)
 
 
 def segment_lengths(rho, axial, segments) -> dict:
-    """ED lengths the segment mean strains are measured over (for :func:`segment_uncertainty`).
+    """
+    ED lengths the segment mean strains are measured over (for :func:`segment_uncertainty`).
 
     Parameters
     ----------
@@ -162,6 +174,7 @@ def segment_lengths(rho, axial, segments) -> dict:
         ``err``: wall thickness (5–95 % span of ρ), ``ecc``: mid-wall arc (mean ρ × the sector's
         angle: 60° basal/mid, 90° apical, 360° cap), ``ell``: long-axis extent (5–95 % span of
         the axial position); each shape (17,), mm (NaN for an empty segment).
+
     """
     rho = np.asarray(rho, dtype=np.float64)
     axial = np.asarray(axial, dtype=np.float64)
@@ -172,9 +185,9 @@ def segment_lengths(rho, axial, segments) -> dict:
         m = s == k + 1
         if m.sum() < 2:
             continue
-        out["err"][k] = float(np.subtract(*np.percentile(rho[m], [95, 5])))
-        out["ecc"][k] = float(np.mean(rho[m]) * angle[k])
-        out["ell"][k] = float(np.subtract(*np.percentile(axial[m], [95, 5])))
+        out['err'][k] = float(np.subtract(*np.percentile(rho[m], [95, 5])))
+        out['ecc'][k] = float(np.mean(rho[m]) * angle[k])
+        out['ell'][k] = float(np.subtract(*np.percentile(axial[m], [95, 5])))
     return out
 
 
@@ -185,7 +198,8 @@ def _signed_peak_update(peak, peak_unc, v, unc):
 
 
 def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """Classes of the 17 segments from their ES strain and its uncertainty (module docstring).
+    """
+    Classes of the 17 segments from their ES strain and its uncertainty (module docstring).
 
     Parameters
     ----------
@@ -202,20 +216,23 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
         Function index and its uncertainty (NaN where not computable).
     ref : dict
         ``ecc``, ``err``: the heart's references (None when no segment 1–16 is supported).
+
     """
-    classes = np.full(17, "indeterminate", dtype=object)
+    classes = np.full(17, 'indeterminate', dtype=object)
     f = np.full(17, np.nan)
     f_unc = np.full(17, np.nan)
-    sup = {c: np.isfinite(es[c]) & np.isfinite(unc[c]) for c in ("err", "ecc")}
+    sup = {c: np.isfinite(es[c]) & np.isfinite(unc[c]) for c in ('err', 'ecc')}
     ref = {}
-    for c, sign in (("ecc", -1.0), ("err", 1.0)):
+    for c, sign in (('ecc', -1.0), ('err', 1.0)):
         remote = es[c][:16][sup[c][:16]]
-        ref[c] = None if remote.size < 3 else sign * max(sign * float(np.median(remote)), REF_MIN[c])
-    if ref["ecc"] is None and ref["err"] is None:
+        ref[c] = (
+            None if remote.size < 3 else sign * max(sign * float(np.median(remote)), REF_MIN[c])
+        )
+    if ref['ecc'] is None and ref['err'] is None:
         return classes, f, f_unc, ref
     num = np.zeros(17)
     wsum = np.zeros(17)
-    for c in ("ecc", "err"):
+    for c in ('ecc', 'err'):
         if ref[c] is None:
             continue
         p = np.array([np.nan if x is None else x for x in NORMAL_PATTERN[c]])
@@ -223,7 +240,7 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
         use = sup[c] & np.isfinite(scale)
         fi = np.where(use, es[c] / np.where(use, scale, 1.0), 0.0)
         si = np.where(use, unc[c] / np.abs(np.where(use, scale, 1.0)), np.inf)
-        w = np.where(use, 1.0 / si ** 2, 0.0)
+        w = np.where(use, 1.0 / si**2, 0.0)
         num += w * fi
         wsum += w
     have = wsum > 0
@@ -232,17 +249,18 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
     for name, bound in reversed(CLASS_BOUNDS):
         classes[have & (f >= bound)] = name
     stretch = np.zeros(17, dtype=bool)
-    with np.errstate(invalid="ignore"):
-        stretch |= sup["err"] & (es["err"] < -STRETCH_Z * unc["err"])
-        stretch[:16] |= (sup["ecc"] & (es["ecc"] > STRETCH_Z * unc["ecc"]))[:16]
-    classes[have & (f_unc > MAX_SIGMA_F)] = "indeterminate"
-    classes[stretch] = "dyskinetic"  # beyond its own uncertainty: a confident call
+    with np.errstate(invalid='ignore'):
+        stretch |= sup['err'] & (es['err'] < -STRETCH_Z * unc['err'])
+        stretch[:16] |= (sup['ecc'] & (es['ecc'] > STRETCH_Z * unc['ecc']))[:16]
+    classes[have & (f_unc > MAX_SIGMA_F)] = 'indeterminate'
+    classes[stretch] = 'dyskinetic'  # beyond its own uncertainty: a confident call
     return classes, f, f_unc, ref
 
 
 @dataclass
 class Findings:
-    """Per-segment findings of the cycle so far (17 entries each, AHA order 1…17).
+    """
+    Per-segment findings of the cycle so far (17 entries each, AHA order 1…17).
 
     Attributes
     ----------
@@ -262,6 +280,7 @@ class Findings:
         :data:`CLASSES` names.
     reference : dict
         The heart's ``ecc`` / ``err`` references at ES (None when not available).
+
     """
 
     phases_used: list = field(default_factory=list)
@@ -272,64 +291,84 @@ class Findings:
     es_unc: dict = field(default_factory=dict)
     function_index: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
     function_unc: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
-    classes: list = field(default_factory=lambda: ["indeterminate"] * 17)
+    classes: list = field(default_factory=lambda: ['indeterminate'] * 17)
     reference: dict = field(default_factory=dict)
 
-    def abnormal(self, kinds=("akinetic", "dyskinetic")) -> list[int]:
+    def abnormal(self, kinds=('akinetic', 'dyskinetic')) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
         return [k + 1 for k, c in enumerate(self.classes) if c in kinds]
 
     def message_fields(self) -> dict:
-        """The MotionMetrics findings fields: ``findings_es_phase`` (−1: none yet), the
+        """
+        The MotionMetrics findings fields: ``findings_es_phase`` (−1: none yet), the
         :data:`FINDING_ARRAY_FIELDS` (17 floats each, NaN = not measured; empty before any phase
-        with strain) and ``segment_class`` (17 :data:`CLASS_CODES`)."""
-        out = {"findings_es_phase": -1 if self.es_phase is None else int(self.es_phase)}
+        with strain) and ``segment_class`` (17 :data:`CLASS_CODES`).
+        """
+        out = {'findings_es_phase': -1 if self.es_phase is None else int(self.es_phase)}
         if not self.phases_used:
             out.update({k: np.zeros(0) for k in FINDING_ARRAY_FIELDS})
-            out["segment_class"] = np.zeros(0, dtype=np.int64)
+            out['segment_class'] = np.zeros(0, dtype=np.int64)
             return out
         nan = np.full(17, np.nan)
-        for w, d, du in (("peak", self.peak, self.peak_unc), ("es", self.es, self.es_unc)):
+        for w, d, du in (('peak', self.peak, self.peak_unc), ('es', self.es, self.es_unc)):
             for c in COMPONENTS:
-                out[f"finding_{w}_{c}"] = np.asarray(d.get(c, nan), dtype=np.float64)
-                out[f"finding_{w}_{c}_unc"] = np.asarray(du.get(c, nan), dtype=np.float64)
-        out["finding_function_index"] = np.asarray(self.function_index, dtype=np.float64)
-        out["finding_function_unc"] = np.asarray(self.function_unc, dtype=np.float64)
-        out["segment_class"] = np.array([CLASS_CODES[c] for c in self.classes], dtype=np.int64)
+                out[f'finding_{w}_{c}'] = np.asarray(d.get(c, nan), dtype=np.float64)
+                out[f'finding_{w}_{c}_unc'] = np.asarray(du.get(c, nan), dtype=np.float64)
+        out['finding_function_index'] = np.asarray(self.function_index, dtype=np.float64)
+        out['finding_function_unc'] = np.asarray(self.function_unc, dtype=np.float64)
+        out['segment_class'] = np.array([CLASS_CODES[c] for c in self.classes], dtype=np.int64)
         return out
 
     def to_dict(self) -> dict:
-        """JSON-ready: per-segment rows plus the thresholds used (NaN stays NaN: write it with
-        :func:`mlv_ros.core.report.summary.write_summary_json`, which makes it null)."""
+        """
+        JSON-ready: per-segment rows plus the thresholds used (NaN stays NaN: write it with
+        :func:`mlv_ros.core.report.summary.write_summary_json`, which makes it null).
+        """
         rows = []
         for k in range(17):
-            row = {"segment": k + 1, "name": AHA_SEGMENT_NAMES[k], "class": self.classes[k]}
+            row = {'segment': k + 1, 'name': AHA_SEGMENT_NAMES[k], 'class': self.classes[k]}
             for c in COMPONENTS:
-                for key, d in ((f"peak_{c}", self.peak), (f"peak_{c}_unc", self.peak_unc),
-                               (f"es_{c}", self.es), (f"es_{c}_unc", self.es_unc)):
+                for key, d in (
+                    (f'peak_{c}', self.peak),
+                    (f'peak_{c}_unc', self.peak_unc),
+                    (f'es_{c}', self.es),
+                    (f'es_{c}_unc', self.es_unc),
+                ):
                     row[key] = float(d[c][k]) if c in d else math.nan
-            row["function_index"] = float(self.function_index[k])
-            row["function_unc"] = float(self.function_unc[k])
+            row['function_index'] = float(self.function_index[k])
+            row['function_unc'] = float(self.function_unc[k])
             rows.append(row)
-        return {"es_phase": self.es_phase, "phases_used": list(self.phases_used),
-                "reference": dict(self.reference), "segments": rows,
-                "counts": {c: self.classes.count(c) for c in CLASSES},
-                "thresholds": {"class_bounds": {n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS},
-                               "stretch_z": STRETCH_Z, "max_sigma_f": MAX_SIGMA_F,
-                               "uncertainty_floor": dict(UNCERTAINTY_FLOOR),
-                               "min_segment_particles": MIN_SEGMENT_PARTICLES,
-                               "verdict_inflation": VERDICT_INFLATION, "reference_min": dict(REF_MIN),
-                               "normal_pattern": {c: list(v) for c, v in NORMAL_PATTERN.items()}}}
+        return {
+            'es_phase': self.es_phase,
+            'phases_used': list(self.phases_used),
+            'reference': dict(self.reference),
+            'segments': rows,
+            'counts': {c: self.classes.count(c) for c in CLASSES},
+            'thresholds': {
+                'class_bounds': {
+                    n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS
+                },
+                'stretch_z': STRETCH_Z,
+                'max_sigma_f': MAX_SIGMA_F,
+                'uncertainty_floor': dict(UNCERTAINTY_FLOOR),
+                'min_segment_particles': MIN_SEGMENT_PARTICLES,
+                'verdict_inflation': VERDICT_INFLATION,
+                'reference_min': dict(REF_MIN),
+                'normal_pattern': {c: list(v) for c, v in NORMAL_PATTERN.items()},
+            },
+        }
 
 
 class SegmentFindings:
-    """Streaming per-segment findings: feed each phase's metrics, read :attr:`findings`.
+    """
+    Streaming per-segment findings: feed each phase's metrics, read :attr:`findings`.
 
     Examples
     --------
     >>> sf = SegmentFindings()                                  # doctest: +SKIP
     >>> for x in positions: sf.update(analyzer.phase(x, ...))
     >>> sf.findings.classes[16]
+
     """
 
     def __init__(self):
@@ -341,20 +380,22 @@ class SegmentFindings:
         self.findings = Findings(peak=dict(self._peak), peak_unc=dict(self._peak_unc))
 
     def update(self, metrics) -> Findings:
-        """Take one phase (a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`); returns the
+        """
+        Take one phase (a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`); returns the
         findings of the cycle so far. A failed phase or one without strain changes nothing;
         without the uncertainty arrays (e.g. metrics recorded before they existed) each segment
         gets the support-only uncertainty: the floor, NaN below :data:`MIN_SEGMENT_PARTICLES`
-        particles (unknown count: supported), inflated when the phase is degraded."""
-        level = int(getattr(metrics, "verdict", 0))
+        particles (unknown count: supported), inflated when the phase is degraded.
+        """
+        level = int(getattr(metrics, 'verdict', 0))
         if level >= FAILED or not metrics.has_strain:
             return self.findings
         count = np.asarray(metrics.segment_count)
         supported = count >= MIN_SEGMENT_PARTICLES if count.size == 17 else np.ones(17, dtype=bool)
         vals, unc = {}, {}
         for c in COMPONENTS:
-            v = np.asarray(getattr(metrics, f"segment_{c}"), dtype=np.float64)
-            u = np.asarray(getattr(metrics, f"segment_{c}_unc", np.zeros(0)), dtype=np.float64)
+            v = np.asarray(getattr(metrics, f'segment_{c}'), dtype=np.float64)
+            u = np.asarray(getattr(metrics, f'segment_{c}_unc', np.zeros(0)), dtype=np.float64)
             if u.size != 17:
                 u = np.full(17, UNCERTAINTY_FLOOR[c])
             u = np.where(supported, u, np.nan)
@@ -362,14 +403,19 @@ class SegmentFindings:
                 u = u * VERDICT_INFLATION
             vals[c] = np.where(np.isfinite(u), v, np.nan)
             unc[c] = u
-            self._peak[c], self._peak_unc[c] = _signed_peak_update(self._peak[c], self._peak_unc[c], vals[c], u)
+            self._peak[c], self._peak_unc[c] = _signed_peak_update(
+                self._peak[c], self._peak_unc[c], vals[c], u
+            )
         idx = int(metrics.phase_index)
         self._used.append(idx)
         vol = float(metrics.cavity_volume_ml)
         if idx != 0 and (self._es is None or vol < self._es[0]):
             self._es = (vol, idx, vals, unc)
-        f = Findings(phases_used=sorted(set(self._used)), peak={c: v.copy() for c, v in self._peak.items()},
-                     peak_unc={c: v.copy() for c, v in self._peak_unc.items()})
+        f = Findings(
+            phases_used=sorted(set(self._used)),
+            peak={c: v.copy() for c, v in self._peak.items()},
+            peak_unc={c: v.copy() for c, v in self._peak_unc.items()},
+        )
         if self._es is not None:
             _, f.es_phase, f.es, f.es_unc = self._es
             cls, f.function_index, f.function_unc, f.reference = classify(f.es, f.es_unc)
@@ -379,8 +425,10 @@ class SegmentFindings:
 
 
 def segment_findings(phases) -> Findings:
-    """Findings of a whole list of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics` (taken in
-    phase order; duplicates: the last wins)."""
+    """
+    Findings of a whole list of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics` (taken in
+    phase order; duplicates: the last wins).
+    """
     by = {int(p.phase_index): p for p in phases}
     sf = SegmentFindings()
     for k in sorted(by):

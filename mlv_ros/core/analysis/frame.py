@@ -1,4 +1,5 @@
-"""LV long-axis frame and per-particle cardiac coordinates.
+"""
+LV long-axis frame and per-particle cardiac coordinates.
 
 Conventions (all in DICOM patient coordinates, mm)
 ---------------------------------------------------
@@ -36,38 +37,43 @@ _PARALLEL_TOL = 1e-3  # |sin| between reference and axis below which the referen
 
 
 def as_points(a, name: str, *, allow_empty: bool = False) -> np.ndarray:
-    """Validate and return a float64 array of shape (N, 3) with finite entries.
+    """
+    Validate and return a float64 array of shape (N, 3) with finite entries.
 
     Raises
     ------
     ValueError
         On a wrong shape, an empty array (unless ``allow_empty``) or a NaN/inf entry; the
         message names the argument and the first bad row.
+
     """
     arr = np.asarray(a, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+        raise ValueError(f'{name} must have shape (N, 3), got {arr.shape}')
     if arr.shape[0] == 0 and not allow_empty:
-        raise ValueError(f"{name} is empty (0 points)")
+        raise ValueError(f'{name} is empty (0 points)')
     bad = ~np.all(np.isfinite(arr), axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name} has {int(bad.sum())} non-finite rows (first: row {i} = {arr[i]})")
+        raise ValueError(
+            f'{name} has {int(bad.sum())} non-finite rows (first: row {i} = {arr[i]})'
+        )
     return arr
 
 
 def _vec3(v, name: str) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64).reshape(-1)
     if v.shape != (3,):
-        raise ValueError(f"LVFrame.{name} must have 3 components, got {v.shape[0]}")
+        raise ValueError(f'LVFrame.{name} must have 3 components, got {v.shape[0]}')
     if not np.all(np.isfinite(v)):
-        raise ValueError(f"LVFrame.{name} is not finite: {v}")
+        raise ValueError(f'LVFrame.{name} is not finite: {v}')
     return v
 
 
 @dataclass(frozen=True)
 class LVFrame:
-    """Long-axis frame of the LV at end-diastole.
+    """
+    Long-axis frame of the LV at end-diastole.
 
     Parameters
     ----------
@@ -91,6 +97,7 @@ class LVFrame:
         ED apex–base distance, mm.
     e1, e2 : ndarray, shape (3,)
         In-plane basis: e1 = reference ⟂ axis (θ = 0), e2 = e1 × axis (θ = +90°).
+
     """
 
     apex: np.ndarray
@@ -99,30 +106,32 @@ class LVFrame:
     aha_origin_deg: float = -120.0
 
     def __post_init__(self):
-        for name in ("apex", "base", "reference"):
+        for name in ('apex', 'base', 'reference'):
             object.__setattr__(self, name, _vec3(getattr(self, name), name))
         d = self.base - self.apex
         length = float(np.linalg.norm(d))
         if length < _AXIS_TOL:
-            raise ValueError(f"LVFrame apex and base coincide (distance {length:.3g} mm)")
+            raise ValueError(f'LVFrame apex and base coincide (distance {length:.3g} mm)')
         axis = d / length
         rn = float(np.linalg.norm(self.reference))
         if rn == 0.0:
-            raise ValueError("LVFrame.reference is the zero vector")
+            raise ValueError('LVFrame.reference is the zero vector')
         r = self.reference / rn
         perp = r - (r @ axis) * axis
         pn = float(np.linalg.norm(perp))
         if pn < _PARALLEL_TOL:
-            raise ValueError("LVFrame.reference is parallel to the long axis; it must point across it")
+            raise ValueError(
+                'LVFrame.reference is parallel to the long axis; it must point across it'
+            )
         e1 = perp / pn
         aha = float(self.aha_origin_deg)
         if not np.isfinite(aha):
-            raise ValueError(f"LVFrame.aha_origin_deg must be finite, got {aha}")
-        object.__setattr__(self, "aha_origin_deg", aha)
-        object.__setattr__(self, "axis", axis)
-        object.__setattr__(self, "length", length)
-        object.__setattr__(self, "e1", e1)
-        object.__setattr__(self, "e2", np.cross(e1, axis))
+            raise ValueError(f'LVFrame.aha_origin_deg must be finite, got {aha}')
+        object.__setattr__(self, 'aha_origin_deg', aha)
+        object.__setattr__(self, 'axis', axis)
+        object.__setattr__(self, 'length', length)
+        object.__setattr__(self, 'e1', e1)
+        object.__setattr__(self, 'e2', np.cross(e1, axis))
 
     # -- projections -------------------------------------------------------------------------
     def axial(self, points: np.ndarray) -> np.ndarray:
@@ -140,17 +149,22 @@ class LVFrame:
 
     def to_dict(self) -> dict:
         """JSON-friendly dict (lists of floats); inverse of :meth:`from_dict`."""
-        return {"apex": self.apex.tolist(), "base": self.base.tolist(),
-                "reference": self.reference.tolist(), "aha_origin_deg": self.aha_origin_deg}
+        return {
+            'apex': self.apex.tolist(),
+            'base': self.base.tolist(),
+            'reference': self.reference.tolist(),
+            'aha_origin_deg': self.aha_origin_deg,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "LVFrame":
-        return cls(d["apex"], d["base"], d["reference"], d.get("aha_origin_deg", -120.0))
+    def from_dict(cls, d: dict) -> 'LVFrame':
+        return cls(d['apex'], d['base'], d['reference'], d.get('aha_origin_deg', -120.0))
 
 
 @dataclass
 class CardiacCoordinates:
-    """Per-particle cardiac coordinates at ED (see :func:`cardiac_coordinates`).
+    """
+    Per-particle cardiac coordinates at ED (see :func:`cardiac_coordinates`).
 
     Attributes
     ----------
@@ -169,6 +183,7 @@ class CardiacCoordinates:
         (ρ < 1e-9 mm) get e_r = e1.
     transmural : ndarray, shape (N,)
         0 at the endocardium … 1 at the epicardium (see :func:`cardiac_coordinates`).
+
     """
 
     h: np.ndarray
@@ -183,9 +198,11 @@ class CardiacCoordinates:
     transmural: np.ndarray
 
 
-def cardiac_coordinates(X, frame: LVFrame, *, endo_radius=None, epi_radius=None,
-                        levels: int = 10, angle_bins: int = 12) -> CardiacCoordinates:
-    """Cardiac coordinates of ED positions.
+def cardiac_coordinates(
+    X, frame: LVFrame, *, endo_radius=None, epi_radius=None, levels: int = 10, angle_bins: int = 12
+) -> CardiacCoordinates:
+    """
+    Cardiac coordinates of ED positions.
 
     Parameters
     ----------
@@ -204,8 +221,9 @@ def cardiac_coordinates(X, frame: LVFrame, *, endo_radius=None, epi_radius=None,
     Returns
     -------
     CardiacCoordinates
+
     """
-    X = as_points(X, "X")
+    X = as_points(X, 'X')
     a = frame.axis
     axial = frame.axial(X)
     ie = frame.inplane(X)
@@ -225,9 +243,9 @@ def cardiac_coordinates(X, frame: LVFrame, *, endo_radius=None, epi_radius=None,
         endo = np.broadcast_to(np.asarray(endo_radius, dtype=np.float64), rho.shape)
         epi = np.broadcast_to(np.asarray(epi_radius, dtype=np.float64), rho.shape)
         if not (np.all(np.isfinite(endo)) and np.all(np.isfinite(epi))):
-            raise ValueError("endo_radius/epi_radius must be finite")
+            raise ValueError('endo_radius/epi_radius must be finite')
         if np.any(epi <= endo):
-            raise ValueError("epi_radius must exceed endo_radius at every particle")
+            raise ValueError('epi_radius must exceed endo_radius at every particle')
         transmural = np.clip((rho - endo) / (epi - endo), 0.0, 1.0)
     else:
         key = level_bin(axial / frame.length, levels) * angle_bins + angle_bin(theta, angle_bins)
@@ -238,33 +256,46 @@ def cardiac_coordinates(X, frame: LVFrame, *, endo_radius=None, epi_radius=None,
         np.maximum.at(hi, key, rho)
         span = hi[key] - lo[key]
         transmural = np.where(span > 0, (rho - lo[key]) / np.where(span > 0, span, 1.0), 0.0)
-    return CardiacCoordinates(h=axial / frame.length, axial=axial, theta=theta, rho=rho, xi=xi,
-                              eta=eta, e_r=e_r, e_c=e_c, e_l=e_l, transmural=transmural)
+    return CardiacCoordinates(
+        h=axial / frame.length,
+        axial=axial,
+        theta=theta,
+        rho=rho,
+        xi=xi,
+        eta=eta,
+        e_r=e_r,
+        e_c=e_c,
+        e_l=e_l,
+        transmural=transmural,
+    )
 
 
 _BIN_EPS = 1e-9  # in bin units: a point this close below a boundary goes to the upper bin
 
 
 def level_bin(h: np.ndarray, levels: int) -> np.ndarray:
-    """Bin index 0 … levels−1 of normalised level ``h`` (equal bins on [0, 1]; values outside
+    """
+    Bin index 0 … levels−1 of normalised level ``h`` (equal bins on [0, 1]; values outside
     are clipped into the end bins). Points within 1e-9 bin widths of a boundary go to the upper
     bin, so a lattice layer lying exactly on a boundary is not split between two bins by
-    rounding."""
+    rounding.
+    """
     if int(levels) < 1:
-        raise ValueError(f"levels must be >= 1, got {levels}")
+        raise ValueError(f'levels must be >= 1, got {levels}')
     return np.clip(np.floor(np.asarray(h) * levels + _BIN_EPS).astype(np.int64), 0, levels - 1)
 
 
 def angle_bin(theta: np.ndarray, bins: int) -> np.ndarray:
     """Bin index 0 … bins−1 of angle θ (rad), bin 0 starting at θ = 0, increasing CCW."""
     if int(bins) < 1:
-        raise ValueError(f"angle bins must be >= 1, got {bins}")
+        raise ValueError(f'angle bins must be >= 1, got {bins}')
     t = np.mod(np.asarray(theta), 2 * np.pi)
     return np.minimum((t * (bins / (2 * np.pi))).astype(np.int64), bins - 1)
 
 
 def estimate_frame(points, reference=None, *, end_fraction: float = 0.15) -> LVFrame:
-    """Fallback LV frame from an ED point cloud when no landmarks are known.
+    """
+    Fallback LV frame from an ED point cloud when no landmarks are known.
 
     The long axis is the principal axis of largest variance. Of its two ends, the base is the
     one where the particles in the outer ``end_fraction`` of the axial extent lie farther from
@@ -282,14 +313,15 @@ def estimate_frame(points, reference=None, *, end_fraction: float = 0.15) -> LVF
     Returns
     -------
     LVFrame
+
     """
-    X = as_points(points, "points")
+    X = as_points(points, 'points')
     if X.shape[0] < 4:
-        raise ValueError(f"estimate_frame needs at least 4 points, got {X.shape[0]}")
+        raise ValueError(f'estimate_frame needs at least 4 points, got {X.shape[0]}')
     c = X.mean(axis=0)
     _, s, vt = np.linalg.svd(X - c, full_matrices=False)
     if s[0] <= 0:
-        raise ValueError("estimate_frame: points are all identical")
+        raise ValueError('estimate_frame: points are all identical')
     a = vt[0]
     t = (X - c) @ a
     lo, hi = t.min(), t.max()
@@ -307,7 +339,8 @@ def estimate_frame(points, reference=None, *, end_fraction: float = 0.15) -> LVF
 
 
 def plane_level_span(frame: LVFrame, planes) -> tuple[float, float] | None:
-    """Levels (0 apex → 1 base) at which image planes cross the ED long axis.
+    """
+    Levels (0 apex → 1 base) at which image planes cross the ED long axis.
 
     Twist is circumferential motion, which only short-axis tags measure (a long-axis view holds
     the axis, so its tags move with twist only through-plane). Beyond the SA planes that hold tag
@@ -330,10 +363,11 @@ def plane_level_span(frame: LVFrame, planes) -> tuple[float, float] | None:
     ------
     ValueError
         A point or normal without 3 finite components.
+
     """
     levels = []
     for point, normal in planes:
-        p, n = _vec3(point, "plane point"), _vec3(normal, "plane normal")
+        p, n = _vec3(point, 'plane point'), _vec3(normal, 'plane normal')
         along = float(frame.axis @ n)
         if abs(along) > 1e-6 * max(float(np.linalg.norm(n)), 1e-300):
             levels.append(float((p - frame.apex) @ n / along) / frame.length)
@@ -341,7 +375,8 @@ def plane_level_span(frame: LVFrame, planes) -> tuple[float, float] | None:
 
 
 def levels_outside(level_position, span, levels: int | None = None) -> np.ndarray:
-    """Which level bins lie beyond ``span`` (:func:`plane_level_span`) by more than half a bin.
+    """
+    Which level bins lie beyond ``span`` (:func:`plane_level_span`) by more than half a bin.
 
     Parameters
     ----------
@@ -355,6 +390,7 @@ def levels_outside(level_position, span, levels: int | None = None) -> np.ndarra
     Returns
     -------
     ndarray of bool, shape (L,)
+
     """
     pos = np.asarray(level_position, dtype=np.float64).reshape(-1)
     if span is None:
@@ -364,7 +400,8 @@ def levels_outside(level_position, span, levels: int | None = None) -> np.ndarra
 
 
 def twist_extrapolation_note(span, levels: int = 10) -> str:
-    """What of the reported twist is extrapolated, in one sentence ('' when nothing is).
+    """
+    What of the reported twist is extrapolated, in one sentence ('' when nothing is).
 
     Parameters
     ----------
@@ -377,16 +414,26 @@ def twist_extrapolation_note(span, levels: int = 10) -> str:
     Returns
     -------
     str
+
     """
     if span is None:
-        return ("no SA slice holds tag points: twist and torsion are not measured at any level "
-                "(only short-axis tags see circumferential motion)")
+        return (
+            'no SA slice holds tag points: twist and torsion are not measured at any level '
+            '(only short-axis tags see circumferential motion)'
+        )
     centres = (np.arange(int(levels)) + 0.5) / int(levels)
     out = levels_outside(centres, span, levels)
-    ends = [name for name, side in (("apical", centres < span[0]), ("basal", centres > span[1]))
-            if np.any(out & side)]
+    ends = [
+        name
+        for name, side in (('apical', centres < span[0]), ('basal', centres > span[1]))
+        if np.any(out & side)
+    ]
     if not ends:
-        return ""
-    return (f"twist is measured only between levels {span[0]:.2f} and {span[1]:.2f} (0 apex, 1 base), where SA "
-            f"slices hold tag points: the twist of the {' and '.join(ends)} levels beyond them, and the torsion, "
-            "are extrapolated, not measured")
+        return ''
+    return (
+        f'twist is measured only between levels {span[0]:.2f} and {span[1]:.2f} (0 apex, 1 '
+        'base), where SA '
+        f'slices hold tag points: the twist of the {" and ".join(ends)} levels beyond them, '
+        'and the torsion, '
+        'are extrapolated, not measured'
+    )

@@ -1,4 +1,5 @@
-"""Per-phase motion metrics of the whole LV: the content of ``MotionMetrics.msg``.
+"""
+Per-phase motion metrics of the whole LV: the content of ``MotionMetrics.msg``.
 
 :class:`LVAnalyzer` precomputes everything that depends only on the ED cloud (levels, AHA
 segments, cardiac frame vectors, endocardial polygon stack, MLS neighbourhoods, EDV) so a
@@ -10,25 +11,57 @@ Examples
 >>> an = LVAnalyzer(X_ed, frame, levels=10)            # doctest: +SKIP
 >>> m = an.phase(x, F=None, phase_index=7, num_phases=20)
 >>> m.twist_deg, m.cavity_volume_ml, m.segment_ecc
+
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
+from mlv_ros.core.analysis.findings import (
+    FINDING_ARRAY_FIELDS,
+    segment_lengths,
+    segment_uncertainty,
+    UNCERTAINTY_FLOOR,
+)
+from mlv_ros.core.analysis.frame import as_points, cardiac_coordinates, LVFrame
+from mlv_ros.core.analysis.motion import (
+    _level_dict,
+    CavityModel,
+    decompose_displacement,
+    LevelBinning,
+    torsion,
+)
+from mlv_ros.core.analysis.strain import (
+    aha_segments,
+    cardiac_strain,
+    green_lagrange,
+    MLSNeighbourhood,
+    segment_means,
+)
+from mlv_ros.core.verdict import metrics_verdict
 import numpy as np
 
-from mlv_ros.core.analysis.findings import (FINDING_ARRAY_FIELDS, UNCERTAINTY_FLOOR, segment_lengths,
-                                            segment_uncertainty)
-from mlv_ros.core.analysis.frame import LVFrame, as_points, cardiac_coordinates
-from mlv_ros.core.analysis.motion import CavityModel, LevelBinning, _level_dict, decompose_displacement, torsion
-from mlv_ros.core.analysis.strain import MLSNeighbourhood, aha_segments, cardiac_strain, green_lagrange, segment_means
-from mlv_ros.core.verdict import metrics_verdict
-
-_ARRAY_FIELDS = ("level_position", "twist_deg", "sa_radius_mm", "longitudinal_displacement_mm",
-                 "radial_displacement_mm", "circumferential_displacement_mm",
-                 "segment_err", "segment_ecc", "segment_ell", "level_count", "segment_count",
-                 "segment_err_unc", "segment_ecc_unc", "segment_ell_unc") + FINDING_ARRAY_FIELDS + ("segment_class",)
+_ARRAY_FIELDS = (
+    (
+        'level_position',
+        'twist_deg',
+        'sa_radius_mm',
+        'longitudinal_displacement_mm',
+        'radial_displacement_mm',
+        'circumferential_displacement_mm',
+        'segment_err',
+        'segment_ecc',
+        'segment_ell',
+        'level_count',
+        'segment_count',
+        'segment_err_unc',
+        'segment_ecc_unc',
+        'segment_ell_unc',
+    )
+    + FINDING_ARRAY_FIELDS
+    + ('segment_class',)
+)
 
 #: PhaseMetrics fields MotionMetrics.msg does not carry (none since the findings went in).
 NOT_IN_MSG_YET = ()
@@ -40,7 +73,8 @@ def _empty() -> np.ndarray:
 
 @dataclass
 class PhaseMetrics:
-    """Motion metrics of one phase relative to ED; fields map 1:1 onto MotionMetrics.msg.
+    """
+    Motion metrics of one phase relative to ED; fields map 1:1 onto MotionMetrics.msg.
 
     Per-level arrays have one entry per *populated* level, apex → base (empty level bins are
     left out, so their length L' may be below the requested ``levels``). Segment arrays have
@@ -95,6 +129,7 @@ class PhaseMetrics:
         "; "-separated reasons, empty when ok.
     study_id, run_id : str
         The study and run the phase was computed from (the model state's; empty = unknown).
+
     """
 
     phase_index: int = 0
@@ -137,19 +172,21 @@ class PhaseMetrics:
     finding_function_unc: np.ndarray = field(default_factory=_empty)
     segment_class: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     verdict: int = 0
-    verdict_reasons: str = ""
-    study_id: str = ""
-    run_id: str = ""
+    verdict_reasons: str = ''
+    study_id: str = ''
+    run_id: str = ''
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:
-            dt = np.int64 if name.endswith("count") or name == "segment_class" else np.float64
+            dt = np.int64 if name.endswith('count') or name == 'segment_class' else np.float64
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dt).reshape(-1))
 
     @property
     def has_strain(self) -> bool:
         """True when the three segment arrays hold 17 values each."""
-        return all(getattr(self, f).size == 17 for f in ("segment_err", "segment_ecc", "segment_ell"))
+        return all(
+            getattr(self, f).size == 17 for f in ('segment_err', 'segment_ecc', 'segment_ell')
+        )
 
     def to_dict(self) -> dict:
         """JSON-friendly dict (arrays as lists); inverse of :meth:`from_dict`."""
@@ -159,15 +196,18 @@ class PhaseMetrics:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PhaseMetrics":
-        """Build from a dict (e.g. a converted MotionMetrics message); unknown keys ignored,
-        missing ones take their defaults."""
+    def from_dict(cls, d: dict) -> 'PhaseMetrics':
+        """
+        Build from a dict (e.g. a converted MotionMetrics message); unknown keys ignored,
+        missing ones take their defaults.
+        """
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
 class LVAnalyzer:
-    """Per-run analysis state built from the ED cloud; call :meth:`phase` per phase.
+    """
+    Per-run analysis state built from the ED cloud; call :meth:`phase` per phase.
 
     Parameters
     ----------
@@ -190,18 +230,32 @@ class LVAnalyzer:
         AHA apex-cap level (segment 17).
     edv_ml : float, optional
         End-diastolic volume for the ejection fraction; default the cavity volume of X_ed.
+
     """
 
-    def __init__(self, X_ed, frame: LVFrame, *, levels: int = 10, endo_mask=None,
-                 volume_slabs: int = 20, angle_bins: int = 36, estimate_strain: bool = True,
-                 mls_k: int = 12, apex_cap: float = 0.1, edv_ml: float | None = None):
+    def __init__(
+        self,
+        X_ed,
+        frame: LVFrame,
+        *,
+        levels: int = 10,
+        endo_mask=None,
+        volume_slabs: int = 20,
+        angle_bins: int = 36,
+        estimate_strain: bool = True,
+        mls_k: int = 12,
+        apex_cap: float = 0.1,
+        edv_ml: float | None = None,
+    ):
         if not isinstance(frame, LVFrame):
-            raise ValueError(f"frame must be an LVFrame, got {type(frame).__name__}")
-        self.X = as_points(X_ed, "X_ed")
+            raise ValueError(f'frame must be an LVFrame, got {type(frame).__name__}')
+        self.X = as_points(X_ed, 'X_ed')
         self.frame = frame
         self.levels = LevelBinning(self.X, frame, levels)
         self.coords = cardiac_coordinates(self.X, frame, levels=int(levels))
-        self.segments = aha_segments(self.coords.h, self.coords.theta, frame.aha_origin_deg, apex_cap)
+        self.segments = aha_segments(
+            self.coords.h, self.coords.theta, frame.aha_origin_deg, apex_cap
+        )
         self.cavity = CavityModel(self.X, frame, endo_mask, volume_slabs, angle_bins)
         self.estimate_strain = bool(estimate_strain)
         self.mls_k = int(mls_k)
@@ -217,8 +271,10 @@ class LVAnalyzer:
         return self._mls
 
     def strain(self, x: np.ndarray, F=None) -> dict | None:
-        """Cardiac strain components per particle (dict of (N,) arrays) or None when no F is
-        given and estimation is off."""
+        """
+        Cardiac strain components per particle (dict of (N,) arrays) or None when no F is
+        given and estimation is off.
+        """
         if F is None:
             if not self.estimate_strain:
                 return None
@@ -226,13 +282,23 @@ class LVAnalyzer:
         else:
             F = np.asarray(F, dtype=np.float64)
             if F.shape != (self.X.shape[0], 3, 3):
-                raise ValueError(f"F must have shape ({self.X.shape[0]}, 3, 3), got {F.shape}")
+                raise ValueError(f'F must have shape ({self.X.shape[0]}, 3, 3), got {F.shape}')
         c = self.coords
         return cardiac_strain(green_lagrange(F), c.e_r, c.e_c, c.e_l)
 
-    def phase(self, x, F=None, *, phase_index: int = 0, num_phases: int = 0,
-              time_fraction: float | None = None, apex=None, residual_mm: float = 0.0) -> PhaseMetrics:
-        """Metrics of one phase.
+    def phase(
+        self,
+        x,
+        F=None,
+        *,
+        phase_index: int = 0,
+        num_phases: int = 0,
+        time_fraction: float | None = None,
+        apex=None,
+        residual_mm: float = 0.0,
+    ) -> PhaseMetrics:
+        """
+        Metrics of one phase.
 
         Parameters
         ----------
@@ -254,10 +320,11 @@ class LVAnalyzer:
         Returns
         -------
         PhaseMetrics
+
         """
-        x = as_points(x, "x")
+        x = as_points(x, 'x')
         if x.shape != self.X.shape:
-            raise ValueError(f"x must have shape {self.X.shape} like X_ed, got {x.shape}")
+            raise ValueError(f'x must have shape {self.X.shape} like X_ed, got {x.shape}')
         lv = _level_dict(self.levels, decompose_displacement(self.X, x, self.frame), x)
         vol = self.cavity.volume_ml(x)
         ef = (self.edv_ml - vol) / self.edv_ml if self.edv_ml > 0 else 0.0
@@ -267,33 +334,56 @@ class LVAnalyzer:
         seg = {}
         st = self.strain(x, F)
         if st is not None:
-            for key, comp in (("segment_err", "rr"), ("segment_ecc", "cc"), ("segment_ell", "ll")):
-                seg[key], seg["segment_count"] = segment_means(st[comp], self.segments)
-                seg[f"{key}_unc"] = segment_uncertainty(
-                    st[comp], self.segments, seg["segment_count"], UNCERTAINTY_FLOOR[key[-3:]],
-                    self.segment_lengths[key[-3:]], residual_mm if np.isfinite(residual_mm) else 0.0, self.mls_k)
-        verdict = metrics_verdict(ef, float(np.max(np.linalg.norm(x - self.X, axis=1))), self.frame.length,
-                                  [seg.get(k, ()) for k in ("segment_err", "segment_ecc", "segment_ell")],
-                                  edv_ml=self.edv_ml)
+            for key, comp in (('segment_err', 'rr'), ('segment_ecc', 'cc'), ('segment_ell', 'll')):
+                seg[key], seg['segment_count'] = segment_means(st[comp], self.segments)
+                seg[f'{key}_unc'] = segment_uncertainty(
+                    st[comp],
+                    self.segments,
+                    seg['segment_count'],
+                    UNCERTAINTY_FLOOR[key[-3:]],
+                    self.segment_lengths[key[-3:]],
+                    residual_mm if np.isfinite(residual_mm) else 0.0,
+                    self.mls_k,
+                )
+        verdict = metrics_verdict(
+            ef,
+            float(np.max(np.linalg.norm(x - self.X, axis=1))),
+            self.frame.length,
+            [seg.get(k, ()) for k in ('segment_err', 'segment_ecc', 'segment_ell')],
+            edv_ml=self.edv_ml,
+        )
         return PhaseMetrics(
-            verdict=verdict.level, verdict_reasons=verdict.text,
-            phase_index=int(phase_index), num_phases=int(num_phases), time_fraction=float(time_fraction),
-            level_position=lv["level_position"], twist_deg=lv["twist_deg"],
-            sa_radius_mm=lv["sa_radius_mm"],
-            longitudinal_displacement_mm=lv["longitudinal_displacement_mm"],
-            radial_displacement_mm=lv["radial_displacement_mm"],
-            circumferential_displacement_mm=lv["circumferential_displacement_mm"],
+            verdict=verdict.level,
+            verdict_reasons=verdict.text,
+            phase_index=int(phase_index),
+            num_phases=int(num_phases),
+            time_fraction=float(time_fraction),
+            level_position=lv['level_position'],
+            twist_deg=lv['twist_deg'],
+            sa_radius_mm=lv['sa_radius_mm'],
+            longitudinal_displacement_mm=lv['longitudinal_displacement_mm'],
+            radial_displacement_mm=lv['radial_displacement_mm'],
+            circumferential_displacement_mm=lv['circumferential_displacement_mm'],
             la_radius_mm=float((x.mean(axis=0) - ap) @ self.frame.axis),
-            torsion_deg_per_cm=torsion(lv["twist_deg"], lv["axial_ed_mm"]),
-            cavity_volume_ml=vol, ejection_fraction=float(ef), level_count=lv["count"], **seg)
+            torsion_deg_per_cm=torsion(lv['twist_deg'], lv['axial_ed_mm']),
+            cavity_volume_ml=vol,
+            ejection_fraction=float(ef),
+            level_count=lv['count'],
+            **seg,
+        )
 
 
 def phase_metrics(X_ed, x, frame: LVFrame, F=None, levels: int = 10, **kwargs) -> PhaseMetrics:
-    """One-shot :class:`PhaseMetrics` of positions ``x`` relative to ``X_ed``.
+    """
+    One-shot :class:`PhaseMetrics` of positions ``x`` relative to ``X_ed``.
 
     Builds an :class:`LVAnalyzer` (keyword arguments are passed on, plus ``phase_index``,
     ``num_phases``, ``time_fraction`` and ``apex`` to :meth:`LVAnalyzer.phase`). For a whole
     cycle build the analyzer once instead: the ED precomputation dominates the cost.
     """
-    phase_kw = {k: kwargs.pop(k) for k in ("phase_index", "num_phases", "time_fraction", "apex") if k in kwargs}
+    phase_kw = {
+        k: kwargs.pop(k)
+        for k in ('phase_index', 'num_phases', 'time_fraction', 'apex')
+        if k in kwargs
+    }
     return LVAnalyzer(X_ed, frame, levels=levels, **kwargs).phase(x, F, **phase_kw)

@@ -1,4 +1,5 @@
-"""Displacement decomposition and per-level / global motion measures (paper Fig. 9–16).
+"""
+Displacement decomposition and per-level / global motion measures (paper Fig. 9–16).
 
 All functions take ED positions ``X`` (N, 3) and current positions ``x`` (N, 3) of the same
 particles (row i is the same material point) in patient mm, plus the ED :class:`LVFrame`.
@@ -33,18 +34,17 @@ Cavity volume: see :func:`cavity_volume`.
 
 from __future__ import annotations
 
+from mlv_ros.core.analysis.frame import angle_bin, as_points, level_bin, LVFrame
 import numpy as np
-
-from mlv_ros.core.analysis.frame import LVFrame, angle_bin, as_points, level_bin
 
 _TWO_PI = 2.0 * np.pi
 
 
 def _pair(X, x) -> tuple[np.ndarray, np.ndarray]:
-    X = as_points(X, "X (ED positions)")
-    x = as_points(x, "x (current positions)")
+    X = as_points(X, 'X (ED positions)')
+    x = as_points(x, 'x (current positions)')
     if X.shape != x.shape:
-        raise ValueError(f"X and x must have the same shape, got {X.shape} and {x.shape}")
+        raise ValueError(f'X and x must have the same shape, got {X.shape} and {x.shape}')
     return X, x
 
 
@@ -54,7 +54,8 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def decompose_displacement(X, x, frame: LVFrame) -> np.ndarray:
-    """Displacement components of each particle in the ED cardiac frame (Fig. 9b–d).
+    """
+    Displacement components of each particle in the ED cardiac frame (Fig. 9b–d).
 
     Parameters
     ----------
@@ -67,18 +68,20 @@ def decompose_displacement(X, x, frame: LVFrame) -> np.ndarray:
     ndarray, shape (N, 3)
         Columns (longitudinal, radial, circumferential), mm; see the module docstring.
         A particle on the axis at ED has no defined angle: its circumferential component is 0.
+
     """
     X, x = _pair(X, x)
     p0, p1 = frame.inplane(X), frame.inplane(x)
     rho0 = np.hypot(p0[:, 0], p0[:, 1])
     rho1 = np.hypot(p1[:, 0], p1[:, 1])
     # Angle between the two in-plane vectors directly (no unwrapping of absolute angles).
-    dth = np.arctan2(p0[:, 0] * p1[:, 1] - p0[:, 1] * p1[:, 0], np.einsum("ij,ij->i", p0, p1))
+    dth = np.arctan2(p0[:, 0] * p1[:, 1] - p0[:, 1] * p1[:, 0], np.einsum('ij,ij->i', p0, p1))
     return np.stack([(x - X) @ frame.axis, rho1 - rho0, rho0 * dth], axis=1)
 
 
 class LevelBinning:
-    """Material level bins of ED positions (precomputed once per run).
+    """
+    Material level bins of ED positions (precomputed once per run).
 
     Parameters
     ----------
@@ -100,12 +103,13 @@ class LevelBinning:
         Bin centres ``(k + ½)/levels``.
     axial_ed : ndarray, shape (L',)
         Mean ED axial distance from the apex of each level's particles, mm.
+
     """
 
     def __init__(self, X: np.ndarray, frame: LVFrame, levels: int = 10):
         levels = int(levels)
         if levels < 1:
-            raise ValueError(f"levels must be >= 1, got {levels}")
+            raise ValueError(f'levels must be >= 1, got {levels}')
         self.levels = levels
         self.frame = frame
         axial = frame.axial(X)
@@ -127,15 +131,20 @@ class LevelBinning:
         n = self.populated.size
         if v.ndim == 1:
             return np.bincount(self.index, weights=v, minlength=n) / self.count
-        return np.stack([np.bincount(self.index, weights=v[:, j], minlength=n) for j in range(v.shape[1])],
-                        axis=1) / self.count[:, None]
+        return (
+            np.stack(
+                [np.bincount(self.index, weights=v[:, j], minlength=n) for j in range(v.shape[1])],
+                axis=1,
+            )
+            / self.count[:, None]
+        )
 
     def twist_and_radius(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-level twist (deg, + CCW from apex) and average SA radius (mm) at positions x."""
         p1 = self.frame.inplane(x)
         p1 = p1 - self.mean(p1)[self.index]
         p0 = self._p0
-        dth = np.arctan2(p0[:, 0] * p1[:, 1] - p0[:, 1] * p1[:, 0], np.einsum("ij,ij->i", p0, p1))
+        dth = np.arctan2(p0[:, 0] * p1[:, 1] - p0[:, 1] * p1[:, 0], np.einsum('ij,ij->i', p0, p1))
         # ED-radius-weighted mean: a particle at the level centre has no defined angle (its Δθ
         # is rounding noise) and must not count; equal radii give the plain mean.
         n = self.populated.size
@@ -146,7 +155,8 @@ class LevelBinning:
 
 
 def level_metrics(X, x, frame: LVFrame, levels: int = 10) -> dict:
-    """Per-level motion measures, apex → base (Fig. 11–16).
+    """
+    Per-level motion measures, apex → base (Fig. 11–16).
 
     Parameters
     ----------
@@ -162,6 +172,7 @@ def level_metrics(X, x, frame: LVFrame, levels: int = 10) -> dict:
         ``level_position`` (bin centre, 0 apex … 1 base), ``count``, ``axial_ed_mm``,
         ``twist_deg``, ``sa_radius_mm``, ``longitudinal_displacement_mm``,
         ``radial_displacement_mm``, ``circumferential_displacement_mm`` (level means).
+
     """
     X, x = _pair(X, x)
     bins = LevelBinning(X, frame, levels)
@@ -172,19 +183,20 @@ def _level_dict(bins: LevelBinning, disp: np.ndarray, x: np.ndarray) -> dict:
     twist, radius = bins.twist_and_radius(x)
     dm = bins.mean(disp)
     return {
-        "level_position": bins.position,
-        "count": bins.count,
-        "axial_ed_mm": bins.axial_ed,
-        "twist_deg": twist,
-        "sa_radius_mm": radius,
-        "longitudinal_displacement_mm": dm[:, 0],
-        "radial_displacement_mm": dm[:, 1],
-        "circumferential_displacement_mm": dm[:, 2],
+        'level_position': bins.position,
+        'count': bins.count,
+        'axial_ed_mm': bins.axial_ed,
+        'twist_deg': twist,
+        'sa_radius_mm': radius,
+        'longitudinal_displacement_mm': dm[:, 0],
+        'radial_displacement_mm': dm[:, 1],
+        'circumferential_displacement_mm': dm[:, 2],
     }
 
 
 def torsion(twist_deg, axial_ed_mm) -> float:
-    """Torsion ``(twist_base − twist_apex) / D``, °/cm (MotionMetrics.msg sign).
+    """
+    Torsion ``(twist_base − twist_apex) / D``, °/cm (MotionMetrics.msg sign).
 
     Parameters
     ----------
@@ -197,18 +209,22 @@ def torsion(twist_deg, axial_ed_mm) -> float:
     -------
     float
         0.0 when fewer than two levels are given or they do not span a positive distance.
+
     """
     t = np.asarray(twist_deg, dtype=np.float64)
     z = np.asarray(axial_ed_mm, dtype=np.float64)
     if t.shape != z.shape or t.ndim != 1:
-        raise ValueError(f"twist_deg and axial_ed_mm must be 1-D of equal length, got {t.shape}, {z.shape}")
+        raise ValueError(
+            f'twist_deg and axial_ed_mm must be 1-D of equal length, got {t.shape}, {z.shape}'
+        )
     if t.size < 2 or not z[-1] > z[0]:
         return 0.0
     return float((t[-1] - t[0]) / ((z[-1] - z[0]) / 10.0))
 
 
 def la_radius(x, frame: LVFrame, apex=None) -> float:
-    """The paper's LA radius: axial distance from the apex to the particle centroid, mm.
+    """
+    The paper's LA radius: axial distance from the apex to the particle centroid, mm.
 
     Parameters
     ----------
@@ -218,14 +234,16 @@ def la_radius(x, frame: LVFrame, apex=None) -> float:
         Supplies the long axis (and the apex when ``apex`` is None).
     apex : array_like, shape (3,), optional
         Current apex position if tracked; default the ED apex ``frame.apex``.
+
     """
-    x = as_points(x, "x")
+    x = as_points(x, 'x')
     ap = frame.apex if apex is None else np.asarray(apex, dtype=np.float64).reshape(3)
     return float((x.mean(axis=0) - ap) @ frame.axis)
 
 
 class CavityModel:
-    """Precomputed endocardial polygon stack for :func:`cavity_volume` (one per run).
+    """
+    Precomputed endocardial polygon stack for :func:`cavity_volume` (one per run).
 
     Method (Simpson's rule on material slabs): the ED long axis [0, 1] is cut into ``slabs``
     equal slabs (material: by ED level). In each slab the endocardial particles are grouped
@@ -252,18 +270,22 @@ class CavityModel:
     exactly.
     """
 
-    def __init__(self, X: np.ndarray, frame: LVFrame, endo_mask=None, slabs: int = 20,
-                 angle_bins: int = 36):
+    def __init__(
+        self, X: np.ndarray, frame: LVFrame, endo_mask=None, slabs: int = 20, angle_bins: int = 36
+    ):
         slabs, angle_bins = int(slabs), int(angle_bins)
         if slabs < 1 or angle_bins < 3:
-            raise ValueError(f"need slabs >= 1 and angle_bins >= 3, got {slabs}, {angle_bins}")
+            raise ValueError(f'need slabs >= 1 and angle_bins >= 3, got {slabs}, {angle_bins}')
         n = X.shape[0]
         self.frame, self.slabs, self.angle_bins = frame, slabs, angle_bins
         axial = frame.axial(X)
         slab = level_bin(axial / frame.length, slabs)
         cnt = np.bincount(slab, minlength=slabs)
         p = frame.inplane(X)
-        cen = np.stack([np.bincount(slab, p[:, j], slabs) for j in range(2)], 1) / np.maximum(cnt, 1)[:, None]
+        cen = (
+            np.stack([np.bincount(slab, p[:, j], slabs) for j in range(2)], 1)
+            / np.maximum(cnt, 1)[:, None]
+        )
         q = p - cen[slab]
         sector = angle_bin(np.arctan2(q[:, 1], q[:, 0]), angle_bins)
         group = slab * angle_bins + sector
@@ -277,10 +299,12 @@ class CavityModel:
         else:
             m = np.asarray(endo_mask)
             if m.shape != (n,) or m.dtype != bool:
-                raise ValueError(f"endo_mask must be a boolean array of shape ({n},), got {m.dtype} {m.shape}")
+                raise ValueError(
+                    f'endo_mask must be a boolean array of shape ({n},), got {m.dtype} {m.shape}'
+                )
             endo = np.flatnonzero(m)
             if endo.size == 0:
-                raise ValueError("endo_mask selects no particles")
+                raise ValueError('endo_mask selects no particles')
         self.endo = endo
         # vertices = occupied groups in (slab, CCW sector) order
         groups, self._vertex_of = np.unique(group[endo], return_inverse=True)
@@ -291,7 +315,7 @@ class CavityModel:
         nxt = np.arange(1, self._nvert + 1)
         last = np.ones(self._nvert, dtype=bool)
         last[:-1] = vslab[1:] != vslab[:-1]
-        first_of = np.searchsorted(vslab, vslab, side="left")
+        first_of = np.searchsorted(vslab, vslab, side='left')
         nxt[last] = first_of[last]
         self._next = nxt
         self._vslab = vslab
@@ -314,7 +338,8 @@ class CavityModel:
         return np.where(self._slab_ok, np.maximum(a, 0.0), 0.0)
 
     def thickness(self, x: np.ndarray) -> np.ndarray:
-        """Current axial thickness of the cell of every populated slab, mm, shape (P,).
+        """
+        Current axial thickness of the cell of every populated slab, mm, shape (P,).
 
         Cells partition the ED axis: boundaries halfway between consecutive populated slab
         centroids, outer boundaries at the apex and base planes (or the extreme centroids if
@@ -322,8 +347,13 @@ class CavityModel:
         axial slab centroids, extrapolated linearly past the end centroids.
         """
         Z = self._Z
-        z = np.bincount(self._slab, self.frame.axial(x), self.slabs)[self._pop] / self._slab_count[self._pop]
-        b = np.concatenate([[min(0.0, Z[0])], 0.5 * (Z[1:] + Z[:-1]), [max(self.frame.length, Z[-1])]])
+        z = (
+            np.bincount(self._slab, self.frame.axial(x), self.slabs)[self._pop]
+            / self._slab_count[self._pop]
+        )
+        b = np.concatenate(
+            [[min(0.0, Z[0])], 0.5 * (Z[1:] + Z[:-1]), [max(self.frame.length, Z[-1])]]
+        )
         if Z.size == 1:
             return np.array([b[1] - b[0]])
         zb = np.interp(b, Z, z)
@@ -338,16 +368,21 @@ class CavityModel:
 
 
 def endocardial_mask(X, frame: LVFrame, slabs: int = 20, angle_bins: int = 36) -> np.ndarray:
-    """Default endocardial particles of :class:`CavityModel`: the innermost particle of every
-    (slab, sector) at ED. Returns a boolean mask of shape (N,)."""
-    X = as_points(X, "X")
+    """
+    Default endocardial particles of :class:`CavityModel`: the innermost particle of every
+    (slab, sector) at ED. Returns a boolean mask of shape (N,).
+    """
+    X = as_points(X, 'X')
     m = np.zeros(X.shape[0], dtype=bool)
     m[CavityModel(X, frame, None, slabs, angle_bins).endo] = True
     return m
 
 
-def cavity_volume(X, x, frame: LVFrame, endo_mask=None, slabs: int = 20, angle_bins: int = 36) -> float:
-    """LV cavity volume at the current phase, ml (method: :class:`CavityModel`).
+def cavity_volume(
+    X, x, frame: LVFrame, endo_mask=None, slabs: int = 20, angle_bins: int = 36
+) -> float:
+    """
+    LV cavity volume at the current phase, ml (method: :class:`CavityModel`).
 
     Parameters
     ----------
@@ -358,6 +393,7 @@ def cavity_volume(X, x, frame: LVFrame, endo_mask=None, slabs: int = 20, angle_b
         Particles on the endocardium. Default: innermost particle per (slab, sector).
     slabs, angle_bins : int
         Number of slabs on the ED long axis and of angular sectors per slab.
+
     """
     X, x = _pair(X, x)
     return CavityModel(X, frame, endo_mask, slabs, angle_bins).volume_ml(x)

@@ -1,4 +1,5 @@
-"""Lagrangian strain in the cardiac frame and AHA 17-segment averages.
+"""
+Lagrangian strain in the cardiac frame and AHA 17-segment averages.
 
 Strain is Green–Lagrange ``E = ½(FᵀF − I)`` relative to ED, with ``F = ∂x/∂X`` the
 deformation gradient (the paper's eq. 18 Jacobian ``J = I + ∇uᵀ``; its eq. 19 drops the ½,
@@ -24,34 +25,45 @@ AHA segments (Cerqueira et al., Circulation 2002), numbered 1–17:
 
 from __future__ import annotations
 
+from mlv_ros.core.analysis.frame import as_points
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.analysis.frame import as_points
-
 AHA_SEGMENT_NAMES = (
-    "basal anterior", "basal anteroseptal", "basal inferoseptal", "basal inferior",
-    "basal inferolateral", "basal anterolateral",
-    "mid anterior", "mid anteroseptal", "mid inferoseptal", "mid inferior",
-    "mid inferolateral", "mid anterolateral",
-    "apical anterior", "apical septal", "apical inferior", "apical lateral",
-    "apex",
+    'basal anterior',
+    'basal anteroseptal',
+    'basal inferoseptal',
+    'basal inferior',
+    'basal inferolateral',
+    'basal anterolateral',
+    'mid anterior',
+    'mid anteroseptal',
+    'mid inferoseptal',
+    'mid inferior',
+    'mid inferolateral',
+    'mid anterolateral',
+    'apical anterior',
+    'apical septal',
+    'apical inferior',
+    'apical lateral',
+    'apex',
 )
 
-STRAIN_COMPONENTS = ("rr", "cc", "ll", "rc", "rl", "cl")
+STRAIN_COMPONENTS = ('rr', 'cc', 'll', 'rc', 'rl', 'cl')
 
 _COND_MIN = 1e-8  # smallest eigenvalue ratio of the MLS moment matrix accepted as regular
 
 
-def _as_tensors(F, name: str = "F") -> np.ndarray:
+def _as_tensors(F, name: str = 'F') -> np.ndarray:
     F = np.asarray(F, dtype=np.float64)
     if F.ndim != 3 or F.shape[1:] != (3, 3):
-        raise ValueError(f"{name} must have shape (N, 3, 3), got {F.shape}")
+        raise ValueError(f'{name} must have shape (N, 3, 3), got {F.shape}')
     return F
 
 
 def green_lagrange(F) -> np.ndarray:
-    """Green–Lagrange strain ``E = ½(FᵀF − I)``.
+    """
+    Green–Lagrange strain ``E = ½(FᵀF − I)``.
 
     Parameters
     ----------
@@ -62,13 +74,15 @@ def green_lagrange(F) -> np.ndarray:
     -------
     ndarray, shape (N, 3, 3)
         Symmetric strain tensors in patient axes (dimensionless).
+
     """
     F = _as_tensors(F)
     return 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
 
 
 def cardiac_strain(E, e_r, e_c, e_l) -> dict:
-    """Components of strain tensors in the local cardiac frame.
+    """
+    Components of strain tensors in the local cardiac frame.
 
     Parameters
     ----------
@@ -82,17 +96,19 @@ def cardiac_strain(E, e_r, e_c, e_l) -> dict:
     -------
     dict of ndarray, shape (N,)
         Keys ``rr, cc, ll, rc, rl, cl`` (E_rr, E_cc, E_ll and the tensor shears).
+
     """
-    E = _as_tensors(E, "E")
+    E = _as_tensors(E, 'E')
     Q = np.stack([np.asarray(e_r, float), np.asarray(e_c, float), np.asarray(e_l, float)], axis=1)
     if Q.shape != E.shape:
-        raise ValueError(f"frame vectors must have shape ({E.shape[0]}, 3), got {Q.shape[0::2]}")
+        raise ValueError(f'frame vectors must have shape ({E.shape[0]}, 3), got {Q.shape[0::2]}')
     C = Q @ E @ np.swapaxes(Q, 1, 2)
-    return {k: C[:, "rcl".index(k[0]), "rcl".index(k[1])] for k in STRAIN_COMPONENTS}
+    return {k: C[:, 'rcl'.index(k[0]), 'rcl'.index(k[1])] for k in STRAIN_COMPONENTS}
 
 
 class MLSNeighbourhood:
-    """Precomputed MLS neighbourhoods of ED positions (paper eq. 16–17, Müller et al. 2004).
+    """
+    Precomputed MLS neighbourhoods of ED positions (paper eq. 16–17, Müller et al. 2004).
 
     Each particle i uses its ``k`` nearest ED neighbours j with the paper's kernel
     ``w_ij = (h² − r²)³`` (eq. 4; the constant 1/h⁹ cancels), ``h = 3 r̄_i`` and r̄_i the
@@ -108,16 +124,19 @@ class MLSNeighbourhood:
         Inverse moment matrices (zeros where not ``valid``).
     valid : ndarray of bool, shape (N,)
         False where the neighbours are (near) coplanar: eigenvalue ratio of A below 1e-8.
+
     """
 
     def __init__(self, X: np.ndarray, k: int = 12):
-        X = as_points(X, "X")
+        X = as_points(X, 'X')
         n = X.shape[0]
         k = int(k)
         if k < 3:
-            raise ValueError(f"MLS needs k >= 3 neighbours, got {k}")
+            raise ValueError(f'MLS needs k >= 3 neighbours, got {k}')
         if n < k + 1:
-            raise ValueError(f"MLS with k={k} neighbours needs at least {k + 1} particles, got {n}")
+            raise ValueError(
+                f'MLS with k={k} neighbours needs at least {k + 1} particles, got {n}'
+            )
         dist, idx = cKDTree(X).query(X, k=k + 1)
         self.index = idx[:, 1:]
         dist = dist[:, 1:]
@@ -137,7 +156,10 @@ class MLSNeighbourhood:
         """Deformation gradients F at current positions x (N, 3); NaN where not ``valid``."""
         # F = B A⁻¹ with B = Σ_j w x_ij X_ijᵀ. Expanding x_ij = x_j − x_i avoids an (N, k, 3)
         # temporary: Bᵀ = Σ_j w X_ij x_jᵀ − (Σ_j w X_ij) x_iᵀ.
-        Bt = self._wdX_T @ np.take(x, self.index, axis=0) - self._wdX_sum[:, :, None] * x[:, None, :]
+        Bt = (
+            self._wdX_T @ np.take(x, self.index, axis=0)
+            - self._wdX_sum[:, :, None] * x[:, None, :]
+        )
         F = np.swapaxes(Bt, 1, 2) @ self.A_inv
         F[~self.valid] = np.nan
         return F
@@ -148,8 +170,11 @@ def mls_neighbourhood(X, k: int = 12) -> MLSNeighbourhood:
     return MLSNeighbourhood(X, k)
 
 
-def deformation_gradient_mls(X, x, k: int = 12, neighbourhood: MLSNeighbourhood | None = None) -> np.ndarray:
-    """Estimate per-particle deformation gradients from positions by weighted least squares.
+def deformation_gradient_mls(
+    X, x, k: int = 12, neighbourhood: MLSNeighbourhood | None = None
+) -> np.ndarray:
+    """
+    Estimate per-particle deformation gradients from positions by weighted least squares.
 
     Solves ``min_F Σ_j w_ij |x_ij − F X_ij|²`` (first-order MLS, the paper's eq. 16–17 with
     ``F = I + ∇uᵀ``), so ``F_i = (Σ_j w_ij x_ij X_ijᵀ) A_i⁻¹``. Exact for affine motion.
@@ -167,19 +192,21 @@ def deformation_gradient_mls(X, x, k: int = 12, neighbourhood: MLSNeighbourhood 
     -------
     ndarray, shape (N, 3, 3)
         F per particle; NaN rows where the neighbourhood is degenerate (coplanar).
+
     """
-    X = as_points(X, "X")
-    x = as_points(x, "x")
+    X = as_points(X, 'X')
+    x = as_points(x, 'x')
     if X.shape != x.shape:
-        raise ValueError(f"X and x must have the same shape, got {X.shape} and {x.shape}")
+        raise ValueError(f'X and x must have the same shape, got {X.shape} and {x.shape}')
     nb = neighbourhood if neighbourhood is not None else MLSNeighbourhood(X, k)
     if nb.index.shape[0] != X.shape[0]:
-        raise ValueError("neighbourhood was built for a different number of particles")
+        raise ValueError('neighbourhood was built for a different number of particles')
     return nb.gradient(x)
 
 
 def aha_segments(h, theta, aha_origin_deg: float = -120.0, apex_cap: float = 0.1) -> np.ndarray:
-    """AHA 17-segment number of each particle (convention in the module docstring).
+    """
+    AHA 17-segment number of each particle (convention in the module docstring).
 
     Parameters
     ----------
@@ -196,17 +223,20 @@ def aha_segments(h, theta, aha_origin_deg: float = -120.0, apex_cap: float = 0.1
     -------
     ndarray of int, shape (N,)
         Segment numbers 1 … 17.
+
     """
     h = np.asarray(h, dtype=np.float64)
     theta = np.asarray(theta, dtype=np.float64)
     if h.shape != theta.shape or h.ndim != 1:
-        raise ValueError(f"h and theta must be 1-D of equal length, got {h.shape}, {theta.shape}")
+        raise ValueError(f'h and theta must be 1-D of equal length, got {h.shape}, {theta.shape}')
     if not 0.0 <= apex_cap < 1.0:
-        raise ValueError(f"apex_cap must be in [0, 1), got {apex_cap}")
+        raise ValueError(f'apex_cap must be in [0, 1), got {apex_cap}')
     if not (np.all(np.isfinite(h)) and np.all(np.isfinite(theta))):
-        raise ValueError("h and theta must be finite")
+        raise ValueError('h and theta must be finite')
     psi = np.mod(np.degrees(theta) - aha_origin_deg, 360.0)
-    third = np.clip(np.floor((np.clip(h, 0, 1) - apex_cap) / ((1.0 - apex_cap) / 3.0)), 0, 2).astype(int)
+    third = np.clip(
+        np.floor((np.clip(h, 0, 1) - apex_cap) / ((1.0 - apex_cap) / 3.0)), 0, 2
+    ).astype(int)
     # 60° sectors from the anterior insertion: anteroseptal, inferoseptal, inferior,
     # inferolateral, anterolateral, anterior -> offsets 1..5, 0 within a ring of six
     six = np.array([1, 2, 3, 4, 5, 0])[np.minimum((psi // 60).astype(int), 5)]
@@ -217,7 +247,8 @@ def aha_segments(h, theta, aha_origin_deg: float = -120.0, apex_cap: float = 0.1
 
 
 def segment_means(values, segments, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Average a per-particle quantity over the 17 AHA segments.
+    """
+    Average a per-particle quantity over the 17 AHA segments.
 
     Parameters
     ----------
@@ -233,13 +264,16 @@ def segment_means(values, segments, fill: float = 0.0) -> tuple[np.ndarray, np.n
     means : ndarray, shape (17,)
     count : ndarray of int, shape (17,)
         Particles that contributed to each segment.
+
     """
     v = np.asarray(values, dtype=np.float64)
     s = np.asarray(segments)
     if v.shape != s.shape or v.ndim != 1:
-        raise ValueError(f"values and segments must be 1-D of equal length, got {v.shape}, {s.shape}")
+        raise ValueError(
+            f'values and segments must be 1-D of equal length, got {v.shape}, {s.shape}'
+        )
     if s.size and (s.min() < 1 or s.max() > 17):
-        raise ValueError("segment numbers must lie in 1..17")
+        raise ValueError('segment numbers must lie in 1..17')
     ok = np.isfinite(v)
     cnt = np.bincount(s[ok] - 1, minlength=17)
     tot = np.bincount(s[ok] - 1, weights=v[ok], minlength=17)

@@ -1,4 +1,5 @@
-"""Synthetic LV-like point clouds and analytic motions with exact deformation gradients.
+"""
+Synthetic LV-like point clouds and analytic motions with exact deformation gradients.
 
 For tests, demos and report previews; independent of the simulator (issue 5). Clouds are
 lattices in cylindrical coordinates (ρ, θ, z) about the long axis of an :class:`LVFrame`,
@@ -16,13 +17,13 @@ scaling about the apex), whose Green–Lagrange strain in the cardiac frame is
 
 from __future__ import annotations
 
-import numpy as np
-
 from mlv_ros.core.analysis.frame import LVFrame
+import numpy as np
 
 
 def oblique_frame(length: float = 80.0, origin=(12.0, -30.0, 45.0)) -> LVFrame:
-    """An LV frame whose axes are not aligned with the patient axes (catches basis mix-ups).
+    """
+    An LV frame whose axes are not aligned with the patient axes (catches basis mix-ups).
 
     The long axis points mostly toward −y/+z (a typical LPS orientation is not needed here).
     """
@@ -36,8 +37,12 @@ def oblique_frame(length: float = 80.0, origin=(12.0, -30.0, 45.0)) -> LVFrame:
 def to_patient(frame: LVFrame, rho, theta, z) -> np.ndarray:
     """Patient positions (N, 3) of cylindrical coordinates about the frame's long axis."""
     rho, theta, z = (np.asarray(v, dtype=np.float64).ravel() for v in (rho, theta, z))
-    return (frame.apex + np.outer(rho * np.cos(theta), frame.e1) + np.outer(rho * np.sin(theta), frame.e2)
-            + np.outer(z, frame.axis))
+    return (
+        frame.apex
+        + np.outer(rho * np.cos(theta), frame.e1)
+        + np.outer(rho * np.sin(theta), frame.e2)
+        + np.outer(z, frame.axis)
+    )
 
 
 def to_cylindrical(frame: LVFrame, X) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -46,9 +51,16 @@ def to_cylindrical(frame: LVFrame, X) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), frame.axial(X)
 
 
-def cylinder_shell(frame: LVFrame, r_in: float = 20.0, r_out: float = 30.0, n_r: int = 5,
-                   n_theta: int = 72, n_z: int = 40) -> tuple[np.ndarray, np.ndarray]:
-    """Lattice of a thick cylindrical shell from the apex plane to the base plane.
+def cylinder_shell(
+    frame: LVFrame,
+    r_in: float = 20.0,
+    r_out: float = 30.0,
+    n_r: int = 5,
+    n_theta: int = 72,
+    n_z: int = 40,
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Lattice of a thick cylindrical shell from the apex plane to the base plane.
 
     Radii equally spaced on [r_in, r_out], angles ``2π(j + ½)/n_theta``, levels at the centres
     of ``n_z`` equal slabs of [0, frame.length] (so every slab and level bin is filled evenly).
@@ -58,18 +70,27 @@ def cylinder_shell(frame: LVFrame, r_in: float = 20.0, r_out: float = 30.0, n_r:
     X : ndarray, shape (n_r·n_theta·n_z, 3)
     endo : ndarray of bool
         True on the inner surface ρ = r_in.
+
     """
     r = np.linspace(r_in, r_out, n_r)
     t = 2 * np.pi * (np.arange(n_theta) + 0.5) / n_theta
     z = frame.length * (np.arange(n_z) + 0.5) / n_z
-    R, T, Z = np.meshgrid(r, t, z, indexing="ij")
+    R, T, Z = np.meshgrid(r, t, z, indexing='ij')
     return to_patient(frame, R, T, Z), (R == r_in).ravel()
 
 
-def prolate_shell(frame: LVFrame, a_in: float = 25.0, c_in: float = 70.0, a_out: float = 35.0,
-                  c_out: float = 80.0, n_w: int = 5, n_theta: int = 72, n_z: int = 80
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Lattice of a truncated thick prolate shell: the half-ellipsoid cavity of radius ``a_in``
+def prolate_shell(
+    frame: LVFrame,
+    a_in: float = 25.0,
+    c_in: float = 70.0,
+    a_out: float = 35.0,
+    c_out: float = 80.0,
+    n_w: int = 5,
+    n_theta: int = 72,
+    n_z: int = 80,
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Lattice of a truncated thick prolate shell: the half-ellipsoid cavity of radius ``a_in``
     and depth ``c_in`` below the base plane, wall out to ``a_out``/``c_out`` (frame.length must
     equal ``c_out``: the epicardial apex is the frame apex).
 
@@ -82,24 +103,32 @@ def prolate_shell(frame: LVFrame, a_in: float = 25.0, c_in: float = 70.0, a_out:
     X : ndarray, shape (M, 3)
     endo : ndarray of bool
         True on the endocardial surface (levels that cut the cavity only).
+
     """
     if not np.isclose(frame.length, c_out):
-        raise ValueError(f"frame.length ({frame.length}) must equal c_out ({c_out})")
+        raise ValueError(f'frame.length ({frame.length}) must equal c_out ({c_out})')
     z = c_out * (np.arange(n_z) + 0.5) / n_z
     d = c_out - z  # depth below the base plane
     r_o = a_out * np.sqrt(np.clip(1 - (d / c_out) ** 2, 0, None))
     r_i = a_in * np.sqrt(np.clip(1 - (d / c_in) ** 2, 0, None))
     w = np.linspace(0.0, 1.0, n_w)
     t = 2 * np.pi * (np.arange(n_theta) + 0.5) / n_theta
-    W, T, K = np.meshgrid(w, t, np.arange(n_z), indexing="ij")
+    W, T, K = np.meshgrid(w, t, np.arange(n_z), indexing='ij')
     rho = r_i[K] + W * (r_o[K] - r_i[K])
     endo = (W == 0) & (r_i[K] > 0)
     return to_patient(frame, rho, T, z[K]), endo.ravel()
 
 
-def cylindrical_motion(frame: LVFrame, X, s_r: float = 1.0, s_l: float = 1.0, twist_apex_deg: float = 0.0,
-                       twist_base_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the analytic motion of the module docstring.
+def cylindrical_motion(
+    frame: LVFrame,
+    X,
+    s_r: float = 1.0,
+    s_l: float = 1.0,
+    twist_apex_deg: float = 0.0,
+    twist_base_deg: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Apply the analytic motion of the module docstring.
 
     Parameters
     ----------
@@ -117,6 +146,7 @@ def cylindrical_motion(frame: LVFrame, X, s_r: float = 1.0, s_l: float = 1.0, tw
         Current positions.
     F : ndarray, shape (N, 3, 3)
         Exact deformation gradients ∂x/∂X in patient axes.
+
     """
     rho, th, z = to_cylindrical(frame, X)
     pa, pb = np.radians(twist_apex_deg), np.radians(twist_base_deg)
@@ -136,10 +166,19 @@ def cylindrical_motion(frame: LVFrame, X, s_r: float = 1.0, s_l: float = 1.0, tw
     return x, M @ F @ M.T
 
 
-def synthetic_cycle(frame: LVFrame, X, num_phases: int = 20, *, es_fraction: float = 0.35,
-                    s_r_es: float = 0.85, s_l_es: float = 0.88, twist_apex_es_deg: float = 10.0,
-                    twist_base_es_deg: float = -3.0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """A smooth cycle of :func:`cylindrical_motion` with end-systole at ``es_fraction``.
+def synthetic_cycle(
+    frame: LVFrame,
+    X,
+    num_phases: int = 20,
+    *,
+    es_fraction: float = 0.35,
+    s_r_es: float = 0.85,
+    s_l_es: float = 0.88,
+    twist_apex_es_deg: float = 10.0,
+    twist_base_es_deg: float = -3.0,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """
+    A smooth cycle of :func:`cylindrical_motion` with end-systole at ``es_fraction``.
 
     The contraction profile is ``g(t) = sin²(π t / (2 t_es))`` up to ES and relaxes as
     ``cos²(π (t − t_es) / (2 (1 − t_es)))`` after it (g = 0 at ED, 1 at ES); every parameter
@@ -149,6 +188,7 @@ def synthetic_cycle(frame: LVFrame, X, num_phases: int = 20, *, es_fraction: flo
     Returns
     -------
     list of (x, F), one per phase 0 … num_phases−1 (phase 0 is ED: x = X, F = I)
+
     """
     out = []
     for p in range(num_phases):
@@ -157,6 +197,14 @@ def synthetic_cycle(frame: LVFrame, X, num_phases: int = 20, *, es_fraction: flo
             g = np.sin(0.5 * np.pi * t / es_fraction) ** 2
         else:
             g = np.cos(0.5 * np.pi * (t - es_fraction) / (1 - es_fraction)) ** 2
-        out.append(cylindrical_motion(frame, X, 1 + g * (s_r_es - 1), 1 + g * (s_l_es - 1),
-                                      g * twist_apex_es_deg, g * twist_base_es_deg))
+        out.append(
+            cylindrical_motion(
+                frame,
+                X,
+                1 + g * (s_r_es - 1),
+                1 + g * (s_l_es - 1),
+                g * twist_apex_es_deg,
+                g * twist_base_es_deg,
+            )
+        )
     return out

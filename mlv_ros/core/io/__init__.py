@@ -1,4 +1,5 @@
-"""Readers and writers: DICOM tagged cine MR (:mod:`.dicom`) and simulator ground truth
+"""
+Readers and writers: DICOM tagged cine MR (:mod:`.dicom`) and simulator ground truth
 (:mod:`.groundtruth`). Pure Python + pydicom; no rclpy.
 
 Public API
@@ -20,14 +21,36 @@ load_groundtruth(path) -> GroundTruth
 motion_from_groundtruth(path) -> LVMotion (the exact motion, rebuilt from the JSON)
 """
 
-from mlv_ros.core.io.dicom import (WORKING_DTYPES, DicomReadError, DicomReadResult, LongAxisEstimate,
-                                   SeriesInfo, estimate_long_axis, frame_to_dataset, read_dicom_dir,
-                                   write_study_dicom)
-from mlv_ros.core.io.groundtruth import (GroundTruth, load_groundtruth, motion_from_groundtruth,
-                                         write_groundtruth)
+from mlv_ros.core.io.dicom import (
+    DicomReadError,
+    DicomReadResult,
+    estimate_long_axis,
+    frame_to_dataset,
+    LongAxisEstimate,
+    read_dicom_dir,
+    SeriesInfo,
+    WORKING_DTYPES,
+    write_study_dicom,
+)
+from mlv_ros.core.io.groundtruth import (
+    GroundTruth,
+    load_groundtruth,
+    motion_from_groundtruth,
+    write_groundtruth,
+)
 
 __all__ = [
-    "DicomReadError", "DicomReadResult", "GroundTruth", "LongAxisEstimate", "SeriesInfo",
-    "estimate_long_axis", "frame_to_dataset", "load_groundtruth", "motion_from_groundtruth",
-    "read_dicom_dir", "write_groundtruth", "write_study_dicom", "WORKING_DTYPES",
+    'DicomReadError',
+    'DicomReadResult',
+    'GroundTruth',
+    'LongAxisEstimate',
+    'SeriesInfo',
+    'estimate_long_axis',
+    'frame_to_dataset',
+    'load_groundtruth',
+    'motion_from_groundtruth',
+    'read_dicom_dir',
+    'write_groundtruth',
+    'write_study_dicom',
+    'WORKING_DTYPES',
 ]

@@ -1,4 +1,5 @@
-"""DICOM in and out for tagged cine MR: one file per image, one series per slice location.
+"""
+DICOM in and out for tagged cine MR: one file per image, one series per slice location.
 
 Writing (:func:`write_study_dicom`): MR Image Storage, Explicit VR Little Endian, uint16 pixels
 with ``RescaleSlope`` mapping back to the simulator's float intensities, and the geometry,
@@ -42,14 +43,16 @@ anatomical prior that the base lies right-posterior-superior of the apex (LPS ``
 
 from __future__ import annotations
 
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
 import datetime
 import math
 import os
-import warnings
-from collections import Counter, defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
+import warnings
 
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.types import Frame, VIEW_LA, VIEW_NAMES, VIEW_SA
 import numpy as np
 import pydicom
 from pydicom.dataset import Dataset, FileMetaDataset
@@ -58,13 +61,10 @@ from pydicom.multival import MultiValue
 from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage
 from pydicom.valuerep import DSfloat
 
-from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import VIEW_LA, VIEW_NAMES, VIEW_SA, Frame
-
 #: Stored value = round(intensity · PIXEL_SCALE); RescaleSlope = 1 / PIXEL_SCALE.
 PIXEL_SCALE = 1000.0
-_GEOMETRY_TAGS = ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing")
-_PIXEL_TAGS = ("PixelData", "FloatPixelData", "DoubleFloatPixelData")
+_GEOMETRY_TAGS = ('ImagePositionPatient', 'ImageOrientationPatient', 'PixelSpacing')
+_PIXEL_TAGS = ('PixelData', 'FloatPixelData', 'DoubleFloatPixelData')
 #: Default :func:`read_dicom_dir` size limit, pixels (Rows × Columns).
 DEFAULT_MAX_PIXELS = 4096 * 4096
 # Unit length / orthogonality slack of ImageOrientationPatient (written to ~6 digits by scanners).
@@ -72,7 +72,11 @@ _IOP_TOL = 1e-2
 _DEFER_BYTES = 256 * 1024  # values larger than this stay on disk until the header is checked
 _UNDEFINED_LENGTH = 0xFFFFFFFF
 #: Where an Enhanced frame's trigger time is looked for, first found wins (ms from the R wave).
-_TRIGGER_KEYWORDS = ("NominalCardiacTriggerDelayTime", "TriggerTime", "ActualCardiacTriggerDelayTime")
+_TRIGGER_KEYWORDS = (
+    'NominalCardiacTriggerDelayTime',
+    'TriggerTime',
+    'ActualCardiacTriggerDelayTime',
+)
 #: A multi-frame file may hold at most this many times max_pixels pixels in all its frames.
 _MAX_FILE_FRAMES_PIXELS = 512
 _PARALLEL_COS = np.cos(np.radians(5.0))
@@ -84,21 +88,32 @@ _BASE_SIDE = np.array([-1.0, 1.0, 1.0]) / np.sqrt(3.0)
 #: everything else (signed, 32-bit, float, or any rescale) is float32 (see ``_working_pixels``).
 WORKING_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
 _KEPT_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
-_COLOUR_PHOTOMETRIC = ("RGB", "PALETTE COLOR", "YBR_FULL", "YBR_FULL_422", "YBR_PARTIAL_420", "YBR_PARTIAL_422",
-                       "YBR_ICT", "YBR_RCT", "ARGB", "CMYK", "HSV")
-_LIBJPEG = "pylibjpeg with pylibjpeg-libjpeg"
-_OPENJPEG = "pylibjpeg with pylibjpeg-openjpeg"
+_COLOUR_PHOTOMETRIC = (
+    'RGB',
+    'PALETTE COLOR',
+    'YBR_FULL',
+    'YBR_FULL_422',
+    'YBR_PARTIAL_420',
+    'YBR_PARTIAL_422',
+    'YBR_ICT',
+    'YBR_RCT',
+    'ARGB',
+    'CMYK',
+    'HSV',
+)
+_LIBJPEG = 'pylibjpeg with pylibjpeg-libjpeg'
+_OPENJPEG = 'pylibjpeg with pylibjpeg-openjpeg'
 # The PyPI packages that give pydicom a decoder for each compressed syntax (versions pinned in
 # requirements/base.txt).
 _DECODER_PACKAGES = {
-    pydicom.uid.JPEGBaseline8Bit: f"{_LIBJPEG} (or Pillow)",
-    pydicom.uid.JPEGExtended12Bit: f"{_LIBJPEG} (Pillow decodes 8-bit samples only)",
+    pydicom.uid.JPEGBaseline8Bit: f'{_LIBJPEG} (or Pillow)',
+    pydicom.uid.JPEGExtended12Bit: f'{_LIBJPEG} (Pillow decodes 8-bit samples only)',
     pydicom.uid.JPEGLossless: _LIBJPEG,
     pydicom.uid.JPEGLosslessSV1: _LIBJPEG,
-    pydicom.uid.JPEGLSLossless: f"pyjpegls (or {_LIBJPEG})",
-    pydicom.uid.JPEGLSNearLossless: f"pyjpegls (or {_LIBJPEG})",
-    pydicom.uid.JPEG2000Lossless: f"{_OPENJPEG} (or Pillow built with OpenJPEG)",
-    pydicom.uid.JPEG2000: f"{_OPENJPEG} (or Pillow built with OpenJPEG)",
+    pydicom.uid.JPEGLSLossless: f'pyjpegls (or {_LIBJPEG})',
+    pydicom.uid.JPEGLSNearLossless: f'pyjpegls (or {_LIBJPEG})',
+    pydicom.uid.JPEG2000Lossless: f'{_OPENJPEG} (or Pillow built with OpenJPEG)',
+    pydicom.uid.JPEG2000: f'{_OPENJPEG} (or Pillow built with OpenJPEG)',
     pydicom.uid.HTJ2KLossless: _OPENJPEG,
     pydicom.uid.HTJ2KLosslessRPCL: _OPENJPEG,
     pydicom.uid.HTJ2K: _OPENJPEG,
@@ -106,17 +121,32 @@ _DECODER_PACKAGES = {
 }
 # Syntaxes no pydicom plugin decodes: what to do instead (matched on the UID's name).
 _NO_DECODER_HINTS = (
-    ("JPEG 2000 Part 2", "no PyPI plugin decodes it for pydicom: convert the files first (e.g. GDCM "
-                         "gdcmconv --raw)"),
-    ("JPIP", "the pixels are not in the file (a JPIP server reference): retrieve the images themselves"),
-    ("MPEG", "a video, not images: export the series as images"),
-    ("HEVC", "a video, not images: export the series as images"),
-    ("SMPTE", "a video or audio stream, not images: export the series as images"),
+    (
+        'JPEG 2000 Part 2',
+        'no PyPI plugin decodes it for pydicom: convert the files first (e.g. GDCM '
+        'gdcmconv --raw)',
+    ),
+    (
+        'JPIP',
+        'the pixels are not in the file (a JPIP server reference): retrieve the images themselves',
+    ),
+    ('MPEG', 'a video, not images: export the series as images'),
+    ('HEVC', 'a video, not images: export the series as images'),
+    ('SMPTE', 'a video or audio stream, not images: export the series as images'),
 )
 #: Names skipped without a report (operating-system and file-manager droppings); so is every
 #: name starting with "." (hidden files and folders, macOS "._*" resource forks).
-_SYSTEM_NAMES = frozenset({"thumbs.db", "ehthumbs.db", "desktop.ini", "__macosx", "$recycle.bin",
-                           "system volume information", "lost+found"})
+_SYSTEM_NAMES = frozenset(
+    {
+        'thumbs.db',
+        'ehthumbs.db',
+        'desktop.ini',
+        '__macosx',
+        '$recycle.bin',
+        'system volume information',
+        'lost+found',
+    }
+)
 
 
 class DicomReadError(ValueError):
@@ -133,22 +163,22 @@ def _ds(v: float) -> DSfloat:
 
 
 #: ``write_study_dicom`` choices: how SA slices map to series, how InstanceNumber runs, file names.
-SA_SERIES = ("per_slice", "single")
-INSTANCE_NUMBERS = ("per_slice", "across_slices")
-FILE_NAMES = ("ordered", "random")
+SA_SERIES = ('per_slice', 'single')
+INSTANCE_NUMBERS = ('per_slice', 'across_slices')
+FILE_NAMES = ('ordered', 'random')
 BITS_STORED = (8, 12, 16)
 
 
 def _random_paths(out: Path, n: int, seed: int) -> list[Path]:
     """Draw ``n`` distinct paths 1–3 folders deep under ``out`` (hex names, mixed suffixes)."""
     rng = np.random.default_rng(seed)
-    pools = [[f"{rng.integers(1 << 24):06x}" for _ in range(3)] for _ in range(3)]
+    pools = [[f'{rng.integers(1 << 24):06x}' for _ in range(3)] for _ in range(3)]
     paths: list[Path] = []
     seen: set[Path] = set()
     while len(paths) < n:
         depth = int(rng.integers(1, 4))
         folder = out.joinpath(*(pools[k][int(rng.integers(3))] for k in range(depth)))
-        name = f"{int(rng.integers(1 << 62)):016x}" + ("", ".dcm", ".IMA")[int(rng.integers(3))]
+        name = f'{int(rng.integers(1 << 62)):016x}' + ('', '.dcm', '.IMA')[int(rng.integers(3))]
         path = folder / name  # never a folder's name: those have 6 hex digits, files 16
         if path not in seen:
             seen.add(path)
@@ -156,11 +186,22 @@ def _random_paths(out: Path, n: int, seed: int) -> list[Path]:
     return paths
 
 
-def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress=None, *,
-                      bits_stored: int = 16, rescale: bool = True, rescale_intercept: float = 0.0,
-                      sa_series: str = "per_slice", instance_numbers: str = "per_slice",
-                      file_names: str = "ordered", names_seed: int = 0) -> list[Path]:
-    """Write every frame of a simulated study as one DICOM file.
+def write_study_dicom(
+    study,
+    out_dir,
+    pixel_scale: float = PIXEL_SCALE,
+    progress=None,
+    *,
+    bits_stored: int = 16,
+    rescale: bool = True,
+    rescale_intercept: float = 0.0,
+    sa_series: str = 'per_slice',
+    instance_numbers: str = 'per_slice',
+    file_names: str = 'ordered',
+    names_seed: int = 0,
+) -> list[Path]:
+    """
+    Write every frame of a simulated study as one DICOM file.
 
     Default layout: ``out_dir/<SA|LA>_<index>/IM_<phase+1>.dcm``, one series per slice location,
     InstanceNumber = phase + 1; any layout reads back the same way (:func:`read_dicom_dir`).
@@ -207,53 +248,68 @@ def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress
     ValueError
         An option outside its choices, a non-positive ``pixel_scale``, or an intercept without
         a rescale.
+
     """
     if bits_stored not in BITS_STORED:
-        raise ValueError(f"bits_stored must be one of {BITS_STORED}, got {bits_stored!r}")
-    for name, v, choices in (("sa_series", sa_series, SA_SERIES),
-                             ("instance_numbers", instance_numbers, INSTANCE_NUMBERS),
-                             ("file_names", file_names, FILE_NAMES)):
+        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
+    for name, v, choices in (
+        ('sa_series', sa_series, SA_SERIES),
+        ('instance_numbers', instance_numbers, INSTANCE_NUMBERS),
+        ('file_names', file_names, FILE_NAMES),
+    ):
         if v not in choices:
-            raise ValueError(f"{name} must be one of {choices}, got {v!r}")
+            raise ValueError(f'{name} must be one of {choices}, got {v!r}')
     if not (np.isfinite(pixel_scale) and pixel_scale > 0):
-        raise ValueError(f"pixel_scale must be a positive number of stored units per intensity "
-                         f"unit, got {pixel_scale}")
+        raise ValueError(
+            f'pixel_scale must be a positive number of stored units per intensity '
+            f'unit, got {pixel_scale}'
+        )
     if not np.isfinite(rescale_intercept) or (not rescale and rescale_intercept != 0.0):
-        raise ValueError(f"rescale_intercept must be finite, and 0 without a rescale; "
-                         f"got {rescale_intercept}")
+        raise ValueError(
+            f'rescale_intercept must be finite, and 0 without a rescale; got {rescale_intercept}'
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     keys = study.keys
     series_number = {key: i + 1 for i, key in enumerate(keys)}
     series_uid: dict = {}
-    descriptions = {key: study.descriptions.get(key, f"tagged {VIEW_NAMES[key[0]]} {key[1]}") for key in keys}
+    descriptions = {
+        key: study.descriptions.get(key, f'tagged {VIEW_NAMES[key[0]]} {key[1]}') for key in keys
+    }
     position = {key: i for i, key in enumerate(keys)}  # slice's place in its series' numbering
-    if sa_series == "single":
+    if sa_series == 'single':
         sa_keys = [k for k in keys if k[0] == VIEW_SA]
-        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, "SA stack"])
+        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, 'SA stack'])
         others = [k for k in keys if k[0] != VIEW_SA]
         series_number = {k: 1 for k in sa_keys} | {k: i + 2 for i, k in enumerate(others)}
         series_uid = {k: stack_uid for k in sa_keys}
-        descriptions.update({k: "tagged SA stack" for k in sa_keys})
+        descriptions.update({k: 'tagged SA stack' for k in sa_keys})
         position = {k: i for i, k in enumerate(sa_keys)} | {k: 0 for k in others}
     total = len(study.frames)
-    names = _random_paths(out, total, names_seed) if file_names == "random" else None
+    names = _random_paths(out, total, names_seed) if file_names == 'random' else None
     paths = []
     for n, fr in enumerate(study.frames):
         key = (fr.view, fr.slice_index)
         instance = None
-        if instance_numbers == "across_slices":
+        if instance_numbers == 'across_slices':
             instance = position[key] * int(fr.num_phases) + int(fr.phase_index) + 1
         ds = frame_to_dataset(
-            fr, pixel_scale=pixel_scale, study_uid=study.study_uid,
+            fr,
+            pixel_scale=pixel_scale,
+            study_uid=study.study_uid,
             frame_of_reference_uid=study.frame_of_reference_uid,
-            series_number=series_number[key], description=descriptions[key],
-            patient_name=f"MLV^{study.preset['name']}", bits_stored=bits_stored, rescale=rescale,
-            rescale_intercept=rescale_intercept, instance_number=instance,
-            series_uid=series_uid.get(key))
+            series_number=series_number[key],
+            description=descriptions[key],
+            patient_name=f'MLV^{study.preset["name"]}',
+            bits_stored=bits_stored,
+            rescale=rescale,
+            rescale_intercept=rescale_intercept,
+            instance_number=instance,
+            series_uid=series_uid.get(key),
+        )
         if names is None:
-            d = out / f"{VIEW_NAMES[fr.view]}_{fr.slice_index:02d}"
-            path = d / f"IM_{fr.phase_index + 1:04d}.dcm"
+            d = out / f'{VIEW_NAMES[fr.view]}_{fr.slice_index:02d}'
+            path = d / f'IM_{fr.phase_index + 1:04d}.dcm'
         else:
             path = names[n]
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -264,12 +320,23 @@ def write_study_dicom(study, out_dir, pixel_scale: float = PIXEL_SCALE, progress
     return paths
 
 
-def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: str = "",
-                     frame_of_reference_uid: str = "", series_number: int = 1,
-                     description: str = "", patient_name: str = "MLV^Phantom", *,
-                     bits_stored: int = 16, rescale: bool = True, rescale_intercept: float = 0.0,
-                     instance_number: int | None = None, series_uid: str | None = None) -> Dataset:
-    """DICOM dataset (MR Image Storage) of one frame; see the module docstring for the tags.
+def frame_to_dataset(
+    frame: Frame,
+    pixel_scale: float = PIXEL_SCALE,
+    study_uid: str = '',
+    frame_of_reference_uid: str = '',
+    series_number: int = 1,
+    description: str = '',
+    patient_name: str = 'MLV^Phantom',
+    *,
+    bits_stored: int = 16,
+    rescale: bool = True,
+    rescale_intercept: float = 0.0,
+    instance_number: int | None = None,
+    series_uid: str | None = None,
+) -> Dataset:
+    """
+    DICOM dataset (MR Image Storage) of one frame; see the module docstring for the tags.
 
     Float images are stored as ``round((image − rescale_intercept) · pixel_scale)``, clipped to
     ``0 .. 2**bits_stored − 1`` (uint8 for 8 bits, else uint16), with ``RescaleSlope =
@@ -282,17 +349,20 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     ------
     ValueError
         Not a 2-D image, an unsupported ``bits_stored``, or integer pixels that do not fit it.
+
     """
     img = np.asarray(frame.image)
     if img.ndim != 2:
-        raise ValueError(f"frame image must be 2-D, got shape {img.shape}")
+        raise ValueError(f'frame image must be 2-D, got shape {img.shape}')
     if bits_stored not in BITS_STORED:
-        raise ValueError(f"bits_stored must be one of {BITS_STORED}, got {bits_stored!r}")
+        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
     top = (1 << bits_stored) - 1
     dtype = np.uint8 if bits_stored == 8 else np.uint16
     if img.dtype == dtype:
         if img.size and int(img.max()) > top:
-            raise ValueError(f"integer pixels up to {int(img.max())} do not fit in {bits_stored} bits")
+            raise ValueError(
+                f'integer pixels up to {int(img.max())} do not fit in {bits_stored} bits'
+            )
         stored, slope, inter = img, 1.0, 0.0
     else:
         x = img.astype(np.float64)
@@ -302,7 +372,8 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
         slope, inter = 1.0 / pixel_scale, float(rescale_intercept)
     g = frame.geometry
     sop_uid = pydicom.uid.generate_uid(
-        entropy_srcs=[frame.series_uid, str(frame.phase_index), str(frame.slice_index)])
+        entropy_srcs=[frame.series_uid, str(frame.phase_index), str(frame.slice_index)]
+    )
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = MRImageStorage
     meta.MediaStorageSOPInstanceUID = sop_uid
@@ -314,29 +385,33 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     ds.StudyInstanceUID = study_uid or pydicom.uid.generate_uid()
     ds.SeriesInstanceUID = series_uid or frame.series_uid or pydicom.uid.generate_uid()
     ds.FrameOfReferenceUID = frame_of_reference_uid or pydicom.uid.generate_uid()
-    ds.Modality = "MR"
-    ds.Manufacturer = "mlv_ros simulator"
+    ds.Modality = 'MR'
+    ds.Manufacturer = 'mlv_ros simulator'
     ds.PatientName = patient_name
-    ds.PatientID = "MLV-PHANTOM"
-    ds.StudyDescription = "Simulated tagged cine MR (SPAMM)"
+    ds.PatientID = 'MLV-PHANTOM'
+    ds.StudyDescription = 'Simulated tagged cine MR (SPAMM)'
     ds.SeriesDescription = description
     ds.SeriesNumber = int(series_number)
-    ds.InstanceNumber = int(frame.phase_index) + 1 if instance_number is None else int(instance_number)
-    ds.ImageType = ["DERIVED", "PRIMARY", "TAGGING"]
-    ds.ScanningSequence = "GR"
-    ds.SequenceVariant = "SP"
-    ds.MRAcquisitionType = "2D"
+    ds.InstanceNumber = (
+        int(frame.phase_index) + 1 if instance_number is None else int(instance_number)
+    )
+    ds.ImageType = ['DERIVED', 'PRIMARY', 'TAGGING']
+    ds.ScanningSequence = 'GR'
+    ds.SequenceVariant = 'SP'
+    ds.MRAcquisitionType = '2D'
     ds.TriggerTime = _ds(frame.trigger_time * 1000.0)
     ds.NominalInterval = int(round(frame.cycle_duration * 1000.0))  # IS: whole ms
     ds.CardiacNumberOfImages = int(frame.num_phases)
     ds.ImagePositionPatient = [_ds(v) for v in g.image_position]
-    ds.ImageOrientationPatient = [_ds(v) for v in np.concatenate([g.row_direction, g.column_direction])]
+    ds.ImageOrientationPatient = [
+        _ds(v) for v in np.concatenate([g.row_direction, g.column_direction])
+    ]
     ds.PixelSpacing = [_ds(g.row_spacing), _ds(g.column_spacing)]
     ds.SliceThickness = _ds(g.slice_thickness)
     ds.SliceLocation = _ds(float(g.image_position @ g.normal))
     ds.Rows, ds.Columns = stored.shape
     ds.SamplesPerPixel = 1
-    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.PhotometricInterpretation = 'MONOCHROME2'
     ds.BitsAllocated = 8 if bits_stored == 8 else 16
     ds.BitsStored = bits_stored
     ds.HighBit = bits_stored - 1
@@ -344,7 +419,7 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
     if rescale:
         ds.RescaleIntercept = _ds(inter)
         ds.RescaleSlope = _ds(slope)
-        ds.RescaleType = "US"
+        ds.RescaleType = 'US'
     ds.WindowCenter = _ds(0.6 * pixel_scale)
     ds.WindowWidth = _ds(1.2 * pixel_scale)
     ds.PixelData = np.ascontiguousarray(stored).tobytes()
@@ -354,7 +429,8 @@ def frame_to_dataset(frame: Frame, pixel_scale: float = PIXEL_SCALE, study_uid: 
 # ---------------------------------------------------------------------------------- reading
 @dataclass
 class LongAxisEstimate:
-    """Long axis recovered from the image geometry.
+    """
+    Long axis recovered from the image geometry.
 
     Attributes
     ----------
@@ -364,6 +440,7 @@ class LongAxisEstimate:
         Unit vector, apex → base (anatomical prior, see module docstring).
     source : str
         ``"la_planes"`` (common line of ≥ 2 LA planes) or ``"sa_normal"``.
+
     """
 
     point: np.ndarray
@@ -386,7 +463,8 @@ class SeriesInfo:
 
 @dataclass
 class DicomReadResult:
-    """Output of :func:`read_dicom_dir`; unpacks as ``frames, problems = result``.
+    """
+    Output of :func:`read_dicom_dir`; unpacks as ``frames, problems = result``.
 
     Attributes
     ----------
@@ -422,6 +500,7 @@ class DicomReadResult:
         be read (those whose header still names the study; not its non-image objects).
     not_used : list of (str, str)
         The series read but not used, ``(first file, reason)`` once each (also in ``problems``).
+
     """
 
     frames: list[Frame]
@@ -430,9 +509,9 @@ class DicomReadResult:
     long_axis: LongAxisEstimate | None = None
     warnings: list[tuple[str, str]] = field(default_factory=list)
     study_uids: dict[str, int] = field(default_factory=dict)
-    study_uid: str = ""
+    study_uid: str = ''
     studies: dict[str, int] = field(default_factory=dict)
-    choice: str = ""
+    choice: str = ''
     complete: bool = True
     left_out: list[tuple[str, str]] = field(default_factory=list)
     not_used: list[tuple[str, str]] = field(default_factory=list)
@@ -444,30 +523,32 @@ class DicomReadResult:
 
 @dataclass
 class _Image:
-    """One file that passed every per-file check, with the attributes the grouping needs parsed
-    (so that nothing after :func:`_read_one` touches the raw, possibly malformed dataset)."""
+    """
+    One file that passed every per-file check, with the attributes the grouping needs parsed
+    (so that nothing after :func:`_read_one` touches the raw, possibly malformed dataset).
+    """
 
     path: str
     pixels: np.ndarray
     geometry: SliceGeometry
-    series_uid: str = ""
-    sop_uid: str = ""
-    study_uid: str = ""
-    description: str = ""
+    series_uid: str = ''
+    sop_uid: str = ''
+    study_uid: str = ''
+    description: str = ''
     series_number: int = 0
     instance: int | None = None
     trigger_ms: float = np.nan
     nominal_ms: float = np.nan
     cardiac_images: int | None = None
-    modality: str = ""
-    frame_of_reference_uid: str = ""
+    modality: str = ''
+    frame_of_reference_uid: str = ''
     #: When the series was acquired, for telling a repeat from the original: ``(has_date,
     #: seconds)`` (seconds since 0001-01-01 with a date, else since midnight), or None.
     acquired: tuple[bool, float] | None = None
     #: Frame number in a multi-frame (Enhanced) file, 1-based; 0 for a single-frame file.
     frame: int = 0
     #: Why the image is a Siemens MOSAIC (several slices tiled in one image), "" when it is not.
-    mosaic: str = ""
+    mosaic: str = ''
 
 
 class _Skip(Exception):
@@ -479,14 +560,14 @@ def _get(ds, name):
     try:
         return ds.get(name)
     except Exception as exc:  # pydicom converts lazily and raises whatever its parser raises
-        raise _Skip(f"{name} is malformed ({type(exc).__name__}: {exc})") from None
+        raise _Skip(f'{name} is malformed ({type(exc).__name__}: {exc})') from None
 
 
 def _optional(ds, name, kind):
     """Optional attribute as ``kind`` (int/float/str), or None when absent, empty or malformed."""
     try:
         v = ds.get(name)
-        if v is None or str(v).strip() == "":
+        if v is None or str(v).strip() == '':
             return None
         return kind(v)
     except Exception:  # optional timing/identity tags: a malformed one is treated as absent
@@ -498,55 +579,65 @@ def _required_int(ds, name) -> int:
     try:
         return int(v)
     except (TypeError, ValueError):
-        raise _Skip(f"{name} is not an integer ({v!r})") from None
+        raise _Skip(f'{name} is not an integer ({v!r})') from None
 
 
 def _numbers(ds, name: str, n: int) -> np.ndarray:
     """``n`` finite floats from a multi-valued tag; anything else raises _Skip naming the tag."""
     v = _get(ds, name)
-    vals = list(v) if isinstance(v, (list, tuple, pydicom.multival.MultiValue)) else ([] if v in (None, "") else [v])
+    vals = (
+        list(v)
+        if isinstance(v, (list, tuple, pydicom.multival.MultiValue))
+        else ([] if v in (None, '') else [v])
+    )
     if len(vals) != n:
-        raise _Skip(f"{name} must hold {n} numbers, got {len(vals)}")
+        raise _Skip(f'{name} must hold {n} numbers, got {len(vals)}')
     try:
         out = np.array([float(x) for x in vals])
     except (TypeError, ValueError):
-        raise _Skip(f"{name} holds a non-number ({vals!r})") from None
+        raise _Skip(f'{name} holds a non-number ({vals!r})') from None
     if not np.all(np.isfinite(out)):
-        raise _Skip(f"{name} is not finite: {out.tolist()}")
+        raise _Skip(f'{name} is not finite: {out.tolist()}')
     return out
 
 
 def _geometry(ds) -> SliceGeometry:
-    """Validated plane geometry; contradictions are refused, not silently repaired.
+    """
+    Validated plane geometry; contradictions are refused, not silently repaired.
 
     Scanners write ImageOrientationPatient to about 6 digits, so directions within
     ``_IOP_TOL`` of unit length and orthogonality are re-orthonormalised; anything further off
     (a non-unit or skewed orientation) is an error, as are non-positive spacings.
     """
-    missing = [t for t in _GEOMETRY_TAGS if _get(ds, t) in (None, "")]
+    missing = [t for t in _GEOMETRY_TAGS if _get(ds, t) in (None, '')]
     if missing:
-        raise _Skip(f"missing geometry tag(s): {', '.join(missing)}")
-    ipp = _numbers(ds, "ImagePositionPatient", 3)
-    iop = _numbers(ds, "ImageOrientationPatient", 6)
-    ps = _numbers(ds, "PixelSpacing", 2)
+        raise _Skip(f'missing geometry tag(s): {", ".join(missing)}')
+    ipp = _numbers(ds, 'ImagePositionPatient', 3)
+    iop = _numbers(ds, 'ImageOrientationPatient', 6)
+    ps = _numbers(ds, 'PixelSpacing', 2)
     row, col = iop[:3], iop[3:]
-    for which, v in (("row", row), ("column", col)):
+    for which, v in (('row', row), ('column', col)):
         norm = float(np.linalg.norm(v))
         if abs(norm - 1.0) > _IOP_TOL:
-            raise _Skip(f"ImageOrientationPatient {which} direction has norm {norm:.6g}; a unit vector is required")
+            raise _Skip(
+                f'ImageOrientationPatient {which} direction has norm {norm:.6g}; a unit vector '
+                'is required'
+            )
     cos = float(row @ col) / float(np.linalg.norm(row) * np.linalg.norm(col))
     if abs(cos) > _PARALLEL_COS:
-        raise _Skip("ImageOrientationPatient row and column directions are parallel")
+        raise _Skip('ImageOrientationPatient row and column directions are parallel')
     if abs(cos) > _IOP_TOL:
-        raise _Skip(f"ImageOrientationPatient row and column directions are not orthogonal "
-                    f"(angle {np.degrees(np.arccos(np.clip(cos, -1, 1))):.2f} deg)")
+        raise _Skip(
+            f'ImageOrientationPatient row and column directions are not orthogonal '
+            f'(angle {np.degrees(np.arccos(np.clip(cos, -1, 1))):.2f} deg)'
+        )
     if np.any(ps <= 0):
-        raise _Skip(f"PixelSpacing must be two positive mm values, got {ps.tolist()}")
+        raise _Skip(f'PixelSpacing must be two positive mm values, got {ps.tolist()}')
     thick = 0.0
-    if _get(ds, "SliceThickness") not in (None, ""):
-        thick = float(_numbers(ds, "SliceThickness", 1)[0])
+    if _get(ds, 'SliceThickness') not in (None, ''):
+        thick = float(_numbers(ds, 'SliceThickness', 1)[0])
         if thick < 0:
-            raise _Skip(f"SliceThickness must be a positive number of mm, got {thick}")
+            raise _Skip(f'SliceThickness must be a positive number of mm, got {thick}')
     row = row / np.linalg.norm(row)
     col = col - (col @ row) * row
     col = col / np.linalg.norm(col)
@@ -556,85 +647,107 @@ def _geometry(ds) -> SliceGeometry:
 
 def _truncated_meta(path: str, meta) -> str | None:
     """Reason when the file ends inside its file meta group (as declared by its group length)."""
-    glen = _optional(meta, "FileMetaInformationGroupLength", int)
+    glen = _optional(meta, 'FileMetaInformationGroupLength', int)
     size = os.path.getsize(path)
     if glen is not None and size < 132 + 12 + glen:
-        return f"truncated inside the file meta information ({size} bytes; its header alone needs {144 + glen})"
+        return (
+            f'truncated inside the file meta information ({size} bytes; its header alone '
+            f'needs {144 + glen})'
+        )
     return None
 
 
 def _no_pixels_reason(ds) -> str:
-    meta = getattr(ds, "file_meta", None)
+    meta = getattr(ds, 'file_meta', None)
     # The file meta is complete by now (checked against its group length); the dataset's own
     # SOPClassUID may be the element a truncation cut short.
-    sop = (_optional(meta, "MediaStorageSOPClassUID", str) if meta else None) or _optional(ds, "SOPClassUID", str)
-    name = pydicom.uid.UID(sop).name if sop else ""
-    if "Image" in name or "Rows" in ds:
-        return f"no pixel data in an image object ({name or 'Rows present'}): truncated file?"
+    sop = (_optional(meta, 'MediaStorageSOPClassUID', str) if meta else None) or _optional(
+        ds, 'SOPClassUID', str
+    )
+    name = pydicom.uid.UID(sop).name if sop else ''
+    if 'Image' in name or 'Rows' in ds:
+        return f'no pixel data in an image object ({name or "Rows present"}): truncated file?'
     if not sop:
-        return "no pixel data and no SOP class (truncated or not an image)"
-    return f"no pixel data (non-image DICOM: {name})"
+        return 'no pixel data and no SOP class (truncated or not an image)'
+    return f'no pixel data (non-image DICOM: {name})'
 
 
 def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     """Validate the Image Pixel module; returns (rows, columns)."""
-    required = ["Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation", "BitsAllocated"]
-    if pixel_tag == "PixelData":
-        required += ["BitsStored", "PixelRepresentation"]
-    missing = [t for t in required if _get(ds, t) in (None, "")]
+    required = ['Rows', 'Columns', 'SamplesPerPixel', 'PhotometricInterpretation', 'BitsAllocated']
+    if pixel_tag == 'PixelData':
+        required += ['BitsStored', 'PixelRepresentation']
+    missing = [t for t in required if _get(ds, t) in (None, '')]
     if missing:
-        raise _Skip(f"missing image tag(s): {', '.join(missing)}")
-    rows, cols = _required_int(ds, "Rows"), _required_int(ds, "Columns")
+        raise _Skip(f'missing image tag(s): {", ".join(missing)}')
+    rows, cols = _required_int(ds, 'Rows'), _required_int(ds, 'Columns')
     if rows <= 0 or cols <= 0:
-        raise _Skip(f"image has zero size (Rows {rows}, Columns {cols})")
-    nframes = _get(ds, "NumberOfFrames")
-    if nframes not in (None, "") and _required_int(ds, "NumberOfFrames") != 1 and not _enhanced(ds):
-        raise _Skip(f"NumberOfFrames {nframes} without per-frame functional groups: one 2-D frame per file "
-                    f"expected, or an Enhanced (functional-group) multi-frame image")
-    spp = _required_int(ds, "SamplesPerPixel")
-    photometric = str(_get(ds, "PhotometricInterpretation")).strip()
+        raise _Skip(f'image has zero size (Rows {rows}, Columns {cols})')
+    nframes = _get(ds, 'NumberOfFrames')
+    if (
+        nframes not in (None, '')
+        and _required_int(ds, 'NumberOfFrames') != 1
+        and not _enhanced(ds)
+    ):
+        raise _Skip(
+            f'NumberOfFrames {nframes} without per-frame functional groups: one 2-D frame per '
+            'file '
+            f'expected, or an Enhanced (functional-group) multi-frame image'
+        )
+    spp = _required_int(ds, 'SamplesPerPixel')
+    photometric = str(_get(ds, 'PhotometricInterpretation')).strip()
     if spp < 1:
-        raise _Skip(f"SamplesPerPixel {spp}: greyscale images (1 sample per pixel) expected")
+        raise _Skip(f'SamplesPerPixel {spp}: greyscale images (1 sample per pixel) expected')
     if spp > 1:
         # PlanarConfiguration (type 1 with several samples) is checked so the reason is exact;
         # either way the image is refused: tagged MR is greyscale, and a colour rendering's
         # grey levels are not the scanner's intensities. (With 1 sample per pixel it has no
         # meaning, and is ignored.)
-        planar = _get(ds, "PlanarConfiguration")
-        if planar in (None, ""):
-            layout = "PlanarConfiguration missing (required with more than 1 sample per pixel)"
-        elif _required_int(ds, "PlanarConfiguration") not in (0, 1):
-            layout = f"PlanarConfiguration {planar} invalid (0 or 1)"
+        planar = _get(ds, 'PlanarConfiguration')
+        if planar in (None, ''):
+            layout = 'PlanarConfiguration missing (required with more than 1 sample per pixel)'
+        elif _required_int(ds, 'PlanarConfiguration') not in (0, 1):
+            layout = f'PlanarConfiguration {planar} invalid (0 or 1)'
         else:
-            layout = f"PlanarConfiguration {planar} = {('colour-by-pixel', 'colour-by-plane')[int(planar)]}"
-        raise _Skip(f"colour image (SamplesPerPixel {spp}, PhotometricInterpretation {photometric!r}, {layout}): "
-                    f"greyscale images (1 sample per pixel) expected; export the series as MONOCHROME2")
+            layout = (
+                f'PlanarConfiguration {planar} = '
+                f'{("colour-by-pixel", "colour-by-plane")[int(planar)]}'
+            )
+        raise _Skip(
+            f'colour image (SamplesPerPixel {spp}, PhotometricInterpretation {photometric!r}, '
+            f'{layout}): '
+            f'greyscale images (1 sample per pixel) expected; export the series as MONOCHROME2'
+        )
     if photometric in _COLOUR_PHOTOMETRIC:
-        raise _Skip(f"colour image (PhotometricInterpretation {photometric!r} with SamplesPerPixel 1): greyscale "
-                    f"MONOCHROME1/2 expected; export the series as MONOCHROME2")
-    if photometric not in ("MONOCHROME1", "MONOCHROME2"):
-        raise _Skip(f"PhotometricInterpretation {photometric!r}: greyscale MONOCHROME1/2 expected")
-    bits = _required_int(ds, "BitsAllocated")
-    if pixel_tag != "PixelData":
-        want = 32 if pixel_tag == "FloatPixelData" else 64
+        raise _Skip(
+            f'colour image (PhotometricInterpretation {photometric!r} with SamplesPerPixel 1): '
+            'greyscale '
+            f'MONOCHROME1/2 expected; export the series as MONOCHROME2'
+        )
+    if photometric not in ('MONOCHROME1', 'MONOCHROME2'):
+        raise _Skip(f'PhotometricInterpretation {photometric!r}: greyscale MONOCHROME1/2 expected')
+    bits = _required_int(ds, 'BitsAllocated')
+    if pixel_tag != 'PixelData':
+        want = 32 if pixel_tag == 'FloatPixelData' else 64
         if bits != want:
-            raise _Skip(f"BitsAllocated {bits} contradicts {pixel_tag} ({want} expected)")
+            raise _Skip(f'BitsAllocated {bits} contradicts {pixel_tag} ({want} expected)')
         return rows, cols
     if bits not in (8, 16, 32):
-        raise _Skip(f"BitsAllocated {bits}: 8, 16 or 32 expected for greyscale pixels")
-    stored = _required_int(ds, "BitsStored")
+        raise _Skip(f'BitsAllocated {bits}: 8, 16 or 32 expected for greyscale pixels')
+    stored = _required_int(ds, 'BitsStored')
     if not 1 <= stored <= bits:
-        raise _Skip(f"BitsStored {stored} outside 1..BitsAllocated ({bits})")
-    if _get(ds, "HighBit") not in (None, "") and _required_int(ds, "HighBit") != stored - 1:
-        raise _Skip(f"HighBit {ds.HighBit} must be BitsStored - 1 = {stored - 1}")
-    sign = _required_int(ds, "PixelRepresentation")
+        raise _Skip(f'BitsStored {stored} outside 1..BitsAllocated ({bits})')
+    if _get(ds, 'HighBit') not in (None, '') and _required_int(ds, 'HighBit') != stored - 1:
+        raise _Skip(f'HighBit {ds.HighBit} must be BitsStored - 1 = {stored - 1}')
+    sign = _required_int(ds, 'PixelRepresentation')
     if sign not in (0, 1):
-        raise _Skip(f"PixelRepresentation {sign}: 0 (unsigned) or 1 (signed) expected")
+        raise _Skip(f'PixelRepresentation {sign}: 0 (unsigned) or 1 (signed) expected')
     return rows, cols
 
 
 def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
-    """Stored pixel values → the working type (:data:`WORKING_DTYPES`), in one conversion.
+    """
+    Stored pixel values → the working type (:data:`WORKING_DTYPES`), in one conversion.
 
     MONOCHROME1 (minimum = white) is inverted within the stored range (BitsStored and
     PixelRepresentation; a float image within its own min..max) so that, as in MONOCHROME2,
@@ -644,148 +757,203 @@ def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
     for every integer up to 2**24 in magnitude, so for all 8/16-bit types; 32-bit integers and
     float64 round to float32's 24-bit mantissa).
     """
-    pixels = pixels.astype(pixels.dtype.newbyteorder("="), copy=False)  # big endian → native
-    if pixels.dtype.kind == "f":
+    pixels = pixels.astype(pixels.dtype.newbyteorder('='), copy=False)  # big endian → native
+    if pixels.dtype.kind == 'f':
         bad = pixels.size - int(np.count_nonzero(np.isfinite(pixels)))
         if bad:
-            raise _Skip(f"{tag} has {bad} non-finite value(s) (NaN/inf)")
-    elif pixels.dtype.kind not in "iu":
-        raise _Skip(f"pixel data decodes to {pixels.dtype}, not integer or float grey levels")
+            raise _Skip(f'{tag} has {bad} non-finite value(s) (NaN/inf)')
+    elif pixels.dtype.kind not in 'iu':
+        raise _Skip(f'pixel data decodes to {pixels.dtype}, not integer or float grey levels')
     stored = pixels.dtype
-    if str(_get(ds, "PhotometricInterpretation")).strip() == "MONOCHROME1":
-        if stored.kind == "f":
+    if str(_get(ds, 'PhotometricInterpretation')).strip() == 'MONOCHROME1':
+        if stored.kind == 'f':
             pixels = (float(pixels.min()) + float(pixels.max())) - pixels.astype(np.float64)
         else:
-            bits = _required_int(ds, "BitsStored")
-            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if stored.kind == "i" else (0, (1 << bits) - 1)
+            bits = _required_int(ds, 'BitsStored')
+            lo, hi = (
+                (-(1 << (bits - 1)), (1 << (bits - 1)) - 1)
+                if stored.kind == 'i'
+                else (0, (1 << bits) - 1)
+            )
             pixels = (lo + hi) - pixels.astype(np.int64)
-    slope = _numbers(ds, "RescaleSlope", 1)[0] if _get(ds, "RescaleSlope") not in (None, "") else 1.0
-    inter = _numbers(ds, "RescaleIntercept", 1)[0] if _get(ds, "RescaleIntercept") not in (None, "") else 0.0
+    slope = (
+        _numbers(ds, 'RescaleSlope', 1)[0] if _get(ds, 'RescaleSlope') not in (None, '') else 1.0
+    )
+    inter = (
+        _numbers(ds, 'RescaleIntercept', 1)[0]
+        if _get(ds, 'RescaleIntercept') not in (None, '')
+        else 0.0
+    )
     if slope == 0:
-        raise _Skip("RescaleSlope is 0: every pixel would map to the intercept")
+        raise _Skip('RescaleSlope is 0: every pixel would map to the intercept')
     if stored in _KEPT_DTYPES and slope == 1.0 and inter == 0.0:
         # Still inside the stored range after an inversion (pydicom masks to BitsStored).
         if pixels.size == 0 or (pixels.min() >= 0 and pixels.max() <= np.iinfo(stored).max):
             return pixels.astype(stored, copy=False)
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over='ignore', invalid='ignore'):
         out = (pixels.astype(np.float64) * slope + inter).astype(np.float32)
     if not np.all(np.isfinite(out)):
-        raise _Skip("pixel values are not finite as float32 (overflow in the rescale or the float conversion)")
+        raise _Skip(
+            'pixel values are not finite as float32 (overflow in the rescale or the float '
+            'conversion)'
+        )
     return out
 
 
 def _decoder_missing(ts) -> str | None:
-    """Why pydicom cannot decode compressed pixel data of transfer syntax ``ts`` here, naming
-    what would decode it; None when a decoder plugin is installed."""
+    """
+    Why pydicom cannot decode compressed pixel data of transfer syntax ``ts`` here, naming
+    what would decode it; None when a decoder plugin is installed.
+    """
     try:
         decoder = pydicom.pixels.get_decoder(ts)
     except NotImplementedError:
-        hint = next((h for prefix, h in _NO_DECODER_HINTS if ts.name.startswith(prefix)),
-                    "convert the files to an uncompressed transfer syntax (e.g. dcmtk dcmdjpeg, "
-                    "gdcmconv --raw)")
-        return f"transfer syntax {ts.name} ({ts}): pydicom {pydicom.__version__} has no decoder for it; {hint}"
+        hint = next(
+            (h for prefix, h in _NO_DECODER_HINTS if ts.name.startswith(prefix)),
+            'convert the files to an uncompressed transfer syntax (e.g. dcmtk dcmdjpeg, '
+            'gdcmconv --raw)',
+        )
+        return (
+            f'transfer syntax {ts.name} ({ts}): pydicom {pydicom.__version__} has no '
+            f'decoder for it; {hint}'
+        )
     if decoder.is_available:
         return None
-    need = _DECODER_PACKAGES.get(ts, "a pydicom decoder plugin")
-    return (f"transfer syntax {ts.name} ({ts}): no decoder plugin installed; install {need}, "
-            f"versions as pinned in requirements/base.txt")
+    need = _DECODER_PACKAGES.get(ts, 'a pydicom decoder plugin')
+    return (
+        f'transfer syntax {ts.name} ({ts}): no decoder plugin installed; install {need}, '
+        f'versions as pinned in requirements/base.txt'
+    )
 
 
 def _dicomdir_reason(path: str, ds) -> str:
     """Say why a DICOMDIR is ignored: it indexes files, which the reader finds by walking."""
     try:
-        records = list(ds.get("DirectoryRecordSequence") or [])
-        ids = [r.ReferencedFileID for r in records
-               if str(r.get("DirectoryRecordType", "")).strip() == "IMAGE" and r.get("ReferencedFileID")]
+        records = list(ds.get('DirectoryRecordSequence') or [])
+        ids = [
+            r.ReferencedFileID
+            for r in records
+            if str(r.get('DirectoryRecordType', '')).strip() == 'IMAGE'
+            and r.get('ReferencedFileID')
+        ]
         parts = [[str(i)] if isinstance(i, str) else [str(x) for x in i] for i in ids]
         missing = sum(not os.path.isfile(os.path.join(os.path.dirname(path), *q)) for q in parts)
-        listed = f"; it lists {len(parts)} image file(s)" + (f", {missing} of them missing" if missing else "")
+        listed = f'; it lists {len(parts)} image file(s)' + (
+            f', {missing} of them missing' if missing else ''
+        )
     except Exception:  # a damaged index changes nothing: the folder is walked anyway
-        listed = ""
-    return (f"DICOMDIR (media storage directory) ignored: every file under the folder is read "
-            f"directly{listed}")
+        listed = ''
+    return (
+        f'DICOMDIR (media storage directory) ignored: every file under the folder is read '
+        f'directly{listed}'
+    )
 
 
 def _load_images(path: str, max_pixels: int) -> list[_Image]:
-    """Every per-file check, cheapest first; pixel bytes are only read once the header is sane.
-    One image per frame: an Enhanced multi-frame file gives each frame with its functional
-    groups (:func:`_frame_views`)."""
+    """
+    Every per-file check, cheapest first; pixel bytes are only read once the header is sane.
+
+    One image per frame: an Enhanced multi-frame file gives each frame with its functional groups
+    (:func:`_frame_views`).
+    """
     if os.path.getsize(path) == 0:
-        raise _Skip("empty file (0 bytes)")
+        raise _Skip('empty file (0 bytes)')
     try:
         # Large values (pixel data) are left on disk until the header has been checked.
         ds = pydicom.dcmread(path, defer_size=_DEFER_BYTES)
     except InvalidDicomError as exc:
-        raise _Skip(f"not a DICOM file ({exc})") from None
+        raise _Skip(f'not a DICOM file ({exc})') from None
     except Exception as exc:  # pydicom raises many types on damaged files
         try:
-            ts = pydicom.filereader.read_file_meta_info(path).get("TransferSyntaxUID")
+            ts = pydicom.filereader.read_file_meta_info(path).get('TransferSyntaxUID')
         except Exception:
             ts = None
-        where = f", transfer syntax {pydicom.uid.UID(ts).name}" if ts else ""
-        raise _Skip(f"unreadable DICOM: damaged or truncated ({type(exc).__name__}: {exc}{where})") from None
-    meta = getattr(ds, "file_meta", None) or Dataset()
+        where = f', transfer syntax {pydicom.uid.UID(ts).name}' if ts else ''
+        raise _Skip(
+            f'unreadable DICOM: damaged or truncated ({type(exc).__name__}: {exc}{where})'
+        ) from None
+    meta = getattr(ds, 'file_meta', None) or Dataset()
     cut = _truncated_meta(path, meta)
     if cut:
         raise _Skip(cut)
-    sop = _optional(meta, "MediaStorageSOPClassUID", str) or _optional(ds, "SOPClassUID", str)
+    sop = _optional(meta, 'MediaStorageSOPClassUID', str) or _optional(ds, 'SOPClassUID', str)
     if sop == pydicom.uid.MediaStorageDirectoryStorage:
         raise _Skip(_dicomdir_reason(path, ds))
-    ts = _optional(meta, "TransferSyntaxUID", str)
+    ts = _optional(meta, 'TransferSyntaxUID', str)
     if not ts:
-        raise _Skip("no TransferSyntaxUID in the file meta information: damaged or truncated header")
+        raise _Skip(
+            'no TransferSyntaxUID in the file meta information: damaged or truncated header'
+        )
     ts = pydicom.uid.UID(ts)
     if len(ds) == 0:
-        raise _Skip("no data elements after the file meta information: truncated or damaged")
+        raise _Skip('no data elements after the file meta information: truncated or damaged')
     if not any(pydicom.datadict.dictionary_has_tag(t) for t in ds.keys()):
-        raise _Skip(f"no standard data element decodes under the declared transfer syntax {ts.name}: "
-                    f"wrong transfer syntax or damaged dataset")
+        raise _Skip(
+            f'no standard data element decodes under the declared transfer syntax {ts.name}: '
+            f'wrong transfer syntax or damaged dataset'
+        )
     present = [t for t in _PIXEL_TAGS if t in ds]
     if not present:
         raise _Skip(_no_pixels_reason(ds))
     if len(present) > 1:
-        raise _Skip(f"more than one pixel data element ({', '.join(present)}): ambiguous")
+        raise _Skip(f'more than one pixel data element ({", ".join(present)}): ambiguous')
     tag = present[0]
     if not ts.is_transfer_syntax:
-        raise _Skip(f"unknown transfer syntax {ts}")
+        raise _Skip(f'unknown transfer syntax {ts}')
     # The Image Pixel module first: pydicom resolves the pixel element's VR (OB or OW) from it.
     rows, cols = _check_encoding(ds, tag)
     try:
         raw = ds.get_item(tag)
     except Exception as exc:  # pydicom resolves the VR and may convert the value here
-        raise _Skip(f"{tag} element unreadable ({type(exc).__name__}: {exc})") from None
-    encapsulated = getattr(raw, "length", None) == _UNDEFINED_LENGTH or bool(getattr(raw, "is_undefined_length", False))
+        raise _Skip(f'{tag} element unreadable ({type(exc).__name__}: {exc})') from None
+    encapsulated = getattr(raw, 'length', None) == _UNDEFINED_LENGTH or bool(
+        getattr(raw, 'is_undefined_length', False)
+    )
     if ts.is_compressed and not encapsulated:
-        raise _Skip(f"transfer syntax {ts.name} declares compressed (encapsulated) pixel data, "
-                    f"but {tag} is stored uncompressed")
+        raise _Skip(
+            f'transfer syntax {ts.name} declares compressed (encapsulated) pixel data, '
+            f'but {tag} is stored uncompressed'
+        )
     if encapsulated and not ts.is_compressed:
-        raise _Skip(f"{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed")
+        raise _Skip(f'{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed')
     if rows * cols > max_pixels:
-        raise _Skip(f"image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = {max_pixels}")
-    nframes = _optional(ds, "NumberOfFrames", int) or 1
+        raise _Skip(
+            f'image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = '
+            f'{max_pixels}'
+        )
+    nframes = _optional(ds, 'NumberOfFrames', int) or 1
     if nframes < 1:
-        raise _Skip(f"NumberOfFrames {nframes}: at least 1 expected")
+        raise _Skip(f'NumberOfFrames {nframes}: at least 1 expected')
     if nframes * rows * cols > _MAX_FILE_FRAMES_PIXELS * max_pixels:
-        raise _Skip(f"{nframes} frames of {rows}x{cols} pixels: more than {_MAX_FILE_FRAMES_PIXELS} x max_pixels "
-                    f"= {_MAX_FILE_FRAMES_PIXELS * max_pixels} pixels in one file")
+        raise _Skip(
+            f'{nframes} frames of {rows}x{cols} pixels: more than {_MAX_FILE_FRAMES_PIXELS} x '
+            'max_pixels '
+            f'= {_MAX_FILE_FRAMES_PIXELS * max_pixels} pixels in one file'
+        )
     views = _frame_views(ds, nframes) if _enhanced(ds) else [ds]
     geoms = []
     for k, view in enumerate(views):
         try:
             geoms.append(_geometry(view))
         except _Skip as why:
-            raise _Skip(f"frame {k + 1} of {nframes}: {why}" if len(views) > 1 else str(why)) from None
-    bits = _required_int(ds, "BitsAllocated")
+            raise _Skip(
+                f'frame {k + 1} of {nframes}: {why}' if len(views) > 1 else str(why)
+            ) from None
+    bits = _required_int(ds, 'BitsAllocated')
     if not encapsulated:
         want = rows * cols * bits // 8 * nframes
-        have = len(_get(ds, tag) or b"")
+        have = len(_get(ds, tag) or b'')
         if have < want:
-            raise _Skip(f"pixel data unreadable: truncated, {have} of {want} bytes present "
-                        f"(Rows × Columns × BitsAllocated/8{' × NumberOfFrames' if nframes > 1 else ''})")
+            raise _Skip(
+                f'pixel data unreadable: truncated, {have} of {want} bytes present '
+                f'(Rows × Columns × BitsAllocated/8{" × NumberOfFrames" if nframes > 1 else ""})'
+            )
         if have > want + 1:  # one byte of padding to an even length is legal
-            raise _Skip(f"pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8"
-                        f"{' × NumberOfFrames' if nframes > 1 else ''} = {want} "
-                        f"(wrong Rows, Columns or BitsAllocated?)")
+            raise _Skip(
+                f'pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8'
+                f'{" × NumberOfFrames" if nframes > 1 else ""} = {want} '
+                f'(wrong Rows, Columns or BitsAllocated?)'
+            )
     if encapsulated:
         missing = _decoder_missing(ts)
         if missing:
@@ -793,11 +961,15 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
     try:
         pixels = ds.pixel_array
     except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
-        raise _Skip(f"pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})") from None
+        raise _Skip(
+            f'pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})'
+        ) from None
     want_shape = (nframes, rows, cols) if nframes > 1 else (rows, cols)
     if pixels.shape != want_shape:
-        raise _Skip(f"pixel data decodes to shape {pixels.shape}, header says "
-                    f"{'x'.join(map(str, want_shape))}")
+        raise _Skip(
+            f'pixel data decodes to shape {pixels.shape}, header says '
+            f'{"x".join(map(str, want_shape))}'
+        )
     if views[0] is ds:
         return [_image(path, ds, _working_pixels(ds, pixels, tag), geoms[0])]
     # Enhanced: each frame its own image, timing from its functional groups; without a phase
@@ -808,8 +980,8 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
         try:
             out.append(_image(path, view, _working_pixels(view, stack[k], tag), geom, frame=k + 1))
         except _Skip as why:
-            raise _Skip(f"frame {k + 1} of {nframes}: {why}") from None
-    temporal = [_optional(view, "TemporalPositionIndex", int) for view in views]
+            raise _Skip(f'frame {k + 1} of {nframes}: {why}') from None
+    temporal = [_optional(view, 'TemporalPositionIndex', int) for view in views]
     if not any(i.cardiac_images for i in out) and all(t and t > 0 for t in temporal):
         for i in out:
             i.cardiac_images = max(temporal)
@@ -819,76 +991,104 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
 def _image(path: str, ds, pixels: np.ndarray, geom: SliceGeometry, frame: int = 0) -> _Image:
     """The :class:`_Image` of one checked frame (``ds``: the dataset, or a frame's view of it)."""
     if frame:  # Enhanced: the frame's phase is its TemporalPositionIndex where it has one
-        instance = _optional(ds, "TemporalPositionIndex", int) or frame
-        trigger = next((t for t in (_optional(ds, k, float) for k in _TRIGGER_KEYWORDS)
-                        if t is not None and np.isfinite(t)), None)
-        nominal = _optional(ds, "RRIntervalTimeNominal", float) or _optional(ds, "NominalInterval", float)
+        instance = _optional(ds, 'TemporalPositionIndex', int) or frame
+        trigger = next(
+            (
+                t
+                for t in (_optional(ds, k, float) for k in _TRIGGER_KEYWORDS)
+                if t is not None and np.isfinite(t)
+            ),
+            None,
+        )
+        nominal = _optional(ds, 'RRIntervalTimeNominal', float) or _optional(
+            ds, 'NominalInterval', float
+        )
     else:
-        instance = _optional(ds, "InstanceNumber", int)
-        trigger, nominal = _optional(ds, "TriggerTime", float), _optional(ds, "NominalInterval", float)
+        instance = _optional(ds, 'InstanceNumber', int)
+        trigger, nominal = (
+            _optional(ds, 'TriggerTime', float),
+            _optional(ds, 'NominalInterval', float),
+        )
     return _Image(
-        path=path, pixels=pixels, geometry=geom,
-        series_uid=_optional(ds, "SeriesInstanceUID", str) or "",
-        sop_uid=_optional(ds, "SOPInstanceUID", str) or "",
-        study_uid=_optional(ds, "StudyInstanceUID", str) or "",
-        description=_optional(ds, "SeriesDescription", str) or "",
-        series_number=_optional(ds, "SeriesNumber", int) or 0,
+        path=path,
+        pixels=pixels,
+        geometry=geom,
+        series_uid=_optional(ds, 'SeriesInstanceUID', str) or '',
+        sop_uid=_optional(ds, 'SOPInstanceUID', str) or '',
+        study_uid=_optional(ds, 'StudyInstanceUID', str) or '',
+        description=_optional(ds, 'SeriesDescription', str) or '',
+        series_number=_optional(ds, 'SeriesNumber', int) or 0,
         instance=instance,
         trigger_ms=_finite_or_nan(trigger),
         nominal_ms=_finite_or_nan(nominal),
-        cardiac_images=_optional(ds, "CardiacNumberOfImages", int),
-        modality=(_optional(ds, "Modality", str) or "").strip().upper(),
-        frame_of_reference_uid=_optional(ds, "FrameOfReferenceUID", str) or "",
-        acquired=_acquired(ds), frame=frame, mosaic="" if frame else _mosaic(ds))
+        cardiac_images=_optional(ds, 'CardiacNumberOfImages', int),
+        modality=(_optional(ds, 'Modality', str) or '').strip().upper(),
+        frame_of_reference_uid=_optional(ds, 'FrameOfReferenceUID', str) or '',
+        acquired=_acquired(ds),
+        frame=frame,
+        mosaic='' if frame else _mosaic(ds),
+    )
 
 
 def _mosaic(ds) -> str:
-    """Why ``ds`` is a Siemens MOSAIC image ("" when nothing says so): ImageType value MOSAIC, or a
+    """
+    Why ``ds`` is a Siemens MOSAIC image ("" when nothing says so): ImageType value MOSAIC, or a
     NumberOfImagesInMosaic above 1 in the private SIEMENS MR HEADER (0019,xx0A) or in the CSA
     image header (0029,xx10, read with nibabel's CSA reader). A malformed private element counts
-    as absent."""
+    as absent.
+    """
     said = []
-    image_type = _optional(ds, "ImageType", lambda v: [str(x).strip().upper() for x in (
-        v if isinstance(v, (list, tuple, MultiValue)) else [v])])
-    if image_type and "MOSAIC" in image_type:
-        said.append("ImageType " + "\\".join(image_type))
+    image_type = _optional(
+        ds,
+        'ImageType',
+        lambda v: [
+            str(x).strip().upper()
+            for x in (v if isinstance(v, (list, tuple, MultiValue)) else [v])
+        ],
+    )
+    if image_type and 'MOSAIC' in image_type:
+        said.append('ImageType ' + '\\'.join(image_type))
     n = None
     try:
-        n = int(ds.private_block(0x0019, "SIEMENS MR HEADER")[0x0A].value)
+        n = int(ds.private_block(0x0019, 'SIEMENS MR HEADER')[0x0A].value)
     except Exception:  # absent or malformed
         pass
     if not n:
         try:
-            raw = ds.private_block(0x0029, "SIEMENS CSA HEADER")[0x10].value
-            if isinstance(raw, bytes) and b"NumberOfImagesInMosaic" in raw:
+            raw = ds.private_block(0x0029, 'SIEMENS CSA HEADER')[0x10].value
+            if isinstance(raw, bytes) and b'NumberOfImagesInMosaic' in raw:
                 from nibabel.nicom import csareader
 
                 with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
+                    warnings.simplefilter('ignore')
                     n = int(csareader.get_n_mosaic(csareader.read(raw)) or 0)
         except Exception:  # absent, or a CSA header nibabel cannot parse
             pass
     if n and n > 1:
-        said.append(f"NumberOfImagesInMosaic {n}")
-    return "; ".join(said)
+        said.append(f'NumberOfImagesInMosaic {n}')
+    return '; '.join(said)
 
 
 def _enhanced(ds) -> bool:
-    """An Enhanced (functional-group) image: Enhanced MR, Legacy Converted Enhanced MR, and the
-    like: per-frame attributes in PerFrameFunctionalGroupsSequence."""
+    """
+    An Enhanced (functional-group) image: Enhanced MR, Legacy Converted Enhanced MR, and the
+    like: per-frame attributes in PerFrameFunctionalGroupsSequence.
+    """
     try:
-        return "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
+        return 'PerFrameFunctionalGroupsSequence' in ds or 'SharedFunctionalGroupsSequence' in ds
     except Exception:
         return False
 
 
 class _FrameView:
-    """One frame of an Enhanced multi-frame dataset seen as a single-frame one: ``get(name)``
+    """
+    One frame of an Enhanced multi-frame dataset seen as a single-frame one: ``get(name)``
     looks in the frame's per-frame functional groups, then the shared ones (each macro's first
     item: PlanePositionSequence, PlaneOrientationSequence, PixelMeasuresSequence,
     PixelValueTransformationSequence, CardiacSynchronizationSequence, FrameContentSequence,
     MRTimingAndRelatedParametersSequence, the Unassigned…ConvertedAttributesSequence of legacy
-    conversions, …), then the dataset itself."""
+    conversions, …), then the dataset itself.
+    """
 
     def __init__(self, ds, per_frame, shared):
         self._layers = [*_macro_items(per_frame), *_macro_items(shared), ds]
@@ -910,7 +1110,7 @@ def _macro_items(group) -> list:
         return []
     out = []
     for elem in group:
-        if elem.VR == "SQ" and len(elem.value):
+        if elem.VR == 'SQ' and len(elem.value):
             out.append(elem.value[0])
     return out
 
@@ -918,48 +1118,61 @@ def _macro_items(group) -> list:
 def _frame_views(ds, nframes: int) -> list[_FrameView]:
     """Return a :class:`_FrameView` per frame; a malformed functional group skips the file."""
     try:
-        shared_seq = ds.get("SharedFunctionalGroupsSequence")
-        per_seq = ds.get("PerFrameFunctionalGroupsSequence")
+        shared_seq = ds.get('SharedFunctionalGroupsSequence')
+        per_seq = ds.get('PerFrameFunctionalGroupsSequence')
     except Exception as exc:
-        raise _Skip(f"functional groups unreadable ({type(exc).__name__}: {exc})") from None
+        raise _Skip(f'functional groups unreadable ({type(exc).__name__}: {exc})') from None
     shared = shared_seq[0] if shared_seq else None
     per = list(per_seq) if per_seq else []
     if per and len(per) != nframes:
-        raise _Skip(f"PerFrameFunctionalGroupsSequence has {len(per)} item(s) for NumberOfFrames {nframes}")
+        raise _Skip(
+            f'PerFrameFunctionalGroupsSequence has {len(per)} item(s) for NumberOfFrames {nframes}'
+        )
     if not per and nframes > 1:
-        raise _Skip(f"NumberOfFrames {nframes} without PerFrameFunctionalGroupsSequence: each frame's position "
-                    f"and timing unknown")
+        raise _Skip(
+            f"NumberOfFrames {nframes} without PerFrameFunctionalGroupsSequence: each frame's "
+            'position '
+            f'and timing unknown'
+        )
     return [_FrameView(ds, per[k] if per else None, shared) for k in range(nframes)]
 
 
-
-
 def _dicom_seconds(date: str | None, time: str | None) -> tuple[bool, float] | None:
-    """DA + TM (``YYYYMMDD``, ``HHMMSS.FFFFFF`` or ``HH:MM:SS``) as ``(has_date, seconds)``; None
-    when the time is absent or malformed."""
-    t = (time or "").strip().replace(":", "")
+    """
+    DA + TM (``YYYYMMDD``, ``HHMMSS.FFFFFF`` or ``HH:MM:SS``) as ``(has_date, seconds)``; None
+    when the time is absent or malformed.
+    """
+    t = (time or '').strip().replace(':', '')
     try:
-        secs = int(t[0:2]) * 3600 + (int(t[2:4]) * 60 if len(t) >= 4 else 0) + (float(t[4:]) if len(t) > 4 else 0.0)
+        secs = (
+            int(t[0:2]) * 3600
+            + (int(t[2:4]) * 60 if len(t) >= 4 else 0)
+            + (float(t[4:]) if len(t) > 4 else 0.0)
+        )
     except ValueError:
         return None
-    d = (date or "").strip().replace(".", "")
+    d = (date or '').strip().replace('.', '')
     if len(d) == 8 and d.isdigit():
         try:
-            return True, datetime.date(int(d[:4]), int(d[4:6]), int(d[6:])).toordinal() * 86400.0 + secs
+            return True, datetime.date(
+                int(d[:4]), int(d[4:6]), int(d[6:])
+            ).toordinal() * 86400.0 + secs
         except ValueError:
             pass
     return False, float(secs)
 
 
 def _acquired(ds) -> tuple[bool, float] | None:
-    """When the image's series was acquired: AcquisitionDateTime, AcquisitionDate/Time, else
-    SeriesDate/Time (optional tags: a malformed one counts as absent)."""
-    dt = _optional(ds, "AcquisitionDateTime", str)
+    """
+    When the image's series was acquired: AcquisitionDateTime, AcquisitionDate/Time, else
+    SeriesDate/Time (optional tags: a malformed one counts as absent).
+    """
+    dt = _optional(ds, 'AcquisitionDateTime', str)
     if dt and len(dt.strip()) > 8:
-        got = _dicom_seconds(dt.strip()[:8], dt.strip()[8:].split("+")[0].split("-")[0])
+        got = _dicom_seconds(dt.strip()[:8], dt.strip()[8:].split('+')[0].split('-')[0])
         if got is not None:
             return got
-    for date, time in (("AcquisitionDate", "AcquisitionTime"), ("SeriesDate", "SeriesTime")):
+    for date, time in (('AcquisitionDate', 'AcquisitionTime'), ('SeriesDate', 'SeriesTime')):
         got = _dicom_seconds(_optional(ds, date, str), _optional(ds, time, str))
         if got is not None:
             return got
@@ -967,23 +1180,32 @@ def _acquired(ds) -> tuple[bool, float] | None:
 
 
 def _unread_image_of(path: str, study_uid: str) -> bool:
-    """Is a file that did not read an MR image of study ``study_uid``, as far as its header
+    """
+    Is a file that did not read an MR image of study ``study_uid``, as far as its header
     still says? (Not: non-image objects of the study such as presentation states, structured
     reports or key-object selections, images of another modality, or a header that does not
-    read.)"""
+    read.)
+    """
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ds = pydicom.dcmread(path, stop_before_pixels=True, defer_size=_DEFER_BYTES,
-                                 specific_tags=["StudyInstanceUID", "Modality", "SOPClassUID", "Rows"])
-            if str(ds.get("StudyInstanceUID", "") or "").strip() != study_uid:
+            warnings.simplefilter('ignore')
+            ds = pydicom.dcmread(
+                path,
+                stop_before_pixels=True,
+                defer_size=_DEFER_BYTES,
+                specific_tags=['StudyInstanceUID', 'Modality', 'SOPClassUID', 'Rows'],
+            )
+            if str(ds.get('StudyInstanceUID', '') or '').strip() != study_uid:
                 return False
-            modality = str(ds.get("Modality", "") or "").strip().upper()
-            meta = getattr(ds, "file_meta", None)
-            sop = str((meta.get("MediaStorageSOPClassUID") if meta is not None else None)
-                      or ds.get("SOPClassUID", "") or "")
-            image = "Image" in pydicom.uid.UID(sop).name if sop else "Rows" in ds
-            return image and modality in ("", "MR")
+            modality = str(ds.get('Modality', '') or '').strip().upper()
+            meta = getattr(ds, 'file_meta', None)
+            sop = str(
+                (meta.get('MediaStorageSOPClassUID') if meta is not None else None)
+                or ds.get('SOPClassUID', '')
+                or ''
+            )
+            image = 'Image' in pydicom.uid.UID(sop).name if sop else 'Rows' in ds
+            return image and modality in ('', 'MR')
     except Exception:  # not DICOM, damaged: nothing says which study it was
         return False
 
@@ -992,35 +1214,43 @@ def _finite_or_nan(v: float | None) -> float:
     return float(v) if v is not None and np.isfinite(v) else np.nan
 
 
-def _read_one(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[list[_Image] | None, str | None]:
+def _read_one(
+    path: str, max_pixels: int = DEFAULT_MAX_PIXELS
+) -> tuple[list[_Image] | None, str | None]:
     """Load one file; returns (images, None), one per frame, or (None, reason)."""
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # pydicom's warnings repeat what the reason says
+            warnings.simplefilter('ignore')  # pydicom's warnings repeat what the reason says
             return _load_images(path, max_pixels), None
     except _Skip as why:
         return None, str(why)
     except MemoryError:
         raise
-    except Exception as exc:  # a gap in the checks above: still a per-file report (fuzz finds these)
-        return None, f"unexpected error reading the file ({type(exc).__name__}: {exc})"
+    except (
+        Exception
+    ) as exc:  # a gap in the checks above: still a per-file report (fuzz finds these)
+        return None, f'unexpected error reading the file ({type(exc).__name__}: {exc})'
 
 
 def _plane_key(img: _Image) -> tuple:
     g = img.geometry
     n = g.normal
-    return (img.series_uid,
-            tuple(np.round(np.concatenate([g.row_direction, g.column_direction]), 3)),
-            round(float(g.image_position @ n), 1))
+    return (
+        img.series_uid,
+        tuple(np.round(np.concatenate([g.row_direction, g.column_direction]), 3)),
+        round(float(g.image_position @ n), 1),
+    )
 
 
 def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def estimate_long_axis(sa: list[SliceGeometry], la: list[SliceGeometry],
-                       sa_centres: np.ndarray | None = None) -> LongAxisEstimate | None:
-    """Long axis from SA and LA plane geometry (see module docstring).
+def estimate_long_axis(
+    sa: list[SliceGeometry], la: list[SliceGeometry], sa_centres: np.ndarray | None = None
+) -> LongAxisEstimate | None:
+    """
+    Long axis from SA and LA plane geometry (see module docstring).
 
     Parameters
     ----------
@@ -1034,6 +1264,7 @@ def estimate_long_axis(sa: list[SliceGeometry], la: list[SliceGeometry],
     -------
     LongAxisEstimate or None
         None when there is no plane at all.
+
     """
     if not sa and not la:
         return None
@@ -1051,16 +1282,16 @@ def estimate_long_axis(sa: list[SliceGeometry], la: list[SliceGeometry],
         _, sv, vt = np.linalg.svd(N)
         d = vt[-1]
         if d_sa is not None and abs(d @ d_sa) < np.cos(np.radians(30.0)):
-            d, source = d_sa, "sa_normal"
+            d, source = d_sa, 'sa_normal'
         else:
-            source = "la_planes"
+            source = 'la_planes'
         # Point on the LA planes' common line closest to the SA centre (weak pull along d).
         A = np.vstack([N, 1e-3 * np.eye(3)])
         b = np.concatenate([[n @ g.image_position for n, g in zip(N, la)], 1e-3 * centre])
         point = np.linalg.lstsq(A, b, rcond=None)[0]
         point = point + ((centre - point) @ d) * d
     elif d_sa is not None:
-        d, source, point = d_sa, "sa_normal", centre
+        d, source, point = d_sa, 'sa_normal', centre
     else:
         return None
     if d @ _BASE_SIDE < 0:
@@ -1074,7 +1305,8 @@ def _fov_centre(img: _Image) -> np.ndarray:
 
 
 def _list_files(root: Path) -> tuple[list[str], list[tuple[str, str]]]:
-    """Every file under ``root`` in sorted path order, and ``(path, reason)`` for what is not read.
+    """
+    Every file under ``root`` in sorted path order, and ``(path, reason)`` for what is not read.
 
     Directory symlinks are followed and every real folder is walked once: the folders reached
     without a link first, then each linked folder in the order met, so a link to a folder already
@@ -1095,20 +1327,27 @@ def _list_files(root: Path) -> tuple[list[str], list[tuple[str, str]]]:
                 target = os.path.realpath(d)
                 parent = os.path.realpath(os.path.dirname(d))
                 if parent == target or parent.startswith(target.rstrip(os.sep) + os.sep):
-                    problems.append((d, f"directory symlink loop: leads back to {walked[key]}, its own "
-                                        f"ancestor; not followed"))
+                    problems.append(
+                        (
+                            d,
+                            f'directory symlink loop: leads back to {walked[key]}, its own '
+                            f'ancestor; not followed',
+                        )
+                    )
                 else:
-                    what = "directory symlink to a folder" if os.path.islink(d) else "folder"
-                    problems.append((d, f"{what} already read as {walked[key]}; not read twice"))
+                    what = 'directory symlink to a folder' if os.path.islink(d) else 'folder'
+                    problems.append((d, f'{what} already read as {walked[key]}; not read twice'))
                 continue
             walked[key] = d
             entries = sorted(os.scandir(d), key=lambda e: e.name)
         except OSError as exc:
-            problems.append((d, f"folder unreadable ({type(exc).__name__}: {exc.strerror or exc})"))
+            problems.append(
+                (d, f'folder unreadable ({type(exc).__name__}: {exc.strerror or exc})')
+            )
             continue
         subdirs = []
         for e in entries:
-            if e.name.startswith(".") or e.name.lower() in _SYSTEM_NAMES:
+            if e.name.startswith('.') or e.name.lower() in _SYSTEM_NAMES:
                 continue
             try:
                 if e.is_dir():  # follows links
@@ -1116,12 +1355,21 @@ def _list_files(root: Path) -> tuple[list[str], list[tuple[str, str]]]:
                 elif e.is_file():
                     files.append(e.path)
                 elif e.is_symlink():
-                    problems.append((e.path, f"broken symbolic link (target {os.readlink(e.path)!r} "
-                                             f"does not exist)"))
+                    problems.append(
+                        (
+                            e.path,
+                            f'broken symbolic link (target {os.readlink(e.path)!r} '
+                            f'does not exist)',
+                        )
+                    )
                 else:
-                    problems.append((e.path, "not a regular file (FIFO, socket or device): not read"))
+                    problems.append(
+                        (e.path, 'not a regular file (FIFO, socket or device): not read')
+                    )
             except OSError as exc:
-                problems.append((e.path, f"unreadable ({type(exc).__name__}: {exc.strerror or exc})"))
+                problems.append(
+                    (e.path, f'unreadable ({type(exc).__name__}: {exc.strerror or exc})')
+                )
         real += subdirs[::-1]  # a stack: popped in name order
     return sorted(files), problems
 
@@ -1174,7 +1422,9 @@ _FEWER_PHASES_TOL = 0.25
 _LOCAL_WINDOW_MM = 60.0
 _LOCAL_MIN_PX = 32
 _LOCAL_PEAKS = 24
-_PERIOD_BINS_MM = np.exp(np.arange(np.log(_TAG_PERIOD_MM[0]), np.log(_TAG_PERIOD_MM[1]) + 1e-9, np.log(1.03)))
+_PERIOD_BINS_MM = np.exp(
+    np.arange(np.log(_TAG_PERIOD_MM[0]), np.log(_TAG_PERIOD_MM[1]) + 1e-9, np.log(1.03))
+)
 _TAG_STUDY = 3.65
 _TAG_STUDY_MIN_CINES = 3
 #: A cine of the chosen study that fails the tag test is still used when it was acquired like one
@@ -1183,8 +1433,10 @@ _ALIKE_SPACING = 0.02
 
 
 def _tag_spectrum(image: np.ndarray):
-    """|FFT| of the mean-removed, gently tapered image (central 256² at most), and its
-    frequencies in cycles/px (rows as a column vector, columns as a row vector)."""
+    """
+    |FFT| of the mean-removed, gently tapered image (central 256² at most), and its
+    frequencies in cycles/px (rows as a column vector, columns as a row vector).
+    """
     a = np.asarray(image, np.float64)
     h, w = a.shape
     r0, c0 = max(0, (h - _TAG_MAX_SIDE) // 2), max(0, (w - _TAG_MAX_SIDE) // 2)
@@ -1204,23 +1456,33 @@ def _local_maxima(spec: np.ndarray) -> np.ndarray:
     return out
 
 
-def _spectral_peaks(spec, fr, fc, fmin: float, fmax: float, limit: int = 40,
-                    maxima: np.ndarray | None = None) -> list[tuple[float, float, float]]:
-    """Local maxima (3 × 3, wrapped; ``maxima`` if already known) of the half spectrum with
+def _spectral_peaks(
+    spec, fr, fc, fmin: float, fmax: float, limit: int = 40, maxima: np.ndarray | None = None
+) -> list[tuple[float, float, float]]:
+    """
+    Local maxima (3 × 3, wrapped; ``maxima`` if already known) of the half spectrum with
     ``fmin ≤ |f| ≤ fmax``, as ``(prominence, angle, |f|)``, most prominent first; prominence =
     the peak over the median of its 9 × 9 neighbourhood. Only the ``limit`` highest maxima are
-    measured."""
+    measured.
+    """
     h, w = spec.shape
     rad = np.hypot(fr, fc)
     band = ((fc > 0) | ((fc == 0) & (fr > 0))) & (rad >= fmin) & (rad <= fmax)
     band &= _local_maxima(spec) if maxima is None else maxima
     rows, cols = np.nonzero(band)
     out = []
-    for i in np.argsort(-spec[rows, cols], kind="stable")[:limit]:
+    for i in np.argsort(-spec[rows, cols], kind='stable')[:limit]:
         r, c = rows[i], cols[i]
-        ref = float(np.median(spec[np.ix_((r + np.arange(-4, 5)) % h, (c + np.arange(-4, 5)) % w)]))
-        out.append((float(spec[r, c]) / ref if ref > 0 else np.inf, float(np.arctan2(fr[r, 0], fc[0, c])),
-                    float(rad[r, c])))
+        ref = float(
+            np.median(spec[np.ix_((r + np.arange(-4, 5)) % h, (c + np.arange(-4, 5)) % w)])
+        )
+        out.append(
+            (
+                float(spec[r, c]) / ref if ref > 0 else np.inf,
+                float(np.arctan2(fr[r, 0], fc[0, c])),
+                float(rad[r, c]),
+            )
+        )
     out.sort(key=lambda p: -p[0])
     return out
 
@@ -1232,24 +1494,32 @@ def _axial_deg(a: float, b: float) -> float:
 
 
 def _tag_grid(image: np.ndarray, pixel_mm: float) -> tuple[float, float, str]:
-    """Does an ED image show a tag grid? ``(score, period_mm, reason)``: the weaker of the two
-    strongest spectral peaks ≥ 30° apart with periods within 20 % (see :data:`_TAG_CLEAR`), the
-    stronger one's period, and why the score is 0 ("" otherwise). A few ms for 256²."""
+    """
+    Does an ED image show a tag grid?
+
+    ``(score, period_mm, reason)``: the weaker of the two strongest spectral peaks ≥ 30° apart with
+    periods within 20 % (see :data:`_TAG_CLEAR`), the stronger one's period, and why the score is 0
+    ("" otherwise). A few ms for 256².
+    """
     h, w = image.shape
     if min(h, w) < 16:
-        return 0.0, np.nan, f"image {h}x{w} too small to show a tag grid"
+        return 0.0, np.nan, f'image {h}x{w} too small to show a tag grid'
     if not np.ptp(image) > 0:
-        return 0.0, np.nan, "the ED image is constant"
+        return 0.0, np.nan, 'the ED image is constant'
     lo = max(_TAG_PERIOD_MM[0] / pixel_mm, 2.5)
     hi = min(_TAG_PERIOD_MM[1] / pixel_mm, min(h, w, _TAG_MAX_SIDE) / 3.0)
     if lo >= hi:
-        return 0.0, np.nan, f"tag periods of {_TAG_PERIOD_MM[0]:g}–{_TAG_PERIOD_MM[1]:g} mm do not fit its pixels"
+        return (
+            0.0,
+            np.nan,
+            f'tag periods of {_TAG_PERIOD_MM[0]:g}–{_TAG_PERIOD_MM[1]:g} mm do not fit its pixels',
+        )
     peaks = _spectral_peaks(*_tag_spectrum(image), 1.0 / hi, 1.0 / lo)
     for i, a in enumerate(peaks[:10]):
         for b in peaks[i + 1:]:
             if _axial_deg(a[1], b[1]) >= 30.0 and abs(a[2] / b[2] - 1.0) <= 0.2:
-                return min(a[0], b[0]), pixel_mm / a[2], ""
-    return 0.0, np.nan, "no two spectral peaks of one period in the tag band"
+                return min(a[0], b[0]), pixel_mm / a[2], ''
+    return 0.0, np.nan, 'no two spectral peaks of one period in the tag band'
 
 
 def _tag_grid_at(image: np.ndarray, pixel_mm: float, period_mm: float) -> tuple[float, float]:
@@ -1257,23 +1527,35 @@ def _tag_grid_at(image: np.ndarray, pixel_mm: float, period_mm: float) -> tuple[
     spec, fr, fc = _tag_spectrum(image)
     maxima = _local_maxima(spec)
     f0 = pixel_mm / period_mm
-    half = max(_RING_TOL * f0, _RING_BINS / min(spec.shape))  # the spectrum's bins quantise the period
+    half = max(
+        _RING_TOL * f0, _RING_BINS / min(spec.shape)
+    )  # the spectrum's bins quantise the period
 
     def pair(f):  # the best pair 60–120° apart: for each peak, its first such weaker partner
         peaks = _spectral_peaks(spec, fr, fc, f - half, f + half, maxima=maxima)
-        return max([next((b[0] for b in peaks[i + 1:] if abs(_axial_deg(a[1], b[1]) - 90.0) <= 30.0), 0.0)
-                    for i, a in enumerate(peaks)], default=0.0)
+        return max(
+            [
+                next(
+                    (b[0] for b in peaks[i + 1:] if abs(_axial_deg(a[1], b[1]) - 90.0) <= 30.0),
+                    0.0,
+                )
+                for i, a in enumerate(peaks)
+            ],
+            default=0.0,
+        )
 
     score, null = pair(f0), max(pair(k * f0) for k in _NULL_RINGS)
     return score, (score / null if null > 0 else (np.inf if score > 0 else 0.0))
 
 
 def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
-    """Per tag period of :data:`_PERIOD_BINS_MM`, the strongest tag grid in any window of an ED
+    """
+    Per tag period of :data:`_PERIOD_BINS_MM`, the strongest tag grid in any window of an ED
     image (see :data:`_TAG_STUDY`): the weaker peak's height over its 9 × 9 bin median, of the
     best pair of local spectral maxima 60–120° apart whose mean period is within the window's
     spectral resolution (half a bin, + 4 %) of the bin; 0 where no pair. Shape
-    ``(len(_PERIOD_BINS_MM),)``. Some 10–60 ms for 256²."""
+    ``(len(_PERIOD_BINS_MM),)``. Some 10–60 ms for 256².
+    """
     a = np.asarray(image, np.float64)
     h, w = a.shape
     prof = np.zeros(len(_PERIOD_BINS_MM))
@@ -1282,8 +1564,13 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
     if win < 16 or lo >= hi:
         return prof
     step = win // 2
-    tiles = np.array([a[r:r + win, c:c + win] for r in range(0, h - win + 1, step)
-                      for c in range(0, w - win + 1, step)])
+    tiles = np.array(
+        [
+            a[r:r + win, c:c + win]
+            for r in range(0, h - win + 1, step)
+            for c in range(0, w - win + 1, step)
+        ]
+    )
     tiles = tiles[np.ptp(tiles, axis=(1, 2)) > 0]
     if not len(tiles):
         return prof
@@ -1304,10 +1591,12 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
         rows, cols = np.nonzero(band & maxima[k])
         if len(rows) < 2:
             continue
-        top = np.argsort(-spec[k][rows, cols], kind="stable")[:_LOCAL_PEAKS]
+        top = np.argsort(-spec[k][rows, cols], kind='stable')[:_LOCAL_PEAKS]
         rows, cols = rows[top], cols[top]
-        hood = spec[k][(rows[:, None, None] + off[None, :, None]) % win,
-                       (cols[:, None, None] + off[None, None, :]) % win]
+        hood = spec[k][
+            (rows[:, None, None] + off[None, :, None]) % win,
+            (cols[:, None, None] + off[None, None, :]) % win,
+        ]
         ref = np.median(hood.reshape(len(rows), -1), axis=1)
         height = np.where(ref > 0, spec[k][rows, cols] / np.where(ref > 0, ref, 1.0), np.inf)
         fa, th = rad[rows, cols], ang[rows, cols]
@@ -1315,7 +1604,11 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
         apart = np.abs(np.degrees(np.minimum(d, np.pi - d)) - 90.0) <= 30.0
         fm = 0.5 * (fa[:, None] + fa[None, :])
         tol = 0.5 / (win * fm) + 0.04
-        ok = apart & (np.abs(np.log(fa[:, None] / fa[None, :])) <= 2.0 * tol) & np.triu(np.ones_like(apart), 1)
+        ok = (
+            apart
+            & (np.abs(np.log(fa[:, None] / fa[None, :])) <= 2.0 * tol)
+            & np.triu(np.ones_like(apart), 1)
+        )
         i, j = np.nonzero(ok)
         if not len(i):
             continue
@@ -1326,10 +1619,12 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
 
 
 def _heart_grid(images: list[tuple[np.ndarray, float]]) -> tuple[float, float, np.ndarray]:
-    """The tag grid a group of cines shares (tags on the heart alone, see :data:`_TAG_STUDY`),
+    """
+    The tag grid a group of cines shares (tags on the heart alone, see :data:`_TAG_STUDY`),
     from their ED images ``(pixels, pixel size mm)``: ``(score, period_mm, each image's score
     at that period)``, score = the largest over periods of the images' median
-    :func:`_local_grid_profile`."""
+    :func:`_local_grid_profile`.
+    """
     profs = np.array([_local_grid_profile(im, px) for im, px in images])
     med = np.median(profs, axis=0)
     k = int(np.argmax(med))
@@ -1341,12 +1636,12 @@ class _Cine:
     """One plane of one series (its images in time order), as the study selection sees it."""
 
     imgs: list[_Image]
-    kind: str = ""        # why it is not an MR cine ("" when it is)
-    tag: float = 0.0      # _tag_grid score of its ED image
+    kind: str = ''  # why it is not an MR cine ("" when it is)
+    tag: float = 0.0  # _tag_grid score of its ED image
     period_mm: float = np.nan
-    tag_reason: str = ""
+    tag_reason: str = ''
     tagged: bool = False
-    why: str = ""         # why it is not used ("" when it is)
+    why: str = ''  # why it is not used ("" when it is)
     # Phase plan of a used cine: the images used, their phase indices and the phase count.
     use: list[_Image] = field(default_factory=list)
     phases: list[int] = field(default_factory=list)
@@ -1362,7 +1657,7 @@ class _Cine:
 
     @property
     def mosaic(self) -> str:
-        return next((i.mosaic for i in self.imgs if i.mosaic), "")
+        return next((i.mosaic for i in self.imgs if i.mosaic), '')
 
     @property
     def acquired(self) -> tuple[bool, float] | None:
@@ -1371,33 +1666,46 @@ class _Cine:
 
     def describe(self) -> str:
         f = self.first
-        desc = f" {f.description!r}" if f.description else ""
-        return (f"series {f.series_uid or '(no SeriesInstanceUID)'}{desc} (SeriesNumber {f.series_number}, "
-                f"{len(self.imgs)} image(s))")
+        desc = f' {f.description!r}' if f.description else ''
+        return (
+            f'series {f.series_uid or "(no SeriesInstanceUID)"}{desc} (SeriesNumber '
+            f'{f.series_number}, '
+            f'{len(self.imgs)} image(s))'
+        )
 
 
 def _cine_kind(c: _Cine) -> str:
     """Why a plane's images are not an MR cine ("" when they are)."""
     f = c.first
-    if f.modality and f.modality != "MR":
-        return f"modality {f.modality}, not MR"
+    if f.modality and f.modality != 'MR':
+        return f'modality {f.modality}, not MR'
     if c.mosaic:
         rows, cols = f.pixels.shape
-        return (f"Siemens MOSAIC ({c.mosaic}): several slices tiled in each {rows}x{cols} image, not a cine of "
-                f"one slice (export the series as single-slice images)")
+        return (
+            f'Siemens MOSAIC ({c.mosaic}): several slices tiled in each {rows}x{cols} image, '
+            'not a cine of '
+            f'one slice (export the series as single-slice images)'
+        )
     if len(c.imgs) == 1:  # one image of a longer cine is a cine missing phases
-        return "" if (f.cardiac_images or 0) > 1 else "one frame, not a cine"
+        return '' if (f.cardiac_images or 0) > 1 else 'one frame, not a cine'
     trig = [i.trigger_ms for i in c.imgs]
     if all(np.isfinite(trig)) and len(set(np.round(trig, 3))) == 1:
-        return f"not a cine: its {len(c.imgs)} images share one TriggerTime ({trig[0]:g} ms)"
+        return f'not a cine: its {len(c.imgs)} images share one TriggerTime ({trig[0]:g} ms)'
     if not any(np.isfinite(trig)) and not any((i.cardiac_images or 0) > 1 for i in c.imgs):
-        return f"not a cine: {len(c.imgs)} images at one position without TriggerTime or CardiacNumberOfImages"
-    return ""
+        return (
+            f'not a cine: {len(c.imgs)} images at one position without TriggerTime or '
+            'CardiacNumberOfImages'
+        )
+    return ''
 
 
 def _later(a: _Cine, b: _Cine) -> bool | None:
-    """Was ``a`` acquired after ``b``? By acquisition/series time where both have one and they
-    differ, else by SeriesNumber; None when nothing tells."""
+    """
+    Was ``a`` acquired after ``b``?
+
+    By acquisition/series time where both have one and they differ, else by SeriesNumber; None when
+    nothing tells.
+    """
     ta, tb = a.acquired, b.acquired
     if ta is not None and tb is not None and ta[0] == tb[0] and ta[1] != tb[1]:
         return ta[1] > tb[1]
@@ -1417,8 +1725,10 @@ def _same_place(a: _Cine, b: _Cine) -> bool:
 
 
 def _match_phases(ref: np.ndarray, t: np.ndarray) -> list[int]:
-    """Indices into ``t`` (sorted, ``len(t) ≥ len(ref)``), strictly increasing, one per ``ref``
-    entry, minimising the summed |ref − t| (dynamic programming)."""
+    """
+    Indices into ``t`` (sorted, ``len(t) ≥ len(ref)``), strictly increasing, one per ``ref``
+    entry, minimising the summed |ref − t| (dynamic programming).
+    """
     n, m = len(ref), len(t)
     cost = np.abs(ref[:, None] - t[None, :])
     total = np.full((n, m), np.inf)
@@ -1441,7 +1751,7 @@ def _match_phases(ref: np.ndarray, t: np.ndarray) -> list[int]:
 
 @dataclass
 class _Selection:
-    cines: list[_Cine]          # used, each with its phase plan
+    cines: list[_Cine]  # used, each with its phase plan
     study_uid: str
     studies: dict[str, int]
     choice: str
@@ -1455,18 +1765,22 @@ def _plan_phases(c: _Cine, warned: list, left_out: list | None) -> None:
     phases, num, gap = _phase_indices(c.imgs)
     c.use, c.phases, c.num_phases = c.imgs, phases, num
     if gap:
-        warned.append((c.first.path, f"series {c.first.series_uid or '(no SeriesInstanceUID)'}: {gap}"))
+        warned.append(
+            (c.first.path, f'series {c.first.series_uid or "(no SeriesInstanceUID)"}: {gap}')
+        )
         if left_out is not None:
-            left_out.append((c.first.path, f"{c.describe()}: {gap}"))
+            left_out.append((c.first.path, f'{c.describe()}: {gap}'))
 
 
 def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None:
-    """Give every used cine the study's phase count N (the most common; of a tie the smallest):
+    """
+    Give every used cine the study's phase count N (the most common; of a tie the smallest):
     a cine with more phases gets the N images nearest the study's trigger times (each phase's
     median over the N-phase cines; phase fractions where a time is missing); one with fewer
     phases gives each image the study phase nearest its trigger time when every image lies
     within :data:`_FEWER_PHASES_TOL` of a phase interval of one (distinct phases; the others are
-    missing, so it is listed in ``left_out``), otherwise it is left out (``why``)."""
+    missing, so it is listed in ``left_out``), otherwise it is left out (``why``).
+    """
     if not used:
         return
     plans = {id(c): _phase_indices(c.imgs) for c in used}
@@ -1475,8 +1789,13 @@ def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None
     n = min(k for k, v in counts.items() if v == top)
     ref = np.full(n, np.nan)
     for k in range(n):
-        times = [img.trigger_ms for c in used if plans[id(c)][1] == n
-                 for img, ph in zip(c.imgs, plans[id(c)][0]) if ph == k and np.isfinite(img.trigger_ms)]
+        times = [
+            img.trigger_ms
+            for c in used
+            if plans[id(c)][1] == n
+            for img, ph in zip(c.imgs, plans[id(c)][0])
+            if ph == k and np.isfinite(img.trigger_ms)
+        ]
         if times:
             ref[k] = float(np.median(times))
     for c in used:
@@ -1492,19 +1811,38 @@ def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None
                 if off <= _FEWER_PHASES_TOL * step:
                     c.use, c.phases, c.num_phases = list(c.imgs), list(pick), n
                     missing = sorted(set(range(n)) - set(pick))
-                    left_out.append((c.first.path, (
-                        f"{c.describe()}: {num} phase(s) in a study of {n}: each image used as the study phase "
-                        f"nearest its TriggerTime (largest difference {off:.0f} ms, {_FEWER_PHASES_TOL:g} of the "
-                        f"{step:.0f} ms phase interval allowed); phase(s) {', '.join(str(k + 1) for k in missing)} "
-                        f"of {n} missing")))
+                    left_out.append(
+                        (
+                            c.first.path,
+                            (
+                                f'{c.describe()}: {num} phase(s) in a study of {n}: each image '
+                                'used as the study phase '
+                                f'nearest its TriggerTime (largest difference {off:.0f} ms, '
+                                f'{_FEWER_PHASES_TOL:g} of the '
+                                f'{step:.0f} ms phase interval allowed); phase(s) '
+                                f'{", ".join(str(k + 1) for k in missing)} '
+                                f'of {n} missing'
+                            ),
+                        )
+                    )
                     continue
-                far = (f"; its TriggerTimes lie up to {off:.0f} ms from the study's ({_FEWER_PHASES_TOL:g} of the "
-                       f"{step:.0f} ms phase interval allowed)")
+                far = (
+                    f"; its TriggerTimes lie up to {off:.0f} ms from the study's "
+                    f'({_FEWER_PHASES_TOL:g} of the '
+                    f'{step:.0f} ms phase interval allowed)'
+                )
             else:
-                far = "; TriggerTimes missing" if not np.all(np.isfinite(t)) or not np.isfinite(step) else ""
-            c.why = (f"{num} phase(s) ({len(c.imgs)} image(s)) where the study has {n}: too few to give every "
-                     f"phase, and not matched to the study's phases by TriggerTime{far}")
-            left_out.append((c.first.path, f"{c.describe()} not used: {c.why}"))
+                far = (
+                    '; TriggerTimes missing'
+                    if not np.all(np.isfinite(t)) or not np.isfinite(step)
+                    else ''
+                )
+            c.why = (
+                f'{num} phase(s) ({len(c.imgs)} image(s)) where the study has {n}: too few to '
+                'give every '
+                f"phase, and not matched to the study's phases by TriggerTime{far}"
+            )
+            left_out.append((c.first.path, f'{c.describe()} not used: {c.why}'))
         else:
             t = np.array([i.trigger_ms for i in c.imgs])
             timed = bool(np.all(np.isfinite(ref)) and np.all(np.isfinite(t)))
@@ -1512,10 +1850,19 @@ def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None
             pick = _match_phases(r, tt)
             c.use, c.phases, c.num_phases = [c.imgs[j] for j in pick], list(range(n)), n
             off = float(np.max(np.abs(r - tt[pick])))
-            how = (f"largest difference {off:.0f} ms" if timed else
-                   f"by phase fraction (TriggerTime missing), largest difference {off:.2f} of the cycle")
-            warned.append((c.first.path, f"{c.describe()}: {num} phases in a study of {n}: the {n} nearest the study's "
-                                         f"trigger times used ({how}), {len(c.imgs) - n} image(s) not used"))
+            how = (
+                f'largest difference {off:.0f} ms'
+                if timed
+                else f'by phase fraction (TriggerTime missing), largest difference {off:.2f} '
+                'of the cycle'
+            )
+            warned.append(
+                (
+                    c.first.path,
+                    f"{c.describe()}: {num} phases in a study of {n}: the {n} nearest the study's "
+                    f'trigger times used ({how}), {len(c.imgs) - n} image(s) not used',
+                )
+            )
 
 
 def _pixel_mm(c: _Cine) -> float:
@@ -1524,14 +1871,18 @@ def _pixel_mm(c: _Cine) -> float:
 
 
 def _acquired_alike(c: _Cine, tagged: list[_Cine]) -> _Cine | None:
-    """A tagged cine ``c`` was acquired like (same matrix, pixel spacing within
-    :data:`_ALIKE_SPACING`), or None."""
+    """
+    A tagged cine ``c`` was acquired like (same matrix, pixel spacing within
+    :data:`_ALIKE_SPACING`), or None.
+    """
     g = c.first.geometry
     for t in tagged:
         h = t.first.geometry
-        if (c.first.pixels.shape == t.first.pixels.shape
-                and abs(g.row_spacing / h.row_spacing - 1.0) <= _ALIKE_SPACING
-                and abs(g.column_spacing / h.column_spacing - 1.0) <= _ALIKE_SPACING):
+        if (
+            c.first.pixels.shape == t.first.pixels.shape
+            and abs(g.row_spacing / h.row_spacing - 1.0) <= _ALIKE_SPACING
+            and abs(g.column_spacing / h.column_spacing - 1.0) <= _ALIKE_SPACING
+        ):
             return t
     return None
 
@@ -1557,34 +1908,46 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
                 for c, v in zip(mr, each):
                     c.tagged, c.period_mm = bool(v >= _TAG_STUDY), period
                     if not c.tagged:
-                        c.tag_reason = (f"{c.tag_reason or 'no clear grid in the whole image'}; in windows of "
-                                        f"{_LOCAL_WINDOW_MM:g} mm a grid of the study's {period:.1f} mm period "
-                                        f"stands {v:.1f}x above its surroundings ({_TAG_STUDY:g} needed)")
+                        c.tag_reason = (
+                            f'{c.tag_reason or "no clear grid in the whole image"}; in windows of '
+                            f"{_LOCAL_WINDOW_MM:g} mm a grid of the study's {period:.1f} mm "
+                            'period '
+                            f'stands {v:.1f}x above its surroundings ({_TAG_STUDY:g} needed)'
+                        )
     tally: Counter = Counter()
     for c in cines:
         tally[c.first.study_uid] += int(c.tagged)
     studies = dict(sorted(tally.items(), key=lambda kv: (-kv[1], kv[0])))
 
-    def rank(key):  # clearly tagged cines; else the vote (a heart-only study beats untagged ones); size
+    def rank(
+        key,
+    ):  # clearly tagged cines; else the vote (a heart-only study beats untagged ones); size
         cs = groups[key]
-        return (sum(c.tag >= _TAG_CLEAR for c in cs), heart.get(key, (0.0,))[0], sum(not c.kind for c in cs),
-                sum(len(c.imgs) for c in cs))
+        return (
+            sum(c.tag >= _TAG_CLEAR for c in cs),
+            heart.get(key, (0.0,))[0],
+            sum(not c.kind for c in cs),
+            sum(len(c.imgs) for c in cs),
+        )
 
     def name(uid):
-        return uid or "(no StudyInstanceUID)"
+        return uid or '(no StudyInstanceUID)'
 
     pool = sorted(groups)  # of equal ranks, max() keeps the first: the smaller UIDs
     if study:
         pool = [k for k in pool if k[0] == study]
         if not pool:
-            there = ", ".join(f"{name(u)} ({n} tagged cine(s))" for u, n in studies.items())
-            raise DicomReadError(f"study {study} is not under {root}; the studies there: {there}: "
-                                 f"ask for one of these", problems)
+            there = ', '.join(f'{name(u)} ({n} tagged cine(s))' for u, n in studies.items())
+            raise DicomReadError(
+                f'study {study} is not under {root}; the studies there: {there}: '
+                f'ask for one of these',
+                problems,
+            )
     best = max(pool, key=rank)
     n_tagged, n_cines = sum(c.tagged for c in groups[best]), rank(best)[2]
-    others = [f"{name(u)} ({n} tagged cine(s))" for u, n in studies.items() if u != best[0]]
-    also = f"; also under the folder: study {', study '.join(others)}" if others else ""
-    how = " (asked for)" if study else ""
+    others = [f'{name(u)} ({n} tagged cine(s))' for u, n in studies.items() if u != best[0]]
+    also = f'; also under the folder: study {", study ".join(others)}' if others else ''
+    how = ' (asked for)' if study else ''
     warned: list[tuple[str, str]] = []
     left_out: list[tuple[str, str]] = []
     if not n_tagged and not n_cines:
@@ -1593,38 +1956,55 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
         used = [c for c in cines if c.group in pool and not c.mosaic]
         for c in cines:
             if c.group not in pool:
-                c.why = f"another study (StudyInstanceUID {name(c.first.study_uid)})"
+                c.why = f'another study (StudyInstanceUID {name(c.first.study_uid)})'
             elif c.mosaic:
                 c.why = c.kind
         for c in used:
             _plan_phases(c, warned, None)
-        what = f"study {study}" if study else "the folder"
-        return _Selection(used, best[0] if study else "", studies,
-                          f"no MR cine in {what}: every image loaded as it is{also if study else ''}",
-                          _series_problems(cines), warned, left_out)
-    period = float(np.nanmedian([c.period_mm for c in groups[best] if c.tagged])) if n_tagged else np.nan
+        what = f'study {study}' if study else 'the folder'
+        return _Selection(
+            used,
+            best[0] if study else '',
+            studies,
+            f'no MR cine in {what}: every image loaded as it is{also if study else ""}',
+            _series_problems(cines),
+            warned,
+            left_out,
+        )
+    period = (
+        float(np.nanmedian([c.period_mm for c in groups[best] if c.tagged]))
+        if n_tagged
+        else np.nan
+    )
     on_heart = best in heart and n_tagged > 0  # tagged on the heart alone: the votes decided
     used = []
     for c in cines:
         why = [c.kind] if c.kind else []
         if c.group != best:
             if c.first.study_uid != best[0]:
-                why.append(f"another study (StudyInstanceUID {name(c.first.study_uid)})")
+                why.append(f'another study (StudyInstanceUID {name(c.first.study_uid)})')
             else:
-                why.append(f"another frame of reference of the chosen study (FrameOfReferenceUID "
-                           f"{c.first.frame_of_reference_uid or '(none)'}, chosen {best[1] or '(none)'})")
+                why.append(
+                    f'another frame of reference of the chosen study (FrameOfReferenceUID '
+                    f'{c.first.frame_of_reference_uid or "(none)"}, chosen {best[1] or "(none)"})'
+                )
                 if not c.kind and (c.tagged or not n_tagged):
-                    left_out.append((c.first.path, f"{c.describe()} not used: {why[-1]}"))
+                    left_out.append((c.first.path, f'{c.describe()} not used: {why[-1]}'))
         elif not c.kind and n_tagged and not c.tagged and not on_heart:
             score, contrast = _tag_grid_at(c.first.pixels, _pixel_mm(c), period)
             c.tagged = score >= _TAG_AT_PERIOD and contrast >= _TAG_AT_PERIOD_CONTRAST
             if not c.tagged:
-                c.tag_reason = (c.tag_reason or f"its strongest grid stands {c.tag:.1f}x above its surroundings, "
-                                f"{_TAG_CLEAR:g} needed") + (
-                    f"; at the study's tag period ({period:.1f} mm) {score:.1f}x, {contrast:.2f}x the neighbouring "
-                    f"frequencies ({_TAG_AT_PERIOD:g} and {_TAG_AT_PERIOD_CONTRAST:g} needed)")
+                c.tag_reason = (
+                    c.tag_reason
+                    or f'its strongest grid stands {c.tag:.1f}x above its surroundings, '
+                    f'{_TAG_CLEAR:g} needed'
+                ) + (
+                    f"; at the study's tag period ({period:.1f} mm) {score:.1f}x, "
+                    f'{contrast:.2f}x the neighbouring '
+                    f'frequencies ({_TAG_AT_PERIOD:g} and {_TAG_AT_PERIOD_CONTRAST:g} needed)'
+                )
         if why:
-            c.why = "; ".join(why)
+            c.why = '; '.join(why)
         else:
             used.append(c)
     if n_tagged:
@@ -1635,27 +2015,39 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     _match_study_phases(used, warned, left_out)
     used = [c for c in used if not c.why]
     if n_tagged and on_heart:
-        choice = (f"study {name(best[0])}{how}: {n_tagged} tagged cine(s), tags on the heart alone (its cines share a "
-                  f"{period:.1f} mm grid in windows of their ED images: {heart[best][0]:.1f}x, {_TAG_STUDY:g} "
-                  f"needed){also}")
+        choice = (
+            f'study {name(best[0])}{how}: {n_tagged} tagged cine(s), tags on the heart alone '
+            '(its cines share a '
+            f'{period:.1f} mm grid in windows of their ED images: {heart[best][0]:.1f}x, '
+            f'{_TAG_STUDY:g} '
+            f'needed){also}'
+        )
     elif n_tagged:
-        choice = f"study {name(best[0])}{how}: {n_tagged} tagged cine(s){also}"
+        choice = f'study {name(best[0])}{how}: {n_tagged} tagged cine(s){also}'
     else:
         if best in heart:
-            which = (f"the study whose cines come closest to sharing a tag grid in windows ({heart[best][0]:.1f}x, "
-                     f"{_TAG_STUDY:g} needed) taken, its {n_cines} MR cine(s) all used")
+            which = (
+                'the study whose cines come closest to sharing a tag grid in windows '
+                f'({heart[best][0]:.1f}x, '
+                f'{_TAG_STUDY:g} needed) taken, its {n_cines} MR cine(s) all used'
+            )
         else:
-            which = f"the study with the most MR cines ({n_cines}) taken, all of them used"
-        choice = (f"study {name(best[0])}{how}: no cine shows a tag grid in its ED image's spectrum, nor do its "
-                  f"cines share one in windows; {which}{also}")
+            which = f'the study with the most MR cines ({n_cines}) taken, all of them used'
+        choice = (
+            f"study {name(best[0])}{how}: no cine shows a tag grid in its ED image's spectrum, "
+            'nor do its '
+            f'cines share one in windows; {which}{also}'
+        )
     return _Selection(used, best[0], studies, choice, _series_problems(cines), warned, left_out)
 
 
 def _judge_untagged(used: list[_Cine], warned: list) -> None:
-    """The chosen study's MR cines whose ED image fails the tag test: at the slice of a tagged
+    """
+    The chosen study's MR cines whose ED image fails the tag test: at the slice of a tagged
     cine, not used (the tagged one is); of a constant image or acquired unlike every tagged
     cine (matrix, pixel size), not used; otherwise used with a warning (thin margins on small or
-    mostly blood-pool views must not cost a slice)."""
+    mostly blood-pool views must not cost a slice).
+    """
     tagged = [c for c in used if c.tagged]
     for c in used:
         if c.tagged:
@@ -1663,26 +2055,39 @@ def _judge_untagged(used: list[_Cine], warned: list) -> None:
         at = next((t for t in tagged if _same_place(t, c)), None)
         alike = _acquired_alike(c, tagged)
         if not np.ptp(c.first.pixels) > 0:
-            c.why = f"not tagged: {c.tag_reason}"
+            c.why = f'not tagged: {c.tag_reason}'
         elif at is not None:
-            c.why = f"not tagged ({c.tag_reason}); the tagged {at.describe()} at this slice position is used"
+            c.why = (
+                f'not tagged ({c.tag_reason}); the tagged {at.describe()} at this slice '
+                'position is used'
+            )
         elif alike is None:
             rows, cols = c.first.pixels.shape
             g = c.first.geometry
-            c.why = (f"not tagged ({c.tag_reason}); and acquired unlike the study's tagged cines ({rows}x{cols} "
-                     f"pixels of {g.row_spacing:.3g} x {g.column_spacing:.3g} mm)")
+            c.why = (
+                f"not tagged ({c.tag_reason}); and acquired unlike the study's tagged cines "
+                f'({rows}x{cols} '
+                f'pixels of {g.row_spacing:.3g} x {g.column_spacing:.3g} mm)'
+            )
         else:
-            warned.append((c.first.path, f"{c.describe()}: its ED image shows no clear tag grid ({c.tag_reason}); "
-                                         f"used, being of the chosen study and acquired like its tagged "
-                                         f"{alike.describe()} (if it is not a tagged cine, leave it out of "
-                                         f"the folder)"))
+            warned.append(
+                (
+                    c.first.path,
+                    f'{c.describe()}: its ED image shows no clear tag grid ({c.tag_reason}); '
+                    f'used, being of the chosen study and acquired like its tagged '
+                    f'{alike.describe()} (if it is not a tagged cine, leave it out of '
+                    f'the folder)',
+                )
+            )
 
 
 def _keep_latest(used: list[_Cine], warned: list) -> None:
-    """Of cines of different series at one slice location, keep the latest (:func:`_later`) and
+    """
+    Of cines of different series at one slice location, keep the latest (:func:`_later`) and
     mark the others (``why``). Where nothing tells which is later, the one with the most images
     (then the first by SeriesInstanceUID) is kept, with a warning saying so (never both: a slice
-    twice in the stack)."""
+    twice in the stack).
+    """
     places: list[list[_Cine]] = []
     for c in used:
         for p in places:
@@ -1694,17 +2099,32 @@ def _keep_latest(used: list[_Cine], warned: list) -> None:
     for p in places:
         if len({c.first.series_uid for c in p}) < 2:
             continue
-        latest = next((c for c in p if all(o.first.series_uid == c.first.series_uid or _later(c, o) for o in p)), None)
-        how = "the later"
+        latest = next(
+            (
+                c
+                for c in p
+                if all(o.first.series_uid == c.first.series_uid or _later(c, o) for o in p)
+            ),
+            None,
+        )
+        how = 'the later'
         if latest is None:  # nothing tells (or a tie): one, independent of the file order
             latest = min(p, key=lambda c: (-len(c.imgs), c.first.series_uid, c.first.path))
-            how = ("(no acquisition time or SeriesNumber tells which is later) the one with the most images "
-                   "(then the first by SeriesInstanceUID),")
+            how = (
+                '(no acquisition time or SeriesNumber tells which is later) the one with the '
+                'most images '
+                '(then the first by SeriesInstanceUID),'
+            )
         earlier = [o for o in p if o.first.series_uid != latest.first.series_uid]
         for o in earlier:
-            o.why = f"repeated acquisition of a slice: {how} {latest.describe()} used"
-        warned.append((latest.first.path, f"slice acquired more than once: {how} {latest.describe()} used, "
-                                          f"not {'; '.join(o.describe() for o in earlier)}"))
+            o.why = f'repeated acquisition of a slice: {how} {latest.describe()} used'
+        warned.append(
+            (
+                latest.first.path,
+                f'slice acquired more than once: {how} {latest.describe()} used, '
+                f'not {"; ".join(o.describe() for o in earlier)}',
+            )
+        )
 
 
 def _series_problems(cines: list[_Cine]) -> list[tuple[str, str]]:
@@ -1717,15 +2137,23 @@ def _series_problems(cines: list[_Cine]) -> list[tuple[str, str]]:
     for (_, why), cs in by.items():
         f = cs[0].first
         files = sorted(i.path for c in cs for i in c.imgs)
-        desc = f" {f.description!r}" if f.description else ""
-        planes = f", {len(cs)} planes" if len(cs) > 1 else ""
-        out.append((files[0], f"series {f.series_uid or '(no SeriesInstanceUID)'}{desc} (SeriesNumber "
-                              f"{f.series_number}, {len(files)} image(s){planes}) not used: {why}"))
+        desc = f' {f.description!r}' if f.description else ''
+        planes = f', {len(cs)} planes' if len(cs) > 1 else ''
+        out.append(
+            (
+                files[0],
+                f'series {f.series_uid or "(no SeriesInstanceUID)"}{desc} (SeriesNumber '
+                f'{f.series_number}, {len(files)} image(s){planes}) not used: {why}',
+            )
+        )
     return sorted(out)
 
 
-def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None = None) -> DicomReadResult:
-    """Load the tagged cine study under a directory.
+def read_dicom_dir(
+    path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None = None
+) -> DicomReadResult:
+    """
+    Load the tagged cine study under a directory.
 
     Parameters
     ----------
@@ -1786,15 +2214,20 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     study phase nearest its trigger time (within a quarter phase interval, else it is left out,
     :data:`_FEWER_PHASES_TOL`). Every
     series not used is listed once in ``problems`` (and ``not_used``) with its reason.
+
     """
-    if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
-        raise ValueError(f"max_pixels must be a positive integer, got {max_pixels!r}")
+    if (
+        isinstance(max_pixels, bool)
+        or not isinstance(max_pixels, (int, np.integer))
+        or max_pixels < 1
+    ):
+        raise ValueError(f'max_pixels must be a positive integer, got {max_pixels!r}')
     root = Path(path)
     if not root.is_dir():
-        raise FileNotFoundError(f"DICOM directory not found: {root}")
+        raise FileNotFoundError(f'DICOM directory not found: {root}')
     files, problems = _list_files(root)
     if not files:
-        raise DicomReadError(f"no files under {root}: nothing to read", problems)
+        raise DicomReadError(f'no files under {root}: nothing to read', problems)
     images: list[_Image] = []
     unread: list[tuple[str, str]] = []
     first_with_uid: dict[tuple[str, int], str] = {}
@@ -1807,7 +2240,9 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
         for img in imgs:
             key = (img.sop_uid, img.frame)
             if img.sop_uid and key in first_with_uid:
-                problems.append((f, f"duplicate instance: same SOPInstanceUID as {first_with_uid[key]}"))
+                problems.append(
+                    (f, f'duplicate instance: same SOPInstanceUID as {first_with_uid[key]}')
+                )
                 break
             if img.sop_uid:
                 first_with_uid[key] = f
@@ -1819,17 +2254,27 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     cines: list[_Cine] = []
     for key, imgs in groups.items():
         sizes = Counter(i.pixels.shape for i in imgs)
-        (shape, _), = sizes.most_common(1)
+        ((shape, _),) = sizes.most_common(1)
         keep: list[_Image] = []
         seen: dict[tuple, str] = {}
         for i in imgs:
             phase_key = (round(i.trigger_ms, 3), i.instance)
             if i.pixels.shape != shape:
-                problems.append((i.path, f"image size {i.pixels.shape[0]}x{i.pixels.shape[1]} differs "
-                                         f"from the rest of its series ({shape[0]}x{shape[1]})"))
+                problems.append(
+                    (
+                        i.path,
+                        f'image size {i.pixels.shape[0]}x{i.pixels.shape[1]} differs '
+                        f'from the rest of its series ({shape[0]}x{shape[1]})',
+                    )
+                )
             elif np.isfinite(i.trigger_ms) and i.instance is not None and phase_key in seen:
-                problems.append((i.path, f"duplicate phase: same series, plane, TriggerTime and "
-                                         f"InstanceNumber as {seen[phase_key]}"))
+                problems.append(
+                    (
+                        i.path,
+                        f'duplicate phase: same series, plane, TriggerTime and '
+                        f'InstanceNumber as {seen[phase_key]}',
+                    )
+                )
             else:
                 seen.setdefault(phase_key, i.path)
                 keep.append(i)
@@ -1837,19 +2282,28 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
         cines.append(_Cine(keep))
     if not cines:
         raise DicomReadError(
-            f"no usable DICOM image under {root} ({len(problems)} file(s) rejected; first: "
-            f"{problems[0][0]}: {problems[0][1]})", problems)
+            f'no usable DICOM image under {root} ({len(problems)} file(s) rejected; first: '
+            f'{problems[0][0]}: {problems[0][1]})',
+            problems,
+        )
     sel = _select_study(cines, study, root, problems)
     problems += sel.problems
     if not sel.cines:
         raise DicomReadError(
-            f"no usable cine under {root}: every series is left out ({len(sel.problems)} series; first: "
-            f"{sel.problems[0][0]}: {sel.problems[0][1]})" if sel.problems else
-            f"no usable cine under {root}: {sel.choice}", problems)
+            f'no usable cine under {root}: every series is left out ({len(sel.problems)} '
+            'series; first: '
+            f'{sel.problems[0][0]}: {sel.problems[0][1]})'
+            if sel.problems
+            else f'no usable cine under {root}: {sel.choice}',
+            problems,
+        )
     planes = sel.cines
     if sel.study_uid:  # MR images of the chosen study that could not be read are left out of it
-        sel.left_out += [(f, f"an image of the study not read: {why}") for f, why in unread
-                         if _unread_image_of(f, sel.study_uid)]
+        sel.left_out += [
+            (f, f'an image of the study not read: {why}')
+            for f, why in unread
+            if _unread_image_of(f, sel.study_uid)
+        ]
 
     # Classify: largest cluster of parallel planes at >= 2 distinct positions = SA stack.
     normals = [p.first.geometry.normal for p in planes]
@@ -1870,8 +2324,11 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
     sa_idx = set(max(stacks, key=len)) if stacks else set()
     sa_planes = [planes[i] for i in range(len(planes)) if i in sa_idx]
     la_planes = [planes[i] for i in range(len(planes)) if i not in sa_idx]
-    axis = estimate_long_axis([p.first.geometry for p in sa_planes], [p.first.geometry for p in la_planes],
-                              np.array([_fov_centre(p.first) for p in sa_planes]).reshape(-1, 3))
+    axis = estimate_long_axis(
+        [p.first.geometry for p in sa_planes],
+        [p.first.geometry for p in la_planes],
+        np.array([_fov_centre(p.first) for p in sa_planes]).reshape(-1, 3),
+    )
 
     if axis is not None:
         sa_planes.sort(key=lambda p: -float(p.first.geometry.image_position @ axis.direction))
@@ -1900,20 +2357,49 @@ def read_dicom_dir(path, max_pixels: int = DEFAULT_MAX_PIXELS, study: str | None
             imgs, first = cine.use, cine.first
             trig, nominal = _timing(imgs, cine.phases, cine.num_phases)
             for img, ph, t in zip(imgs, cine.phases, trig):
-                frames.append(Frame(image=img.pixels, geometry=img.geometry, view=view,
-                                    slice_index=idx, phase_index=ph, num_phases=cine.num_phases,
-                                    trigger_time=float(t), cycle_duration=nominal, series_uid=first.series_uid))
-            series.append(SeriesInfo(series_uid=first.series_uid, view=view, slice_index=idx,
-                                     description=first.description, series_number=first.series_number,
-                                     geometry=first.geometry, files=[i.path for i in imgs]))
-    return DicomReadResult(frames=frames, problems=problems, series=series, long_axis=axis,
-                           warnings=sel.warnings, study_uids=dict(studies.most_common()),
-                           study_uid=sel.study_uid, studies=sel.studies, choice=sel.choice,
-                           complete=not sel.left_out, left_out=sel.left_out, not_used=list(sel.problems))
+                frames.append(
+                    Frame(
+                        image=img.pixels,
+                        geometry=img.geometry,
+                        view=view,
+                        slice_index=idx,
+                        phase_index=ph,
+                        num_phases=cine.num_phases,
+                        trigger_time=float(t),
+                        cycle_duration=nominal,
+                        series_uid=first.series_uid,
+                    )
+                )
+            series.append(
+                SeriesInfo(
+                    series_uid=first.series_uid,
+                    view=view,
+                    slice_index=idx,
+                    description=first.description,
+                    series_number=first.series_number,
+                    geometry=first.geometry,
+                    files=[i.path for i in imgs],
+                )
+            )
+    return DicomReadResult(
+        frames=frames,
+        problems=problems,
+        series=series,
+        long_axis=axis,
+        warnings=sel.warnings,
+        study_uids=dict(studies.most_common()),
+        study_uid=sel.study_uid,
+        studies=sel.studies,
+        choice=sel.choice,
+        complete=not sel.left_out,
+        left_out=sel.left_out,
+        not_used=list(sel.problems),
+    )
 
 
 def _phase_indices(imgs: list[_Image]) -> tuple[list[int], int, str | None]:
-    """Phase index of each image of one cine (sorted by time), its phase count, and a warning.
+    """
+    Phase index of each image of one cine (sorted by time), its phase count, and a warning.
 
     A cine with fewer images than its CardiacNumberOfImages has lost phases: where the
     InstanceNumbers place every image in one block of that many instances (1..N per series, or
@@ -1931,10 +2417,22 @@ def _phase_indices(imgs: list[_Image]) -> tuple[list[int], int, str | None]:
         idx = [k - base for k in inst]
         if all(0 <= k < total for k in idx) and all(a < b for a, b in zip(idx, idx[1:])):
             missing = sorted(set(range(total)) - set(idx))
-            return idx, total, (f"phase(s) {', '.join(str(k + 1) for k in missing)} of {total} missing "
-                                f"(CardiacNumberOfImages {total}, {n} image(s) found)")
-    return list(range(n)), n, (f"{n} image(s) but CardiacNumberOfImages {total}: phase(s) missing, and the "
-                               f"InstanceNumbers do not say which; phases numbered in TriggerTime order")
+            return (
+                idx,
+                total,
+                (
+                    f'phase(s) {", ".join(str(k + 1) for k in missing)} of {total} missing '
+                    f'(CardiacNumberOfImages {total}, {n} image(s) found)'
+                ),
+            )
+    return (
+        list(range(n)),
+        n,
+        (
+            f'{n} image(s) but CardiacNumberOfImages {total}: phase(s) missing, and the '
+            f'InstanceNumbers do not say which; phases numbered in TriggerTime order'
+        ),
+    )
 
 
 def _timing(imgs: list[_Image], phases: list[int], num_phases: int) -> tuple[np.ndarray, float]:
@@ -1947,5 +2445,7 @@ def _timing(imgs: list[_Image], phases: list[int], num_phases: int) -> tuple[np.
         per_phase = float(np.median(np.diff(trig) / np.diff(phases)))
         nominal = float(trig[-1] + per_phase * (num_phases - phases[-1]))
     if not known:
-        trig = np.asarray(phases, dtype=np.float64) * (nominal / num_phases if nominal > 0 else 0.0)
+        trig = np.asarray(phases, dtype=np.float64) * (
+            nominal / num_phases if nominal > 0 else 0.0
+        )
     return trig, nominal

@@ -1,4 +1,5 @@
-"""Meshless deformable model (paper §2): kernel/phyxels, MLS gradient, St Venant–Kirchhoff
+"""
+Meshless deformable model (paper §2): kernel/phyxels, MLS gradient, St Venant–Kirchhoff
 elasticity, global parametric deformation and the fitting scheme. Pure numpy/scipy.
 
 Typical use::
@@ -13,16 +14,33 @@ Typical use::
 """
 
 from mlv_ros.core.meshless.elastic import (  # noqa: F401
-    green_lagrange, internal_forces, lame_parameters, linear_stiffness_apply, strain_energy,
+    green_lagrange,
+    internal_forces,
+    lame_parameters,
+    linear_stiffness_apply,
+    strain_energy,
     svk_stress,
 )
 from mlv_ros.core.meshless.globals import (  # noqa: F401
-    GlobalParameters, ModelCoordinates, ModelFrame, cylindrical_frame, global_shape,
-    matrix_to_quat, model_jacobian, polar_frame, quat_from_axis_angle, quat_to_matrix,
-    rotation_jacobian, shape_jacobian,
+    cylindrical_frame,
+    global_shape,
+    GlobalParameters,
+    matrix_to_quat,
+    model_jacobian,
+    ModelCoordinates,
+    ModelFrame,
+    polar_frame,
+    quat_from_axis_angle,
+    quat_to_matrix,
+    rotation_jacobian,
+    shape_jacobian,
 )
-from mlv_ros.core.meshless.kernel import Phyxels, build_phyxels, poly6  # noqa: F401
+from mlv_ros.core.meshless.kernel import build_phyxels, Phyxels, poly6  # noqa: F401
 from mlv_ros.core.meshless.mls import MLSOperator  # noqa: F401
 from mlv_ros.core.meshless.solver import (  # noqa: F401
-    ControlPoints, FitResult, MeshlessModel, attach_control_points, plane_projectors,
+    attach_control_points,
+    ControlPoints,
+    FitResult,
+    MeshlessModel,
+    plane_projectors,
 )

@@ -1,4 +1,5 @@
-"""St Venant–Kirchhoff elasticity on MLS gradients (paper eq. 18–23; Müller et al. 2004).
+"""
+St Venant–Kirchhoff elasticity on MLS gradients (paper eq. 18–23; Müller et al. 2004).
 
 Strain convention: the Green–Lagrange tensor **with** the ½, ``E = ½(JᵀJ − I)`` with
 ``J = I + H``, ``H = ∂u/∂x`` (see :mod:`mlv_ros.core.meshless.mls`). The paper's eq. 19 writes
@@ -13,24 +14,25 @@ forces P·mm².
 
 from __future__ import annotations
 
-import numpy as np
-
 from mlv_ros.core.meshless.mls import MLSOperator
+import numpy as np
 
 
 def lame_parameters(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
-    """Lamé constants ``λ = Eν/((1+ν)(1−2ν))``, ``μ = E/(2(1+ν))``.
+    """
+    Lamé constants ``λ = Eν/((1+ν)(1−2ν))``, ``μ = E/(2(1+ν))``.
 
     Raises
     ------
     ValueError
         ``E`` not finite positive, or ``ν`` outside (−1, 0.5).
+
     """
     e, nu = float(youngs_modulus), float(poisson_ratio)
     if not np.isfinite(e) or e <= 0:
         raise ValueError(f"Young's modulus must be finite and > 0, got {youngs_modulus}")
     if not np.isfinite(nu) or not -1.0 < nu < 0.5:
-        raise ValueError(f"Poisson ratio must lie in (-1, 0.5), got {poisson_ratio}")
+        raise ValueError(f'Poisson ratio must lie in (-1, 0.5), got {poisson_ratio}')
     return e * nu / ((1 + nu) * (1 - 2 * nu)), e / (2 * (1 + nu))
 
 
@@ -52,7 +54,8 @@ def svk_stress(strain: np.ndarray, lam: float, mu: float) -> np.ndarray:
 
 
 def strain_energy(h: np.ndarray, volume: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """Per-phyxel energy ``U_i = v_i (½ λ tr(E)² + μ E:E)`` (eq. 21).
+    """
+    Per-phyxel energy ``U_i = v_i (½ λ tr(E)² + μ E:E)`` (eq. 21).
 
     Parameters
     ----------
@@ -66,15 +69,18 @@ def strain_energy(h: np.ndarray, volume: np.ndarray, lam: float, mu: float) -> n
     Returns
     -------
     ndarray, shape (N,)
+
     """
     e = green_lagrange(h)
     tr = np.trace(e, axis1=1, axis2=2)
-    return volume * (0.5 * lam * tr ** 2 + mu * np.einsum("nab,nab->n", e, e))
+    return volume * (0.5 * lam * tr**2 + mu * np.einsum('nab,nab->n', e, e))
 
 
-def internal_forces(op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: float,
-                    mu: float) -> np.ndarray:
-    """Elastic forces ``f = −∂(Σ_i U_i)/∂u`` (eq. 22–23).
+def internal_forces(
+    op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: float, mu: float
+) -> np.ndarray:
+    """
+    Elastic forces ``f = −∂(Σ_i U_i)/∂u`` (eq. 22–23).
 
     Parameters
     ----------
@@ -88,15 +94,18 @@ def internal_forces(op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: flo
     -------
     ndarray, shape (N, 3)
         Forces; they sum to zero and vanish for rigid motions.
+
     """
     h = op.gradient(u)
     piola = deformation_gradient(h) @ svk_stress(green_lagrange(h), lam, mu)
     return -op.adjoint(volume[:, None, None] * piola)
 
 
-def linear_stiffness_apply(op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: float,
-                           mu: float) -> np.ndarray:
-    """``K u`` for the stiffness linearised at the rest state (small strain ``ε = sym H``).
+def linear_stiffness_apply(
+    op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: float, mu: float
+) -> np.ndarray:
+    """
+    ``K u`` for the stiffness linearised at the rest state (small strain ``ε = sym H``).
 
     ``K`` is the Hessian of the energy at ``u = 0`` (so ``internal_forces(u) ≈ −K u`` for small u);
     it is never assembled (it would couple neighbours of neighbours).
@@ -104,6 +113,7 @@ def linear_stiffness_apply(op: MLSOperator, u: np.ndarray, volume: np.ndarray, l
     Returns
     -------
     ndarray, shape (N, 3)
+
     """
     h = op.gradient(u)
     eps = 0.5 * (h + h.transpose(0, 2, 1))
@@ -111,7 +121,8 @@ def linear_stiffness_apply(op: MLSOperator, u: np.ndarray, volume: np.ndarray, l
 
 
 def stiffness_diagonal(op: MLSOperator, volume: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """Diagonal of the linearised stiffness, shape (N, 3) (Jacobi preconditioner).
+    """
+    Diagonal of the linearised stiffness, shape (N, 3) (Jacobi preconditioner).
 
     A unit displacement of ``u_j[a]`` gives phyxel ``i`` the gradient ``e_a d_ijᵀ``, hence energy
     ``½ v_i (λ d_a² + μ (|d|² + d_a²))``.
@@ -127,21 +138,24 @@ def stiffness_diagonal(op: MLSOperator, volume: np.ndarray, lam: float, mu: floa
     d[np.searchsorted(uniq, key_s), b[order]] = vals
     ii, jj = np.divmod(uniq, op.n)
     v = volume[ii]
-    dsq = np.einsum("pa,pa->p", d, d)
-    per = v[:, None] * (lam * d ** 2 + mu * (dsq[:, None] + d ** 2))
+    dsq = np.einsum('pa,pa->p', d, d)
+    per = v[:, None] * (lam * d**2 + mu * (dsq[:, None] + d**2))
     return np.stack([np.bincount(jj, weights=per[:, a], minlength=op.n) for a in range(3)], axis=1)
 
 
 def stabilisation_weights(op: MLSOperator, volume: np.ndarray) -> np.ndarray:
-    """Per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`, shape (P,),
-    with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights)."""
+    """
+    Per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`, shape (P,),
+    with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights).
+    """
     ph = op.phyxels
     wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
     return volume[ph.pair_i] * ph.wij / wsum[ph.pair_i] / ph.h[ph.pair_i] ** 2
 
 
 def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.ndarray:
-    """Gradient of the zero-energy-mode penalty ``½ Σ_ij c_ij |u_j − u_i − H_i x_ij|²``.
+    """
+    Gradient of the zero-energy-mode penalty ``½ Σ_ij c_ij |u_j − u_i − H_i x_ij|²``.
 
     The MLS gradient of a phyxel averages ~100 neighbours, so displacing single particles away
     from the local affine fit costs almost no strain energy (nodal-integration zero-energy
@@ -160,23 +174,40 @@ def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.
     -------
     ndarray, shape (N, 3)
         ``∂/∂u`` of the penalty (a symmetric positive semi-definite linear map of u).
+
     """
     ph = op.phyxels
     n = ph.num_particles
     h = op.gradient(u)
-    r = u[ph.pair_j] - u[ph.pair_i] - np.einsum("pab,pb->pa", h[ph.pair_i], ph.xij)
+    r = u[ph.pair_j] - u[ph.pair_i] - np.einsum('pab,pb->pa', h[ph.pair_i], ph.xij)
     cr = coef[:, None] * r
-    g = np.stack([np.bincount(ph.pair_j, weights=cr[:, a], minlength=n)
-                  - np.bincount(ph.pair_i, weights=cr[:, a], minlength=n) for a in range(3)], axis=1)
+    g = np.stack(
+        [
+            np.bincount(ph.pair_j, weights=cr[:, a], minlength=n)
+            - np.bincount(ph.pair_i, weights=cr[:, a], minlength=n)
+            for a in range(3)
+        ],
+        axis=1,
+    )
     # through H_i: ∂/∂H_i[a, b] of the penalty is −Σ_j c_ij r_ij[a] x_ij[b]
-    gh = np.stack([np.bincount(ph.pair_i, weights=-cr[:, a] * ph.xij[:, b], minlength=n)
-                   for a in range(3) for b in range(3)], axis=1).reshape(n, 3, 3)
+    gh = np.stack(
+        [
+            np.bincount(ph.pair_i, weights=-cr[:, a] * ph.xij[:, b], minlength=n)
+            for a in range(3)
+            for b in range(3)
+        ],
+        axis=1,
+    ).reshape(n, 3, 3)
     return g + op.adjoint(gh)
 
 
 def stabilisation_diagonal(op: MLSOperator, coef: np.ndarray) -> np.ndarray:
-    """Approximate diagonal of :func:`stabilisation_apply` (the direct ``u_j − u_i`` terms),
-    shape (N,); used in the Jacobi preconditioner."""
+    """
+    Approximate diagonal of :func:`stabilisation_apply` (the direct ``u_j − u_i`` terms),
+    shape (N,); used in the Jacobi preconditioner.
+    """
     ph = op.phyxels
     n = ph.num_particles
-    return np.bincount(ph.pair_j, weights=coef, minlength=n) + np.bincount(ph.pair_i, weights=coef, minlength=n)
+    return np.bincount(ph.pair_j, weights=coef, minlength=n) + np.bincount(
+        ph.pair_i, weights=coef, minlength=n
+    )

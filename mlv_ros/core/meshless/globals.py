@@ -1,4 +1,5 @@
-"""Global deformation of the deformable model (paper §2.1–2.2, eq. 1–3, 7–8, 13).
+"""
+Global deformation of the deformable model (paper §2.1–2.2, eq. 1–3, 7–8, 13).
 
 World position of a particle: ``x = c + R p`` with ``p = s + d`` (model-centred frame), where
 ``s`` is the global shape and ``d`` the local deformation. ``R`` comes from a unit quaternion
@@ -22,16 +23,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from mlv_ros.core.meshless.kernel import validate_points
+import numpy as np
 
 #: Layout of the 12-vector of global parameters.
 NUM_GLOBAL = 12
 SLICE_C = slice(0, 3)
 SLICE_Q = slice(3, 7)
 SLICE_S = slice(7, 12)
-GLOBAL_NAMES = ("cx", "cy", "cz", "qw", "qx", "qy", "qz", "a0", "a1", "a2", "a3", "tau")
+GLOBAL_NAMES = ('cx', 'cy', 'cz', 'qw', 'qx', 'qy', 'qz', 'a0', 'a1', 'a2', 'a3', 'tau')
 #: Tangent space used for updates: (Δc [3], body rotation vector ω [3], Δa0..Δa3, Δτ).
 NUM_TANGENT = 11
 
@@ -42,7 +42,7 @@ def quat_normalize(q) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64).reshape(4)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-12:
-        raise ValueError(f"rotation quaternion must be finite and non-zero, got {q}")
+        raise ValueError(f'rotation quaternion must be finite and non-zero, got {q}')
     q = q / n
     return -q if q[0] < 0 else q
 
@@ -50,26 +50,33 @@ def quat_normalize(q) -> np.ndarray:
 def quat_to_matrix(q) -> np.ndarray:
     """Rotation matrix (3, 3) of the quaternion ``q = (w, x, y, z)`` (normalised first)."""
     w, x, y, z = quat_normalize(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quat(r) -> np.ndarray:
     """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
     r = np.asarray(r, dtype=np.float64)
     if r.shape != (3, 3) or not np.all(np.isfinite(r)):
-        raise ValueError("rotation must be a finite 3x3 matrix")
+        raise ValueError('rotation must be a finite 3x3 matrix')
     if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
-        raise ValueError("rotation matrix must be orthonormal with determinant +1")
+        raise ValueError('rotation matrix must be orthonormal with determinant +1')
     tr = np.trace(r)
     cands = np.array([tr, r[0, 0], r[1, 1], r[2, 2]])
     k = int(np.argmax(cands))
     if k == 0:
         w = 0.5 * np.sqrt(1 + tr)
-        q = [w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)]
+        q = [
+            w,
+            (r[2, 1] - r[1, 2]) / (4 * w),
+            (r[0, 2] - r[2, 0]) / (4 * w),
+            (r[1, 0] - r[0, 1]) / (4 * w),
+        ]
     else:
         i, j, m = k - 1, k % 3, (k + 1) % 3
         v = np.zeros(3)
@@ -85,7 +92,7 @@ def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64).reshape(3)
     n = np.linalg.norm(a)
     if not np.isfinite(n) or n == 0:
-        raise ValueError(f"rotation axis must be finite and non-zero, got {axis}")
+        raise ValueError(f'rotation axis must be finite and non-zero, got {axis}')
     return quat_normalize(np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * a / n]))
 
 
@@ -93,16 +100,22 @@ def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``[v]×``, shape (..., 3, 3), for ``v`` of shape (..., 3)."""
     v = np.asarray(v, dtype=np.float64)
     z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 def quat_multiply(p, q) -> np.ndarray:
     """Hamilton product ``p ⊗ q`` of (w, x, y, z) quaternions."""
     p, q = np.asarray(p, dtype=np.float64), np.asarray(q, dtype=np.float64)
-    return np.concatenate([[p[0] * q[0] - p[1:] @ q[1:]],
-                           p[0] * q[1:] + q[0] * p[1:] + np.cross(p[1:], q[1:])])
+    return np.concatenate(
+        [[p[0] * q[0] - p[1:] @ q[1:]], p[0] * q[1:] + q[0] * p[1:] + np.cross(p[1:], q[1:])]
+    )
 
 
 def quat_from_rotvec(omega) -> np.ndarray:
@@ -121,7 +134,8 @@ def quat_rate_matrix(q) -> np.ndarray:
 
 
 def rotation_jacobian(q, p: np.ndarray) -> np.ndarray:
-    """``B = ∂(R p)/∂q = −2 R [p]× G`` (eq. 7), shape (N, 3, 4).
+    """
+    ``B = ∂(R p)/∂q = −2 R [p]× G`` (eq. 7), shape (N, 3, 4).
 
     Exact derivative of ``R(q/|q|) p`` at a unit ``q`` (it annihilates the radial direction
     ``q``, so the normalisation after each update costs nothing to first order).
@@ -132,6 +146,7 @@ def rotation_jacobian(q, p: np.ndarray) -> np.ndarray:
         Unit quaternion (w, x, y, z).
     p : ndarray, shape (N, 3)
         Model-centred positions, mm.
+
     """
     r = quat_to_matrix(q)
     # R [p]× = [R p]× R, so column k of B is −2 (R p) × (R G)[:, k]: one cross product per column
@@ -143,7 +158,8 @@ def rotation_jacobian(q, p: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- shape
 @dataclass
 class ModelCoordinates:
-    """Material (parametric) coordinates of particles, fixed for the model's lifetime.
+    """
+    Material (parametric) coordinates of particles, fixed for the model's lifetime.
 
     Attributes
     ----------
@@ -153,6 +169,7 @@ class ModelCoordinates:
         ``b`` (see module docstring), dimensionless.
     twist : ndarray, shape (N,)
         ``g``: twist angle is ``φ = π τ g``.
+
     """
 
     kind: str
@@ -162,35 +179,37 @@ class ModelCoordinates:
     def __post_init__(self):
         self.basis = np.asarray(self.basis, dtype=np.float64)
         self.twist = np.asarray(self.twist, dtype=np.float64)
-        if self.kind not in ("polar", "cylindrical"):
-            raise ValueError(f"coordinate kind must be 'polar' or 'cylindrical', got {self.kind!r}")
-        validate_points(self.basis, "model coordinate basis")
+        if self.kind not in ('polar', 'cylindrical'):
+            raise ValueError(
+                f"coordinate kind must be 'polar' or 'cylindrical', got {self.kind!r}"
+            )
+        validate_points(self.basis, 'model coordinate basis')
         if self.twist.shape != (self.basis.shape[0],) or not np.all(np.isfinite(self.twist)):
-            raise ValueError("twist coordinate must be finite with one value per particle")
+            raise ValueError('twist coordinate must be finite with one value per particle')
 
     def __len__(self) -> int:
         return int(self.basis.shape[0])
 
     @classmethod
-    def polar(cls, alpha, beta, w) -> "ModelCoordinates":
+    def polar(cls, alpha, beta, w) -> 'ModelCoordinates':
         """From polar coordinates (eq. 1): α ∈ [−π/2, π/2] (rad), β (rad), transmural w ≥ 0."""
         alpha, beta, w = (np.asarray(v, dtype=np.float64).reshape(-1) for v in (alpha, beta, w))
         if not (alpha.shape == beta.shape == w.shape):
-            raise ValueError("alpha, beta and w must have the same length")
+            raise ValueError('alpha, beta and w must have the same length')
         ca = np.cos(alpha)
         basis = w[:, None] * np.stack([ca * np.cos(beta), ca * np.sin(beta), np.sin(alpha)], 1)
-        return cls("polar", basis, np.sin(alpha))
+        return cls('polar', basis, np.sin(alpha))
 
     @classmethod
-    def cylindrical(cls, beta, w, zeta) -> "ModelCoordinates":
+    def cylindrical(cls, beta, w, zeta) -> 'ModelCoordinates':
         """From cylindrical coordinates: angle β (rad), radial w, axial ζ (twist ∝ ζ)."""
         beta, w, zeta = (np.asarray(v, dtype=np.float64).reshape(-1) for v in (beta, w, zeta))
         if not (beta.shape == w.shape == zeta.shape):
-            raise ValueError("beta, w and zeta must have the same length")
+            raise ValueError('beta, w and zeta must have the same length')
         basis = np.stack([w * np.cos(beta), w * np.sin(beta), zeta], 1)
-        return cls("cylindrical", basis, zeta)
+        return cls('cylindrical', basis, zeta)
 
-    def subset(self, idx) -> "ModelCoordinates":
+    def subset(self, idx) -> 'ModelCoordinates':
         return ModelCoordinates(self.kind, self.basis[idx], self.twist[idx])
 
 
@@ -200,7 +219,8 @@ def _rz(phi: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
-    """``s = T(e(b; a0..a3))`` with twist ``φ = π τ g`` (eq. 1–3).
+    """
+    ``s = T(e(b; a0..a3))`` with twist ``φ = π τ g`` (eq. 1–3).
 
     Parameters
     ----------
@@ -214,6 +234,7 @@ def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
     -------
     ndarray, shape (N, 3)
         Model-centred global shape, mm.
+
     """
     a = np.asarray(a, dtype=np.float64)
     e = a[0] * coords.basis * a[1:]
@@ -228,22 +249,29 @@ def shape_jacobian(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
     c, s_ = np.cos(phi), np.sin(phi)
     n = b.shape[0]
     jac = np.empty((n, 3, 5))
-    ex = np.stack([c, s_, np.zeros(n)], 1)     # Rz(φ) e_x
-    ey = np.stack([-s_, c, np.zeros(n)], 1)    # Rz(φ) e_y
+    ex = np.stack([c, s_, np.zeros(n)], 1)  # Rz(φ) e_x
+    ey = np.stack([-s_, c, np.zeros(n)], 1)  # Rz(φ) e_y
     ez = np.tile([0.0, 0.0, 1.0], (n, 1))
-    t1, t2, t3 = (b[:, 0] * a[1])[:, None] * ex, (b[:, 1] * a[2])[:, None] * ey, (b[:, 2] * a[3])[:, None] * ez
-    jac[:, :, 0] = t1 + t2 + t3                                 # = s / a0
+    t1, t2, t3 = (
+        (b[:, 0] * a[1])[:, None] * ex,
+        (b[:, 1] * a[2])[:, None] * ey,
+        (b[:, 2] * a[3])[:, None] * ez,
+    )
+    jac[:, :, 0] = t1 + t2 + t3  # = s / a0
     jac[:, :, 1] = (a[0] * b[:, 0])[:, None] * ex
     jac[:, :, 2] = (a[0] * b[:, 1])[:, None] * ey
     jac[:, :, 3] = (a[0] * b[:, 2])[:, None] * ez
     sh = a[0] * jac[:, :, 0]
-    jac[:, :, 4] = (np.pi * coords.twist)[:, None] * np.stack([-sh[:, 1], sh[:, 0], np.zeros(n)], 1)
+    jac[:, :, 4] = (np.pi * coords.twist)[:, None] * np.stack(
+        [-sh[:, 1], sh[:, 0], np.zeros(n)], 1
+    )
     return jac
 
 
 @dataclass
 class GlobalParameters:
-    """Global parameters ``q_g = (c, θ, q_s)``.
+    """
+    Global parameters ``q_g = (c, θ, q_s)``.
 
     Attributes
     ----------
@@ -255,6 +283,7 @@ class GlobalParameters:
         a0 (mm), a1, a2, a3.
     tau : float
         Twist factor (φ = π τ g).
+
     """
 
     translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -267,8 +296,12 @@ class GlobalParameters:
         self.rotation = quat_normalize(self.rotation)
         self.a = np.asarray(self.a, dtype=np.float64).reshape(4)
         self.tau = float(self.tau)
-        if not (np.all(np.isfinite(self.translation)) and np.all(np.isfinite(self.a)) and np.isfinite(self.tau)):
-            raise ValueError("global parameters must be finite")
+        if not (
+            np.all(np.isfinite(self.translation))
+            and np.all(np.isfinite(self.a))
+            and np.isfinite(self.tau)
+        ):
+            raise ValueError('global parameters must be finite')
 
     @property
     def matrix(self) -> np.ndarray:
@@ -280,34 +313,43 @@ class GlobalParameters:
         return np.concatenate([self.translation, self.rotation, self.a, [self.tau]])
 
     @classmethod
-    def from_vector(cls, v) -> "GlobalParameters":
+    def from_vector(cls, v) -> 'GlobalParameters':
         v = np.asarray(v, dtype=np.float64)
         return cls(v[SLICE_C], v[SLICE_Q], v[7:11], float(v[11]))
 
-    def stepped(self, step) -> "GlobalParameters":
-        """Parameters after a step in the 11-dim tangent space ``(Δc, ω, Δa0..Δa3, Δτ)``.
+    def stepped(self, step) -> 'GlobalParameters':
+        """
+        Parameters after a step in the 11-dim tangent space ``(Δc, ω, Δa0..Δa3, Δτ)``.
 
         The rotation is updated on the unit sphere, ``q ← q ⊗ exp(ω/2)`` with ω the body-frame
         rotation vector: the first-order quaternion rate ``q̇ = ½ Gᵀ ω`` followed by
         renormalisation, done exactly (see :func:`reduce_rotation`).
         """
         step = np.asarray(step, dtype=np.float64).reshape(NUM_TANGENT)
-        return GlobalParameters(self.translation + step[0:3],
-                                quat_multiply(self.rotation, quat_from_rotvec(step[3:6])),
-                                self.a + step[6:10], self.tau + float(step[10]))
+        return GlobalParameters(
+            self.translation + step[0:3],
+            quat_multiply(self.rotation, quat_from_rotvec(step[3:6])),
+            self.a + step[6:10],
+            self.tau + float(step[10]),
+        )
 
-    def copy(self) -> "GlobalParameters":
+    def copy(self) -> 'GlobalParameters':
         return GlobalParameters.from_vector(self.vector())
 
 
-def world_positions(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray) -> np.ndarray:
+def world_positions(
+    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray
+) -> np.ndarray:
     """``x = c + R (s + d)``, shape (N, 3), mm."""
     p = global_shape(coords, params.a, params.tau) + d
     return params.translation + p @ params.matrix.T
 
 
-def model_jacobian(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray) -> np.ndarray:
-    """``L = [I, B, R J]`` (eq. 8) for the 12 global parameters, shape (N, 3, 12).
+def model_jacobian(
+    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray
+) -> np.ndarray:
+    """
+    ``L = [I, B, R J]`` (eq. 8) for the 12 global parameters, shape (N, 3, 12).
 
     (The block ``R`` acting on ``d`` is handled by the local stage.)
     """
@@ -316,24 +358,30 @@ def model_jacobian(params: GlobalParameters, coords: ModelCoordinates, d: np.nda
     lmat = np.empty((n, 3, NUM_GLOBAL))
     lmat[:, :, SLICE_C] = np.eye(3)
     lmat[:, :, SLICE_Q] = rotation_jacobian(params.rotation, s + d)
-    lmat[:, :, SLICE_S] = np.einsum("ab,nbk->nak", params.matrix, shape_jacobian(coords, params.a, params.tau))
+    lmat[:, :, SLICE_S] = np.einsum(
+        'ab,nbk->nak', params.matrix, shape_jacobian(coords, params.a, params.tau)
+    )
     return lmat
 
 
 def reduce_rotation(lmat: np.ndarray, q) -> np.ndarray:
-    """Map ``L`` (…, 3, 12) to the 11-dim tangent space: ``B_ω = B ½ Gᵀ = −R [p]×``.
+    """
+    Map ``L`` (…, 3, 12) to the 11-dim tangent space: ``B_ω = B ½ Gᵀ = −R [p]×``.
 
     The quaternion has 4 numbers but 3 degrees of freedom (``B q = 0``); solving in the body
     rotation vector ω removes that null direction from the generalised-force system (eq. 15).
     """
-    half_gt = 0.5 * quat_rate_matrix(q).T            # (4, 3)
-    return np.concatenate([lmat[..., SLICE_C], lmat[..., SLICE_Q] @ half_gt, lmat[..., SLICE_S]], axis=-1)
+    half_gt = 0.5 * quat_rate_matrix(q).T  # (4, 3)
+    return np.concatenate(
+        [lmat[..., SLICE_C], lmat[..., SLICE_Q] @ half_gt, lmat[..., SLICE_S]], axis=-1
+    )
 
 
 # --------------------------------------------------------------------------- frames
 @dataclass
 class ModelFrame:
-    """Rest (end-diastolic) model frame: where the model-centred frame sits, and the material
+    """
+    Rest (end-diastolic) model frame: where the model-centred frame sits, and the material
     coordinates of each particle.
 
     Attributes
@@ -341,6 +389,7 @@ class ModelFrame:
     params : GlobalParameters
         Rest global parameters (τ = 0 normally); ``x_rest ≈ c + R s(rest)``.
     coords : ModelCoordinates
+
     """
 
     params: GlobalParameters
@@ -351,7 +400,7 @@ def _axis_frame(axis, ref_direction) -> np.ndarray:
     z = np.asarray(axis, dtype=np.float64).reshape(3)
     nz = np.linalg.norm(z)
     if not np.isfinite(nz) or nz == 0:
-        raise ValueError(f"axis must be a finite non-zero vector, got {axis}")
+        raise ValueError(f'axis must be a finite non-zero vector, got {axis}')
     z = z / nz
     if ref_direction is None:
         ref = np.eye(3)[int(np.argmin(abs(z)))]
@@ -359,13 +408,14 @@ def _axis_frame(axis, ref_direction) -> np.ndarray:
         ref = np.asarray(ref_direction, dtype=np.float64).reshape(3)
     x = ref - (ref @ z) * z
     if np.linalg.norm(x) < 1e-9:
-        raise ValueError("ref_direction is parallel to the axis")
+        raise ValueError('ref_direction is parallel to the axis')
     x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], axis=1)   # columns: model axes in world
+    return np.stack([x, np.cross(z, x), z], axis=1)  # columns: model axes in world
 
 
 def polar_frame(points, centre, axis, ref_direction=None, a0: float | None = None) -> ModelFrame:
-    """Polar model frame (eq. 1) for a particle cloud.
+    """
+    Polar model frame (eq. 1) for a particle cloud.
 
     Parameters
     ----------
@@ -385,15 +435,16 @@ def polar_frame(points, centre, axis, ref_direction=None, a0: float | None = Non
     ModelFrame
         Rest parameters (c, R, a = (a0, 1, 1, 1), τ = 0); ``w = |p| / a0``, so the rest shape
         reproduces the particles exactly.
+
     """
-    pts = validate_points(points, "particle positions")
+    pts = validate_points(points, 'particle positions')
     c = np.asarray(centre, dtype=np.float64).reshape(3)
     rot = _axis_frame(axis, ref_direction)
     p = (pts - c) @ rot
     r = np.linalg.norm(p, axis=1)
     a0 = float(r.max()) if a0 is None else float(a0)
     if not np.isfinite(a0) or a0 <= 0:
-        raise ValueError(f"a0 must be finite and > 0, got {a0}")
+        raise ValueError(f'a0 must be finite and > 0, got {a0}')
     safe = np.where(r > 0, r, 1.0)
     alpha = np.where(r > 0, np.arcsin(np.clip(p[:, 2] / safe, -1, 1)), 0.0)
     beta = np.arctan2(p[:, 1], p[:, 0])
@@ -401,15 +452,22 @@ def polar_frame(points, centre, axis, ref_direction=None, a0: float | None = Non
     return ModelFrame(GlobalParameters(c, matrix_to_quat(rot), [a0, 1, 1, 1], 0.0), coords)
 
 
-def cylindrical_frame(points, centre, axis, ref_direction=None, radius: float | None = None,
-                      half_height: float | None = None) -> ModelFrame:
-    """Cylindrical model frame: ``w = ρ / radius``, ``ζ = z / half_height``.
+def cylindrical_frame(
+    points,
+    centre,
+    axis,
+    ref_direction=None,
+    radius: float | None = None,
+    half_height: float | None = None,
+) -> ModelFrame:
+    """
+    Cylindrical model frame: ``w = ρ / radius``, ``ζ = z / half_height``.
 
     Rest parameters ``a = (radius, 1, 1, half_height / radius)``, τ = 0, so the rest shape
     reproduces the particles exactly and twist ``φ = π τ ζ`` is linear in height.
     Defaults: the largest radial distance and the largest |z| of the particles.
     """
-    pts = validate_points(points, "particle positions")
+    pts = validate_points(points, 'particle positions')
     c = np.asarray(centre, dtype=np.float64).reshape(3)
     rot = _axis_frame(axis, ref_direction)
     p = (pts - c) @ rot
@@ -417,6 +475,12 @@ def cylindrical_frame(points, centre, axis, ref_direction=None, radius: float | 
     radius = float(rho.max()) if radius is None else float(radius)
     half_height = float(np.abs(p[:, 2]).max()) if half_height is None else float(half_height)
     if not (np.isfinite(radius) and radius > 0 and np.isfinite(half_height) and half_height > 0):
-        raise ValueError(f"radius and half_height must be finite and > 0, got {radius}, {half_height}")
-    coords = ModelCoordinates.cylindrical(np.arctan2(p[:, 1], p[:, 0]), rho / radius, p[:, 2] / half_height)
-    return ModelFrame(GlobalParameters(c, matrix_to_quat(rot), [radius, 1, 1, half_height / radius], 0.0), coords)
+        raise ValueError(
+            f'radius and half_height must be finite and > 0, got {radius}, {half_height}'
+        )
+    coords = ModelCoordinates.cylindrical(
+        np.arctan2(p[:, 1], p[:, 0]), rho / radius, p[:, 2] / half_height
+    )
+    return ModelFrame(
+        GlobalParameters(c, matrix_to_quat(rot), [radius, 1, 1, half_height / radius], 0.0), coords
+    )

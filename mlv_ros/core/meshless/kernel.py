@@ -1,4 +1,5 @@
-"""Particles and phyxels: poly6 kernel, support radii, neighbourhoods, masses and volumes.
+"""
+Particles and phyxels: poly6 kernel, support radii, neighbourhoods, masses and volumes.
 
 Paper §2.1 (eq. 4) and Müller et al. 2004. A *phyxel* is a particle ``i`` together with the
 particles ``j`` within its support radius ``h_i``; ``h_i = 3 r̄_i`` where ``r̄_i`` is the mean
@@ -27,7 +28,8 @@ DUPLICATE_FRACTION = 1.0e-6
 
 
 def poly6(r: np.ndarray, h: np.ndarray | float) -> np.ndarray:
-    """Normalised poly6 kernel (paper eq. 4 divided by its integral).
+    """
+    Normalised poly6 kernel (paper eq. 4 divided by its integral).
 
     ``W(r, h) = 315 / (64 π h⁹) · (h² − r²)³`` for ``r < h``, else 0.
 
@@ -42,30 +44,35 @@ def poly6(r: np.ndarray, h: np.ndarray | float) -> np.ndarray:
     -------
     ndarray
         Kernel values, mm⁻³; ``∫ W(|x|, h) dx = 1`` over R³.
+
     """
     r = np.asarray(r, dtype=np.float64)
     h = np.asarray(h, dtype=np.float64)
     q = np.clip(h * h - r * r, 0.0, None)
-    return 315.0 / (64.0 * np.pi * h ** 9) * q ** 3
+    return 315.0 / (64.0 * np.pi * h**9) * q**3
 
 
-def validate_points(points, name: str = "points", min_count: int = 1) -> np.ndarray:
+def validate_points(points, name: str = 'points', min_count: int = 1) -> np.ndarray:
     """Return ``points`` as a float64 (N, 3) array or raise a ValueError saying what is wrong."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+        raise ValueError(f'{name} must have shape (N, 3), got {p.shape}')
     if p.shape[0] < min_count:
-        raise ValueError(f"{name} needs at least {min_count} rows, got {p.shape[0]}")
+        raise ValueError(f'{name} needs at least {min_count} rows, got {p.shape[0]}')
     bad = ~np.all(np.isfinite(p), axis=1)
     if bad.any():
         idx = np.flatnonzero(bad)
-        raise ValueError(f"{name} has {idx.size} non-finite (NaN/inf) rows, first at index {idx[0]}")
+        raise ValueError(
+            f'{name} has {idx.size} non-finite (NaN/inf) rows, first at index {idx[0]}'
+        )
     return p
 
 
-def mean_neighbour_distance(points: np.ndarray, k: int = NUM_NEIGHBOURS,
-                            tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Mean distance r̄_i to the ``k`` nearest other particles.
+def mean_neighbour_distance(
+    points: np.ndarray, k: int = NUM_NEIGHBOURS, tree: cKDTree | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Mean distance r̄_i to the ``k`` nearest other particles.
 
     Parameters
     ----------
@@ -82,6 +89,7 @@ def mean_neighbour_distance(points: np.ndarray, k: int = NUM_NEIGHBOURS,
         Mean neighbour distance, mm.
     knn : ndarray of int, shape (N, k)
         Indices of those neighbours (for cheap re-evaluation of r̄ after motion).
+
     """
     n = points.shape[0]
     k = min(k, n - 1)
@@ -90,9 +98,11 @@ def mean_neighbour_distance(points: np.ndarray, k: int = NUM_NEIGHBOURS,
     return dist[:, 1:].mean(axis=1), idx[:, 1:]
 
 
-def check_duplicates(points: np.ndarray, tree: cKDTree | None = None,
-                     tol: float | None = None) -> None:
-    """Raise ValueError if two particles coincide (closer than ``tol`` mm).
+def check_duplicates(
+    points: np.ndarray, tree: cKDTree | None = None, tol: float | None = None
+) -> None:
+    """
+    Raise ValueError if two particles coincide (closer than ``tol`` mm).
 
     ``tol`` defaults to ``DUPLICATE_FRACTION`` × the median nearest-neighbour distance (or 1e-9 mm
     if that is 0). Coincident particles make every MLS moment matrix that contains both of them
@@ -107,13 +117,15 @@ def check_duplicates(points: np.ndarray, tree: cKDTree | None = None,
     if dup.size:
         i = int(dup[0])
         raise ValueError(
-            f"duplicate particles: {dup.size} particles have a neighbour within {tol:.3g} mm "
-            f"(e.g. {i} and {int(idx[i, 1])} at {points[i].tolist()}); remove duplicates first")
+            f'duplicate particles: {dup.size} particles have a neighbour within {tol:.3g} mm '
+            f'(e.g. {i} and {int(idx[i, 1])} at {points[i].tolist()}); remove duplicates first'
+        )
 
 
 @dataclass
 class Phyxels:
-    """Neighbourhood structure of a particle cloud (rest configuration).
+    """
+    Neighbourhood structure of a particle cloud (rest configuration).
 
     Pairs are stored flat in CSR order: phyxel ``i`` owns ``pair_j[indptr[i]:indptr[i+1]]``
     (``j != i``).
@@ -150,6 +162,7 @@ class Phyxels:
     mass, density, volume : ndarray, shape (N,)
         ``m_i = s r̄_i³ ρ₀`` with ``s`` chosen so the mean density equals ρ₀;
         ``ρ_i = Σ_j m_j W(|x_ij|, h_i)`` (self included); ``v_i = m_i / ρ_i`` (mm³).
+
     """
 
     points: np.ndarray
@@ -206,18 +219,26 @@ def _safe_inverse(moment: np.ndarray, cond_max: float):
     """Inverse of each 3×3 A_i, truncated-SVD pseudo-inverse where cond > ``cond_max``."""
     u, s, vt = np.linalg.svd(moment)
     smax = s[:, :1]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide='ignore', invalid='ignore'):
         cond = np.where(s[:, 2] > 0, s[:, 0] / s[:, 2], np.inf)
     keep = s > smax / cond_max
     sinv = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
-    inv = np.einsum("nij,nj,nkj->nik", vt.transpose(0, 2, 1), sinv, u)
+    inv = np.einsum('nij,nj,nkj->nik', vt.transpose(0, 2, 1), sinv, u)
     return inv, cond, ~keep.all(axis=1)
 
 
-def build_phyxels(points, k: int = NUM_NEIGHBOURS, support_factor: float = SUPPORT_FACTOR,
-                  cond_max: float = COND_MAX, max_regroup: int = 3, regroup_factor: float = 1.5,
-                  rho0: float = 1.0, h: np.ndarray | None = None) -> Phyxels:
-    """Group particles into phyxels (paper §2.1).
+def build_phyxels(
+    points,
+    k: int = NUM_NEIGHBOURS,
+    support_factor: float = SUPPORT_FACTOR,
+    cond_max: float = COND_MAX,
+    max_regroup: int = 3,
+    regroup_factor: float = 1.5,
+    rho0: float = 1.0,
+    h: np.ndarray | None = None,
+) -> Phyxels:
+    """
+    Group particles into phyxels (paper §2.1).
 
     Ill-shaped phyxels — condition number of the moment matrix A_i above ``cond_max`` (long,
     flat or too few members) — are *regrouped*: their support radius is enlarged by
@@ -252,15 +273,16 @@ def build_phyxels(points, k: int = NUM_NEIGHBOURS, support_factor: float = SUPPO
     ------
     ValueError
         Non-finite or wrongly shaped points, fewer than 5 particles, duplicate particles.
+
     """
-    pts = validate_points(points, "particle positions", min_count=5)
+    pts = validate_points(points, 'particle positions', min_count=5)
     n = pts.shape[0]
     tree = cKDTree(pts)
     check_duplicates(pts, tree)
     rbar, knn = mean_neighbour_distance(pts, k, tree)
     h = support_factor * rbar if h is None else np.asarray(h, dtype=np.float64).copy()
     if h.shape != (n,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
-        raise ValueError("support radii h must be a finite positive array of shape (N,)")
+        raise ValueError('support radii h must be a finite positive array of shape (N,)')
 
     pi, pj = _pairs_within(tree, pts, h, np.arange(n))
     xij = pts[pj] - pts[pi]
@@ -288,13 +310,29 @@ def build_phyxels(points, k: int = NUM_NEIGHBOURS, support_factor: float = SUPPO
     indptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=n))])
 
     # Müller: m_i = s r̄_i³ ρ₀, s such that the kernel density averages ρ₀.
-    m_unit = rbar ** 3
+    m_unit = rbar**3
     w_self = poly6(0.0, h)
     rho_unit = m_unit * w_self + np.bincount(pi, weights=m_unit[pj] * wij, minlength=n)
     s = 1.0 / float(np.mean(rho_unit))
     mass = s * m_unit * rho0
     density = s * rho_unit * rho0
     volume = mass / density
-    return Phyxels(points=pts, rbar=rbar, h=h, knn=knn, indptr=indptr, pair_i=pi, pair_j=pj,
-                   xij=xij, wij=wij, moment=moment, moment_inv=moment_inv, cond=cond,
-                   regrouped=regrouped, pinv=pinv, mass=mass, density=density, volume=volume)
+    return Phyxels(
+        points=pts,
+        rbar=rbar,
+        h=h,
+        knn=knn,
+        indptr=indptr,
+        pair_i=pi,
+        pair_j=pj,
+        xij=xij,
+        wij=wij,
+        moment=moment,
+        moment_inv=moment_inv,
+        cond=cond,
+        regrouped=regrouped,
+        pinv=pinv,
+        mass=mass,
+        density=density,
+        volume=volume,
+    )

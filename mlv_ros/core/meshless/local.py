@@ -1,4 +1,5 @@
-"""The local stage of the meshless model: quadratic energy terms on the MLS gradient and one
+"""
+The local stage of the meshless model: quadratic energy terms on the MLS gradient and one
 block-Jacobi preconditioned CG solve (paper eq. 6, 16, 20–23, linearised at rest).
 
 The local deformation ``u`` (N, 3) minimises ``½ uᵀ A u − bᵀ u`` with ``A`` the sum of
@@ -35,25 +36,28 @@ Units: moduli in any pressure unit P, volumes mm³, displacements mm, forces P·
 
 from __future__ import annotations
 
+from mlv_ros.core.meshless.mls import MLSOperator
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.meshless.mls import MLSOperator
-
 _I3 = np.eye(3)
 
 
 def elastic_tangent(lam: float, mu: float) -> np.ndarray:
-    """``∂S/∂H`` of linear elasticity, ``S = μ (H + Hᵀ) + λ tr(H) I``; shape (3, 3, 3, 3),
-    index ``[a, b, c, d] = ∂S_ab/∂H_cd``."""
-    return (mu * (np.einsum("ac,bd->abcd", _I3, _I3) + np.einsum("ad,bc->abcd", _I3, _I3))
-            + lam * np.einsum("ab,cd->abcd", _I3, _I3))
+    """
+    ``∂S/∂H`` of linear elasticity, ``S = μ (H + Hᵀ) + λ tr(H) I``; shape (3, 3, 3, 3),
+    index ``[a, b, c, d] = ∂S_ab/∂H_cd``.
+    """
+    return mu * (
+        np.einsum('ac,bd->abcd', _I3, _I3) + np.einsum('ad,bc->abcd', _I3, _I3)
+    ) + lam * np.einsum('ab,cd->abcd', _I3, _I3)
 
 
 class LocalOperators:
-    """The rest-configuration parts of the local stage, built once per set of phyxels.
+    """
+    The rest-configuration parts of the local stage, built once per set of phyxels.
 
     Parameters
     ----------
@@ -77,6 +81,7 @@ class LocalOperators:
         ``s_i A_i``: the second part is ``−½ Σ_i H_i : H_i s_i A_i``.
     fit_error_diagonal : ndarray, shape (N,)
         Exact diagonal of the fit-error penalty (the same for the three components).
+
     """
 
     def __init__(self, operator: MLSOperator, volume, lam: float, mu: float, fit_error_weights):
@@ -104,12 +109,18 @@ class LocalOperators:
         # and W_i + 2 b_i·d_ii + d_iiᵀ A_i d_ii for the centre (W_i = Σ w, b_i = Σ w x).
         npair = pi.size
         mom = ph.moment
-        dAd = sum((2.0 - (a == b)) * mom[ei, a, b] * d[:, a] * d[:, b] for a in range(3) for b in range(a, 3))
-        xd = np.einsum("pa,pa->p", ph.xij, d[:npair]) if npair else np.zeros(0)
+        dAd = sum(
+            (2.0 - (a == b)) * mom[ei, a, b] * d[:, a] * d[:, b]
+            for a in range(3)
+            for b in range(a, 3)
+        )
+        xd = np.einsum('pa,pa->p', ph.xij, d[:npair]) if npair else np.zeros(0)
         wsum = np.bincount(pi, weights=ph.wij, minlength=n)
-        bvec = np.stack([np.bincount(pi, weights=ph.wij * ph.xij[:, a], minlength=n) for a in range(3)], axis=1)
+        bvec = np.stack(
+            [np.bincount(pi, weights=ph.wij * ph.xij[:, a], minlength=n) for a in range(3)], axis=1
+        )
         t_pair = ph.wij * (1.0 - 2.0 * xd) + dAd[:npair]
-        t_self = wsum + 2.0 * np.einsum("na,na->n", bvec, d[npair:]) + dAd[npair:]
+        t_self = wsum + 2.0 * np.einsum('na,na->n', bvec, d[npair:]) + dAd[npair:]
         self.fit_error_diagonal = np.bincount(pj, weights=s[pi] * t_pair, minlength=n) + s * t_self
         self._elastic = elastic_tangent(self.lam, self.mu)
         # Products with Dᵀ and L as CSC views of D and L: scipy's CSC kernel streams through the
@@ -121,17 +132,27 @@ class LocalOperators:
         """Gradient of the fit-error penalty (weights ``s_i``, multiplier 1) at ``u`` (N, 3)."""
         op = self.operator
         h = (op.matrix_csc @ u).reshape(self.n, 3, 3)  # [i, b, a] = H_i[a, b]
-        return self._laplacian_csc @ u - self._adjoint @ np.matmul(self.fit_error_moment, h).reshape(3 * self.n, 3)
+        return self._laplacian_csc @ u - self._adjoint @ np.matmul(
+            self.fit_error_moment, h
+        ).reshape(3 * self.n, 3)
 
     def elastic_diagonal(self) -> np.ndarray:
         """Diagonal of the linear elastic stiffness, shape (N, 3)."""
-        blocks = np.einsum("abcd,nbd->nac", self._elastic, self.volume_moment)
-        return np.einsum("naa->na", blocks).copy()
+        blocks = np.einsum('abcd,nbd->nac', self._elastic, self.volume_moment)
+        return np.einsum('naa->na', blocks).copy()
 
-    def system(self, *, fit_error: float = 0.0, volume: tuple | None = None, axial: tuple | None = None,
-               data: tuple | None = None, eps: float = 0.0,
-               coarse: "CoarseSpace | None" = None) -> "LocalSystem":
-        """The local-stage system of one solve (elasticity always included, weight 1).
+    def system(
+        self,
+        *,
+        fit_error: float = 0.0,
+        volume: tuple | None = None,
+        axial: tuple | None = None,
+        data: tuple | None = None,
+        eps: float = 0.0,
+        coarse: 'CoarseSpace | None' = None,
+    ) -> 'LocalSystem':
+        """
+        The local-stage system of one solve (elasticity always included, weight 1).
 
         Parameters
         ----------
@@ -149,6 +170,7 @@ class LocalOperators:
         coarse : CoarseSpace, optional
             Add its coarse correction to the block-Jacobi preconditioner (its internal part was
             built for these multipliers; see :class:`CoarseSpace`).
+
         """
         return LocalSystem(self, fit_error, volume, axial, data, eps, coarse)
 
@@ -164,27 +186,35 @@ class LocalSystem:
         self._offset = None
         if volume is not None and volume[0]:
             kv, C = float(volume[0]), np.asarray(volume[1], dtype=np.float64)
-            unit = unit + kv * np.einsum("nab,ncd->nabcd", C, C)
+            unit = unit + kv * np.einsum('nab,ncd->nabcd', C, C)
             if volume[2] is not None:
-                self._offset = (kv * ops.volume * np.asarray(volume[2], dtype=np.float64))[:, None, None] * C
+                self._offset = (kv * ops.volume * np.asarray(volume[2], dtype=np.float64))[
+                    :, None, None
+                ] * C
         if axial is not None and axial[0]:
             a = np.asarray(axial[1], dtype=np.float64)
             if a.ndim == 1:
                 aa = np.outer(a, a)
-                unit = unit + float(axial[0]) * np.einsum("ab,cd->abcd", aa, aa)
+                unit = unit + float(axial[0]) * np.einsum('ab,cd->abcd', aa, aa)
             else:  # per particle: ½ k_l Σ_i v_i (M_i : H_i)²
-                unit = unit + float(axial[0]) * np.einsum("nab,ncd->nabcd", a, a)
+                unit = unit + float(axial[0]) * np.einsum('nab,ncd->nabcd', a, a)
         tangent = ops.volume[:, None, None, None, None] * unit
         if self.fit_error:
             # −s_i H A_i: ∂S_ab/∂H_cd = −s_i δ_ac A_i[d, b]
-            tangent = tangent - self.fit_error * np.einsum("ac,ndb->nabcd", _I3, ops.fit_error_moment)
+            tangent = tangent - self.fit_error * np.einsum(
+                'ac,ndb->nabcd', _I3, ops.fit_error_moment
+            )
         # In the operator's layout (flat index 3b + a holds H[a, b]): S = T · H per particle.
         self._tangent = np.ascontiguousarray(tangent.transpose(0, 2, 1, 4, 3).reshape(n, 9, 9))
-        block = np.einsum("nabcd,nbd->nac", unit, ops.volume_moment)
+        block = np.einsum('nabcd,nbd->nac', unit, ops.volume_moment)
         block = block + (self.fit_error * ops.fit_error_diagonal + self.eps)[:, None, None] * _I3
         self._data = None
         if data is not None:
-            kappa, phi, metric = float(data[0]), sp.csr_matrix(data[1]), np.asarray(data[2], dtype=np.float64)
+            kappa, phi, metric = (
+                float(data[0]),
+                sp.csr_matrix(data[1]),
+                np.asarray(data[2], dtype=np.float64),
+            )
             self._data = (kappa, phi, phi.T.tocsr(), metric)
             block = block + kappa * (phi.multiply(phi).T @ metric.reshape(-1, 9)).reshape(n, 3, 3)
         self.block_diagonal = block
@@ -195,8 +225,10 @@ class LocalSystem:
         self._coarse = None
         if coarse is not None:
             if coarse.ops is not ops:
-                raise ValueError("coarse space was built on other local operators")
-            self._coarse = coarse.factor(None if self._data is None else (self._data[0], self._data[1], self._data[3]))
+                raise ValueError('coarse space was built on other local operators')
+            self._coarse = coarse.factor(
+                None if self._data is None else (self._data[0], self._data[1], self._data[3])
+            )
 
     def internal(self, u: np.ndarray) -> np.ndarray:
         """``A u`` without the data springs, shape (N, 3)."""
@@ -225,24 +257,36 @@ class LocalSystem:
         return out
 
     def constant_force(self) -> np.ndarray:
-        """``−∂/∂u`` of the energy's linear part in u other than the data's (the incompressibility
-        offsets ``g``), shape (N, 3): add it to the right-hand side."""
+        """
+        ``−∂/∂u`` of the energy's linear part in u other than the data's (the incompressibility
+        offsets ``g``), shape (N, 3): add it to the right-hand side.
+        """
         if self._offset is None:
             return np.zeros((self.n, 3))
         return -self.ops.operator.adjoint(self._offset)
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
-        """``M⁻¹ r`` for a flat residual (3N,): block-Jacobi, plus the coarse correction
-        ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse space (additive two-level)."""
+        """
+        ``M⁻¹ r`` for a flat residual (3N,): block-Jacobi, plus the coarse correction
+        ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse space (additive two-level).
+        """
         n = self.n
         z = np.matmul(self._block_inv, r.reshape(n, 3, 1)).ravel()
         if self._coarse is not None:
             z += self._coarse(r.reshape(n, 3)).ravel()
         return z
 
-    def solve(self, rhs: np.ndarray, x0: np.ndarray | None = None, *, rtol: float = 1e-3,
-              atol: float = 0.0, maxiter: int = 400) -> tuple[np.ndarray, int]:
-        """Preconditioned CG on ``A u = rhs`` (:func:`pcg`, :meth:`precondition`).
+    def solve(
+        self,
+        rhs: np.ndarray,
+        x0: np.ndarray | None = None,
+        *,
+        rtol: float = 1e-3,
+        atol: float = 0.0,
+        maxiter: int = 400,
+    ) -> tuple[np.ndarray, int]:
+        """
+        Preconditioned CG on ``A u = rhs`` (:func:`pcg`, :meth:`precondition`).
 
         Parameters
         ----------
@@ -256,16 +300,24 @@ class LocalSystem:
         -------
         u : ndarray, shape (N, 3)
         iterations : int
+
         """
         n = self.n
-        x, its = pcg(lambda v: self.matvec(v.reshape(n, 3)).ravel(), self.precondition,
-                     np.asarray(rhs, dtype=np.float64).ravel(), None if x0 is None else np.ravel(x0),
-                     rtol=rtol, atol=atol, maxiter=maxiter)
+        x, its = pcg(
+            lambda v: self.matvec(v.reshape(n, 3)).ravel(),
+            self.precondition,
+            np.asarray(rhs, dtype=np.float64).ravel(),
+            None if x0 is None else np.ravel(x0),
+            rtol=rtol,
+            atol=atol,
+            maxiter=maxiter,
+        )
         return x.reshape(n, 3), its
 
 
 def farthest_point_aggregates(points: np.ndarray, num_aggregates: int) -> np.ndarray:
-    """Split a cloud into ``num_aggregates`` compact aggregates: seeds by farthest-point sampling
+    """
+    Split a cloud into ``num_aggregates`` compact aggregates: seeds by farthest-point sampling
     from particle 0 (deterministic), every particle joins its nearest seed.
 
     Parameters
@@ -279,12 +331,15 @@ def farthest_point_aggregates(points: np.ndarray, num_aggregates: int) -> np.nda
     -------
     ndarray of int, shape (N,)
         Aggregate of each particle, 0 … num_aggregates − 1 (each holds at least its seed).
+
     """
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     k = int(num_aggregates)
     if not 1 <= k <= n:
-        raise ValueError(f"num_aggregates must be in [1, {n}] (the particle count), got {num_aggregates}")
+        raise ValueError(
+            f'num_aggregates must be in [1, {n}] (the particle count), got {num_aggregates}'
+        )
     seeds = np.empty(k, dtype=np.int64)
     seeds[0] = 0
     dist = np.linalg.norm(pts - pts[0], axis=1)
@@ -297,7 +352,8 @@ def farthest_point_aggregates(points: np.ndarray, num_aggregates: int) -> np.nda
 
 
 class CoarseSpace:
-    """Coarse space of the local stage: the affine displacement fields of each aggregate of
+    """
+    Coarse space of the local stage: the affine displacement fields of each aggregate of
     particles, with the Galerkin projection of the internal terms built once per model.
 
     Block-Jacobi removes error that varies from particle to particle in a few CG iterations, but
@@ -338,29 +394,45 @@ class CoarseSpace:
         component-major, index ``e Q + q``).
     internal : ndarray, shape (3Q, 3Q)
         ``Zᵀ A_ref Z`` of the internal terms (elasticity, volume, axial, fit error, ε).
+
     """
 
-    def __init__(self, ops: "LocalOperators", num_aggregates: int, *, fit_error: float = 0.0,
-                 volume_weight: float = 0.0, axial: tuple | None = None, eps: float = 0.0):
+    def __init__(
+        self,
+        ops: 'LocalOperators',
+        num_aggregates: int,
+        *,
+        fit_error: float = 0.0,
+        volume_weight: float = 0.0,
+        axial: tuple | None = None,
+        eps: float = 0.0,
+    ):
         self.ops = ops
         n = ops.n
         pts = ops.operator.phyxels.points
         agg = farthest_point_aggregates(pts, num_aggregates)
         na = int(agg.max()) + 1
         count = np.bincount(agg, minlength=na)
-        centre = np.stack([np.bincount(agg, weights=pts[:, a], minlength=na) for a in range(3)], axis=1) / count[:, None]
+        centre = (
+            np.stack([np.bincount(agg, weights=pts[:, a], minlength=na) for a in range(3)], axis=1)
+            / count[:, None]
+        )
         rel = pts - centre[agg]
-        scale = max(float(np.sqrt(np.mean(np.sum(rel ** 2, axis=1)))), 1e-12)
+        scale = max(float(np.sqrt(np.mean(np.sum(rel**2, axis=1)))), 1e-12)
         b = np.concatenate([np.ones((n, 1)), rel / scale], axis=1)  # (N, 4)
         gram = np.zeros((na, 4, 4))
         for a in range(4):
             for c in range(a, 4):
-                gram[:, a, c] = gram[:, c, a] = np.bincount(agg, weights=b[:, a] * b[:, c], minlength=na)
+                gram[:, a, c] = gram[:, c, a] = np.bincount(
+                    agg, weights=b[:, a] * b[:, c], minlength=na
+                )
         val, vec = np.linalg.eigh(gram)
         keep = val > 1e-8 * val[:, -1:]
-        wmat = vec / np.sqrt(np.where(keep, val, 1.0))[:, None, :]  # orthonormal over each aggregate
+        wmat = (
+            vec / np.sqrt(np.where(keep, val, 1.0))[:, None, :]
+        )  # orthonormal over each aggregate
         col = np.cumsum(keep.ravel()).reshape(na, 4) - 1
-        vals = np.einsum("na,nac->nc", b, wmat[agg])
+        vals = np.einsum('na,nac->nc', b, wmat[agg])
         k = keep[agg]
         rows = np.broadcast_to(np.arange(n)[:, None], (n, 4))
         q = int(keep.sum())
@@ -373,12 +445,23 @@ class CoarseSpace:
         vpsi = [vol @ r for r in rows_b]
         pp = [[(rows_b[x].T @ vpsi[y]).toarray() for y in range(3)] for x in range(3)]
         fm = ops.fit_error_moment
-        fit = sum((rows_b[x].T @ (sp.diags(fm[:, y, x]) @ rows_b[y])).toarray() for x in range(3) for y in range(3))
+        fit = sum(
+            (rows_b[x].T @ (sp.diags(fm[:, y, x]) @ rows_b[y])).toarray()
+            for x in range(3)
+            for y in range(3)
+        )
         zs, zt = self.basis, self._basis_t
-        diag = (ops.mu * sum(pp[x][x] for x in range(3)) - float(fit_error) * fit
-                + float(fit_error) * (zt @ (ops.laplacian @ zs)).toarray() + float(eps) * (zt @ zs).toarray())
+        diag = (
+            ops.mu * sum(pp[x][x] for x in range(3))
+            - float(fit_error) * fit
+            + float(fit_error) * (zt @ (ops.laplacian @ zs)).toarray()
+            + float(eps) * (zt @ zs).toarray()
+        )
         lam = ops.lam + float(volume_weight)
-        blocks = [[ops.mu * pp[f][e] + lam * pp[e][f] + (diag if e == f else 0.0) for f in range(3)] for e in range(3)]
+        blocks = [
+            [ops.mu * pp[f][e] + lam * pp[e][f] + (diag if e == f else 0.0) for f in range(3)]
+            for e in range(3)
+        ]
         if axial is not None and axial[0]:
             ax = np.asarray(axial[1], dtype=np.float64)
             pa = sum(ax[x] * rows_b[x] for x in range(3))
@@ -387,12 +470,14 @@ class CoarseSpace:
         self.internal = np.block(blocks)
 
     def factor(self, data: tuple | None = None):
-        """The coarse correction of one system: ``r ↦ Z A_c⁻¹ Zᵀ r`` for residuals (N, 3).
+        """
+        The coarse correction of one system: ``r ↦ Z A_c⁻¹ Zᵀ r`` for residuals (N, 3).
 
         Parameters
         ----------
         data : (κ, Φ, P) or None
             The system's data springs (:meth:`LocalOperators.system`), projected here.
+
         """
         ac = self.internal
         if data is not None:
@@ -425,12 +510,21 @@ class CoarseSpace:
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.einsum("i,i->", a, b))
+    return float(np.einsum('i,i->', a, b))
 
 
-def pcg(matvec, precond, b: np.ndarray, x0: np.ndarray | None = None, *, rtol: float = 1e-3,
-        atol: float = 0.0, maxiter: int = 400) -> tuple[np.ndarray, int]:
-    """Preconditioned conjugate gradients: the iteration and stopping rule of
+def pcg(
+    matvec,
+    precond,
+    b: np.ndarray,
+    x0: np.ndarray | None = None,
+    *,
+    rtol: float = 1e-3,
+    atol: float = 0.0,
+    maxiter: int = 400,
+) -> tuple[np.ndarray, int]:
+    """
+    Preconditioned conjugate gradients: the iteration and stopping rule of
     :func:`scipy.sparse.linalg.cg` (``‖r‖ ≤ max(rtol ‖b‖, atol)``, tested before each
     iteration), with inner products that do not call BLAS.
 
@@ -451,6 +545,7 @@ def pcg(matvec, precond, b: np.ndarray, x0: np.ndarray | None = None, *, rtol: f
     x : ndarray, shape (n,)
     iterations : int
         Iterations done (``maxiter`` if the tolerance was not reached).
+
     """
     bnrm = np.sqrt(_dot(b, b))
     if bnrm == 0.0:

@@ -1,4 +1,5 @@
-"""Moving-least-squares displacement gradient as a precomputed sparse operator (eq. 16–17).
+"""
+Moving-least-squares displacement gradient as a precomputed sparse operator (eq. 16–17).
 
 For phyxel ``i`` with members ``j``: ``∇u_i = A_i⁻¹ Σ_j (u_j − u_i) x_ij w_ij``. Writing
 ``d_ij = A_i⁻¹ x_ij w_ij`` and ``d_ii = −Σ_j d_ij`` this is ``Σ_j u_j ⊗ d_ij`` (j over members
@@ -14,14 +15,14 @@ deformation gradient is ``J = I + H`` (eq. 18).
 
 from __future__ import annotations
 
+from mlv_ros.core.meshless.kernel import Phyxels
 import numpy as np
 import scipy.sparse as sp
 
-from mlv_ros.core.meshless.kernel import Phyxels
-
 
 class MLSOperator:
-    """Sparse MLS gradient operator on a fixed (rest) configuration.
+    """
+    Sparse MLS gradient operator on a fixed (rest) configuration.
 
     Parameters
     ----------
@@ -41,6 +42,7 @@ class MLSOperator:
         Phyxel and member of every ``d_ij``: the phyxels' pairs, then each particle with itself.
     entry_d : ndarray, shape (P + N, 3)
         ``d_ij`` for those entries, mm⁻¹ (``d_ii = −Σ_j d_ij`` last).
+
     """
 
     def __init__(self, phyxels: Phyxels):
@@ -49,8 +51,12 @@ class MLSOperator:
         # d_ij = A_i⁻¹ x_ij w_ij, component by component (no (P, 3, 3) gather of A⁻¹).
         minv = phyxels.moment_inv
         wx = phyxels.xij * phyxels.wij[:, None]
-        dij = np.stack([sum(minv[:, a, b][pi] * wx[:, b] for b in range(3)) for a in range(3)], axis=1)
-        dii = -np.stack([np.bincount(pi, weights=dij[:, b], minlength=n) for b in range(3)], axis=1)
+        dij = np.stack(
+            [sum(minv[:, a, b][pi] * wx[:, b] for b in range(3)) for a in range(3)], axis=1
+        )
+        dii = -np.stack(
+            [np.bincount(pi, weights=dij[:, b], minlength=n) for b in range(3)], axis=1
+        )
         ar = np.arange(n)
         self.n = n
         self.entry_i, self.entry_j = np.concatenate([pi, ar]), np.concatenate([pj, ar])
@@ -58,7 +64,7 @@ class MLSOperator:
         # Block row i = rows 3i..3i+2, its members then itself: a (3, 1)-block BSR matrix whose
         # CSR form is D, built without sorting (pairs come grouped by phyxel from build_phyxels).
         if np.any(np.diff(pi) < 0):
-            order = np.argsort(pi, kind="stable")
+            order = np.argsort(pi, kind='stable')
             pi, pj, dij = pi[order], pj[order], dij[order]
         counts = np.bincount(pi, minlength=n)
         ptr = np.concatenate([[0], np.cumsum(counts + 1)])
@@ -75,12 +81,15 @@ class MLSOperator:
 
     @property
     def matrix_t(self) -> sp.csc_matrix:
-        """``Dᵀ`` as a CSC view of :attr:`matrix` (its products scatter, measured faster than a
-        CSR transpose)."""
+        """
+        ``Dᵀ`` as a CSC view of :attr:`matrix` (its products scatter, measured faster than a
+        CSR transpose).
+        """
         return self.matrix.T
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
-        """Displacement gradient at every particle.
+        """
+        Displacement gradient at every particle.
 
         Parameters
         ----------
@@ -91,14 +100,16 @@ class MLSOperator:
         -------
         ndarray, shape (N, 3, 3)
             ``H[i, a, b] = ∂u_a/∂x_b`` (dimensionless); exact for affine ``u``.
+
         """
         u = np.asarray(u, dtype=np.float64)
         if u.shape != (self.n, 3):
-            raise ValueError(f"displacement must have shape ({self.n}, 3), got {u.shape}")
+            raise ValueError(f'displacement must have shape ({self.n}, 3), got {u.shape}')
         return (self.matrix_csc @ u).reshape(self.n, 3, 3).transpose(0, 2, 1)
 
     def adjoint(self, p: np.ndarray) -> np.ndarray:
-        """Adjoint of :meth:`gradient`: ``f[j, a] = Σ_i Σ_b p[i, a, b] d_ij[b]``.
+        """
+        Adjoint of :meth:`gradient`: ``f[j, a] = Σ_i Σ_b p[i, a, b] d_ij[b]``.
 
         Parameters
         ----------
@@ -109,11 +120,13 @@ class MLSOperator:
         -------
         ndarray, shape (N, 3)
             ``∂/∂u_j`` of ``Σ_i p_i : H_i``.
+
         """
         return self.matrix_t @ np.ascontiguousarray(p.transpose(0, 2, 1)).reshape(3 * self.n, 3)
 
     def full_matrix(self) -> sp.csr_matrix:
-        """The 9N × 3N operator ``G`` with ``vec(H) = G vec(u)``.
+        """
+        The 9N × 3N operator ``G`` with ``vec(H) = G vec(u)``.
 
         Row ``9i + 3a + b`` holds ``∂u_a/∂x_b`` at particle ``i``; column ``3j + a`` is ``u_j[a]``.
         Built on demand (it has 3× the non-zeros of :attr:`matrix`).

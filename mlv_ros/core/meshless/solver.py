@@ -1,4 +1,5 @@
-"""The meshless deformable model and its fitting scheme (paper §2, eq. 5–15 and 22–23).
+"""
+The meshless deformable model and its fitting scheme (paper §2, eq. 5–15 and 22–23).
 
 A :class:`MeshlessModel` holds the rest (end-diastolic) particle cloud, its phyxels and MLS
 operator, the model frame (material coordinates + rest global parameters) and the current state:
@@ -37,32 +38,41 @@ less than ``tol`` mm RMS), or when the control residual RMS is below ``residual_
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from itertools import chain
+import time
 from typing import Callable
-
-import numpy as np
-import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from mlv_ros.core.meshless import elastic
 from mlv_ros.core.meshless.globals import (
-    NUM_GLOBAL, GlobalParameters, ModelCoordinates, ModelFrame, global_shape,
-    model_jacobian, reduce_rotation,
+    global_shape,
+    GlobalParameters,
+    model_jacobian,
+    ModelCoordinates,
+    ModelFrame,
+    NUM_GLOBAL,
+    reduce_rotation,
 )
 from mlv_ros.core.meshless.kernel import (
-    NUM_NEIGHBOURS, SUPPORT_FACTOR, build_phyxels, poly6, validate_points,
+    build_phyxels,
+    NUM_NEIGHBOURS,
+    poly6,
+    SUPPORT_FACTOR,
+    validate_points,
 )
 from mlv_ros.core.meshless.local import LocalOperators
 from mlv_ros.core.meshless.mls import MLSOperator
 from mlv_ros.core.types import ModelState
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 
 # --------------------------------------------------------------------------- control points
 @dataclass
 class ControlPoints:
-    """Control points attached to particles by kernel weights.
+    """
+    Control points attached to particles by kernel weights.
 
     Attributes
     ----------
@@ -78,6 +88,7 @@ class ControlPoints:
     shepard : ndarray of bool, shape (M,)
         Control points whose MLS moment matrix was degenerate (e.g. all nearby particles
         coplanar); they fall back to normalised kernel (Shepard) weights.
+
     """
 
     weights: sp.csr_matrix
@@ -89,20 +100,32 @@ class ControlPoints:
         return int(self.weights.shape[0])
 
 
-def particle_support_radii(points: np.ndarray, tree: cKDTree, k: int = NUM_NEIGHBOURS,
-                           support_factor: float = SUPPORT_FACTOR) -> np.ndarray:
-    """Each particle's own support radius, ``support_factor`` × the mean distance to its ``k``
+def particle_support_radii(
+    points: np.ndarray,
+    tree: cKDTree,
+    k: int = NUM_NEIGHBOURS,
+    support_factor: float = SUPPORT_FACTOR,
+) -> np.ndarray:
+    """
+    Each particle's own support radius, ``support_factor`` × the mean distance to its ``k``
     nearest other particles, shape (N,): what :func:`attach_control_points` tests a control
-    point's nearest particle against (compute once per cloud and pass it as ``support_radii``)."""
+    point's nearest particle against (compute once per cloud and pass it as ``support_radii``).
+    """
     n = points.shape[0]
     d_pp, _ = tree.query(points, k=min(k + 1, n))
     return support_factor * d_pp.reshape(n, -1)[:, 1:].mean(axis=1)
 
 
-def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = None,
-                          k: int = NUM_NEIGHBOURS, support_factor: float = SUPPORT_FACTOR,
-                          support_radii: np.ndarray | None = None) -> ControlPoints:
-    """Attach control points to the particle cloud.
+def attach_control_points(
+    points: np.ndarray,
+    control,
+    tree: cKDTree | None = None,
+    k: int = NUM_NEIGHBOURS,
+    support_factor: float = SUPPORT_FACTOR,
+    support_radii: np.ndarray | None = None,
+) -> ControlPoints:
+    """
+    Attach control points to the particle cloud.
 
     Parameters
     ----------
@@ -125,19 +148,24 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     ValueError
         No control points; indices out of range; non-finite positions; a position outside the
         particle cloud (farther from its nearest particle than that particle's support radius).
+
     """
     n = points.shape[0]
     c = np.asarray(control)
     if c.size == 0:
-        raise ValueError("no control points: at least one control point (index or position) is required")
+        raise ValueError(
+            'no control points: at least one control point (index or position) is required'
+        )
     if c.ndim == 1 and np.issubdtype(c.dtype, np.integer):
         idx = c.astype(np.int64)
         if idx.min() < 0 or idx.max() >= n:
-            raise ValueError(f"control point indices must lie in [0, {n}), got range [{idx.min()}, {idx.max()}]")
+            raise ValueError(
+                f'control point indices must lie in [0, {n}), got range [{idx.min()}, {idx.max()}]'
+            )
         m = idx.size
         w = sp.csr_matrix((np.ones(m), (np.arange(m), idx)), shape=(m, n))
         return ControlPoints(w, points[idx].copy(), idx, np.zeros(m, dtype=bool))
-    y = validate_points(c, "control point positions")
+    y = validate_points(c, 'control point positions')
     m = y.shape[0]
     tree = cKDTree(points) if tree is None else tree
     kk = min(k, n)
@@ -154,8 +182,10 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     far = dist[:, 0] > h_near
     if far.any():
         bad = int(np.flatnonzero(far)[0])
-        raise ValueError(f"control point {bad} at {y[bad].tolist()} lies outside the particle cloud: "
-                         f"no particle within {h_near[bad]:.3g} mm (nearest {dist[bad, 0]:.3g} mm)")
+        raise ValueError(
+            f'control point {bad} at {y[bad].tolist()} lies outside the particle cloud: '
+            f'no particle within {h_near[bad]:.3g} mm (nearest {dist[bad, 0]:.3g} mm)'
+        )
     lists = tree.query_ball_point(y, r=h, return_sorted=False)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
     pj = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
@@ -175,7 +205,7 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
     ok = ~shepard
     if ok.any():
         coef[ok] = np.linalg.solve(mom[ok], rhs[ok])[:, :, 0]
-    phi = wk * np.einsum("pa,pa->p", basis, coef[pk])
+    phi = wk * np.einsum('pa,pa->p', basis, coef[pk])
     wsum = np.bincount(pk, weights=wk, minlength=m)
     phi = np.where(shepard[pk], wk / wsum[pk], phi)
     w = sp.csr_matrix((phi, (pk, pj)), shape=(m, n))
@@ -183,13 +213,15 @@ def attach_control_points(points: np.ndarray, control, tree: cKDTree | None = No
 
 
 def plane_projectors(normals, m: int) -> np.ndarray:
-    """In-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3); identity if ``normals`` is None.
+    """
+    In-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3); identity if ``normals`` is None.
 
     Parameters
     ----------
     normals : array_like, shape (M, 3) or (3,), or None
         Plane normals (any length > 0; normalised here). A row of NaN is not allowed; to
         constrain a point fully pass ``normals=None`` or use separate calls.
+
     """
     if normals is None:
         return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
@@ -197,38 +229,43 @@ def plane_projectors(normals, m: int) -> np.ndarray:
     if nrm.shape == (3,):
         nrm = np.broadcast_to(nrm, (m, 3))
     if nrm.shape != (m, 3):
-        raise ValueError(f"plane_normals must have shape ({m}, 3) or (3,), got {nrm.shape}")
+        raise ValueError(f'plane_normals must have shape ({m}, 3) or (3,), got {nrm.shape}')
     if not np.all(np.isfinite(nrm)):
-        raise ValueError("plane_normals contain NaN/inf")
+        raise ValueError('plane_normals contain NaN/inf')
     ln = np.linalg.norm(nrm, axis=1)
     if np.any(ln < 1e-12):
-        raise ValueError(f"plane normal {int(np.argmin(ln))} has zero length")
+        raise ValueError(f'plane normal {int(np.argmin(ln))} has zero length')
     nrm = nrm / ln[:, None]
     return np.eye(3) - nrm[:, :, None] * nrm[:, None, :]
 
 
 def control_weights(weights, m: int) -> np.ndarray:
-    """Per-control-point data weights scaled to mean 1, shape (M,); all 1 when ``weights`` is None.
+    """
+    Per-control-point data weights scaled to mean 1, shape (M,); all 1 when ``weights`` is None.
 
     Raises
     ------
     ValueError
         Wrong shape, NaN/inf, negative, or all zero.
+
     """
     if weights is None:
         return np.ones(m)
     w = np.asarray(weights, dtype=np.float64)
     if w.shape != (m,):
-        raise ValueError(f"weights must have shape ({m},) to match the control points, got {w.shape}")
+        raise ValueError(
+            f'weights must have shape ({m},) to match the control points, got {w.shape}'
+        )
     if not np.all(np.isfinite(w)) or np.any(w < 0.0) or not np.any(w > 0.0):
-        raise ValueError("weights must be finite, >= 0 and not all zero")
+        raise ValueError('weights must be finite, >= 0 and not all zero')
     return w * (m / float(np.sum(w)))
 
 
 # --------------------------------------------------------------------------- result
 @dataclass
 class FitResult:
-    """Outcome of :meth:`MeshlessModel.fit`.
+    """
+    Outcome of :meth:`MeshlessModel.fit`.
 
     Attributes
     ----------
@@ -246,6 +283,7 @@ class FitResult:
         ``seconds`` (wall time of the iteration).
     wall_time : float
         Seconds spent in the fit.
+
     """
 
     positions: np.ndarray
@@ -259,7 +297,8 @@ class FitResult:
 
 # --------------------------------------------------------------------------- model
 class MeshlessModel:
-    """Meshless deformable model on a rest particle cloud.
+    """
+    Meshless deformable model on a rest particle cloud.
 
     Parameters
     ----------
@@ -284,27 +323,38 @@ class MeshlessModel:
     ------
     ValueError
         Bad points (shape, NaN/inf, duplicates, < 5), frame size mismatch, bad material.
+
     """
 
-    def __init__(self, points, frame: ModelFrame, youngs_modulus: float = 1.0,
-                 poisson_ratio: float = 0.45, *, k: int = NUM_NEIGHBOURS,
-                 support_factor: float = SUPPORT_FACTOR, cond_max: float = 1.0e4,
-                 stabilisation: float = 1000.0):
-        self.rest_points = validate_points(points, "particle positions", min_count=5)
+    def __init__(
+        self,
+        points,
+        frame: ModelFrame,
+        youngs_modulus: float = 1.0,
+        poisson_ratio: float = 0.45,
+        *,
+        k: int = NUM_NEIGHBOURS,
+        support_factor: float = SUPPORT_FACTOR,
+        cond_max: float = 1.0e4,
+        stabilisation: float = 1000.0,
+    ):
+        self.rest_points = validate_points(points, 'particle positions', min_count=5)
         n = self.rest_points.shape[0]
         if not isinstance(frame, ModelFrame):
-            raise ValueError("frame must be a ModelFrame (see polar_frame / cylindrical_frame)")
+            raise ValueError('frame must be a ModelFrame (see polar_frame / cylindrical_frame)')
         if len(frame.coords) != n:
-            raise ValueError(f"frame has {len(frame.coords)} particles, points has {n}")
+            raise ValueError(f'frame has {len(frame.coords)} particles, points has {n}')
         self.lam, self.mu = elastic.lame_parameters(youngs_modulus, poisson_ratio)
         self.stabilisation = float(stabilisation)
         if not np.isfinite(self.stabilisation) or self.stabilisation < 0:
-            raise ValueError(f"stabilisation must be finite and >= 0, got {stabilisation}")
+            raise ValueError(f'stabilisation must be finite and >= 0, got {stabilisation}')
         self._k, self._support_factor, self._cond_max = k, support_factor, cond_max
         self.coords: ModelCoordinates = frame.coords
         self.rest_params: GlobalParameters = frame.params.copy()
         s_rest = global_shape(self.coords, self.rest_params.a, self.rest_params.tau)
-        self.d_rest = (self.rest_points - self.rest_params.translation) @ self.rest_params.matrix - s_rest
+        self.d_rest = (
+            self.rest_points - self.rest_params.translation
+        ) @ self.rest_params.matrix - s_rest
         self._tree = cKDTree(self.rest_points)
         self._support_radii = None  # per particle, for attach (built on first use)
         self._build_phyxels(None)
@@ -314,23 +364,29 @@ class MeshlessModel:
 
     # ---------------------------------------------------------------- structure
     def _build_phyxels(self, h):
-        self.phyxels = build_phyxels(self.rest_points, self._k, self._support_factor,
-                                     self._cond_max, h=h)
+        self.phyxels = build_phyxels(
+            self.rest_points, self._k, self._support_factor, self._cond_max, h=h
+        )
         self.operator = MLSOperator(self.phyxels)
         self._local_ops = None
 
     @property
     def local_operators(self) -> LocalOperators:
-        """The local stage's operators on the current phyxels (built on first use): linear SVK and
+        """
+        The local stage's operators on the current phyxels (built on first use): linear SVK and
         the zero-energy-mode penalty with weights ``v_i ŵ_ij / h_i²``
-        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_weights`)."""
+        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_weights`).
+        """
         if self._local_ops is None:
             ph = self.phyxels
             wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
-            s = ph.volume / np.where(wsum > 0, wsum, 1.0) / ph.h ** 2
+            s = ph.volume / np.where(wsum > 0, wsum, 1.0) / ph.h**2
             ops = LocalOperators(self.operator, ph.volume, self.lam, self.mu, s)
             # Stiffness scale: the elastic diagonal plus the penalty's direct (u_j − u_i) part.
-            self._kdiag = ops.elastic_diagonal() + (self.stabilisation * self.mu * ops.laplacian.diagonal())[:, None]
+            self._kdiag = (
+                ops.elastic_diagonal()
+                + (self.stabilisation * self.mu * ops.laplacian.diagonal())[:, None]
+            )
             # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
             # parameters and δ unique (K is blind to rigid δ, which c and R already express).
             self._eps_delta = 1e-4 * float(np.median(self._kdiag))
@@ -342,7 +398,8 @@ class MeshlessModel:
         return int(self.rest_points.shape[0])
 
     def refresh_support(self, tol: float = 0.25) -> bool:
-        """Re-estimate ``h_i = 3 r̄_i`` on the current local configuration (paper: every five
+        """
+        Re-estimate ``h_i = 3 r̄_i`` on the current local configuration (paper: every five
         iterations) and rebuild the phyxels if any ``h_i`` changed by more than ``tol``
         (relative). Strain stays Lagrangian: the MLS gradient is always taken on rest positions.
 
@@ -350,6 +407,7 @@ class MeshlessModel:
         -------
         bool
             Whether the phyxels were rebuilt.
+
         """
         cur = self.rest_points + self.delta
         knn = self.phyxels.knn
@@ -382,34 +440,56 @@ class MeshlessModel:
         return self.positions() - self.rest_points
 
     def displacement_gradient(self) -> np.ndarray:
-        """MLS displacement gradient relative to the rest (ED) configuration.
+        """
+        MLS displacement gradient relative to the rest (ED) configuration.
 
         Returns
         -------
         ndarray, shape (N, 3, 3)
             ``H[i, a, b] = ∂u_a/∂X_b`` in world axes; ``J = I + H`` (eq. 18).
+
         """
         return self.operator.gradient(self.displacement())
 
     def green_lagrange_strain(self) -> np.ndarray:
-        """Lagrangian strain ``E = ½(JᵀJ − I)`` relative to rest (½ convention), shape (N, 3, 3),
-        world axes. Project onto a local cardiac frame ``(e_r, e_c, e_l)`` as ``eᵀ E e``."""
+        """
+        Lagrangian strain ``E = ½(JᵀJ − I)`` relative to rest (½ convention), shape (N, 3, 3),
+        world axes. Project onto a local cardiac frame ``(e_r, e_c, e_l)`` as ``eᵀ E e``.
+        """
         return elastic.green_lagrange(self.displacement_gradient())
 
     def state(self, **kw) -> ModelState:
         """The current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
         p = self.params
-        return ModelState(translation=p.translation.copy(), rotation=p.rotation.copy(),
-                          a0=float(p.a[0]), a1=float(p.a[1]), a2=float(p.a[2]), a3=float(p.a[3]),
-                          tau=float(p.tau), num_particles=self.num_particles, **kw)
+        return ModelState(
+            translation=p.translation.copy(),
+            rotation=p.rotation.copy(),
+            a0=float(p.a[0]),
+            a1=float(p.a[1]),
+            a2=float(p.a[2]),
+            a3=float(p.a[3]),
+            tau=float(p.tau),
+            num_particles=self.num_particles,
+            **kw,
+        )
 
     def attach(self, control) -> ControlPoints:
-        """Attach control points (particle indices or rest positions); see
-        :func:`attach_control_points`. Reuse the result across phases to skip the kernel work."""
+        """
+        Attach control points (particle indices or rest positions); see
+        :func:`attach_control_points`. Reuse the result across phases to skip the kernel work.
+        """
         if self._support_radii is None:
-            self._support_radii = particle_support_radii(self.rest_points, self._tree, self._k, self._support_factor)
-        return attach_control_points(self.rest_points, control, self._tree, self._k, self._support_factor,
-                                     self._support_radii)
+            self._support_radii = particle_support_radii(
+                self.rest_points, self._tree, self._k, self._support_factor
+            )
+        return attach_control_points(
+            self.rest_points,
+            control,
+            self._tree,
+            self._k,
+            self._support_factor,
+            self._support_radii,
+        )
 
     # ---------------------------------------------------------------- fitting
     def _local_system(self, data=None):
@@ -418,28 +498,34 @@ class MeshlessModel:
         return ops.system(fit_error=self.stabilisation * self.mu, data=data, eps=self._eps_delta)
 
     def _local_metric(self, proj, phi, kappa):
-        """``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
-        stage ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3)."""
+        """
+        ``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
+        stage ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3).
+        """
         q = self.params.matrix @ self.rest_params.matrix.T
-        pq = np.einsum("ba,mbc,cd->mad", q, proj, q)
-        diag_data = (phi.multiply(phi)).T @ np.einsum("maa->ma", pq)
+        pq = np.einsum('ba,mbc,cd->mad', q, proj, q)
+        diag_data = (phi.multiply(phi)).T @ np.einsum('maa->ma', pq)
         prec = kappa * diag_data + self._kdiag + self._eps_delta
         return q, pq, prec
 
     def _lm_step(self, dmat, fq, res, mu_lm, residual_fn, prior=None):
-        """One Levenberg–Marquardt step ``Δ = (D + μ)⁻¹ f_q`` in Jacobi-scaled coordinates.
+        """
+        One Levenberg–Marquardt step ``Δ = (D + μ)⁻¹ f_q`` in Jacobi-scaled coordinates.
 
         Directions the data cannot see (the a0 ↔ a1..a3 gauge; parameters left unconstrained by
         too few or in-plane-only control points) are dropped instead of inverted. μ shrinks
         after a step that lowers the residual and grows (up to 12 tries) otherwise. ``prior``
         ``(G, s)`` adds ``(s + Δ)ᵀ G (s + Δ)`` to the cost (``s``: the steps taken so far).
         """
+
         def prior_cost(step):
-            return 0.0 if prior is None else float((prior[1] + step) @ prior[0] @ (prior[1] + step))
+            return (
+                0.0 if prior is None else float((prior[1] + step) @ prior[0] @ (prior[1] + step))
+            )
 
         if prior is not None:
             dmat, fq = dmat + prior[0], fq - prior[0] @ prior[1]
-        cost = float(np.einsum("ma,ma->", res, res)) + prior_cost(np.zeros_like(fq))
+        cost = float(np.einsum('ma,ma->', res, res)) + prior_cost(np.zeros_like(fq))
         scale = np.sqrt(np.diag(dmat))
         scale = np.where(scale > 1e-12 * max(scale.max(), 1e-300), scale, np.inf)
         evals, evecs = np.linalg.eigh(dmat / np.outer(scale, scale))
@@ -448,19 +534,36 @@ class MeshlessModel:
         for _ in range(12):
             step = (evecs[:, keep] @ (fn[keep] / (evals[keep] + mu_lm))) / scale
             res_t = residual_fn(self.params.stepped(step))
-            if float(np.einsum("ma,ma->", res_t, res_t)) + prior_cost(step) <= cost:
+            if float(np.einsum('ma,ma->', res_t, res_t)) + prior_cost(step) <= cost:
                 return step, max(mu_lm / 3.0, 1e-9)
             mu_lm *= 4.0
         return np.zeros_like(fq), mu_lm
 
-    def fit(self, control, targets, plane_normals=None, *, max_iterations: int = 200,
-            tol: float = 5e-4, residual_tol: float = 0.0, warm_start: bool = True,
-            local: bool = True, data_weight: float = 100.0,
-            global_update: str = "gauss-newton", local_update: str = "solve",
-            dt: float = 1.0, local_start: float = 1e-3, cg_maxiter: int = 100,
-            cg_rtol: float = 1e-3, refresh_every: int = 5, global_prior: float = 0.0,
-            weights=None, callback: Callable[[int, "MeshlessModel"], None] | None = None) -> FitResult:
-        """Fit the model to control-point targets (one cardiac phase).
+    def fit(
+        self,
+        control,
+        targets,
+        plane_normals=None,
+        *,
+        max_iterations: int = 200,
+        tol: float = 5e-4,
+        residual_tol: float = 0.0,
+        warm_start: bool = True,
+        local: bool = True,
+        data_weight: float = 100.0,
+        global_update: str = 'gauss-newton',
+        local_update: str = 'solve',
+        dt: float = 1.0,
+        local_start: float = 1e-3,
+        cg_maxiter: int = 100,
+        cg_rtol: float = 1e-3,
+        refresh_every: int = 5,
+        global_prior: float = 0.0,
+        weights=None,
+        callback: Callable[[int, 'MeshlessModel'], None] | None = None,
+    ) -> FitResult:
+        """
+        Fit the model to control-point targets (one cardiac phase).
 
         Parameters
         ----------
@@ -522,27 +625,35 @@ class MeshlessModel:
             No control points, target/normal shape mismatch, NaN/inf targets or normals, unknown
             update scheme, negative or non-finite ``global_prior``, weights of the wrong shape,
             negative, non-finite or all zero.
+
         """
         t0 = time.perf_counter()
         ctrl = control if isinstance(control, ControlPoints) else self.attach(control)
         m = len(ctrl)
         tgt = np.asarray(targets, dtype=np.float64)
         if tgt.shape != (m, 3):
-            raise ValueError(f"targets must have shape ({m}, 3) to match the control points, got {tgt.shape}")
+            raise ValueError(
+                f'targets must have shape ({m}, 3) to match the control points, got {tgt.shape}'
+            )
         if not np.all(np.isfinite(tgt)):
-            raise ValueError(f"targets contain NaN/inf (first bad row {int(np.flatnonzero(~np.isfinite(tgt).all(1))[0])})")
+            raise ValueError(
+                'targets contain NaN/inf (first bad row '
+                f'{int(np.flatnonzero(~np.isfinite(tgt).all(1))[0])})'
+            )
         proj = plane_projectors(plane_normals, m)
         w = control_weights(weights, m)
         # The data term is Σ w_k |P_k r_k|²: √w P in the residual (squared in D and the cost),
         # w P where the local stage applies the projector once.
         proj_local = proj * w[:, None, None]
         proj = proj * np.sqrt(w)[:, None, None]
-        if global_update not in ("gauss-newton", "explicit"):
-            raise ValueError(f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}")
-        if local_update not in ("solve", "explicit"):
+        if global_update not in ('gauss-newton', 'explicit'):
+            raise ValueError(
+                f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}"
+            )
+        if local_update not in ('solve', 'explicit'):
             raise ValueError(f"local_update must be 'solve' or 'explicit', got {local_update!r}")
         if not (np.isfinite(global_prior) and global_prior >= 0.0):
-            raise ValueError(f"global_prior must be finite and >= 0, got {global_prior}")
+            raise ValueError(f'global_prior must be finite and >= 0, got {global_prior}')
         if not warm_start:
             self.reset()
 
@@ -556,10 +667,12 @@ class MeshlessModel:
             kappa = data_weight * float(np.median(self._kdiag))
         vol = self.phyxels.volume
         prior = None
-        if global_prior > 0.0 and global_update == "gauss-newton":
-            lall = reduce_rotation(model_jacobian(self.params, self.coords, self.local_deformation),
-                                   self.params.rotation)
-            gmat = float(global_prior) * np.einsum("nak,nal->kl", lall, lall) / lall.shape[0]
+        if global_prior > 0.0 and global_update == 'gauss-newton':
+            lall = reduce_rotation(
+                model_jacobian(self.params, self.coords, self.local_deformation),
+                self.params.rotation,
+            )
+            gmat = float(global_prior) * np.einsum('nak,nal->kl', lall, lall) / lall.shape[0]
             prior = (gmat, np.zeros(gmat.shape[0]))
 
         def ctrl_positions(params, d_s):
@@ -567,7 +680,7 @@ class MeshlessModel:
             return phi_s @ (params.translation + p @ params.matrix.T)
 
         def residual(params, d_s):
-            return np.einsum("mab,mb->ma", proj, tgt - ctrl_positions(params, d_s))
+            return np.einsum('mab,mb->ma', proj, tgt - ctrl_positions(params, d_s))
 
         mu_lm = 1e-3
         d_diag_const = None
@@ -581,16 +694,18 @@ class MeshlessModel:
             t_it = time.perf_counter()
             lmat = model_jacobian(self.params, coords_s, d_s)
             lk = (phi_s @ lmat.reshape(len(support), 3 * NUM_GLOBAL)).reshape(m, 3, NUM_GLOBAL)
-            lk = reduce_rotation(lk, self.params.rotation)          # L_k = Σ_j φ_kj L_j (eq. 14)
-            plk = np.einsum("mab,mbk->mak", proj, lk)
-            dmat = np.einsum("mak,mal->kl", plk, plk)                # D = Σ L_kᵀ P_k L_k
-            fq = np.einsum("mak,ma->k", plk, res)                   # f_q = Σ L_kᵀ f_k (eq. 10–13)
+            lk = reduce_rotation(lk, self.params.rotation)  # L_k = Σ_j φ_kj L_j (eq. 14)
+            plk = np.einsum('mab,mbk->mak', proj, lk)
+            dmat = np.einsum('mak,mal->kl', plk, plk)  # D = Σ L_kᵀ P_k L_k
+            fq = np.einsum('mak,ma->k', plk, res)  # f_q = Σ L_kᵀ f_k (eq. 10–13)
             g_step = l_step = 0.0
             x_prev = self.positions() if (local and local_active) else None
             cg_its, ran_local = 0, False
             # ---- global stage (eq. 15)
-            if global_update == "gauss-newton":
-                step, mu_lm = self._lm_step(dmat, fq, res, mu_lm, lambda p: residual(p, d_s), prior)
+            if global_update == 'gauss-newton':
+                step, mu_lm = self._lm_step(
+                    dmat, fq, res, mu_lm, lambda p: residual(p, d_s), prior
+                )
                 if prior is not None:
                     prior = (prior[0], prior[1] + step)
             else:
@@ -598,7 +713,7 @@ class MeshlessModel:
                     dd = np.diag(dmat)
                     d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
                 step = dt * fq / d_diag_const
-            g_step = float(np.sqrt(np.mean(np.sum(np.einsum("mak,k->ma", lk, step) ** 2, axis=1))))
+            g_step = float(np.sqrt(np.mean(np.sum(np.einsum('mak,k->ma', lk, step) ** 2, axis=1))))
             self.params = self.params.stepped(step)
             res = residual(self.params, d_s)
             if local and not local_active and g_step < local_start:
@@ -607,18 +722,28 @@ class MeshlessModel:
                 # ---- local stage (eq. 6, 22–23) with the global parameters held
                 ran_local = True
                 q, pq, prec = self._local_metric(proj_local, phi, kappa)
-                force = kappa * (phi_t @ ((res * np.sqrt(w)[:, None]) @ q))  # f_ext spread by the kernel
-                if local_update == "explicit":
-                    fint = elastic.internal_forces(self.operator, self.delta, vol, self.lam, self.mu)
+                force = kappa * (
+                    phi_t @ ((res * np.sqrt(w)[:, None]) @ q)
+                )  # f_ext spread by the kernel
+                if local_update == 'explicit':
+                    fint = elastic.internal_forces(
+                        self.operator, self.delta, vol, self.lam, self.mu
+                    )
                     if self.stabilisation:
-                        fint = fint - self.stabilisation * self.mu * ops.fit_error_apply(self.delta)
+                        fint = fint - self.stabilisation * self.mu * ops.fit_error_apply(
+                            self.delta
+                        )
                     dx = dt * (force + fint - self._eps_delta * self.delta) / prec
                 else:
                     # Equilibrium of D ḋ = f_ext + f_int in one step: solve
                     # (κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ by PCG.
                     system = self._local_system((kappa, phi, pq))
-                    dx, cg_its = system.solve(force - system.internal(self.delta), rtol=cg_rtol,
-                                              atol=1e-9 * kappa * np.sqrt(m), maxiter=cg_maxiter)
+                    dx, cg_its = system.solve(
+                        force - system.internal(self.delta),
+                        rtol=cg_rtol,
+                        atol=1e-9 * kappa * np.sqrt(m),
+                        maxiter=cg_maxiter,
+                    )
                 if np.all(np.isfinite(dx)):
                     self.delta += dx
             if ran_local:
@@ -629,15 +754,25 @@ class MeshlessModel:
                 res = residual(self.params, d_s)
                 if refresh_every and it % refresh_every == 0 and self.refresh_support():
                     vol, ops = self.phyxels.volume, self.local_operators
-            rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-            history.append({"iteration": it, "residual": rms, "global_step": g_step,
-                            "local_step": l_step, "local": ran_local, "cg_iterations": cg_its,
-                            "seconds": time.perf_counter() - t_it})
+            rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+            history.append(
+                {
+                    'iteration': it,
+                    'residual': rms,
+                    'global_step': g_step,
+                    'local_step': l_step,
+                    'local': ran_local,
+                    'cg_iterations': cg_its,
+                    'seconds': time.perf_counter() - t_it,
+                }
+            )
             if callback is not None:
                 callback(it, self)
             if rms < residual_tol or (ran_local and l_step < tol) or (not local and g_step < tol):
                 converged = True
                 break
-        rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
         state = self.state(iterations=it, residual=rms, converged=converged, num_control_points=m)
-        return FitResult(self.positions(), state, it, rms, converged, history, time.perf_counter() - t0)
+        return FitResult(
+            self.positions(), state, it, rms, converged, history, time.perf_counter() - t0
+        )

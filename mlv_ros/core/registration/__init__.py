@@ -1,4 +1,5 @@
-"""ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7;
+"""
+ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7;
 paper §2.1 model initialisation, §3.2 registration, Fig. 7). Pure numpy/scipy/OpenCV.
 
 Typical use (the ROS ``registration`` node)::
@@ -13,8 +14,12 @@ landmarks), :mod:`.initialise` (3-D reconstruction, particles, polar frame), :mo
 (:func:`register_ed`). User masks are per-slice boolean arrays (NIfTI reader: not yet).
 """
 
+from mlv_ros.core.registration.nifti import masks_for_frames  # noqa: F401,E402
 from mlv_ros.core.registration.register import (  # noqa: F401
-    MIN_SA_SLICES, RegistrationResult, SliceReport, register_ed, segment_around_axis,
+    MIN_SA_SLICES,
+    register_ed,
+    RegistrationResult,
+    segment_around_axis,
+    SliceReport,
 )
 from mlv_ros.core.registration.streaming import StreamingMasker  # noqa: F401,E402
-from mlv_ros.core.registration.nifti import masks_for_frames  # noqa: F401,E402

@@ -1,4 +1,5 @@
-"""Septum from the images: the RV blood pool next to the LV and its insertion points.
+"""
+Septum from the images: the RV blood pool next to the LV and its insertion points.
 
 The AHA segments' circumferential origin is the anterior RV–LV insertion (Cerqueira et al.,
 Circulation 2002). Without it the only orientation is an anatomical prior (the septum toward
@@ -37,13 +38,12 @@ otherwise the anatomical prior is kept and the result says so (``source = "prior
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
+import math
 
+from mlv_ros.core.registration.segment import polar_mask, SliceSegmentation
 import numpy as np
 from scipy import ndimage
-
-from mlv_ros.core.registration.segment import SliceSegmentation, polar_mask
 
 #: A blood-like pixel's local mean may differ from the LV cavity's by this share of it (or 3 of
 #: the cavity's own spreads, whichever is larger): same blood, same signal, up to coil shading.
@@ -59,14 +59,15 @@ MIN_AGREEMENT = 0.9
 MIN_SLICES = 2
 MIN_SLICE_FRACTION = 1.0 / 3.0
 
-SOURCE_PRIOR = "prior"
-SOURCE_DETECTED = "detected"
-SOURCE_GIVEN = "given"
+SOURCE_PRIOR = 'prior'
+SOURCE_DETECTED = 'detected'
+SOURCE_GIVEN = 'given'
 
 
 @dataclass
 class SliceRV:
-    """The RV found on one SA slice.
+    """
+    The RV found on one SA slice.
 
     Attributes
     ----------
@@ -79,6 +80,7 @@ class SliceRV:
         Pixels of the RV blood region.
     mask : ndarray of bool
         The RV blood region.
+
     """
 
     start: int
@@ -90,7 +92,8 @@ class SliceRV:
 
 @dataclass
 class SeptumEstimate:
-    """Where the septum is, and how it was known.
+    """
+    Where the septum is, and how it was known.
 
     Attributes
     ----------
@@ -110,37 +113,45 @@ class SeptumEstimate:
         SA slices where an RV was found, that agreed, and that were segmented.
     reason : str
         Why the prior was kept ('' when detected).
+
     """
 
     source: str
     septum: np.ndarray
     anterior: np.ndarray | None = None
     inferior: np.ndarray | None = None
-    span_deg: float = float("nan")
+    span_deg: float = float('nan')
     confidence: float = 0.0
     slices_found: int = 0
     slices_used: int = 0
     slices_total: int = 0
-    reason: str = ""
+    reason: str = ''
     per_slice: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-friendly summary."""
+
         def vec(v):
             return None if v is None else [round(float(x), 6) for x in v]
 
-        return {"source": self.source, "septum_direction": vec(self.septum),
-                "anterior_insertion_direction": vec(self.anterior),
-                "inferior_insertion_direction": vec(self.inferior),
-                "span_deg": None if not np.isfinite(self.span_deg) else round(float(self.span_deg), 1),
-                "confidence": round(float(self.confidence), 3), "slices_found": self.slices_found,
-                "slices_used": self.slices_used, "slices_total": self.slices_total, "reason": self.reason}
+        return {
+            'source': self.source,
+            'septum_direction': vec(self.septum),
+            'anterior_insertion_direction': vec(self.anterior),
+            'inferior_insertion_direction': vec(self.inferior),
+            'span_deg': None if not np.isfinite(self.span_deg) else round(float(self.span_deg), 1),
+            'confidence': round(float(self.confidence), 3),
+            'slices_found': self.slices_found,
+            'slices_used': self.slices_used,
+            'slices_total': self.slices_total,
+            'reason': self.reason,
+        }
 
 
 def _local_stats(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image, dtype=np.float64)
-    mu = ndimage.gaussian_filter(img, sigma, mode="nearest")
-    var = ndimage.gaussian_filter(img * img, sigma, mode="nearest") - mu * mu
+    mu = ndimage.gaussian_filter(img, sigma, mode='nearest')
+    var = ndimage.gaussian_filter(img * img, sigma, mode='nearest') - mu * mu
     return mu, np.sqrt(np.clip(var, 0.0, None))
 
 
@@ -169,7 +180,8 @@ def _longest_run(hit: np.ndarray) -> tuple[int, int, int]:
 
 
 def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, str]:
-    """The RV blood pool next to the LV on one ED SA slice (module docstring).
+    """
+    The RV blood pool next to the LV on one ED SA slice (module docstring).
 
     Parameters
     ----------
@@ -182,14 +194,15 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
     -------
     (SliceRV or None, str)
         The RV, or None and why not.
+
     """
     img = np.asarray(image, dtype=np.float64)
     if not seg.ok or seg.angles.size < 8:
-        return None, "no LV segmentation"
+        return None, 'no LV segmentation'
     endo, epi = np.asarray(seg.endo, float), np.asarray(seg.epi, float)
     good = np.isfinite(epi) & np.isfinite(endo) & (epi > endo) & (endo > 0)
     if good.sum() < 0.5 * epi.size:
-        return None, "no cavity on most rays"
+        return None, 'no cavity on most rays'
     wall = float(np.median((epi - endo)[good]))
     r_epi = float(np.median(epi[good]))
     sigma = max(1.0, 0.25 * wall)
@@ -198,24 +211,30 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
     endo_f = np.where(good, endo, np.nanmedian(endo[good]))
     epi_f = np.where(np.isfinite(epi), epi, r_epi)
     core = polar_mask(img.shape, c, seg.angles, np.zeros_like(endo_f), 0.6 * endo_f) & ~seg.mask
-    core &= polar_mask(img.shape, c, seg.angles, np.zeros_like(endo_f), np.maximum(endo_f - 2 * sigma, 0.0))
-    wall_px = seg.mask & ~polar_mask(img.shape, c, seg.angles, endo_f, endo_f + sigma) \
+    core &= polar_mask(
+        img.shape, c, seg.angles, np.zeros_like(endo_f), np.maximum(endo_f - 2 * sigma, 0.0)
+    )
+    wall_px = (
+        seg.mask
+        & ~polar_mask(img.shape, c, seg.angles, endo_f, endo_f + sigma)
         & ~polar_mask(img.shape, c, seg.angles, np.maximum(epi_f - sigma, 0.0), epi_f)
+    )
     if core.sum() < 9 or wall_px.sum() < 9:
-        return None, "LV cavity or wall too small to take blood statistics from"
+        return None, 'LV cavity or wall too small to take blood statistics from'
     mu_c = float(np.median(mu[core]))
     s_c = 1.4826 * float(np.median(np.abs(mu[core] - mu_c)))
     sd_c = float(np.median(sd[core]))
     sd_w = float(np.median(sd[wall_px]))
     if not sd_w > sd_c:
-        return None, "the wall shows no more texture than the blood (no tags to tell them apart)"
-    blood = (np.abs(mu - mu_c) <= max(3.0 * s_c, BLOOD_MEAN_TOLERANCE * abs(mu_c))) \
-        & (sd <= sd_c + 0.5 * (sd_w - sd_c))
+        return None, 'the wall shows no more texture than the blood (no tags to tell them apart)'
+    blood = (np.abs(mu - mu_c) <= max(3.0 * s_c, BLOOD_MEAN_TOLERANCE * abs(mu_c))) & (
+        sd <= sd_c + 0.5 * (sd_w - sd_c)
+    )
     lv = polar_mask(img.shape, c, seg.angles, np.zeros_like(epi_f), epi_f + 2.0 * sigma)
     blood &= ~lv
     labels, n = ndimage.label(blood)
     if n == 0:
-        return None, "no blood-like region outside the LV"
+        return None, 'no blood-like region outside the LV'
     # Which region each ray meets first within the band beyond the epicardium.
     band = 2.0 * sigma + 0.5 * r_epi
     steps = np.arange(0.0, band + 1e-9, 0.5)
@@ -223,8 +242,14 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
     rr = c[0] + (epi_f[:, None] + steps[None, :]) * dirs[:, 0, None]
     cc = c[1] + (epi_f[:, None] + steps[None, :]) * dirs[:, 1, None]
     inside = (rr >= 0) & (rr <= img.shape[0] - 1) & (cc >= 0) & (cc <= img.shape[1] - 1)
-    lab = np.where(inside, labels[np.clip(np.rint(rr).astype(int), 0, img.shape[0] - 1),
-                                  np.clip(np.rint(cc).astype(int), 0, img.shape[1] - 1)], 0)
+    lab = np.where(
+        inside,
+        labels[
+            np.clip(np.rint(rr).astype(int), 0, img.shape[0] - 1),
+            np.clip(np.rint(cc).astype(int), 0, img.shape[1] - 1),
+        ],
+        0,
+    )
     cavity_area = float(np.pi * np.median(endo[good]) ** 2)
     areas = ndimage.sum(np.ones_like(labels), labels, index=np.arange(1, n + 1))
     best, best_rays = 0, 0
@@ -235,15 +260,15 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
         if rays > best_rays:
             best, best_rays = k, rays
     if best == 0:
-        return None, "no blood region next to the LV as large as a tenth of its cavity"
+        return None, 'no blood region next to the LV as large as a tenth of its cavity'
     hit = np.any(lab == best, axis=1)
     start, end, length = _longest_run(hit)
     step_deg = 360.0 / seg.angles.size
     arc = length * step_deg
     if not ARC_RANGE_DEG[0] <= arc <= ARC_RANGE_DEG[1]:
         lo, hi = ARC_RANGE_DEG
-        return None, f"the blood next to the LV wraps {arc:.0f}° of it (an RV: {lo:g}–{hi:g}°)"
-    return SliceRV(start, end, arc, int(areas[best - 1]), labels == best), ""
+        return None, f'the blood next to the LV wraps {arc:.0f}° of it (an RV: {lo:g}–{hi:g}°)'
+    return SliceRV(start, end, arc, int(areas[best - 1]), labels == best), ''
 
 
 def _ray_direction(geometry, centre_rc, angle, axis) -> np.ndarray:
@@ -256,7 +281,8 @@ def _ray_direction(geometry, centre_rc, angle, axis) -> np.ndarray:
 
 
 def estimate_septum(slices, axis, prior) -> SeptumEstimate:
-    """The septum from the ED SA slices, or the prior when they do not agree (module docstring).
+    """
+    The septum from the ED SA slices, or the prior when they do not agree (module docstring).
 
     Parameters
     ----------
@@ -270,6 +296,7 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
     Returns
     -------
     SeptumEstimate
+
     """
     axis = np.asarray(axis, float)
     axis = axis / np.linalg.norm(axis)
@@ -277,6 +304,7 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
     p = p - (p @ axis) * axis
     p = p / np.linalg.norm(p)
     e2 = np.cross(p, axis)  # θ grows CCW seen from the apex (mlv_ros.core.analysis.frame)
+
     def theta(v):
         return math.atan2(float(v @ e2), float(v @ p))
 
@@ -292,39 +320,53 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
         t_e = theta(_ray_direction(geom, seg.centre_rc, a[rv.end], axis))
         step = a[1] - a[0]
         t_m = theta(_ray_direction(geom, seg.centre_rc, a[0] + mid_idx * step, axis))
+
         def wrap(x):
             return (x + math.pi) % (2 * math.pi) - math.pi
 
-        if wrap(t_m - t_s) < 0:   # the rays run clockwise seen from the apex on this slice
+        if wrap(t_m - t_s) < 0:  # the rays run clockwise seen from the apex on this slice
             t_s, t_e = t_e, t_s
         # θ counter-clockwise from the anterior to the inferior insertion, bisector between them.
         span = (t_e - t_s) % (2 * math.pi)
         found.append((t_s, t_e, t_s + 0.5 * span, span))
     total = len(slices)
-    est = SeptumEstimate(SOURCE_PRIOR, p, slices_found=len(found), slices_total=total,
-                         per_slice=[{"anterior_deg": math.degrees(f[0]), "inferior_deg": math.degrees(f[1])}
-                                    for f in found])
+    est = SeptumEstimate(
+        SOURCE_PRIOR,
+        p,
+        slices_found=len(found),
+        slices_total=total,
+        per_slice=[
+            {'anterior_deg': math.degrees(f[0]), 'inferior_deg': math.degrees(f[1])} for f in found
+        ],
+    )
     if not found:
-        common = max(set(reasons), key=reasons.count) if reasons else "no segmented SA slice"
-        est.reason = f"no RV found on any SA slice ({common})"
+        common = max(set(reasons), key=reasons.count) if reasons else 'no segmented SA slice'
+        est.reason = f'no RV found on any SA slice ({common})'
         return est
     mids = np.array([f[2] for f in found])
     mean = math.atan2(np.sin(mids).mean(), np.cos(mids).mean())
     keep = np.abs(np.angle(np.exp(1j * (mids - mean)))) <= math.radians(OUTLIER_DEG)
     if keep.any():
         mean = math.atan2(np.sin(mids[keep]).mean(), np.cos(mids[keep]).mean())
-    agreement = float(np.hypot(np.sin(mids[keep]).mean(), np.cos(mids[keep]).mean())) if keep.any() else 0.0
+    agreement = (
+        float(np.hypot(np.sin(mids[keep]).mean(), np.cos(mids[keep]).mean()))
+        if keep.any()
+        else 0.0
+    )
     used = int(keep.sum())
     est.slices_used = used
     need = max(MIN_SLICES, math.ceil(MIN_SLICE_FRACTION * total))
     if used < need or agreement < MIN_AGREEMENT:
-        est.reason = (f"an RV was found on {len(found)} of {total} SA slices, {used} agreeing "
-                      f"(agreement {agreement:.2f}; need {need} slices and {MIN_AGREEMENT:g})")
+        est.reason = (
+            f'an RV was found on {len(found)} of {total} SA slices, {used} agreeing '
+            f'(agreement {agreement:.2f}; need {need} slices and {MIN_AGREEMENT:g})'
+        )
         return est
     half = 0.5 * float(np.median([f[3] for f, k in zip(found, keep) if k]))
 
     def direction(t):
         return math.cos(t) * p + math.sin(t) * e2
+
     est.source = SOURCE_DETECTED
     est.septum = direction(mean)
     est.anterior, est.inferior = direction(mean - half), direction(mean + half)

@@ -1,4 +1,5 @@
-"""Model initialisation (paper §2.1): 3-D myocardium from SA/LA contours, particles, polar frame.
+"""
+Model initialisation (paper §2.1): 3-D myocardium from SA/LA contours, particles, polar frame.
 
 Shape reconstruction
 --------------------
@@ -37,10 +38,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from mlv_ros.core.meshless import GlobalParameters, matrix_to_quat, ModelCoordinates, ModelFrame
 import numpy as np
 from scipy.interpolate import BSpline
-
-from mlv_ros.core.meshless import GlobalParameters, ModelCoordinates, ModelFrame, matrix_to_quat
 
 #: Fourier order in θ of the wall surfaces.
 FOURIER_ORDER = 3
@@ -50,8 +50,11 @@ Z_INTERVALS = 6
 SMOOTHING = 1e-2
 
 
-def default_reference(axis: np.ndarray, septum_hint=(-1.0, 0.0, 0.0), rotate_deg: float = 60.0) -> np.ndarray:
-    """β = 0 direction: the inferior RV–LV junction from an anatomical prior.
+def default_reference(
+    axis: np.ndarray, septum_hint=(-1.0, 0.0, 0.0), rotate_deg: float = 60.0
+) -> np.ndarray:
+    """
+    β = 0 direction: the inferior RV–LV junction from an anatomical prior.
 
     The septum lies toward the patient's right (LPS −x) of the LV; projected ⟂ the axis it gives
     the mid-septum, and the inferior RV–LV insertion is 60° from it (the septum spans 120°
@@ -71,12 +74,13 @@ def default_reference(axis: np.ndarray, septum_hint=(-1.0, 0.0, 0.0), rotate_deg
     -------
     ndarray, shape (3,)
         Unit vector ⟂ axis.
+
     """
     ax = np.asarray(axis, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
     s = np.asarray(septum_hint, dtype=np.float64)
     s = s - (s @ ax) * ax
-    if np.linalg.norm(s) < 1e-6:       # axis along the hint: any perpendicular will do
+    if np.linalg.norm(s) < 1e-6:  # axis along the hint: any perpendicular will do
         s = np.eye(3)[int(np.argmin(np.abs(ax)))]
         s = s - (s @ ax) * ax
     s /= np.linalg.norm(s)
@@ -88,8 +92,10 @@ def default_reference(axis: np.ndarray, septum_hint=(-1.0, 0.0, 0.0), rotate_deg
 
 @dataclass
 class AxisFrame:
-    """Long-axis cylindrical frame: ``origin`` (3,), unit ``axis`` (apex → base), ``e1`` (β = 0),
-    ``e2 = axis × e1``. All mm / unit vectors in patient coordinates."""
+    """
+    Long-axis cylindrical frame: ``origin`` (3,), unit ``axis`` (apex → base), ``e1`` (β = 0),
+    ``e2 = axis × e1``. All mm / unit vectors in patient coordinates.
+    """
 
     origin: np.ndarray
     axis: np.ndarray
@@ -123,7 +129,8 @@ def _fourier(theta: np.ndarray, order: int) -> np.ndarray:
 
 
 class WallSurface:
-    """``r²(z, θ)`` as a penalised tensor B-spline × Fourier fit (module docstring).
+    """
+    ``r²(z, θ)`` as a penalised tensor B-spline × Fourier fit (module docstring).
 
     Parameters
     ----------
@@ -134,10 +141,20 @@ class WallSurface:
         trend).
     weights : ndarray, shape (M,), optional
         Per-sample weights.
+
     """
 
-    def __init__(self, z, theta, r, z_range, weights=None, order: int = FOURIER_ORDER,
-                 intervals: int = Z_INTERVALS, smoothing: float = SMOOTHING):
+    def __init__(
+        self,
+        z,
+        theta,
+        r,
+        z_range,
+        weights=None,
+        order: int = FOURIER_ORDER,
+        intervals: int = Z_INTERVALS,
+        smoothing: float = SMOOTHING,
+    ):
         z0, z1 = float(z_range[0]), float(z_range[1])
         self.z0, self.z1, self.order = z0, z1, order
         k = 3
@@ -151,7 +168,11 @@ class WallSurface:
         d2 = np.diff(np.eye(self.nb), n=2, axis=0)
         pen = np.kron(d2, np.eye(nf))
         scale = float(np.sum(w)) / max(self.nb, 1)
-        lhs = (a * w[:, None]).T @ a + smoothing * scale * pen.T @ pen + 1e-9 * scale * np.eye(a.shape[1])
+        lhs = (
+            (a * w[:, None]).T @ a
+            + smoothing * scale * pen.T @ pen
+            + 1e-9 * scale * np.eye(a.shape[1])
+        )
         self.coef = np.linalg.solve(lhs, (a * w[:, None]).T @ y)
 
     def _design(self, z, theta):
@@ -178,7 +199,8 @@ class WallSurface:
 
 @dataclass
 class LVShape:
-    """Reconstructed ED myocardium (module docstring).
+    """
+    Reconstructed ED myocardium (module docstring).
 
     Attributes
     ----------
@@ -186,6 +208,7 @@ class LVShape:
     endo, epi : WallSurface
     z_apex_epi, z_apex_endo, z_base : float
         Epicardial / endocardial apex and base levels along the axis, mm from ``frame.origin``.
+
     """
 
     frame: AxisFrame
@@ -196,8 +219,10 @@ class LVShape:
     z_base: float
 
     def inside(self, x: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """Whether patient points (N, 3) lie in the reconstructed myocardium, at least ``margin``
-        mm (radially, and axially at the apex and base) inside its walls."""
+        """
+        Whether patient points (N, 3) lie in the reconstructed myocardium, at least ``margin``
+        mm (radially, and axially at the apex and base) inside its walls.
+        """
         r, th, z = self.frame.to_cylindrical(x)
         ok = (z >= self.z_apex_epi + margin) & (z <= self.z_base - margin)
         r_epi = np.sqrt(np.clip(self.epi.r2(z, th), 0.0, None))
@@ -206,21 +231,25 @@ class LVShape:
         return ok & (r <= r_epi - margin) & (r >= r_endo)
 
     def surface_points(self, which: str, n_z: int = 40, n_theta: int = 72) -> np.ndarray:
-        """Samples of the ``"endo"`` or ``"epi"`` surface, (n_z·n_theta, 3) mm, between its apex
-        and the base."""
-        s = self.endo if which == "endo" else self.epi
-        za = self.z_apex_endo if which == "endo" else self.z_apex_epi
+        """
+        Samples of the ``"endo"`` or ``"epi"`` surface, (n_z·n_theta, 3) mm, between its apex
+        and the base.
+        """
+        s = self.endo if which == 'endo' else self.epi
+        za = self.z_apex_endo if which == 'endo' else self.z_apex_epi
         # Denser near the apex where r changes fastest: z = za + H (1 − cos) spacing.
         u = np.linspace(0.0, 1.0, n_z)
         z = za + (self.z_base - za) * (1 - np.cos(0.5 * np.pi * u))
         th = np.linspace(-np.pi, np.pi, n_theta, endpoint=False)
-        Z, T = np.meshgrid(z, th, indexing="ij")
+        Z, T = np.meshgrid(z, th, indexing='ij')
         r = np.sqrt(np.clip(s.r2(Z, T), 0.0, None))
         return self.frame.from_cylindrical(r.ravel(), T.ravel(), Z.ravel())
 
     def transmural(self, x: np.ndarray) -> np.ndarray:
-        """Transmural depth (0 endo, 1 epi) of patient points (N, 3); in the apical cap below the
-        cavity the endocardial radius is taken as 0."""
+        """
+        Transmural depth (0 endo, 1 epi) of patient points (N, 3); in the apical cap below the
+        cavity the endocardial radius is taken as 0.
+        """
         r, th, z = self.frame.to_cylindrical(x)
         ren = np.sqrt(np.clip(self.endo.r2(z, th), 0.0, None))
         rep = np.sqrt(np.clip(self.epi.r2(z, th), 0.0, None))
@@ -241,9 +270,16 @@ def _apex_level(surf: WallSurface, z_top: float, z_min: float) -> float:
     return float(zz[i - 1] + (zz[i] - zz[i - 1]) * m[i - 1] / (m[i - 1] - m[i]))
 
 
-def reconstruct_shape(frame: AxisFrame, endo_pts: list[np.ndarray], epi_pts: list[np.ndarray],
-                      z_base: float, weights_endo=None, weights_epi=None) -> LVShape:
-    """Fit the endo and epi wall surfaces to contour points.
+def reconstruct_shape(
+    frame: AxisFrame,
+    endo_pts: list[np.ndarray],
+    epi_pts: list[np.ndarray],
+    z_base: float,
+    weights_endo=None,
+    weights_epi=None,
+) -> LVShape:
+    """
+    Fit the endo and epi wall surfaces to contour points.
 
     Parameters
     ----------
@@ -263,22 +299,30 @@ def reconstruct_shape(frame: AxisFrame, endo_pts: list[np.ndarray], epi_pts: lis
     ------
     ValueError
         Too few points, or a reconstruction without an epicardial apex below the base.
+
     """
+
     def stack(pts, wts):
-        p = np.concatenate([np.asarray(a, float).reshape(-1, 3) for a in pts]) if pts else np.zeros((0, 3))
+        p = (
+            np.concatenate([np.asarray(a, float).reshape(-1, 3) for a in pts])
+            if pts
+            else np.zeros((0, 3))
+        )
         w = np.concatenate(wts) if wts is not None and pts else np.ones(len(p))
         return p, w
 
     pe, we = stack(epi_pts, weights_epi)
     pn, wn = stack(endo_pts, weights_endo)
     if len(pe) < 50:
-        raise ValueError(f"too few epicardial contour points to reconstruct the LV ({len(pe)} < 50)")
+        raise ValueError(
+            f'too few epicardial contour points to reconstruct the LV ({len(pe)} < 50)'
+        )
     re, te, ze = frame.to_cylindrical(pe)
     z_lo = float(min(ze.min(), z_base - 1.0)) - 30.0
     epi = WallSurface(ze, te, re, (z_lo, z_base), we)
     z_apex_epi = _apex_level(epi, float(np.max(ze)), z_lo - 60.0)
     if not z_apex_epi < z_base - 5.0:
-        raise ValueError("reconstructed epicardium has no apex below the base")
+        raise ValueError('reconstructed epicardium has no apex below the base')
     if len(pn) >= 20:
         rn, tn, zn = frame.to_cylindrical(pn)
         endo = WallSurface(zn, tn, rn, (z_lo, z_base), wn)
@@ -289,8 +333,11 @@ def reconstruct_shape(frame: AxisFrame, endo_pts: list[np.ndarray], epi_pts: lis
     return LVShape(frame, endo, epi, float(z_apex_epi), float(z_apex_endo), float(z_base))
 
 
-def sample_particles(shape: LVShape, n: int, seed: int = 0, margin_fraction: float = 0.25) -> np.ndarray:
-    """``n`` particles filling the reconstructed myocardium: a jittered cubic lattice.
+def sample_particles(
+    shape: LVShape, n: int, seed: int = 0, margin_fraction: float = 0.25
+) -> np.ndarray:
+    """
+    ``n`` particles filling the reconstructed myocardium: a jittered cubic lattice.
 
     A lattice (spacing from the estimated volume) gives even phyxels; jitter of ±0.25 spacing
     keeps MLS moment matrices well conditioned (no exactly coplanar neighbourhoods).
@@ -315,25 +362,33 @@ def sample_particles(shape: LVShape, n: int, seed: int = 0, margin_fraction: flo
     ------
     ValueError
         ``n`` < 100, or the reconstructed volume is empty.
+
     """
     if n < 100:
-        raise ValueError(f"num_particles must be >= 100, got {n}")
+        raise ValueError(f'num_particles must be >= 100, got {n}')
     rng = np.random.default_rng(seed)
     th = np.linspace(-np.pi, np.pi, 36, endpoint=False)
     zz = np.linspace(shape.z_apex_epi, shape.z_base, 40)
-    rmax = float(np.sqrt(np.clip(shape.epi.r2(zz[:, None] + 0 * th, th[None] + 0 * zz[:, None]), 0, None)).max()) + 1.0
+    rmax = (
+        float(
+            np.sqrt(
+                np.clip(shape.epi.r2(zz[:, None] + 0 * th, th[None] + 0 * zz[:, None]), 0, None)
+            ).max()
+        )
+        + 1.0
+    )
     box_lo = np.array([-rmax, -rmax, shape.z_apex_epi])
     box_hi = np.array([rmax, rmax, shape.z_base])
     # Volume estimate by Monte Carlo, then the lattice spacing that yields ≈ 1.15 n points.
     u = box_lo + (box_hi - box_lo) * rng.random((20000, 3))
     frac = shape.inside(shape.frame.origin + u @ shape.frame.matrix.T).mean()
     if frac <= 0:
-        raise ValueError("reconstructed myocardium is empty")
+        raise ValueError('reconstructed myocardium is empty')
     vol = frac * np.prod(box_hi - box_lo)
     for factor in (1.5, 1.9, 2.5):
         h = (vol / (factor * n)) ** (1.0 / 3.0)
         axes = [np.arange(lo + 0.5 * h, hi, h) for lo, hi in zip(box_lo, box_hi)]
-        g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        g = np.stack(np.meshgrid(*axes, indexing='ij'), -1).reshape(-1, 3)
         g = g + rng.uniform(-0.25 * h, 0.25 * h, g.shape)
         # Each lattice point draws its rank before the inside test: the n lowest-ranked inside
         # points are kept, so a point entering or leaving the volume (a sub-micrometre change of
@@ -342,13 +397,14 @@ def sample_particles(shape: LVShape, n: int, seed: int = 0, margin_fraction: flo
         x = shape.frame.origin + g @ shape.frame.matrix.T
         inside = shape.inside(x, margin_fraction * h)
         if inside.sum() >= n:
-            keep = np.flatnonzero(inside)[np.argsort(rank[inside], kind="stable")[:n]]
+            keep = np.flatnonzero(inside)[np.argsort(rank[inside], kind='stable')[:n]]
             return x[np.sort(keep)]
-    raise ValueError(f"could not place {n} particles in the reconstructed myocardium")
+    raise ValueError(f'could not place {n} particles in the reconstructed myocardium')
 
 
 def model_frame(shape: LVShape, particles: np.ndarray) -> tuple[ModelFrame, dict]:
-    """Polar model frame of the particles (module docstring, paper eq. 1).
+    """
+    Polar model frame of the particles (module docstring, paper eq. 1).
 
     Parameters
     ----------
@@ -362,6 +418,7 @@ def model_frame(shape: LVShape, particles: np.ndarray) -> tuple[ModelFrame, dict
         Rest parameters ``(c, R, a0..a3, τ = 0)`` and per-particle polar coordinates.
     polar : dict
         ``alpha``, ``beta``, ``w`` (N,) each (rad, rad, dimensionless).
+
     """
     f = shape.frame
     height = shape.z_base - shape.z_apex_epi
@@ -369,7 +426,7 @@ def model_frame(shape: LVShape, particles: np.ndarray) -> tuple[ModelFrame, dict
     centre = f.origin + cz * f.axis
     a3 = cz - shape.z_apex_epi
     # Epicardial ellipsoid radii in e1/e2 from (p1/A1)² + (p2/A2)² = 1 − (p3/A3)².
-    ep = shape.surface_points("epi", 30, 48)
+    ep = shape.surface_points('epi', 30, 48)
     p = (ep - centre) @ f.matrix
     keep = np.abs(p[:, 2]) < 0.95 * a3
     rhs = 1.0 - (p[keep, 2] / a3) ** 2
@@ -386,21 +443,30 @@ def model_frame(shape: LVShape, particles: np.ndarray) -> tuple[ModelFrame, dict
     beta = np.arctan2(q[:, 1], q[:, 0])
     coords = ModelCoordinates.polar(alpha, beta, w)
     # a0 carries the scale (mm), a1..a3 the dimensionless radii relative to the long radius.
-    params = GlobalParameters(centre, matrix_to_quat(f.matrix), [w_max * a3, a1 / a3, a2 / a3, 1.0], 0.0)
-    return ModelFrame(params, coords), {"alpha": alpha, "beta": beta, "w": w}
+    params = GlobalParameters(
+        centre, matrix_to_quat(f.matrix), [w_max * a3, a1 / a3, a2 / a3, 1.0], 0.0
+    )
+    return ModelFrame(params, coords), {'alpha': alpha, 'beta': beta, 'w': w}
 
 
 def polar_to_patient(frame: ModelFrame, alpha, beta, w) -> np.ndarray:
-    """Inverse of :func:`model_frame`'s coordinates: eq. 1 with τ = 0, then ``x = c + R e``.
+    """
+    Inverse of :func:`model_frame`'s coordinates: eq. 1 with τ = 0, then ``x = c + R e``.
 
     Returns
     -------
     ndarray, shape (N, 3)
         Patient coordinates, mm.
+
     """
     a = frame.params.a
     alpha, beta, w = (np.asarray(v, float) for v in (alpha, beta, w))
-    e = (w * a[0])[:, None] * np.stack([a[1] * np.cos(alpha) * np.cos(beta),
-                                        a[2] * np.cos(alpha) * np.sin(beta),
-                                        a[3] * np.sin(alpha)], 1)
+    e = (w * a[0])[:, None] * np.stack(
+        [
+            a[1] * np.cos(alpha) * np.cos(beta),
+            a[2] * np.cos(alpha) * np.sin(beta),
+            a[3] * np.sin(alpha),
+        ],
+        1,
+    )
     return frame.params.translation + e @ frame.params.matrix.T

@@ -1,4 +1,5 @@
-"""Contours, curvature and curvature-based landmarks (paper §3.2: "50 per SA slice … on the
+"""
+Contours, curvature and curvature-based landmarks (paper §3.2: "50 per SA slice … on the
 myocardial contours based on local curvature").
 
 A landmark set keeps the points where the contour bends most (extrema of the signed curvature,
@@ -17,12 +18,12 @@ from scipy import ndimage as ndi
 LANDMARKS_PER_SA_SLICE = 50
 
 
-def _as_curve(points, name: str = "contour") -> np.ndarray:
+def _as_curve(points, name: str = 'contour') -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 5:
-        raise ValueError(f"{name} must have shape (K, 2) with K >= 5, got {p.shape}")
+        raise ValueError(f'{name} must have shape (K, 2) with K >= 5, got {p.shape}')
     if not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} contains NaN/inf")
+        raise ValueError(f'{name} contains NaN/inf')
     return p
 
 
@@ -34,7 +35,8 @@ def arc_length(points, closed: bool = True) -> np.ndarray:
 
 
 def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
-    """Resample a polyline to ``n`` points evenly spaced in arc length.
+    """
+    Resample a polyline to ``n`` points evenly spaced in arc length.
 
     Parameters
     ----------
@@ -46,10 +48,11 @@ def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
     Returns
     -------
     ndarray, shape (n, 2)
+
     """
     p = _as_curve(points)
     if n < 2:
-        raise ValueError(f"n must be >= 2, got {n}")
+        raise ValueError(f'n must be >= 2, got {n}')
     q = np.vstack([p, p[:1]]) if closed else p
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
     t = np.linspace(0.0, s[-1], n, endpoint=not closed)
@@ -57,7 +60,8 @@ def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
 
 
 def curvature(points, closed: bool = True, sigma: float = 2.0) -> np.ndarray:
-    """Signed curvature κ = (x′y″ − y′x″)/(x′² + y′²)^{3/2} of a polyline.
+    """
+    Signed curvature κ = (x′y″ − y′x″)/(x′² + y′²)^{3/2} of a polyline.
 
     The curve is Gaussian-smoothed (``sigma`` vertices, periodic when ``closed``) and then
     differentiated by central differences (exact ratio of first/second derivative scales), so
@@ -68,9 +72,10 @@ def curvature(points, closed: bool = True, sigma: float = 2.0) -> np.ndarray:
     ndarray, shape (K,)
         1 / (units of ``points``); positive where the curve turns toward increasing angle
         (counter-clockwise in a right-handed (x, y) plane).
+
     """
     p = _as_curve(points)
-    mode = "wrap" if closed else "nearest"
+    mode = 'wrap' if closed else 'nearest'
     sm = np.stack([ndi.gaussian_filter1d(p[:, i], sigma, mode=mode) for i in (0, 1)], 1)
     if closed:
         fwd, bwd = np.roll(sm, -1, axis=0), np.roll(sm, 1, axis=0)
@@ -80,13 +85,20 @@ def curvature(points, closed: bool = True, sigma: float = 2.0) -> np.ndarray:
     d1 = 0.5 * (fwd - bwd)
     d2 = fwd - 2 * sm + bwd
     num = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    den = np.maximum(np.sum(d1 ** 2, axis=1), 1e-24) ** 1.5
+    den = np.maximum(np.sum(d1**2, axis=1), 1e-24) ** 1.5
     return num / den
 
 
-def curvature_landmarks(points, n: int, closed: bool = True, sigma: float = 2.0,
-                        feature_fraction: float = 0.5, min_separation: int | None = None) -> np.ndarray:
-    """Indices of ``n`` landmarks on a contour, chosen by local curvature (module docstring).
+def curvature_landmarks(
+    points,
+    n: int,
+    closed: bool = True,
+    sigma: float = 2.0,
+    feature_fraction: float = 0.5,
+    min_separation: int | None = None,
+) -> np.ndarray:
+    """
+    Indices of ``n`` landmarks on a contour, chosen by local curvature (module docstring).
 
     Parameters
     ----------
@@ -111,16 +123,19 @@ def curvature_landmarks(points, n: int, closed: bool = True, sigma: float = 2.0,
     ------
     ValueError
         ``n`` < 1 or larger than the number of vertices.
+
     """
     p = _as_curve(points)
     k = p.shape[0]
     if not 1 <= n <= k:
-        raise ValueError(f"number of landmarks must be in [1, {k}], got {n}")
+        raise ValueError(f'number of landmarks must be in [1, {k}], got {n}')
     kap = curvature(p, closed, sigma)
     dev = np.abs(kap - np.median(kap))
-    mode = "wrap" if closed else "nearest"
+    mode = 'wrap' if closed else 'nearest'
     # Local extrema of κ (either sign): κ equals the running max or min over ±2 vertices.
-    is_ext = (kap == ndi.maximum_filter1d(kap, 5, mode=mode)) | (kap == ndi.minimum_filter1d(kap, 5, mode=mode))
+    is_ext = (kap == ndi.maximum_filter1d(kap, 5, mode=mode)) | (
+        kap == ndi.minimum_filter1d(kap, 5, mode=mode)
+    )
     # Significant: well above the curvature noise (median absolute deviation).
     mad = np.median(dev) + 1e-12
     cand = np.flatnonzero(is_ext & (dev > 3.0 * mad) & (dev > 1e-3 * (np.abs(kap).max() + 1e-12)))

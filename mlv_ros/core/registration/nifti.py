@@ -1,4 +1,5 @@
-"""User myocardium masks from a NIfTI label volume, resampled onto the tagged ED planes (issue 7).
+"""
+User myocardium masks from a NIfTI label volume, resampled onto the tagged ED planes (issue 7).
 
 :func:`masks_for_frames` turns a 3-D integer label image (e.g. an ACDC-style segmentation:
 0 background, 1 RV, 2 myocardium, 3 LV cavity) into the per-slice boolean masks that
@@ -37,9 +38,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
-
 from mlv_ros.core.types import Frame
+import numpy as np
 
 #: Fraction of myocardium pixels allowed farther than the through-plane tolerance.
 MAX_FAR_FRACTION = 0.05
@@ -54,51 +54,64 @@ def _load(path_or_img):
         name = str(path_or_img)
         p = Path(path_or_img)
         if not p.is_file():
-            raise ValueError(f"NIfTI mask file {name}: no such file")
+            raise ValueError(f'NIfTI mask file {name}: no such file')
         try:
             img = nib.load(str(p))
         except Exception as e:  # nibabel raises ImageFileError, OSError, EOFError, ...
-            raise ValueError(f"NIfTI mask file {name}: not a readable NIfTI image ({type(e).__name__}: {e})") from e
+            raise ValueError(
+                f'NIfTI mask file {name}: not a readable NIfTI image ({type(e).__name__}: {e})'
+            ) from e
     else:
         img = path_or_img
-        name = getattr(img, "get_filename", lambda: None)() or f"<{type(img).__name__}>"
+        name = getattr(img, 'get_filename', lambda: None)() or f'<{type(img).__name__}>'
     if not isinstance(img, (nib.Nifti1Image, nib.Nifti2Image)):
-        raise ValueError(f"NIfTI mask {name}: not a NIfTI image (got {type(img).__name__})")
+        raise ValueError(f'NIfTI mask {name}: not a NIfTI image (got {type(img).__name__})')
     shape = tuple(int(n) for n in img.shape)
     try:
         data = np.asanyarray(img.dataobj)
     except Exception as e:
-        raise ValueError(f"NIfTI mask {name}: cannot read the voxel data ({type(e).__name__}: {e})") from e
+        raise ValueError(
+            f'NIfTI mask {name}: cannot read the voxel data ({type(e).__name__}: {e})'
+        ) from e
     while data.ndim > 3 and data.shape[-1] == 1:  # (I, J, K, 1) is a 3-D volume
         data = data[..., 0]
     if data.ndim == 2:  # a single 2-D slice: one voxel along k
         data = data[..., None]
     if data.ndim != 3:
-        raise ValueError(f"NIfTI mask {name}: expected a 3-D label volume, got shape {shape}"
-                         + (" (4-D: pick one time point / ED first)" if len(shape) >= 4 else ""))
+        raise ValueError(
+            f'NIfTI mask {name}: expected a 3-D label volume, got shape {shape}'
+            + (' (4-D: pick one time point / ED first)' if len(shape) >= 4 else '')
+        )
     if min(data.shape) < 1:
-        raise ValueError(f"NIfTI mask {name}: empty volume, shape {shape}")
+        raise ValueError(f'NIfTI mask {name}: empty volume, shape {shape}')
     if data.dtype == bool:
         data = data.astype(np.int64)
     elif np.issubdtype(data.dtype, np.floating):
         if not np.all(np.isfinite(data)):
-            raise ValueError(f"NIfTI mask {name}: label volume has non-finite values")
+            raise ValueError(f'NIfTI mask {name}: label volume has non-finite values')
         if not np.array_equal(data, np.round(data)):
-            raise ValueError(f"NIfTI mask {name}: labels must be integers, got non-integer values "
-                             f"(dtype {data.dtype}; a probability map or image, not a label volume?)")
+            raise ValueError(
+                f'NIfTI mask {name}: labels must be integers, got non-integer values '
+                f'(dtype {data.dtype}; a probability map or image, not a label volume?)'
+            )
         data = data.astype(np.int64)
     elif np.issubdtype(data.dtype, np.integer):
         data = data.astype(np.int64)
     else:
-        raise ValueError(f"NIfTI mask {name}: labels must be integers, got dtype {data.dtype}")
+        raise ValueError(f'NIfTI mask {name}: labels must be integers, got dtype {data.dtype}')
     aff = np.asarray(img.affine, dtype=np.float64)
-    if aff.shape != (4, 4) or not np.all(np.isfinite(aff)) or abs(np.linalg.det(aff[:3, :3])) < 1e-9:
-        raise ValueError(f"NIfTI mask {name}: affine is missing, non-finite or singular:\n{aff}")
+    if (
+        aff.shape != (4, 4)
+        or not np.all(np.isfinite(aff))
+        or abs(np.linalg.det(aff[:3, :3])) < 1e-9
+    ):
+        raise ValueError(f'NIfTI mask {name}: affine is missing, non-finite or singular:\n{aff}')
     return data, aff, name
 
 
 def masks_for_frames(path_or_img, frames, label: int = 2, max_distance_mm: float | None = None):
-    """Per-slice myocardium masks for ``frames`` from a NIfTI label volume.
+    """
+    Per-slice myocardium masks for ``frames`` from a NIfTI label volume.
 
     Parameters
     ----------
@@ -125,23 +138,30 @@ def masks_for_frames(path_or_img, frames, label: int = 2, max_distance_mm: float
     ValueError
         Missing file, not NIfTI, not a 3-D volume, non-integer labels, singular affine, label
         not present anywhere in the volume, bad frames or tolerance. Messages name the file.
+
     """
     data, aff, name = _load(path_or_img)
     if isinstance(label, (bool, np.bool_)) or not float(label).is_integer():
-        raise ValueError(f"NIfTI mask {name}: label must be an integer, got {label!r}")
+        raise ValueError(f'NIfTI mask {name}: label must be an integer, got {label!r}')
     label = int(label)
     present = np.unique(data)
     if label not in present:
-        shown = ", ".join(str(int(v)) for v in present[:20]) + (", ..." if present.size > 20 else "")
-        raise ValueError(f"NIfTI mask {name}: myocardium label {label} does not occur in the volume "
-                         f"(labels present: {shown})")
+        shown = ', '.join(str(int(v)) for v in present[:20]) + (
+            ', ...' if present.size > 20 else ''
+        )
+        raise ValueError(
+            f'NIfTI mask {name}: myocardium label {label} does not occur in the volume '
+            f'(labels present: {shown})'
+        )
     if max_distance_mm is not None and not (np.isfinite(max_distance_mm) and max_distance_mm > 0):
-        raise ValueError(f"max_distance_mm must be a positive number of mm, got {max_distance_mm!r}")
+        raise ValueError(
+            f'max_distance_mm must be a positive number of mm, got {max_distance_mm!r}'
+        )
     if frames is None:
-        raise ValueError("masks_for_frames needs a list of Frame records, got None")
+        raise ValueError('masks_for_frames needs a list of Frame records, got None')
 
     inv = np.linalg.inv(aff)
-    spacing = np.linalg.norm(aff[:3, :3], axis=0)   # mm per voxel along i, j, k
+    spacing = np.linalg.norm(aff[:3, :3], axis=0)  # mm per voxel along i, j, k
     k_ax = int(np.argmax(spacing))
     inplane = float(np.max(np.delete(spacing, k_ax)))
     dims = np.array(data.shape)
@@ -150,39 +170,54 @@ def masks_for_frames(path_or_img, frames, label: int = 2, max_distance_mm: float
     seen = set()
     for f in frames:
         if not isinstance(f, Frame):
-            raise ValueError(f"frames must be Frame records, got {type(f).__name__}")
+            raise ValueError(f'frames must be Frame records, got {type(f).__name__}')
         key = (int(f.view), int(f.slice_index))
         if key in seen:
             continue
         seen.add(key)
         g = f.geometry
         rows, cols = np.asarray(f.image).shape[:2]
-        rr, cc = np.meshgrid(np.arange(rows, dtype=np.float64), np.arange(cols, dtype=np.float64), indexing="ij")
+        rr, cc = np.meshgrid(
+            np.arange(rows, dtype=np.float64), np.arange(cols, dtype=np.float64), indexing='ij'
+        )
         xyz = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], 1)) * _LPS_TO_RAS
-        ijk = xyz @ inv[:3, :3].T + inv[:3, 3]                 # fractional voxel indices
+        ijk = xyz @ inv[:3, :3].T + inv[:3, 3]  # fractional voxel indices
         idx = np.rint(ijk).astype(np.int64)
         inside = np.all((idx >= 0) & (idx < dims), axis=1)
         if not inside.any():
-            reasons[key] = (f"plane lies outside the NIfTI volume {name} (shape {tuple(data.shape)})")
+            reasons[key] = (
+                f'plane lies outside the NIfTI volume {name} (shape {tuple(data.shape)})'
+            )
             continue
         lab = np.zeros(rows * cols, dtype=np.int64)
         ii = idx[inside]
         lab[inside] = data[ii[:, 0], ii[:, 1], ii[:, 2]]
         myo = lab == label
         if not myo.any():
-            reasons[key] = (f"no voxel with label {label} on this plane in {name} "
-                            f"({int(inside.sum())} of {rows * cols} pixels inside the volume)")
+            reasons[key] = (
+                f'no voxel with label {label} on this plane in {name} '
+                f'({int(inside.sum())} of {rows * cols} pixels inside the volume)'
+            )
             continue
-        tol = float(max_distance_mm) if max_distance_mm is not None else max(0.5 * g.slice_thickness, 0.5 * inplane)
+        tol = (
+            float(max_distance_mm)
+            if max_distance_mm is not None
+            else max(0.5 * g.slice_thickness, 0.5 * inplane)
+        )
         delta = np.abs(ijk[myo, k_ax] - idx[myo, k_ax]) * spacing[k_ax]
         far = float(np.mean(delta > tol + 1e-6))
         if far > MAX_FAR_FRACTION:
             cosang = abs(float(g.normal @ (aff[:3, k_ax] * _LPS_TO_RAS)) / spacing[k_ax])
-            how = ("is parallel to" if cosang > 0.985 else
-                   f"crosses (at {np.degrees(np.arccos(min(cosang, 1.0))):.0f} deg)")
-            reasons[key] = (f"plane {how} the NIfTI slices ({spacing[k_ax]:.1f} mm apart) of {name}: "
-                            f"{100 * far:.0f} % of its myocardium pixels lie > {tol:.1f} mm (median "
-                            f"{float(np.median(delta)):.1f} mm) from a slice centre")
+            how = (
+                'is parallel to'
+                if cosang > 0.985
+                else f'crosses (at {np.degrees(np.arccos(min(cosang, 1.0))):.0f} deg)'
+            )
+            reasons[key] = (
+                f'plane {how} the NIfTI slices ({spacing[k_ax]:.1f} mm apart) of {name}: '
+                f'{100 * far:.0f} % of its myocardium pixels lie > {tol:.1f} mm (median '
+                f'{float(np.median(delta)):.1f} mm) from a slice centre'
+            )
             continue
         masks[key] = myo.reshape(rows, cols)
     return masks, reasons

@@ -1,4 +1,5 @@
-"""End-diastolic registration of the meshless LV model to tagged SA/LA images (paper §2.1, §3.2).
+"""
+End-diastolic registration of the meshless LV model to tagged SA/LA images (paper §2.1, §3.2).
 
 Pipeline of :func:`register_ed`:
 
@@ -19,43 +20,56 @@ Pipeline of :func:`register_ed`:
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
-
-import numpy as np
+import time
 
 from mlv_ros.core.io.dicom import estimate_long_axis
 from mlv_ros.core.meshless import MeshlessModel, ModelFrame
 from mlv_ros.core.registration import segment as seg
-from mlv_ros.core.registration.anatomy import SOURCE_DETECTED, SOURCE_GIVEN, SeptumEstimate, estimate_septum
-from mlv_ros.core.registration.initialise import (AxisFrame, LVShape, default_reference, model_frame,
-                                                  reconstruct_shape, sample_particles)
-from mlv_ros.core.registration.landmarks import LANDMARKS_PER_SA_SLICE, curvature_landmarks
-from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame, ModelState
+from mlv_ros.core.registration.anatomy import (
+    estimate_septum,
+    SeptumEstimate,
+    SOURCE_DETECTED,
+    SOURCE_GIVEN,
+)
+from mlv_ros.core.registration.initialise import (
+    AxisFrame,
+    default_reference,
+    LVShape,
+    model_frame,
+    reconstruct_shape,
+    sample_particles,
+)
+from mlv_ros.core.registration.landmarks import curvature_landmarks, LANDMARKS_PER_SA_SLICE
+from mlv_ros.core.types import Frame, ModelState, VIEW_LA, VIEW_SA
+import numpy as np
 
 #: Fewest usable SA slices for a 3-D reconstruction.
 MIN_SA_SLICES = 3
-_VIEW = {VIEW_SA: "SA", VIEW_LA: "LA"}
+_VIEW = {VIEW_SA: 'SA', VIEW_LA: 'LA'}
 
 
 @dataclass
 class SliceReport:
-    """Outcome for one slice: ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or
+    """
+    Outcome for one slice: ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or
     ``"mask"``; ``landmarks`` used in the registration; ``residual_mm`` RMS in-plane landmark
-    distance after registration (NaN if none)."""
+    distance after registration (NaN if none).
+    """
 
     view: int
     slice_index: int
     ok: bool
-    reason: str = ""
-    source: str = "auto"
+    reason: str = ''
+    source: str = 'auto'
     landmarks: int = 0
-    residual_mm: float = float("nan")
+    residual_mm: float = float('nan')
 
 
 @dataclass
 class RegistrationResult:
-    """Registered ED model.
+    """
+    Registered ED model.
 
     Attributes
     ----------
@@ -86,6 +100,7 @@ class RegistrationResult:
         Where the septum (β = 0 is the inferior RV insertion 60° from it) came from: the RV found
         in the ED SA images (``source`` "detected"), the anatomical prior ("prior", with why), or
         the caller's ``reference_direction`` ("given").
+
     """
 
     particles: np.ndarray
@@ -103,13 +118,17 @@ class RegistrationResult:
     septum: SeptumEstimate | None = None
 
     def wall_thickness_mm(self) -> np.ndarray:
-        """ED wall thickness of the registered model, mm: for each epicardial surface sample
+        """
+        ED wall thickness of the registered model, mm: for each epicardial surface sample
         (:attr:`surfaces`), the distance to the nearest endocardial sample; shape (M,), empty
-        without surfaces. At the apex this is the apical wall (epicardial to endocardial apex)."""
+        without surfaces. At the apex this is the apical wall (epicardial to endocardial apex).
+        """
         from scipy.spatial import cKDTree
 
-        endo, epi = (np.asarray(self.surfaces.get(k, np.zeros((0, 3))), float).reshape(-1, 3)
-                     for k in ("endo", "epi"))
+        endo, epi = (
+            np.asarray(self.surfaces.get(k, np.zeros((0, 3))), float).reshape(-1, 3)
+            for k in ('endo', 'epi')
+        )
         if not len(endo) or not len(epi):
             return np.zeros(0)
         return cKDTree(endo).query(epi)[0]
@@ -133,16 +152,22 @@ def _axis_in_plane(g, point, direction):
 
 def _ray_points(s: seg.SliceSegmentation, g, which: str) -> tuple[np.ndarray, np.ndarray]:
     """3-D points of the endo/epi radii of a segmentation; returns (points (K, 3), ray index)."""
-    r = s.endo if which == "endo" else s.epi
+    r = s.endo if which == 'endo' else s.epi
     ok = np.isfinite(r) & (r > 0.5)
     idx = np.flatnonzero(ok)
-    rc = s.centre_rc[None] + r[idx, None] * np.stack([np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1)
+    rc = s.centre_rc[None] + r[idx, None] * np.stack(
+        [np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1
+    )
     return g.pixel_to_patient(rc), idx
 
 
-def _model_radii(shape: LVShape, g, centre_rc, angles, which: str, max_mm: float = 90.0) -> np.ndarray:
-    """Radius (px) along each in-plane ray where the reconstructed wall ``which`` is first
-    crossed from inside (the model's contour on this slice); NaN where it is not crossed."""
+def _model_radii(
+    shape: LVShape, g, centre_rc, angles, which: str, max_mm: float = 90.0
+) -> np.ndarray:
+    """
+    Radius (px) along each in-plane ray where the reconstructed wall ``which`` is first
+    crossed from inside (the model's contour on this slice); NaN where it is not crossed.
+    """
     step_mm = 0.25
     t = np.arange(0.0, max_mm, step_mm)
     sp = g.row_spacing
@@ -150,9 +175,9 @@ def _model_radii(shape: LVShape, g, centre_rc, angles, which: str, max_mm: float
     rc = centre_rc[None, None] + (t / sp)[None, :, None] * dirs[:, None, :]
     x = g.pixel_to_patient(rc.reshape(-1, 2))
     r, th, z = shape.frame.to_cylindrical(x)
-    surf = shape.endo if which == "endo" else shape.epi
+    surf = shape.endo if which == 'endo' else shape.epi
     gval = (r * r - surf.r2(z, th)).reshape(len(angles), -1)
-    if which == "epi":   # beyond the base or below the apex counts as outside
+    if which == 'epi':  # beyond the base or below the apex counts as outside
         zz = z.reshape(len(angles), -1)
         gval = np.where((zz > shape.z_base) | (zz < shape.z_apex_epi), np.abs(gval) + 1.0, gval)
     else:
@@ -171,22 +196,25 @@ def _model_radii(shape: LVShape, g, centre_rc, angles, which: str, max_mm: float
 
 def _contour_landmarks(s: seg.SliceSegmentation, which: str, n: int) -> np.ndarray:
     """Ray indices of ``n`` curvature landmarks on one wall contour of a segmentation."""
-    r = s.endo if which == "endo" else s.epi
+    r = s.endo if which == 'endo' else s.epi
     idx = np.flatnonzero(np.isfinite(r) & (r > 0.5))
     if idx.size < max(n, 5):
         return np.zeros(0, np.int64)
     closed = idx.size == r.size
-    if not closed:   # LA arc: order the rays along the horseshoe (it may wrap past ±π)
+    if not closed:  # LA arc: order the rays along the horseshoe (it may wrap past ±π)
         gaps = np.flatnonzero(np.diff(idx) > 1)
         if gaps.size:
             idx = np.roll(idx, -(gaps[0] + 1))
-    rc = s.centre_rc[None] + r[idx, None] * np.stack([np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1)
+    rc = s.centre_rc[None] + r[idx, None] * np.stack(
+        [np.sin(s.angles[idx]), np.cos(s.angles[idx])], 1
+    )
     return idx[curvature_landmarks(rc, min(n, idx.size), closed=closed)]
 
 
 # --------------------------------------------------------------------------- main
 def segment_around_axis(frames: list) -> dict:
-    """Automatic ED segmentation of every frame around the geometric long axis, as
+    """
+    Automatic ED segmentation of every frame around the geometric long axis, as
     :func:`register_ed` segments (the batch counterpart of :class:`StreamingMasker`).
 
     Parameters
@@ -198,31 +226,48 @@ def segment_around_axis(frames: list) -> dict:
     -------
     dict
         ``{(view, slice_index): (mask or None, reason)}``; ``reason`` is empty on success.
+
     """
     sa = [f for f in frames if f.view == VIEW_SA]
     la = [f for f in frames if f.view != VIEW_SA]
-    est = estimate_long_axis([f.geometry for f in sa], [f.geometry for f in la],
-                             np.array([_fov_centre(f) for f in sa]))
+    est = estimate_long_axis(
+        [f.geometry for f in sa], [f.geometry for f in la], np.array([_fov_centre(f) for f in sa])
+    )
     out = {}
     for f in frames:
         g, sp = f.geometry, f.geometry.row_spacing
         if f.view == VIEW_SA:
             x = _axis_in_plane(g, est.point, est.direction)
             if x is None:
-                out[(f.view, f.slice_index)] = (None, "SA plane is nearly parallel to the long axis")
+                out[(f.view, f.slice_index)] = (
+                    None,
+                    'SA plane is nearly parallel to the long axis',
+                )
                 continue
             s = seg.segment_sa(f.image, g.patient_to_pixel(x)[0], sp)
         else:
-            axis_rc = np.array([est.direction @ g.column_direction, est.direction @ g.row_direction])
+            axis_rc = np.array(
+                [est.direction @ g.column_direction, est.direction @ g.row_direction]
+            )
             s = seg.segment_la(f.image, g.patient_to_pixel(est.point)[0], axis_rc, sp)
         out[(f.view, f.slice_index)] = (s.mask if s.ok else None, s.reason)
     return out
 
 
-def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int = 0, *,
-                landmarks_per_sa_slice: int = LANDMARKS_PER_SA_SLICE, max_iterations: int = 20,
-                local_iterations: int = 0, data_weight: float = 100.0, reference_direction=None) -> RegistrationResult:
-    """Register the meshless LV model to the end-diastolic SA and LA tagged images.
+def register_ed(
+    frames: list,
+    num_particles: int = 5000,
+    masks=None,
+    seed: int = 0,
+    *,
+    landmarks_per_sa_slice: int = LANDMARKS_PER_SA_SLICE,
+    max_iterations: int = 20,
+    local_iterations: int = 0,
+    data_weight: float = 100.0,
+    reference_direction=None,
+) -> RegistrationResult:
+    """
+    Register the meshless LV model to the end-diastolic SA and LA tagged images.
 
     Parameters
     ----------
@@ -262,35 +307,41 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     ValueError
         No frames, no SA view, fewer than :data:`MIN_SA_SLICES` usable SA slices (the message
         lists each slice's reason), or a reconstruction that fails.
+
     """
     t0 = time.perf_counter()
     if landmarks_per_sa_slice < 2:
-        raise ValueError(f"landmarks_per_sa_slice must be >= 2 (endo + epi), got {landmarks_per_sa_slice}")
+        raise ValueError(
+            f'landmarks_per_sa_slice must be >= 2 (endo + epi), got {landmarks_per_sa_slice}'
+        )
     timings: dict = {}
     warnings: list[str] = []
     reports: list[SliceReport] = []
     if frames is None or len(frames) == 0:
-        raise ValueError("register_ed needs the ED frames of the SA (and LA) slices; got none")
+        raise ValueError('register_ed needs the ED frames of the SA (and LA) slices; got none')
     by_key: dict = {}
     for f in frames:
         if not isinstance(f, Frame):
-            raise ValueError(f"frames must be Frame records, got {type(f).__name__}")
+            raise ValueError(f'frames must be Frame records, got {type(f).__name__}')
         k = (int(f.view), int(f.slice_index))
         if k not in by_key or f.phase_index < by_key[k].phase_index:
             by_key[k] = f
     if any(f.phase_index != 0 for f in by_key.values()):
-        warnings.append("some slices have no phase-0 (ED) frame; their earliest phase was used")
+        warnings.append('some slices have no phase-0 (ED) frame; their earliest phase was used')
     sa_keys = sorted(k for k in by_key if k[0] == VIEW_SA)
     la_keys = sorted(k for k in by_key if k[0] == VIEW_LA)
     if not sa_keys:
-        raise ValueError("no SA frames: the registration needs a short-axis stack")
+        raise ValueError('no SA frames: the registration needs a short-axis stack')
     if not la_keys:
-        warnings.append("no LA views: apex and base are extrapolated from the SA stack")
+        warnings.append('no LA views: apex and base are extrapolated from the SA stack')
     elif len(la_keys) < 2:
-        warnings.append("only one LA view: the long axis comes from the SA normal")
+        warnings.append('only one LA view: the long axis comes from the SA normal')
 
-    est = estimate_long_axis([by_key[k].geometry for k in sa_keys], [by_key[k].geometry for k in la_keys],
-                             np.array([_fov_centre(by_key[k]) for k in sa_keys]))
+    est = estimate_long_axis(
+        [by_key[k].geometry for k in sa_keys],
+        [by_key[k].geometry for k in la_keys],
+        np.array([_fov_centre(by_key[k]) for k in sa_keys]),
+    )
     axis_pt, axis_dir = est.point, est.direction
 
     user = masks or {}
@@ -302,63 +353,88 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         img = np.asarray(f.image)
         sp = g.row_spacing
         if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
-            reports.append(SliceReport(*k, False, "anisotropic pixel spacing is not supported"))
+            reports.append(SliceReport(*k, False, 'anisotropic pixel spacing is not supported'))
             continue
         if k[0] == VIEW_SA:
             x = _axis_in_plane(g, axis_pt, axis_dir)
             if x is None:
-                reports.append(SliceReport(*k, False, "SA plane is nearly parallel to the long axis"))
+                reports.append(
+                    SliceReport(*k, False, 'SA plane is nearly parallel to the long axis')
+                )
                 continue
             centre_rc = g.patient_to_pixel(x)[0]
         else:
             centre_rc, off = g.patient_to_pixel(axis_pt)
             axis_rc = np.array([axis_dir @ g.column_direction, axis_dir @ g.row_direction])
             if abs(off) > 10.0 or np.linalg.norm(axis_rc) < 0.9:
-                reports.append(SliceReport(*k, False, f"LA plane does not contain the long axis "
-                                                      f"({abs(off):.1f} mm off, in-plane cos {np.linalg.norm(axis_rc):.2f})"))
+                reports.append(
+                    SliceReport(
+                        *k,
+                        False,
+                        f'LA plane does not contain the long axis '
+                        f'({abs(off):.1f} mm off, in-plane cos {np.linalg.norm(axis_rc):.2f})',
+                    )
+                )
                 continue
         if k in user:
-            s = _from_mask(user[k], img.shape, k[0], centre_rc, sp, None if k[0] == VIEW_SA else axis_rc)
-            source = "mask"
+            s = _from_mask(
+                user[k], img.shape, k[0], centre_rc, sp, None if k[0] == VIEW_SA else axis_rc
+            )
+            source = 'mask'
         elif k[0] == VIEW_SA:
             s = seg.segment_sa(img, centre_rc, sp)
-            source = "auto"
+            source = 'auto'
         else:
             s = seg.segment_la(img, centre_rc, axis_rc, sp)
-            source = "auto"
+            source = 'auto'
         s.source = source
         if not s.ok:
             reports.append(SliceReport(*k, False, s.reason, source))
             continue
         segs[k] = s
-        reports.append(SliceReport(*k, True, "", source))
-    timings["segmentation"] = time.perf_counter() - ts
+        reports.append(SliceReport(*k, True, '', source))
+    timings['segmentation'] = time.perf_counter() - ts
 
     usable_sa = [k for k in sa_keys if k in segs]
     if len(usable_sa) < MIN_SA_SLICES:
-        why = "; ".join(f"{_VIEW[r.view]} {r.slice_index}: {r.reason}" for r in reports if not r.ok)
-        raise ValueError(f"only {len(usable_sa)} usable SA slices (need >= {MIN_SA_SLICES}): {why or 'none given'}")
+        why = '; '.join(
+            f'{_VIEW[r.view]} {r.slice_index}: {r.reason}' for r in reports if not r.ok
+        )
+        raise ValueError(
+            f'only {len(usable_sa)} usable SA slices (need >= {MIN_SA_SLICES}): '
+            f'{why or "none given"}'
+        )
     failed = [r for r in reports if not r.ok]
     if failed:
-        warnings.append(f"registered from {len(segs)} of {len(sa_keys) + len(la_keys)} slices; dropped: "
-                        + ", ".join(f"{_VIEW[r.view]} {r.slice_index}" for r in failed))
+        warnings.append(
+            f'registered from {len(segs)} of {len(sa_keys) + len(la_keys)} slices; dropped: '
+            + ', '.join(f'{_VIEW[r.view]} {r.slice_index}' for r in failed)
+        )
     usable_la = [k for k in la_keys if k in segs]
 
     # ---- circumferential reference: the septum from the RV in the images, else the prior
     if reference_direction is None:
-        septum = estimate_septum([(np.asarray(by_key[k].image), segs[k], by_key[k].geometry) for k in usable_sa],
-                                 axis_dir, default_reference(axis_dir, rotate_deg=0.0))
+        septum = estimate_septum(
+            [(np.asarray(by_key[k].image), segs[k], by_key[k].geometry) for k in usable_sa],
+            axis_dir,
+            default_reference(axis_dir, rotate_deg=0.0),
+        )
         if septum.source == SOURCE_DETECTED:
             ref = default_reference(axis_dir, septum_hint=septum.septum)
         else:
-            ref = default_reference(axis_dir)  # the segments are then not tied to the anatomy (septum.reason)
+            ref = default_reference(
+                axis_dir
+            )  # the segments are then not tied to the anatomy (septum.reason)
     else:
         ref = np.asarray(reference_direction, float)
-        septum = SeptumEstimate(SOURCE_GIVEN, default_reference(axis_dir, septum_hint=ref, rotate_deg=-60.0),
-                                reason="reference_direction given by the caller")
+        septum = SeptumEstimate(
+            SOURCE_GIVEN,
+            default_reference(axis_dir, septum_hint=ref, rotate_deg=-60.0),
+            reason='reference_direction given by the caller',
+        )
     frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
     if la_keys and not usable_la:
-        warnings.append("no usable LA view: apex and base are extrapolated from the SA stack")
+        warnings.append('no usable LA view: apex and base are extrapolated from the SA stack')
 
     # ---- 3-D reconstruction (§2.1)
     ts = time.perf_counter()
@@ -366,8 +442,8 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
     z_bases = []
     for k, s in segs.items():
         g = by_key[k].geometry
-        pe, _ = _ray_points(s, g, "epi")
-        pn, _ = _ray_points(s, g, "endo")
+        pe, _ = _ray_points(s, g, 'epi')
+        pn, _ = _ray_points(s, g, 'endo')
         if k[0] == VIEW_LA:
             base_pt = g.pixel_to_patient(s.centre_rc + s.base_level * s.axis_rc)
             zb = float((base_pt - axis_pt) @ axis_dir)
@@ -375,7 +451,7 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
             # Ray ends at the base cut are not wall points.
             pe = pe[(pe - axis_pt) @ axis_dir < zb - 3.0]
             pn = pn[(pn - axis_pt) @ axis_dir < zb - 3.0]
-            w = 2.0   # LA rays are sparser per unit surface than the SA stack's
+            w = 2.0  # LA rays are sparser per unit surface than the SA stack's
         else:
             w = 1.0
         epi_pts.append(pe)
@@ -384,38 +460,43 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
         wn.append(np.full(len(pn), w))
     # Where the long axis crosses each segmented SA slice: myocardium reaches at least the most
     # basal of them.
-    z_sa_top = max(float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir)
-                   for k in usable_sa)
+    z_sa_top = max(
+        float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir)
+        for k in usable_sa
+    )
     if z_bases:
         z_base = float(np.median(z_bases))
         if z_base < z_sa_top:
             # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice
             # above it.
-            warnings.append(f"LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA slice; "
-                            "the base is taken at that slice")
+            warnings.append(
+                f'LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA '
+                'slice; '
+                'the base is taken at that slice'
+            )
             z_base = z_sa_top
     else:
         z_base = z_sa_top + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
     shape = reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
     particles0 = sample_particles(shape, int(num_particles), seed)
     mframe, polar = model_frame(shape, particles0)
-    timings["initialisation"] = time.perf_counter() - ts
+    timings['initialisation'] = time.perf_counter() - ts
 
     # ---- landmark registration (§3.2, Fig. 7)
     ts = time.perf_counter()
     ctrl_rest, targets, normals, owner = [], [], [], []
     for k, s in segs.items():
         g = by_key[k].geometry
-        walls = ("endo", "epi")
+        walls = ('endo', 'epi')
         n_each = landmarks_per_sa_slice // 2
         for which in walls:
             lm = _contour_landmarks(s, which, n_each)
             if lm.size == 0:
                 continue
             model_r = _model_radii(shape, g, s.centre_rc, s.angles[lm], which)
-            img_r = (s.endo if which == "endo" else s.epi)[lm]
+            img_r = (s.endo if which == 'endo' else s.epi)[lm]
             ok = np.isfinite(model_r) & np.isfinite(img_r)
-            if k[0] == VIEW_LA:   # keep clear of the base cut
+            if k[0] == VIEW_LA:  # keep clear of the base cut
                 ok &= (s.angles[lm] * 0 + 1).astype(bool)
             d = np.stack([np.sin(s.angles[lm]), np.cos(s.angles[lm])], 1)
             src = g.pixel_to_patient(s.centre_rc[None] + model_r[:, None] * d)
@@ -428,14 +509,16 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
             normals.append(np.tile(g.normal, (int(ok.sum()), 1)))
             owner += [k] * int(ok.sum())
     particles = particles0
-    state_kw = dict(iterations=0, residual=0.0, converged=False, num_control_points=0)
+    state_kw = {'iterations': 0, 'residual': 0.0, 'converged': False, 'num_control_points': 0}
     if not usable_la:
         # In-plane SA forces do not see the model's extent along the axis, and the global
         # stage's scale couples it to the radii: without an LA view the fit drifts along the
         # axis (measured, normal LV, SA only: 99.8 % of particles inside the true myocardium
         # as reconstructed, 50–79 % after the fit, depending on sub-millimetre contour details).
-        warnings.append("no usable LA view: landmark registration skipped (the axial scale is "
-                        "unobservable from SA slices); kept the reconstructed model")
+        warnings.append(
+            'no usable LA view: landmark registration skipped (the axial scale is '
+            'unobservable from SA slices); kept the reconstructed model'
+        )
         surf_model = None
     elif ctrl_rest and sum(len(c) for c in ctrl_rest) >= 12:
         src = np.concatenate(ctrl_rest)
@@ -446,43 +529,64 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
             ctrl = model.attach(src)
             # Global stage first (rigid + scale + twist, eq. 9-15), then a bounded local stage:
             # the reconstruction already sits within ~1 mm, so a few local steps suffice.
-            model.fit(ctrl, dst, plane_normals=nrm, max_iterations=max_iterations, local=False,
-                      tol=1e-3)
-            fit = model.fit(ctrl, dst, plane_normals=nrm, max_iterations=local_iterations,
-                            data_weight=data_weight, cg_maxiter=25, refresh_every=0, tol=1e-2,
-                            local_start=np.inf)
+            model.fit(
+                ctrl, dst, plane_normals=nrm, max_iterations=max_iterations, local=False, tol=1e-3
+            )
+            fit = model.fit(
+                ctrl,
+                dst,
+                plane_normals=nrm,
+                max_iterations=local_iterations,
+                data_weight=data_weight,
+                cg_maxiter=25,
+                refresh_every=0,
+                tol=1e-2,
+                local_start=np.inf,
+            )
             moved = ctrl.weights @ fit.positions
             proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
-            res = np.linalg.norm(np.einsum("mab,mb->ma", proj, dst - moved), axis=1)
-            res0 = np.linalg.norm(np.einsum("mab,mb->ma", proj, dst - src), axis=1)
-            if np.all(np.isfinite(fit.positions)) and np.sqrt(np.mean(res ** 2)) <= np.sqrt(np.mean(res0 ** 2)):
+            res = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - moved), axis=1)
+            res0 = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - src), axis=1)
+            if np.all(np.isfinite(fit.positions)) and np.sqrt(np.mean(res**2)) <= np.sqrt(
+                np.mean(res0**2)
+            ):
                 particles = fit.positions
                 owner_arr = np.array(owner)
                 for r in reports:
-                    sel = np.all(owner_arr == (r.view, r.slice_index), axis=1) if len(owner_arr) else np.zeros(0, bool)
+                    sel = (
+                        np.all(owner_arr == (r.view, r.slice_index), axis=1)
+                        if len(owner_arr)
+                        else np.zeros(0, bool)
+                    )
                     r.landmarks = int(sel.sum())
                     if sel.any():
                         r.residual_mm = float(np.sqrt(np.mean(res[sel] ** 2)))
-                state_kw = dict(iterations=fit.iterations, residual=float(np.sqrt(np.mean(res ** 2))),
-                                converged=bool(fit.converged), num_control_points=len(src))
+                state_kw = {
+                    'iterations': fit.iterations,
+                    'residual': float(np.sqrt(np.mean(res**2))),
+                    'converged': bool(fit.converged),
+                    'num_control_points': len(src),
+                }
                 surf_model = model
             else:
-                warnings.append("landmark registration did not reduce the contour distance; "
-                                "kept the reconstructed model")
+                warnings.append(
+                    'landmark registration did not reduce the contour distance; '
+                    'kept the reconstructed model'
+                )
                 surf_model = None
         except (ValueError, np.linalg.LinAlgError) as exc:
-            warnings.append(f"landmark registration failed ({exc}); kept the reconstructed model")
+            warnings.append(f'landmark registration failed ({exc}); kept the reconstructed model')
             surf_model = None
     else:
-        warnings.append("too few landmarks for registration; kept the reconstructed model")
+        warnings.append('too few landmarks for registration; kept the reconstructed model')
         surf_model = None
-    timings["registration"] = time.perf_counter() - ts
+    timings['registration'] = time.perf_counter() - ts
 
     if particles is not particles0:
         mframe, polar = model_frame(shape, particles)
-    polar["transmural"] = shape.transmural(particles0)
+    polar['transmural'] = shape.transmural(particles0)
     surfaces = {}
-    for which in ("endo", "epi"):
+    for which in ('endo', 'epi'):
         sp_ = shape.surface_points(which)
         if surf_model is not None:
             try:
@@ -491,13 +595,35 @@ def register_ed(frames: list, num_particles: int = 5000, masks=None, seed: int =
                 pass
         surfaces[which] = sp_
     p = mframe.params
-    state = ModelState(phase_index=0, num_phases=int(next(iter(by_key.values())).num_phases),
-                       translation=p.translation.copy(), rotation=p.rotation.copy(), a0=float(p.a[0]),
-                       a1=float(p.a[1]), a2=float(p.a[2]), a3=float(p.a[3]), tau=float(p.tau),
-                       num_particles=len(particles), **state_kw)
-    timings["total"] = time.perf_counter() - t0
-    return RegistrationResult(particles, mframe, polar, state, shape, reports, warnings, axis_pt, axis_dir,
-                              {k: s.mask for k, s in segs.items()}, surfaces, timings, septum)
+    state = ModelState(
+        phase_index=0,
+        num_phases=int(next(iter(by_key.values())).num_phases),
+        translation=p.translation.copy(),
+        rotation=p.rotation.copy(),
+        a0=float(p.a[0]),
+        a1=float(p.a[1]),
+        a2=float(p.a[2]),
+        a3=float(p.a[3]),
+        tau=float(p.tau),
+        num_particles=len(particles),
+        **state_kw,
+    )
+    timings['total'] = time.perf_counter() - t0
+    return RegistrationResult(
+        particles,
+        mframe,
+        polar,
+        state,
+        shape,
+        reports,
+        warnings,
+        axis_pt,
+        axis_dir,
+        {k: s.mask for k, s in segs.items()},
+        surfaces,
+        timings,
+        septum,
+    )
 
 
 def _perp(v, axis) -> np.ndarray:
@@ -505,7 +631,7 @@ def _perp(v, axis) -> np.ndarray:
     v = v - (v @ axis) * axis
     n = np.linalg.norm(v)
     if n < 1e-6:
-        raise ValueError("reference_direction is parallel to the long axis")
+        raise ValueError('reference_direction is parallel to the long axis')
     return v / n
 
 
@@ -514,10 +640,18 @@ def _from_mask(mask, shape, view, centre_rc, spacing, axis_rc) -> seg.SliceSegme
     m = np.asarray(mask)
     name = _VIEW[view]
     if m.shape != tuple(shape):
-        return seg.SliceSegmentation(False, f"user mask shape {m.shape} does not match the image {tuple(shape)}",
-                                     np.zeros(shape, bool), view=name)
+        return seg.SliceSegmentation(
+            False,
+            f'user mask shape {m.shape} does not match the image {tuple(shape)}',
+            np.zeros(shape, bool),
+            view=name,
+        )
     m = m.astype(bool)
     if m.sum() < 20:
-        return seg.SliceSegmentation(False, f"user mask has only {int(m.sum())} myocardium pixels",
-                                     np.zeros(shape, bool), view=name)
+        return seg.SliceSegmentation(
+            False,
+            f'user mask has only {int(m.sum())} myocardium pixels',
+            np.zeros(shape, bool),
+            view=name,
+        )
     return seg.segment_from_mask(m, centre_rc, spacing, axis_rc)

@@ -1,4 +1,5 @@
-"""Automatic end-diastolic LV myocardium segmentation on tagged SA and LA images.
+"""
+Automatic end-diastolic LV myocardium segmentation on tagged SA and LA images.
 
 Why tag energy: SPAMM tags are laid down at end-diastole in all tissue, but flowing blood carries
 them out of the slice within tens of milliseconds, so at ED the myocardium is *tagged*, the
@@ -13,8 +14,9 @@ intensity anywhere, so scaling an image changes nothing). Two local features (pi
   filter (Gaussian envelope σ = λ/2, which passes the grid's other harmonics at ≈ 0.7 %) is
   demodulated at each. A bright pool beside the wall (the right ventricle) can out-weigh the
   tags in the plain spectrum; the segmenters also try the whitened one
-  (:func:`candidate_features`) and keep the estimate under which the wall stands out most. At ED the grid is undeformed, so the tags have one phase per
-  direction over the whole image: E is the sum of the responses projected on those phases.
+  (:func:`candidate_features`) and keep the estimate under which the wall stands out most. At
+  ED the grid is undeformed, so the tags have one phase per direction over the whole image: E is
+  the sum of the responses projected on those phases.
   That keeps the tags' amplitude, linear in the tagged fraction of a pixel, while most of the
   response to intensity steps — a bright blood pool's edge has spectral content in the tag
   band — has the phase of the edge's position and cancels;
@@ -43,15 +45,14 @@ instead of the paper's learned one):
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field
-
-import numpy as np
-from scipy import ndimage as ndi
-from scipy.special import ndtr
+import functools
 
 from mlv_ros.core.filters import running_median
 from mlv_ros.core.tags.gabor import TAG_PERIOD_RANGE_MM  # plausible SPAMM periods, mm
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.special import ndtr
 
 #: Rays per slice (2° apart).
 NUM_RAYS = 180
@@ -84,7 +85,8 @@ REFINE_REACH_PX = 3.0
 
 @dataclass
 class TagFeatures:
-    """Tag-energy features of one image (see module docstring).
+    """
+    Tag-energy features of one image (see module docstring).
 
     Attributes
     ----------
@@ -102,6 +104,7 @@ class TagFeatures:
     noise : float
         Standard deviation of the noise in ``energy`` (robust spread of the quadrature part,
         which holds no tags), energy units.
+
     """
 
     energy: np.ndarray
@@ -114,7 +117,8 @@ class TagFeatures:
 
 @dataclass
 class SliceSegmentation:
-    """Myocardium of one slice, in polar form around ``centre_rc`` plus the pixel mask.
+    """
+    Myocardium of one slice, in polar form around ``centre_rc`` plus the pixel mask.
 
     Attributes
     ----------
@@ -138,6 +142,7 @@ class SliceSegmentation:
         LA only: unit in-plane long-axis direction (apex → base), (row, col).
     source : str
         ``"auto"`` (this module) or ``"mask"`` (user label image).
+
     """
 
     ok: bool
@@ -147,15 +152,16 @@ class SliceSegmentation:
     angles: np.ndarray = field(default_factory=lambda: np.zeros(0))
     endo: np.ndarray = field(default_factory=lambda: np.zeros(0))
     epi: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    view: str = "SA"
+    view: str = 'SA'
     base_level: float = np.inf
     axis_rc: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    source: str = "auto"
+    source: str = 'auto'
 
 
 # --------------------------------------------------------------------------- features
 def tag_period_band_px(pixel_spacing_mm: float | None) -> tuple[float, float]:
-    """Search band of tag periods for :func:`tag_wavevectors`, px.
+    """
+    Search band of tag periods for :func:`tag_wavevectors`, px.
 
     With a pixel spacing: :data:`TAG_PERIOD_RANGE_MM` in pixels (never below
     :data:`MIN_TAG_PERIOD_PX`); without one: 2.5–30 px.
@@ -166,9 +172,14 @@ def tag_period_band_px(pixel_spacing_mm: float | None) -> tuple[float, float]:
     return lo, max(TAG_PERIOD_RANGE_MM[1] / pixel_spacing_mm, lo + 1.0)
 
 
-def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
-                    max_period_px: float = 30.0, whitened: bool = False) -> np.ndarray:
-    """The two dominant tag wave vectors from the windowed magnitude spectrum.
+def tag_wavevectors(
+    image: np.ndarray,
+    min_period_px: float = MIN_TAG_PERIOD_PX,
+    max_period_px: float = 30.0,
+    whitened: bool = False,
+) -> np.ndarray:
+    """
+    The two dominant tag wave vectors from the windowed magnitude spectrum.
 
     Parameters
     ----------
@@ -201,6 +212,7 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
     found 1.5–2.5 × too long, the energy then missing the thin apical wall).
     The peaks are refined on the image's own spectrum (the median takes a little of the tags
     too, unevenly across a peak's bins).
+
     """
     img = np.asarray(image, dtype=np.float64)
     win = np.outer(np.hanning(img.shape[0]), np.hanning(img.shape[1]))
@@ -209,7 +221,7 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
     spec = np.abs(np.fft.fft2((img - img.mean()) * win))
     fy = np.fft.fftfreq(img.shape[0])
     fx = np.fft.fftfreq(img.shape[1])
-    FY, FX = np.meshgrid(fy, fx, indexing="ij")
+    FY, FX = np.meshgrid(fy, fx, indexing='ij')
     fr = np.hypot(FY, FX)
     band = (fr >= 1.0 / max_period_px) & (fr <= 1.0 / min_period_px)
     s1 = np.where(band, found * fr if whitened else found, 0.0)
@@ -234,9 +246,11 @@ def tag_wavevectors(image: np.ndarray, min_period_px: float = MIN_TAG_PERIOD_PX,
     return np.array(out)
 
 
-def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
-                 pixel_spacing_mm: float | None = None) -> TagFeatures:
-    """Tag energy and tag-free mean of an image (module docstring).
+def tag_features(
+    image: np.ndarray, wavevectors: np.ndarray | None = None, pixel_spacing_mm: float | None = None
+) -> TagFeatures:
+    """
+    Tag energy and tag-free mean of an image (module docstring).
 
     Parameters
     ----------
@@ -249,15 +263,19 @@ def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
     Returns
     -------
     TagFeatures
+
     """
     img = np.asarray(image, dtype=np.float64)
-    kv = (tag_wavevectors(img, *tag_period_band_px(pixel_spacing_mm)) if wavevectors is None
-          else np.asarray(wavevectors, dtype=np.float64))
+    kv = (
+        tag_wavevectors(img, *tag_period_band_px(pixel_spacing_mm))
+        if wavevectors is None
+        else np.asarray(wavevectors, dtype=np.float64)
+    )
     lam = float(np.mean(1.0 / np.linalg.norm(kv, axis=1)))
     sigma = ENERGY_SIGMA_PERIODS * lam
     # Reflect-pad by two periods: the circular FFT filters then see a continuous border.
     pad = int(np.ceil(2.0 * lam)) + 1
-    big = np.pad(img, pad, mode="reflect")
+    big = np.pad(img, pad, mode='reflect')
     spec = np.fft.fft2(big)
     fy = np.fft.fftfreq(big.shape[0])[:, None]
     fx = np.fft.fftfreq(big.shape[1])[None, :]
@@ -279,7 +297,7 @@ def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
     energy = np.zeros(img.shape)
     quadrature = np.zeros(img.shape)
     for k in kv:
-        g = np.exp(-2.0 * np.pi ** 2 * sigma ** 2 * ((fy - k[0]) ** 2 + (fx - k[1]) ** 2))
+        g = np.exp(-2.0 * np.pi**2 * sigma**2 * ((fy - k[0]) ** 2 + (fx - k[1]) ** 2))
         z = (np.fft.ifft2(resid * g) * np.exp(-2j * np.pi * (k[0] * rr + k[1] * cc)))[inner]
         z = z * np.exp(-1j * _dominant_phase(z))
         energy += z.real
@@ -291,8 +309,11 @@ def tag_features(image: np.ndarray, wavevectors: np.ndarray | None = None,
     return TagFeatures(energy, mean[inner], lam, kv, sigma, noise)
 
 
-def candidate_features(image: np.ndarray, pixel_spacing_mm: float | None = None) -> list[TagFeatures]:
-    """:func:`tag_features` at the plain and the whitened spectral estimate (:func:`tag_wavevectors`).
+def candidate_features(
+    image: np.ndarray, pixel_spacing_mm: float | None = None
+) -> list[TagFeatures]:
+    """
+    :func:`tag_features` at the plain and the whitened spectral estimate (:func:`tag_wavevectors`).
 
     One entry when both estimates agree (every wave vector within 5 % of the other's, sign and
     order free), else two, plain first. The segmenters keep the one under which the wall stands
@@ -311,9 +332,11 @@ def candidate_features(image: np.ndarray, pixel_spacing_mm: float | None = None)
     return [tag_features(img, a)] if same else [tag_features(img, a), tag_features(img, b)]
 
 
-def _best_of(results: list) -> "SliceSegmentation":
-    """The segmentation (``(SliceSegmentation, wall contrast-to-noise)`` pairs) to keep: an ``ok``
-    one over a failure, then the highest wall contrast; the first failure's reason otherwise."""
+def _best_of(results: list) -> 'SliceSegmentation':
+    """
+    The segmentation (``(SliceSegmentation, wall contrast-to-noise)`` pairs) to keep: an ``ok``
+    one over a failure, then the highest wall contrast; the first failure's reason otherwise.
+    """
     ok = [r for r in results if r[0].ok]
     if not ok:
         return results[0][0]
@@ -324,13 +347,15 @@ def _wall_cnr(levels, feat: TagFeatures) -> float:
     """Wall tag energy above the higher of cavity and outside, in units of the energy's noise."""
     if levels is None:
         return -np.inf
-    return float((levels.peak - max(levels.cavity, levels.outside)) / max(float(feat.noise), 1e-300))
+    return float(
+        (levels.peak - max(levels.cavity, levels.outside)) / max(float(feat.noise), 1e-300)
+    )
 
 
 def _dominant_phase(z: np.ndarray) -> float:
     """Mode of the phase of ``z``, weighted by |z|² (72 bins, smoothed circularly), rad."""
     h, edges = np.histogram(np.angle(z), bins=72, range=(-np.pi, np.pi), weights=np.abs(z) ** 2)
-    h = ndi.gaussian_filter1d(h, 1.5, mode="wrap")
+    h = ndi.gaussian_filter1d(h, 1.5, mode='wrap')
     i = int(np.argmax(h))
     # Parabolic refinement of the peak bin.
     ym, y0, yp = h[i - 1], h[i], h[(i + 1) % h.size]
@@ -352,9 +377,11 @@ def _otsu(values: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- rays
-def _sample_rays(values: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray,
-                 max_radius_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bilinear samples of ``values`` along rays from ``centre_rc``.
+def _sample_rays(
+    values: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Bilinear samples of ``values`` along rays from ``centre_rc``.
 
     Returns
     -------
@@ -364,20 +391,33 @@ def _sample_rays(values: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray,
         Samples (0 outside the image).
     inside : ndarray of bool, shape (K, R)
         Whether each sample lies inside the image.
+
     """
     radii = np.arange(0.0, max_radius_px, RADIAL_STEP_PX)
     dirs = np.stack([np.sin(angles), np.cos(angles)], 1)
     pts = centre_rc[None, None, :] + radii[None, :, None] * dirs[:, None, :]
-    s = ndi.map_coordinates(values, [pts[..., 0], pts[..., 1]], order=1, mode="constant", cval=0.0)
+    s = ndi.map_coordinates(values, [pts[..., 0], pts[..., 1]], order=1, mode='constant', cval=0.0)
     rows, cols = np.shape(values)
-    inside = ((pts[..., 0] >= 0) & (pts[..., 0] <= rows - 1) & (pts[..., 1] >= 0)
-              & (pts[..., 1] <= cols - 1))
+    inside = (
+        (pts[..., 0] >= 0)
+        & (pts[..., 0] <= rows - 1)
+        & (pts[..., 1] >= 0)
+        & (pts[..., 1] <= cols - 1)
+    )
     return radii, s, inside
 
 
-def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
-              min_wall_px: float, max_gap_px: float, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """First run of ``score > threshold`` along each ray from ``centre_rc`` (user masks).
+def _ray_runs(
+    score: np.ndarray,
+    centre_rc: np.ndarray,
+    angles: np.ndarray,
+    max_radius_px: float,
+    min_wall_px: float,
+    max_gap_px: float,
+    threshold: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    First run of ``score > threshold`` along each ray from ``centre_rc`` (user masks).
 
     Returns
     -------
@@ -385,6 +425,7 @@ def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_
         Sub-pixel radii (linear interpolation of the crossing), px; NaN where a ray has no run
         of at least ``min_wall_px``. Runs separated by gaps < ``max_gap_px`` are merged
         (noise). ``endo = 0`` when the run starts at the centre.
+
     """
     radii, s, _ = _sample_rays(score, centre_rc, angles, max_radius_px)
     return _runs_at(s, radii, threshold, min_wall_px, max_gap_px)
@@ -392,7 +433,8 @@ def _ray_runs(score: np.ndarray, centre_rc: np.ndarray, angles: np.ndarray, max_
 
 @dataclass
 class WallLevels:
-    """Tag-energy levels found along the rays of one slice (energy units).
+    """
+    Tag-energy levels found along the rays of one slice (energy units).
 
     Attributes
     ----------
@@ -406,6 +448,7 @@ class WallLevels:
         where the surroundings are tagged.
     blur_px : float
         Blur of the wall's edges in the energy (Gaussian σ), px.
+
     """
 
     peak: float
@@ -414,9 +457,16 @@ class WallLevels:
     blur_px: float
 
 
-def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max_radius_px: float,
-               min_wall_px: float, max_gap_px: float):
-    """Myocardial wall along each ray from ``centre_rc``.
+def _wall_runs(
+    feat: TagFeatures,
+    centre_rc: np.ndarray,
+    angles: np.ndarray,
+    max_radius_px: float,
+    min_wall_px: float,
+    max_gap_px: float,
+):
+    """
+    Myocardial wall along each ray from ``centre_rc``.
 
     Every level comes from the rays themselves, so nothing depends on the intensity scale, on
     how bright blood or surroundings are, or on the wall's thickness against the blur:
@@ -439,6 +489,7 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
         As :func:`_ray_runs` (NaN: no wall on that ray).
     levels : WallLevels or None
         None when the energy is flat (no wall stands out).
+
     """
     radii, s, inside = _sample_rays(feat.energy, centre_rc, angles, max_radius_px)
     sig = ENERGY_EDGE_BLUR * max(float(feat.blur_px), RADIAL_STEP_PX)
@@ -471,43 +522,66 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
         # A small cavity (apical slices) is sampled up to half its radius.
         cav = ok[:, None] & (idx[None, :] < np.minimum(a - off, a // 2)[:, None]) & inside
         lo_out = np.where(b + off + span <= last, b + off, last - span)
-        out = ok[:, None] & (idx[None, :] >= lo_out[:, None]) & (idx[None, :] <= (lo_out + span)[:, None]) & inside
+        out = (
+            ok[:, None]
+            & (idx[None, :] >= lo_out[:, None])
+            & (idx[None, :] <= (lo_out + span)[:, None])
+            & inside
+        )
         outside = float(np.median(s[out])) if out.sum() >= 20 else 0.0
         has_cavity = cav.any(axis=1).sum() >= 0.25 * ok.sum() and cav.sum() >= 20
         cavity = float(np.median(s[cav])) if has_cavity else outside
         if not has_cavity:
             cav = np.zeros_like(cav)
-        top = float(np.median([s[i, a[i]:max(b[i], a[i] + 1)].max() for i in np.flatnonzero(ok)]))
+        top = float(
+            np.median([s[i, a[i]:max(b[i], a[i] + 1)].max() for i in np.flatnonzero(ok)])
+        )
     levels = WallLevels(top, cavity, outside, sig)
     noise = float(feat.noise)
-    if not (top > MIN_ENERGY_CONTRAST * max(cavity, outside, 0.0)
-            and top - max(cavity, outside) > MIN_WALL_SNR * noise):
+    if not (
+        top > MIN_ENERGY_CONTRAST * max(cavity, outside, 0.0)
+        and top - max(cavity, outside) > MIN_WALL_SNR * noise
+    ):
         return endo, epi, None
     rows = np.flatnonzero(ok)
     a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo[rows])), n - 1)
     b = np.searchsorted(radii, epi[rows])
     sub = s[rows]
-    core = np.array([ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)])
+    core = np.array(
+        [ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)]
+    )
     pk = sub[np.arange(rows.size), core]
-    l, r = _crossings(sub, radii, core, cavity + 0.5 * (pk - cavity), outside + 0.5 * (pk - outside))
+    l, r = _crossings(
+        sub, radii, core, cavity + 0.5 * (pk - cavity), outside + 0.5 * (pk - outside)
+    )
     sig0 = max(float(feat.blur_px), RADIAL_STEP_PX)
     w_tab, half_tab = _half_width_table()
     w = np.interp((r - l) / sig0, half_tab, w_tab) * sig0
-    rho = np.where(l <= 0.0, 0.5, _edge_fraction(w / sig0))   # from the ray origin: one edge only
-    e, q = _crossings(sub, radii, core, cavity + rho * (pk - cavity), outside + rho * (pk - outside))
+    rho = np.where(l <= 0.0, 0.5, _edge_fraction(w / sig0))  # from the ray origin: one edge only
+    e, q = _crossings(
+        sub, radii, core, cavity + rho * (pk - cavity), outside + rho * (pk - outside)
+    )
     thin = (q - e) < np.maximum(min_wall_px, 0.5 * (r - l))
     e, q = np.where(thin, l, e), np.where(thin, r, q)
     # Cavity samples again from these walls: a small cavity (apical slices) may sit above the
     # detection threshold, blurred by the wall around it, yet be a cavity.
     ei = (e / RADIAL_STEP_PX).astype(int)
-    cav_rows = (idx[None, :] < np.minimum(ei - int(round(2.0 * sig0 / RADIAL_STEP_PX)), ei // 2)[:, None]) & inside[rows]
+    cav_rows = (
+        idx[None, :] < np.minimum(ei - int(round(2.0 * sig0 / RADIAL_STEP_PX)), ei // 2)[:, None]
+    ) & inside[rows]
     if cav_rows.any(axis=1).sum() >= 0.25 * rows.size and cav_rows.sum() >= 20:
         cav = np.zeros_like(cav)
         cav[rows] = cav_rows
     _, sm, _ = _sample_rays(feat.mean, centre_rc, angles, max_radius_px)
-    e, q = _fit_walls(((sub, sig, float(feat.blur_px)),
-                       (sm[rows], lam / np.sqrt(12.0), lam / np.sqrt(12.0))),
-                      radii, e, q, cav[rows], out[rows], min_wall_px)
+    e, q = _fit_walls(
+        ((sub, sig, float(feat.blur_px)), (sm[rows], lam / np.sqrt(12.0), lam / np.sqrt(12.0))),
+        radii,
+        e,
+        q,
+        cav[rows],
+        out[rows],
+        min_wall_px,
+    )
     endo = np.full(n_rays, np.nan)
     epi = np.full(n_rays, np.nan)
     good = (q - e) >= min_wall_px
@@ -517,10 +591,12 @@ def _wall_runs(feat: TagFeatures, centre_rc: np.ndarray, angles: np.ndarray, max
 
 
 def _crossings(s, radii, core, t_in, t_out):
-    """Where each ray's profile, followed from its ``core`` sample, falls to ``t_in`` inward and
+    """
+    Where each ray's profile, followed from its ``core`` sample, falls to ``t_in`` inward and
     to ``t_out`` outward (linear interpolation), px. Inward: 0 when it never does (the wall
     starts at the ray origin); outward: the last radius. Both equal ``radii[core]`` when the
-    core itself is not above the level."""
+    core itself is not above the level.
+    """
     k, n = s.shape
     rows = np.arange(k)
     idx = np.arange(n)[None, :]
@@ -548,7 +624,8 @@ def _crossings(s, radii, core, t_in, t_out):
 
 
 def _edge_fraction(u):
-    """Fraction of a blurred wall's peak excess found at its edges, wall width ``u`` σ.
+    """
+    Fraction of a blurred wall's peak excess found at its edges, wall width ``u`` σ.
 
     A wall of width w under a Gaussian blur σ peaks at ``2Φ(w/2σ) − 1`` of its plateau and
     reads ``½ − Φ(−w/σ)`` of it at its edges: ½ of the peak for a thick wall, more for a thin one.
@@ -567,7 +644,9 @@ def _half_width_table():
         prof = _phi(x + 0.5 * w) - _phi(x - 0.5 * w)
         half = 0.5 * prof[0]
         j = int(np.argmax(prof <= half))
-        out.append(2.0 * (x[j - 1] + (x[j] - x[j - 1]) * (prof[j - 1] - half) / (prof[j - 1] - prof[j])))
+        out.append(
+            2.0 * (x[j - 1] + (x[j] - x[j - 1]) * (prof[j - 1] - half) / (prof[j - 1] - prof[j]))
+        )
     return u, np.array(out)
 
 
@@ -576,17 +655,19 @@ def _phi(x):
     return ndtr(x)
 
 
-
 def _bent(r, sigma):
-    """Where a circular edge of radius ``r`` around the ray origin appears after a Gaussian blur
-    σ: its half level moves σ²/2r toward the centre of curvature (first order; r ≥ 2σ)."""
+    """
+    Where a circular edge of radius ``r`` around the ray origin appears after a Gaussian blur
+    σ: its half level moves σ²/2r toward the centre of curvature (first order; r ≥ 2σ).
+    """
     r = np.asarray(r, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid='ignore'):
         return np.where(r > 0, r - sigma * sigma / (2.0 * np.maximum(np.abs(r), 2.0 * sigma)), r)
 
 
 def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
-    """Least-squares walls [a, b] on several ray channels at once.
+    """
+    Least-squares walls [a, b] on several ray channels at once.
 
     Each channel ``(samples (K, R), blur σ, curvature σ)`` is modelled along a ray as its cavity
     level, a wall plateau and its outside level, the steps blurred by a Gaussian σ at the
@@ -600,6 +681,7 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
     -------
     endo, epi : ndarray, shape (K,)
         px (``endo = 0`` without a cavity).
+
     """
     k, n = channels[0][0].shape
     step = radii[1] - radii[0]
@@ -609,10 +691,10 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
     for samples, sigma, curv in channels:
         o = float(np.median(samples[out])) if out.sum() >= 20 else float(np.median(samples[:, -1]))
         c = float(np.median(samples[cav])) if cav.sum() >= 20 else o
-        chans.append({"s": samples, "sig": float(sigma), "curv": float(curv), "c": c, "o": o})
+        chans.append({'s': samples, 'sig': float(sigma), 'curv': float(curv), 'c': c, 'o': o})
     a = np.where(a0 > 0, a0, -np.inf)
     b = np.asarray(b0, dtype=np.float64).copy()
-    span = 3.0 * max(ch["sig"] for ch in chans) + REFINE_REACH_PX
+    span = 3.0 * max(ch['sig'] for ch in chans) + REFINE_REACH_PX
     rows = np.arange(k)
     for _ in range(REFINE_ITERATIONS):
         # Each ray's own window [a − span, b + span], gathered into a (K, L) block.
@@ -627,27 +709,34 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
         r_ext = (start[:, None] + np.arange(-nd, length + nd)[None, :]) * step
         tot = 0.0
         for ch in chans:
-            sig, c, o = ch["sig"], ch["c"], ch["o"]
-            y = np.take_along_axis(ch["s"], cols, axis=1)
-            fa = _phi((r_ext - _bent(a, ch["curv"])[:, None]) / sig)
-            fb = _phi((r_ext - _bent(b, ch["curv"])[:, None]) / sig)
+            sig, c, o = ch['sig'], ch['c'], ch['o']
+            y = np.take_along_axis(ch['s'], cols, axis=1)
+            fa = _phi((r_ext - _bent(a, ch['curv'])[:, None]) / sig)
+            fb = _phi((r_ext - _bent(b, ch['curv'])[:, None]) / sig)
             pa, pb = fa[:, nd:nd + length], fb[:, nd:nd + length]
             g = (pa - pb) * win
             yy = (y - c * (1.0 - pa) - o * pb) * win
             p = float(np.sum(g * yy) / max(float(np.sum(g * g)), 1e-300))
-            var = max(float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
-                      (1e-3 * max(abs(p - c), abs(p - o), 1e-300)) ** 2)
+            var = max(
+                float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
+                (1e-3 * max(abs(p - c), abs(p - o), 1e-300)) ** 2,
+            )
             # Window m of the extended grid holds the profile shifted by (nd − m) samples.
             sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
             sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
             ya = (y[:, None, :] - c - (p - c) * sa) * win[:, None, :]
             bb = (o - p) * sb * win[:, None, :]
-            ss = (np.sum(ya * ya, axis=2)[:, :, None] - 2.0 * np.einsum("kar,kbr->kab", ya, bb)
-                  + np.sum(bb * bb, axis=2)[:, None, :])
+            ss = (
+                np.sum(ya * ya, axis=2)[:, :, None]
+                - 2.0 * np.einsum('kar,kbr->kab', ya, bb)
+                + np.sum(bb * bb, axis=2)[:, None, :]
+            )
             tot = tot + ss / var
         av = np.where(np.isfinite(a)[:, None], a[:, None] + d[None, :], -np.inf)
         bv = b[:, None] + d[None, :]
-        tot = np.where(bv[:, None, :] - np.maximum(av, 0.0)[:, :, None] >= min_wall_px, tot, np.inf)
+        tot = np.where(
+            bv[:, None, :] - np.maximum(av, 0.0)[:, :, None] >= min_wall_px, tot, np.inf
+        )
         flat = tot.reshape(k, -1)
         jm = np.argmin(flat, axis=1)
         fin = np.isfinite(flat[rows, jm])
@@ -655,8 +744,16 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
         # Sub-step: a parabola through the minimum and its neighbours along each edge (the
         # walls then move continuously with the image).
         m = tot.shape[1] - 1
-        fa_ = _parabola_offset(tot[rows, np.maximum(ia - 1, 0), ib], tot[rows, ia, ib], tot[rows, np.minimum(ia + 1, m), ib])
-        fb_ = _parabola_offset(tot[rows, ia, np.maximum(ib - 1, 0)], tot[rows, ia, ib], tot[rows, ia, np.minimum(ib + 1, m)])
+        fa_ = _parabola_offset(
+            tot[rows, np.maximum(ia - 1, 0), ib],
+            tot[rows, ia, ib],
+            tot[rows, np.minimum(ia + 1, m), ib],
+        )
+        fb_ = _parabola_offset(
+            tot[rows, ia, np.maximum(ib - 1, 0)],
+            tot[rows, ia, ib],
+            tot[rows, ia, np.minimum(ib + 1, m)],
+        )
         fa_ = np.where((ia > 0) & (ia < m), fa_, 0.0)
         fb_ = np.where((ib > 0) & (ib < m), fb_, 0.0)
         a = np.where(fin, av[rows, ia] + fa_ * (d[1] - d[0]), a)
@@ -665,9 +762,11 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
 
 
 def _parabola_offset(ym, y0, yp):
-    """Offset of the vertex of the parabola through (−1, ym), (0, y0), (1, yp), in [−½, ½]
-    (0 where the three are not convex or not finite)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
+    """
+    Offset of the vertex of the parabola through (−1, ym), (0, y0), (1, yp), in [−½, ½]
+    (0 where the three are not convex or not finite).
+    """
+    with np.errstate(invalid='ignore', divide='ignore'):
         den = ym - 2.0 * y0 + yp
         off = np.where(np.isfinite(den) & (den > 0), 0.5 * (ym - yp) / den, 0.0)
     return np.clip(np.nan_to_num(off), -0.5, 0.5)
@@ -693,7 +792,7 @@ def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
         good = np.flatnonzero(ends - starts >= min_len)
         if good.size == 0:
             continue
-        a, b = starts[good[0]], ends[good[0]]       # run covers samples [a, b)
+        a, b = starts[good[0]], ends[good[0]]  # run covers samples [a, b)
         si = s[i]
         if a == 0:
             endo[i] = 0.0
@@ -706,9 +805,11 @@ def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
     return endo, epi
 
 
-def _circular_smooth(r: np.ndarray, sigma_rays: float, median: int = 5, closed: bool = True) -> np.ndarray:
+def _circular_smooth(
+    r: np.ndarray, sigma_rays: float, median: int = 5, closed: bool = True
+) -> np.ndarray:
     """Median then Gaussian smoothing of a radius profile over rays (the shape prior)."""
-    mode = "wrap" if closed else "nearest"
+    mode = 'wrap' if closed else 'nearest'
     out = ndi.median_filter(r, size=median, mode=mode)
     return ndi.gaussian_filter1d(out, sigma_rays, mode=mode)
 
@@ -722,14 +823,23 @@ def _robust_fill(r: np.ndarray) -> np.ndarray:
     return np.interp(idx, idx[ok], r[ok], period=r.size)
 
 
-def polar_mask(shape: tuple[int, int], centre_rc: np.ndarray, angles: np.ndarray, endo: np.ndarray,
-               epi: np.ndarray, axis_rc: np.ndarray | None = None, base_level: float = np.inf) -> np.ndarray:
-    """Rasterise the polar myocardium ``endo(θ) ≤ ρ ≤ epi(θ)`` (pixel centres), optionally cut
+def polar_mask(
+    shape: tuple[int, int],
+    centre_rc: np.ndarray,
+    angles: np.ndarray,
+    endo: np.ndarray,
+    epi: np.ndarray,
+    axis_rc: np.ndarray | None = None,
+    base_level: float = np.inf,
+) -> np.ndarray:
+    """
+    Rasterise the polar myocardium ``endo(θ) ≤ ρ ≤ epi(θ)`` (pixel centres), optionally cut
     at ``(x − centre)·axis_rc ≤ base_level`` (LA base). NaN rays are outside.
 
     Returns
     -------
     ndarray of bool, shape ``shape``
+
     """
     rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
     dr, dc = rr - centre_rc[0], cc - centre_rc[1]
@@ -743,7 +853,7 @@ def polar_mask(shape: tuple[int, int], centre_rc: np.ndarray, angles: np.ndarray
     t = f - np.floor(f)
     lo = (1 - t) * endo[i0] + t * endo[i1]
     hi = (1 - t) * epi[i0] + t * epi[i1]
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid='ignore'):
         m = (rho >= lo) & (rho <= hi)
     if axis_rc is not None and np.isfinite(base_level):
         m &= dr * axis_rc[0] + dc * axis_rc[1] <= base_level
@@ -759,17 +869,28 @@ def _checked_image(image, view: str):
     """``(float image, None)`` for a usable slice, else ``(None, failed SliceSegmentation)``."""
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2 or min(img.shape) < 16 or not np.all(np.isfinite(img)):
-        return None, _fail(np.shape(img)[:2] if img.ndim >= 2 else (0, 0),
-                           "image must be a finite 2-D array of at least 16x16 pixels", view)
+        return None, _fail(
+            np.shape(img)[:2] if img.ndim >= 2 else (0, 0),
+            'image must be a finite 2-D array of at least 16x16 pixels',
+            view,
+        )
     if float(img.std()) == 0.0:
-        return None, _fail(img.shape, "image is constant (no signal)", view)
+        return None, _fail(img.shape, 'image is constant (no signal)', view)
     return img, None
 
 
-def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_radius_mm: float = 60.0,
-               min_wall_mm: float = 2.0, max_invalid_fraction: float = 0.25,
-               features: TagFeatures | None = None) -> SliceSegmentation:
-    """Segment the myocardium of one ED short-axis tagged image.
+def segment_sa(
+    image: np.ndarray,
+    centre_rc,
+    pixel_spacing_mm: float,
+    *,
+    max_radius_mm: float = 60.0,
+    min_wall_mm: float = 2.0,
+    max_invalid_fraction: float = 0.25,
+    features: TagFeatures | None = None,
+) -> SliceSegmentation:
+    """
+    Segment the myocardium of one ED short-axis tagged image.
 
     Parameters
     ----------
@@ -794,59 +915,117 @@ def segment_sa(image: np.ndarray, centre_rc, pixel_spacing_mm: float, *, max_rad
     SliceSegmentation
         ``ok=False`` with a reason when the slice holds no recognisable annulus (no tags, no
         tagged ring around the centre, implausible wall).
+
     """
-    img, failed = _checked_image(image, "SA")
+    img, failed = _checked_image(image, 'SA')
     if failed is not None:
         return failed
     c = np.asarray(centre_rc, dtype=np.float64)
-    return _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, "SA",
-                               lambda angles, endo, epi: _sa_from_runs(
-                                   img.shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm,
-                                   min_wall_mm, max_invalid_fraction))
+    return _segment_candidates(
+        img,
+        features,
+        c,
+        pixel_spacing_mm,
+        max_radius_mm,
+        min_wall_mm,
+        'SA',
+        lambda angles, endo, epi: _sa_from_runs(
+            img.shape,
+            c,
+            angles,
+            endo,
+            epi,
+            pixel_spacing_mm,
+            max_radius_mm,
+            min_wall_mm,
+            max_invalid_fraction,
+        ),
+    )
 
 
-def _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, finish):
-    """Wall runs around ``c`` under each of :func:`candidate_features` (or the given ``features``),
-    shaped by ``finish(angles, endo, epi)``; the best by :func:`_best_of`."""
-    feats = (candidate_features(img, pixel_spacing_mm) if features is None
-             else [features] if isinstance(features, TagFeatures) else list(features))
+def _segment_candidates(
+    img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, finish
+):
+    """
+    Wall runs around ``c`` under each of :func:`candidate_features` (or the given ``features``),
+    shaped by ``finish(angles, endo, epi)``; the best by :func:`_best_of`.
+    """
+    feats = (
+        candidate_features(img, pixel_spacing_mm)
+        if features is None
+        else [features]
+        if isinstance(features, TagFeatures)
+        else list(features)
+    )
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
     results = []
     for feat in feats:
-        endo, epi, lv = _wall_runs(feat, c, angles, max_radius_mm / pixel_spacing_mm,
-                                   min_wall_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+        endo, epi, lv = _wall_runs(
+            feat,
+            c,
+            angles,
+            max_radius_mm / pixel_spacing_mm,
+            min_wall_mm / pixel_spacing_mm,
+            1.0 / pixel_spacing_mm,
+        )
         if lv is None:
-            results.append((_fail(img.shape, "no tagged tissue around the long axis (tag energy flat)", view), -np.inf))
+            results.append(
+                (
+                    _fail(
+                        img.shape, 'no tagged tissue around the long axis (tag energy flat)', view
+                    ),
+                    -np.inf,
+                )
+            )
         else:
             results.append((finish(angles, endo, epi), _wall_cnr(lv, feat)))
     return _best_of(results)
 
 
-def _sa_from_runs(shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction):
+def _sa_from_runs(
+    shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction
+):
     """Checks, smoothing over angle and rasterisation of the SA rays' wall runs."""
     rmax = max_radius_mm / pixel_spacing_mm
     bad = ~np.isfinite(epi)
     if bad.mean() > max_invalid_fraction:
-        return _fail(shape, f"no myocardial annulus: {100 * bad.mean():.0f}% of rays from the long axis "
-                            f"find no tagged wall within {max_radius_mm:g} mm", "SA")
+        return _fail(
+            shape,
+            f'no myocardial annulus: {100 * bad.mean():.0f}% of rays from the long axis '
+            f'find no tagged wall within {max_radius_mm:g} mm',
+            'SA',
+        )
     if np.mean(epi[~bad] >= rmax - 1) > 0.1:
-        return _fail(shape, f"tagged region extends beyond {max_radius_mm:g} mm from the long axis "
-                            "(no closed epicardium)", "SA")
+        return _fail(
+            shape,
+            f'tagged region extends beyond {max_radius_mm:g} mm from the long axis '
+            '(no closed epicardium)',
+            'SA',
+        )
     endo_s = _circular_smooth(_robust_fill(endo), 2.0)
     epi_s = _circular_smooth(_robust_fill(epi), 2.0)
     endo_s = np.clip(endo_s, 0.0, None)
     wall = (epi_s - endo_s) * pixel_spacing_mm
     if np.median(wall) < min_wall_mm or np.median(wall) > 35.0:
-        return _fail(shape, f"implausible wall thickness {np.median(wall):.1f} mm", "SA")
+        return _fail(shape, f'implausible wall thickness {np.median(wall):.1f} mm', 'SA')
     epi_s = np.maximum(epi_s, endo_s + 0.5)
     mask = polar_mask(shape, c, angles, endo_s, epi_s)
-    return SliceSegmentation(True, "", mask, c, angles, endo_s, epi_s, view="SA")
+    return SliceSegmentation(True, '', mask, c, angles, endo_s, epi_s, view='SA')
 
 
-def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *,
-               max_radius_mm: float = 80.0, min_wall_mm: float = 2.0, min_arc_deg: float = 150.0,
-               features: TagFeatures | None = None) -> SliceSegmentation:
-    """Segment the horseshoe myocardium of one ED long-axis tagged image.
+def segment_la(
+    image: np.ndarray,
+    centre_rc,
+    axis_rc,
+    pixel_spacing_mm: float,
+    *,
+    max_radius_mm: float = 80.0,
+    min_wall_mm: float = 2.0,
+    min_arc_deg: float = 150.0,
+    features: TagFeatures | None = None,
+) -> SliceSegmentation:
+    """
+    Segment the horseshoe myocardium of one ED long-axis tagged image.
 
     Parameters
     ----------
@@ -868,21 +1047,32 @@ def segment_la(image: np.ndarray, centre_rc, axis_rc, pixel_spacing_mm: float, *
     -------
     SliceSegmentation
         With ``base_level`` (px along ``axis_rc`` from the centre) where the horseshoe is cut.
+
     """
-    img, failed = _checked_image(image, "LA")
+    img, failed = _checked_image(image, 'LA')
     if failed is not None:
         return failed
     c = np.asarray(centre_rc, dtype=np.float64)
     ax = np.asarray(axis_rc, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
     rmax = max_radius_mm / pixel_spacing_mm
-    return _segment_candidates(img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, "LA",
-                               lambda angles, endo, epi: _la_from_runs(
-                                   img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg))
+    return _segment_candidates(
+        img,
+        features,
+        c,
+        pixel_spacing_mm,
+        max_radius_mm,
+        min_wall_mm,
+        'LA',
+        lambda angles, endo, epi: _la_from_runs(
+            img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg
+        ),
+    )
 
 
 def _enclosed_gaps(valid: np.ndarray, allowed: np.ndarray) -> np.ndarray:
-    """Gaps between valid rays that lie wholly among ``allowed`` rays.
+    """
+    Gaps between valid rays that lie wholly among ``allowed`` rays.
 
     Parameters
     ----------
@@ -893,6 +1083,7 @@ def _enclosed_gaps(valid: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     -------
     ndarray of bool, shape (K,)
         The rays of every circular run of ``~valid`` that is all ``allowed``.
+
     """
     out = np.zeros(valid.size, bool)
     if not valid.any():
@@ -907,7 +1098,8 @@ def _enclosed_gaps(valid: np.ndarray, allowed: np.ndarray) -> np.ndarray:
 
 
 def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
-    """Carry the lower end of the horseshoe across gaps up to the level of the other end.
+    """
+    Carry the lower end of the horseshoe across gaps up to the level of the other end.
 
     The LA plane contains the long axis and the base plane is perpendicular to it, so the
     two ends of the horseshoe lie at one level along the axis. When one end stops more than a
@@ -936,9 +1128,10 @@ def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
     Returns
     -------
     arc, endo, epi
+
     """
     k = valid.size
-    phi = (angles - base_dir + np.pi) % (2.0 * np.pi) - np.pi     # 0: toward the base
+    phi = (angles - base_dir + np.pi) % (2.0 * np.pi) - np.pi  # 0: toward the base
     endo, epi = endo.copy(), epi.copy()
     arc = [int(i) for i in arc]
 
@@ -971,7 +1164,8 @@ def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
 
 
 def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
-    """Horseshoe arc, base cut and rasterisation of the LA rays' wall runs.
+    """
+    Horseshoe arc, base cut and rasterisation of the LA rays' wall runs.
 
     The horseshoe is the arc of rays that meet the wall, the atrium's opening the rest. A
     stretch of wall the runs miss (where the surroundings are tagged, the wall's tag energy
@@ -987,7 +1181,9 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     gap = int(round(LA_MAX_GAP_DEG * NUM_RAYS / 360.0))
     met = valid
     if valid.any() and not valid.all():
-        closed = ndi.binary_closing(np.concatenate([valid] * 3), structure=np.ones(gap + 1, bool))[NUM_RAYS:2 * NUM_RAYS]
+        closed = ndi.binary_closing(np.concatenate([valid] * 3), structure=np.ones(gap + 1, bool))[
+            NUM_RAYS:2 * NUM_RAYS
+        ]
         met = closed.copy()
         # Gaps of any width among the rays that point apically of the axis point: the point
         # lies in the cavity, below the base plane, so those rays never reach the opening and
@@ -1003,8 +1199,12 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     # The horseshoe is the longest circular run of valid rays; it must not include the base
     # direction (the atrium side is open).
     if valid.all() or not valid.any():
-        return _fail(shape, "no horseshoe: the myocardium found is "
-                     + ("closed around the axis point" if valid.any() else "absent"), "LA")
+        return _fail(
+            shape,
+            'no horseshoe: the myocardium found is '
+            + ('closed around the axis point' if valid.any() else 'absent'),
+            'LA',
+        )
     start = int(np.flatnonzero(~valid)[0])
     rolled = np.roll(valid, -start)
     pad = np.concatenate([[False], rolled, [False]]).astype(np.int8)
@@ -1017,10 +1217,12 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
     arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
     if arc_deg < min_arc_deg:
-        return _fail(shape, f"horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})", "LA")
+        return _fail(shape, f'horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})', 'LA')
     mid_arc = angles[arc[arc.size // 2]]
     if np.cos(mid_arc - base_dir) > 0:
-        return _fail(shape, "horseshoe opens toward the apex (long-axis orientation inconsistent)", "LA")
+        return _fail(
+            shape, 'horseshoe opens toward the apex (long-axis orientation inconsistent)', 'LA'
+        )
     e_arc = _circular_smooth(endo[arc], 1.5, median=5, closed=False)
     p_arc = _circular_smooth(epi[arc], 1.5, median=5, closed=False)
     # Base level: mid-wall axial coordinate of the two arc ends (each end ray stops at the
@@ -1045,13 +1247,29 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
             if not np.isfinite(epi_full[dst]):
                 endo_full[dst], epi_full[dst] = endo_full[src], epi_full[src]
     mask = polar_mask(shape, c, angles, endo_full, epi_full, ax, base_level)
-    return SliceSegmentation(True, "", mask, c, angles, endo_full, epi_full, view="LA",
-                             base_level=base_level, axis_rc=ax)
+    return SliceSegmentation(
+        True,
+        '',
+        mask,
+        c,
+        angles,
+        endo_full,
+        epi_full,
+        view='LA',
+        base_level=base_level,
+        axis_rc=ax,
+    )
 
 
-def segment_from_mask(mask: np.ndarray, centre_rc, pixel_spacing_mm: float, axis_rc=None,
-                      max_radius_mm: float | None = None) -> SliceSegmentation:
-    """Polar contours of a given myocardium mask (user labels), with the same ray machinery.
+def segment_from_mask(
+    mask: np.ndarray,
+    centre_rc,
+    pixel_spacing_mm: float,
+    axis_rc=None,
+    max_radius_mm: float | None = None,
+) -> SliceSegmentation:
+    """
+    Polar contours of a given myocardium mask (user labels), with the same ray machinery.
 
     Parameters
     ----------
@@ -1068,21 +1286,38 @@ def segment_from_mask(mask: np.ndarray, centre_rc, pixel_spacing_mm: float, axis
     -------
     SliceSegmentation
         ``mask`` is the input mask; contours from the 0.5 level of the mask lightly smoothed.
+
     """
     m = np.asarray(mask, bool)
     score = ndi.gaussian_filter(m.astype(np.float64), 0.7)
     c = np.asarray(centre_rc, dtype=np.float64)
     rmax_mm = max_radius_mm or (60.0 if axis_rc is None else 80.0)
     angles = np.linspace(-np.pi, np.pi, NUM_RAYS, endpoint=False)
-    endo, epi = _ray_runs(score, c, angles, rmax_mm / pixel_spacing_mm, 1.0 / pixel_spacing_mm, 1.0 / pixel_spacing_mm)
+    endo, epi = _ray_runs(
+        score,
+        c,
+        angles,
+        rmax_mm / pixel_spacing_mm,
+        1.0 / pixel_spacing_mm,
+        1.0 / pixel_spacing_mm,
+    )
     if axis_rc is None:
         out = _sa_from_runs(m.shape, c, angles, endo, epi, pixel_spacing_mm, rmax_mm, 1.0, 0.25)
     else:
         ax = np.asarray(axis_rc, dtype=np.float64)
-        out = _la_from_runs(m.shape, c, ax / np.linalg.norm(ax), angles, endo, epi, rmax_mm / pixel_spacing_mm, 150.0)
+        out = _la_from_runs(
+            m.shape,
+            c,
+            ax / np.linalg.norm(ax),
+            angles,
+            endo,
+            epi,
+            rmax_mm / pixel_spacing_mm,
+            150.0,
+        )
     if out.ok:
         out.mask = m
-    out.source = "mask"
+    out.source = 'mask'
     return out
 
 

@@ -1,4 +1,5 @@
-"""Streaming ED myocardium masks for the tag detector (one frame at a time).
+"""
+Streaming ED myocardium masks for the tag detector (one frame at a time).
 
 The ``tag_detector`` node must hand :class:`~mlv_ros.core.tags.SliceTracker` a myocardium mask
 at ED (phase 0) of every slice, but frames arrive one by one (slice-major: SA 0's whole cine,
@@ -25,11 +26,10 @@ from __future__ import annotations
 
 import hashlib
 
+from mlv_ros.core.registration import segment as seg
+from mlv_ros.core.types import Frame, VIEW_LA, VIEW_SA
 import numpy as np
 from scipy import ndimage as ndi
-
-from mlv_ros.core.registration import segment as seg
-from mlv_ros.core.types import VIEW_LA, VIEW_SA, Frame
 
 #: Anatomical prior for apex → base when the SA stack cannot orient the axis (one slice seen):
 #: same prior as :func:`mlv_ros.core.io.dicom.estimate_long_axis` (base toward patient right,
@@ -48,7 +48,8 @@ def _disk(radius_px: float) -> np.ndarray:
 
 
 def cavity_centre(s: seg.SliceSegmentation) -> np.ndarray | None:
-    """Area centroid of the cavity ``ρ < endo(θ)`` of an SA segmentation, (row, col) px.
+    """
+    Area centroid of the cavity ``ρ < endo(θ)`` of an SA segmentation, (row, col) px.
 
     Falls back to the epicardial region when there is no cavity (apical slice). The centroid of
     a star-shaped region is ``∫ ρ³/3 (sin θ, cos θ) dθ / ∫ ρ²/2 dθ`` around the ray origin.
@@ -57,27 +58,35 @@ def cavity_centre(s: seg.SliceSegmentation) -> np.ndarray | None:
     -------
     ndarray, shape (2,) or None
         None when the segmentation holds no usable contour.
+
     """
     for r in (s.endo, s.epi):
         r = np.nan_to_num(np.asarray(r, dtype=np.float64))
-        area = np.sum(r ** 2) / 2.0
+        area = np.sum(r**2) / 2.0
         if r.size and area > 1.0:
-            d = np.array([np.sum(r ** 3 * np.sin(s.angles)), np.sum(r ** 3 * np.cos(s.angles))]) / 3.0
+            d = np.array([np.sum(r**3 * np.sin(s.angles)), np.sum(r**3 * np.cos(s.angles))]) / 3.0
             return np.asarray(s.centre_rc, dtype=np.float64) + d / area
     return None
 
 
 def _finite_features(img: np.ndarray, sp: float) -> list:
-    """:func:`.segment.candidate_features` with finite energy and period: both spectral estimates
+    """
+    :func:`.segment.candidate_features` with finite energy and period: both spectral estimates
     (a bright RV pool beside the wall can mislead the plain one), the plain one first (the
-    blood-pool search uses it); empty when none is finite."""
-    return [f for f in seg.candidate_features(img, pixel_spacing_mm=sp)
-            if np.all(np.isfinite(f.energy)) and np.isfinite(f.wavelength_px)]
+    blood-pool search uses it); empty when none is finite.
+    """
+    return [
+        f
+        for f in seg.candidate_features(img, pixel_spacing_mm=sp)
+        if np.all(np.isfinite(f.energy)) and np.isfinite(f.wavelength_px)
+    ]
 
 
-def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
-                          max_candidates: int = 3) -> list[np.ndarray]:
-    """Likely LV blood-pool centres of an ED tagged image, best first, (row, col) px.
+def blood_pool_candidates(
+    feat: seg.TagFeatures, pixel_spacing_mm: float, max_candidates: int = 3
+) -> list[np.ndarray]:
+    """
+    Likely LV blood-pool centres of an ED tagged image, best first, (row, col) px.
 
     Blood is untagged (low tag energy) at ED, whatever its brightness. Untagged components are
     ranked by how much of a ring just outside them is tagged (the myocardium encloses the LV
@@ -97,6 +106,7 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
     -------
     list of ndarray, shape (2,)
         Possibly empty.
+
     """
     e, m = feat.energy, feat.mean
     ok = np.isfinite(e) & np.isfinite(m)
@@ -119,7 +129,7 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
     border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
     # Darkest untagged level: the noise floor where there is air, else the darkest tissue.
     m_dark = float(np.percentile(m[untagged], 5)) if untagged.sum() >= 20 else 0.0
-    px_area = pixel_spacing_mm ** 2
+    px_area = pixel_spacing_mm**2
     rows, cols = e.shape
     fov_c = np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])
     fov_r = 0.5 * min(rows, cols)
@@ -146,7 +156,9 @@ def blood_pool_candidates(feat: seg.TagFeatures, pixel_spacing_mm: float,
         dist = np.linalg.norm(c - fov_c) / fov_r
         # Blood stands above the darkest untagged tissue by a fair share of the tagged mean.
         m_comp = float(np.median(m[box][comp]))
-        bright = float(np.clip((m_comp - m_dark) / max(0.5 * abs(m_tag - m_dark), 1e-300), 0.0, 1.0))
+        bright = float(
+            np.clip((m_comp - m_dark) / max(0.5 * abs(m_tag - m_dark), 1e-300), 0.0, 1.0)
+        )
         scored.append((enclosed * bright * np.exp(-0.5 * (dist / 0.5) ** 2), c))
     scored.sort(key=lambda t: -t[0])
     return [c for s, c in scored[:max_candidates] if s > 0.05]
@@ -157,11 +169,12 @@ def _grouped(reasons: list[tuple[str, str]]) -> str:
     by_reason: dict = {}
     for how, why in reasons:
         by_reason.setdefault(why, []).append(how)
-    return "; ".join(f"{', '.join(dict.fromkeys(hows))}: {why}" for why, hows in by_reason.items())
+    return '; '.join(f'{", ".join(dict.fromkeys(hows))}: {why}' for why, hows in by_reason.items())
 
 
 class StreamingMasker:
-    """Automatic ED myocardium masks for frames that arrive one at a time.
+    """
+    Automatic ED myocardium masks for frames that arrive one at a time.
 
     Hold one per acquisition. Call :meth:`observe_geometry` for every frame seen (cheap), and
     :meth:`ed_mask` for each ED (phase 0) frame. SA frames are self-sufficient (the first one
@@ -187,18 +200,24 @@ class StreamingMasker:
     >>> for f in frames:                       # any order; one frame at a time
     ...     masker.observe_geometry(f)
     ...     mask, why = masker.ed_mask(f) if f.phase_index == 0 else (None, "")
+
     """
 
-    def __init__(self, *, max_plane_offset_mm: float = 15.0, axis_tilt_max_deg: float = 25.0,
-                 max_axis_jump_mm: float = 12.0):
+    def __init__(
+        self,
+        *,
+        max_plane_offset_mm: float = 15.0,
+        axis_tilt_max_deg: float = 25.0,
+        max_axis_jump_mm: float = 12.0,
+    ):
         self.max_plane_offset_mm = float(max_plane_offset_mm)
         self.max_axis_jump_mm = float(max_axis_jump_mm)
         self.axis_tilt_max_deg = float(axis_tilt_max_deg)
-        self._sa_geom: dict = {}      # slice_index -> SliceGeometry
+        self._sa_geom: dict = {}  # slice_index -> SliceGeometry
         self._la_geom: dict = {}
-        self._sa_centre: dict = {}    # slice_index -> blood-pool centre, patient mm (3,)
-        self._results: dict = {}      # (view, slice_index) -> (fingerprint, mask or None, reason)
-        self._failures: dict = {}     # (view, slice_index) -> reason of its latest failure
+        self._sa_centre: dict = {}  # slice_index -> blood-pool centre, patient mm (3,)
+        self._results: dict = {}  # (view, slice_index) -> (fingerprint, mask or None, reason)
+        self._failures: dict = {}  # (view, slice_index) -> reason of its latest failure
 
     # ------------------------------------------------------------------ state
     def observe_geometry(self, frame: Frame) -> None:
@@ -219,13 +238,15 @@ class StreamingMasker:
         return {k: v.copy() for k, v in self._sa_centre.items()}
 
     def axis_direction(self) -> tuple[np.ndarray, bool] | None:
-        """SA-stack normal oriented apex → base.
+        """
+        SA-stack normal oriented apex → base.
 
         Returns
         -------
         (ndarray (3,), bool) or None
             Unit direction and whether its sign is known from ≥ 2 SA slices (else the
             anatomical prior orients it). None before any SA geometry.
+
         """
         if not self._sa_geom:
             return None
@@ -241,13 +262,15 @@ class StreamingMasker:
         return (d if d @ _BASE_SIDE >= 0 else -d), False
 
     def long_axis(self) -> tuple[np.ndarray, np.ndarray, bool] | None:
-        """Long axis through the SA blood-pool centres found so far.
+        """
+        Long axis through the SA blood-pool centres found so far.
 
         Returns
         -------
         (point (3,), direction (3,), sign_known) or None
             ``point`` lies at the middle of the observed SA stack; ``direction`` is unit,
             apex → base. None before any SA centre.
+
         """
         dd = self.axis_direction()
         if dd is None or not self._sa_centre:
@@ -275,8 +298,10 @@ class StreamingMasker:
         return point, direction, known
 
     def _fit_line(self, P: np.ndarray, z: np.ndarray, d: np.ndarray):
-        """In-plane offset linear in z: x⊥(z) = a + b (z − z̄); a ridge toward b = 0 keeps a
-        two-slice fit from swinging the axis, and the tilt is clipped."""
+        """
+        In-plane offset linear in z: x⊥(z) = a + b (z − z̄); a ridge toward b = 0 keeps a
+        two-slice fit from swinging the axis, and the tilt is clipped.
+        """
         zm = float(z.mean())
         Q = P - np.outer(z, d)
         A = np.stack([np.ones_like(z), z - zm], 1)
@@ -291,7 +316,8 @@ class StreamingMasker:
 
     # ------------------------------------------------------------------ masks
     def ed_mask(self, frame: Frame) -> tuple[np.ndarray | None, str]:
-        """Myocardium mask of an ED frame from what has been observed so far.
+        """
+        Myocardium mask of an ED frame from what has been observed so far.
 
         The result is kept per slice: the same frame asked for again, while no SA centre has
         been added since, returns it without segmenting again (a copy of the mask), so a slice
@@ -308,6 +334,7 @@ class StreamingMasker:
         mask : ndarray of bool, shape (rows, cols), or None
         reason : str
             ``""`` on success (or a short note on how the centre was found), else why not.
+
         """
         try:
             self.observe_geometry(frame)
@@ -325,7 +352,7 @@ class StreamingMasker:
                 self._failures.pop(key, None)
             return (None if mask is None else mask.copy()), why
         except Exception as exc:  # never let one image stop the detector
-            return None, f"segmentation failed ({type(exc).__name__}: {exc})"
+            return None, f'segmentation failed ({type(exc).__name__}: {exc})'
 
     @property
     def failures(self) -> dict:
@@ -333,42 +360,57 @@ class StreamingMasker:
         return dict(self._failures)
 
     def _fingerprint(self, frame: Frame):
-        """What the result of :meth:`ed_mask` depends on: the frame (indices, geometry, image
-        bytes) and the SA centres found so far; None when the frame cannot be hashed."""
+        """
+        What the result of :meth:`ed_mask` depends on: the frame (indices, geometry, image
+        bytes) and the SA centres found so far; None when the frame cannot be hashed.
+        """
         try:
             img = np.ascontiguousarray(frame.image)
             g = frame.geometry
             digest = hashlib.blake2b(img.tobytes(), digest_size=16).hexdigest()
-            geo = np.concatenate([np.ravel(g.image_position), np.ravel(g.row_direction),
-                                  np.ravel(g.column_direction), [g.row_spacing, g.column_spacing]])
+            geo = np.concatenate(
+                [
+                    np.ravel(g.image_position),
+                    np.ravel(g.row_direction),
+                    np.ravel(g.column_direction),
+                    [g.row_spacing, g.column_spacing],
+                ]
+            )
             centres = tuple((i, tuple(np.round(c, 6))) for i, c in sorted(self._sa_centre.items()))
-            return (int(frame.phase_index), img.shape, str(img.dtype), digest, tuple(np.round(geo, 9)), centres)
+            return (
+                int(frame.phase_index),
+                img.shape,
+                str(img.dtype),
+                digest,
+                tuple(np.round(geo, 9)),
+                centres,
+            )
         except Exception:  # malformed record: no caching
             return None
 
     def _ed_mask(self, frame: Frame) -> tuple[np.ndarray | None, str]:
         img = np.asarray(frame.image, dtype=np.float64)
         if img.ndim != 2 or min(img.shape) < 16:
-            return None, f"image must be 2-D and at least 16x16 pixels, got shape {img.shape}"
+            return None, f'image must be 2-D and at least 16x16 pixels, got shape {img.shape}'
         if not np.all(np.isfinite(img)):
-            return None, "image has non-finite (NaN/inf) pixels"
+            return None, 'image has non-finite (NaN/inf) pixels'
         if float(img.std()) == 0.0:
-            return None, "image is constant (no signal)"
+            return None, 'image is constant (no signal)'
         g = frame.geometry
         sp = float(g.row_spacing)
         if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
-            return None, "anisotropic pixel spacing is not supported"
+            return None, 'anisotropic pixel spacing is not supported'
         if int(frame.view) == VIEW_SA:
             return self._sa(frame, img, sp)
         if int(frame.view) == VIEW_LA:
             return self._la(frame, img, sp)
-        return None, f"unknown view {frame.view!r}"
+        return None, f'unknown view {frame.view!r}'
 
     def _sa(self, frame: Frame, img: np.ndarray, sp: float):
         g = frame.geometry
         feats = _finite_features(img, sp)
         if not feats:
-            return None, "no tag pattern found (tag features not finite)"
+            return None, 'no tag pattern found (tag features not finite)'
         feat = feats[0]
         cands: list[tuple[str, np.ndarray]] = []
         ax = self.long_axis()
@@ -377,10 +419,10 @@ class StreamingMasker:
             den = float(d @ g.normal)
             if abs(den) > 0.2:
                 x = p + float((g.image_position - p) @ g.normal) / den * d
-                cands.append(("long axis", g.patient_to_pixel(x)[0]))
-        cands += [("blood pool", c) for c in blood_pool_candidates(feat, sp)]
+                cands.append(('long axis', g.patient_to_pixel(x)[0]))
+        cands += [('blood pool', c) for c in blood_pool_candidates(feat, sp)]
         rows, cols = img.shape
-        cands.append(("image centre", np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])))
+        cands.append(('image centre', np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])))
         reasons: list[tuple[str, str]] = []
         fallback = None
         for how, c in cands:
@@ -398,39 +440,42 @@ class StreamingMasker:
                     cc2 = cavity_centre(s2)
                     cc = cc2 if cc2 is not None else cc
             if cc is None or not s.mask.any():
-                reasons.append((how, "empty myocardium"))
+                reasons.append((how, 'empty myocardium'))
                 continue
-            if how == "long axis" and np.linalg.norm(cc - c) * sp > self.max_axis_jump_mm:
+            if how == 'long axis' and np.linalg.norm(cc - c) * sp > self.max_axis_jump_mm:
                 # The axis extrapolated from other slices missed this cavity: prefer an
                 # image-based centre, keep this result as a fallback.
                 fallback = fallback or (s, cc)
-                reasons.append((how, f"cavity {np.linalg.norm(cc - c) * sp:.0f} mm from the axis"))
+                reasons.append((how, f'cavity {np.linalg.norm(cc - c) * sp:.0f} mm from the axis'))
                 continue
             self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(cc)
-            return s.mask, ""
+            return s.mask, ''
         if fallback is not None:
             self._sa_centre[int(frame.slice_index)] = g.pixel_to_patient(fallback[1])
-            return fallback[0].mask, "cavity far from the long axis of the other slices"
-        return None, "no SA myocardial annulus found (" + _grouped(reasons) + ")"
+            return fallback[0].mask, 'cavity far from the long axis of the other slices'
+        return None, 'no SA myocardial annulus found (' + _grouped(reasons) + ')'
 
     def _la(self, frame: Frame, img: np.ndarray, sp: float):
         ax = self.long_axis()
         if ax is None:
-            return None, ("long axis unknown: no SA slice segmented yet (LA masks need the SA "
-                          "blood-pool centres; send SA ED frames first)")
+            return None, (
+                'long axis unknown: no SA slice segmented yet (LA masks need the SA '
+                'blood-pool centres; send SA ED frames first)'
+            )
         p, d, known = ax
         g = frame.geometry
         axis_rc = np.array([d @ g.column_direction, d @ g.row_direction])
         if np.linalg.norm(axis_rc) < 0.8:
-            return None, (f"LA plane is not parallel to the long axis (in-plane cos "
-                          f"{np.linalg.norm(axis_rc):.2f})")
+            return None, (
+                f'LA plane is not parallel to the long axis (in-plane cos '
+                f'{np.linalg.norm(axis_rc):.2f})'
+            )
         centre_rc, off = g.patient_to_pixel(p)
         if abs(float(off)) > self.max_plane_offset_mm:
-            return None, f"LA plane is {abs(float(off)):.1f} mm from the long axis"
+            return None, f'LA plane is {abs(float(off)):.1f} mm from the long axis'
         feats = _finite_features(img, sp)
         if not feats:
-            return None, "no tag pattern found (tag features not finite)"
-        feat = feats[0]
+            return None, 'no tag pattern found (tag features not finite)'
         # Axis point: mid stack first; then toward the apex (a basal point can sit in the
         # open atrial end) and the base. An unknown sign (one SA slice) tries both directions.
         signs = (1.0,) if known else (1.0, -1.0)
@@ -441,7 +486,9 @@ class StreamingMasker:
                 c = centre_rc + a_rc * shift_mm / sp
                 s = seg.segment_la(img, c, a_rc, sp, features=feats)
                 if s.ok and s.mask.any():
-                    return s.mask, ""
-                where = f"axis point {shift_mm:+g} mm" + ("" if known else f" (axis sign {sgn:+g})")
-                reasons.append((where, s.reason or "empty mask"))
-        return None, "no LA horseshoe found (" + _grouped(reasons) + ")"
+                    return s.mask, ''
+                where = f'axis point {shift_mm:+g} mm' + (
+                    '' if known else f' (axis sign {sgn:+g})'
+                )
+                reasons.append((where, s.reason or 'empty mask'))
+        return None, 'no LA horseshoe found (' + _grouped(reasons) + ')'

@@ -1,4 +1,5 @@
-"""Key numbers of a run from its per-phase metrics, with an account of what is missing.
+"""
+Key numbers of a run from its per-phase metrics, with an account of what is missing.
 
 Everything here is a pure function of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`
 lists; nothing is recomputed from images or point clouds.
@@ -12,22 +13,22 @@ the phase of smallest cavity volume (ties: the earliest).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
 
-import numpy as np
-
 from mlv_ros.core.analysis.findings import segment_findings
-from mlv_ros.core.analysis.frame import LVFrame, levels_outside, twist_extrapolation_note
+from mlv_ros.core.analysis.frame import levels_outside, LVFrame, twist_extrapolation_note
 from mlv_ros.core.analysis.metrics import PhaseMetrics
+import numpy as np
 
 
 @dataclass
 class RunData:
-    """One run for the report.
+    """
+    One run for the report.
 
     Attributes
     ----------
@@ -44,13 +45,14 @@ class RunData:
         Levels (0 apex … 1 base) the SA slices with tag points cross
         (:func:`~mlv_ros.core.analysis.frame.plane_level_span`): twist beyond them is
         extrapolated. None: no SA slice held tag points; False (default): not known.
+
     """
 
     phases: list = field(default_factory=list)
     ed_positions: np.ndarray | None = None
     positions_by_phase: Mapping[int, np.ndarray] | Sequence | None = None
     frame: LVFrame | None = None
-    label: str = "run"
+    label: str = 'run'
     twist_span: tuple | None | bool = False
 
 
@@ -73,11 +75,14 @@ def signed_peak(v: np.ndarray, axis=None):
     if axis is None:
         return float(v.ravel()[i]) if a.ravel()[i] >= 0 else math.nan
     out = np.take_along_axis(v, np.expand_dims(i, axis), axis).squeeze(axis)
-    return np.where(np.take_along_axis(a, np.expand_dims(i, axis), axis).squeeze(axis) >= 0, out, np.nan)
+    return np.where(
+        np.take_along_axis(a, np.expand_dims(i, axis), axis).squeeze(axis) >= 0, out, np.nan
+    )
 
 
 def level_table(phases: Sequence[PhaseMetrics], name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per-level quantity over the cycle as a (phases, levels) table.
+    """
+    Per-level quantity over the cycle as a (phases, levels) table.
 
     Returns
     -------
@@ -85,6 +90,7 @@ def level_table(phases: Sequence[PhaseMetrics], name: str) -> tuple[np.ndarray, 
         Union of the phases' level positions, apex → base.
     table : ndarray, shape (P, L)
         ``getattr(phase, name)`` per level; NaN where a phase lacks that level.
+
     """
     keys = sorted({round(float(v), 6) for p in phases for v in p.level_position})
     col = {k: j for j, k in enumerate(keys)}
@@ -99,14 +105,16 @@ def level_table(phases: Sequence[PhaseMetrics], name: str) -> tuple[np.ndarray, 
 
 
 def peak_segment_strain(phases: Sequence[PhaseMetrics]) -> dict[str, np.ndarray] | None:
-    """Signed peak over the cycle of each AHA segment's Err, Ecc, Ell, shape (17,) each;
+    """
+    Signed peak over the cycle of each AHA segment's Err, Ecc, Ell, shape (17,) each;
     None when no phase carries strain. Segments never populated (count 0 where counts are
-    known) are NaN here (and drawn as "n/a")."""
+    known) are NaN here (and drawn as "n/a").
+    """
     ph = [p for p in phases if p.has_strain]
     if not ph:
         return None
     out = {}
-    for key, f in (("err", "segment_err"), ("ecc", "segment_ecc"), ("ell", "segment_ell")):
+    for key, f in (('err', 'segment_err'), ('ecc', 'segment_ecc'), ('ell', 'segment_ell')):
         t = np.stack([getattr(p, f) for p in ph])
         for i, p in enumerate(ph):
             if p.segment_count.size == 17:
@@ -129,29 +137,38 @@ def _f(v) -> float | None:
 
 
 _ORIGIN_NOTES = {
-    0: ("unknown", "where the segments' circumferential origin came from is not recorded"),
-    1: ("prior", "no right ventricle was found in the images: the segments are placed by an anatomical "
-                 "prior (septum toward the patient's right), not tied to this heart's anatomy"),
-    2: ("detected", "the segments start at the RV insertion points found in the ED short-axis images"),
-    3: ("given", "the segments follow a reference direction given to the registration"),
+    0: ('unknown', "where the segments' circumferential origin came from is not recorded"),
+    1: (
+        'prior',
+        'no right ventricle was found in the images: the segments are placed by an anatomical '
+        "prior (septum toward the patient's right), not tied to this heart's anatomy",
+    ),
+    2: (
+        'detected',
+        'the segments start at the RV insertion points found in the ED short-axis images',
+    ),
+    3: ('given', 'the segments follow a reference direction given to the registration'),
 }
 
 
 def segment_origin_note(phases: Sequence[PhaseMetrics]) -> dict:
-    """Where the AHA segments' circumferential origin came from (the phases' ``segment_origin``,
+    """
+    Where the AHA segments' circumferential origin came from (the phases' ``segment_origin``,
     the last phase's): ``source`` unknown / prior / detected / given, ``confidence`` and a
-    sentence ``note`` for the reader."""
+    sentence ``note`` for the reader.
+    """
     last = phases[-1] if phases else None
-    code = int(getattr(last, "segment_origin", 0)) if last is not None else 0
+    code = int(getattr(last, 'segment_origin', 0)) if last is not None else 0
     source, note = _ORIGIN_NOTES.get(code, _ORIGIN_NOTES[0])
-    conf = float(getattr(last, "segment_origin_confidence", 0.0)) if last is not None else 0.0
+    conf = float(getattr(last, 'segment_origin_confidence', 0.0)) if last is not None else 0.0
     if code == 2:
-        note += f" (confidence {conf:.2f})"
-    return {"source": source, "confidence": _f(conf), "note": note}
+        note += f' (confidence {conf:.2f})'
+    return {'source': source, 'confidence': _f(conf), 'note': note}
 
 
-def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=False) -> dict:
-    """Key numbers of a run and a list of what is missing.
+def summarize(phases: Sequence[PhaseMetrics], label: str = 'run', twist_span=False) -> dict:
+    """
+    Key numbers of a run and a list of what is missing.
 
     Returns
     -------
@@ -170,88 +187,121 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = "run", twist_span=Fal
         :class:`RunData`): ``twist_measured_levels`` and ``twist_extrapolated`` (a sentence, ''
         when nothing is), and ``key["extrapolated"]``: which of the twist keys (apex, base,
         torsion) come from levels no SA slice measured.
+
     """
     ph, dup = sorted_phases(phases)
     missing: list[str] = []
-    out: dict = {"label": label, "missing": missing, "key": {}, "peak_segment_strain": None,
-                 "segment_findings": None, "phases": []}
+    out: dict = {
+        'label': label,
+        'missing': missing,
+        'key': {},
+        'peak_segment_strain': None,
+        'segment_findings': None,
+        'phases': [],
+    }
     if not ph:
-        missing.append("no phases: nothing to report")
+        missing.append('no phases: nothing to report')
         out.update(num_phases=0, phases_present=[], missing_phases=[])
         return out
     n_exp = max(int(max(p.num_phases for p in ph)), len(ph), max(p.phase_index for p in ph) + 1)
     present = [p.phase_index for p in ph]
     gaps = sorted(set(range(n_exp)) - set(present))
-    out.update(num_phases=n_exp, phases_present=present, missing_phases=gaps,
-               phases=[p.to_dict() for p in ph])
+    out.update(
+        num_phases=n_exp,
+        phases_present=present,
+        missing_phases=gaps,
+        phases=[p.to_dict() for p in ph],
+    )
     if gaps:
-        missing.append(f"{len(gaps)} of {n_exp} phases missing: {gaps}")
+        missing.append(f'{len(gaps)} of {n_exp} phases missing: {gaps}')
     if 0 not in present:
-        missing.append("phase 0 (end-diastole) missing: ED-relative numbers use the first phase present")
+        missing.append(
+            'phase 0 (end-diastole) missing: ED-relative numbers use the first phase present'
+        )
     if dup:
-        missing.append(f"duplicate phases {dup}: the last received was kept")
-    bad = [p.phase_index for p in ph if any(np.asarray(getattr(p, f)).shape != p.level_position.shape
-                                             for f in ("twist_deg", "sa_radius_mm", "longitudinal_displacement_mm"))]
+        missing.append(f'duplicate phases {dup}: the last received was kept')
+    bad = [
+        p.phase_index
+        for p in ph
+        if any(
+            np.asarray(getattr(p, f)).shape != p.level_position.shape
+            for f in ('twist_deg', 'sa_radius_mm', 'longitudinal_displacement_mm')
+        )
+    ]
     if bad:
-        missing.append(f"phases {bad}: per-level arrays of inconsistent length (left out of level curves)")
+        missing.append(
+            f'phases {bad}: per-level arrays of inconsistent length (left out of level curves)'
+        )
     no_strain = [p.phase_index for p in ph if not p.has_strain]
     if len(no_strain) == len(ph):
         missing.append("no strain in any phase: AHA bull's-eye and peak strains not available")
     elif no_strain:
-        missing.append(f"strain missing in phases {no_strain}: peaks use the other phases")
+        missing.append(f'strain missing in phases {no_strain}: peaks use the other phases')
     if all(p.level_position.size == 0 for p in ph):
-        missing.append("no per-level metrics in any phase")
+        missing.append('no per-level metrics in any phase')
 
     vol = np.array([p.cavity_volume_ml for p in ph])
     es = int(np.argmin(vol))
     ed = ph[0]
-    pos, tw = level_table(ph, "twist_deg")
-    _, rad = level_table(ph, "sa_radius_mm")
-    _, lon = level_table(ph, "longitudinal_displacement_mm")
-    key = out["key"]
-    key["edv_ml"] = _f(ed.cavity_volume_ml)
-    key["esv_ml"] = _f(vol[es])
-    key["ejection_fraction"] = _f((ed.cavity_volume_ml - vol[es]) / ed.cavity_volume_ml) if ed.cavity_volume_ml > 0 else None
-    key["es_phase_index"] = int(ph[es].phase_index)
-    key["es_time_fraction"] = _f(ph[es].time_fraction)
-    key["la_radius_ed_mm"] = _f(ed.la_radius_mm)
-    key["la_radius_es_mm"] = _f(ph[es].la_radius_mm)
-    key["peak_torsion_deg_per_cm"] = _f(signed_peak([p.torsion_deg_per_cm for p in ph]))
+    pos, tw = level_table(ph, 'twist_deg')
+    _, rad = level_table(ph, 'sa_radius_mm')
+    _, lon = level_table(ph, 'longitudinal_displacement_mm')
+    key = out['key']
+    key['edv_ml'] = _f(ed.cavity_volume_ml)
+    key['esv_ml'] = _f(vol[es])
+    key['ejection_fraction'] = (
+        _f((ed.cavity_volume_ml - vol[es]) / ed.cavity_volume_ml)
+        if ed.cavity_volume_ml > 0
+        else None
+    )
+    key['es_phase_index'] = int(ph[es].phase_index)
+    key['es_time_fraction'] = _f(ph[es].time_fraction)
+    key['la_radius_ed_mm'] = _f(ed.la_radius_mm)
+    key['la_radius_es_mm'] = _f(ph[es].la_radius_mm)
+    key['peak_torsion_deg_per_cm'] = _f(signed_peak([p.torsion_deg_per_cm for p in ph]))
     if pos.size:
-        key["peak_twist_apex_deg"] = _f(signed_peak(tw[:, 0]))
-        key["peak_twist_base_deg"] = _f(signed_peak(tw[:, -1]))
-        key["peak_sa_radius_change_mm"] = _f(signed_peak(_row_nanmean(rad - rad[0])))
-        key["peak_base_longitudinal_mm"] = _f(signed_peak(lon[:, -1]))
+        key['peak_twist_apex_deg'] = _f(signed_peak(tw[:, 0]))
+        key['peak_twist_base_deg'] = _f(signed_peak(tw[:, -1]))
+        key['peak_sa_radius_change_mm'] = _f(signed_peak(_row_nanmean(rad - rad[0])))
+        key['peak_base_longitudinal_mm'] = _f(signed_peak(lon[:, -1]))
     else:
-        for k in ("peak_twist_apex_deg", "peak_twist_base_deg", "peak_sa_radius_change_mm", "peak_base_longitudinal_mm"):
+        for k in (
+            'peak_twist_apex_deg',
+            'peak_twist_base_deg',
+            'peak_sa_radius_change_mm',
+            'peak_base_longitudinal_mm',
+        ):
             key[k] = None
     if twist_span is not False:
         levels = max((p.level_position.size for p in ph), default=0)
-        out["twist_measured_levels"] = None if twist_span is None else [_f(v) for v in twist_span]
-        out["twist_extrapolated"] = twist_extrapolation_note(twist_span, levels) if levels else ""
+        out['twist_measured_levels'] = None if twist_span is None else [_f(v) for v in twist_span]
+        out['twist_extrapolated'] = twist_extrapolation_note(twist_span, levels) if levels else ''
         outside = levels_outside(pos, twist_span, levels) if pos.size else np.zeros(0, bool)
-        ends = {"peak_twist_apex_deg": bool(outside[:1].any()), "peak_twist_base_deg": bool(outside[-1:].any())}
-        ends["peak_torsion_deg_per_cm"] = twist_span is None or any(ends.values())
-        key["extrapolated"] = sorted(k for k, v in ends.items() if v)
+        ends = {
+            'peak_twist_apex_deg': bool(outside[:1].any()),
+            'peak_twist_base_deg': bool(outside[-1:].any()),
+        }
+        ends['peak_torsion_deg_per_cm'] = twist_span is None or any(ends.values())
+        key['extrapolated'] = sorted(k for k, v in ends.items() if v)
     seg = peak_segment_strain(ph)
-    for c in ("err", "ecc", "ell"):
-        key[f"peak_global_{c}"] = None
+    for c in ('err', 'ecc', 'ell'):
+        key[f'peak_global_{c}'] = None
     if seg is not None:
-        out["peak_segment_strain"] = {k: [_f(x) for x in v] for k, v in seg.items()}
+        out['peak_segment_strain'] = {k: [_f(x) for x in v] for k, v in seg.items()}
         found = segment_findings(ph)
-        out["segment_findings"] = found.to_dict()
-        out["segment_findings"]["segment_origin"] = segment_origin_note(ph)
-        for kind in ("akinetic", "dyskinetic"):
-            key[f"{kind}_segments"] = found.abnormal((kind,))
-        for c in ("err", "ecc", "ell"):
+        out['segment_findings'] = found.to_dict()
+        out['segment_findings']['segment_origin'] = segment_origin_note(ph)
+        for kind in ('akinetic', 'dyskinetic'):
+            key[f'{kind}_segments'] = found.abnormal((kind,))
+        for c in ('err', 'ecc', 'ell'):
             g = []
             for p in ph:
                 if not p.has_strain:
                     continue
-                v = getattr(p, f"segment_{c}")
+                v = getattr(p, f'segment_{c}')
                 w = p.segment_count if p.segment_count.size == 17 else np.ones(17)
                 g.append(float(v @ w / w.sum()) if w.sum() > 0 else math.nan)
-            key[f"peak_global_{c}"] = _f(signed_peak(g))
+            key[f'peak_global_{c}'] = _f(signed_peak(g))
     return out
 
 
@@ -282,5 +332,8 @@ def write_summary_json(path, summary: dict) -> Path:
     """Write ``summary`` as strict JSON (NaN → null), UTF-8, indented; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default, allow_nan=False), encoding="utf-8")
+    path.write_text(
+        json.dumps(_clean(summary), indent=1, default=_json_default, allow_nan=False),
+        encoding='utf-8',
+    )
     return path

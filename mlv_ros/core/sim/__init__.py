@@ -1,4 +1,5 @@
-"""LV phantoms with analytic ground-truth motion and tagged-MRI acquisition simulation.
+"""
+LV phantoms with analytic ground-truth motion and tagged-MRI acquisition simulation.
 
 Pure numpy/scipy (no rclpy). Units: mm, s, degrees in presets / radians internally; positions
 in DICOM patient coordinates (LPS).
@@ -38,19 +39,45 @@ Examples
 >>> study = simulate_study("normal", snr=20, quick=True)
 >>> X = study.motion.sample_myocardium(1000, seed=0)
 >>> x_es = study.motion.position(X, study.motion.es_phase)
+
 """
 
-from mlv_ros.core.sim.imaging import (ImageSynthesizer, PlannedSlice, plan_slices, slab_profile,
-                                      tag_pattern)
-from mlv_ros.core.sim.motion import (AHA_LEVELS, CardiacFrame, LVMotion, aha_segment_window,
-                                     make_motion)
-from mlv_ros.core.sim.presets import PRESET_NAMES, available_presets, load_preset
+from mlv_ros.core.sim.imaging import (
+    ImageSynthesizer,
+    plan_slices,
+    PlannedSlice,
+    slab_profile,
+    tag_pattern,
+)
+from mlv_ros.core.sim.motion import (
+    AHA_LEVELS,
+    aha_segment_window,
+    CardiacFrame,
+    LVMotion,
+    make_motion,
+)
+from mlv_ros.core.sim.presets import available_presets, load_preset, PRESET_NAMES
 from mlv_ros.core.sim.protocol import dicom_options, draw_protocol, protocol_preset
-from mlv_ros.core.sim.study import QUICK, Study, simulate_study
+from mlv_ros.core.sim.study import QUICK, simulate_study, Study
 
 __all__ = [
-    "AHA_LEVELS", "CardiacFrame", "ImageSynthesizer", "LVMotion", "PRESET_NAMES", "PlannedSlice",
-    "QUICK", "Study", "aha_segment_window", "available_presets", "dicom_options", "draw_protocol",
-    "load_preset", "make_motion", "plan_slices", "protocol_preset", "simulate_study",
-    "slab_profile", "tag_pattern",
+    'AHA_LEVELS',
+    'CardiacFrame',
+    'ImageSynthesizer',
+    'LVMotion',
+    'PRESET_NAMES',
+    'PlannedSlice',
+    'QUICK',
+    'Study',
+    'aha_segment_window',
+    'available_presets',
+    'dicom_options',
+    'draw_protocol',
+    'load_preset',
+    'make_motion',
+    'plan_slices',
+    'protocol_preset',
+    'simulate_study',
+    'slab_profile',
+    'tag_pattern',
 ]

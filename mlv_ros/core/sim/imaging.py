@@ -1,4 +1,5 @@
-"""Tagged-MRI image formation: slice planning, SPAMM tags carried by the material, slab profile.
+"""
+Tagged-MRI image formation: slice planning, SPAMM tags carried by the material, slab profile.
 
 Signal model (per sample point ``x`` of an image at trigger time ``t``)
 ---------------------------------------------------------------------
@@ -26,17 +27,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-from scipy.ndimage import gaussian_filter
-
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.types import VIEW_LA, VIEW_SA
+import numpy as np
+from scipy.ndimage import gaussian_filter
 
 
 @dataclass(frozen=True)
 class PlannedSlice:
-    """One image plane of the acquisition.
+    """
+    One image plane of the acquisition.
 
     Attributes
     ----------
@@ -51,6 +52,7 @@ class PlannedSlice:
         DICOM SeriesDescription, e.g. ``"tagged SA 3"`` or ``"tagged LA 60deg"``.
     level : float
         SA: ED fractional level of the plane (0 apex, 1 base); LA: angle from the septum, deg.
+
     """
 
     view: int
@@ -67,8 +69,8 @@ def _geometry(centre, row_dir, col_dir, size, spacing, thickness) -> SliceGeomet
     return SliceGeometry(ipp, row_dir, col_dir, spacing, spacing, thickness)
 
 
-SA_ORDERS = ("base_first", "apex_first")
-SA_NORMALS = ("base_to_apex", "apex_to_base")
+SA_ORDERS = ('base_first', 'apex_first')
+SA_NORMALS = ('base_to_apex', 'apex_to_base')
 
 
 def _rotate_in_plane(row, col, angle_deg: float):
@@ -82,12 +84,13 @@ def _rotate_in_plane(row, col, angle_deg: float):
 def _shift(imaging: dict, key: str) -> tuple[float, float]:
     v = imaging.get(key) or (0.0, 0.0)
     if len(v) != 2:
-        raise ValueError(f"imaging.{key} must be two numbers (mm along rows, columns), got {v!r}")
+        raise ValueError(f'imaging.{key} must be two numbers (mm along rows, columns), got {v!r}')
     return float(v[0]), float(v[1])
 
 
 def la_plane_angles(imaging: dict) -> tuple[list[float], list[bool]]:
-    """Angles (deg) and normal flips of the LA planes of an ``imaging`` section.
+    """
+    Angles (deg) and normal flips of the LA planes of an ``imaging`` section.
 
     ``imaging.la_angles_deg`` (a list, one angle per plane, from the septum, counter-clockwise
     seen from the apex) wins over ``la_planes`` × ``la_angle_step_deg`` (planes at
@@ -98,23 +101,26 @@ def la_plane_angles(imaging: dict) -> tuple[list[float], list[bool]]:
     ------
     ValueError
         ``la_flip`` has a different length than the angles.
+
     """
-    angles = imaging.get("la_angles_deg")
+    angles = imaging.get('la_angles_deg')
     if angles is None:
-        step = float(imaging["la_angle_step_deg"])
-        angles = [k * step for k in range(int(imaging["la_planes"]))]
+        step = float(imaging['la_angle_step_deg'])
+        angles = [k * step for k in range(int(imaging['la_planes']))]
     else:
         angles = [float(a) for a in angles]
-    flips = imaging.get("la_flip")
+    flips = imaging.get('la_flip')
     flips = [False] * len(angles) if flips is None else [bool(f) for f in flips]
     if len(flips) != len(angles):
-        raise ValueError(f"imaging.la_flip has {len(flips)} entries for {len(angles)} LA planes")
+        raise ValueError(f'imaging.la_flip has {len(flips)} entries for {len(angles)} LA planes')
     return angles, flips
 
 
-def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
-                pixel_spacing: float | None = None) -> list[PlannedSlice]:
-    """SA stack plus LA planes through the long axis (paper Fig. 6).
+def plan_slices(
+    motion: LVMotion, imaging: dict, size: int | None = None, pixel_spacing: float | None = None
+) -> list[PlannedSlice]:
+    """
+    SA stack plus LA planes through the long axis (paper Fig. 6).
 
     Parameters
     ----------
@@ -155,47 +161,48 @@ def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
     ------
     ValueError
         The stack does not fit between base and apex, or an optional key has a bad value.
+
     """
     f = motion.frame
     L = motion.length
-    n = int(size or imaging["size"])
-    dx = float(pixel_spacing or imaging["pixel_spacing_mm"])
-    th = float(imaging["slice_thickness_mm"])
-    z_top = L - float(imaging["sa_base_gap_mm"])
-    z_bot = float(imaging["sa_apex_gap_mm"])
-    n_sa = int(imaging["sa_slices"])
+    n = int(size or imaging['size'])
+    dx = float(pixel_spacing or imaging['pixel_spacing_mm'])
+    th = float(imaging['slice_thickness_mm'])
+    z_top = L - float(imaging['sa_base_gap_mm'])
+    z_bot = float(imaging['sa_apex_gap_mm'])
+    n_sa = int(imaging['sa_slices'])
     if not z_bot < z_top:
-        raise ValueError("imaging.sa_base_gap_mm + sa_apex_gap_mm must be less than the LV length")
-    order = imaging.get("sa_order", "base_first")
-    sa_normal = imaging.get("sa_normal", "base_to_apex")
+        raise ValueError('imaging.sa_base_gap_mm + sa_apex_gap_mm must be less than the LV length')
+    order = imaging.get('sa_order', 'base_first')
+    sa_normal = imaging.get('sa_normal', 'base_to_apex')
     if order not in SA_ORDERS:
-        raise ValueError(f"imaging.sa_order must be one of {SA_ORDERS}, got {order!r}")
+        raise ValueError(f'imaging.sa_order must be one of {SA_ORDERS}, got {order!r}')
     if sa_normal not in SA_NORMALS:
-        raise ValueError(f"imaging.sa_normal must be one of {SA_NORMALS}, got {sa_normal!r}")
+        raise ValueError(f'imaging.sa_normal must be one of {SA_NORMALS}, got {sa_normal!r}')
     out = []
     # SA: rows run along e_2, columns along the septal direction; the normal is base → apex
     # (by default: sa_inplane_deg turns both, apex_to_base mirrors the column direction).
     row = f.septum
     col = np.cross(-f.long_axis, row)
-    row, col = _rotate_in_plane(row, col, imaging.get("sa_inplane_deg", 0.0))
-    if sa_normal == "apex_to_base":
+    row, col = _rotate_in_plane(row, col, imaging.get('sa_inplane_deg', 0.0))
+    if sa_normal == 'apex_to_base':
         col = -col
-    s_row, s_col = _shift(imaging, "sa_fov_shift_mm")
+    s_row, s_col = _shift(imaging, 'sa_fov_shift_mm')
     heights = np.linspace(z_top, z_bot, n_sa)
-    if order == "apex_first":
+    if order == 'apex_first':
         heights = heights[::-1]  # the same planes, numbered from the apex
     for k, z in enumerate(heights):
         centre = f.apex + z * f.long_axis
         if s_row or s_col:
             centre = centre + s_row * row + s_col * col
         g = _geometry(centre, row, col, n, dx, th)
-        out.append(PlannedSlice(VIEW_SA, k, g, f"tagged SA {k}", float(z / L)))
+        out.append(PlannedSlice(VIEW_SA, k, g, f'tagged SA {k}', float(z / L)))
     # LA: columns along the radial direction at angle β, rows from base (top) to apex (bottom).
     angles, flips = la_plane_angles(imaging)
     extra = motion.atrium_height
     centre_z = 0.5 * (L + min(extra, 20.0))
-    l_row, l_col = _shift(imaging, "la_fov_shift_mm")
-    la_rot = imaging.get("la_inplane_deg", 0.0)
+    l_row, l_col = _shift(imaging, 'la_fov_shift_mm')
+    la_rot = imaging.get('la_inplane_deg', 0.0)
     for k, (beta_deg, flip) in enumerate(zip(angles, flips)):
         beta = np.radians(beta_deg)
         radial = np.cos(beta) * f.septum + np.sin(beta) * f.e2
@@ -204,12 +211,13 @@ def plan_slices(motion: LVMotion, imaging: dict, size: int | None = None,
         if l_row or l_col:
             centre = centre + l_row * row + l_col * col
         g = _geometry(centre, row, col, n, dx, th)
-        out.append(PlannedSlice(VIEW_LA, k, g, f"tagged LA {beta_deg:g}deg", float(beta_deg)))
+        out.append(PlannedSlice(VIEW_LA, k, g, f'tagged LA {beta_deg:g}deg', float(beta_deg)))
     return out
 
 
 def slab_profile(thickness: float, subplanes: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-plane offsets (mm, along the normal) and normalised weights of the slab.
+    """
+    Sub-plane offsets (mm, along the normal) and normalised weights of the slab.
 
     Gaussian profile with FWHM = ``thickness``, sampled at ``subplanes`` midpoints of
     ``[−0.75, 0.75] · thickness``; one sub-plane means the mid-plane only.
@@ -217,9 +225,10 @@ def slab_profile(thickness: float, subplanes: int) -> tuple[np.ndarray, np.ndarr
     Returns
     -------
     offsets, weights : ndarray, shape (subplanes,)
+
     """
     if subplanes < 1:
-        raise ValueError(f"subplanes must be >= 1, got {subplanes}")
+        raise ValueError(f'subplanes must be >= 1, got {subplanes}')
     if subplanes == 1:
         return np.zeros(1), np.ones(1)
     span = 1.5 * thickness
@@ -235,9 +244,15 @@ def plane_centre(geometry: SliceGeometry, shape: tuple[int, int]) -> np.ndarray:
     return geometry.pixel_to_patient(np.array([(rows - 1) / 2.0, (cols - 1) / 2.0]))
 
 
-def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, int],
-                spacing: float, angle_deg: float = 0.0) -> np.ndarray:
-    """1-1 SPAMM grid ``P = sin²(π a/λ) sin²(π b/λ)`` of one image plane, in [0, 1].
+def tag_pattern(
+    points: np.ndarray,
+    geometry: SliceGeometry,
+    shape: tuple[int, int],
+    spacing: float,
+    angle_deg: float = 0.0,
+) -> np.ndarray:
+    """
+    1-1 SPAMM grid ``P = sin²(π a/λ) sin²(π b/λ)`` of one image plane, in [0, 1].
 
     Parameters
     ----------
@@ -258,6 +273,7 @@ def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, i
     -------
     ndarray, shape (N,)
         0 on tag planes, 1 midway between them in both directions.
+
     """
     d = np.asarray(points, dtype=np.float64) - plane_centre(geometry, shape)
     ca, sa = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
@@ -269,7 +285,8 @@ def tag_pattern(points: np.ndarray, geometry: SliceGeometry, shape: tuple[int, i
 
 
 class ImageSynthesizer:
-    """Renders the tagged images of one planned slice at any phase.
+    """
+    Renders the tagged images of one planned slice at any phase.
 
     Parameters
     ----------
@@ -283,39 +300,52 @@ class ImageSynthesizer:
         The preset's ``imaging`` section (tag spacing, T1, intensities, PSF, slab).
     subplanes : int, optional
         Overrides ``imaging.subplanes``.
+
     """
 
-    def __init__(self, motion: LVMotion, plane: PlannedSlice, size: int, imaging: dict,
-                 subplanes: int | None = None):
+    def __init__(
+        self,
+        motion: LVMotion,
+        plane: PlannedSlice,
+        size: int,
+        imaging: dict,
+        subplanes: int | None = None,
+    ):
         self.motion = motion
         self.plane = plane
         self.size = n = int(size)
         self.im = imaging
         g = plane.geometry
-        self.spacing = float(imaging["tag_spacing_mm"])
-        self.tag_angle = float(imaging.get("tag_angle_deg", 0.0))
-        self.offsets, self.weights = slab_profile(g.slice_thickness,
-                                                  int(subplanes or imaging["subplanes"]))
-        rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        self.spacing = float(imaging['tag_spacing_mm'])
+        self.tag_angle = float(imaging.get('tag_angle_deg', 0.0))
+        self.offsets, self.weights = slab_profile(
+            g.slice_thickness, int(subplanes or imaging['subplanes'])
+        )
+        rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing='ij')
         self.pix = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], axis=1))  # (n², 3)
         # Static background: tags at the pixel itself; the same on every sub-plane.
         f = motion.frame
         heart_c = f.apex + 0.5 * motion.length * f.long_axis
-        body = np.linalg.norm(self.pix - heart_c, axis=1) < float(imaging["body_radius_mm"])
-        self.bg_m0 = np.where(body, float(imaging["background_m0"]), 0.0)
-        self.bg_tagged = bool(imaging.get("background_tagged", True))
+        body = np.linalg.norm(self.pix - heart_c, axis=1) < float(imaging['body_radius_mm'])
+        self.bg_m0 = np.where(body, float(imaging['background_m0']), 0.0)
+        self.bg_tagged = bool(imaging.get('background_tagged', True))
         self.bg_tags = self._tags(self.pix) if self.bg_tagged else None
         # Pixels whose slab can meet the LV at any phase: the LV stays inside the cylinder of
         # radius ~1.15 max ED radius (the apical cap widens by 1/sqrt(λ)) up to the atrium top.
         r, _, z = f.to_local(self.pix)
         reach = np.abs(self.offsets).max()
         zmax = motion.length + motion.atrium_height
-        self.cand = np.flatnonzero((r < 1.15 * motion.reach_radius + 3.0 + reach)
-                                   & (z > -3.0 - reach) & (z < zmax + 3.0 + reach))
+        self.cand = np.flatnonzero(
+            (r < 1.15 * motion.reach_radius + 3.0 + reach)
+            & (z > -3.0 - reach)
+            & (z < zmax + 3.0 + reach)
+        )
         self.normal = g.normal
 
     def _tags(self, pts):
-        return tag_pattern(pts, self.plane.geometry, (self.size, self.size), self.spacing, self.tag_angle)
+        return tag_pattern(
+            pts, self.plane.geometry, (self.size, self.size), self.spacing, self.tag_angle
+        )
 
     def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:
         """Return slab-weighted myocardium and blood fractions at ``phase``, (rows, cols), 0..1."""
@@ -329,19 +359,20 @@ class ImageSynthesizer:
         return myo.reshape(self.size, self.size), blood.reshape(self.size, self.size)
 
     def render(self, phase, time_s: float, snr: float | None, rng: np.random.Generator | None):
-        """Image at ``phase`` (trigger time ``time_s``), float32 (rows, cols).
+        """
+        Image at ``phase`` (trigger time ``time_s``), float32 (rows, cols).
 
         ``snr`` None or ``inf`` gives the noiseless magnitude image.
         """
         im = self.im
-        E = np.exp(-time_s / float(im["t1_s"]))
+        E = np.exp(-time_s / float(im['t1_s']))
         if self.bg_tagged:
             sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
         else:
             sig = self.bg_m0.copy()
         base = self.pix[self.cand]
         acc = np.zeros(base.shape[0])
-        m_myo, m_blood = float(im["myocardium_m0"]), float(im["blood_m0"])
+        m_myo, m_blood = float(im['myocardium_m0']), float(im['blood_m0'])
         bg = sig[self.cand]
         for off, w in zip(self.offsets, self.weights):
             X = self.motion.inverse(base + off * self.normal, phase)
@@ -350,20 +381,21 @@ class ImageSynthesizer:
             if self.motion.rv is not None:  # the RV's wall is tagged, its blood is not
                 rv_wall, rv_blood = self.motion.inside_rv(X)
                 myo, blood = myo | rv_wall, blood | rv_blood
-            val = np.where(myo, m_myo * (E * self._tags(X) + 1.0 - E),
-                           np.where(blood, m_blood, bg))
+            val = np.where(
+                myo, m_myo * (E * self._tags(X) + 1.0 - E), np.where(blood, m_blood, bg)
+            )
             acc += w * val
         sig = sig.copy()
         sig[self.cand] = acc
         img = sig.reshape(self.size, self.size)
-        psf = float(im.get("psf_sigma_px", 0.0))
+        psf = float(im.get('psf_sigma_px', 0.0))
         if psf > 0:
-            img = gaussian_filter(img, psf, mode="nearest")
+            img = gaussian_filter(img, psf, mode='nearest')
         if snr is not None and np.isfinite(snr):
             if snr <= 0:
-                raise ValueError(f"snr must be positive (or None/inf for no noise), got {snr}")
+                raise ValueError(f'snr must be positive (or None/inf for no noise), got {snr}')
             if rng is None:
-                raise ValueError("render needs an rng when snr is finite")
+                raise ValueError('render needs an rng when snr is finite')
             sigma = m_myo / snr
             n1 = rng.standard_normal(img.shape)
             n2 = rng.standard_normal(img.shape)

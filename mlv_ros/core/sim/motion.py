@@ -1,4 +1,5 @@
-"""Analytic, invertible, volume-preserving LV motion over one cardiac cycle.
+"""
+Analytic, invertible, volume-preserving LV motion over one cardiac cycle.
 
 Local frame
 -----------
@@ -38,29 +39,30 @@ References
 Paper §3.2 and Fig. 9–16 (shortening, radial contraction, apex CCW / base CW twist); method
 notes "Coordinates and conventions" (twist sign, ≈45 % zero-rotation level); AHA 17-segment
 model (Cerqueira et al., Circulation 2002) for the infarct segment and the AHA angles of regions.
+
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-from scipy.interpolate import PchipInterpolator
-
 from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.sim.regional import check_regions
-from mlv_ros.core.sim.rv import RightVentricle, check_rv
+from mlv_ros.core.sim.rv import check_rv, RightVentricle
+import numpy as np
+from scipy.interpolate import PchipInterpolator
 
 # AHA segment centres in the local angle θ (deg, CCW from apex, 0 = mid-septum): basal and mid
 # rings 60° wide in the order anterior, anteroseptal, inferoseptal, inferior, inferolateral,
 # anterolateral (counter-clockwise in the apex-view bull's-eye); apical ring 90° wide.
 _RING6 = [-90.0, -30.0, 30.0, 90.0, 150.0, -150.0]
 _RING4 = [-90.0, 0.0, 90.0, 180.0]
-AHA_LEVELS = {"apex": (0.0, 0.1), "apical": (0.1, 0.4), "mid": (0.4, 0.7), "basal": (0.7, 1.0)}
+AHA_LEVELS = {'apex': (0.0, 0.1), 'apical': (0.1, 0.4), 'mid': (0.4, 0.7), 'basal': (0.7, 1.0)}
 
 
 def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
-    """Angular centre, half-width (deg) and level range (fractions of L) of an AHA segment.
+    """
+    Angular centre, half-width (deg) and level range (fractions of L) of an AHA segment.
 
     Parameters
     ----------
@@ -71,21 +73,23 @@ def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
     -------
     centre_deg, half_width_deg, u0, u1 : float
         ``half_width_deg = 180`` for the apex cap (all angles).
+
     """
     if not 1 <= int(segment) <= 17:
-        raise ValueError(f"AHA segment must be in 1..17, got {segment}")
+        raise ValueError(f'AHA segment must be in 1..17, got {segment}')
     s = int(segment)
     if s <= 6:
-        return _RING6[s - 1], 30.0, *AHA_LEVELS["basal"]
+        return _RING6[s - 1], 30.0, *AHA_LEVELS['basal']
     if s <= 12:
-        return _RING6[s - 7], 30.0, *AHA_LEVELS["mid"]
+        return _RING6[s - 7], 30.0, *AHA_LEVELS['mid']
     if s <= 16:
-        return _RING4[s - 13], 45.0, *AHA_LEVELS["apical"]
-    return 0.0, 180.0, *AHA_LEVELS["apex"]
+        return _RING4[s - 13], 45.0, *AHA_LEVELS['apical']
+    return 0.0, 180.0, *AHA_LEVELS['apex']
 
 
 def infarct_region(infarct: dict) -> dict:
-    """A preset's ``motion.infarct`` (one AHA segment) as a region of
+    """
+    A preset's ``motion.infarct`` (one AHA segment) as a region of
     :mod:`mlv_ros.core.sim.regional` (for the ground truth; its motion is the original one).
 
     Parameters
@@ -99,34 +103,42 @@ def infarct_region(infarct: dict) -> dict:
         ``kind`` (akinetic for residual motion ≤ 0.1, else hypokinetic), ``levels``,
         ``centre_deg`` (in [0, 360)), ``width_deg``, ``contraction`` (the residual motion),
         ``blend_deg``, ``blend_fraction``, ``aha_segment``.
+
     """
-    centre, half, u_lo, u_hi = aha_segment_window(int(infarct["aha_segment"]))
-    c = float(infarct.get("residual_motion", 0.0))
-    return {"kind": "akinetic" if c <= 0.1 else "hypokinetic", "levels": [u_lo, u_hi],
-            "centre_deg": centre % 360.0, "width_deg": 2.0 * half, "contraction": c,
-            "blend_deg": float(infarct.get("blend_deg", 20.0)),
-            "blend_fraction": float(infarct.get("blend_fraction", 0.06)),
-            "aha_segment": int(infarct["aha_segment"])}
+    centre, half, u_lo, u_hi = aha_segment_window(int(infarct['aha_segment']))
+    c = float(infarct.get('residual_motion', 0.0))
+    return {
+        'kind': 'akinetic' if c <= 0.1 else 'hypokinetic',
+        'levels': [u_lo, u_hi],
+        'centre_deg': centre % 360.0,
+        'width_deg': 2.0 * half,
+        'contraction': c,
+        'blend_deg': float(infarct.get('blend_deg', 20.0)),
+        'blend_fraction': float(infarct.get('blend_fraction', 0.06)),
+        'aha_segment': int(infarct['aha_segment']),
+    }
 
 
 def _smoothstep(x):
-    """C² ramp 6x⁵ − 15x⁴ + 10x³ clipped to [0, 1]; returns (value, derivative).
+    """
+    C² ramp 6x⁵ − 15x⁴ + 10x³ clipped to [0, 1]; returns (value, derivative).
 
     C² (not just C¹) because F contains second derivatives of the infarct window through J₂.
     """
     x = np.clip(x, 0.0, 1.0)
-    return x ** 3 * (x * (6.0 * x - 15.0) + 10.0), 30.0 * x * x * (1.0 - x) ** 2
+    return x**3 * (x * (6.0 * x - 15.0) + 10.0), 30.0 * x * x * (1.0 - x) ** 2
 
 
 def _smoothstep_integral(x):
     """∫_0^x smoothstep, valid for any x (0 below 0, x − ½ above 1)."""
     xc = np.clip(x, 0.0, 1.0)
-    return xc ** 4 * (xc * (xc - 3.0) + 2.5) + np.maximum(x - 1.0, 0.0)
+    return xc**4 * (xc * (xc - 3.0) + 2.5) + np.maximum(x - 1.0, 0.0)
 
 
 @dataclass(frozen=True)
 class CardiacFrame:
-    """Long-axis frame of the phantom in patient coordinates (ED; the apex and axis stay fixed).
+    """
+    Long-axis frame of the phantom in patient coordinates (ED; the apex and axis stay fixed).
 
     Attributes
     ----------
@@ -142,6 +154,7 @@ class CardiacFrame:
         ``-long_axis × septum`` (θ = +90°, anterior → inferior sense; see module docstring).
     length : float
         ``|base_centre − apex|``, mm.
+
     """
 
     apex: np.ndarray
@@ -162,14 +175,17 @@ class CardiacFrame:
     def from_local(self, r, theta, z) -> np.ndarray:
         """Cylindrical ``(r, θ, z)`` (each shape (N,)) → patient points (N, 3), mm."""
         r = np.asarray(r, dtype=np.float64)
-        return (self.apex
-                + np.multiply.outer(z, self.long_axis)
-                + np.multiply.outer(r * np.cos(theta), self.septum)
-                + np.multiply.outer(r * np.sin(theta), self.e2))
+        return (
+            self.apex
+            + np.multiply.outer(z, self.long_axis)
+            + np.multiply.outer(r * np.cos(theta), self.septum)
+            + np.multiply.outer(r * np.sin(theta), self.e2)
+        )
 
 
 class LVMotion:
-    """Ground-truth LV geometry and motion of one preset (see the module docstring).
+    """
+    Ground-truth LV geometry and motion of one preset (see the module docstring).
 
     Parameters
     ----------
@@ -189,56 +205,59 @@ class LVMotion:
         Trigger times, s.
     es_phase : float
         End-systolic phase (fractional index).
+
     """
 
     def __init__(self, preset, num_phases: int | None = None):
         self.preset = load_preset(preset)
-        g, m, o = self.preset["geometry"], self.preset["motion"], self.preset["orientation"]
-        self.kind = g["kind"]
-        self.length = L = float(g["length_mm"])
-        self.num_phases = int(num_phases if num_phases is not None else m["num_phases"])
+        g, m, o = self.preset['geometry'], self.preset['motion'], self.preset['orientation']
+        self.kind = g['kind']
+        self.length = L = float(g['length_mm'])
+        self.num_phases = int(num_phases if num_phases is not None else m['num_phases'])
         if self.num_phases < 2:
-            raise ValueError(f"num_phases must be >= 2, got {self.num_phases}")
-        self.cycle_duration = float(m["cycle_duration_s"])
+            raise ValueError(f'num_phases must be >= 2, got {self.num_phases}')
+        self.cycle_duration = float(m['cycle_duration_s'])
         self.times = np.arange(self.num_phases) * self.cycle_duration / self.num_phases
-        self.es_fraction = float(m["es_fraction"])
-        self.relax_fraction = float(m["relaxation_fraction"])
+        self.es_fraction = float(m['es_fraction'])
+        self.relax_fraction = float(m['relaxation_fraction'])
         self.es_phase = self.es_fraction * self.num_phases
 
-        axis = np.asarray(o["long_axis"], dtype=np.float64)
+        axis = np.asarray(o['long_axis'], dtype=np.float64)
         if np.linalg.norm(axis) < 1e-9:
-            raise ValueError("orientation.long_axis must be a non-zero vector")
+            raise ValueError('orientation.long_axis must be a non-zero vector')
         axis = axis / np.linalg.norm(axis)
-        hint = np.asarray(o["septum_hint"], dtype=np.float64)
+        hint = np.asarray(o['septum_hint'], dtype=np.float64)
         hint = hint - (hint @ axis) * axis
         if np.linalg.norm(hint) < 1e-6:
-            raise ValueError("orientation.septum_hint must not be parallel to long_axis")
+            raise ValueError('orientation.septum_hint must not be parallel to long_axis')
         e1 = hint / np.linalg.norm(hint)
         e2 = np.cross(-axis, e1)
-        base = np.asarray(o["base_centre_mm"], dtype=np.float64)
-        self.frame = CardiacFrame(apex=base - L * axis, base_centre=base, long_axis=axis,
-                                  septum=e1, e2=e2, length=L)
+        base = np.asarray(o['base_centre_mm'], dtype=np.float64)
+        self.frame = CardiacFrame(
+            apex=base - L * axis, base_centre=base, long_axis=axis, septum=e1, e2=e2, length=L
+        )
 
-        if self.kind == "prolate":
-            self.endo_a = float(g["endo_radius_mm"])
-            self.endo_c = float(g["endo_depth_mm"])
-            self.epi_a = float(g["epi_radius_mm"])
+        if self.kind == 'prolate':
+            self.endo_a = float(g['endo_radius_mm'])
+            self.endo_c = float(g['endo_depth_mm'])
+            self.epi_a = float(g['epi_radius_mm'])
             self.epi_c = L
-            self.septal_extra = float(g.get("septal_extra_mm", 0.0))
-            self.atrium_height = float(g.get("atrium_height_mm", 0.0))
+            self.septal_extra = float(g.get('septal_extra_mm', 0.0))
+            self.atrium_height = float(g.get('atrium_height_mm', 0.0))
             self.max_radius = self.epi_a + self.septal_extra
         else:
-            self.r_in = float(g["inner_radius_mm"])
-            self.r_out = float(g["outer_radius_mm"])
+            self.r_in = float(g['inner_radius_mm'])
+            self.r_out = float(g['outer_radius_mm'])
             self.septal_extra = 0.0
             self.atrium_height = 0.0
             self.max_radius = self.r_out
 
-        self.eps = float(m["base_descent_mm"]) / L
-        self.rho_es = float(m["endo_radius_ratio_es"])
-        u0 = float(m["twist_zero_level"])
+        self.eps = float(m['base_descent_mm']) / L
+        self.rho_es = float(m['endo_radius_ratio_es'])
+        u0 = float(m['twist_zero_level'])
         self._twist = PchipInterpolator(
-            [0.0, u0, 1.0], np.radians([m["twist_apex_deg"], 0.0, m["twist_base_deg"]]))
+            [0.0, u0, 1.0], np.radians([m['twist_apex_deg'], 0.0, m['twist_base_deg']])
+        )
         self._dtwist = self._twist.derivative()
 
         # Abnormal regions (mlv_ros.core.sim.regional): the preset's infarct first, then
@@ -247,42 +266,68 @@ class LVMotion:
         self._regions: list[tuple] = []
         self.regions: list[dict] = []
         self.infarct_segment = None
-        inf = m.get("infarct")
+        inf = m.get('infarct')
         if inf:
-            centre, half, u_lo, u_hi = aha_segment_window(int(inf["aha_segment"]))
-            k = 1.0 - float(inf.get("residual_motion", 0.0))
-            self._regions.append((k, np.radians(centre), np.radians(half),
-                                  np.radians(float(inf.get("blend_deg", 20.0))),
-                                  float(inf.get("blend_fraction", 0.06)), (u_lo, u_hi)))
+            centre, half, u_lo, u_hi = aha_segment_window(int(inf['aha_segment']))
+            k = 1.0 - float(inf.get('residual_motion', 0.0))
+            self._regions.append(
+                (
+                    k,
+                    np.radians(centre),
+                    np.radians(half),
+                    np.radians(float(inf.get('blend_deg', 20.0))),
+                    float(inf.get('blend_fraction', 0.06)),
+                    (u_lo, u_hi),
+                )
+            )
             self.regions.append(infarct_region(inf))
-            self.infarct_segment = int(inf["aha_segment"])
-        for r in check_regions(m.get("regions") or [], g, others=self.regions, where="motion.regions"):
-            w = r["blend_fraction"]
-            lo, hi = r["levels"]
+            self.infarct_segment = int(inf['aha_segment'])
+        for r in check_regions(
+            m.get('regions') or [], g, others=self.regions, where='motion.regions'
+        ):
+            w = r['blend_fraction']
+            lo, hi = r['levels']
             # An open end takes the apex tip / the base plane in fully (b = 1 there).
             u_lo = -0.5 * w if lo == 0.0 else lo
             u_hi = 1.0 + 0.5 * w if hi == 1.0 else hi
-            self._regions.append((1.0 - r["contraction"], np.radians(r["centre_deg"]),
-                                  np.radians(0.5 * r["width_deg"]), np.radians(r["blend_deg"]),
-                                  w, (u_lo, u_hi)))
+            self._regions.append(
+                (
+                    1.0 - r['contraction'],
+                    np.radians(r['centre_deg']),
+                    np.radians(0.5 * r['width_deg']),
+                    np.radians(r['blend_deg']),
+                    w,
+                    (u_lo, u_hi),
+                )
+            )
             self.regions.append(r)
         # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
-        self._q_soft = 0.02 * (self.endo_a ** 2 if self.kind == "prolate" else self.r_in ** 2)
+        self._q_soft = 0.02 * (self.endo_a**2 if self.kind == 'prolate' else self.r_in**2)
         # Optional right ventricle (mlv_ros.core.sim.rv): seen in the images, not LV myocardium.
-        rv = check_rv(g.get("rv"))
-        self.rv = None if rv is None else RightVentricle(
-            rv, self.length, self.epi_radius, self.epi_a if self.kind == "prolate" else self.r_out)
+        rv = check_rv(g.get('rv'))
+        self.rv = (
+            None
+            if rv is None
+            else RightVentricle(
+                rv,
+                self.length,
+                self.epi_radius,
+                self.epi_a if self.kind == 'prolate' else self.r_out,
+            )
+        )
         #: Farthest any imaged tissue of the heart reaches from the long axis at ED, mm.
         self.reach_radius = self.max_radius + (self.rv.extent_mm if self.rv is not None else 0.0)
 
     # ----------------------------------------------------------------- time course
     def activation(self, phase) -> np.ndarray:
-        """Activation ``s`` at a (fractional) phase: 0 at ED, 1 at ES, raised-cosine (C¹).
+        """
+        Activation ``s`` at a (fractional) phase: 0 at ED, 1 at ES, raised-cosine (C¹).
 
         Parameters
         ----------
         phase : float or array_like
             Phase index (0 = ED); periodic with ``num_phases``.
+
         """
         f = np.mod(np.asarray(phase, dtype=np.float64) / self.num_phases, 1.0)
         es, rel = self.es_fraction, self.relax_fraction
@@ -298,7 +343,7 @@ class LVMotion:
     def endo_radius(self, z) -> np.ndarray:
         """ED endocardial radius at height z (mm; 0 where there is no cavity)."""
         z = np.asarray(z, dtype=np.float64)
-        if self.kind == "cylinder":
+        if self.kind == 'cylinder':
             return np.where((z >= 0) & (z <= self.length), self.r_in, 0.0)
         d = (self.length - np.minimum(z, self.length)) / self.endo_c
         return self.endo_a * np.sqrt(np.clip(1.0 - d * d, 0.0, None))
@@ -306,7 +351,7 @@ class LVMotion:
     def epi_radius(self, z, theta=0.0) -> np.ndarray:
         """ED epicardial radius at height z and angle θ (mm; septal bulge included)."""
         z = np.asarray(z, dtype=np.float64)
-        if self.kind == "cylinder":
+        if self.kind == 'cylinder':
             return np.where((z >= 0) & (z <= self.length), self.r_out, 0.0)
         d = (self.length - np.minimum(z, self.length)) / self.epi_c
         r = self.epi_a * np.sqrt(np.clip(1.0 - d * d, 0.0, None))
@@ -318,7 +363,8 @@ class LVMotion:
         return r
 
     def inside_myocardium(self, X_ed: np.ndarray) -> np.ndarray:
-        """Whether ED points are myocardium.
+        """
+        Whether ED points are myocardium.
 
         Parameters
         ----------
@@ -328,12 +374,19 @@ class LVMotion:
         Returns
         -------
         ndarray of bool, shape (N,)
+
         """
         r, th, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
-        return (z >= 0) & (z <= self.length) & (r <= self.epi_radius(z, th)) & (r >= self.endo_radius(z))
+        return (
+            (z >= 0)
+            & (z <= self.length)
+            & (r <= self.epi_radius(z, th))
+            & (r >= self.endo_radius(z))
+        )
 
     def inside_blood(self, X_ed: np.ndarray) -> np.ndarray:
-        """Whether ED points are blood: the LV cavity or the atrial cylinder above the base.
+        """
+        Whether ED points are blood: the LV cavity or the atrial cylinder above the base.
 
         Parameters
         ----------
@@ -343,6 +396,7 @@ class LVMotion:
         Returns
         -------
         ndarray of bool, shape (N,)
+
         """
         r, _, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
         cav = (z >= 0) & (z <= self.length) & (r < self.endo_radius(z))
@@ -351,8 +405,10 @@ class LVMotion:
         return cav
 
     def inside_rv(self, X_ed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(wall, blood)``: whether ED points ``X_ed`` (N, 3), mm, are RV free wall and RV
-        blood, each bool (N,) (all False without an RV; :mod:`mlv_ros.core.sim.rv`)."""
+        """
+        ``(wall, blood)``: whether ED points ``X_ed`` (N, 3), mm, are RV free wall and RV
+        blood, each bool (N,) (all False without an RV; :mod:`mlv_ros.core.sim.rv`).
+        """
         X = np.asarray(X_ed, dtype=np.float64).reshape(-1, 3)
         if self.rv is None:
             return np.zeros(len(X), bool), np.zeros(len(X), bool)
@@ -360,7 +416,8 @@ class LVMotion:
         return self.rv.free_wall(r, th, z), self.rv.blood(r, th, z)
 
     def rv_insertions(self) -> dict | None:
-        """The RV's true insertion points (None without an RV).
+        """
+        The RV's true insertion points (None without an RV).
 
         Returns
         -------
@@ -369,6 +426,7 @@ class LVMotion:
             seen from the apex, 0 at ``frame.septum``); ``anterior_direction``,
             ``inferior_direction``, ``septum_direction``: unit vectors ⟂ the long axis, LPS (the
             septum's is the bisector of the two insertions).
+
         """
         if self.rv is None:
             return None
@@ -378,12 +436,19 @@ class LVMotion:
         def direction(deg):
             t = np.radians(deg)
             return (np.cos(t) * f.septum + np.sin(t) * f.e2).tolist()
-        return {"anterior_deg": a, "inferior_deg": b, "anterior_direction": direction(a),
-                "inferior_direction": direction(b), "septum_direction": direction(0.5 * (a + b)),
-                "params": dict(self.rv.params)}
+
+        return {
+            'anterior_deg': a,
+            'inferior_deg': b,
+            'anterior_direction': direction(a),
+            'inferior_direction': direction(b),
+            'septum_direction': direction(0.5 * (a + b)),
+            'params': dict(self.rv.params),
+        }
 
     def sample_myocardium(self, n: int, seed: int = 0) -> np.ndarray:
-        """Uniform random ED myocardial points (rejection sampling in the bounding cylinder).
+        """
+        Uniform random ED myocardial points (rejection sampling in the bounding cylinder).
 
         Parameters
         ----------
@@ -396,9 +461,10 @@ class LVMotion:
         -------
         ndarray, shape (n, 3)
             ED positions, mm (LPS).
+
         """
         if n < 0:
-            raise ValueError(f"n must be >= 0, got {n}")
+            raise ValueError(f'n must be >= 0, got {n}')
         rng = np.random.default_rng(seed)
         out = np.empty((0, 3))
         R = self.max_radius
@@ -413,16 +479,17 @@ class LVMotion:
 
     # ----------------------------------------------------------------- map components
     def _ref_q(self, z):
-        """Squared reference endocardial radius Q(z) = q · S(q/δ) with q = R_en², mm².
+        """
+        Squared reference endocardial radius Q(z) = q · S(q/δ) with q = R_en², mm².
 
         Q ≤ R_en² and Q = 0 wherever the wall reaches the axis (below the endocardial apex), so
         ``r'² = ρ²Q + (r² − Q)/J₂ ≥ ρ²Q ≥ 0`` for all myocardium (the map never clamps there);
         the C² ramp S over δ = 0.02 a² keeps Q smooth at the endocardial apex.
         """
-        if self.kind == "cylinder":
-            return np.full_like(z, self.r_in ** 2)
+        if self.kind == 'cylinder':
+            return np.full_like(z, self.r_in**2)
         d = (self.length - np.minimum(z, self.length)) / self.endo_c
-        q = np.maximum(self.endo_a ** 2 * (1.0 - d * d), 0.0)
+        q = np.maximum(self.endo_a**2 * (1.0 - d * d), 0.0)
         return q * _smoothstep(q / self._q_soft)[0]
 
     @staticmethod
@@ -438,12 +505,17 @@ class LVMotion:
         x0 = (u - lo + 0.5 * w) / w
         x1 = (u - hi + 0.5 * w) / w
         b = _smoothstep(x0)[0] - _smoothstep(x1)[0]
-        B = w * (_smoothstep_integral(x0) - _smoothstep_integral((0.5 * w - lo) / w)
-                 - _smoothstep_integral(x1) + _smoothstep_integral((0.5 * w - hi) / w))
+        B = w * (
+            _smoothstep_integral(x0)
+            - _smoothstep_integral((0.5 * w - lo) / w)
+            - _smoothstep_integral(x1)
+            + _smoothstep_integral((0.5 * w - hi) / w)
+        )
         return a, da, b, B
 
     def _components(self, theta, z, s):
-        """Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s.
+        """
+        Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s.
 
         Regions enter through sums over their windows (they do not overlap, so at most one
         term is non-zero anywhere); each term keeps the single-infarct expression's operation
@@ -471,7 +543,8 @@ class LVMotion:
         return phi, dphi, Z, Zz, Zt, J2, rho
 
     def contraction(self, X_ed: np.ndarray) -> np.ndarray:
-        """Prescribed share of the normal systolic motion kept at ED points.
+        """
+        Prescribed share of the normal systolic motion kept at ED points.
 
         Parameters
         ----------
@@ -482,6 +555,7 @@ class LVMotion:
         -------
         ndarray, shape (N,)
             ``1 − Σ k a b``: 1 normal, 0 akinetic, below 0 dyskinetic (smooth across blends).
+
         """
         _, th, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
         u = z / self.length
@@ -495,11 +569,12 @@ class LVMotion:
     def _s(self, phase):
         s = np.asarray(self.activation(phase), dtype=np.float64)
         if s.ndim:
-            raise ValueError("phase must be a scalar (int or float)")
+            raise ValueError('phase must be a scalar (int or float)')
         return float(s)
 
     def position(self, X_ed: np.ndarray, phase) -> np.ndarray:
-        """Position at ``phase`` of material points given by their ED positions.
+        """
+        Position at ``phase`` of material points given by their ED positions.
 
         Parameters
         ----------
@@ -512,6 +587,7 @@ class LVMotion:
         -------
         ndarray, same shape as ``X_ed``
             Positions, mm (LPS).
+
         """
         X = np.asarray(X_ed, dtype=np.float64)
         flat = X.reshape(-1, 3)
@@ -523,7 +599,8 @@ class LVMotion:
         return self.frame.from_local(np.sqrt(r2), th + phi, Z).reshape(X.shape)
 
     def inverse(self, x: np.ndarray, phase, tol: float = 1e-9, max_iter: int = 30) -> np.ndarray:
-        """ED material position of the points at ``x`` at ``phase`` (inverse of :meth:`position`).
+        """
+        ED material position of the points at ``x`` at ``phase`` (inverse of :meth:`position`).
 
         Parameters
         ----------
@@ -541,6 +618,7 @@ class LVMotion:
         ndarray, same shape as ``x``
             ED positions, mm. Exact inverse for points whose ED position is outside the
             forward map's clamp (``r'² = 0``), i.e. for all myocardium.
+
         """
         xa = np.asarray(x, dtype=np.float64)
         flat = xa.reshape(-1, 3)
@@ -562,7 +640,8 @@ class LVMotion:
         return self.frame.from_local(np.sqrt(r2), th, z).reshape(xa.shape)
 
     def deformation_gradient(self, X_ed: np.ndarray, phase, h: float = 1e-3) -> np.ndarray:
-        """Deformation gradient ``F = ∂x/∂X`` at ED points.
+        """
+        Deformation gradient ``F = ∂x/∂X`` at ED points.
 
         Central differences of the analytic map (step ``h`` mm, truncation error O(h²) ≈ 1e-8):
         the closed form in cylindrical coordinates is singular on the axis, which the apical cap
@@ -581,6 +660,7 @@ class LVMotion:
         -------
         ndarray, shape (N, 3, 3)
             ``F[n, i, j] = ∂x_i/∂X_j`` (dimensionless).
+
         """
         X = np.asarray(X_ed, dtype=np.float64).reshape(-1, 3)
         F = np.empty((X.shape[0], 3, 3))
@@ -596,7 +676,8 @@ class LVMotion:
 
     # ----------------------------------------------------------------- ground-truth curves
     def twist_deg(self, level, phase) -> np.ndarray:
-        """Prescribed rotation about the long axis of the material at ED level ``level``.
+        """
+        Prescribed rotation about the long axis of the material at ED level ``level``.
 
         Parameters
         ----------
@@ -609,12 +690,14 @@ class LVMotion:
         -------
         ndarray, shape of ``level``
             Degrees, counter-clockwise seen from the apex positive.
+
         """
         u = np.clip(np.asarray(level, dtype=np.float64), 0.0, 1.0)
         return np.degrees(self._s(phase) * self._twist(u))
 
     def level_curves(self, levels, phases=None, n_theta: int = 72) -> dict:
-        """Per-level twist, radii and thickness measured on forward-mapped rings of material.
+        """
+        Per-level twist, radii and thickness measured on forward-mapped rings of material.
 
         Rings of ``n_theta`` ED points at the endocardium, mid-wall and epicardium of each level
         are moved with :meth:`position`; angles and radii are measured about the (fixed) long
@@ -636,39 +719,56 @@ class LVMotion:
             ring (CCW from apex positive), ``endo_radius_mm``, ``epi_radius_mm``,
             ``mid_radius_mm``, ``thickness_mm`` (P, K) ring means (endo is 0 below the cavity),
             ``height_mm`` (P, K) mean height of the mid-wall ring above the apex.
+
         """
         lv = np.atleast_1d(np.asarray(levels, dtype=np.float64))
-        ph = np.arange(self.num_phases) if phases is None else np.atleast_1d(np.asarray(phases, float))
+        ph = (
+            np.arange(self.num_phases)
+            if phases is None
+            else np.atleast_1d(np.asarray(phases, float))
+        )
         th = np.linspace(-np.pi, np.pi, n_theta, endpoint=False)
         TH, U = np.meshgrid(th, lv)  # (K, n_theta)
         Z = U * self.length
         r_en = self.endo_radius(Z)
         r_ep = self.epi_radius(Z, TH)
         r_mid = 0.5 * (r_en + r_ep)
-        pts = np.concatenate([self.frame.from_local(rr.ravel(), TH.ravel(), Z.ravel())
-                              for rr in (r_en, r_mid, r_ep)])
+        pts = np.concatenate(
+            [
+                self.frame.from_local(rr.ravel(), TH.ravel(), Z.ravel())
+                for rr in (r_en, r_mid, r_ep)
+            ]
+        )
         n = TH.size
-        out = {k: np.empty((ph.size, lv.size)) for k in
-               ("twist_deg", "endo_radius_mm", "epi_radius_mm", "mid_radius_mm", "thickness_mm",
-                "height_mm")}
+        out = {
+            k: np.empty((ph.size, lv.size))
+            for k in (
+                'twist_deg',
+                'endo_radius_mm',
+                'epi_radius_mm',
+                'mid_radius_mm',
+                'thickness_mm',
+                'height_mm',
+            )
+        }
         for i, p in enumerate(ph):
             r, t, z = self.frame.to_local(self.position(pts, p))
             r = r.reshape(3, *TH.shape)
             dth = np.angle(np.exp(1j * (t[n:2 * n].reshape(TH.shape) - TH)))
-            out["twist_deg"][i] = np.degrees(dth.mean(axis=1))
-            out["endo_radius_mm"][i] = r[0].mean(axis=1)
-            out["mid_radius_mm"][i] = r[1].mean(axis=1)
-            out["epi_radius_mm"][i] = r[2].mean(axis=1)
-            out["thickness_mm"][i] = (r[2] - r[0]).mean(axis=1)
-            out["height_mm"][i] = z[n:2 * n].reshape(TH.shape).mean(axis=1)
-        out["levels"] = lv
-        out["phases"] = ph
+            out['twist_deg'][i] = np.degrees(dth.mean(axis=1))
+            out['endo_radius_mm'][i] = r[0].mean(axis=1)
+            out['mid_radius_mm'][i] = r[1].mean(axis=1)
+            out['epi_radius_mm'][i] = r[2].mean(axis=1)
+            out['thickness_mm'][i] = (r[2] - r[0]).mean(axis=1)
+            out['height_mm'][i] = z[n:2 * n].reshape(TH.shape).mean(axis=1)
+        out['levels'] = lv
+        out['phases'] = ph
         return out
 
     def base_descent_mm(self, phase) -> float:
         """Mean displacement of the base-plane mid-wall ring toward the apex, mm."""
         c = self.level_curves([1.0], [phase])
-        return float(self.length - c["height_mm"][0, 0])
+        return float(self.length - c['height_mm'][0, 0])
 
 
 def make_motion(preset, num_phases: int | None = None) -> LVMotion:

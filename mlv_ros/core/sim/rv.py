@@ -1,4 +1,5 @@
-"""A right ventricle for the phantom: a crescent of blood with a thin tagged free wall.
+"""
+A right ventricle for the phantom: a crescent of blood with a thin tagged free wall.
 
 The RV only has to be *seen* (its blood pool and where its wall meets the LV, the RV insertion
 points that anchor the AHA segments); it is not part of the ground-truth myocardium, which stays
@@ -27,16 +28,27 @@ import math
 import numpy as np
 
 #: Defaults of ``geometry.rv`` (mm, degrees, fraction of the LV length).
-RV_DEFAULTS = {"span_deg": 120.0, "centre_deg": 0.0, "depth_scale": 0.6, "wall_mm": 3.0,
-               "apex_level": 0.2}
+RV_DEFAULTS = {
+    'span_deg': 120.0,
+    'centre_deg': 0.0,
+    'depth_scale': 0.6,
+    'wall_mm': 3.0,
+    'apex_level': 0.2,
+}
 #: Accepted ranges of the ``geometry.rv`` keys.
-RV_RANGES = {"span_deg": (60.0, 200.0), "centre_deg": (-90.0, 90.0), "depth_scale": (0.2, 1.2),
-             "wall_mm": (1.0, 8.0), "apex_level": (0.0, 0.7)}
+RV_RANGES = {
+    'span_deg': (60.0, 200.0),
+    'centre_deg': (-90.0, 90.0),
+    'depth_scale': (0.2, 1.2),
+    'wall_mm': (1.0, 8.0),
+    'apex_level': (0.0, 0.7),
+}
 _RAMP = 0.25  # level span of the RV's apical taper
 
 
-def check_rv(rv, where: str = "geometry.rv") -> dict | None:
-    """``geometry.rv`` with defaults filled in (None / False: no RV; True or {}: the defaults).
+def check_rv(rv, where: str = 'geometry.rv') -> dict | None:
+    """
+    ``geometry.rv`` with defaults filled in (None / False: no RV; True or {}: the defaults).
 
     Keys: ``span_deg`` (angle between the insertion points, deg), ``centre_deg`` (centre of the
     span from the mid-septum, CCW seen from the apex, deg), ``depth_scale`` (the crescent's
@@ -47,21 +59,22 @@ def check_rv(rv, where: str = "geometry.rv") -> dict | None:
     ------
     ValueError
         An unknown key or a value outside :data:`RV_RANGES`.
+
     """
     if rv is None or rv is False:
         return None
     if rv is True:
         rv = {}
     if not isinstance(rv, dict):
-        raise ValueError(f"{where} must be a mapping, true or null, got {rv!r}")
+        raise ValueError(f'{where} must be a mapping, true or null, got {rv!r}')
     unknown = sorted(set(rv) - set(RV_DEFAULTS))
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {sorted(RV_DEFAULTS)}")
+        raise ValueError(f'{where}: unknown key(s) {unknown}; known: {sorted(RV_DEFAULTS)}')
     out = dict(RV_DEFAULTS)
     for k, v in rv.items():
         lo, hi = RV_RANGES[k]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= float(v) <= hi:
-            raise ValueError(f"{where}.{k} must be a number in [{lo:g}, {hi:g}], got {v!r}")
+            raise ValueError(f'{where}.{k} must be a number in [{lo:g}, {hi:g}], got {v!r}')
         out[k] = float(v)
     return out
 
@@ -72,7 +85,8 @@ def _smoothstep(x):
 
 
 class RightVentricle:
-    """RV geometry of one phantom (module docstring).
+    """
+    RV geometry of one phantom (module docstring).
 
     Parameters
     ----------
@@ -84,17 +98,18 @@ class RightVentricle:
         ``(z, θ) → R_epi`` of the LV, mm.
     base_radius : float
         LV epicardial radius at the base, mm (scales the depth).
+
     """
 
     def __init__(self, rv: dict, length: float, epi_radius, base_radius: float):
         self.params = dict(rv)
         self.length = float(length)
         self._epi = epi_radius
-        self.half = math.radians(rv["span_deg"]) / 2.0
-        self.centre = math.radians(rv["centre_deg"])
-        self.depth = rv["depth_scale"] * float(base_radius)
-        self.wall = rv["wall_mm"]
-        self.u0 = rv["apex_level"]
+        self.half = math.radians(rv['span_deg']) / 2.0
+        self.centre = math.radians(rv['centre_deg'])
+        self.depth = rv['depth_scale'] * float(base_radius)
+        self.wall = rv['wall_mm']
+        self.u0 = rv['apex_level']
         #: Farthest the RV reaches from the long axis at ED, mm (beyond the LV's own radius).
         self.extent_mm = self.depth + self.wall
 

@@ -2,34 +2,34 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
-
-import numpy as np
+import hashlib
+import json
 
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.sim.imaging import ImageSynthesizer, PlannedSlice, plan_slices
+from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices, PlannedSlice
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.types import Frame
+import numpy as np
 
 Key = tuple[int, int]  # (view, slice_index)
 
 # Cheap settings for tests and demos (a few seconds): 128², 10 phases, 3 sub-planes.
-QUICK = {"size": 128, "num_phases": 10, "subplanes": 3}
+QUICK = {'size': 128, 'num_phases': 10, 'subplanes': 3}
 
 
 def _uid(*parts) -> str:
     """Deterministic DICOM UID under the ISO '2.25' UUID arc (a 128-bit hash of ``parts``)."""
-    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()[:16]
-    return "2.25." + str(int.from_bytes(h, "big"))
+    h = hashlib.sha256('|'.join(str(p) for p in parts).encode()).digest()[:16]
+    return '2.25.' + str(int.from_bytes(h, 'big'))
 
 
 @dataclass
 class Study:
-    """A simulated study.
+    """
+    A simulated study.
 
     Attributes
     ----------
@@ -53,6 +53,7 @@ class Study:
     study_uid, frame_of_reference_uid : str
     snr : float or None
     seed : int
+
     """
 
     frames: list[Frame]
@@ -81,15 +82,23 @@ class Study:
         """Frames of one slice ordered by phase."""
         fr = [f for f in self.frames if f.view == view and f.slice_index == slice_index]
         if not fr:
-            raise ValueError(f"no slice (view={view}, slice_index={slice_index}) in this study")
+            raise ValueError(f'no slice (view={view}, slice_index={slice_index}) in this study')
         return sorted(fr, key=lambda f: f.phase_index)
 
 
-def simulate_study(preset="normal", snr: float | None = 20.0, size: int | None = None,
-                   num_phases: int | None = None, seed: int = 0, subplanes: int | None = None,
-                   pixel_spacing: float | None = None, quick: bool = False,
-                   progress: Callable[[int, int], None] | None = None) -> Study:
-    """Simulate a tagged cine study (SA stack + LA planes) of a phantom preset.
+def simulate_study(
+    preset='normal',
+    snr: float | None = 20.0,
+    size: int | None = None,
+    num_phases: int | None = None,
+    seed: int = 0,
+    subplanes: int | None = None,
+    pixel_spacing: float | None = None,
+    quick: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Study:
+    """
+    Simulate a tagged cine study (SA stack + LA planes) of a phantom preset.
 
     Parameters
     ----------
@@ -117,50 +126,71 @@ def simulate_study(preset="normal", snr: float | None = 20.0, size: int | None =
     Returns
     -------
     Study
+
     """
     p = load_preset(preset)
     if quick:
-        size = size or QUICK["size"]
-        num_phases = num_phases or QUICK["num_phases"]
-        subplanes = subplanes or QUICK["subplanes"]
-    im = p["imaging"]
-    n = int(size or im["size"])
+        size = size or QUICK['size']
+        num_phases = num_phases or QUICK['num_phases']
+        subplanes = subplanes or QUICK['subplanes']
+    im = p['imaging']
+    n = int(size or im['size'])
     if n < 16:
-        raise ValueError(f"size must be >= 16 pixels, got {n}")
+        raise ValueError(f'size must be >= 16 pixels, got {n}')
     if num_phases is not None:
-        p["motion"]["num_phases"] = int(num_phases)
+        p['motion']['num_phases'] = int(num_phases)
     if subplanes is not None:
-        im["subplanes"] = int(subplanes)
+        im['subplanes'] = int(subplanes)
     if pixel_spacing is not None:
-        im["pixel_spacing_mm"] = float(pixel_spacing)
-    im["size"] = n
+        im['pixel_spacing_mm'] = float(pixel_spacing)
+    im['size'] = n
     motion = LVMotion(p)
     slices = plan_slices(motion, im, n)
     rng = np.random.default_rng(seed)
     # A drawn protocol (sim.protocol) joins the UID's parts, so two protocols never share one.
-    extra = (json.dumps(p["protocol"], sort_keys=True),) if p.get("protocol") else ()
-    study_uid = _uid("study", p["name"], seed, n, motion.num_phases, *extra)
-    for_uid = _uid("for", p["name"], seed)
+    extra = (json.dumps(p['protocol'], sort_keys=True),) if p.get('protocol') else ()
+    study_uid = _uid('study', p['name'], seed, n, motion.num_phases, *extra)
+    for_uid = _uid('for', p['name'], seed)
     total = len(slices) * motion.num_phases
     frames, masks, uids, geoms, desc = [], {}, {}, {}, {}
     done = 0
     for sl in slices:
         key = (sl.view, sl.index)
         syn = ImageSynthesizer(motion, sl, n, im)
-        uid = _uid("series", study_uid, sl.view, sl.index)
+        uid = _uid('series', study_uid, sl.view, sl.index)
         uids[key], geoms[key], desc[key] = uid, sl.geometry, sl.description
         myo, _ = syn.tissue_fractions(0)
         masks[key] = myo >= 0.5
         for ph in range(motion.num_phases):
             t = float(motion.times[ph])
             img = syn.render(ph, t, snr, rng)
-            frames.append(Frame(image=img, geometry=sl.geometry, view=sl.view,
-                                slice_index=sl.index, phase_index=ph,
-                                num_phases=motion.num_phases, trigger_time=t,
-                                cycle_duration=motion.cycle_duration, series_uid=uid))
+            frames.append(
+                Frame(
+                    image=img,
+                    geometry=sl.geometry,
+                    view=sl.view,
+                    slice_index=sl.index,
+                    phase_index=ph,
+                    num_phases=motion.num_phases,
+                    trigger_time=t,
+                    cycle_duration=motion.cycle_duration,
+                    series_uid=uid,
+                )
+            )
             done += 1
             if progress is not None:
                 progress(done, total)
-    return Study(frames=frames, motion=motion, preset=p, slices=slices, geometries=geoms,
-                 ed_masks=masks, series_uids=uids, study_uid=study_uid,
-                 frame_of_reference_uid=for_uid, snr=snr, seed=seed, descriptions=desc)
+    return Study(
+        frames=frames,
+        motion=motion,
+        preset=p,
+        slices=slices,
+        geometries=geoms,
+        ed_masks=masks,
+        series_uids=uids,
+        study_uid=study_uid,
+        frame_of_reference_uid=for_uid,
+        snr=snr,
+        seed=seed,
+        descriptions=desc,
+    )

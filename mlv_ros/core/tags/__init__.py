@@ -1,4 +1,5 @@
-"""Tag detection and tracking for 1-1 SPAMM tagged MRI (pure numpy/scipy/OpenCV; no ROS).
+"""
+Tag detection and tracking for 1-1 SPAMM tagged MRI (pure numpy/scipy/OpenCV; no ROS).
 
 Public API
 ----------
@@ -56,17 +57,45 @@ References
 Chen, T., Wang, X., Chung, S., Metaxas, D., Axel, L. IEEE TMI 29(1):1–11, 2010.
 Chui, H., Rangarajan, A. Computer Vision and Image Understanding 89:114–141, 2003.
 Osman, N. F., Kerwin, W. S., McVeigh, E. R., Prince, J. L. Magn. Reson. Med. 42:1048–1060, 1999.
+
 """
 
-from .gabor import (GaborMaps, TagInputError, TagParameters, estimate_tag_parameters, gabor_filter_bank,
-                    kernel_bank)
-from .harp import HarpTrack, harmonic_phase, harp_track
-from .intersections import Detection, detect_intersections, estimate_grid, grid_coherence, grid_labels
+from .gabor import (
+    estimate_tag_parameters,
+    gabor_filter_bank,
+    GaborMaps,
+    kernel_bank,
+    TagInputError,
+    TagParameters,
+)
+from .harp import harmonic_phase, harp_track, HarpTrack
+from .intersections import (
+    detect_intersections,
+    Detection,
+    estimate_grid,
+    grid_coherence,
+    grid_labels,
+)
 from .rpm import RPMResult, ThinPlateSpline, tps_rpm
 from .tracker import SliceTracker
 
 __all__ = [
-    "Detection", "GaborMaps", "HarpTrack", "RPMResult", "SliceTracker", "TagInputError", "TagParameters",
-    "ThinPlateSpline", "detect_intersections", "estimate_grid", "estimate_tag_parameters", "grid_coherence", "gabor_filter_bank", "grid_labels",
-    "harmonic_phase", "harp_track", "kernel_bank", "tps_rpm",
+    'Detection',
+    'GaborMaps',
+    'HarpTrack',
+    'RPMResult',
+    'SliceTracker',
+    'TagInputError',
+    'TagParameters',
+    'ThinPlateSpline',
+    'detect_intersections',
+    'estimate_grid',
+    'estimate_tag_parameters',
+    'grid_coherence',
+    'gabor_filter_bank',
+    'grid_labels',
+    'harmonic_phase',
+    'harp_track',
+    'kernel_bank',
+    'tps_rpm',
 ]

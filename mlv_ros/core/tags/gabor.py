@@ -1,4 +1,5 @@
-"""Tag-grid parameters from the image spectrum and a complex Gabor filter bank.
+"""
+Tag-grid parameters from the image spectrum and a complex Gabor filter bank.
 
 Conventions (used by the whole :mod:`mlv_ros.core.tags` package)
 ----------------------------------------------------------------
@@ -15,6 +16,7 @@ References
 ----------
 Chen, T., Wang, X., Chung, S., Metaxas, D., Axel, L. "Automated 3D motion tracking using Gabor
 filter bank, robust point matching, and deformable models." IEEE TMI 29(1):1–11, 2010.
+
 """
 
 from __future__ import annotations
@@ -24,8 +26,8 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-import scipy.fft as sfft
 from scipy import ndimage as ndi
+import scipy.fft as sfft
 
 # Spacing search range, px: below 3 px the tags are not resolved (Nyquist is 2 px); clinical
 # grids are 5–10 mm at 1–2 mm pixels, and longer periods collide with anatomy (wall, cavity).
@@ -54,7 +56,8 @@ class TagInputError(ValueError):
 
 @dataclass(frozen=True)
 class TagParameters:
-    """Spacing and orientation of the two tag directions.
+    """
+    Spacing and orientation of the two tag directions.
 
     Attributes
     ----------
@@ -66,18 +69,21 @@ class TagParameters:
         Spectral peak magnitude over the annulus median (``inf`` for overrides).
     source : str
         ``"spectrum"``, ``"override"`` or ``"mixed"``.
+
     """
 
     spacing_px: np.ndarray
     angles: np.ndarray
     peak_ratio: np.ndarray = field(default_factory=lambda: np.full(2, np.inf))
-    source: str = "override"
+    source: str = 'override'
 
     @property
     def wavevectors(self) -> np.ndarray:
         """Return wave vectors ``k_d = 2π/λ_d (sin θ_d, cos θ_d)``, rad/px, (2, 2), (row, col)."""
         a = np.asarray(self.angles, float)
-        return (2 * np.pi / np.asarray(self.spacing_px, float))[:, None] * np.stack([np.sin(a), np.cos(a)], -1)
+        return (2 * np.pi / np.asarray(self.spacing_px, float))[:, None] * np.stack(
+            [np.sin(a), np.cos(a)], -1
+        )
 
 
 def validate_image(image) -> np.ndarray:
@@ -85,16 +91,18 @@ def validate_image(image) -> np.ndarray:
     try:
         img = np.asarray(image, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise TagInputError(f"image is not numeric: {exc}") from None
+        raise TagInputError(f'image is not numeric: {exc}') from None
     if img.ndim != 2:
-        raise TagInputError(f"image must be 2-D, got shape {img.shape}")
+        raise TagInputError(f'image must be 2-D, got shape {img.shape}')
     if min(img.shape) < 16:
-        raise TagInputError(f"image too small for tag analysis: {img.shape[0]}x{img.shape[1]} px (need ≥ 16x16)")
+        raise TagInputError(
+            f'image too small for tag analysis: {img.shape[0]}x{img.shape[1]} px (need ≥ 16x16)'
+        )
     bad = int(np.count_nonzero(~np.isfinite(img)))
     if bad:
-        raise TagInputError(f"image has {bad} non-finite pixel(s) (NaN/Inf)")
+        raise TagInputError(f'image has {bad} non-finite pixel(s) (NaN/Inf)')
     if float(img.max() - img.min()) <= 1e-12 * max(1.0, float(np.abs(img).max())):
-        raise TagInputError("image is constant")
+        raise TagInputError('image is constant')
     return img
 
 
@@ -102,10 +110,16 @@ def _fold_angle(theta):
     return np.mod(theta, np.pi)
 
 
-def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACING_PX,
-                            max_spacing_px: float = MAX_SPACING_PX,
-                            min_peak_ratio: float | None = None, whiten: bool = False) -> TagParameters:
-    """Estimate the two tag directions and spacings from the spectrum of an (ED) image.
+def estimate_tag_parameters(
+    image,
+    mask=None,
+    min_spacing_px: float = MIN_SPACING_PX,
+    max_spacing_px: float = MAX_SPACING_PX,
+    min_peak_ratio: float | None = None,
+    whiten: bool = False,
+) -> TagParameters:
+    """
+    Estimate the two tag directions and spacings from the spectrum of an (ED) image.
 
     The two strongest peaks of the magnitude spectrum (Hann window, or the tapered region when
     ``mask`` is given) inside the annulus ``1/max_spacing ≤ |f| ≤ 1/min_spacing`` that are at least
@@ -142,6 +156,7 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
     ------
     TagInputError
         Invalid image, or no pair of tag peaks (no tags, tags faded, pure noise).
+
     """
     img = validate_image(image)
     h, w = img.shape
@@ -150,9 +165,9 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
     if mask is not None:
         m = np.asarray(mask, bool)
         if m.shape != img.shape:
-            raise TagInputError(f"mask shape {m.shape} differs from image shape {img.shape}")
+            raise TagInputError(f'mask shape {m.shape} differs from image shape {img.shape}')
         if m.sum() < 16:
-            raise TagInputError("mask has fewer than 16 pixels")
+            raise TagInputError('mask has fewer than 16 pixels')
         # Remove the local mean (the region's own shape would otherwise dominate the low
         # frequencies) and taper the region's edge so it does not ring into the tag band.
         sig = 0.5 * max_spacing_px
@@ -168,7 +183,7 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         # Power averaged over neighbouring bins (σ = 1 bin): a tag peak is at least that wide (the
         # window's or the region's own spectrum) while noise averages down. (Whitened, the ring
         # median would rise with a spread peak instead.)
-        spec = np.sqrt(ndi.gaussian_filter(spec ** 2, 1.0, mode="wrap"))
+        spec = np.sqrt(ndi.gaussian_filter(spec**2, 1.0, mode='wrap'))
     fr = sfft.fftfreq(h)[:, None]
     fc = sfft.fftfreq(w)[None, :]
     rad = np.hypot(fr, fc)
@@ -176,7 +191,9 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
     half = (fc > 0) | ((fc == 0) & (fr > 0))
     annulus = half & (rad >= 1.0 / max_spacing_px) & (rad <= 1.0 / min_spacing_px)
     if not annulus.any():
-        raise TagInputError(f"image {h}x{w} too small to resolve tag spacings up to {max_spacing_px} px")
+        raise TagInputError(
+            f'image {h}x{w} too small to resolve tag spacings up to {max_spacing_px} px'
+        )
     if whiten:
         # Rings one frequency bin wide (of the longer side); each frequency over its ring's median.
         labels = np.where(annulus, np.rint(rad * max(h, w)).astype(np.int64) + 1, 0)
@@ -184,12 +201,12 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         med = np.zeros(int(labels.max()) + 1)
         med[ids] = ndi.median(spec, labels, ids)
         if not np.all(med[ids] > 0):
-            raise TagInputError("image spectrum is empty in the tag frequency band")
+            raise TagInputError('image spectrum is empty in the tag frequency band')
         score = np.where(annulus, spec / np.where(med[labels] > 0, med[labels], np.inf), 0.0)
     else:
         med = float(np.median(spec[annulus]))
         if med <= 0:
-            raise TagInputError("image spectrum is empty in the tag frequency band")
+            raise TagInputError('image spectrum is empty in the tag frequency band')
         score = np.where(annulus, spec / med, 0.0)
     ang = np.arctan2(fr, fc)
     peaks = []
@@ -197,10 +214,12 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         idx = np.unravel_index(int(np.argmax(score)), score.shape)
         ratio = float(score[idx])
         if ratio < min_peak_ratio:
-            which = "first" if not peaks else "second"
+            which = 'first' if not peaks else 'second'
             ref = "its ring's" if whiten else "the band's"
-            raise TagInputError(f"no {which} tag direction: strongest spectral peak is {ratio:.1f}x {ref} "
-                                f"median (need ≥ {min_peak_ratio:g}); no tags, faded tags or noise only")
+            raise TagInputError(
+                f'no {which} tag direction: strongest spectral peak is {ratio:.1f}x {ref} '
+                f'median (need ≥ {min_peak_ratio:g}); no tags, faded tags or noise only'
+            )
         f = np.array([_subbin(spec, idx, 0) / h, _subbin(spec, idx, 1) / w])
         f = np.array([(f[0] + 0.5) % 1.0 - 0.5, (f[1] + 0.5) % 1.0 - 0.5])  # back to [-0.5, 0.5)
         if mask is not None:
@@ -212,13 +231,22 @@ def estimate_tag_parameters(image, mask=None, min_spacing_px: float = MIN_SPACIN
         theta = np.arctan2(f[0], f[1])
         diff = np.abs(np.angle(np.exp(1j * 2 * (ang - theta)))) / 2  # axial distance in [0, π/2]
         f_abs = np.hypot(*f)
-        score = np.where((diff < MIN_DIRECTION_SEPARATION) | (rad < f_abs / MAX_PERIOD_RATIO)
-                         | (rad > f_abs * MAX_PERIOD_RATIO), 0.0, score)
+        score = np.where(
+            (diff < MIN_DIRECTION_SEPARATION)
+            | (rad < f_abs / MAX_PERIOD_RATIO)
+            | (rad > f_abs * MAX_PERIOD_RATIO),
+            0.0,
+            score,
+        )
     spacing = np.array([1.0 / np.hypot(*p[0]) for p in peaks])
     angles = _fold_angle(np.array([np.arctan2(p[0][0], p[0][1]) for p in peaks]))
     order = np.argsort(angles)
-    return TagParameters(spacing_px=spacing[order], angles=angles[order],
-                         peak_ratio=np.array([p[1] for p in peaks])[order], source="spectrum")
+    return TagParameters(
+        spacing_px=spacing[order],
+        angles=angles[order],
+        peak_ratio=np.array([p[1] for p in peaks])[order],
+        source='spectrum',
+    )
 
 
 def _refine_peak(work: np.ndarray, f: np.ndarray, steps: int = 9) -> np.ndarray:
@@ -236,12 +264,12 @@ def _refine_peak(work: np.ndarray, f: np.ndarray, steps: int = 9) -> np.ndarray:
     rows, cols = np.arange(h), np.arange(w)
     best, best_f = -1.0, f
     for _ in range(2):  # coarse ±1 bin, then ±1/4 bin around the best
-        span = (1.0 if best < 0 else 0.25)
+        span = 1.0 if best < 0 else 0.25
         fr = best_f[0] + np.linspace(-span, span, steps) / h
         fc = best_f[1] + np.linspace(-span, span, steps) / w
-        er = np.exp(-2j * np.pi * np.outer(fr, rows))      # (steps, h)
-        ec = np.exp(-2j * np.pi * np.outer(cols, fc))      # (w, steps)
-        mag = np.abs(er @ work @ ec)                        # (steps, steps)
+        er = np.exp(-2j * np.pi * np.outer(fr, rows))  # (steps, h)
+        ec = np.exp(-2j * np.pi * np.outer(cols, fc))  # (w, steps)
+        mag = np.abs(er @ work @ ec)  # (steps, steps)
         i, j = np.unravel_index(int(np.argmax(mag)), mag.shape)
         best, best_f = float(mag[i, j]), np.array([fr[i], fc[j]])
     return best_f
@@ -255,7 +283,11 @@ def _subbin(spec, idx, axis):
     hi = list(idx)
     lo[axis] = (i - 1) % n
     hi[axis] = (i + 1) % n
-    a, b, c = np.log(spec[tuple(lo)] + 1e-30), np.log(spec[idx] + 1e-30), np.log(spec[tuple(hi)] + 1e-30)
+    a, b, c = (
+        np.log(spec[tuple(lo)] + 1e-30),
+        np.log(spec[idx] + 1e-30),
+        np.log(spec[tuple(hi)] + 1e-30),
+    )
     den = a - 2 * b + c
     off = 0.5 * (a - c) / den if den < 0 else 0.0
     # fftfreq index → signed index
@@ -263,8 +295,11 @@ def _subbin(spec, idx, axis):
     return si + float(np.clip(off, -0.5, 0.5))
 
 
-def resolve_parameters(image, mask=None, spacing_px=None, angles=None, estimate=None) -> TagParameters:
-    """Tag parameters from overrides, completing missing ones from the spectrum.
+def resolve_parameters(
+    image, mask=None, spacing_px=None, angles=None, estimate=None
+) -> TagParameters:
+    """
+    Tag parameters from overrides, completing missing ones from the spectrum.
 
     Parameters
     ----------
@@ -282,16 +317,17 @@ def resolve_parameters(image, mask=None, spacing_px=None, angles=None, estimate=
     Returns
     -------
     TagParameters
+
     """
     estimate = estimate or estimate_tag_parameters
     if spacing_px is not None and angles is not None:
         sp = np.broadcast_to(np.asarray(spacing_px, float), (2,)).copy()
         an = _fold_angle(np.asarray(angles, float).reshape(2))
         if not (np.all(np.isfinite(sp)) and np.all(sp >= 2.0)):
-            raise TagInputError(f"tag spacing override must be finite and ≥ 2 px, got {sp}")
+            raise TagInputError(f'tag spacing override must be finite and ≥ 2 px, got {sp}')
         if not np.all(np.isfinite(an)):
-            raise TagInputError(f"tag angle override must be finite, got {an}")
-        return TagParameters(spacing_px=sp, angles=an, source="override")
+            raise TagInputError(f'tag angle override must be finite, got {an}')
+        return TagParameters(spacing_px=sp, angles=an, source='override')
     try:
         est = estimate(image, mask)
     except TagInputError:
@@ -300,13 +336,17 @@ def resolve_parameters(image, mask=None, spacing_px=None, angles=None, estimate=
         est = estimate(image, None)  # small or odd regions: the whole image's grid
     if spacing_px is None and angles is None:
         return est
-    sp = est.spacing_px if spacing_px is None else np.broadcast_to(np.asarray(spacing_px, float), (2,)).copy()
+    sp = (
+        est.spacing_px
+        if spacing_px is None
+        else np.broadcast_to(np.asarray(spacing_px, float), (2,)).copy()
+    )
     an = est.angles if angles is None else _fold_angle(np.asarray(angles, float).reshape(2))
     if angles is not None and spacing_px is None:
         # Pair each overridden angle with the estimated spacing of the nearest estimated direction.
         d = np.abs(np.angle(np.exp(2j * (an[:, None] - est.angles[None, :]))))
         sp = est.spacing_px[np.argmin(d, axis=1)]
-    return TagParameters(spacing_px=sp, angles=an, peak_ratio=est.peak_ratio, source="mixed")
+    return TagParameters(spacing_px=sp, angles=an, peak_ratio=est.peak_ratio, source='mixed')
 
 
 @lru_cache(maxsize=64)
@@ -316,25 +356,33 @@ def _kernel_bank_cached(shape, spacings, angles, sigma_u, sigma_v):
     fc = sfft.fftfreq(w)[None, :]
     out = np.empty((len(spacings), h, w), np.complex64)
     for j, (lam, th) in enumerate(zip(spacings, angles)):
-        ur, uc = np.sin(th), np.cos(th)        # unit wave vector (row, col)
+        ur, uc = np.sin(th), np.cos(th)  # unit wave vector (row, col)
         su, sv = sigma_u * lam, sigma_v * lam  # spatial envelope std along / across the wave, px
-        fu = fr * ur + fc * uc                 # frequency component along the wave, cycles/px
+        fu = fr * ur + fc * uc  # frequency component along the wave, cycles/px
         fv = -fr * uc + fc * ur
         f0 = 1.0 / lam
 
         def env(a, b):
-            return np.exp(-2 * np.pi ** 2 * (su ** 2 * a ** 2 + sv ** 2 * b ** 2))
+            return np.exp(-2 * np.pi**2 * (su**2 * a**2 + sv**2 * b**2))
 
         # Continuous-domain transform of g(x)(exp(i2πf0·x) − c) with c = exp(−2π²σu²f0²):
         # the subtracted term removes the kernel mean (zero response to DC / smooth anatomy).
-        out[j] = env(fu - f0, fv) - np.exp(-2 * np.pi ** 2 * su ** 2 * f0 ** 2) * env(fu, fv)
+        out[j] = env(fu - f0, fv) - np.exp(-2 * np.pi**2 * su**2 * f0**2) * env(fu, fv)
     out.setflags(write=False)
     return out
 
 
-def kernel_bank(shape, params: TagParameters, direction: int, orientations_deg=(-12.0, 0.0, 12.0),
-                spacing_factors=(0.8, 1.0, 1.25), sigma_u: float = 0.5, sigma_v: float = 0.6) -> np.ndarray:
-    """Frequency responses of the Gabor kernels of one tag direction.
+def kernel_bank(
+    shape,
+    params: TagParameters,
+    direction: int,
+    orientations_deg=(-12.0, 0.0, 12.0),
+    spacing_factors=(0.8, 1.0, 1.25),
+    sigma_u: float = 0.5,
+    sigma_v: float = 0.6,
+) -> np.ndarray:
+    """
+    Frequency responses of the Gabor kernels of one tag direction.
 
     Each kernel is ``g(x) (exp(i 2π x_u/λ) − c)`` with a Gaussian envelope ``g`` of standard
     deviations ``sigma_u·λ`` along the wave vector and ``sigma_v·λ`` along the tag lines and ``c``
@@ -359,6 +407,7 @@ def kernel_bank(shape, params: TagParameters, direction: int, orientations_deg=(
     -------
     ndarray of complex64, shape (n_orientations·n_spacings, H, W)
         Read-only, FFT-ordered (``scipy.fft.fftfreq``) frequency responses.
+
     """
     lam0 = float(params.spacing_px[direction])
     th0 = float(params.angles[direction])
@@ -367,12 +416,15 @@ def kernel_bank(shape, params: TagParameters, direction: int, orientations_deg=(
         for s in spacing_factors:
             sp.append(round(lam0 * s, 6))
             an.append(round(th0 + np.deg2rad(o), 6))
-    return _kernel_bank_cached(tuple(int(v) for v in shape), tuple(sp), tuple(an), float(sigma_u), float(sigma_v))
+    return _kernel_bank_cached(
+        tuple(int(v) for v in shape), tuple(sp), tuple(an), float(sigma_u), float(sigma_v)
+    )
 
 
 @dataclass
 class GaborMaps:
-    """Best Gabor response per pixel and direction.
+    """
+    Best Gabor response per pixel and direction.
 
     Attributes
     ----------
@@ -383,6 +435,7 @@ class GaborMaps:
         ``|response|``, image intensity units (a cosine of amplitude A gives A/2).
     kernel_index : ndarray of int8, shape (2, H, W)
         Index of the winning kernel (orientation-major, see :func:`kernel_bank`).
+
     """
 
     response: np.ndarray
@@ -395,10 +448,16 @@ class GaborMaps:
         return np.angle(self.response)
 
 
-def gabor_filter_bank(image, params: TagParameters, orientations_deg=(-12.0, 0.0, 12.0),
-                      spacing_factors=(0.8, 1.0, 1.25), sigma_u: float = 0.5,
-                      sigma_v: float = 0.6) -> GaborMaps:
-    """Filter an image with the Gabor bank of both tag directions (FFT, one batch per direction).
+def gabor_filter_bank(
+    image,
+    params: TagParameters,
+    orientations_deg=(-12.0, 0.0, 12.0),
+    spacing_factors=(0.8, 1.0, 1.25),
+    sigma_u: float = 0.5,
+    sigma_v: float = 0.6,
+) -> GaborMaps:
+    """
+    Filter an image with the Gabor bank of both tag directions (FFT, one batch per direction).
 
     Parameters
     ----------
@@ -412,6 +471,7 @@ def gabor_filter_bank(image, params: TagParameters, orientations_deg=(-12.0, 0.0
     Returns
     -------
     GaborMaps
+
     """
     img = np.asarray(image, np.float32)
     h, w = img.shape
@@ -424,7 +484,9 @@ def gabor_filter_bank(image, params: TagParameters, orientations_deg=(-12.0, 0.0
     kidx = np.empty((2, h, w), np.int8)
     rows, cols = np.indices((h, w), sparse=True)
     for d in range(2):
-        bank = kernel_bank((fh, fw), params, d, orientations_deg, spacing_factors, sigma_u, sigma_v)
+        bank = kernel_bank(
+            (fh, fw), params, d, orientations_deg, spacing_factors, sigma_u, sigma_v
+        )
         r = sfft.ifft2(bank * spec[None], axes=(-2, -1), workers=1)[:, :h, :w]
         a = np.abs(r)
         k = np.argmax(a, axis=0)

@@ -1,4 +1,5 @@
-"""HARP baseline: harmonic phase images and phase-constancy point tracking.
+"""
+HARP baseline: harmonic phase images and phase-constancy point tracking.
 
 One spectral peak per tag direction is isolated with a band-pass filter; the phase of the
 inverse transform (the harmonic phase) is a material property, so a point is tracked from phase
@@ -9,6 +10,7 @@ References
 ----------
 Osman, N. F., Kerwin, W. S., McVeigh, E. R., Prince, J. L. "Cardiac motion tracking using CINE
 harmonic phase (HARP) magnetic resonance imaging." Magn. Reson. Med. 42(6):1048–1060, 1999.
+
 """
 
 from __future__ import annotations
@@ -18,12 +20,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from .gabor import TagParameters, validate_image, TagInputError
+from .gabor import TagInputError, TagParameters, validate_image
 from .phase import PhaseField, solve_phase
 
 
 def harmonic_phase(image, params: TagParameters, bandwidth: float = 0.35) -> PhaseField:
-    """Harmonic phase of both tag directions.
+    """
+    Harmonic phase of both tag directions.
 
     The band-pass filter of direction ``d`` is a Gaussian in frequency centred on the fundamental
     ``f_d = 1/λ_d`` with standard deviation ``bandwidth·|f_d|`` (an isotropic stand-in for HARP's
@@ -41,6 +44,7 @@ def harmonic_phase(image, params: TagParameters, bandwidth: float = 0.35) -> Pha
     -------
     PhaseField
         Wrapped harmonic phases (≡ π on dark tags, as for the Gabor phase) and their Jacobian.
+
     """
     img = np.asarray(image, np.float64)
     h, w = img.shape
@@ -51,14 +55,15 @@ def harmonic_phase(image, params: TagParameters, bandwidth: float = 0.35) -> Pha
     for d in range(2):
         f0 = params.wavevectors[d] / (2 * np.pi)  # cycles/px, (row, col)
         sig = bandwidth * np.hypot(*f0)
-        filt = np.exp(-((fr - f0[0]) ** 2 + (fc - f0[1]) ** 2) / (2 * sig ** 2))
+        filt = np.exp(-((fr - f0[0]) ** 2 + (fc - f0[1]) ** 2) / (2 * sig**2))
         out[d] = sfft.ifft2(spec * filt)
     return PhaseField.from_complex(out)
 
 
 @dataclass
 class HarpTrack:
-    """HARP trajectories of a set of points.
+    """
+    HARP trajectories of a set of points.
 
     Attributes
     ----------
@@ -67,16 +72,24 @@ class HarpTrack:
     valid : ndarray of bool, shape (T, N)
     reason : str
         Empty on success, else why nothing was tracked.
+
     """
 
     pixel_rc: np.ndarray
     valid: np.ndarray
-    reason: str = ""
+    reason: str = ''
 
 
-def harp_track(images, start_rc, params: TagParameters, bandwidth: float = 0.35, max_residual: float = 0.5,
-               max_step_px: float | None = None) -> HarpTrack:
-    """Track points through a cine with HARP phase constancy (never raises on bad images).
+def harp_track(
+    images,
+    start_rc,
+    params: TagParameters,
+    bandwidth: float = 0.35,
+    max_residual: float = 0.5,
+    max_step_px: float | None = None,
+) -> HarpTrack:
+    """
+    Track points through a cine with HARP phase constancy (never raises on bad images).
 
     Parameters
     ----------
@@ -97,19 +110,20 @@ def harp_track(images, start_rc, params: TagParameters, bandwidth: float = 0.35,
     Returns
     -------
     HarpTrack
+
     """
     start = np.asarray(start_rc, float).reshape(-1, 2)
     t_n = len(images)
     pos = np.full((t_n, len(start), 2), np.nan)
     valid = np.zeros((t_n, len(start)), bool)
     if t_n == 0 or len(start) == 0:
-        return HarpTrack(pos, valid, "no images or no points")
+        return HarpTrack(pos, valid, 'no images or no points')
     if max_step_px is None:
         max_step_px = 0.25 * float(np.min(params.spacing_px))
     try:
         field0 = harmonic_phase(validate_image(images[0]), params, bandwidth)
     except TagInputError as exc:
-        return HarpTrack(pos, valid, f"phase 0: {exc}")
+        return HarpTrack(pos, valid, f'phase 0: {exc}')
     target, _, inside = field0.sample(start)
     pos[0] = start
     valid[0] = inside
@@ -125,7 +139,11 @@ def harp_track(images, start_rc, params: TagParameters, bandwidth: float = 0.35,
         # Seed with the previous displacement (as the Gabor/RPM tracker does).
         seed = prev + prev_step
         x, res, ok = solve_phase(field, seed, target, iterations=4, max_step=max_step_px)
-        alive &= ok & (res <= max_residual) & (np.linalg.norm(x - prev, axis=1) <= 2 * max_step_px + 1e-9)
+        alive &= (
+            ok
+            & (res <= max_residual)
+            & (np.linalg.norm(x - prev, axis=1) <= 2 * max_step_px + 1e-9)
+        )
         prev_step = np.where(alive[:, None], x - prev, 0.0)
         prev = np.where(alive[:, None], x, prev)
         pos[t] = np.where(alive[:, None], x, np.nan)

@@ -1,4 +1,5 @@
-"""Tag intersections from Gabor phase maps: candidates, sub-pixel Newton refinement, confidence,
+"""
+Tag intersections from Gabor phase maps: candidates, sub-pixel Newton refinement, confidence,
 myocardium restriction and grid labels.
 
 A tag line of direction ``d`` is where the Gabor phase is ≡ π (dark tags; see
@@ -10,6 +11,7 @@ gives one candidate per intersection without thresholds on the phase.
 References
 ----------
 Chen, T. et al. IEEE TMI 29(1):1–11, 2010 (Gabor phase maps, tag intersections).
+
 """
 
 from __future__ import annotations
@@ -17,13 +19,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import cv2
+from mlv_ros.core.filters import running_median
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.filters import running_median
-
-from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, GaborMaps, TagInputError, TagParameters,
-                    estimate_tag_parameters, gabor_filter_bank, resolve_parameters, validate_image)
+from .gabor import (
+    estimate_tag_parameters,
+    gabor_filter_bank,
+    GaborMaps,
+    MAX_SPACING_PX,
+    MIN_SPACING_PX,
+    resolve_parameters,
+    TagInputError,
+    TagParameters,
+    validate_image,
+)
 from .phase import PhaseField, solve_phase
 
 # |R_d| / σ_local for an ideal 1-1 SPAMM grid: each direction is a cosine of amplitude 1/4
@@ -50,7 +60,8 @@ TUNED_MAX_MOVE_PX = 0.5
 
 @dataclass
 class Detection:
-    """Tag intersections found in one image.
+    """
+    Tag intersections found in one image.
 
     Attributes
     ----------
@@ -74,6 +85,7 @@ class Detection:
         Empty on success; otherwise why there are no points (the result is then empty).
     maps : GaborMaps or None
         Filter-bank output, only when requested with ``keep_maps=True``.
+
     """
 
     pixel_rc: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
@@ -82,7 +94,7 @@ class Detection:
     residual: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     plain_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     params: TagParameters | None = None
-    reason: str = ""
+    reason: str = ''
     maps: GaborMaps | None = None
 
     def __len__(self) -> int:
@@ -102,7 +114,8 @@ def local_std(image: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def masked_normalise(image: np.ndarray, mask: np.ndarray, sigma: float):
-    """Zero-mean the image locally inside a mask and zero it outside (normalised convolution).
+    """
+    Zero-mean the image locally inside a mask and zero it outside (normalised convolution).
 
     The untagged blood pool next to the myocardium is a strong intensity step that leaks into the
     Gabor phase (up to ≈ 1 px bias at the endocardium); removing the masked local mean and the
@@ -121,6 +134,7 @@ def masked_normalise(image: np.ndarray, mask: np.ndarray, sigma: float):
         ``mask·(I − G*(mI)/G*(m))``.
     std : ndarray of float32, shape (H, W)
         Masked local standard deviation ``sqrt(G*(m·work²)/G*(m))``.
+
     """
     img = np.asarray(image, np.float32)
     m = mask.astype(np.float32)
@@ -131,9 +145,13 @@ def masked_normalise(image: np.ndarray, mask: np.ndarray, sigma: float):
     return work, np.sqrt(np.maximum(var, 0.0))
 
 
-def confidence_map(image: np.ndarray, maps: GaborMaps, params: TagParameters, std=None) -> np.ndarray:
-    """Per-pixel tag confidence in 0..1, shape (H, W) (see :class:`Detection`); ``std`` is the
-    local standard deviation if already known."""
+def confidence_map(
+    image: np.ndarray, maps: GaborMaps, params: TagParameters, std=None
+) -> np.ndarray:
+    """
+    Per-pixel tag confidence in 0..1, shape (H, W) (see :class:`Detection`); ``std`` is the
+    local standard deviation if already known.
+    """
     sig = local_std(image, float(np.mean(params.spacing_px))) if std is None else std
     floor = 1e-6 * float(np.ptp(image)) + 1e-30
     r = maps.magnitude / (IDEAL_CONTRAST_RATIO * np.maximum(sig, floor))[None]
@@ -150,8 +168,11 @@ def _same_grid(a: TagParameters, b: TagParameters) -> bool:
     return False
 
 
-def grid_coherence(image, params: TagParameters, region=None, smoothing_px: float | None = None) -> float:
-    """How well one undeformed tag grid explains an image, in 0..1 (scale-free).
+def grid_coherence(
+    image, params: TagParameters, region=None, smoothing_px: float | None = None
+) -> float:
+    """
+    How well one undeformed tag grid explains an image, in 0..1 (scale-free).
 
     At end-diastole the grid is a plane wave per direction over all tagged tissue, so its
     demodulated responses add up coherently: ``|Σ w(x) e^{−i k_d·x}|`` (``w`` the region's
@@ -172,6 +193,7 @@ def grid_coherence(image, params: TagParameters, region=None, smoothing_px: floa
     Returns
     -------
     float
+
     """
     img = np.asarray(image, np.float64)
     if region is not None and np.any(region):
@@ -183,7 +205,9 @@ def grid_coherence(image, params: TagParameters, region=None, smoothing_px: floa
     else:
         r0 = c0 = 0
         work, n = img - img.mean(), float(img.size)
-    return _coherence(work, (r0, c0), params.wavevectors) / max(np.sqrt(float(np.sum(work ** 2)) * n), 1e-300)
+    return _coherence(work, (r0, c0), params.wavevectors) / max(
+        np.sqrt(float(np.sum(work**2)) * n), 1e-300
+    )
 
 
 def _coherence(work, origin, wavevectors) -> float:
@@ -197,32 +221,47 @@ def _coherence(work, origin, wavevectors) -> float:
 
 
 def _half_sum_difference(p: TagParameters) -> TagParameters:
-    """The grid whose cross terms k1 ± k2 are ``p``'s two wave vectors: half their sum and
-    difference (a grid's cross terms are spectral peaks too, at 45° and 1/√2 of its period)."""
+    """
+    The grid whose cross terms k1 ± k2 are ``p``'s two wave vectors: half their sum and
+    difference (a grid's cross terms are spectral peaks too, at 45° and 1/√2 of its period).
+    """
     k = p.wavevectors / (2 * np.pi)
     derived = [(k[0] + k[1]) / 2, (k[0] - k[1]) / 2]
-    return TagParameters(spacing_px=np.array([1.0 / np.hypot(*d) for d in derived]),
-                         angles=np.mod([np.arctan2(d[0], d[1]) for d in derived], np.pi),
-                         peak_ratio=p.peak_ratio, source="spectrum")
+    return TagParameters(
+        spacing_px=np.array([1.0 / np.hypot(*d) for d in derived]),
+        angles=np.mod([np.arctan2(d[0], d[1]) for d in derived], np.pi),
+        peak_ratio=p.peak_ratio,
+        source='spectrum',
+    )
 
 
 def _related_grids(p: TagParameters) -> list[TagParameters]:
-    """``p``, the grid of which it holds the cross terms, and the orthogonal equal-period grids of
+    """
+    ``p``, the grid of which it holds the cross terms, and the orthogonal equal-period grids of
     each of their directions (and theirs): on a thin wall often one direction is found well and
-    the other is noise, or a cross term outranks a fundamental."""
+    the other is noise, or a cross term outranks a fundamental.
+    """
     out = [p, _half_sum_difference(p)]
     for g in out[:2]:
         for d in (0, 1):
-            o = TagParameters(spacing_px=np.full(2, g.spacing_px[d]),
-                              angles=np.mod(g.angles[d] + np.array([0.0, np.pi / 2]), np.pi),
-                              peak_ratio=p.peak_ratio, source="spectrum")
+            o = TagParameters(
+                spacing_px=np.full(2, g.spacing_px[d]),
+                angles=np.mod(g.angles[d] + np.array([0.0, np.pi / 2]), np.pi),
+                peak_ratio=p.peak_ratio,
+                source='spectrum',
+            )
             out += [o, _half_sum_difference(o)]
     return out
 
 
-def estimate_grid(image, mask=None, score_region=None,
-                  spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX)) -> TagParameters:
-    """Tag spacing and directions of one image, chosen by the image's own Gabor responses.
+def estimate_grid(
+    image,
+    mask=None,
+    score_region=None,
+    spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX),
+) -> TagParameters:
+    """
+    Tag spacing and directions of one image, chosen by the image's own Gabor responses.
 
     Candidates come from the spectrum of the region (``mask``), of the whole image and of the
     whole image less its running median (a bright region's outline removed), each
@@ -252,13 +291,18 @@ def estimate_grid(image, mask=None, score_region=None,
     ------
     TagInputError
         No spectrum gives a pair of tag peaks (the first reason is given).
+
     """
     img = validate_image(image)
     region = score_region if score_region is not None else mask
     # With a region, faint peaks are candidates too: the coherence test below tells tags from
     # anatomy and noise far better than any spectral peak height (measured: ED tagged walls
     # 0.40–0.43, untagged anatomy ≤ 0.11). Without one, the spectrum's own tests decide.
-    thresholds = {False: PERMISSIVE_PEAK_RATIO, True: PERMISSIVE_WHITENED_PEAK_RATIO} if region is not None else {}
+    thresholds = (
+        {False: PERMISSIVE_PEAK_RATIO, True: PERMISSIVE_WHITENED_PEAK_RATIO}
+        if region is not None
+        else {}
+    )
     cands: list[TagParameters] = []
     reasons = []
     # Also the image less its running median over the longest period: the median follows a
@@ -275,14 +319,22 @@ def estimate_grid(image, mask=None, score_region=None,
     for source, spec_region in sources:
         for whiten in (False, True):
             try:
-                p = estimate_tag_parameters(source, spec_region, *spacing_range_px,
-                                            min_peak_ratio=thresholds.get(whiten), whiten=whiten)
+                p = estimate_tag_parameters(
+                    source,
+                    spec_region,
+                    *spacing_range_px,
+                    min_peak_ratio=thresholds.get(whiten),
+                    whiten=whiten,
+                )
             except TagInputError as exc:
                 reasons.append(str(exc))
                 continue
             for c in _related_grids(p):
-                if (np.all(c.spacing_px >= spacing_range_px[0]) and np.all(c.spacing_px <= spacing_range_px[1])
-                        and not any(_same_grid(c, o) for o in cands)):
+                if (
+                    np.all(c.spacing_px >= spacing_range_px[0])
+                    and np.all(c.spacing_px <= spacing_range_px[1])
+                    and not any(_same_grid(c, o) for o in cands)
+                ):
                     cands.append(c)
     if not cands:
         raise TagInputError(reasons[0])
@@ -293,14 +345,17 @@ def estimate_grid(image, mask=None, score_region=None,
     scores = [grid_coherence(img, p, region, smooth) for p in cands]
     best = int(np.argmax(scores))
     if region is not None and scores[best] < MIN_GRID_COHERENCE:
-        raise TagInputError(f"no tag grid in the region: the best of {len(cands)} candidate grids explains "
-                            f"{scores[best]:.2f} of its contrast coherently (need ≥ {MIN_GRID_COHERENCE:g}; "
-                            f"an ideal grid gives {IDEAL_CONTRAST_RATIO:.2f})")
+        raise TagInputError(
+            f'no tag grid in the region: the best of {len(cands)} candidate grids explains '
+            f'{scores[best]:.2f} of its contrast coherently (need ≥ {MIN_GRID_COHERENCE:g}; '
+            f'an ideal grid gives {IDEAL_CONTRAST_RATIO:.2f})'
+        )
     return cands[best]
 
 
 def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None) -> np.ndarray:
-    """Grid indices (k1, k2) of intersections of an (almost) undeformed grid.
+    """
+    Grid indices (k1, k2) of intersections of an (almost) undeformed grid.
 
     The straight-grid phase ``k_d·(x − centre)`` plus one global offset per direction (circular
     weighted mean over the points) is ≡ 0 mod 2π at the intersections; the integer number of
@@ -317,6 +372,7 @@ def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None
     Returns
     -------
     ndarray of int32, shape (N, 2)
+
     """
     if len(pixel_rc) == 0:
         return np.zeros((0, 2), np.int32)
@@ -327,9 +383,16 @@ def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None
     return np.rint((lin + off) / (2 * np.pi)).astype(np.int32)
 
 
-def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray, sigma_u: float = 0.5,
-                 sigma_v: float = 0.6, iterations: int = 2):
-    """Re-locate intersections with Gabor kernels tuned to each point's local wave vectors.
+def refine_tuned(
+    image: np.ndarray,
+    points: np.ndarray,
+    wavevectors: np.ndarray,
+    sigma_u: float = 0.5,
+    sigma_v: float = 0.6,
+    iterations: int = 2,
+):
+    """
+    Re-locate intersections with Gabor kernels tuned to each point's local wave vectors.
 
     The filter bank quantises orientation and spacing; next to the myocardium border (where the
     signal is truncated) a kernel detuned by ~7° / 7 % biases the phase by up to ~0.3 px, while a
@@ -357,6 +420,7 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
         Tuned response magnitudes.
     ok : ndarray of bool, shape (N,)
         False where the local wave vectors are degenerate.
+
     """
     img = np.asarray(image, np.float64)
     h, w = img.shape
@@ -367,8 +431,10 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
     if not ok.any():
         return x, mag, ok
     if len(x) > 128:  # bound the (N, 2, P) work arrays
-        parts = [refine_tuned(image, x[i:i + 128], k[i:i + 128], sigma_u, sigma_v, iterations)
-                 for i in range(0, len(x), 128)]
+        parts = [
+            refine_tuned(image, x[i:i + 128], k[i:i + 128], sigma_u, sigma_v, iterations)
+            for i in range(0, len(x), 128)
+        ]
         return tuple(np.concatenate(z) for z in zip(*parts))
     k0 = k.copy()
     # Patch: 2.5 envelope widths (weight ≥ 0.04 of the peak) of the typical (median) local
@@ -376,47 +442,58 @@ def refine_tuned(image: np.ndarray, points: np.ndarray, wavevectors: np.ndarray,
     # exactly, see c below).
     lam_typ = min(float(np.median(2 * np.pi / np.linalg.norm(k[ok], axis=2))) * 1.1, 32.0)
     half = int(np.ceil(2.5 * max(sigma_u, sigma_v) * lam_typ))
-    off = np.stack(np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1), indexing="ij"),
-                   -1).reshape(-1, 2)                                  # (P, 2)
+    off = np.stack(
+        np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1), indexing='ij'), -1
+    ).reshape(-1, 2)  # (P, 2)
     for _ in range(max(1, iterations)):
         kn = np.linalg.norm(k, axis=2)
         safe_kn = np.where(kn > 0, kn, 1.0)
-        u = k / safe_kn[..., None]                                    # unit wave vectors (N, 2, 2)
+        u = k / safe_kn[..., None]  # unit wave vectors (N, 2, 2)
         v = np.stack([-u[..., 1], u[..., 0]], -1)
         lam = 2 * np.pi / safe_kn
         su = (sigma_u * lam)[..., None]
         sv = (sigma_v * lam)[..., None]
         q = np.rint(x).astype(int)
-        p = q[:, None, :] + off[None]                                  # (N, P, 2)
+        p = q[:, None, :] + off[None]  # (N, P, 2)
         inside = (p[..., 0] >= 0) & (p[..., 0] < h) & (p[..., 1] >= 0) & (p[..., 1] < w)
-        vals = (img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside).astype(np.float32)
+        vals = (img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside).astype(
+            np.float32
+        )
         # Single precision for the (N, 2, P) work arrays (positions stay float64; the sums are
         # over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level).
-        dlt = (p - x[:, None, :]).astype(np.float32)                   # δ = p − y, (N, P, 2)
-        dt = np.swapaxes(dlt, 1, 2)                                    # (N, 2, P)
-        du = np.matmul(u.astype(np.float32), dt)                       # (N, 2 directions, P)
+        dlt = (p - x[:, None, :]).astype(np.float32)  # δ = p − y, (N, P, 2)
+        dt = np.swapaxes(dlt, 1, 2)  # (N, 2, P)
+        du = np.matmul(u.astype(np.float32), dt)  # (N, 2 directions, P)
         dv = np.matmul(v.astype(np.float32), dt)
-        g = np.exp(-0.5 * (du / su.astype(np.float32)) ** 2 - 0.5 * (dv / sv.astype(np.float32)) ** 2)
+        g = np.exp(
+            -0.5 * (du / su.astype(np.float32)) ** 2 - 0.5 * (dv / sv.astype(np.float32)) ** 2
+        )
         g *= inside[:, None, :]
         # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
         carrier = np.exp(-1j * np.matmul(k.astype(np.float32), dt))
-        c = np.sum(g * carrier, axis=2, keepdims=True) / np.maximum(np.sum(g, axis=2, keepdims=True), 1e-12)
+        c = np.sum(g * carrier, axis=2, keepdims=True) / np.maximum(
+            np.sum(g, axis=2, keepdims=True), 1e-12
+        )
         gv = g * vals[:, None, :]
         r = np.sum(gv * (carrier - c), axis=2).astype(np.complex128)  # (N, 2)
         # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
         wgt = gv * (carrier - c)
-        dr = (np.sum(wgt * du, axis=2)[..., None] / su ** 2 * u + np.sum(wgt * dv, axis=2)[..., None] / sv ** 2 * v
-              + 1j * k * np.sum(gv * carrier, axis=2)[..., None])     # (N, 2, 2)
+        dr = (
+            np.sum(wgt * du, axis=2)[..., None] / su**2 * u
+            + np.sum(wgt * dv, axis=2)[..., None] / sv**2 * v
+            + 1j * k * np.sum(gv * carrier, axis=2)[..., None]
+        )  # (N, 2, 2)
         # Local wave vector measured by the tuned kernel: ∇ψ = Im(conj(R) ∇R) / |R|².
         dr = dr.astype(np.complex128)
         kk = np.imag(np.conj(r)[..., None] * dr) / np.maximum(np.abs(r) ** 2, 1e-30)[..., None]
-        good = _sane_wavevectors(kk) & np.all(np.abs(np.log(np.linalg.norm(kk, axis=2)
-                                                                / np.linalg.norm(k0, axis=2))) < 0.5, axis=1)
+        good = _sane_wavevectors(kk) & np.all(
+            np.abs(np.log(np.linalg.norm(kk, axis=2) / np.linalg.norm(k0, axis=2))) < 0.5, axis=1
+        )
         ok &= good
         k = np.where(good[:, None, None], kk, k)
-        psi = np.angle(-r)                                             # tag centres at phase 0
+        psi = np.angle(-r)  # tag centres at phase 0
         kinv = np.linalg.inv(np.where(ok[:, None, None], k, np.eye(2)))
-        step = -np.einsum("nad,nd->na", kinv, psi)
+        step = -np.einsum('nad,nd->na', kinv, psi)
         x = np.where(ok[:, None], x + np.clip(step, -1.0, 1.0), x)
         mag = np.abs(r) / np.maximum(np.sum(g, axis=2), 1e-12)
     return x, mag, ok
@@ -429,15 +506,31 @@ def _sane_wavevectors(k: np.ndarray) -> np.ndarray:
     return np.all(kn > 2 * np.pi / 64, axis=1) & (np.abs(det) > 0.2 * kn[:, 0] * kn[:, 1])
 
 
-def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, params: TagParameters | None = None,
-                         min_confidence: float = DEFAULT_MIN_CONFIDENCE, min_energy_fraction: float = 0.1,
-                         orientations_deg=(-12.0, 0.0, 12.0), spacing_factors=(0.8, 1.0, 1.25),
-                         sigma_u: float = 0.5, sigma_v: float = 0.6, max_residual: float = 0.3,
-                         roi=None, accept_mask=None, normalise: bool = True, tuned: bool | None = None,
-                         keep_maps: bool = False, coverage_normalised: bool = False,
-                         max_tuned_move_periods: float | None = None,
-                         spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX)) -> Detection:
-    """Find tag-grid intersections with sub-pixel accuracy (stateless; never raises on bad images).
+def detect_intersections(
+    image,
+    mask=None,
+    spacing_px=None,
+    angles=None,
+    *,
+    params: TagParameters | None = None,
+    min_confidence: float = DEFAULT_MIN_CONFIDENCE,
+    min_energy_fraction: float = 0.1,
+    orientations_deg=(-12.0, 0.0, 12.0),
+    spacing_factors=(0.8, 1.0, 1.25),
+    sigma_u: float = 0.5,
+    sigma_v: float = 0.6,
+    max_residual: float = 0.3,
+    roi=None,
+    accept_mask=None,
+    normalise: bool = True,
+    tuned: bool | None = None,
+    keep_maps: bool = False,
+    coverage_normalised: bool = False,
+    max_tuned_move_periods: float | None = None,
+    spacing_range_px: tuple[float, float] = (MIN_SPACING_PX, MAX_SPACING_PX),
+) -> Detection:
+    """
+    Find tag-grid intersections with sub-pixel accuracy (stateless; never raises on bad images).
 
     Parameters
     ----------
@@ -501,6 +594,7 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     Notes
     -----
     Cost: one FFT plus one inverse FFT per kernel (18 by default) and O(H·W) vector operations.
+
     """
     try:
         img = validate_image(image)
@@ -508,23 +602,44 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         if mask is not None:
             m = np.asarray(mask, bool)
             if m.shape != img.shape:
-                return Detection(reason=f"mask shape {m.shape} differs from image shape {img.shape}")
+                return Detection(
+                    reason=f'mask shape {m.shape} differs from image shape {img.shape}'
+                )
             if not m.any():
-                return Detection(reason="mask is empty")
+                return Detection(reason='mask is empty')
         if params is None:
-            est_mask = None if m is None else cv2.dilate(m.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
-            params = resolve_parameters(img, est_mask, spacing_px, angles,
-                                        estimate=lambda im, mk: estimate_grid(
-                                            im, mk, score_region=None if mk is None else m,
-                                            spacing_range_px=spacing_range_px))
+            est_mask = (
+                None
+                if m is None
+                else cv2.dilate(m.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
+            )
+            params = resolve_parameters(
+                img,
+                est_mask,
+                spacing_px,
+                angles,
+                estimate=lambda im, mk: estimate_grid(
+                    im,
+                    mk,
+                    score_region=None if mk is None else m,
+                    spacing_range_px=spacing_range_px,
+                ),
+            )
     except TagInputError as exc:
         return Detection(reason=str(exc))
-    if np.any(params.spacing_px < 4.0 / max(spacing_factors)) or np.any(params.spacing_px > min(img.shape) / 2):
-        return Detection(params=params, reason=f"tag spacing {params.spacing_px} px outside the usable range "
-                                               f"[{4.0 / max(spacing_factors):.1f}, {min(img.shape) / 2:.0f}] px")
+    if np.any(params.spacing_px < 4.0 / max(spacing_factors)) or np.any(
+        params.spacing_px > min(img.shape) / 2
+    ):
+        return Detection(
+            params=params,
+            reason=f'tag spacing {params.spacing_px} px outside the usable range '
+            f'[{4.0 / max(spacing_factors):.1f}, {min(img.shape) / 2:.0f}] px',
+        )
     sep = abs(np.angle(np.exp(2j * (params.angles[0] - params.angles[1])))) / 2
     if sep < np.deg2rad(30):
-        return Detection(params=params, reason=f"tag directions only {np.rad2deg(sep):.1f}° apart (need ≥ 30°)")
+        return Detection(
+            params=params, reason=f'tag directions only {np.rad2deg(sep):.1f}° apart (need ≥ 30°)'
+        )
 
     h, w = img.shape
     if roi is None and m is not None:
@@ -532,13 +647,22 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         roi = (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
     # Margin: three envelope standard deviations of the widest kernel keep the circular
     # convolution of the cropped FFT from wrapping into the region of interest.
-    margin = int(np.ceil(3 * max(sigma_u, sigma_v) * max(spacing_factors) * float(np.max(params.spacing_px)))) + 2
+    margin = (
+        int(
+            np.ceil(
+                3 * max(sigma_u, sigma_v) * max(spacing_factors) * float(np.max(params.spacing_px))
+            )
+        )
+        + 2
+    )
     if roi is not None:
         r0, r1, c0, c1 = (int(v) for v in roi)
         r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
         r1, c1 = min(h, r1 + margin), min(w, c1 + margin)
         if r1 - r0 < 16 or c1 - c0 < 16:
-            return Detection(params=params, reason=f"region of interest {roi} too small or outside the image")
+            return Detection(
+                params=params, reason=f'region of interest {roi} too small or outside the image'
+            )
     else:
         r0, r1, c0, c1 = 0, h, 0, w
     offset = np.array([r0, c0], float)
@@ -548,7 +672,10 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     if accept_mask is not None:
         acc = np.asarray(accept_mask, bool)
         if acc.shape != full_shape:
-            return Detection(params=params, reason=f"accept_mask shape {acc.shape} differs from image shape {full_shape}")
+            return Detection(
+                params=params,
+                reason=f'accept_mask shape {acc.shape} differs from image shape {full_shape}',
+            )
         acc = acc[r0:r1, c0:c1]
     if m is not None:
         m = m[r0:r1, c0:c1]
@@ -563,7 +690,9 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     conf = plain = confidence_map(img, maps, params, std)
     if std is not None and coverage_normalised:
         lam = float(np.mean(params.spacing_px))
-        cov = cv2.GaussianBlur(m.astype(np.float32), (0, 0), 0.4 * lam, borderType=cv2.BORDER_CONSTANT)
+        cov = cv2.GaussianBlur(
+            m.astype(np.float32), (0, 0), 0.4 * lam, borderType=cv2.BORDER_CONSTANT
+        )
         conf = np.minimum(plain / np.sqrt(np.maximum(cov, COVERAGE_FLOOR)), 1.0).astype(np.float32)
     # ψ_d = wrap(φ_d − π): multiply by −1 so that tag centres have phase 0.
     field_ = PhaseField.from_complex(-maps.response)
@@ -580,20 +709,35 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
         valid &= energy >= min_energy_fraction * np.percentile(energy, 99)
     rr, cc = np.nonzero(valid)
     if rr.size == 0:
-        return Detection(params=params, reason=f"no pixel with tag confidence ≥ {min_confidence:g}"
-                         + (" inside the mask" if m is not None else "") + ": no tags or tags faded",
-                         maps=maps if keep_maps else None)
+        return Detection(
+            params=params,
+            reason=f'no pixel with tag confidence ≥ {min_confidence:g}'
+            + (' inside the mask' if m is not None else '')
+            + ': no tags or tags faded',
+            maps=maps if keep_maps else None,
+        )
     psi = field_.psi[:, rr, cc].T
     jj = np.moveaxis(j[:, :, rr, cc], -1, 0)
     dd = det[rr, cc]
     # One Newton step from each pixel: δ = −J⁻¹ψ; keep pixels whose predicted root is in its cell.
-    step = -np.stack([jj[:, 1, 1] * psi[:, 0] - jj[:, 0, 1] * psi[:, 1],
-                      -jj[:, 1, 0] * psi[:, 0] + jj[:, 0, 0] * psi[:, 1]], -1) / dd[:, None]
+    step = (
+        -np.stack(
+            [
+                jj[:, 1, 1] * psi[:, 0] - jj[:, 0, 1] * psi[:, 1],
+                -jj[:, 1, 0] * psi[:, 0] + jj[:, 0, 0] * psi[:, 1],
+            ],
+            -1,
+        )
+        / dd[:, None]
+    )
     cand = np.all(np.abs(step) <= 0.55, axis=1)
     start = np.stack([rr, cc], -1)[cand] + step[cand]
     if start.shape[0] == 0:
-        return Detection(params=params, reason="no tag intersection found (phases never both ≡ π)",
-                         maps=maps if keep_maps else None)
+        return Detection(
+            params=params,
+            reason='no tag intersection found (phases never both ≡ π)',
+            maps=maps if keep_maps else None,
+        )
     x, res, ok = solve_phase(field_, start, iterations=3, max_step=1.0)
     q, inside = field_.nearest(x)
     keep = ok & inside & (res <= max_residual)
@@ -602,23 +746,31 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     if tuned is None:
         tuned = mask is not None
     if tuned and len(x):
-        kloc = np.moveaxis(field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0)  # (N, 2, 2) local wave vectors
+        kloc = np.moveaxis(
+            field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0
+        )  # (N, 2, 2) local wave vectors
         xt, _, okt = refine_tuned(img, x, kloc, sigma_u, sigma_v)
         # A refinement that moves a point far means the two filters disagree (clutter, wrong
         # tuning): drop the point rather than guess.
         moved = np.linalg.norm(xt - x, axis=1)
         qt, inside_t = field_.nearest(xt)
-        limit = (TUNED_MAX_MOVE_PX if max_tuned_move_periods is None
-                 else float(max_tuned_move_periods) * float(np.mean(params.spacing_px)))
+        limit = (
+            TUNED_MAX_MOVE_PX
+            if max_tuned_move_periods is None
+            else float(max_tuned_move_periods) * float(np.mean(params.spacing_px))
+        )
         keep = okt & (moved <= limit) & inside_t & valid[qt[:, 0], qt[:, 1]]
         x, res, q = xt[keep], res[keep], qt[keep]
     c, cp = conf[q[:, 0], q[:, 1]], plain[q[:, 0], q[:, 1]]
     if x.shape[0] == 0:
-        return Detection(params=params, reason="no tag intersection passed refinement "
-                         f"(residual ≤ {max_residual:g} rad, confidence ≥ {min_confidence:g})",
-                         maps=maps if keep_maps else None)
+        return Detection(
+            params=params,
+            reason='no tag intersection passed refinement '
+            f'(residual ≤ {max_residual:g} rad, confidence ≥ {min_confidence:g})',
+            maps=maps if keep_maps else None,
+        )
     # Neighbouring pixels may converge to the same root: keep the most confident within 1 px.
-    order = np.argsort(-c, kind="stable")
+    order = np.argsort(-c, kind='stable')
     x, res, c, cp = x[order], res[order], c[order], cp[order]
     drop = np.zeros(len(x), bool)
     for a, b in sorted(cKDTree(x).query_pairs(1.0)):
@@ -629,7 +781,13 @@ def detect_intersections(image, mask=None, spacing_px=None, angles=None, *, para
     labels = grid_labels(x, params, full_shape, weights=c)
     # Deterministic order: by label, then position.
     order = np.lexsort((x[:, 1], x[:, 0], labels[:, 1], labels[:, 0]))
-    return Detection(pixel_rc=x[order], labels=labels[order], confidence=c[order].astype(np.float32),
-                     residual=res[order].astype(np.float32), plain_confidence=cp[order].astype(np.float32),
-                     params=params, reason="",
-                     maps=maps if keep_maps else None)
+    return Detection(
+        pixel_rc=x[order],
+        labels=labels[order],
+        confidence=c[order].astype(np.float32),
+        residual=res[order].astype(np.float32),
+        plain_confidence=cp[order].astype(np.float32),
+        params=params,
+        reason='',
+        maps=maps if keep_maps else None,
+    )

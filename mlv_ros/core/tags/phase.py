@@ -1,4 +1,5 @@
-"""Wrapped-phase fields: gradients and sub-pixel evaluation by local linearisation.
+"""
+Wrapped-phase fields: gradients and sub-pixel evaluation by local linearisation.
 
 Both the Gabor intersection finder and the HARP baseline need the wrapped phase ``ψ(x)`` of two
 complex fields at sub-pixel positions and its Jacobian. Interpolating a complex exponential
@@ -18,7 +19,8 @@ import numpy as np
 
 @dataclass
 class PhaseField:
-    """Two wrapped phases on a pixel grid with their Jacobian.
+    """
+    Two wrapped phases on a pixel grid with their Jacobian.
 
     Attributes
     ----------
@@ -26,15 +28,18 @@ class PhaseField:
         Wrapped phases, rad, in (−π, π].
     jac : ndarray of float32, shape (2, 2, H, W)
         ``jac[d, a]`` = ∂ψ_d/∂(row, col)[a], rad/px; zero on the one-pixel border.
+
     """
 
     psi: np.ndarray
     jac: np.ndarray
 
     @classmethod
-    def from_complex(cls, z: np.ndarray) -> "PhaseField":
-        """Phase field of complex maps ``z``, shape (2, H, W) (phase 0 where the quantity of
-        interest is)."""
+    def from_complex(cls, z: np.ndarray) -> 'PhaseField':
+        """
+        Phase field of complex maps ``z``, shape (2, H, W) (phase 0 where the quantity of
+        interest is).
+        """
         z = np.asarray(z)
         psi = np.angle(z).astype(np.float32)
         jac = np.zeros((2, 2) + z.shape[1:], np.float32)
@@ -55,7 +60,8 @@ class PhaseField:
         return self.psi.shape[1:]
 
     def nearest(self, pts: np.ndarray):
-        """Nearest interior pixel of each point and whether the point lies inside the image.
+        """
+        Nearest interior pixel of each point and whether the point lies inside the image.
 
         Parameters
         ----------
@@ -67,6 +73,7 @@ class PhaseField:
         q : ndarray of int, shape (N, 2)
         inside : ndarray of bool, shape (N,)
             True where the nearest pixel is not on the border (its Jacobian is defined).
+
         """
         h, w = self.shape
         q = np.rint(np.nan_to_num(pts, nan=-1.0)).astype(np.int64)
@@ -76,7 +83,8 @@ class PhaseField:
         return q, inside & np.all(np.isfinite(pts), axis=1)
 
     def sample(self, pts: np.ndarray):
-        """Wrapped phases and Jacobians at sub-pixel points (linearised from the nearest pixel).
+        """
+        Wrapped phases and Jacobians at sub-pixel points (linearised from the nearest pixel).
 
         Parameters
         ----------
@@ -90,11 +98,12 @@ class PhaseField:
         jac : ndarray, shape (N, 2, 2)
             ``jac[n, d, a]`` = ∂ψ_d/∂x_a at the nearest pixel, rad/px.
         inside : ndarray of bool, shape (N,)
+
         """
         pts = np.asarray(pts, float).reshape(-1, 2)
         q, inside = self.nearest(pts)
         j = np.moveaxis(self.jac[:, :, q[:, 0], q[:, 1]], -1, 0).astype(float)  # (N, 2, 2)
-        psi = self.psi[:, q[:, 0], q[:, 1]].T.astype(float) + np.einsum("nda,na->nd", j, pts - q)
+        psi = self.psi[:, q[:, 0], q[:, 1]].T.astype(float) + np.einsum('nda,na->nd', j, pts - q)
         return wrap(psi), j, inside
 
 
@@ -103,9 +112,15 @@ def wrap(phi):
     return np.pi - np.mod(np.pi - np.asarray(phi), 2 * np.pi)
 
 
-def solve_phase(field: PhaseField, start: np.ndarray, target: np.ndarray | None = None, iterations: int = 4,
-                max_step: float | None = None):
-    """Newton iterations for ``wrap(ψ(x) − target) = 0`` from ``start``.
+def solve_phase(
+    field: PhaseField,
+    start: np.ndarray,
+    target: np.ndarray | None = None,
+    iterations: int = 4,
+    max_step: float | None = None,
+):
+    """
+    Newton iterations for ``wrap(ψ(x) − target) = 0`` from ``start``.
 
     Parameters
     ----------
@@ -127,6 +142,7 @@ def solve_phase(field: PhaseField, start: np.ndarray, target: np.ndarray | None 
         ``|wrap(ψ(x) − target)|`` (Euclidean over the two phases), rad.
     ok : ndarray of bool, shape (N,)
         Inside the image and the Jacobian invertible (tags not parallel) at every step.
+
     """
     x = np.array(start, float).reshape(-1, 2)
     tgt = np.zeros_like(x) if target is None else np.asarray(target, float).reshape(-1, 2)
@@ -139,8 +155,16 @@ def solve_phase(field: PhaseField, start: np.ndarray, target: np.ndarray | None 
         good = inside & (np.abs(det) > 0.2 * scale) & (scale > 0)
         ok &= good
         safe = np.where(good, det, 1.0)
-        step = -np.stack([j[:, 1, 1] * r[:, 0] - j[:, 0, 1] * r[:, 1],
-                          -j[:, 1, 0] * r[:, 0] + j[:, 0, 0] * r[:, 1]], -1) / safe[:, None]
+        step = (
+            -np.stack(
+                [
+                    j[:, 1, 1] * r[:, 0] - j[:, 0, 1] * r[:, 1],
+                    -j[:, 1, 0] * r[:, 0] + j[:, 0, 0] * r[:, 1],
+                ],
+                -1,
+            )
+            / safe[:, None]
+        )
         if max_step is not None:
             n = np.linalg.norm(step, axis=1, keepdims=True)
             step = step * np.minimum(1.0, max_step / np.maximum(n, 1e-12))

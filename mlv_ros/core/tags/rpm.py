@@ -1,4 +1,5 @@
-"""Thin-plate splines and TPS-RPM point matching (deterministic annealing + softassign).
+"""
+Thin-plate splines and TPS-RPM point matching (deterministic annealing + softassign).
 
 References
 ----------
@@ -6,6 +7,7 @@ Chui, H., Rangarajan, A. "A new point matching algorithm for non-rigid registrat
 Computer Vision and Image Understanding 89(2–3):114–141, 2003.
 Bookstein, F. L. "Principal warps: thin-plate splines and the decomposition of deformations."
 IEEE TPAMI 11(6):567–585, 1989.
+
 """
 
 from __future__ import annotations
@@ -18,15 +20,16 @@ from scipy.spatial.distance import cdist
 
 def _tps_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """2-D TPS radial basis ``U(r) = r² log r`` between rows of ``a`` (N, 2) and ``b`` (M, 2)."""
-    r2 = cdist(a, b, "sqeuclidean")
-    with np.errstate(divide="ignore", invalid="ignore"):
+    r2 = cdist(a, b, 'sqeuclidean')
+    with np.errstate(divide='ignore', invalid='ignore'):
         u = 0.5 * r2 * np.log(r2)
     return np.nan_to_num(u, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 @dataclass
 class ThinPlateSpline:
-    """2-D thin-plate spline ``f(x) = A x + t + Σ_a c_a U(|x − p_a|)``.
+    """
+    2-D thin-plate spline ``f(x) = A x + t + Σ_a c_a U(|x − p_a|)``.
 
     Attributes
     ----------
@@ -36,6 +39,7 @@ class ThinPlateSpline:
         Non-affine coefficients ``c_a`` (columns sum-free against the affine part).
     affine : ndarray, shape (3, 2)
         ``[1, x, y] @ affine`` is the affine part.
+
     """
 
     centres: np.ndarray
@@ -43,14 +47,23 @@ class ThinPlateSpline:
     affine: np.ndarray
 
     @classmethod
-    def identity(cls, centres=None) -> "ThinPlateSpline":
+    def identity(cls, centres=None) -> 'ThinPlateSpline':
         c = np.zeros((0, 2)) if centres is None else np.asarray(centres, float)
         return cls(c, np.zeros_like(c), np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
 
     @classmethod
-    def fit(cls, src: np.ndarray, dst: np.ndarray, lam: float = 0.0, weights: np.ndarray | None = None,
-            lam_affine: float = 0.0, kernel: np.ndarray | None = None, basis=None) -> "ThinPlateSpline":
-        """Regularised, weighted TPS with ``f(src) ≈ dst``.
+    def fit(
+        cls,
+        src: np.ndarray,
+        dst: np.ndarray,
+        lam: float = 0.0,
+        weights: np.ndarray | None = None,
+        lam_affine: float = 0.0,
+        kernel: np.ndarray | None = None,
+        basis=None,
+    ) -> 'ThinPlateSpline':
+        """
+        Regularised, weighted TPS with ``f(src) ≈ dst``.
 
         Minimises ``Σ_a w_a |dst_a − f(src_a)|² + lam·cᵀKc + lam_affine·|A − I|²_F`` (``A`` the
         2×2 linear part; translation is free) subject to ``Pᵀc = 0``, ``P = [1, src]``. The
@@ -76,6 +89,7 @@ class ThinPlateSpline:
         -------
         ThinPlateSpline
             Translation only with < 3 points; affine only when the points are collinear or < 4.
+
         """
         src = np.asarray(src, float)
         dst = np.asarray(dst, float)
@@ -112,11 +126,13 @@ class ThinPlateSpline:
 
     @staticmethod
     def basis(src: np.ndarray, kernel: np.ndarray | None = None):
-        """Constraint-free basis reused by :meth:`fit` for a fixed ``src`` (shape (K, 2), K ≥ 4):
-        ``(Q₂, K Q₂, Q₂ᵀ K Q₂)`` with ``Q₂`` spanning the null space of ``[1, src]ᵀ``."""
+        """
+        Constraint-free basis reused by :meth:`fit` for a fixed ``src`` (shape (K, 2), K ≥ 4):
+        ``(Q₂, K Q₂, Q₂ᵀ K Q₂)`` with ``Q₂`` spanning the null space of ``[1, src]ᵀ``.
+        """
         src = np.asarray(src, float)
         kmat = _tps_kernel(src, src) if kernel is None else kernel
-        q, _ = np.linalg.qr(np.hstack([np.ones((len(src), 1)), src]), mode="complete")
+        q, _ = np.linalg.qr(np.hstack([np.ones((len(src), 1)), src]), mode='complete')
         q2 = q[:, 3:]
         kq = kmat @ q2
         return q2, kq, q2.T @ kq
@@ -132,7 +148,8 @@ class ThinPlateSpline:
 
 @dataclass
 class RPMResult:
-    """Outcome of :func:`tps_rpm`.
+    """
+    Outcome of :func:`tps_rpm`.
 
     Attributes
     ----------
@@ -146,6 +163,7 @@ class RPMResult:
         Final softassign matrix, last row/column = outliers.
     iterations : int
         Temperature steps taken.
+
     """
 
     match: np.ndarray
@@ -156,20 +174,34 @@ class RPMResult:
 
 
 def _sinkhorn(m: np.ndarray, iterations: int) -> np.ndarray:
-    """Alternate row/column normalisation of the inlier block of ``m`` (shape (K+1, N+1));
-    the outlier row and column absorb mass and are not normalised themselves."""
+    """
+    Alternate row/column normalisation of the inlier block of ``m`` (shape (K+1, N+1));
+    the outlier row and column absorb mass and are not normalised themselves.
+    """
     for _ in range(iterations):
         m[:-1] /= np.maximum(m[:-1].sum(axis=1, keepdims=True), 1e-300)
         m[:, :-1] /= np.maximum(m[:, :-1].sum(axis=0, keepdims=True), 1e-300)
     return m
 
 
-def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: float | None = None,
-            t_final: float | None = None, anneal: float = 0.93, lam_init: float = 30.0, lam_final: float = 1e-3,
-            lam_affine_init: float = 0.01,
-            iterations_per_t: int = 3, sinkhorn_iterations: int = 30, outlier_distance: float | None = None,
-            gate: float | None = None) -> RPMResult:
-    """Non-rigid point matching by TPS-RPM (Chui & Rangarajan 2003).
+def tps_rpm(
+    source,
+    target,
+    *,
+    init: ThinPlateSpline | None = None,
+    t_init: float | None = None,
+    t_final: float | None = None,
+    anneal: float = 0.93,
+    lam_init: float = 30.0,
+    lam_final: float = 1e-3,
+    lam_affine_init: float = 0.01,
+    iterations_per_t: int = 3,
+    sinkhorn_iterations: int = 30,
+    outlier_distance: float | None = None,
+    gate: float | None = None,
+) -> RPMResult:
+    """
+    Non-rigid point matching by TPS-RPM (Chui & Rangarajan 2003).
 
     Alternates softassign — ``m_ai ∝ exp(−|x_i − f(v_a)|² / 2T)`` with an outlier row and column,
     Sinkhorn-normalised — and a weighted TPS fit of ``f`` to the soft targets
@@ -211,13 +243,16 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
     RPMResult
         Hard matches are mutual maxima of the final softassign matrix that beat the outlier
         entry and pass the gate.
+
     """
     v = np.asarray(source, float).reshape(-1, 2)
     x = np.asarray(target, float).reshape(-1, 2)
     k, n = len(v), len(x)
     f0 = init if init is not None else ThinPlateSpline.identity()
     if k == 0 or n == 0:
-        return RPMResult(np.full(k, -1), f0, f0(v) if k else np.zeros((0, 2)), np.zeros((k + 1, n + 1)), 0)
+        return RPMResult(
+            np.full(k, -1), f0, f0(v) if k else np.zeros((0, 2)), np.zeros((k + 1, n + 1)), 0
+        )
     # Normalise: centre on the targets, scale to unit RMS radius.
     mu = x.mean(0)
     s = float(np.sqrt(np.mean(np.sum((x - mu) ** 2, 1)))) or 1.0
@@ -225,10 +260,10 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
     vn = (v - mu) / s
     yn = (f0(v) - mu) / s
     if t_init is None:
-        t_init = float(cdist(yn, xn, "sqeuclidean").max()) * s * s
+        t_init = float(cdist(yn, xn, 'sqeuclidean').max()) * s * s
     if t_final is None:
         if n > 1:
-            d2 = cdist(xn, xn, "sqeuclidean")
+            d2 = cdist(xn, xn, 'sqeuclidean')
             np.fill_diagonal(d2, np.inf)
             t_final = float(np.mean(d2.min(1))) * s * s / 16
         else:
@@ -238,7 +273,7 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
         outlier_distance = 3.0 * np.sqrt(t_final)
     if gate is None:
         gate = outlier_distance
-    tn, tfn = t_init / s ** 2, t_final / s ** 2
+    tn, tfn = t_init / s**2, t_final / s**2
     od2 = (outlier_distance / s) ** 2
     f = None
     kv = _tps_kernel(vn, vn)
@@ -248,7 +283,7 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
     t = tn
     while True:
         for _ in range(iterations_per_t):
-            d2 = cdist(yn, xn, "sqeuclidean")
+            d2 = cdist(yn, xn, 'sqeuclidean')
             # Work relative to the outlier level: the outlier entry is exp(−od²/2T)·(T/T) so that
             # at every temperature a point at distance od is as likely a match as an outlier.
             m[:-1, :-1] = np.exp(-(d2 - od2) / (2 * t))
@@ -257,10 +292,19 @@ def tps_rpm(source, target, *, init: ThinPlateSpline | None = None, t_init: floa
             np.minimum(m, 1e200, out=m)
             _sinkhorn(m, sinkhorn_iterations)
             w = m[:-1, :-1].sum(1)
-            tgt = np.where(w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn)
+            tgt = np.where(
+                w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn
+            )
             lam = k * max(lam_init * t / tn, lam_final)
-            f = ThinPlateSpline.fit(vn, tgt, lam=lam, weights=np.maximum(w, 1e-3),
-                                    lam_affine=k * lam_affine_init * t / tn, kernel=kv, basis=basis)
+            f = ThinPlateSpline.fit(
+                vn,
+                tgt,
+                lam=lam,
+                weights=np.maximum(w, 1e-3),
+                lam_affine=k * lam_affine_init * t / tn,
+                kernel=kv,
+                basis=basis,
+            )
             yn = f.affine[0] + vn @ f.affine[1:] + (kv @ f.coef if len(f.centres) else 0.0)
         steps += 1
         if t <= tfn * (1 + 1e-9):

@@ -1,4 +1,5 @@
-"""Analytic tagged-image scenes with exact ground truth (tests and benchmark fallback).
+"""
+Analytic tagged-image scenes with exact ground truth (tests and benchmark fallback).
 
 A scene is a 1-1 SPAMM grid ``P(X) = Π_d sin²(k_d·(X − c)/2)`` laid in material coordinates
 ``X`` (pixels, the ED image frame, ``c`` the image centre), an annulus of "myocardium" around a
@@ -17,7 +18,8 @@ import numpy as np
 
 @dataclass
 class TagScene:
-    """Synthetic tagged cine of one slice.
+    """
+    Synthetic tagged cine of one slice.
 
     Attributes
     ----------
@@ -38,6 +40,7 @@ class TagScene:
         Untagged intensities.
     noise_sigma : float
         Standard deviation of additive Gaussian noise (myocardium intensity units).
+
     """
 
     shape: tuple = (128, 128)
@@ -77,8 +80,10 @@ class TagScene:
         return c + (1 + self.scale * a) * d @ rot.T + a * np.asarray(self.shift) + u
 
     def inverse(self, x: np.ndarray, t: float, iterations: int = 30) -> np.ndarray:
-        """Material points of image points ``x``, shape (N, 2) (fixed-point inversion of
-        :meth:`forward`; converges because the non-affine term is a contraction)."""
+        """
+        Material points of image points ``x``, shape (N, 2) (fixed-point inversion of
+        :meth:`forward`; converges because the non-affine term is a contraction).
+        """
         x = np.asarray(x, float)
         a = self._amp(t)
         c = self.centre
@@ -121,7 +126,8 @@ class TagScene:
         return img
 
     def intersections(self, margin: float = 0.0):
-        """ED tag intersections inside the annulus shrunk by ``margin`` px.
+        """
+        ED tag intersections inside the annulus shrunk by ``margin`` px.
 
         Returns
         -------
@@ -129,9 +135,10 @@ class TagScene:
             Material (= ED image) positions, px.
         labels : ndarray of int, shape (N, 2)
             (k1, k2) with ``k_d·(X − c) = 2π k_d``.
+
         """
         n = int(np.ceil(max(self.shape) / self.spacing_px)) + 2
-        k1, k2 = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing="ij")
+        k1, k2 = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing='ij')
         lab = np.stack([k1.ravel(), k2.ravel()], -1)
         X = self.centre + np.linalg.solve(self.wavevectors, 2 * np.pi * lab.T).T
         r = self._radius(X)

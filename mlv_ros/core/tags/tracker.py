@@ -1,4 +1,5 @@
-"""Per-slice temporal tracking of tag intersections (Gabor detection + TPS-RPM matching).
+"""
+Per-slice temporal tracking of tag intersections (Gabor detection + TPS-RPM matching).
 
 At end-diastole (phase 0) the tracker detects the intersections inside the myocardium and gives
 each a track id. At every later phase it predicts each live track by its previous displacement,
@@ -12,22 +13,27 @@ References
 ----------
 Chen, T. et al. IEEE TMI 29(1):1–11, 2010 (Gabor + RPM tag tracking).
 Chui, H., Rangarajan, A. CVIU 89:114–141, 2003 (TPS-RPM).
+
 """
 
 from __future__ import annotations
 
 import cv2
+from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.types import Frame, TagPointSet
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import Frame, TagPointSet
-
-from .gabor import (MAX_SPACING_PX, MIN_SPACING_PX, TAG_PERIOD_RANGE_MM, TagInputError, TagParameters,
-                    validate_image)
-from .intersections import DEFAULT_MIN_CONFIDENCE, Detection, detect_intersections
+from .gabor import (
+    MAX_SPACING_PX,
+    MIN_SPACING_PX,
+    TAG_PERIOD_RANGE_MM,
+    TagInputError,
+    TagParameters,
+    validate_image,
+)
+from .intersections import DEFAULT_MIN_CONFIDENCE, detect_intersections, Detection
 from .rpm import ThinPlateSpline, tps_rpm
-
 
 # A dropped track is taken up again only by a detection this close to its predicted place, in tag
 # spacings (a different intersection is ≥ 1 spacing away; the warp's prediction is ~0.1 off).
@@ -47,14 +53,19 @@ FOLLOW_TUNED_MOVE = 0.2
 
 
 def tag_period_range_px(pixel_mm: float) -> tuple[float, float]:
-    """Tag periods worth searching in an image of ``pixel_mm`` pixels, px (within the spectrum
-    estimate's own limits)."""
+    """
+    Tag periods worth searching in an image of ``pixel_mm`` pixels, px (within the spectrum
+    estimate's own limits).
+    """
     lo, hi = TAG_PERIOD_RANGE_MM
-    return max(MIN_SPACING_PX, lo / pixel_mm), max(min(MAX_SPACING_PX, hi / pixel_mm), MIN_SPACING_PX + 1.0)
+    return max(MIN_SPACING_PX, lo / pixel_mm), max(
+        min(MAX_SPACING_PX, hi / pixel_mm), MIN_SPACING_PX + 1.0
+    )
 
 
 class SliceTracker:
-    """Stateful tag-intersection tracker for one slice (one per (view, slice) in the node).
+    """
+    Stateful tag-intersection tracker for one slice (one per (view, slice) in the node).
 
     Parameters
     ----------
@@ -113,13 +124,29 @@ class SliceTracker:
     --------
     >>> tracker = SliceTracker(frames[0].geometry)
     >>> sets = [tracker.update(f, mask=ed_mask if f.phase_index == 0 else None) for f in frames]
+
     """
 
-    def __init__(self, geometry: SliceGeometry | None = None, *, spacing_px=None, angles=None, max_gap: int = 1,
-                 gate: float = 0.4, rpm_t_init: float = 0.3, rpm_t_final: float = 0.08,
-                 propagate_mask: bool = True, mask_erosion_px: int = 0, confirm_px: float = 0.5,
-                 revive: bool = True, follow_coverage: bool = True, follow_relative: float = 0.6,
-                 follow_floor: float = 0.25, ed_coverage: bool = True, **detect_kwargs):
+    def __init__(
+        self,
+        geometry: SliceGeometry | None = None,
+        *,
+        spacing_px=None,
+        angles=None,
+        max_gap: int = 1,
+        gate: float = 0.4,
+        rpm_t_init: float = 0.3,
+        rpm_t_final: float = 0.08,
+        propagate_mask: bool = True,
+        mask_erosion_px: int = 0,
+        confirm_px: float = 0.5,
+        revive: bool = True,
+        follow_coverage: bool = True,
+        follow_relative: float = 0.6,
+        follow_floor: float = 0.25,
+        ed_coverage: bool = True,
+        **detect_kwargs,
+    ):
         self.geometry = geometry
         self.spacing_px = spacing_px
         self.angles = angles
@@ -136,8 +163,10 @@ class SliceTracker:
         self.follow_floor = float(follow_floor)
         self.ed_coverage = bool(ed_coverage)
         if not (0.0 <= self.follow_relative <= 1.0 and 0.0 < self.follow_floor <= 1.0):
-            raise ValueError(f"follow_relative must be in [0, 1] and follow_floor in (0, 1]; "
-                             f"got {follow_relative}, {follow_floor}")
+            raise ValueError(
+                f'follow_relative must be in [0, 1] and follow_floor in (0, 1]; '
+                f'got {follow_relative}, {follow_floor}'
+            )
         self.detect_kwargs = detect_kwargs
         self.reset()
 
@@ -156,7 +185,7 @@ class SliceTracker:
         self.last_phase = -1
         self.last_detection: Detection | None = None
         self._started = False
-        self._ed_failure = ""
+        self._ed_failure = ''
 
     @property
     def alive(self) -> np.ndarray:
@@ -164,7 +193,8 @@ class SliceTracker:
         return self.track_id[~self._dead]
 
     def update(self, frame: Frame, mask=None) -> TagPointSet:
-        """Process the next phase of the slice (phase 0 = ED starts a new cine).
+        """
+        Process the next phase of the slice (phase 0 = ED starts a new cine).
 
         Parameters
         ----------
@@ -178,23 +208,35 @@ class SliceTracker:
         TagPointSet
             Detected intersections carrying ED track ids; empty with ``status`` set when the frame
             is unusable. Never raises.
+
         """
         try:
             return self._update(frame, mask)
         except Exception as exc:  # the node must survive any bad frame; report instead of raising
-            return self._result(frame, None, None, None, f"tag tracker error: {type(exc).__name__}: {exc}")
+            return self._result(
+                frame, None, None, None, f'tag tracker error: {type(exc).__name__}: {exc}'
+            )
 
     # -- internals -----------------------------------------------------------------------------
 
     def _result(self, frame, rc, ids, conf, status) -> TagPointSet:
-        geom = self.geometry if self.geometry is not None else getattr(frame, "geometry", None)
-        out = TagPointSet(view=int(getattr(frame, "view", 0)), slice_index=int(getattr(frame, "slice_index", 0)),
-                          phase_index=int(getattr(frame, "phase_index", 0)),
-                          num_phases=int(getattr(frame, "num_phases", 0)), geometry=geom, status=status,
-                          stamp=float(getattr(frame, "trigger_time", 0.0)))
+        geom = self.geometry if self.geometry is not None else getattr(frame, 'geometry', None)
+        out = TagPointSet(
+            view=int(getattr(frame, 'view', 0)),
+            slice_index=int(getattr(frame, 'slice_index', 0)),
+            phase_index=int(getattr(frame, 'phase_index', 0)),
+            num_phases=int(getattr(frame, 'num_phases', 0)),
+            geometry=geom,
+            status=status,
+            stamp=float(getattr(frame, 'trigger_time', 0.0)),
+        )
         if rc is not None and len(rc):
             out.pixel_rc = np.asarray(rc, float)
-            out.position = geom.pixel_to_patient(out.pixel_rc) if geom is not None else np.full((len(rc), 3), np.nan)
+            out.position = (
+                geom.pixel_to_patient(out.pixel_rc)
+                if geom is not None
+                else np.full((len(rc), 3), np.nan)
+            )
             out.track_id = np.asarray(ids, np.int32)
             out.confidence = np.asarray(conf, np.float32)
         return out
@@ -204,10 +246,10 @@ class SliceTracker:
         if frame.phase_index == 0 or not self._started:
             return self._start(frame, mask)
         if self.params is None:
-            return self._result(frame, None, None, None, f"no ED reference: {self._ed_failure}")
-        note = ""
+            return self._result(frame, None, None, None, f'no ED reference: {self._ed_failure}')
+        note = ''
         if frame.phase_index != self.last_phase + 1:
-            note = f"phase jump {self.last_phase} -> {frame.phase_index}; "
+            note = f'phase jump {self.last_phase} -> {frame.phase_index}; '
         self.last_phase = frame.phase_index
         live = np.nonzero(~self._dead)[0]
         if live.size == 0:
@@ -215,8 +257,8 @@ class SliceTracker:
             try:
                 validate_image(image)
             except TagInputError as exc:
-                note += f"phase {frame.phase_index}: {exc}; "
-            return self._result(frame, None, None, None, note + "all tracks lost")
+                note += f'phase {frame.phase_index}: {exc}; '
+            return self._result(frame, None, None, None, note + 'all tracks lost')
         pred = self._pos[live] + self._step[live]
         sp = float(np.mean(self.params.spacing_px))
         region = accept = None
@@ -230,18 +272,37 @@ class SliceTracker:
         hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
-        kwargs = {"max_tuned_move_periods": FOLLOW_TUNED_MOVE, **self.detect_kwargs,
-                  "min_confidence": self.follow_threshold()}
-        det = detect_intersections(image, mask=region, params=self.params, roi=roi, accept_mask=accept,
-                                   coverage_normalised=self.follow_coverage,
-                                   **{**kwargs, **({"tuned": False} if two_pass else {})})
+        kwargs = {
+            'max_tuned_move_periods': FOLLOW_TUNED_MOVE,
+            **self.detect_kwargs,
+            'min_confidence': self.follow_threshold(),
+        }
+        det = detect_intersections(
+            image,
+            mask=region,
+            params=self.params,
+            roi=roi,
+            accept_mask=accept,
+            coverage_normalised=self.follow_coverage,
+            **{**kwargs, **({'tuned': False} if two_pass else {})},
+        )
         self.last_detection = det
         if not det.ok or len(det) == 0:
             self._coast(live, pred, pred)
-            return self._result(frame, None, None, None, note + f"phase {frame.phase_index}: {det.reason}")
-        res = tps_rpm(pred, det.pixel_rc, t_init=(self.rpm_t_init * sp) ** 2, t_final=(self.rpm_t_final * sp) ** 2,
-                      anneal=0.75, iterations_per_t=1, sinkhorn_iterations=10, outlier_distance=self.gate * sp,
-                      gate=self.gate * sp)
+            return self._result(
+                frame, None, None, None, note + f'phase {frame.phase_index}: {det.reason}'
+            )
+        res = tps_rpm(
+            pred,
+            det.pixel_rc,
+            t_init=(self.rpm_t_init * sp) ** 2,
+            t_final=(self.rpm_t_final * sp) ** 2,
+            anneal=0.75,
+            iterations_per_t=1,
+            sinkhorn_iterations=10,
+            outlier_distance=self.gate * sp,
+            gate=self.gate * sp,
+        )
         hit = res.match >= 0
         final = det
         new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
@@ -251,19 +312,28 @@ class SliceTracker:
             # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
             # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
             # leaking blood or static background tags into the phase near the wall's border.
-            region2, accept2 = self._propagated_mask(new[hit], live[hit], np.shape(image),
-                                                     erode=self.mask_erosion_px, dilate=0)
+            region2, accept2 = self._propagated_mask(
+                new[hit], live[hit], np.shape(image), erode=self.mask_erosion_px, dilate=0
+            )
             if region2 is not None:
-                det2 = final = detect_intersections(image, mask=region2, params=self.params, roi=roi,
-                                                    accept_mask=accept2, coverage_normalised=self.follow_coverage,
-                                                    **kwargs)
+                det2 = final = detect_intersections(
+                    image,
+                    mask=region2,
+                    params=self.params,
+                    roi=roi,
+                    accept_mask=accept2,
+                    coverage_normalised=self.follow_coverage,
+                    **kwargs,
+                )
                 # Only points the second pass confirms (within confirm_px) count as detected: a
                 # first-pass point that came from tags just outside the predicted border is not
                 # one.
                 found = np.zeros(int(hit.sum()), bool)
                 j2 = np.zeros(int(hit.sum()), int)
                 if det2.ok and len(det2):
-                    d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=self.confirm_px)
+                    d2, j2 = cKDTree(det2.pixel_rc).query(
+                        new[hit], distance_upper_bound=self.confirm_px
+                    )
                     found = np.isfinite(d2)
                 idx = np.nonzero(hit)[0]
                 new[idx[found]] = det2.pixel_rc[j2[found]]
@@ -283,10 +353,12 @@ class SliceTracker:
         n_out = int(hit.sum()) + len(back[0])
         status = note
         if n_out < n_ed:
-            status += (f"{n_out} of {n_ed} ED tracks reported; {int(self._dead.sum())} dropped "
-                       f"(faded or through-plane; {len(back[0])} found again at this phase)")
+            status += (
+                f'{n_out} of {n_ed} ED tracks reported; {int(self._dead.sum())} dropped '
+                f'(faded or through-plane; {len(back[0])} found again at this phase)'
+            )
         if n_out == 0:
-            status = note + "no detection matched any track"
+            status = note + 'no detection matched any track'
         ids = np.concatenate([self.track_id[live[hit]], self.track_id[back[0]]])
         pts = np.concatenate([new[hit], back[1]])
         cf = np.concatenate([conf[hit], back[2]])
@@ -294,10 +366,12 @@ class SliceTracker:
 
     def follow_threshold(self) -> float:
         """Confidence a detection needs to continue a live track at the next phase (0..1)."""
-        base = float(self.detect_kwargs.get("min_confidence", DEFAULT_MIN_CONFIDENCE))
+        base = float(self.detect_kwargs.get('min_confidence', DEFAULT_MIN_CONFIDENCE))
         if self.follow_relative <= 0 or not np.isfinite(self._follow_conf):
             return base
-        return float(np.clip(self.follow_relative * self._follow_conf, min(self.follow_floor, base), base))
+        return float(
+            np.clip(self.follow_relative * self._follow_conf, min(self.follow_floor, base), base)
+        )
 
     def _revive(self, matched, positions, det: Detection, spacing: float):
         """
@@ -307,7 +381,8 @@ class SliceTracker:
         of where the matched tracks' warp (ED → now) puts the dropped track. An intersection of two
         tag planes ⟂ the ED image is one material line however the heart moves through the slab,
         so that detection is the same line (a wrong one would be a whole spacing away). Returns
-        ``(indices, positions, confidences)`` of the revived tracks (already updated)."""
+        ``(indices, positions, confidences)`` of the revived tracks (already updated).
+        """
         lost = np.nonzero(self._dead)[0]
         none = (np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, np.float32))
         if not self.revive or lost.size == 0 or len(matched) < 6 or not det.ok or len(det) == 0:
@@ -320,14 +395,18 @@ class SliceTracker:
             return none
         # Taking a track up again is an association without a path to it: the detection must be
         # as sure as a new track's (the plain confidence), not only stand out of the noise.
-        free = det.plain_confidence >= self.detect_kwargs.get("min_confidence", DEFAULT_MIN_CONFIDENCE)
+        free = det.plain_confidence >= self.detect_kwargs.get(
+            'min_confidence', DEFAULT_MIN_CONFIDENCE
+        )
         d, _ = cKDTree(positions).query(det.pixel_rc)
         free &= d > self.confirm_px
         if not free.any():
             return none
         pred = ThinPlateSpline.fit(self.ed_rc[matched], positions, lam=300.0)(self.ed_rc[lost])
         cand = np.nonzero(free)[0]
-        dist, j = cKDTree(det.pixel_rc[cand]).query(pred, distance_upper_bound=REVIVE_GATE * spacing)
+        dist, j = cKDTree(det.pixel_rc[cand]).query(
+            pred, distance_upper_bound=REVIVE_GATE * spacing
+        )
         ok = np.isfinite(dist)
         order = np.argsort(np.where(ok, dist, np.inf))
         taken, idx, pos, conf = set(), [], [], []
@@ -363,24 +442,34 @@ class SliceTracker:
         self._started = True
         self.last_phase = frame.phase_index
         kwargs = dict(self.detect_kwargs)
-        geom = self.geometry if self.geometry is not None else getattr(frame, "geometry", None)
-        if geom is not None and "spacing_range_px" not in kwargs:
-            kwargs["spacing_range_px"] = tag_period_range_px(min(geom.row_spacing, geom.column_spacing))
-        det = detect_intersections(frame.image, mask=mask, spacing_px=self.spacing_px, angles=self.angles,
-                                   **kwargs)
+        geom = self.geometry if self.geometry is not None else getattr(frame, 'geometry', None)
+        if geom is not None and 'spacing_range_px' not in kwargs:
+            kwargs['spacing_range_px'] = tag_period_range_px(
+                min(geom.row_spacing, geom.column_spacing)
+            )
+        det = detect_intersections(
+            frame.image, mask=mask, spacing_px=self.spacing_px, angles=self.angles, **kwargs
+        )
         if self.ed_coverage and mask is not None and det.params is not None:
             p = det.params
             cell = float(np.prod(p.spacing_px) / max(abs(np.sin(p.angles[0] - p.angles[1])), 1e-6))
             if len(det) < ED_THIN_SHARE * np.count_nonzero(mask) / cell:
-                thin = detect_intersections(frame.image, mask=mask, params=p,
-                                            **{**kwargs, "coverage_normalised": True})
+                thin = detect_intersections(
+                    frame.image, mask=mask, params=p, **{**kwargs, 'coverage_normalised': True}
+                )
                 if len(thin) > len(det):
                     det = thin
         self.last_detection = det
-        note = "" if frame.phase_index == 0 else f"no ED frame: started at phase {frame.phase_index}; "
+        note = (
+            ''
+            if frame.phase_index == 0
+            else f'no ED frame: started at phase {frame.phase_index}; '
+        )
         if not det.ok:
-            self._ed_failure = f"detection at phase {frame.phase_index} failed: {det.reason}"
-            return self._result(frame, None, None, None, note + f"ED detection failed: {det.reason}")
+            self._ed_failure = f'detection at phase {frame.phase_index} failed: {det.reason}'
+            return self._result(
+                frame, None, None, None, note + f'ED detection failed: {det.reason}'
+            )
         self.params = det.params
         if mask is not None:
             self.ed_mask = np.asarray(mask, bool).copy()
@@ -393,14 +482,18 @@ class SliceTracker:
         self._gap = np.zeros(n, int)
         self._dead = np.zeros(n, bool)
         self._follow_conf = float(np.median(det.confidence)) if n else np.nan
-        return self._result(frame, det.pixel_rc, self.track_id, det.plain_confidence, note.rstrip("; "))
+        return self._result(
+            frame, det.pixel_rc, self.track_id, det.plain_confidence, note.rstrip('; ')
+        )
 
     def _propagated_mask(self, pred, live, shape, erode: int = 0, dilate: int = 0):
-        """ED mask warped to the predicted configuration (TPS from predicted to ED positions).
+        """
+        ED mask warped to the predicted configuration (TPS from predicted to ED positions).
 
         Returns ``(filter_mask, accept_mask)``: the warped mask eroded by ``erode`` px
         (filtering support) and dilated by ``dilate`` px (where points may lie); ``(None, None)``
-        when it cannot be built."""
+        when it cannot be built.
+        """
         if len(live) < 4 or self.ed_mask is None or self.ed_mask.shape != tuple(shape):
             return None, None
         # Smoothing keeps the extrapolation to the wall's border (outside the points) near-affine.
@@ -413,15 +506,29 @@ class SliceTracker:
         # The warp is smooth on the scale of a tag spacing: evaluate it every 4 px and
         # interpolate bilinearly (the TPS kernel on every pixel would dominate the frame time).
         step = 4
-        rr, cc = np.meshgrid(np.arange(lo[0], hi[0] + step, step, dtype=float),
-                             np.arange(lo[1], hi[1] + step, step, dtype=float), indexing="ij")
-        src = inv(np.stack([rr.ravel(), cc.ravel()], -1)).reshape(rr.shape + (2,)).astype(np.float32)
-        fr, fc = np.meshgrid(np.arange(hi[0] - lo[0], dtype=np.float32) / step,
-                             np.arange(hi[1] - lo[1], dtype=np.float32) / step, indexing="ij")
+        rr, cc = np.meshgrid(
+            np.arange(lo[0], hi[0] + step, step, dtype=float),
+            np.arange(lo[1], hi[1] + step, step, dtype=float),
+            indexing='ij',
+        )
+        src = (
+            inv(np.stack([rr.ravel(), cc.ravel()], -1)).reshape(rr.shape + (2,)).astype(np.float32)
+        )
+        fr, fc = np.meshgrid(
+            np.arange(hi[0] - lo[0], dtype=np.float32) / step,
+            np.arange(hi[1] - lo[1], dtype=np.float32) / step,
+            indexing='ij',
+        )
         map_r = cv2.remap(src[..., 0], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         map_c = cv2.remap(src[..., 1], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        warped = cv2.remap(self.ed_mask.astype(np.uint8), map_c, map_r, cv2.INTER_NEAREST,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        warped = cv2.remap(
+            self.ed_mask.astype(np.uint8),
+            map_c,
+            map_r,
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         if not warped.any():
             return None, None
 
@@ -431,8 +538,13 @@ class SliceTracker:
         acc_w = cv2.dilate(warped, disk(dilate)) if dilate > 0 else warped
         # The propagated border is uncertain: static background tags or blood just outside it
         # bias the phase more than a lost rim of myocardium does, hence the erosion.
-        filt_w = (cv2.erode(warped, disk(erode)) if erode > 0
-                  else cv2.dilate(warped, disk(-erode)) if erode < 0 else warped)
+        filt_w = (
+            cv2.erode(warped, disk(erode))
+            if erode > 0
+            else cv2.dilate(warped, disk(-erode))
+            if erode < 0
+            else warped
+        )
         if not filt_w.any():
             filt_w = warped
         accept = np.zeros(shape, bool)
