@@ -42,7 +42,7 @@ def sample_frames(dicom_dir: Path):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--dicom-out', help='keep the DICOM files here (default: a temporary folder)')
     ap.add_argument('--out', default=str(HERE / 'normal_sample.mcap'))
     args = ap.parse_args()

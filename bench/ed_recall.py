@@ -113,7 +113,7 @@ def case_recall(case: Path, tol: float = 0.2, per_slice: bool = False, **tracker
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('cases', nargs='+', type=Path)
     ap.add_argument(
         '--tol', type=float, default=0.2, help='match radius, tag periods (default 0.2)'

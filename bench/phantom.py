@@ -197,7 +197,7 @@ def plot(cases, out: Path):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--n', type=int, default=5000, help='particles for the deformation table')
     ap.add_argument('--fractions', default=','.join(str(f) for f in FRACTIONS))
     ap.add_argument(

@@ -265,7 +265,7 @@ def replay_case(
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('cases', nargs='+', type=Path)
     ap.add_argument(
         '--tracker',

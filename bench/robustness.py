@@ -223,7 +223,7 @@ def summarise(cases: list[dict]) -> dict:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--cases', type=int, default=16)
     ap.add_argument(
         '--seed', type=int, default=1000, help='first protocol seed (cases use seed, seed+1, …)'

@@ -15,7 +15,7 @@ import time
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--preset', default='normal')
     ap.add_argument('--no-write', action='store_true', help='skip the DICOM write timing')
     args = ap.parse_args(argv)

@@ -296,7 +296,7 @@ def summarise(cases: list[dict]) -> dict:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--cases', type=int, default=3)
     ap.add_argument('--seed', type=int, default=2000, help='first protocol seed')
     ap.add_argument(

@@ -85,7 +85,7 @@ def _stats(v) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--protocols', type=int, default=30, help='protocol seeds (default 30)')
     ap.add_argument('--seed', type=int, default=0, help='first protocol seed (default 0)')
     args = ap.parse_args(argv)

@@ -244,7 +244,7 @@ def summarise(rows):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--out', default='out/bench/tags', help='directory for PNG overlays')
     ap.add_argument('--presets', default='normal,hypertrophic')
     ap.add_argument('--snr', default='inf,20,10')

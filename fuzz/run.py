@@ -75,7 +75,7 @@ def run_target(target: str, seconds: int, out: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--seconds', type=int, default=60, help='fuzzing time per target (s)')
     ap.add_argument(
         '--out',

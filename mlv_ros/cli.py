@@ -108,7 +108,7 @@ def describe_os_error(exc: OSError) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog='mlv-ros', description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog='mlv-ros', description=__doc__.strip().splitlines()[0])
     sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
     for name, (module, help_text) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)

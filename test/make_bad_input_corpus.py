@@ -109,7 +109,7 @@ def write_corpus(out_dir: Path, num_phases: int = 3, size: int = 48) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('out_dir', type=Path)
     args = parser.parse_args(argv)
     manifest = write_corpus(args.out_dir)
