@@ -40,7 +40,7 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture
 def ros_context():
-    """A fresh, initialised rclpy Context, shut down after the test."""
+    """Yield a fresh, initialised rclpy Context, shut down after the test."""
     import rclpy
 
     ctx = rclpy.Context()

@@ -1,4 +1,6 @@
 """
+In-process graph harness: the processing nodes over real Fast DDS and a probe node.
+
 The in-process graph as tests and benchmarks drive it: the four processing nodes (and
 optionally the recorder) over real Fast DDS, and a probe node that publishes on any graph topic
 and collects every output.
@@ -51,6 +53,8 @@ TOPIC_MSG = {
 
 class Probe(Node):
     """
+    Publish on any graph topic with the graph's own QoS and collect every graph output.
+
     Publishes on any graph topic with the QoS the graph's own publisher offers there (so every
     consumer matches it, TRANSIENT_LOCAL ones included) and collects every graph output.
     """
@@ -72,7 +76,7 @@ class Probe(Node):
         self.pubs[topic].publish(msg)
 
     def received(self, key: str) -> list:
-        """What the graph published on output ``key`` (the probe's own messages left out)."""
+        """Return what the graph published on output ``key`` (not the probe's own messages)."""
         topic = OUTPUTS[key][1]
         return [
             m
@@ -98,11 +102,12 @@ def graph_nodes(
     record_to: Path | None = None,
 ) -> dict[str, Node]:
     """
-    The processing graph in one process: name → node.
+    Build the processing graph in one process: name → node.
 
     Parameters
     ----------
     context : rclpy Context
+        The context every node (and the recorder) is created in.
     max_pixels : int
         ``tag_detector.max_pixels``.
     num_particles : int
@@ -186,6 +191,8 @@ class LoadReport:
 
 def spin_until_stalled(executor, progress, done: tuple, timeout: float, stall_s: float) -> bool:
     """
+    Spin until ``progress()`` reaches ``done``, stalls for ``stall_s`` or ``timeout`` passes.
+
     Spin until ``progress()`` reaches ``done`` (element-wise ≥), has not changed for
     ``stall_s`` seconds, or ``timeout`` passes; returns whether it reached ``done``.
     """
@@ -211,6 +218,8 @@ def run_load(
     num_particles: int = 1500,
 ) -> LoadReport:
     """
+    Publish a whole study at once into the graph plus a recorder; count frames at every stage.
+
     Publish a whole study at once, as fast as possible, into the graph plus a recorder, and
     count frames in vs out at every stage.
 

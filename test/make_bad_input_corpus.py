@@ -29,6 +29,8 @@ from corpus.message_cases import message_cases  # noqa: E402
 
 def interleave(valid: list, cases: list) -> list:
     """
+    Return (topic, msg) pairs in sending order.
+
     (topic, msg) in sending order: each stand-in replaces its valid frame, each derived case
     follows its source frame, and the other cases come after the study.
     """

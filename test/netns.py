@@ -65,6 +65,8 @@ def netns_unavailable() -> str | None:
 
 def _new_names() -> tuple[str, int, int]:
     """
+    Return a token for unique names and two octets choosing private subnets.
+
     A token for unique names (6 hex digits keep device names within IFNAMSIZ, 15) and two
     octets choosing private subnets 10.X.Y.0/24 (and 10.X.Y+1.0/24).
     """
@@ -112,6 +114,8 @@ def veth_pair(tag: str = 'mlv'):
 @contextmanager
 def routed_pair(tag: str = 'mlv'):
     """
+    Yield ``(a, b)`` on two different /24s joined through a router namespace.
+
     Yield ``(a, b)`` on two different /24s joined through a router namespace (IPv4 forwarding
     on, no multicast routing): unicast passes between them, multicast does not — like two
     machines on different subnets.

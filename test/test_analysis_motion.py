@@ -1,4 +1,6 @@
 """
+Motion analysis against analytic motions of lattice LV-like shells.
+
 Displacement decomposition, per-level twist / radius, LA radius, torsion and cavity volume
 against analytic motions of lattice LV-like shells (exact up to rounding unless stated).
 """

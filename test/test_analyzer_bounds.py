@@ -1,4 +1,6 @@
 """
+The analyzer's bounded memory: unpaired model states or clouds dropped beyond ``max_unpaired``.
+
 The analyzer's memory is bounded: model states (or clouds) whose pair never comes are dropped
 oldest first beyond ``max_unpaired``, each with a /diagnostics entry naming it.
 """

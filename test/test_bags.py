@@ -1,4 +1,6 @@
 """
+The sample acquisition in bags/: small, independently readable, the frames of its DICOM source.
+
 The sample acquisition in bags/: small, readable by an independent reader, and holding exactly
 the frames its DICOM source gives (so replaying it drives the graph exactly like the DICOM).
 """

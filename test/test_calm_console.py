@@ -1,4 +1,6 @@
 """
+A calm console (issue 16, item 5): counts for routine events, WARN only for what needs action.
+
 A calm console (issue 16, item 5): routine events are counts, WARN is for what a user must act
 on, and every CLI mistake is one line with the fix.
 

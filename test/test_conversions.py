@@ -1,4 +1,6 @@
 """
+Round trips (bit-exact) and bad input for every numpy ⇄ message conversion.
+
 Round trips (bit-exact) and bad input for every numpy ⇄ message conversion, including a pass
 through real CDR serialisation (what every rclpy hop does).
 """
@@ -415,6 +417,8 @@ def test_metrics_bad_input():
 
 def test_study_id_round_trip_through_every_message():
     """
+    Check run isolation: every message carries its study's id through CDR and back.
+
     Run isolation: every message of a study carries its id, through CDR and back; an id a
     message cannot carry sensibly is refused.
     """
@@ -484,6 +488,8 @@ def test_study_id_round_trip_through_every_message():
 
 def test_segment_origin_and_findings_round_trip():
     """
+    Check that the registered state's segment origin and per-segment findings survive CDR.
+
     The registered state's segment origin and the per-segment findings (NaN = not measured,
     classes as uint8 codes) survive CDR; bad codes and lengths are refused.
     """

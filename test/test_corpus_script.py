@@ -1,4 +1,6 @@
 """
+``test/make_bad_input_corpus.py``: the whole bad-input corpus written to disk.
+
 ``test/make_bad_input_corpus.py`` writes the whole corpus (≥ 200 cases) to disk: DICOM files, a
 replayable MCAP of the bad messages among a valid study, and a manifest — all readable by
 independent tools (pydicom is not needed to check the files exist; rosbags reads the bag).

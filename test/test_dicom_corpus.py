@@ -1,4 +1,6 @@
 """
+The DICOM bad-input corpus next to a valid study, through the reader and the nodes.
+
 The DICOM bad-input corpus (``test/corpus/dicom_cases.py``) next to a valid study: through the
 reader once, then through the real frame_source and tag_detector nodes.
 
@@ -88,7 +90,7 @@ def corpus(tmp_path_factory):
 
 
 def _unused(corpus, c) -> bool:
-    """A legal case read but not used beside the study: listed once, by its first file."""
+    """Return a legal case read but not used beside the study: listed once, by its first file."""
     return c.outcome != 'error' and str(c.files[0]) not in corpus.frame_of
 
 
@@ -172,6 +174,8 @@ def test_odd_but_legal_files_load_with_their_pixels(corpus):
 
 def test_missing_phases_keep_their_indices_and_are_reported(corpus):
     """
+    Check that cines missing phases keep their phase indices and are reported.
+
     Each read alone (beside the study they repeat its SA 0, whose complete cine is used: the
     one warning).
     """

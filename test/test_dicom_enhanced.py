@@ -1,4 +1,6 @@
 """
+Enhanced MR multi-frame input (issue 15, item 3).
+
 Enhanced MR multi-frame input (issue 15, item 3): a simulated study converted at test time
 (``corpus/enhanced.py`` writes the functional groups) loads frame for frame as its classic files
 do, one file per cine, per stack, per frame, or as a Legacy Converted Enhanced MR; damaged
@@ -30,6 +32,8 @@ BIN = Path(sys.executable).parent
 
 def _place(fr):
     """
+    Return a frame's identity independent of series UIDs and file names.
+
     A frame's identity independent of series UIDs and file names (and, for long-axis views,
     of their order, which goes by SeriesNumber first: one per stack in a per-stack file).
     """
@@ -102,6 +106,8 @@ def test_enhanced_mr_loads_as_the_classic_files(study, per, legacy):
 
 def test_legacy_converted_enhanced_mr_written_by_highdicom(study, tmp_path):
     """
+    Check the reader against an independent Enhanced writer (highdicom): the same frames.
+
     An independent Enhanced writer: highdicom's LegacyConvertedEnhancedMRImage of each classic
     series (one file per cine, functional groups as highdicom lays them out): the same frames.
     """
@@ -130,6 +136,8 @@ def test_legacy_converted_enhanced_mr_written_by_highdicom(study, tmp_path):
 
 def test_enhanced_mr_beside_classic_files_and_damaged_functional_groups(study, tmp_path):
     """
+    Check Enhanced files of the study beside foreign files: the study read, bad files reported.
+
     Enhanced files of the study beside foreign files (CT_small, an Enhanced copy of SA 2 with
     its frames' positions cut): the study, as its classic files; each bad file reported once.
     """
@@ -157,6 +165,8 @@ def test_enhanced_mr_beside_classic_files_and_damaged_functional_groups(study, t
 
 def test_run_on_enhanced_mr_with_a_study_chosen_and_parts_left_out(tmp_path):
     """
+    Check the one full ``mlv-ros run`` of issue 15 on an Enhanced MR study.
+
     The one full ``mlv-ros run`` of issue 15: a study as Enhanced MR (one file per cine) in a
     folder with CT_small, and one of its cines acquired with 2 phases of 3 (left out), chosen with
     --study. Every phase is analysed from exactly the classic files' frames, but the run is not

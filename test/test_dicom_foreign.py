@@ -47,7 +47,7 @@ RESCALE_TAGS = ('RescaleSlope', 'RescaleIntercept', 'RescaleType')
 
 @pytest.fixture(scope='module')
 def study(tmp_path_factory):
-    """A small study as our writer makes it (uint16, RescaleSlope 0.001) and its frames as read."""
+    """Return a small study as our writer makes it (uint16, RescaleSlope 0.001) and its frames."""
     root = tmp_path_factory.mktemp('foreign')
     sim = simulate_study('normal', snr=20.0, size=48, num_phases=3, subplanes=1, seed=2)
     paths = write_study_dicom(sim, root / 'study')
@@ -64,6 +64,8 @@ def _key(fr):
 
 def _rewrite(study, out: Path, edit, only=None) -> list[Path]:
     """
+    Re-encode every study file by ``edit(ds)`` to the same relative path under ``out``.
+
     Every study file (or those under ``only``, a folder name) re-encoded by ``edit(ds)`` to the
     same relative path under ``out``.
     """
@@ -109,7 +111,7 @@ def _set_stored(ds, values: np.ndarray, dtype, slope=None, intercept=None) -> No
 
 
 def _expected(path: Path) -> np.ndarray:
-    """What a file holds, rescaled in float64 and rounded once to float32 (the working type)."""
+    """Return what a file holds, rescaled in float64 and rounded once to float32."""
     ds = pydicom.dcmread(path)
     slope, inter = float(ds.get('RescaleSlope', 1.0)), float(ds.get('RescaleIntercept', 0.0))
     return (ds.pixel_array.astype(np.float64) * slope + inter).astype(np.float32)
@@ -292,6 +294,8 @@ def test_lossless_compressed_copies_are_bit_identical(study):
 
 def _gdcm_copy(src: Path, dst: Path, syntax: str) -> None:
     """
+    Transcode ``src`` by GDCM to the transfer syntax ``gdcm.TransferSyntax.<syntax>``.
+
     ``src`` transcoded by GDCM (python-gdcm: an encoder independent of pydicom and its plugins)
     to the transfer syntax ``gdcm.TransferSyntax.<syntax>``, written to ``dst``.
     """
@@ -323,6 +327,8 @@ GDCM_LOSSLESS = {
 
 def test_copies_compressed_by_gdcm_are_bit_identical(study):
     """
+    Check the study transcoded by GDCM to each lossless JPEG syntax: frames bit-identical.
+
     The study transcoded by GDCM to each lossless JPEG syntax, unsigned (uint16 with a rescale)
     and signed (int16): every frame bit-identical to the uncompressed file's.
     """
@@ -359,6 +365,8 @@ def test_copies_compressed_by_gdcm_are_bit_identical(study):
 
 def test_a_run_on_a_jpeg_lossless_study_gives_the_same_motion(tmp_path):
     """
+    Check that a study and its GDCM JPEG Lossless SV1 copy give the same motion in a graph run.
+
     One short graph run (2 phases, 200 particles) on a study and on its GDCM JPEG Lossless SV1
     copy: the same motion in every phase (bit-identical frames, a deterministic solver).
     """
@@ -432,7 +440,7 @@ def test_lossy_jpeg_decodes(study):
 
 
 def _one_frame_copy(study, name: str, edit) -> Path:
-    """The study's first file in a series of its own, edited, saved as ``name`` under the study."""
+    """Save the study's first file, edited, in a series of its own as ``name`` under the study."""
     ds = pydicom.dcmread(study.paths[0])
     ds.SeriesInstanceUID = generate_uid(entropy_srcs=['foreign series', name])
     ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(
@@ -497,6 +505,8 @@ def test_colour_and_undecodable_files_are_reported_and_the_study_loads(study):
 
 def test_a_missing_decoder_is_reported_with_the_package_that_decodes(study):
     """
+    Check that compressed files are reported naming the package when the plugins are missing.
+
     In an interpreter where the plugins cannot be imported (as without requirements/base.txt's
     decoder pins, and without python-gdcm, which pydicom also decodes with), compressed files are
     reported naming the package; the rest loads.
@@ -613,6 +623,8 @@ def test_dicomdir_exports_load_and_the_index_is_reported(study):
 
 def test_pydicom_files_beside_a_study_never_take_the_run_down(study):
     """
+    Check that scanner/PACS files of other kinds in the folder are reported or listed.
+
     Scanner/PACS files of other kinds in the folder: refused ones are reported, the readable
     ones of other studies and modalities (MR_small, CT, RT dose) are read, not used, and listed
     once each with the reason, and every frame of the study loads unchanged. Read alone, each

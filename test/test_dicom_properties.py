@@ -1,4 +1,6 @@
 """
+Property tests of the DICOM reader: exact read-back, no raise on byte mutations.
+
 Property tests of the DICOM reader: what the writer writes reads back exactly, and no byte
 mutation of a valid file makes the reader raise or lose the valid files beside it.
 """

@@ -45,7 +45,7 @@ def _same_frames(res, ref) -> None:
 
 
 def _cine(paths: list[Path], folder: str) -> list[pydicom.Dataset]:
-    """The datasets of one written series (files under ``folder``), in phase order."""
+    """Return the datasets of one written series (files under ``folder``), in phase order."""
     return [pydicom.dcmread(p) for p in paths if p.parent.name == folder]
 
 
@@ -71,6 +71,8 @@ def _foreign(
     out: Path, untagged_paths: list[Path], study_uid: str, for_uid: str
 ) -> dict[str, list[Path]]:
     """
+    Write series that must not be used under ``out``.
+
     Series that must not be used, written under ``out``: a 12-slice × 3-phase CT of another
     study, MR_small.dcm, an untagged MR cine of another study, and an untagged cine of the tagged
     study itself (as a cine SSFP beside the tagged slices; from ``untagged_paths``, a study
@@ -172,6 +174,8 @@ def test_tag_band_is_the_detectors():
 )
 def test_mixed_folder_gives_the_tagged_study_whatever_the_file_order(studies, order, tmp_path):
     """
+    Check that foreign and untagged series beside the tagged study are listed, not used.
+
     A CT series, MR_small, an untagged MR cine of another study and an untagged cine of the
     study itself beside the tagged study: the tagged study, bit-identical to it read alone, and
     each foreign series listed once with its reason. Also with tags on the heart alone (a study
@@ -246,6 +250,8 @@ def test_the_study_with_more_tagged_cines_and_the_study_argument(studies, tmp_pa
 
 def test_a_repeated_slice_keeps_the_later_acquisition(studies, tmp_path):
     """
+    Check that a slice acquired again is used from its later series, the earlier one listed.
+
     SA 3 acquired again (another series, another noise draw): the later one is used in its
     place, the earlier listed, and a warning says so; by SeriesNumber, or by SeriesTime where
     the times tell (here against the numbers).
@@ -298,6 +304,8 @@ def test_a_repeated_slice_keeps_the_later_acquisition(studies, tmp_path):
 
 def test_cines_with_other_phase_counts(studies, tmp_path):
     """
+    Check cines with fewer or more phases than the study.
+
     A cine with fewer phases than the study is left out with its reason (complete false); one
     with more is matched to the study's phases by nearest trigger time.
     """
@@ -450,6 +458,8 @@ def test_another_frame_of_reference_and_a_folder_without_tags(studies, tmp_path)
 
 def test_cines_of_the_study_that_fail_the_tag_test(studies, tmp_path):
     """
+    Check which of the study's untagged cines are used.
+
     The study's untagged cines: one acquired later at a tagged slice's place is not used (the
     tagged one is; no repeat); one at a place of its own, acquired like the tagged cines, is used
     with a warning (a failed tag test never costs a slice of the study's kind); one acquired
@@ -519,6 +529,8 @@ def test_cines_of_the_study_that_fail_the_tag_test(studies, tmp_path):
 @pytest.fixture(scope='module')
 def heart_only(tmp_path_factory):
     """
+    Write a heart-only tagged study and an untagged bright-blood study of the same protocol.
+
     A study tagged on the heart alone (dark surroundings, 128² px of 1.8 mm: no cine passes the
     whole-image tag test) and an untagged bright-blood study of the same protocol with more
     cines (9 SA + 2 LA against 6 + 2), both written by ``write_study_dicom``.
@@ -553,6 +565,8 @@ def heart_only(tmp_path_factory):
 
 def test_tags_on_the_heart_alone_are_found_by_the_study_vote(heart_only):
     """
+    Check the heart-only study's cines against the whole-image and windowed tag tests.
+
     No cine of the heart-only study passes the whole-image test; its cines share a grid at the
     protocol's period in windows, the untagged twin's do not.
     """
@@ -572,6 +586,8 @@ def test_tags_on_the_heart_alone_are_found_by_the_study_vote(heart_only):
 @pytest.mark.parametrize('order', ['tagged_first', 'untagged_first', 'shuffled'])
 def test_a_larger_untagged_study_does_not_win_over_tags_on_the_heart(heart_only, order, tmp_path):
     """
+    Check that the heart-only tagged study is chosen over the untagged one with more cines.
+
     The untagged study has more MR cines (the old fallback's pick); the heart-only tagged study is
     chosen whatever the file order, its frames as read alone, the other study's 11 series listed.
     """
@@ -592,6 +608,8 @@ def test_a_larger_untagged_study_does_not_win_over_tags_on_the_heart(heart_only,
 
 def test_mosaic_series_are_refused_per_series(studies, tmp_path):
     """
+    Check that Siemens MOSAIC series beside the study are listed once each as MOSAIC.
+
     Two cines re-saved as Siemens MOSAIC (one by ImageType, one by the private
     NumberOfImagesInMosaic only) and nibabel's real MOSAIC diffusion files beside the study: each
     series listed once as a MOSAIC, the study as read alone.
@@ -646,6 +664,8 @@ def test_mosaic_series_are_refused_per_series(studies, tmp_path):
 
 def test_a_cine_with_fewer_phases_is_used_by_nearest_trigger_time(studies, tmp_path):
     """
+    Check a cine acquired with 2 phases: matched by trigger time or left out with the reason.
+
     SA 5 acquired with 2 phases at 10 and 340 ms (the study's phases at 0, 333 and 667 ms, a
     quarter interval = 83 ms allowed): its images become phases 1 and 2 of 3, phase 3 missing,
     listed in left_out; at 0 and 500 ms (167 ms off) it is left out with the reason.
@@ -691,6 +711,8 @@ def test_a_cine_with_fewer_phases_is_used_by_nearest_trigger_time(studies, tmp_p
 
 def test_below_the_vote_threshold_the_closest_study_still_wins(heart_only, tmp_path, monkeypatch):
     """
+    Check that a vote under the threshold still chooses between studies by the vote.
+
     Were the heart-only study's vote under the threshold (here: the threshold raised out of
     reach), the choice between studies without a clear tag grid still goes by the vote, not by the
     number of cines: the tagged study, all its cines used, and the choice says how close it came.

@@ -1,4 +1,6 @@
 """
+``mlv-ros export RUN --vtk DIR`` read back with independent readers, and its refusals.
+
 ``mlv-ros export RUN --vtk DIR``: a small recording written with BagWriter (4 phases of 300
 particles with known displacements and strains: ok, degraded, failed, ok) is exported and read
 back with independent readers: every ``.vtu`` with meshio, the ``.pvd`` with ElementTree, the CSV
@@ -61,6 +63,8 @@ def _metrics(p: int) -> dict:
 
 def write_recording(run_dir: Path):
     """
+    Write run.mcap as the recorder writes it.
+
     run.mcap as the recorder writes it: registered ED cloud/state, then per phase /lv/motion
     and /lv/model_state (one stamp) and /lv/metrics.
     """

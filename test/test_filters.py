@@ -1,4 +1,6 @@
 """
+The shared running median (``mlv_ros.core.filters``) against scipy's median filter.
+
 The shared running median (``mlv_ros.core.filters``): scipy's median filter exactly, taken once
 per image and window (the tag detector and the registration both ask for it of each ED frame).
 """

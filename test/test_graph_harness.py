@@ -1,4 +1,6 @@
 """
+The harness itself: real nodes over real Fast DDS, in one process and across processes.
+
 The harness itself: real nodes over real Fast DDS, in one process and across processes
 started from our console scripts.
 """
@@ -119,7 +121,7 @@ def test_frames_across_processes_from_console_script(ros_context, executor):
 
 @pytest.fixture(scope='module')
 def recording(tmp_path_factory):
-    """A small MCAP of pattern frames written with BagWriter (no nodes involved)."""
+    """Return a small MCAP of pattern frames written with BagWriter (no nodes involved)."""
     from mlv_ros import bagio
     from rclpy.serialization import serialize_message
 

@@ -1,4 +1,6 @@
 """
+launch/pipeline.launch.py without ROS's launch tools, against stand-ins.
+
 launch/pipeline.launch.py without ROS's launch tools (launch and launch_ros are not on PyPI):
 its declared arguments read from its source, its own code run against stand-ins for launch,
 launch_ros and ament_index_python, and what it makes of the arguments
@@ -60,7 +62,7 @@ class _LaunchConfiguration:
 
 @pytest.fixture
 def launch_file(monkeypatch):
-    """The launch file as a module, imported against stand-ins for launch and launch_ros."""
+    """Import the launch file as a module against stand-ins for launch and launch_ros."""
     fakes = {
         'launch': {'LaunchDescription': lambda entities: list(entities)},
         'launch.actions': {'DeclareLaunchArgument': _Recorded, 'OpaqueFunction': _Recorded},
@@ -80,7 +82,7 @@ def launch_file(monkeypatch):
 
 
 def _launch(module, **given):
-    """The nodes the launch file starts for ``given`` arguments (the rest at their defaults)."""
+    """Return the nodes the launch file starts for ``given`` arguments (the rest at defaults)."""
     entities = module.generate_launch_description()
     config = {
         a.args[0]: a.kwargs['default_value']

@@ -58,6 +58,8 @@ PACKED_TYPES = {
 
 class FoxgloveClient:
     """
+    Run a Foxglove WebSocket client in a thread, keeping every message of ``topics``.
+
     A Foxglove WebSocket client in a thread: subscribes to ``topics`` as they are advertised
     and keeps every message (channel topic → list of (log time ns, payload bytes)).
     """
@@ -152,7 +154,7 @@ class FoxgloveClient:
             raise self.error
 
     def decode(self, topic: str) -> list:
-        """The messages of ``topic`` decoded with the channel's advertised schema."""
+        """Decode the messages of ``topic`` with the channel's advertised schema."""
         ch = self.channels[topic]
         if ch['encoding'] == 'json':
             return [json.loads(p) for _, p in self.messages[topic]]
@@ -181,6 +183,8 @@ def cloud_array(msg) -> np.ndarray:
 
 def recorded(mcap) -> dict:
     """
+    Return per phase of the recording its cloud, stamp, verdict and metrics' volume.
+
     Per phase of the recording: its cloud (structured, from the PointCloud2 bytes), stamp,
     verdict and metrics' volume.
     """
@@ -216,6 +220,8 @@ def recorded(mcap) -> dict:
 
 def recorded_slice(mcap, view: int, slice_index: int) -> tuple[dict, dict]:
     """
+    Return one slice of the recording: its frames' shapes and its tag points by stamp.
+
     One slice of the recording: {stamp: (rows, columns)} of its frames and {stamp: pixel_rc}
     of its tag points (rclpy reads TagPoints: rosbags refuses an empty set's alignment bytes).
     """
@@ -340,7 +346,7 @@ def test_a_foxglove_client_receives_the_cloud_of_every_phase(tmp_path):
 
 
 def free_port() -> socket.socket:
-    """A listening socket on a free loopback port (held: the port is in use while it lives)."""
+    """Return a listening socket on a free loopback port (held while it lives)."""
     s = socket.socket()
     s.bind(('127.0.0.1', 0))
     s.listen()
@@ -384,6 +390,8 @@ def test_live_port_in_use_is_one_line_and_leaves_nothing(tmp_path):
 
 def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, executor):
     """
+    Check that a failed phase's cloud never reaches the 3D panel and Foxglove gets a status.
+
     A phase whose verdict is failed is no measurement: its cloud never reaches the 3D panel;
     Foxglove gets a status naming the phase and why (degraded phases are drawn and listed).
     """
@@ -453,6 +461,8 @@ def test_a_failed_phase_is_not_drawn_and_foxglove_is_told_why(ros_context, execu
 
 def test_layout_shows_what_the_live_view_serves():
     """
+    Check that config/foxglove_layout.json names the live view's channels and fields.
+
     config/foxglove_layout.json (Foxglove's layout file: configById + a mosaic of panel ids)
     names the live view's channels and fields, and every panel it places has a config.
     """

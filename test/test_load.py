@@ -1,4 +1,6 @@
 """
+Load: a whole study published at once into the graph plus the recorder, no frame lost.
+
 Load: a whole study published at once, as fast as possible, slice-major, into the graph plus
 the recorder — no frame may be lost anywhere (published = received by the tag detector = tag
 sets out = recorded), and every phase must be solved and analysed.

@@ -1,4 +1,6 @@
 """
+The local stage of :mod:`mlv_ros.core.meshless.local` against the reference copies.
+
 The local stage of :mod:`mlv_ros.core.meshless.local` against the reference copies of the
 stages it replaced (``bench/reference_local.py``): same operator, same solutions.
 """
@@ -55,6 +57,8 @@ def test_operators_equal_the_assembled_fit_error_and_matrix_free_stiffness(study
 
 def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monkeypatch):
     """
+    Check every local solve of three phases against the old one on the same tag points.
+
     Every local solve of three phases (two slice-following passes each) against the old one on
     the same tag points, global fit and warm start: CG at rtol 1e-3 either way.
     """
@@ -99,7 +103,7 @@ def test_paper_model_fit_matches_the_reference_local_stage():
 
 
 def _coarse_basis(coarse, n):
-    """The vector basis ``Z = Z_s ⊗ I₃`` as a dense (N, 3, 3Q) array (coarse index e·Q + q)."""
+    """Return the vector basis ``Z = Z_s ⊗ I₃`` as a dense (N, 3, 3Q) array (index e·Q + q)."""
     q, zs = coarse.num_basis, coarse.basis.toarray()
     z = np.zeros((n, 3, 3 * q))
     for e in range(3):
@@ -109,6 +113,8 @@ def _coarse_basis(coarse, n):
 
 def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(study):
     """
+    Check the coarse matrix against ``Zᵀ A Z`` and the correction against ``Z A_c⁻¹ Zᵀ``.
+
     The coarse matrix assembled from sparse products equals ``Zᵀ A Z`` taken column by column
     through the system's own matrix–vector product (every term: elasticity, volume at rest, axial,
     fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``.
@@ -155,6 +161,8 @@ def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(stud
 
 def test_coarse_correction_keeps_the_solution_and_cuts_cg_iterations(study, monkeypatch):
     """
+    Check that two-level PCG converges to block-Jacobi's solution, in fewer iterations.
+
     Two-level PCG converges to block-Jacobi's solution (tight tolerance), and at the
     tracker's tolerance in fewer iterations, on the tracker's own systems at ES.
     """

@@ -176,6 +176,8 @@ def test_single_control_point_gives_finite_output(phantom):
 
 def test_global_prior_holds_what_the_points_cannot_see():
     """
+    Check that the axial-scale prior keeps a model fitted to in-plane points put along the axis.
+
     Six noisy in-plane points on one plane see the radial scale, not the axial one: without the
     prior the axial scale wanders wherever it fits the noise a hair better (every particle moves
     tens of mm along the axis); with it the model stays put along the axis and still fits.
@@ -204,6 +206,8 @@ def test_bad_global_prior_is_a_clear_error(phantom, prior):
 
 def test_weights_discount_unreliable_points(phantom):
     """
+    Check that down-weighting 3 mm-off targets brings the fit back near the true deformation.
+
     A fifth of the targets are 3 mm off (e.g. faded tags): weighting them 100× less brings the
     fit back near the true deformation; uniform weights of any scale change nothing.
     """

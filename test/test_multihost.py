@@ -56,6 +56,8 @@ _WHY_NOT = netns_unavailable()
 
 class Processes:
     """
+    Start node processes from their console scripts inside namespaces.
+
     Node processes started from their console scripts inside namespaces, each logging to
     ``tmp/<label>.log``; ``stop()`` SIGINTs every one still running (each drains, the recorder
     finalises its file), waits (bounded), kills what did not exit, and returns the exit codes.
@@ -94,6 +96,8 @@ class Processes:
 
     def wait_for(self, predicate, timeout: float, what: str, watch=()) -> None:
         """
+        Poll ``predicate`` until true; fail on ``timeout`` or when a watched process exits.
+
         Poll ``predicate`` until true; fail after ``timeout`` s, or as soon as a process in
         ``watch`` exits while it is still false.
         """
@@ -143,6 +147,8 @@ def graph_env(domain: int) -> dict:
 
 def read_recording(mcap: Path) -> dict:
     """
+    Read a recording with the independent reader (rosbags).
+
     With the independent reader (rosbags): message count and CDR bytes per topic, the
     registered cloud's point bytes, each tag point set's positions, track ids and confidences
     (by phase, view, slice), and the /lv/motion cloud of every phase (paired with
@@ -327,6 +333,8 @@ def test_graph_across_two_hosts_equals_one_process(tmp_path):
 @needs_netns
 def test_static_peers_discover_across_subnets(tmp_path):
     """
+    Check two hosts on different subnets: discovery only through ROS_STATIC_PEERS.
+
     Two hosts on different subnets (routed, no multicast routing): SUBNET multicast discovery
     cannot reach across, so frame_source finds no subscriber; with ROS_STATIC_PEERS naming the
     other host (on one side only) discovery is unicast and the frames arrive.

@@ -1,4 +1,6 @@
 """
+Namespaces (issue 18): the graph, its config, runs and recordings under a ROS namespace.
+
 Namespaces (issue 18): every node names its topics relative, so a graph started under a
 namespace talks on ``/NS/mlv/*`` and ``/NS/lv/*`` (the root names unchanged without one);
 ``config/graph.yaml`` applies in any namespace (``/**/node`` keys); ``mlv-ros run --namespace``
@@ -33,6 +35,8 @@ SMALL = ['--size', '96', '--phases', '8', '--particles', '400', '--snr', '0', '-
 
 def test_topics_resolve_in_the_node_namespace(ros_context, tmp_path):
     """
+    Check topic names at the root and under a namespace.
+
     Root names as before at the root; under a namespace every graph topic moves with the node,
     /diagnostics stays where diagnostic_updater publishes.
     """
@@ -99,6 +103,8 @@ def test_graph_yaml_applies_in_any_namespace_and_statuses_are_named_as_diagnosti
 
 def test_domain_check_is_namespace_aware(ros_context, executor, tmp_path, capsys):
     """
+    Check that a graph in the same namespace is refused and one in another is no conflict.
+
     A graph in the same namespace is refused; one in another namespace is no conflict (the
     two runs below share a domain; here: the probe keeps to its namespace).
     """
@@ -210,6 +216,8 @@ def test_two_studies_at_once_in_two_namespaces(two_runs):
 
 def test_a_namespaced_recording_replays_in_the_player_namespace(two_runs, ros_context, executor):
     """
+    Check that the replay plays a /study_a recording in its own namespace.
+
     The replay plays the graph topics of a /study_a recording in its own namespace; a bag
     source reads its frames.
     """

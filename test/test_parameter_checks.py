@@ -1,4 +1,6 @@
 """
+Parameters refused by the node's parameter check with the core's reason.
+
 Parameters a descriptor's range cannot refuse are refused by the node's parameter check with
 the core's reason: at start-up (the node does not start) and when set at run time.
 """
@@ -41,6 +43,8 @@ def test_one_twist_knot_is_refused_at_start_with_the_cores_reason(ros_context):
 
 def test_parameter_check_also_answers_a_run_time_set(ros_context):
     """
+    Declare a parameter writable with a check that refuses values with a reason.
+
     A parameter declared writable with a check: a refused value is answered unsuccessful with
     the reason and the old value stays.
     """

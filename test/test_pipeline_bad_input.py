@@ -1,4 +1,6 @@
 """
+Bad input through the graph: a /diagnostics entry for each problem, no node down.
+
 Bad input through the graph: each problem gets a /diagnostics entry naming it, no node goes
 down, and the run still completes with what it has. Also: slice-major and phase-major streaming
 of the same acquisition give the same motion.

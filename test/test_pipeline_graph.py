@@ -1,4 +1,6 @@
 """
+The whole graph end to end, in one process and across processes.
+
 The whole graph end to end: in one process on a simulated phantom (accuracy against the
 analytic ground truth; the recording read back by rosbags), and across processes started from
 the console scripts.
@@ -194,6 +196,8 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
 
 def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
     """
+    Run the graph on a phantom, SIGKILL and restart ``victim``, and return what it published.
+
     Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
     ``victim`` after three phases are solved, start it again, and return the model states and
     tag sets published after the restart (the run must then complete).
@@ -283,6 +287,8 @@ def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
 
 def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
     """
+    Check that a new solver process gets the latched history and solves every phase again.
+
     A new solver process gets the latched registration and the tag-point history
     (TRANSIENT_LOCAL) and solves every phase again.
     """
@@ -291,6 +297,8 @@ def test_solver_killed_mid_run_and_restarted_completes_the_run(ros_context, exec
 
 def test_tag_detector_killed_mid_run_and_restarted_completes_the_run(ros_context, executor):
     """
+    Check that a new tag detector takes the frames' history and republishes every tag set.
+
     A new tag detector takes the frames' history (catch_up) and republishes every tag set;
     the solver, still running, completes the phases it had not solved.
     """

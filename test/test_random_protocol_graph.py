@@ -1,4 +1,6 @@
 """
+Randomized acquisition protocols through the real DICOM path and the whole graph.
+
 Randomized acquisition protocols through the real DICOM path and the whole graph, against each
 study's analytic ground truth (``mlv-ros simulate --random`` + ``mlv-ros run --dicom``).
 

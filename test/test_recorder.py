@@ -1,4 +1,6 @@
 """
+The recorder's MCAP read by an independent reader (rosbags), nothing lost on SIGINT/SIGTERM.
+
 The recorder writes MCAP that an independent reader (rosbags) opens, with rosbag2's schema,
 channel and metadata conventions, and loses nothing on SIGINT/SIGTERM.
 """
@@ -102,6 +104,8 @@ def test_writer_refuses_to_overwrite_and_unknown_topics(tmp_path):
 
 def recorder_process_and_source(ros_context, executor, out, num_phases):
     """
+    Start the recorder's console script recording to ``out`` and a pattern frame source.
+
     The recorder's console script recording frames to ``out`` (a process of its own, as under
     ``ros2 launch``) and a pattern frame source in this process, on ``executor``.
     """
@@ -288,6 +292,8 @@ def test_recorder_process_signalled_mid_stream_keeps_what_the_graph_still_sends(
     ros_context, executor, tmp_path
 ):
     """
+    Check that the recorder, on SIGINT while frames flow, keeps every frame and closes the file.
+
     As under ``ros2 launch``: the recorder (its console script, a process of its own) gets
     SIGINT while frames still flow. It records what its publishers still send until they leave,
     then closes the file with metadata.yaml: every published frame is in it, in order.

@@ -32,6 +32,8 @@ def heart_box(st):
 
 def voxelise(st, axes_lps, spacing, centre_lps, shape, dtype=np.int16):
     """
+    Build an ACDC-style label volume on a grid with the given LPS axes and centre.
+
     ACDC-style label volume (2 myocardium, 3 LV blood) on a grid whose voxel axes are the unit
     LPS vectors ``axes_lps`` (columns), centred on ``centre_lps``; NIfTI affine in RAS.
     """
@@ -89,6 +91,8 @@ def test_register_ed_with_nifti_masks(study, oblique):
 
 def sa_stack(st, ed, shift_mm=0.0):
     """
+    Build a stack of 2-D SA label slices, like a cine SA segmentation.
+
     A stack of 2-D SA label slices (1.3 mm in-plane, one slice per tagged SA plane), like a
     cine SA segmentation; ``shift_mm`` moves it along the SA normal.
     """

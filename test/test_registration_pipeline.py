@@ -1,4 +1,6 @@
 """
+register_ed on quick simulated studies.
+
 register_ed on quick simulated studies: segmentation Dice, particles inside the true
 myocardium, surface distance; known similarity transform; bad input.
 """
@@ -71,6 +73,8 @@ def test_registered_model_accuracy(registered):
 
 def test_known_similarity_transform_is_recovered(study):
     """
+    Check that a similarity of the whole study carries the registered model along.
+
     Rotating, scaling and shifting every ED image plane (a similarity of the whole study)
     must carry the registered model along by the same transform.
     """

@@ -206,6 +206,8 @@ def test_bullseye_layout_anterior_top_septum_left():
 
 def test_failed_phases_are_not_plotted_and_flagged_phases_are_named(tmp_path, normal, low_dpi):
     """
+    Check that failed and degraded phases are left out of the curves and named with reasons.
+
     Phase 3 (ES) failed with an absurd volume, phase 7 degraded: the failed one enters no
     curve, peak or table (ES moves to the best remaining phase), both are named with their
     reasons at the top of the page and in summary.json.

@@ -1,4 +1,6 @@
 """
+``bench/retrack.py --ideal`` against an independent Newton solve on the analytic phantom.
+
 ``bench/retrack.py --ideal``: tracked points replaced by where the truth puts them (their ED
 material line crossing the image plane), checked against an independent Newton solve of the same
 crossing on the analytic phantom.

@@ -93,7 +93,7 @@ def is_uint(x) -> bool:
 
 
 def check_duration(d) -> None:
-    """An ``rmw_time_t`` as qos.cpp writes it."""
+    """Check an ``rmw_time_t`` as qos.cpp writes it."""
     assert isinstance(d, dict) and list(d) == ['sec', 'nsec'], d
     assert is_uint(d['sec']) and is_uint(d['nsec']) and d['nsec'] < 10**9, d
 
@@ -148,6 +148,8 @@ def check_bag_metadata(info: dict) -> None:
 
 def rosbag2_records(path: Path) -> tuple[list[dict], set[str]]:
     """
+    Return the ``rosbag2`` metadata records of an MCAP file and the names its summary indexes.
+
     The ``rosbag2`` metadata records of an MCAP file, in file order, and the names its summary
     indexes (rosbag2 reads the record through that index).
     """
@@ -280,6 +282,8 @@ def frame_bag(
 
 def test_runs_with_the_old_string_qos_still_read(tmp_path):
     """
+    Check that runs recorded before the format fix still open with their recorded QoS.
+
     Runs recorded before the format fix (version 9 with offered_qos_profiles as a YAML string)
     still open in our readers and replay with their recorded QoS.
     """
@@ -344,6 +348,8 @@ T0 = 1_700_000_000_123_456_789  # recorded receive times: not on a whole second,
 
 def mixed_bag(path: Path) -> tuple[list[int], list[bytes]]:
     """
+    Write a bag of frames and /diagnostics of a node that no longer runs, interleaved.
+
     Frames and /diagnostics of a node that no longer runs, interleaved; returns the frames'
     recorded times and the recorded diagnostics' bytes.
     """
@@ -379,6 +385,8 @@ def graph_yaml_replay_params() -> dict:
 
 def play(ros_context, executor, path, frames, wait_for, params: dict) -> Replay:
     """
+    Start a Replay of ``path`` with ``params`` once the listeners are matched.
+
     Start a Replay of ``path`` with ``params``; the frames sink is created only once the /clock
     and /diagnostics listeners are matched with every publisher the replay has on those topics,
     so whatever it publishes there reaches them.

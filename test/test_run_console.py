@@ -1,4 +1,6 @@
 """
+The console of ``mlv-ros run`` / ``demo`` (mlv_ros.tools.console): progress bar and summary.
+
 The console of ``mlv-ros run`` / ``demo`` (mlv_ros.tools.console): a progress bar over phases
 only on a terminal and not with --no-progress, and a short summary (at most 30 lines whatever the
 run) that says what was run, how it ended, the accuracy, volumes, the verdicts with the
@@ -104,6 +106,8 @@ def test_summary_of_a_good_run_says_what_a_user_needs():
 
 def test_summary_of_a_bad_run_stays_short_and_groups_the_reasons():
     """
+    Check that the summary of 200 mostly flagged phases keeps to 30 lines.
+
     200 phases, most flagged for a mix of reasons with different numbers in each: the summary
     keeps to 30 lines, counts every phase, and names the phases of each kind of reason.
     """

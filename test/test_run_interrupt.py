@@ -1,4 +1,6 @@
 """
+``mlv-ros run`` as a user meets it: interrupts, failing nodes, write errors, CLI mistakes.
+
 ``mlv-ros run`` as a user meets it, in real processes on real ROS: SIGINT/SIGTERM keep what was
 done (exit 130/143, the recording closed, read back by rosbags, marked incomplete), a node that
 cannot start or gives up ends the run at once with its reason, a write error stops the recording
@@ -98,7 +100,7 @@ class Run:
 
 
 def our_lines(lines: list[str]) -> list[str]:
-    """What ``mlv-ros run`` itself says (not the nodes' logs)."""
+    """Return what ``mlv-ros run`` itself says (not the nodes' logs)."""
     return [line for line in lines if line.startswith('mlv-ros run:')]
 
 
@@ -227,6 +229,8 @@ def test_foreign_bag_ends_at_once_with_the_reason(tmp_path):
 
 def test_a_folder_of_mosaic_files_ends_at_once_with_the_reason(tmp_path):
     """
+    Check that Siemens MOSAIC diffusion files end the run with the reason.
+
     Siemens MOSAIC diffusion files (nibabel's own test files) were taken as a 2-phase cine and
     the run sat 600 s: now the frame source refuses the series and the run ends with the reason.
     """
@@ -256,6 +260,8 @@ def test_a_folder_of_mosaic_files_ends_at_once_with_the_reason(tmp_path):
 
 def test_value_inside_the_range_the_model_refuses_ends_the_start_at_once(tmp_path):
     """
+    Check that twist_knots 1 ends the run at start-up with the core's reason.
+
     twist_knots 1 is inside the solver's declared range (0..100), which rclpy cannot cut one
     value out of; the node's parameter check (the core's own rule) refuses it at start-up, so the
     run ends before anything is recorded, with the core's reason (it used to wait 600 s, then
@@ -277,6 +283,8 @@ def test_value_inside_the_range_the_model_refuses_ends_the_start_at_once(tmp_pat
 
 def test_tag_detector_process_killed_ends_the_run_with_the_reason(tmp_path):
     """
+    Check that the run ends at once when the tag detector's process dies.
+
     The tag detector runs in a process of its own (the run's child): when that process dies,
     the run ends at once with that reason, keeping what was recorded.
     """
@@ -304,6 +312,8 @@ def test_tag_detector_process_killed_ends_the_run_with_the_reason(tmp_path):
 
 def test_write_error_stops_the_recording_cleanly(tmp_path):
     """
+    Check the recorder's full-disk path with a file size limit (RLIMIT_FSIZE).
+
     A file size limit (RLIMIT_FSIZE: EFBIG) stands in for a full disk (ENOSPC needs a small
     filesystem, i.e. root): the same OSError path in the recorder.
     """
@@ -335,7 +345,7 @@ def test_write_error_stops_the_recording_cleanly(tmp_path):
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 400 KiB tmpfs (root only: mount needs CAP_SYS_ADMIN), unmounted after the test."""
+    """Yield a 400 KiB tmpfs (root only: mount needs CAP_SYS_ADMIN), unmounted after the test."""
     disk = tmp_path / 'disk'
     disk.mkdir()
     if os.geteuid() != 0:

@@ -135,6 +135,8 @@ def test_rv_is_drawn_and_leaves_the_rest_of_the_protocol_and_the_lv_alone():
 
 def test_registration_orients_the_model_by_the_detected_septum():
     """
+    Check that register_ed places β = 0 and the AHA anterior insertion from the septum.
+
     register_ed: with an RV the model's β = 0 (the inferior insertion) lies 60° CCW from the
     detected septum, within a few degrees of the truth's inferior insertion; the analysis frame of
     the registered model then puts the AHA anterior insertion where the truth has it.

@@ -99,6 +99,8 @@ RIM_DEG = 40.0  # the opening: |angle from the base direction| < 40°
 
 def _runs(*, missing=(), spurious=()):
     """
+    Return the wall runs of a circular horseshoe open toward the base.
+
     Wall runs of a circular horseshoe open toward the base, with ``missing`` stretches
     ``(from, to)`` deg from the base direction and ``spurious`` runs ``(from, to, radius)``
     (an atrium's top edge beyond the base).

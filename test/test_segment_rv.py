@@ -58,6 +58,8 @@ def test_bright_rv_beside_the_lv(seed):
 
 def test_candidate_features_agree_without_a_bright_pool():
     """
+    Check that on a grid alone the plain and whitened spectral estimates agree.
+
     A grid alone: the plain and the whitened spectral estimates agree (one candidate), at the
     grid's period and angle.
     """

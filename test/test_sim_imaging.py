@@ -77,6 +77,8 @@ def _interior(m, X, margin=1.5):
 @pytest.mark.parametrize('key', [(VIEW_SA, 2), (VIEW_SA, 5), (VIEW_LA, 0), (VIEW_LA, 2)])
 def test_material_points_stay_on_tag_minima(study, key):
     """
+    Check that tag intersections stay dark and squares bright through the whole cycle.
+
     Tag intersections and square centres laid at ED, moved by the ground truth, then sampled
     from the noiseless image: intersections stay dark, squares bright, through the whole cycle.
     ED points are taken on several planes parallel to the image (tags are planes ⟂ the image),

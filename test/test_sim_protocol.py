@@ -1,4 +1,6 @@
 """
+Randomised acquisition protocols (issue 14): draws, CLI options and DICOM read-back.
+
 Randomised acquisition protocols (issue 14): draws stay in their documented ranges and vary,
 ``--random``/``--protocol``, and drawn studies written to DICOM read back right (slice counts, SA
 order by position, geometry as in the ground truth, pixels within the stored quantisation, the

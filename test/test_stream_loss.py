@@ -1,4 +1,6 @@
 """
+Loss is never silent: missed messages counted and reported on /diagnostics.
+
 Loss is never silent: a subscriber that cannot keep up, or joins late, says on /diagnostics
 how many messages it did not get (publisher sequence-number gaps), and its heartbeat carries
 received/lost/missed counts per topic, so frames in = frames out + frames reported lost.
@@ -141,6 +143,8 @@ def test_overflow_late_join_and_restart_are_reported(ros_context, executor, tmp_
 
 def test_a_recorder_that_joins_late_takes_the_history(ros_context, executor, tmp_path):
     """
+    Check that the recorder takes tag sets it missed from the publisher's history.
+
     Across a network the recorder may match the tag detector only after its first sets went
     out; with ``catch_up`` (the default) it takes them from the publisher's history.
     """

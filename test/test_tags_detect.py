@@ -9,6 +9,8 @@ from scipy.spatial import cKDTree
 
 def _grid(shape, spacing, angles, shift=(0.0, 0.0), affine=None):
     """
+    Draw a sin² grid and return the image and the true intersections.
+
     sin² grid: image(x) = P(X), X = A⁻¹(x − c − shift) + c; returns image and the true
     intersections (image coordinates) at least 12 px from the border.
     """
@@ -90,6 +92,8 @@ def test_grid_labels_match_the_analytic_indices():
 
 def test_myocardium_with_blood_pool_and_noise():
     """
+    Check localisation and false positives on a tagged annulus at SNR 20.
+
     Annulus of tagged myocardium around a bright untagged blood pool, noise σ = 1/20 of the
     myocardium intensity (SNR 20): localisation within the Must of the issue (0.25 px median)
     and no false positives.
@@ -163,6 +167,8 @@ def _thin_and_thick(noise_sigma, t1_fraction=np.inf, t=0.0, seed=1):
 
 def test_coverage_normalised_confidence_has_one_noise_floor_on_thin_and_thick_walls():
     """
+    Check that the normalised confidence of pure noise is the same on thin and thick walls.
+
     Pure noise inside a mask: the plain confidence of what the detector finds falls with the
     share of the filter inside the mask (a thin wall looks 'surer' of nothing than a thick one
     does, and of its real tags less sure); normalised by that share, noise scores the same on
@@ -183,6 +189,8 @@ def test_coverage_normalised_confidence_has_one_noise_floor_on_thin_and_thick_wa
 
 def test_coverage_normalised_confidence_keeps_faded_tags_on_a_thin_wall():
     """
+    Check that normalised confidence keeps faded tags on a thin wall.
+
     Faded tags (contrast 0.3, SNR 20) on a thin wall: the plain confidence loses half the true
     intersections at the default threshold (measured 15 of 32 found); normalised, most are kept
     (27), located as well (the median error, ~0.5 px, is the truncated pattern's bias on a wall

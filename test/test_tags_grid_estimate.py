@@ -120,6 +120,8 @@ def test_grid_estimate_and_intersections_any_angle_and_period(
 
 def test_grid_estimate_picks_the_grid_not_its_cross_terms():
     """
+    Check that a 45° grid's cross terms do not replace the grid in the estimate.
+
     A 45° grid's cross terms (k1 ± k2) sit on the image axes at 1/√2 of the period; the
     estimate must return the grid itself.
     """
@@ -135,6 +137,8 @@ def test_untagged_noise_has_no_grid():
 
 def test_grid_estimate_bright_blood_thin_wall_long_axis():
     """
+    Check the grid estimate on a dilated LV with blood brighter than the wall.
+
     A dilated LV (thin wall, about one period across) with blood brighter than the wall: in
     the LA view the cavity's outline out-weighs the tags in the plain spectra (a 15 mm 'grid'
     for 9 mm tags, and no intersection in the mask); the image less its running median finds it.

@@ -1,4 +1,6 @@
 """
+SliceTracker on analytic cines with exact ground truth.
+
 SliceTracker on analytic cines with exact ground truth (rotation, contraction, non-affine
 wobble, fading, noise), and honest loss of points whose tags disappear.
 """
@@ -83,6 +85,8 @@ def test_points_whose_tags_vanish_are_dropped_not_invented():
 
 def test_dropped_tracks_are_found_again_when_their_tags_return():
     """
+    Check that a starved slice recognises material lines with their ED ids.
+
     Tags invisible on half the wall for two phases (dropped: max_gap 1), back from phase 6: the
     slice is starved (fewer than half its tracks alive), so the same material lines are recognised
     where the live tracks' warp puts them, with their ED ids, until half are alive again.
@@ -117,6 +121,8 @@ def test_new_ed_frame_restarts_tracking():
 
 def test_tracks_follow_the_simulator_ground_truth():
     """
+    Check tracking of a mid short-axis slice against the analytic motion.
+
     Short simulated study (128², 10 phases, SNR 20): a mid short-axis slice tracked from ED
     against the analytic motion (in-plane projection of motion.position).
     """

@@ -1,4 +1,6 @@
 """
+mlv_ros.threads: one BLAS/OpenMP/OpenCV thread in every graph process.
+
 mlv_ros.threads: every graph process computes with one BLAS/OpenMP/OpenCV thread whatever its
 libraries started with, because OpenBLAS's sums depend on its thread count and the same study
 must give the same motion in any process layout (test_multihost checks that end to end).
@@ -14,7 +16,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 
 def _product():
-    """A weighted normal-equations product like the registration's wall-surface fit."""
+    """Return a weighted normal-equations product like the registration's wall-surface fit."""
     a = np.random.default_rng(0).standard_normal((3000, 143))
     w = np.linspace(0.5, 2.0, 3000)
     return (a * w[:, None]).T @ a
@@ -39,6 +41,8 @@ def test_compute_threads_hold_every_pool_at_one_and_restore_them():
 
 def test_a_node_process_computes_with_one_thread():
     """
+    Check that run_node holds the thread pools while the node lives.
+
     run_node (every node's console script, so every process under ``ros2 launch``) holds the
     pools while the node lives, whatever the process started with.
     """

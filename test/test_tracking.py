@@ -1,4 +1,6 @@
 """
+The phase solver on its own against the analytic phantom's ground truth.
+
 The phase solver on its own: exact in-plane tag constraints from the analytic phantom (material
 lines through the slab, as SPAMM tags are), dense error against the ground truth.
 """
@@ -44,6 +46,8 @@ def tagset(key, g, phase, num_phases, pos, ids):
 
 def observed(study, refs, phase):
     """
+    Return where each ED tag line crosses its (fixed) plane at ``phase``.
+
     Where each ED tag line crosses its (fixed) plane at ``phase``: the material point
     p0 + s n that the true motion brings back into the plane.
     """
@@ -228,6 +232,8 @@ def test_twist_function_needs_enough_sa_slices(study):
 @pytest.mark.parametrize('prescreen', [False, True])
 def test_tracks_slipped_by_a_tag_period_are_screened_out(study, prescreen):
     """
+    Check that tracks slipping by one tag period are screened out before the fit.
+
     30 % of the tracks slip by one tag period (8 mm) at phase 4: screened against the previous
     phase's motion they are dropped before they drag the fit (without the screen the global fit
     follows them: median 2.4 mm).
@@ -269,6 +275,8 @@ def test_bad_solver_weights_are_clear_errors(study, option):
 
 def test_low_confidence_points_count_less(study):
     """
+    Check that weighting by confidence reduces the error of displaced tag points.
+
     A third of the tag points is displaced by 1.5 mm in-plane (below the 3 mm outlier floor:
     the outlier screen keeps them) and reported with confidence 0.3, the rest with 0.9: weighted
     by confidence, the fit keeps less than 60 % of the error the bad points add unweighted
@@ -293,6 +301,8 @@ def test_low_confidence_points_count_less(study):
 
 def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
     """
+    Check that the motion does not depend on the order the slices arrive in.
+
     The graph hands the solver a phase's slices in the order they arrived, which depends on
     the frame order and the process layout; the motion must not. Before the solver took the
     slices in (view, slice) order, the same sets in another order gave float sums in another
@@ -315,6 +325,8 @@ def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
 
 def test_longitudinal_coupling_follows_an_akinetic_sector():
     """
+    Check that coupled local strain follows the infarct phantom's akinetic sector.
+
     The infarct phantom's akinetic sector (levels 0.4-0.7, AHA 7): SA tags see it not
     shortening around the axis, only three LA planes see anything along it. Coupled, the local
     longitudinal strain follows the circumferential one, and the basal wall above the sector

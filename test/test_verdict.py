@@ -1,4 +1,6 @@
 """
+Quality verdicts (mlv_ros.core.verdict) through the real solver and analyzer.
+
 Quality verdicts (mlv_ros.core.verdict): each threshold tripped by a study built to trip it,
 and left alone by one that should pass — through the real solver and analyzer.
 """
@@ -19,7 +21,7 @@ def study():
 
 
 def solve(study, phase, edit=None, **tracker_options):
-    """The solver's verdict at ``phase`` from exact in-plane tags, ``edit(sets)`` applied first."""
+    """Return the solver's verdict at ``phase`` from exact in-plane tags, ``edit(sets)`` first."""
     m = study.motion
     _, tr, refs = referenced_tracker(study, n=1000, **tracker_options)
     sets = observed(study, refs, phase)
@@ -146,6 +148,8 @@ def test_verdict_arithmetic_and_bad_levels():
 
 def _old_cdr(cls, cut: str, values: dict) -> bytes:
     """
+    Serialise a ``cls`` message with rosbags under a definition cut before ``cut``.
+
     A ``cls`` message serialised by an independent writer (rosbags) under the definition that
     ends before the line starting ``cut`` (the fields appended since left out).
     """
@@ -371,6 +375,8 @@ def test_registration_and_ed_volume_verdicts():
 
 def test_registration_of_a_wall_no_adult_has_is_degraded():
     """
+    Check the verdict on a phantom whose wall is 33 mm thick everywhere.
+
     A phantom whose wall is 33 mm thick everywhere (the segmentation takes it, each slice
     under its 35 mm bound): the registered model's mean wall is beyond the adult range, and the
     verdict says so with the thickness.

@@ -93,7 +93,7 @@ class _Writer:
         self.cases: list[DicomCase] = []
 
     def fresh(self, name: str) -> Dataset:
-        """A copy of the template in a series of its own (one image, CardiacNumberOfImages 1)."""
+        """Copy the template into a series of its own (one image, CardiacNumberOfImages 1)."""
         ds = copy.deepcopy(self.template)
         ds.SeriesInstanceUID = generate_uid(entropy_srcs=['corpus series', name])
         ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid(
@@ -106,6 +106,8 @@ class _Writer:
 
     def save(self, name: str, ds: Dataset, *, syntax=None, declare=None) -> Path:
         """
+        Write ``ds`` encoded as ``syntax``, optionally declaring another transfer syntax.
+
         Write ``ds`` encoded as ``syntax`` (default: its file meta's); ``declare`` then
         replaces the transfer syntax the file meta announces, leaving the body as written.
         """
@@ -172,6 +174,8 @@ def _redeclare(path: Path, syntax: str) -> None:
 
 def _set_raw(ds: Dataset, keyword: str, vr: str, value) -> None:
     """
+    Set an element with an explicit VR and a value pydicom would not accept as typed.
+
     Set an element with an explicit VR and a value pydicom would not accept as typed; values
     it cannot even hold (DS ``"abc"``) go in as raw bytes, converted only when read back.
     """
@@ -495,6 +499,8 @@ def _mixed_sizes(w: _Writer, good: list[Path]) -> None:
 
 def set_float_pixels(ds: Dataset, values: np.ndarray, double: bool) -> None:
     """
+    Replace an integer image's pixels by (Double)FloatPixelData.
+
     Replace an integer image's pixels by (Double)FloatPixelData (its integer and rescale
     tags removed, as a float image has none).
     """
@@ -572,7 +578,7 @@ def _float_pixels(w: _Writer) -> None:
 
 
 def _cines(good: list[Path]) -> list[list[Dataset]]:
-    """The valid files as datasets, one list per series in phase (InstanceNumber) order."""
+    """Return the valid files as datasets, one list per series in phase (InstanceNumber) order."""
     by_series: dict[str, list[Dataset]] = {}
     for p in good:
         ds = pydicom.dcmread(p)
@@ -603,6 +609,8 @@ def _copy_cine(
     pixels: bytes | None = None,
 ) -> list[Path]:
     """
+    Write ``cine`` as a new series named after ``case``, optionally without a phase.
+
     Write ``cine`` as a new series named after ``case``, without phase ``skip`` and with
     ``pixels`` in every image if given; returns the files.
     """

@@ -72,6 +72,8 @@ def write_enhanced(
     datasets: list[Dataset], path: Path, series_uid: str | None = None, legacy: bool = False
 ) -> Path:
     """
+    Build one Enhanced MR file holding ``datasets`` as its frames.
+
     One Enhanced MR file holding ``datasets`` (classic single-frame MR images of one study)
     as its frames, in the given order; ``series_uid`` replaces theirs (default: the first's).
 
@@ -158,6 +160,8 @@ def convert_study(
     paths: list[Path], out: Path, per: str = 'cine', legacy: bool = False
 ) -> list[Path]:
     """
+    Rewrite the classic files of a simulated study as Enhanced MR under ``out``.
+
     Classic files of a simulated study (``write_study_dicom``) as Enhanced MR under ``out``:
     ``per="cine"`` one file per series (its series UID kept), ``"stack"`` one file for every
     short-axis series and one for every long-axis one (new series UIDs), ``"frame"`` one

@@ -164,7 +164,7 @@ class MessageCase:
 
     @property
     def stamp(self) -> str:
-        """The message's stamp as the nodes print it (``sec.nanosec``)."""
+        """Return the message's stamp as the nodes print it (``sec.nanosec``)."""
         return conversions.stamp_text(self.msg.header.stamp)
 
 
@@ -176,6 +176,8 @@ def frames_with_cases(
     valid: list[TaggedFrame], cases: list[MessageCase]
 ) -> list[tuple[TaggedFrame, list]]:
     """
+    Return the study in sending order with the frame cases placed.
+
     The study in sending order with the frame cases placed: for each valid frame, the frame to
     send in its slot (a stand-in where one ``replaces`` it) and the cases derived from it
     (``after``), to send right behind it. Cases placed neither way are not included.
@@ -189,7 +191,7 @@ def frames_with_cases(
 
 
 def _image(img: np.ndarray, encoding: str, *, big_endian: bool = False, pad: int = 0) -> Image:
-    """An Image holding ``img`` under ``encoding``, optionally byte-swapped and row-padded."""
+    """Build an Image of ``img`` under ``encoding``, optionally byte-swapped and row-padded."""
     img = np.ascontiguousarray(
         img, dtype=np.dtype(DTYPES[encoding]).newbyteorder('>' if big_endian else '<')
     )
@@ -206,7 +208,7 @@ def _image(img: np.ndarray, encoding: str, *, big_endian: bool = False, pad: int
 
 
 def _as(img: np.ndarray, encoding: str) -> np.ndarray:
-    """The study's float image rescaled into ``encoding``'s range (for integer encodings)."""
+    """Return the study's float image rescaled into ``encoding``'s range (integer encodings)."""
     dtype = np.dtype(DTYPES[encoding])
     if dtype.kind == 'f':
         return img.astype(dtype)
@@ -215,7 +217,7 @@ def _as(img: np.ndarray, encoding: str) -> np.ndarray:
 
 
 def _set_array(field: str, f):
-    """A change applying ``f`` to a sequence field as numpy (rclpy takes array.array there)."""
+    """Make a change applying ``f`` to a sequence field as numpy (rclpy takes array.array)."""
 
     def change(m):
         old = getattr(m, field)
@@ -227,7 +229,7 @@ def _set_array(field: str, f):
 
 
 def _set_fields(**fields):
-    """A change setting message fields; a callable value is computed from the message."""
+    """Make a change setting message fields; a callable value is computed from the message."""
 
     def change(m):
         for k, v in fields.items():
@@ -667,6 +669,8 @@ def _cloud_cases(
     topic: str, node: str, sample, required: tuple, category: str, full: bool
 ) -> list[MessageCase]:
     """
+    Return corrupt PointCloud2 variants of ``sample`` for a consumer needing ``required`` fields.
+
     Corrupt PointCloud2 variants of ``sample`` for a consumer needing ``required`` float fields:
     each required field missing and x, y, z non-finite; if ``full``, also every layout fault.
     """
@@ -825,7 +829,7 @@ def message_cases(
     valid: list[TaggedFrame], stamp0: float = 1000.0, max_pixels: int = 1024 * 1024
 ) -> list[MessageCase]:
     """
-    The corpus for one study.
+    Build the corpus for one study.
 
     Parameters
     ----------
