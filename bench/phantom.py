@@ -94,6 +94,8 @@ def run_case(x, model, name, fraction, seed, max_iterations):
 
 def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
     """
+    Time the local stage's CG iterations and system set-up (10 % control points).
+
     (seconds per CG iteration, seconds to set the system up) of the local stage with 10 %
     control points, medians of ``repeats`` solves of ``iterations`` CG iterations each.
     """
@@ -115,6 +117,8 @@ def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
 
 def local_stage_comparison(model):
     """
+    Compare the old and the new local stage: seconds per CG iteration and per set-up.
+
     Old (bench/reference_local.py) vs new local stage: seconds per CG iteration and per system
     set-up, and the ratio old / new.
     """

@@ -1,4 +1,6 @@
 """
+Benchmark: the whole graph on the default study as ``mlv-ros run`` runs it.
+
 Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
 SNR 20) as ``mlv-ros run`` runs it (the tag detector in a child process; MLV_ROS_ONE_PROCESS=1:
 all in one). Prints one JSON document: total time, per-stage latency per phase
@@ -33,6 +35,8 @@ from reference_local import tracker_local_solve  # noqa: E402, I100
 
 def stage_latencies(mcap: Path) -> dict:
     """
+    Return per-phase latencies (ms) from receive times in the recording.
+
     Per-phase latencies (ms) from receive times in the recording: frame → tag points (per
     frame), last tag points of a phase → its motion (solver), motion → metrics (analyzer).
     """

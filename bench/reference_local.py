@@ -1,4 +1,6 @@
 """
+Reference copies of the local stages as they were before the current local stage.
+
 Reference copies of the local stages as they were before :mod:`mlv_ros.core.meshless.local`
 (benchmarks and the equivalence test only; not part of the package).
 
@@ -35,6 +37,8 @@ def tracker_fit_error_matrix(model):
 
 def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, cache=None):
     """
+    Run the old ``MotionTracker._local_solve``.
+
     The old ``MotionTracker._local_solve``; ``cache`` (a dict) keeps kdiag and the fit-error
     matrix between calls as the tracker did. Returns (δ (N, 3), CG iterations).
     """
@@ -116,6 +120,8 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
 
 class PhantomSystemReference:
     """
+    The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``).
+
     The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``): matrix-free
     ``κ ΦᵀQᵀPQΦ + K + S + ε`` on :func:`~mlv_ros.core.meshless.elastic.linear_stiffness_apply` and
     :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`, Jacobi-preconditioned CG. Same

@@ -90,6 +90,8 @@ def track(frames, **tracker_kwargs) -> dict:
 
 def solve(sets: dict, cloud, state, **solver_kwargs):
     """
+    Solve every phase as the solver node does.
+
     Every phase solved as the solver node does; keywords MotionTracker does not take are set as
     its attributes (``outlier_mm``, ``prescreen``, ...).
     """
@@ -128,6 +130,8 @@ def ideal_targets(
     sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25, every_track: bool = False
 ) -> tuple[dict, int]:
     """
+    Return ``sets`` with every tracked point moved to where the truth puts it.
+
     ``sets`` with every tracked point moved to where the truth puts it (see the module
     docstring): the crossing of its ED material line ``p0 + s n`` with the image plane nearest
     ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly. Points whose
@@ -190,6 +194,8 @@ def _subset(pts, rows):
 
 def segment_errors(case: Path, rest, positions, motion) -> dict:
     """
+    Return the ES median / p95 3D error (mm) of the worst and of each abnormal AHA segment.
+
     ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
     ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``.
     """

@@ -72,6 +72,8 @@ def run_case(
     seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None
 ) -> dict:
     """
+    Run one case.
+
     One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
     (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
     """

@@ -195,7 +195,7 @@ _RosbagYamlDumper.add_representer(
 
 
 def rosbag2_yaml(data) -> str:
-    """``data`` as YAML text the way rosbag2 serialises it (``YAML::Dump``: no final newline)."""
+    """Return ``data`` as YAML text as rosbag2 writes it (``YAML::Dump``: no final newline)."""
     return yaml.dump(
         data,
         Dumper=_RosbagYamlDumper,
@@ -242,6 +242,8 @@ def offered_qos(profiles: list[dict]) -> list[dict]:
 
 def qos_yaml(profiles: list[dict]) -> str:
     """
+    Return the MCAP channel's ``offered_qos_profiles`` metadata as YAML text.
+
     The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
     (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp).
     """
@@ -277,7 +279,7 @@ _POLICY_NUMBERS = {
 
 def parse_offered_qos(value) -> list[dict]:
     """
-    Recorded ``offered_qos_profiles`` as a list of maps with policies by name.
+    Parse recorded ``offered_qos_profiles`` into a list of maps with policies by name.
 
     Accepts the version-9 sequence, the YAML string of MCAP channel metadata and of metadata.yaml
     before version 9 (our runs before the fix wrote the string form in version 9 too), and empty
@@ -337,6 +339,8 @@ def bag_metadata(
         Receive times of the first and last message; ``start_ns`` None for a bag without
         messages (rosbag2 then leaves starting_time at its initial maximum).
     custom_data : dict of str to str, optional
+        The bag's ``custom_data`` map, written as given; None or empty writes a null node
+        (``custom_data: ~``), as yaml-cpp writes an empty map.
 
     """
     topics = list(topics)
@@ -491,6 +495,8 @@ class BagWriter:
 
     def _guarded(self, op, *args, **kwargs):
         """
+        Run one writer operation; on a write error cut the file back and remember the error.
+
         Run one writer operation; on a write error cut the file back to where the operation
         began (a whole record), close it and remember the error.
         """
@@ -517,6 +523,8 @@ class BagWriter:
         Parameters
         ----------
         topic : str
+            The topic name as recorded (the MCAP channel's topic); a name already registered
+            is left as it is.
         type_name : str
             ``pkg/msg/Type``.
         qos_profiles : list of dict, optional
@@ -547,6 +555,8 @@ class BagWriter:
         self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None
     ) -> None:
         """
+        Append one CDR-serialised message with its receive and publish times.
+
         Append one CDR-serialised message received at ``log_time_ns`` and sent at
         ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
         receive time), both in ns since the epoch.
@@ -573,6 +583,8 @@ class BagWriter:
 
     def flush(self) -> None:
         """
+        Sync the chunks written so far to disk.
+
         Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
         this makes them survive a power loss). Does not close the current chunk. A failing sync
         (EIO) is kept in :attr:`error` like a failing write; the next write reports it.
@@ -599,6 +611,8 @@ class BagWriter:
 
     def close(self) -> None:
         """
+        Finish the file and write ``metadata.yaml`` beside it.
+
         Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
         ``metadata.yaml`` beside it.
 
@@ -628,6 +642,8 @@ class BagWriter:
 
     def _count_written(self) -> None:
         """
+        Set the topics' counts and the times to the messages that are in the file.
+
         Set the topics' counts and the times to the messages that are in the file: those of
         the chunks written whole, read from their message indexes (nothing is decompressed).
         """
@@ -769,6 +785,8 @@ class SeveralNamespacesError(ValueError):
 
 def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
     """
+    Return the name :func:`read_bag` gives messages of topic ``recorded``.
+
     The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
     not wanted); ``namespaces`` collects the namespaces of the graph topics seen.
     """
@@ -850,6 +868,8 @@ def _field_names(definition: str) -> list[str]:
 
 def fields_missing_from(type_name: str, definition: str) -> tuple | None:
     """
+    Return the appended fields a recording's ``ros2msg`` schema of ``type_name`` lacks.
+
     The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
     ``type_name`` lacks: ``()`` for the current definition, ``None`` when it cannot tell (no
     schema text, or not a known older definition).
@@ -866,6 +886,8 @@ def fields_missing_from(type_name: str, definition: str) -> tuple | None:
 
 def _cdr_defaults(data: bytes, fields) -> bytes:
     """
+    Return CDR message ``data`` with ``fields`` appended, aligned as CDR aligns them.
+
     ``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
     kind, default) each) appended, aligned as CDR aligns them (relative to the end of the
     header).
@@ -900,6 +922,8 @@ def _type_name(msg_class) -> str:
 
 def _reads_defaults(msg, fields) -> bool:
     """
+    Check whether the appended ``fields`` read back as the defaults they were appended with.
+
     Whether the appended ``fields`` read back as the defaults they were appended with: under a
     wrong older definition the bytes can parse yet shift, and a default then reads as part of
     another field (e.g. a float from a string's length).
@@ -978,6 +1002,8 @@ def deserialize(data: bytes, msg_class, missing: tuple | None = None):
 
 def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
     """
+    Return ``data`` as the current definition of ``msg_class`` serialises it.
+
     ``data`` as the current definition of ``msg_class`` serialises it: a message recorded
     before fields were appended gets their defaults appended (what a live subscriber can read);
     a current one comes back unchanged.

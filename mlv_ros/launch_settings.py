@@ -1,4 +1,6 @@
 """
+What ``launch/pipeline.launch.py`` makes of its arguments.
+
 What ``launch/pipeline.launch.py`` makes of its arguments, kept free of launch and launch_ros
 (not on PyPI) so it can be tested without them.
 
@@ -33,6 +35,8 @@ class GraphSettings:
 
 def fresh_run_dir(base: str | Path = RUNS_DIR, now: float | None = None) -> Path:
     """
+    Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>``.
+
     Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``... when
     taken).
 
@@ -70,7 +74,7 @@ def graph_settings(
     cwd: str | Path | None = None,
 ) -> GraphSettings:
     """
-    The graph's namespace, run directory and parameter overrides for the launch arguments.
+    Return the graph's namespace, run directory and parameter overrides for the launch arguments.
 
     Parameters
     ----------

@@ -1,4 +1,6 @@
 """
+One compute thread in every graph process, whatever the environment says.
+
 One compute thread in every graph process, whatever the environment says: the same study must
 give the same motion, to the bit, however the graph is laid out (one process, a child process,
 one process per node under ``ros2 launch``, several hosts).
@@ -28,6 +30,8 @@ COMPUTE_THREADS = 1
 @contextlib.contextmanager
 def compute_threads():
     """
+    Hold every BLAS/OpenMP pool and OpenCV's at :data:`COMPUTE_THREADS` in the block.
+
     Hold every BLAS/OpenMP pool loaded in this process (numpy's, scipy's and OpenCV's
     OpenBLAS, any OpenMP runtime) and OpenCV's own pool at :data:`COMPUTE_THREADS` thread(s)
     while the block runs, then restore what they were.

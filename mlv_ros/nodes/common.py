@@ -1,4 +1,6 @@
 """
+What every node shares: parameters, /diagnostics, its study and a ``main()`` runner.
+
 What every node shares: declared parameters with descriptors, /diagnostics reporting, the
 study a node keeps to (messages of another study are reported and ignored), and a ``main()``
 runner with clean shutdown on SIGINT/SIGTERM.
@@ -42,6 +44,8 @@ HARDWARE_ID = 'none'
 @dataclass
 class StreamCount:
     """
+    What one subscription has seen: messages received and messages lost or missed.
+
     What one subscription has seen: messages received, and messages its publisher sent that
     never arrived (sequence-number gaps) or were sent before it matched (``missed``).
     """
@@ -54,7 +58,7 @@ class StreamCount:
 
 
 def stamp_key(stamp) -> tuple[int, int]:
-    """A header stamp as a dict key (what pairs a cloud with its model state)."""
+    """Return a header stamp as a dict key (what pairs a cloud with its model state)."""
     return (int(stamp.sec), int(stamp.nanosec))
 
 
@@ -77,7 +81,7 @@ class Silence:
         self._tick_at = None
 
     def heard(self) -> None:
-        """A message arrived: the stream is alive."""
+        """Note that a message arrived: the stream is alive."""
         self.seconds = 0.0
 
     def tick(self, now: float | None = None) -> float:
@@ -91,6 +95,8 @@ class Silence:
 
 class RecentKeys:
     """
+    The last ``size`` keys added, each with a value (bounded memory).
+
     The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
     another study's model states → that study, whose point clouds (which cannot carry a study
     id) are dropped with them.
@@ -114,6 +120,8 @@ class RecentKeys:
 
 class GraphNode(Node):
     """
+    A Node with typed parameters, /diagnostics, loss accounting and the study it keeps to.
+
     A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
     every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`).
     """
@@ -166,6 +174,8 @@ class GraphNode(Node):
 
     def topic_name(self, topic: str) -> str:
         """
+        Return graph topic ``topic`` as this node resolves it.
+
         Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
         ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied).
         """
@@ -176,7 +186,7 @@ class GraphNode(Node):
     def diagnostic_status(
         self, level: int, message: str, values: dict | None = None
     ) -> DiagnosticStatus:
-        """A status of this node's task, named and identified as diagnostic_updater does."""
+        """Return a status of this node's task, named and identified as diagnostic_updater does."""
         status = DiagnosticStatus(
             level=level, name=self.diagnostic_name, message=message, hardware_id=HARDWARE_ID
         )
@@ -300,6 +310,8 @@ class GraphNode(Node):
 
     def foreign(self, study_id: str, topic: str, run_id: str = '', **where) -> str:
         """
+        Return the other study's or run's name if a message is foreign to this node, else ``""``.
+
         Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
         another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
         never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
@@ -389,6 +401,8 @@ class GraphNode(Node):
 
     def _with_counts(self, status: DiagnosticStatus) -> DiagnosticStatus:
         """
+        Return ``status`` plus the per-topic counts, as the heartbeat publishes it.
+
         ``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
         so, once messages of another study were ignored).
         """
@@ -421,6 +435,8 @@ class GraphNode(Node):
 
     def report(self, level: int, message: str, **values) -> None:
         """
+        Publish one DiagnosticStatus now, make it the node's current status, and log it.
+
         Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
         current status, and log it.
         """
@@ -453,6 +469,8 @@ class GraphNode(Node):
 
 def status_node(status: DiagnosticStatus) -> str:
     """
+    Return the name of the node that published ``status``.
+
     The name of the node that published ``status`` (``tag_detector`` for
     ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``).
     """
@@ -461,6 +479,8 @@ def status_node(status: DiagnosticStatus) -> str:
 
 def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
     """
+    Return (namespace, node) of the node that published ``status``.
+
     (namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
     for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
     'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown).
@@ -480,6 +500,8 @@ def status_text(status: DiagnosticStatus) -> str:
 
 def run_node(factory: Callable[..., Node], args=None) -> int:
     """
+    Create the node, spin it until told to stop, then drain and shut down cleanly.
+
     Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
     then drain what has already arrived and shut down cleanly. Returns 0, 2 for a node that
     could not start (bad parameters or paths), 1 for one that gave up (:meth:`GraphNode.fail`).

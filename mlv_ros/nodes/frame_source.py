@@ -1,4 +1,6 @@
 """
+frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames).
+
 frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames) from a
 simulator preset, a DICOM directory, a recorded bag, or the built-in test pattern.
 
@@ -48,6 +50,8 @@ def order_frames(frames: list[Frame], order: str) -> list[Frame]:
 
 def read_bag_frames(path) -> list[Frame]:
     """
+    Read every ``/mlv/frames`` message of a recording as Frames.
+
     Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
     Frames (also of recordings made before fields were appended to TaggedFrame: their
     ``study_id`` is empty).
@@ -92,7 +96,7 @@ def study_id_for(
     study_uids: dict | None = None,
 ) -> str:
     """
-    The study id of a source's frames (``TaggedFrame.study_id``).
+    Return the study id of a source's frames (``TaggedFrame.study_id``).
 
     Parameters
     ----------
@@ -119,6 +123,8 @@ def study_id_for(
 
 def count_slices(frames: list[Frame]) -> list[Frame]:
     """
+    Stamp every frame with the acquisition's SA and LA slice counts.
+
     Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
     know when a phase is complete).
     """
@@ -332,6 +338,8 @@ class FrameSource(GraphNode):
 
     def halt(self, reason: str) -> None:
         """
+        Stop publishing now (a run being interrupted).
+
         Stop publishing now (a run being interrupted): frames already sent stay sent, the
         rest never go out, and the node's job is over.
         """

@@ -1,4 +1,6 @@
 """
+meshless_solver: dense LV motion phase by phase.
+
 meshless_solver: dense LV motion phase by phase (``/mlv/tag_points`` + the registered model →
 ``/lv/motion``, ``/lv/model_state``).
 
@@ -305,6 +307,8 @@ class MeshlessSolver(GraphNode):
 
     def _outputs_ready(self) -> bool:
         """
+        Check whether the results may go out (a subscriber has matched).
+
         Whether the results may go out: outputs are VOLATILE streams, so a phase published
         before a subscriber has matched (e.g. by a solver restarted mid-run, which solves its
         first phases at once) never reaches it.

@@ -1,4 +1,6 @@
 """
+motion_analyzer: per-phase motion metrics.
+
 motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
 ``/lv/metrics``, ``mlv_msgs/MotionMetrics``).
 
@@ -103,6 +105,8 @@ class MotionAnalyzer(GraphNode):
 
     def _other_study_cloud(self, topic: str, msg) -> bool:
         """
+        Check whether ``msg`` (a point cloud) is paired with a state of another study.
+
         Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
         dropped with it (reported on /diagnostics, counted).
         """
@@ -230,6 +234,8 @@ class MotionAnalyzer(GraphNode):
 
     def _hold(self, held: dict, what: str, stamp, item) -> None:
         """
+        Keep ``item`` until its pair (same stamp) arrives, with bounded memory.
+
         Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
         (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so.
         """
@@ -306,6 +312,8 @@ class MotionAnalyzer(GraphNode):
 
     def _say_findings(self, f) -> None:
         """
+        Say which segments read akinetic / dyskinetic whenever that changes.
+
         Say which segments read akinetic / dyskinetic whenever that changes (the findings
         themselves go out in MotionMetrics).
         """

@@ -168,6 +168,8 @@ class Recorder(GraphNode):
 
     def upstream_alive(self) -> bool:
         """
+        Check whether a node still publishes on a recorded graph topic (``/diagnostics`` aside).
+
         Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
         node and this one publish, aside): after a signal the recording stays open for it.
         """
@@ -196,6 +198,8 @@ class Recorder(GraphNode):
 
     def ours(self, status) -> bool:
         """
+        Check whether a /diagnostics status is this graph's.
+
         Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
         this recorder's namespace. A status named by the node's name alone (no namespace) counts
         as ours at the root, or when this graph does not name its statuses by namespace
@@ -211,6 +215,8 @@ class Recorder(GraphNode):
 
     def _own_statuses(self, data: bytes) -> bytes | None:
         """
+        Return ``data`` (a DiagnosticArray) with only this graph's statuses, or None.
+
         ``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
         when all are, re-serialised when some are not, None when none is.
         """
@@ -230,8 +236,9 @@ class Recorder(GraphNode):
 
     def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
         """
-        Whether ``msg`` is written now (False: left out as another study's, or a cloud held
-        until its state is in).
+        Return whether ``msg`` is written now.
+
+        False: left out as another study's, or a cloud held until its state is in.
         """
         key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
         if topic in CLOUD_STATES:
@@ -278,7 +285,7 @@ class Recorder(GraphNode):
             self._write_failed(exc)
 
     def _write_failed(self, exc: OSError) -> None:
-        """The file cannot take more: close what it has and stop."""
+        """Close what the file has and stop: it cannot take more."""
         code = errno.errorcode.get(exc.errno, str(exc.errno))
         try:
             self.writer.close()  # metadata.yaml for the messages in the file
@@ -299,6 +306,8 @@ class Recorder(GraphNode):
 
     def finish(self) -> None:
         """
+        Close the recording and report the counts.
+
         Close the recording (every message already taken is in it, clouds still waiting for
         their state too) and report the counts.
         """

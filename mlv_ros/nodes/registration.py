@@ -1,4 +1,6 @@
 """
+registration: registers the meshless model to the end-diastolic images.
+
 registration: registers the meshless model to the end-diastolic images
 (``/mlv/frames`` → ``/mlv/registered_cloud``, ``/mlv/registered_state``, both latched).
 

@@ -1,4 +1,6 @@
 """
+tag_detector: tag intersections per frame, tracked through each slice's cine.
+
 tag_detector: tag intersections per frame, tracked through each slice's cine
 (``/mlv/frames`` → ``/mlv/tag_points``).
 
@@ -45,7 +47,7 @@ def _slice_name(key) -> str:
 
 
 def _digest(msg: TaggedFrame) -> bytes:
-    """What tells a re-sent frame from a different one in the same slot."""
+    """Return what tells a re-sent frame from a different one in the same slot."""
     h = hashlib.blake2b(digest_size=16)
     h.update(f'{msg.image.encoding} {msg.image.height}x{msg.image.width}'.encode())
     h.update(bytes(msg.image.data))
@@ -278,7 +280,7 @@ class TagDetector(GraphNode):
 
     def _update_status(self) -> None:
         """
-        The heartbeat's status: the counts, at OK unless something needs the user's eye.
+        Update the heartbeat's status: the counts, at OK unless something needs the user's eye.
 
         Set without publishing or logging (the heartbeat republishes it every second); events
         that need saying were already reported when they happened.
@@ -326,6 +328,8 @@ class TagDetector(GraphNode):
 
     def _publish_empty(self, msg: TaggedFrame, reason: str) -> None:
         """
+        Publish an empty set standing in for a frame that could not be used, if it may.
+
         An empty set standing in for a frame that could not be used, if its indices are usable
         and its slot is the next one its slice expects (a filled or later slot keeps its own).
         """

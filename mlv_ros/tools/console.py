@@ -1,4 +1,6 @@
 """
+The console of ``mlv-ros run`` and ``mlv-ros demo``.
+
 The console of ``mlv-ros run`` and ``mlv-ros demo``: one progress bar over phases while the
 graph runs, then a short summary of the run.
 
@@ -34,6 +36,8 @@ _NUMBER = re.compile(r'[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?')
 
 class RunConsole:
     """
+    What a run prints while it runs: the progress bar and the run's event lines.
+
     What a run prints while it runs: the progress bar (:meth:`phase`) and, with ``verbose``,
     the run's event lines (:meth:`line`).
 
@@ -56,6 +60,8 @@ class RunConsole:
 
     def quiet_nodes(self):
         """
+        Keep the nodes' INFO lines off the console unless verbose.
+
         Keep the nodes' INFO lines off the console unless verbose (WARN and ERROR stay: what a
         user must act on); returns what puts the level back (the process may run more after).
 
@@ -73,6 +79,8 @@ class RunConsole:
 
     def line(self, text: str) -> None:
         """
+        Show an event of the run (``run_graph``'s ``progress``) if it is to be shown.
+
         An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
         the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address).
         """
@@ -175,6 +183,8 @@ def source_text(source: dict) -> str:
 
 def volumes_text(volumes: dict, failed=()) -> str | None:
     """
+    Return ED / ES cavity volume and the ejection fraction as text.
+
     ED / ES cavity volume and the ejection fraction from phase → volume (ml), leaving out
     failed phases (ES: the smallest volume).
     """
@@ -195,7 +205,7 @@ def volumes_text(volumes: dict, failed=()) -> str | None:
 
 
 def accuracy_text(accuracy: dict | None) -> list[str]:
-    """The accuracy against the ground truth, in at most two lines."""
+    """Return the accuracy against the ground truth, in at most two lines."""
     if not accuracy:
         return []
     if accuracy.get('error'):
@@ -260,7 +270,7 @@ def summary_lines(
     volumes: dict | None = None,
 ) -> list[str]:
     """
-    The run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
+    Return the run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
 
     Parameters
     ----------

@@ -1,4 +1,6 @@
 """
+``mlv-ros demo`` (the README's ``make demo``): the whole graph on the built-in phantom.
+
 ``mlv-ros demo`` (the README's ``make demo``): simulate the built-in ``normal`` LV phantom
 (8 SA + 3 LA tagged cines, 256², 25 phases, SNR 20), run the whole graph on it in one process,
 record the run, build the report and print the accuracy against the phantom's analytic ground

@@ -1,4 +1,6 @@
 """
+``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView opens.
+
 ``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView (and any VTK or CSV
 tool) opens, rebuilt from the recording alone.
 
@@ -71,6 +73,8 @@ def add_arguments(parser):
 
 def check_out_dir(out: Path) -> None:
     """
+    Raise ValueError, with the fix, when ``out`` cannot take an export.
+
     ValueError, with the fix, when ``out`` cannot take an export (a file, a non-empty
     directory: an export never mixes with or overwrites other files).
     """
@@ -87,6 +91,8 @@ def check_out_dir(out: Path) -> None:
 # --------------------------------------------------------------------------- reading
 def read_phases(mcap: Path) -> dict:
     """
+    Read everything the export needs from a recording.
+
     Everything the export needs from a recording (checked with
     :func:`mlv_ros.tools.report.check_recording` first).
 
@@ -155,6 +161,8 @@ def read_phases(mcap: Path) -> dict:
 # --------------------------------------------------------------------------- writing
 def point_arrays(cloud: np.ndarray, ed: np.ndarray | None) -> tuple[np.ndarray, dict]:
     """
+    Return positions (N, 3) and the point arrays of one phase's /lv/motion cloud.
+
     Positions (N, 3) and the point arrays of one phase's /lv/motion cloud: ``displacement``
     (N, 3), every other scalar field (``err``, ``ecc``, ``ell``) as it was recorded, and
     ``ed_position`` (N, 3): the registered ED cloud when it has the same particles, else
@@ -183,7 +191,7 @@ def _number(value) -> str:
 
 def segment_rows(phases: dict) -> list[dict]:
     """
-    The CSV rows: every phase with metrics × AHA segment 1–17.
+    Return the CSV rows: every phase with metrics × AHA segment 1–17.
 
     Strain cells are empty where the value is no measurement: a failed phase, a segment without
     particles (``segment_count`` 0), a recording without segment strain.
@@ -277,6 +285,8 @@ def _readme(
 
 def export_vtk(mcap: Path, out: Path) -> dict:
     """
+    Write the export of the recording ``mcap`` into the new or empty directory ``out``.
+
     Write the export of the recording ``mcap`` (a run directory or its ``.mcap``) into the new
     or empty directory ``out``; returns a summary (the files, the phases written, left out and
     degraded).

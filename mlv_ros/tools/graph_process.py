@@ -1,4 +1,6 @@
 """
+A node of ``mlv-ros run``'s graph in a process of its own.
+
 A node of ``mlv-ros run``'s graph in a process of its own, so that it computes on another core
 than the rest of the graph (the tag detector beside the registration and the solver).
 
@@ -104,6 +106,8 @@ class ChildNode:
         cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict
     ) -> 'ChildNode':
         """
+        Start node ``name`` in a child process.
+
         Start node ``name`` in a child process (this interpreter, this environment, the
         directory holding ``mlv_ros`` on its path).
         """
