@@ -74,8 +74,8 @@ def run_case(
     """
     Run one case.
 
-    One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
-    (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
+    ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw (75 % of
+    studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
     """
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}

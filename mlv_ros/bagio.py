@@ -244,8 +244,8 @@ def qos_yaml(profiles: list[dict]) -> str:
     """
     Return the MCAP channel's ``offered_qos_profiles`` metadata as YAML text.
 
-    The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
-    (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp).
+    :func:`offered_qos` as YAML text (MCAP channel metadata is a string map;
+    ``serialize_rclcpp_qos_vector`` in qos.cpp).
     """
     return rosbag2_yaml(offered_qos(profiles))
 
@@ -495,10 +495,10 @@ class BagWriter:
 
     def _guarded(self, op, *args, **kwargs):
         """
-        Run one writer operation; on a write error cut the file back and remember the error.
+        Run one writer operation, undoing what a failed write left in the file.
 
-        Run one writer operation; on a write error cut the file back to where the operation
-        began (a whole record), close it and remember the error.
+        On a write error the file is cut back to where the operation began (a whole record) and
+        closed, and the error is kept.
         """
         if self.error is not None:
             raise ValueError(f'recording {self.path} stopped after a write error: {self.error}')
@@ -557,9 +557,9 @@ class BagWriter:
         """
         Append one CDR-serialised message with its receive and publish times.
 
-        Append one CDR-serialised message received at ``log_time_ns`` and sent at
-        ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
-        receive time), both in ns since the epoch.
+        The message was received at ``log_time_ns`` and sent at ``publish_time_ns`` (the
+        publisher's source timestamp, as rosbag2 records it; default the receive time), both in ns
+        since the epoch.
 
         Raises ``OSError`` when the file cannot take it (see :attr:`error`: the recording stops
         there) and ``ValueError`` once it has stopped or is closed.
@@ -585,9 +585,9 @@ class BagWriter:
         """
         Sync the chunks written so far to disk.
 
-        Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
-        this makes them survive a power loss). Does not close the current chunk. A failing sync
-        (EIO) is kept in :attr:`error` like a failing write; the next write reports it.
+        Chunks go to the OS unbuffered as they complete; this makes them survive a power loss. Does
+        not close the current chunk. A failing sync (EIO) is kept in :attr:`error` like a failing
+        write; the next write reports it.
         """
         if self.error is None and not self.closed:
             try:
@@ -613,8 +613,7 @@ class BagWriter:
         """
         Finish the file and write ``metadata.yaml`` beside it.
 
-        Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
-        ``metadata.yaml`` beside it.
+        Finishing writes the final ``rosbag2`` record, the summary, statistics and indexes.
 
         After a write error (:attr:`error`, or one while finishing) the file keeps the records
         written whole and no summary; ``metadata.yaml`` then counts the messages in it. Raises
@@ -644,8 +643,8 @@ class BagWriter:
         """
         Set the topics' counts and the times to the messages that are in the file.
 
-        Set the topics' counts and the times to the messages that are in the file: those of
-        the chunks written whole, read from their message indexes (nothing is decompressed).
+        Those are the messages of the chunks written whole, read from their message indexes
+        (nothing is decompressed).
         """
         from mcap.records import MessageIndex
         from mcap.stream_reader import StreamReader
@@ -787,8 +786,8 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
     """
     Return the name :func:`read_bag` gives messages of topic ``recorded``.
 
-    The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
-    not wanted); ``namespaces`` collects the namespaces of the graph topics seen.
+    The name it gives with ``any_namespace``, or None when the topic is not wanted; ``namespaces``
+    collects the namespaces of the graph topics seen.
     """
     split = qos.split_graph_topic(recorded)
     if split is None:
@@ -870,9 +869,8 @@ def fields_missing_from(type_name: str, definition: str) -> tuple | None:
     """
     Return the appended fields a recording's ``ros2msg`` schema of ``type_name`` lacks.
 
-    The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
-    ``type_name`` lacks: ``()`` for the current definition, ``None`` when it cannot tell (no
-    schema text, or not a known older definition).
+    See :data:`_APPENDED_FIELDS`: ``()`` for the current definition, ``None`` when it cannot tell
+    (no schema text, or not a known older definition).
     """
     appended = _APPENDED_FIELDS.get(type_name, ())
     names = _field_names(definition) if definition else []
@@ -888,9 +886,8 @@ def _cdr_defaults(data: bytes, fields) -> bytes:
     """
     Return CDR message ``data`` with ``fields`` appended, aligned as CDR aligns them.
 
-    ``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
-    kind, default) each) appended, aligned as CDR aligns them (relative to the end of the
-    header).
+    ``data`` is a CDR message with its 4-byte encapsulation header; ``fields`` are (name, kind,
+    default) each, aligned relative to the end of the header.
     """
     little = data[1] & 1  # representation id 0x0001 = CDR little endian, 0x0000 big endian
     order = 'little' if little else 'big'
@@ -924,9 +921,8 @@ def _reads_defaults(msg, fields) -> bool:
     """
     Check whether the appended ``fields`` read back as the defaults they were appended with.
 
-    Whether the appended ``fields`` read back as the defaults they were appended with: under a
-    wrong older definition the bytes can parse yet shift, and a default then reads as part of
-    another field (e.g. a float from a string's length).
+    Under a wrong older definition the bytes can parse yet shift, and a default then reads as part
+    of another field (e.g. a float from a string's length).
     """
     for name, kind, value in fields:
         got = getattr(msg, name)
@@ -1004,9 +1000,8 @@ def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
     """
     Return ``data`` as the current definition of ``msg_class`` serialises it.
 
-    ``data`` as the current definition of ``msg_class`` serialises it: a message recorded
-    before fields were appended gets their defaults appended (what a live subscriber can read);
-    a current one comes back unchanged.
+    A message recorded before fields were appended gets their defaults appended (what a live
+    subscriber can read); a current one comes back unchanged.
 
     Raises
     ------

@@ -409,8 +409,7 @@ def _check_study_id(study_id, name: str = 'study_id') -> str:
     """
     Check a message's ``study_id`` (or ``run_id``, by ``name``).
 
-    A message's ``study_id`` (or ``run_id``, by ``name``): text of printable characters, at most
-    :data:`MAX_STUDY_ID` long (empty = unknown).
+    It must be text of printable characters, at most :data:`MAX_STUDY_ID` long (empty = unknown).
     """
     study_id = str(study_id)
     if len(study_id) > MAX_STUDY_ID:
@@ -696,9 +695,8 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
     """
     Convert per-phase motion metrics to ``mlv_msgs/MotionMetrics``.
 
-    Per-phase motion metrics (mapping or object with the MotionMetrics field names) →
-    ``mlv_msgs/MotionMetrics``. Per-level arrays must share one length; segment arrays must be
-    empty or have 17 entries; values must be finite.
+    The metrics are a mapping or object with the MotionMetrics field names. Per-level arrays must
+    share one length; segment arrays must be empty or have 17 entries; values must be finite.
     """
     msg = MotionMetricsMsg(header=make_header(stamp))
     msg.phase_index = int(_metrics_value(metrics, 'phase_index'))
@@ -765,8 +763,8 @@ def _check_segment_extra(name: str, v: np.ndarray) -> None:
     """
     Check findings / uncertainty arrays.
 
-    Findings / uncertainty arrays: 0 or 17 entries; classes are codes 0…4; NaN (not
-    measured) is allowed, ±inf is not.
+    They must have 0 or 17 entries; classes are codes 0…4; NaN (not measured) is allowed, ±inf is
+    not.
     """
     if v.size not in (0, 17):
         raise ValueError(f'{name} must have 0 or 17 (AHA segments) entries, got {v.size}')
@@ -943,8 +941,7 @@ def image_to_foxglove(
     """
     Convert a slice image to ``foxglove.RawImage`` (``mono8``).
 
-    A slice image → ``foxglove.RawImage`` (``mono8``), grey levels mapped linearly from
-    ``window`` (low → 0, high → 255, clipped; NaN → 0).
+    Grey levels are mapped linearly from ``window`` (low → 0, high → 255, clipped; NaN → 0).
 
     Parameters
     ----------
@@ -1030,8 +1027,8 @@ def metrics_to_curves(metrics: Mapping) -> dict:
     """
     Convert one phase's metrics to the live view's curve point (a JSON object).
 
-    One phase's metrics (:func:`msg_to_metrics`) → the live view's curve point, a JSON object
-    Foxglove's Plot panel reads (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
+    The metrics are :func:`msg_to_metrics`'s; Foxglove's Plot panel reads the object
+    (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
 
     Keys: ``phase_index``, ``num_phases``, ``time_fraction`` (0..1), ``verdict`` (0 ok,
     1 degraded, 2 failed) and ``verdict_reasons``; then, except for a failed phase (no measurement:
@@ -1064,8 +1061,7 @@ def curves_schema() -> dict:
     """
     Return the JSON schema of :func:`metrics_to_curves`'s objects.
 
-    JSON schema of :func:`metrics_to_curves`'s objects (advertised with the channel, so
-    Foxglove offers the fields before the first phase).
+    It is advertised with the channel, so Foxglove offers the fields before the first phase.
     """
     number = {'type': 'number'}
     props = {

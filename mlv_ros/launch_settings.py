@@ -1,8 +1,7 @@
 """
 What ``launch/pipeline.launch.py`` makes of its arguments.
 
-What ``launch/pipeline.launch.py`` makes of its arguments, kept free of launch and launch_ros
-(not on PyPI) so it can be tested without them.
+Kept free of launch and launch_ros (not on PyPI) so it can be tested without them.
 
 Each launch gets its own run directory unless ``output_dir`` names one: ``runs/<YYYYmmdd-HHMMSS>``
 under the directory ``ros2 launch`` was started from, created at once (``-2``, ``-3``... when
@@ -37,8 +36,7 @@ def fresh_run_dir(base: str | Path = RUNS_DIR, now: float | None = None) -> Path
     """
     Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>``.
 
-    Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``... when
-    taken).
+    ``-2``, ``-3``... are appended when the name is taken.
 
     Parameters
     ----------

@@ -163,8 +163,8 @@ def topic_qos(topic: str) -> QoSProfile:
     """
     Return the profile a graph topic is published with.
 
-    The profile a graph topic is published with: latched for the registration results, with
-    history for frames and tag points, a deep RELIABLE stream otherwise.
+    Latched for the registration results, with history for frames and tag points, a deep RELIABLE
+    stream otherwise.
     """
     if topic in LATCHED_TOPICS:
         return latched_qos()

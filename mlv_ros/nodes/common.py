@@ -1,9 +1,9 @@
 """
 What every node shares: parameters, /diagnostics, its study and a ``main()`` runner.
 
-What every node shares: declared parameters with descriptors, /diagnostics reporting, the
-study a node keeps to (messages of another study are reported and ignored), and a ``main()``
-runner with clean shutdown on SIGINT/SIGTERM.
+Declared parameters with descriptors, /diagnostics reporting, the study a node keeps to (messages
+of another study are reported and ignored), and a ``main()`` runner with clean shutdown on
+SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ class StreamCount:
     """
     What one subscription has seen: messages received and messages lost or missed.
 
-    What one subscription has seen: messages received, and messages its publisher sent that
-    never arrived (sequence-number gaps) or were sent before it matched (``missed``).
+    ``lost``: messages its publisher sent that never arrived (sequence-number gaps); ``missed``:
+    messages it sent before this subscription matched.
     """
 
     received: int = 0
@@ -97,9 +97,8 @@ class RecentKeys:
     """
     The last ``size`` keys added, each with a value (bounded memory).
 
-    The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
-    another study's model states → that study, whose point clouds (which cannot carry a study
-    id) are dropped with them.
+    E.g. the stamps of another study's model states → that study, whose point clouds (which cannot
+    carry a study id) are dropped with them.
     """
 
     def __init__(self, size: int = 1000):
@@ -122,8 +121,8 @@ class GraphNode(Node):
     """
     A Node with typed parameters, /diagnostics, loss accounting and the study it keeps to.
 
-    A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
-    every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`).
+    Typed parameter declaration, a /diagnostics publisher, loss accounting on every subscription,
+    and the study it keeps to (:attr:`study`, :meth:`foreign`).
     """
 
     # What this node's one diagnostic task is called: statuses are named "<node>: <task>", as
@@ -176,8 +175,8 @@ class GraphNode(Node):
         """
         Return graph topic ``topic`` as this node resolves it.
 
-        Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
-        ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied).
+        ``topic`` is a root name, e.g. :data:`qos.FRAMES`; it resolves to ``/study2/mlv/frames`` in
+        namespace ``/study2`` (remappings applied).
         """
         if topic not in self._topics:
             self._topics[topic] = self.resolve_topic_name(qos.relative(topic))
@@ -312,9 +311,9 @@ class GraphNode(Node):
         """
         Return the other study's or run's name if a message is foreign to this node, else ``""``.
 
-        Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
-        another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
-        never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
+        A message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` is foreign when it
+        belongs to another study or run than this node's (:attr:`study`; an empty id, or none
+        adopted yet, is never foreign); the name is :meth:`StudyShape.other`.
 
         A foreign message is reported at once as an ERROR on /diagnostics naming both, the topic
         and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the console gets
@@ -403,8 +402,7 @@ class GraphNode(Node):
         """
         Return ``status`` plus the per-topic counts, as the heartbeat publishes it.
 
-        ``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
-        so, once messages of another study were ignored).
+        At ERROR, saying so, once messages of another study were ignored.
         """
         extra = []
         for topic, c in self.streams.items():
@@ -437,8 +435,7 @@ class GraphNode(Node):
         """
         Publish one DiagnosticStatus now, make it the node's current status, and log it.
 
-        Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
-        current status, and log it.
+        The status is :meth:`diagnostic_status`'s.
         """
         self._report(level, message, values)
 
@@ -471,8 +468,7 @@ def status_node(status: DiagnosticStatus) -> str:
     """
     Return the name of the node that published ``status``.
 
-    The name of the node that published ``status`` (``tag_detector`` for
-    ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``).
+    ``tag_detector`` for ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``.
     """
     return status.name.partition(': ')[0].rpartition('/')[2]
 
@@ -481,9 +477,9 @@ def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
     """
     Return (namespace, node) of the node that published ``status``.
 
-    (namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
-    for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
-    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown).
+    ``('/study2', 'tag_detector')`` for ``/study2/tag_detector: tag tracking`` (named by its fully
+    qualified name), ``(None, 'tag_detector')`` for ``tag_detector: tag tracking`` (by its name
+    alone: namespace unknown).
     """
     node = status.name.partition(': ')[0]
     if not node.startswith('/'):
@@ -502,9 +498,9 @@ def run_node(factory: Callable[..., Node], args=None) -> int:
     """
     Create the node, spin it until told to stop, then drain and shut down cleanly.
 
-    Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
-    then drain what has already arrived and shut down cleanly. Returns 0, 2 for a node that
-    could not start (bad parameters or paths), 1 for one that gave up (:meth:`GraphNode.fail`).
+    It spins until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`, then drains what has
+    already arrived. Returns 0, 2 for a node that could not start (bad parameters or paths), 1 for
+    one that gave up (:meth:`GraphNode.fail`).
 
     rclpy's own signal handlers are replaced by ours: a signal only sets a flag, so the context
     stays valid while the node takes every message still queued (a recorder must not lose what

@@ -1,8 +1,8 @@
 """
 frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames).
 
-frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames) from a
-simulator preset, a DICOM directory, a recorded bag, or the built-in test pattern.
+The frames come from a simulator preset, a DICOM directory, a recorded bag, or the built-in test
+pattern.
 
 Order is slice-major (as scanners acquire: each slice's whole cine in one breath-hold) or
 phase-major; rate is real time × ``rate_factor``, or as fast as possible (``rate_factor: 0``),
@@ -52,9 +52,8 @@ def read_bag_frames(path) -> list[Frame]:
     """
     Read every ``/mlv/frames`` message of a recording as Frames.
 
-    Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
-    Frames (also of recordings made before fields were appended to TaggedFrame: their
-    ``study_id`` is empty).
+    Whatever namespace it was recorded in, also from recordings made before fields were appended to
+    TaggedFrame (their ``study_id`` is empty).
     """
     return [
         conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
@@ -125,8 +124,7 @@ def count_slices(frames: list[Frame]) -> list[Frame]:
     """
     Stamp every frame with the acquisition's SA and LA slice counts.
 
-    Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
-    know when a phase is complete).
+    Consumers use them to know when a phase is complete.
     """
     from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
@@ -340,8 +338,7 @@ class FrameSource(GraphNode):
         """
         Stop publishing now (a run being interrupted).
 
-        Stop publishing now (a run being interrupted): frames already sent stay sent, the
-        rest never go out, and the node's job is over.
+        Frames already sent stay sent, the rest never go out, and the node's job is over.
         """
         if self.done:
             return

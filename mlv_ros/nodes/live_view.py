@@ -75,8 +75,7 @@ class _Subscriptions:
     """
     foxglove ServerListener noting what had been served when each subscription came.
 
-    foxglove ServerListener: notes each subscription with what had been served when it came
-    (``state()``: clouds served, phases served), called from the server's thread; the node serves
+    ``state()``: clouds served, phases served; called from the server's thread. The node serves
     what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`).
     """
 
@@ -226,9 +225,9 @@ class LiveView(GraphNode):
         """
         Serve what a client that just subscribed missed.
 
-        Serve what a client that just subscribed missed: the latest cloud, unless a newer one
-        went out since it subscribed; a slice's images and tag points of the phases shown before
-        it subscribed (others subscribed then see them again, with the same stamps).
+        The latest cloud, unless a newer one went out since it subscribed; a slice's images and tag
+        points of the phases shown before it subscribed (others subscribed then see them again,
+        with the same stamps).
         """
         topics = self._fox_listener.topics
         while topics:
@@ -296,8 +295,7 @@ class LiveView(GraphNode):
         """
         Keep ``item`` until its pair (same stamp) is in, then serve the phase.
 
-        Keep ``item`` until its pair (same stamp) is in, then serve the phase; the oldest goes
-        (said on /diagnostics) when more than ``max_unpaired`` wait.
+        The oldest goes (said on /diagnostics) when more than ``max_unpaired`` wait.
         """
         held[key] = item
         if key in self._clouds and key in self._states:

@@ -1,8 +1,7 @@
 """
 motion_analyzer: per-phase motion metrics.
 
-motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
-``/lv/metrics``, ``mlv_msgs/MotionMetrics``).
+``/lv/motion`` + ``/lv/model_state`` → ``/lv/metrics`` (``mlv_msgs/MotionMetrics``).
 
 Each motion cloud is paired with the model state of identical header stamp (the solver stamps
 both alike; the state carries the phase index), as message_filters' exact-time synchroniser
@@ -107,8 +106,7 @@ class MotionAnalyzer(GraphNode):
         """
         Check whether ``msg`` (a point cloud) is paired with a state of another study.
 
-        Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
-        dropped with it (reported on /diagnostics, counted).
+        Such a cloud is dropped with its state (reported on /diagnostics, counted).
         """
         key = _key(msg.header.stamp)
         if key not in self._foreign_stamps:
@@ -236,8 +234,8 @@ class MotionAnalyzer(GraphNode):
         """
         Keep ``item`` until its pair (same stamp) arrives, with bounded memory.
 
-        Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
-        (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so.
+        The oldest goes when too many wait (e.g. states whose clouds were dropped as bad), so
+        memory stays bounded, and the node says so.
         """
         held[_key(stamp)] = item
         self._pair()
@@ -314,8 +312,7 @@ class MotionAnalyzer(GraphNode):
         """
         Say which segments read akinetic / dyskinetic whenever that changes.
 
-        Say which segments read akinetic / dyskinetic whenever that changes (the findings
-        themselves go out in MotionMetrics).
+        The findings themselves go out in MotionMetrics.
         """
         said = (
             tuple(f.abnormal(('akinetic',))),

@@ -170,8 +170,8 @@ class Recorder(GraphNode):
         """
         Check whether a node still publishes on a recorded graph topic (``/diagnostics`` aside).
 
-        Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
-        node and this one publish, aside): after a signal the recording stays open for it.
+        ``/diagnostics`` is left aside because every node and this one publish it. After a signal
+        the recording stays open for such a node.
         """
         return any(
             self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS
@@ -200,11 +200,10 @@ class Recorder(GraphNode):
         """
         Check whether a /diagnostics status is this graph's.
 
-        Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
-        this recorder's namespace. A status named by the node's name alone (no namespace) counts
-        as ours at the root, or when this graph does not name its statuses by namespace
-        (``diagnostic_updater.use_fqn`` false here): then another graph's in another namespace
-        cannot be told apart, and is kept.
+        It is when it names a graph node (:data:`GRAPH_NODE_NAMES`) in this recorder's namespace. A
+        status named by the node's name alone (no namespace) counts as ours at the root, or when
+        this graph does not name its statuses by namespace (``diagnostic_updater.use_fqn`` false
+        here): then another graph's in another namespace cannot be told apart, and is kept.
         """
         ns, node = status_place(status)
         if node not in GRAPH_NODE_NAMES:
@@ -217,8 +216,8 @@ class Recorder(GraphNode):
         """
         Return ``data`` (a DiagnosticArray) with only this graph's statuses, or None.
 
-        ``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
-        when all are, re-serialised when some are not, None when none is.
+        Statuses are this graph's by :meth:`ours`: ``data`` as received when all are, re-serialised
+        when some are not, None when none is.
         """
         try:
             arr = deserialize_message(data, DiagnosticArray)
@@ -308,8 +307,7 @@ class Recorder(GraphNode):
         """
         Close the recording and report the counts.
 
-        Close the recording (every message already taken is in it, clouds still waiting for
-        their state too) and report the counts.
+        Every message already taken is in it, clouds still waiting for their state too.
         """
         if self.writer.closed:
             return

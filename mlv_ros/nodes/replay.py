@@ -1,8 +1,8 @@
 """
 replay: publishes a recorded MCAP's topics (as ``ros2 bag play`` does).
 
-replay: publishes a recorded MCAP's topics (as ``ros2 bag play`` does), with the original
-timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate: 0``).
+With the original timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate:
+0``).
 
 The graph's topics are played in the node's namespace whatever namespace they were recorded in
 (``/study2/mlv/frames`` recorded, ``/mlv/frames`` played at the root, ``/study3/mlv/frames``

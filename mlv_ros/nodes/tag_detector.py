@@ -1,8 +1,7 @@
 """
 tag_detector: tag intersections per frame, tracked through each slice's cine.
 
-tag_detector: tag intersections per frame, tracked through each slice's cine
-(``/mlv/frames`` → ``/mlv/tag_points``).
+``/mlv/frames`` → ``/mlv/tag_points``.
 
 One :class:`~mlv_ros.core.tags.SliceTracker` per (view, slice). Frames may arrive in any order
 (slice-major, phase-major, interleaved); each slice's frames are processed in phase order, later
@@ -330,8 +329,8 @@ class TagDetector(GraphNode):
         """
         Publish an empty set standing in for a frame that could not be used, if it may.
 
-        An empty set standing in for a frame that could not be used, if its indices are usable
-        and its slot is the next one its slice expects (a filled or later slot keeps its own).
+        Only if the frame's indices are usable and its slot is the next one its slice expects (a
+        filled or later slot keeps its own).
         """
         key = (msg.view, msg.slice_index)
         if msg.phase_index != self.next_phase.get(key, 0) or msg.phase_index in self.pending.get(

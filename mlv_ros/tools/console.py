@@ -1,8 +1,7 @@
 """
 The console of ``mlv-ros run`` and ``mlv-ros demo``.
 
-The console of ``mlv-ros run`` and ``mlv-ros demo``: one progress bar over phases while the
-graph runs, then a short summary of the run.
+One progress bar over phases while the graph runs, then a short summary of the run.
 
 By default a run shows:
 
@@ -38,8 +37,7 @@ class RunConsole:
     """
     What a run prints while it runs: the progress bar and the run's event lines.
 
-    What a run prints while it runs: the progress bar (:meth:`phase`) and, with ``verbose``,
-    the run's event lines (:meth:`line`).
+    The progress bar (:meth:`phase`) and, with ``verbose``, the run's event lines (:meth:`line`).
 
     Parameters
     ----------
@@ -62,8 +60,8 @@ class RunConsole:
         """
         Keep the nodes' INFO lines off the console unless verbose.
 
-        Keep the nodes' INFO lines off the console unless verbose (WARN and ERROR stay: what a
-        user must act on); returns what puts the level back (the process may run more after).
+        WARN and ERROR stay (what a user must act on). Returns what puts the level back (the
+        process may run more after).
 
         The threshold is the default level of every ROS logger in this process, which also
         decides what reaches /rosout: INFO statuses are still on /diagnostics and in the
@@ -81,8 +79,8 @@ class RunConsole:
         """
         Show an event of the run (``run_graph``'s ``progress``) if it is to be shown.
 
-        An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
-        the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address).
+        Shown with ``verbose`` only, but for the few of :data:`ALWAYS_SHOWN` (e.g. the live view's
+        address).
         """
         if not self.verbose and not text.startswith(ALWAYS_SHOWN):
             return
@@ -185,8 +183,7 @@ def volumes_text(volumes: dict, failed=()) -> str | None:
     """
     Return ED / ES cavity volume and the ejection fraction as text.
 
-    ED / ES cavity volume and the ejection fraction from phase → volume (ml), leaving out
-    failed phases (ES: the smallest volume).
+    From phase → volume (ml), leaving out failed phases (ES: the smallest volume).
     """
     kept = {
         int(p): float(v)

@@ -1,8 +1,7 @@
 """
 ``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView opens.
 
-``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView (and any VTK or CSV
-tool) opens, rebuilt from the recording alone.
+Files that ParaView (and any VTK or CSV tool) opens, rebuilt from the recording alone.
 
 DIR (created; an existing one must be empty) receives:
 
@@ -75,8 +74,7 @@ def check_out_dir(out: Path) -> None:
     """
     Raise ValueError, with the fix, when ``out`` cannot take an export.
 
-    ValueError, with the fix, when ``out`` cannot take an export (a file, a non-empty
-    directory: an export never mixes with or overwrites other files).
+    That is a file or a non-empty directory: an export never mixes with or overwrites other files.
     """
     if out.is_dir():
         if any(out.iterdir()):
@@ -93,8 +91,7 @@ def read_phases(mcap: Path) -> dict:
     """
     Read everything the export needs from a recording.
 
-    Everything the export needs from a recording (checked with
-    :func:`mlv_ros.tools.report.check_recording` first).
+    The recording is checked with :func:`mlv_ros.tools.report.check_recording` first.
 
     Returns
     -------
@@ -163,10 +160,9 @@ def point_arrays(cloud: np.ndarray, ed: np.ndarray | None) -> tuple[np.ndarray, 
     """
     Return positions (N, 3) and the point arrays of one phase's /lv/motion cloud.
 
-    Positions (N, 3) and the point arrays of one phase's /lv/motion cloud: ``displacement``
-    (N, 3), every other scalar field (``err``, ``ecc``, ``ell``) as it was recorded, and
-    ``ed_position`` (N, 3): the registered ED cloud when it has the same particles, else
-    position − displacement.
+    The arrays: ``displacement`` (N, 3), every other scalar field (``err``, ``ecc``, ``ell``) as it
+    was recorded, and ``ed_position`` (N, 3): the registered ED cloud when it has the same
+    particles, else position − displacement.
     """
     pts = np.stack([cloud[n] for n in _POSITION], axis=-1)
     names = cloud.dtype.names
@@ -287,9 +283,8 @@ def export_vtk(mcap: Path, out: Path) -> dict:
     """
     Write the export of the recording ``mcap`` into the new or empty directory ``out``.
 
-    Write the export of the recording ``mcap`` (a run directory or its ``.mcap``) into the new
-    or empty directory ``out``; returns a summary (the files, the phases written, left out and
-    degraded).
+    ``mcap`` is a run directory or its ``.mcap``. Returns a summary (the files, the phases written,
+    left out and degraded).
 
     The files are written into a temporary directory beside ``out`` that then takes its name, so
     an export that fails leaves nothing behind.

@@ -1,8 +1,8 @@
 """
 ``mlv-ros recover DAMAGED.mcap OUT.mcap``: rewrite a valid recording from a damaged one.
 
-``mlv-ros recover DAMAGED.mcap OUT.mcap``: rewrite a valid recording from one whose writer was
-killed (every message of every complete chunk is kept; see :func:`mlv_ros.bagio.recover`).
+DAMAGED is a recording whose writer was killed; every message of every complete chunk is kept (see
+:func:`mlv_ros.bagio.recover`).
 
 DAMAGED may be a run directory holding one ``.mcap`` file.
 """

@@ -1,8 +1,7 @@
 """
 ``mlv-ros report RUN.mcap [--compare OTHER.mcap]``: the motion report of a recorded run.
 
-``mlv-ros report RUN.mcap [--compare OTHER.mcap]``: the motion report of a recorded run,
-rebuilt from the recording alone (no tracking is recomputed): PNG figures in the spirit of the
+Rebuilt from the recording alone (no tracking is recomputed): PNG figures in the spirit of the
 paper's Fig. 9–16, a bull's-eye of peak strain by AHA segment, ``summary.json`` and an
 ``index.html`` that shows them together.
 """
@@ -32,9 +31,8 @@ def check_recording(path: Path) -> None:
     """
     Raise FileNotFoundError / ValueError, with the fix, for a path that is not a run's recording.
 
-    Raise FileNotFoundError / ValueError, with the fix, for a path that is not a run's recording:
-    missing, or holding another message type on a topic the report reads (deserialising it would
-    fail deep inside rclpy).
+    That is, a path missing, or holding another message type on a topic the report reads
+    (deserialising it would fail deep inside rclpy).
     """
     path = Path(path)
     if not path.exists():

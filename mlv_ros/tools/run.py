@@ -1,8 +1,8 @@
 """
 ``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap.
 
-``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap: the tag detector in a process of
-its own (:mod:`mlv_ros.tools.graph_process`), the other nodes in the run's process (one executor).
+The tag detector runs in a process of its own (:mod:`mlv_ros.tools.graph_process`), the other nodes
+in the run's process (one executor).
 
     mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
                 [--namespace NS]
@@ -79,10 +79,10 @@ DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is que
 
 class RunStartError(ValueError):
     """
-    Error raised when the graph could not start (nothing recorded, nothing left behind).
+    Error raised when the graph could not start.
 
-    The graph could not start (a node refused its parameters, the input has no frames, the
-    run directory cannot be written); nothing was recorded and nothing is left behind.
+    A node refused its parameters, the input has no frames, or the run directory cannot be written;
+    nothing was recorded and nothing is left behind.
     """
 
 
@@ -266,8 +266,8 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
     """
     Return the mlv_ros graph nodes that discovery finds in ``namespace`` on a ROS domain.
 
-    Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` that discovery finds
-    on ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
+    The nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` on ROS domain
+    ``domain_id``, looked for within ``wait_s`` seconds (returns as soon as it finds one).
 
     A graph in another namespace talks on other topics (``/a/mlv/frames``, ``/b/mlv/frames``):
     it is no conflict, and not counted. The look itself is a hidden node in ``namespace`` named
@@ -343,7 +343,7 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
 
 
 def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = '/') -> str:
-    """Return the one line refusing a busy domain, with how to choose another (or namespace)."""
+    """Return the line refusing a busy domain, saying how to pick another domain or namespace."""
     shown = ', '.join(
         'another mlv-ros run starting' if PROBE_PREFIX in n else n for n in nodes[:4]
     )
@@ -362,8 +362,7 @@ def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
     """
     Return the domain the user chose and whether one was chosen.
 
-    (the domain the user chose: ``domain_id`` or ``$ROS_DOMAIN_ID``, or None; whether one was
-    chosen).
+    The domain is ``domain_id`` or ``$ROS_DOMAIN_ID``, or None when neither was given.
     """
     if domain_id is not None:
         return int(domain_id), True
@@ -386,8 +385,7 @@ def _prepare_out(out_dir: Path) -> list[Path]:
     """
     Create the run directory, check it takes files and return the directories created.
 
-    Create the run directory and check it takes files; returns the directories created (the
-    deepest first), for a failed start to remove.
+    The directories created come deepest first, for a failed start to remove.
     """
     if (out_dir / 'run.mcap').exists():
         raise FileExistsError(
@@ -424,8 +422,7 @@ def _error_text(exc: BaseException) -> str:
     """
     Return an exception as one line of text.
 
-    An exception as one line: expected errors by their message, anything else (a bug) with
-    its type and where it was raised.
+    Expected errors by their message, anything else (a bug) with its type and where it was raised.
     """
     from rclpy.exceptions import InvalidParameterValueException, ParameterException
 
@@ -468,8 +465,7 @@ def child_nodes() -> tuple[str, ...]:
     """
     Return the nodes a run starts in processes of their own.
 
-    The nodes a run starts in processes of their own (:data:`CHILD_NODES`; none on one core
-    or with ``MLV_ROS_ONE_PROCESS=1``).
+    :data:`CHILD_NODES`; none on one core or with ``MLV_ROS_ONE_PROCESS=1``.
     """
     if (
         os.environ.get('MLV_ROS_ONE_PROCESS', '').strip() not in ('', '0')
@@ -514,8 +510,7 @@ def _activity(nodes: dict) -> int:
     """
     Return a number that grows whenever the graph does something.
 
-    A number that grows whenever the graph does something (frames, tag points, phases,
-    messages taken); /diagnostics heartbeats are left out.
+    It counts frames, tag points, phases and messages taken; /diagnostics heartbeats are left out.
     """
     from mlv_ros import qos
 
@@ -1066,8 +1061,8 @@ def verdict_summary(verdicts: dict) -> dict:
     """
     Return ``phases_ok`` and the degraded / failed phases with their reasons.
 
-    ``phases_ok`` and the ``degraded`` / ``failed`` phases with their reasons
-    (:mod:`mlv_ros.core.verdict`) from the analyzer's phase → (level, reasons).
+    ``phases_ok`` and the ``degraded`` / ``failed`` phases (:mod:`mlv_ros.core.verdict`) come from
+    the analyzer's phase → (level, reasons).
     """
     out = {'phases_ok': sorted(p for p, (v, _) in verdicts.items() if v == 0)}
     for level, name in ((1, 'phases_degraded'), (2, 'phases_failed')):
@@ -1079,9 +1074,9 @@ def twist_summary(solver, analyzer) -> dict:
     """
     Return the run summary's twist fields: the measured levels and what is extrapolated.
 
-    ``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points
-    cross; None without any) and ``twist_extrapolated`` (what of the twist and torsion is
-    extrapolated, one sentence; '' when nothing is), once the solver has taken its ED phase.
+    ``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points cross;
+    None without any) and ``twist_extrapolated`` (what of the twist and torsion is extrapolated,
+    one sentence; '' when nothing is), once the solver has taken its ED phase.
     """
     from mlv_ros.core.analysis.frame import twist_extrapolation_note
 
@@ -1104,9 +1099,9 @@ def segment_origin_summary(node) -> dict | None:
     """
     Return where the AHA segments' circumferential origin came from.
 
-    Where the AHA segments' circumferential origin came from (None before it registered):
-    ``source`` detected (the RV in the ED SA images) / prior (not tied to the anatomy) / given,
-    the insertion directions and confidence (:meth:`SeptumEstimate.to_dict`).
+    None before it registered; else ``source`` detected (the RV in the ED SA images) / prior (not
+    tied to the anatomy) / given, the insertion directions and confidence
+    (:meth:`SeptumEstimate.to_dict`).
     """
     res = getattr(node, 'result', None)
     septum = getattr(res, 'septum', None)
@@ -1148,9 +1143,8 @@ def write_summary(out_dir: Path, summary: dict) -> None:
     """
     Write ``summary.json`` in the run directory, whole or not at all.
 
-    ``summary.json`` in the run directory, whole or not at all (written beside, then renamed:
-    a full disk left an empty file); on a write error the summary says so instead
-    (``summary_error``) and an earlier summary.json stays as it was.
+    It is written beside, then renamed (a full disk left an empty file); on a write error the
+    summary says so instead (``summary_error``) and an earlier summary.json stays as it was.
     """
     path = Path(out_dir) / 'summary.json'
     part = path.with_name('.summary.json.part')
@@ -1242,8 +1236,8 @@ def groundtruth_accuracy(mcap: Path, groundtruth: Path) -> dict:
     """
     Return the accuracy of a recorded run against a simulated study's ground truth.
 
-    Accuracy of a recorded run against a simulated study's ``groundtruth.json`` (its directory
-    or the file), as :func:`phantom_accuracy` does for a preset.
+    ``groundtruth`` is the study's ``groundtruth.json`` or its directory; the accuracy is computed
+    as :func:`phantom_accuracy` does for a preset.
     """
     from mlv_ros.core.io.groundtruth import motion_from_groundtruth
 
@@ -1358,8 +1352,7 @@ def _params_shape(data: dict) -> bool:
     """
     Check whether ``data`` is shaped as a ROS parameters file.
 
-    Whether ``data`` is shaped as a ROS parameters file: node (or namespace) keys down to
-    ``ros__parameters`` maps.
+    That is, node (or namespace) keys down to ``ros__parameters`` maps.
     """
     return all(
         isinstance(value, dict) or value is None
