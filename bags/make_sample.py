@@ -1,7 +1,9 @@
 """
-Regenerate the sample acquisition in this folder: the `normal` phantom (seed 0, SNR 20,
-128², 16 phases, 8 SA + 3 LA slices) written to DICOM, read back by the DICOM reader and
-recorded as ``/mlv/frames`` messages (uint16, as the DICOM stores them) to ``normal_sample.mcap``.
+Regenerate the sample acquisition in this folder (``normal_sample.mcap``).
+
+The `normal` phantom (seed 0, SNR 20, 128², 16 phases, 8 SA + 3 LA slices) written to DICOM, read
+back by the DICOM reader and recorded as ``/mlv/frames`` messages (uint16, as the DICOM stores
+them) to ``normal_sample.mcap``.
 
     .venv/bin/python bags/make_sample.py [--dicom-out DIR]
 """

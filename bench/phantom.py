@@ -94,8 +94,10 @@ def run_case(x, model, name, fraction, seed, max_iterations):
 
 def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
     """
-    (seconds per CG iteration, seconds to set the system up) of the local stage with 10 %
-    control points, medians of ``repeats`` solves of ``iterations`` CG iterations each.
+    Time the local stage's CG iterations and system set-up (10 % control points).
+
+    Returns (seconds per CG iteration, seconds to set the system up), medians of ``repeats`` solves
+    of ``iterations`` CG iterations each.
     """
     n = model.num_particles
     idx = control_subset(n, 0.1, seed=0)
@@ -115,8 +117,9 @@ def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
 
 def local_stage_comparison(model):
     """
-    Old (bench/reference_local.py) vs new local stage: seconds per CG iteration and per system
-    set-up, and the ratio old / new.
+    Compare the old and the new local stage: seconds per CG iteration and per set-up.
+
+    Old: bench/reference_local.py. Also returns the ratio old / new.
     """
     model.local_operators  # noqa: B018 (built once per model; timed in build_local_s)
     new_it, new_setup = cg_iteration_seconds(model, model._local_system)

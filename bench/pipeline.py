@@ -1,10 +1,11 @@
 """
-Benchmark: the whole graph on the default study (normal phantom, 8 SA + 3 LA, 256², 25 phases,
-SNR 20) as ``mlv-ros run`` runs it (the tag detector in a child process; MLV_ROS_ONE_PROCESS=1:
-all in one). Prints one JSON document: total time, per-stage latency per phase
-(from the recording's receive times), peak RSS, messages published vs recorded, accuracy; then
-``local_stage``: the run's recorded tag points replayed through a tracker built as the solver node
-builds it, every local solve timed with the new stage and with the old one
+Benchmark: the whole graph on the default study as ``mlv-ros run`` runs it.
+
+The default study: normal phantom, 8 SA + 3 LA, 256², 25 phases, SNR 20; the tag detector in a
+child process (MLV_ROS_ONE_PROCESS=1: all in one). Prints one JSON document: total time, per-stage
+latency per phase (from the recording's receive times), peak RSS, messages published vs recorded,
+accuracy; then ``local_stage``: the run's recorded tag points replayed through a tracker built as
+the solver node builds it, every local solve timed with the new stage and with the old one
 (``bench/reference_local.py``) on identical inputs (``--no-replay`` skips it).
 
     mlv-ros bench pipeline [-- --phases 25 --size 256 --out DIR]
@@ -33,8 +34,10 @@ from reference_local import tracker_local_solve  # noqa: E402, I100
 
 def stage_latencies(mcap: Path) -> dict:
     """
-    Per-phase latencies (ms) from receive times in the recording: frame → tag points (per
-    frame), last tag points of a phase → its motion (solver), motion → metrics (analyzer).
+    Return per-phase latencies (ms) from receive times in the recording.
+
+    Frame → tag points (per frame), last tag points of a phase → its motion (solver), motion →
+    metrics (analyzer).
     """
     frame_t, tag_t, motion_t, metrics_t = {}, {}, {}, {}
     for m in bagio.read_bag(

@@ -1,6 +1,7 @@
 """
-Reference copies of the local stages as they were before :mod:`mlv_ros.core.meshless.local`
-(benchmarks and the equivalence test only; not part of the package).
+Reference copies of the local stages as they were before :mod:`mlv_ros.core.meshless.local`.
+
+For benchmarks and the equivalence test only; not part of the package.
 
 - :func:`tracker_local_solve`: ``MotionTracker._local_solve`` — matrix-free Jacobi-PCG whose
   matvec calls the MLS gradient and adjoint and an assembled (N, N) fit-error matrix
@@ -35,8 +36,10 @@ def tracker_fit_error_matrix(model):
 
 def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, cache=None):
     """
-    The old ``MotionTracker._local_solve``; ``cache`` (a dict) keeps kdiag and the fit-error
-    matrix between calls as the tracker did. Returns (δ (N, 3), CG iterations).
+    Run the old ``MotionTracker._local_solve``.
+
+    ``cache`` (a dict) keeps kdiag and the fit-error matrix between calls as the tracker did.
+    Returns (δ (N, 3), CG iterations).
     """
     cache = {} if cache is None else cache
     model = tracker.model
@@ -116,8 +119,10 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
 
 class PhantomSystemReference:
     """
-    The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``): matrix-free
-    ``κ ΦᵀQᵀPQΦ + K + S + ε`` on :func:`~mlv_ros.core.meshless.elastic.linear_stiffness_apply` and
+    The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``).
+
+    Matrix-free ``κ ΦᵀQᵀPQΦ + K + S + ε`` on
+    :func:`~mlv_ros.core.meshless.elastic.linear_stiffness_apply` and
     :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`, Jacobi-preconditioned CG. Same
     interface as :class:`mlv_ros.core.meshless.local.LocalSystem` (``internal``, ``solve``), so
     ``model._local_system = lambda data: PhantomSystemReference(model, data)`` runs a whole fit

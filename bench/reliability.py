@@ -194,9 +194,10 @@ def slow_subscriber(tmp: Path) -> dict:
 
 def _interrupted_recording(out: Path, min_bytes: int, sig: int) -> tuple[int, str]:
     """
-    Record /mlv/frames in a recorder process while a frame_source process streams the test
-    pattern at a steady rate, and send ``sig`` to the recorder once ``out`` holds ``min_bytes``
-    (mid-stream). Returns the recorder's exit code and its log.
+    Record /mlv/frames in a recorder process and signal it mid-stream.
+
+    A frame_source process streams the test pattern at a steady rate; ``sig`` goes to the recorder
+    once ``out`` holds ``min_bytes`` (mid-stream). Returns the recorder's exit code and its log.
     """
     from mlv_ros import qos
 

@@ -90,8 +90,10 @@ def track(frames, **tracker_kwargs) -> dict:
 
 def solve(sets: dict, cloud, state, **solver_kwargs):
     """
-    Every phase solved as the solver node does; keywords MotionTracker does not take are set as
-    its attributes (``outlier_mm``, ``prescreen``, ...).
+    Solve every phase as the solver node does.
+
+    Keywords MotionTracker does not take are set as its attributes (``outlier_mm``, ``prescreen``,
+    ...).
     """
     import inspect
 
@@ -128,11 +130,12 @@ def ideal_targets(
     sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25, every_track: bool = False
 ) -> tuple[dict, int]:
     """
-    ``sets`` with every tracked point moved to where the truth puts it (see the module
-    docstring): the crossing of its ED material line ``p0 + s n`` with the image plane nearest
-    ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly. Points whose
-    line does not cross the plane within reach, and tracks without an ED point, keep their
-    measured position. ``every_track``: every ED track at every phase (a tracker that loses
+    Return ``sets`` with every tracked point moved to where the truth puts it.
+
+    See the module docstring: the crossing of its ED material line ``p0 + s n`` with the image
+    plane nearest ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly.
+    Points whose line does not cross the plane within reach, and tracks without an ED point, keep
+    their measured position. ``every_track``: every ED track at every phase (a tracker that loses
     nothing), those whose line does not cross left out. Returns the new sets and how many points
     kept their measured position (or were left out).
     """
@@ -190,8 +193,10 @@ def _subset(pts, rows):
 
 def segment_errors(case: Path, rest, positions, motion) -> dict:
     """
-    ES median / p95 3D error (mm) of the AHA segment (the truth's) with the largest median,
-    ``worst_segment``, and of each abnormal segment of the truth, ``segment_K_CLASS``.
+    Return the ES median / p95 3D error (mm) of the worst and of each abnormal AHA segment.
+
+    The worst is the AHA segment (the truth's) with the largest median, ``worst_segment``; each
+    abnormal segment of the truth is ``segment_K_CLASS``.
     """
     from mlv_ros.core.sim.regional import truth_segments
 

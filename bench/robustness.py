@@ -72,8 +72,10 @@ def run_case(
     seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None
 ) -> dict:
     """
-    One case; ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw
-    (75 % of studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
+    Run one case.
+
+    ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw (75 % of
+    studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
     """
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}

@@ -56,7 +56,7 @@ ABNORMAL = ('akinetic', 'dyskinetic')
 
 def ours_at_es(mcap: Path, es: int) -> dict:
     """
-    Published per-segment strain at phase ``es`` and the re-analysed global means.
+    Return published per-segment strain at phase ``es`` and the re-analysed global means.
 
     Returns
     -------

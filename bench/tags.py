@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 
 def truth_intersections(geometry, shape, spacing_mm, mask):
-    """True ED intersections (pixel rc) whose nearest pixel is in ``mask`` (see module doc)."""
+    """Return true ED intersections (pixel rc) whose nearest pixel is in ``mask`` (module doc)."""
     rows, cols = shape
     c = np.array([(rows - 1) / 2.0, (cols - 1) / 2.0])
     step = np.array([spacing_mm / geometry.row_spacing, spacing_mm / geometry.column_spacing])

@@ -55,7 +55,7 @@ def _small_frame(rows: int, cols: int, image_dtype=np.float32) -> Frame:
 
 
 def dicom_seeds(out_dir: Path) -> list[Path]:
-    """A few valid files: simulated SA and LA images (32²) and tiny float and uint16 frames."""
+    """Write a few valid files: simulated SA and LA images (32²), tiny float and uint16 frames."""
     from mlv_ros.core.io.dicom import frame_to_dataset, write_study_dicom
     from mlv_ros.core.sim import simulate_study
 

@@ -1,5 +1,7 @@
 """
-The mlv_ros graph, one process per node, for users with a full ROS 2 Jazzy install:
+The mlv_ros graph, one process per node, for users with a full ROS 2 Jazzy install.
+
+Launch it with::
 
     ros2 launch mlv_ros pipeline.launch.py                                  # a phantom
     ros2 launch mlv_ros pipeline.launch.py source:=dicom path:=/data/study  # a DICOM study
@@ -33,7 +35,7 @@ NODES = [
 
 
 def launch_setup(context, *args, **kwargs):
-    """The graph's nodes, for the arguments as given at launch time."""
+    """Return the graph's nodes, for the arguments as given at launch time."""
     arg = {
         name: LaunchConfiguration(name).perform(context)
         for name in (

@@ -195,7 +195,7 @@ _RosbagYamlDumper.add_representer(
 
 
 def rosbag2_yaml(data) -> str:
-    """``data`` as YAML text the way rosbag2 serialises it (``YAML::Dump``: no final newline)."""
+    """Return ``data`` as YAML text as rosbag2 writes it (``YAML::Dump``: no final newline)."""
     return yaml.dump(
         data,
         Dumper=_RosbagYamlDumper,
@@ -242,8 +242,10 @@ def offered_qos(profiles: list[dict]) -> list[dict]:
 
 def qos_yaml(profiles: list[dict]) -> str:
     """
-    The MCAP channel's ``offered_qos_profiles`` metadata: :func:`offered_qos` as YAML text
-    (MCAP channel metadata is a string map; ``serialize_rclcpp_qos_vector`` in qos.cpp).
+    Return the MCAP channel's ``offered_qos_profiles`` metadata as YAML text.
+
+    :func:`offered_qos` as YAML text (MCAP channel metadata is a string map;
+    ``serialize_rclcpp_qos_vector`` in qos.cpp).
     """
     return rosbag2_yaml(offered_qos(profiles))
 
@@ -277,7 +279,7 @@ _POLICY_NUMBERS = {
 
 def parse_offered_qos(value) -> list[dict]:
     """
-    Recorded ``offered_qos_profiles`` as a list of maps with policies by name.
+    Parse recorded ``offered_qos_profiles`` into a list of maps with policies by name.
 
     Accepts the version-9 sequence, the YAML string of MCAP channel metadata and of metadata.yaml
     before version 9 (our runs before the fix wrote the string form in version 9 too), and empty
@@ -337,6 +339,8 @@ def bag_metadata(
         Receive times of the first and last message; ``start_ns`` None for a bag without
         messages (rosbag2 then leaves starting_time at its initial maximum).
     custom_data : dict of str to str, optional
+        The bag's ``custom_data`` map, written as given; None or empty writes a null node
+        (``custom_data: ~``), as yaml-cpp writes an empty map.
 
     """
     topics = list(topics)
@@ -491,8 +495,10 @@ class BagWriter:
 
     def _guarded(self, op, *args, **kwargs):
         """
-        Run one writer operation; on a write error cut the file back to where the operation
-        began (a whole record), close it and remember the error.
+        Run one writer operation, undoing what a failed write left in the file.
+
+        On a write error the file is cut back to where the operation began (a whole record) and
+        closed, and the error is kept.
         """
         if self.error is not None:
             raise ValueError(f'recording {self.path} stopped after a write error: {self.error}')
@@ -517,6 +523,8 @@ class BagWriter:
         Parameters
         ----------
         topic : str
+            The topic name as recorded (the MCAP channel's topic); a name already registered
+            is left as it is.
         type_name : str
             ``pkg/msg/Type``.
         qos_profiles : list of dict, optional
@@ -547,9 +555,11 @@ class BagWriter:
         self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None
     ) -> None:
         """
-        Append one CDR-serialised message received at ``log_time_ns`` and sent at
-        ``publish_time_ns`` (the publisher's source timestamp, as rosbag2 records it; default the
-        receive time), both in ns since the epoch.
+        Append one CDR-serialised message with its receive and publish times.
+
+        The message was received at ``log_time_ns`` and sent at ``publish_time_ns`` (the
+        publisher's source timestamp, as rosbag2 records it; default the receive time), both in ns
+        since the epoch.
 
         Raises ``OSError`` when the file cannot take it (see :attr:`error`: the recording stops
         there) and ``ValueError`` once it has stopped or is closed.
@@ -573,9 +583,11 @@ class BagWriter:
 
     def flush(self) -> None:
         """
-        Sync the chunks written so far to disk (chunks go to the OS unbuffered as they complete;
-        this makes them survive a power loss). Does not close the current chunk. A failing sync
-        (EIO) is kept in :attr:`error` like a failing write; the next write reports it.
+        Sync the chunks written so far to disk.
+
+        Chunks go to the OS unbuffered as they complete; this makes them survive a power loss. Does
+        not close the current chunk. A failing sync (EIO) is kept in :attr:`error` like a failing
+        write; the next write reports it.
         """
         if self.error is None and not self.closed:
             try:
@@ -599,8 +611,9 @@ class BagWriter:
 
     def close(self) -> None:
         """
-        Finish the file (final ``rosbag2`` record, summary, statistics, indexes) and write
-        ``metadata.yaml`` beside it.
+        Finish the file and write ``metadata.yaml`` beside it.
+
+        Finishing writes the final ``rosbag2`` record, the summary, statistics and indexes.
 
         After a write error (:attr:`error`, or one while finishing) the file keeps the records
         written whole and no summary; ``metadata.yaml`` then counts the messages in it. Raises
@@ -628,8 +641,10 @@ class BagWriter:
 
     def _count_written(self) -> None:
         """
-        Set the topics' counts and the times to the messages that are in the file: those of
-        the chunks written whole, read from their message indexes (nothing is decompressed).
+        Set the topics' counts and the times to the messages that are in the file.
+
+        Those are the messages of the chunks written whole, read from their message indexes
+        (nothing is decompressed).
         """
         from mcap.records import MessageIndex
         from mcap.stream_reader import StreamReader
@@ -769,8 +784,10 @@ class SeveralNamespacesError(ValueError):
 
 def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
     """
-    The name :func:`read_bag` gives messages of topic ``recorded`` with ``any_namespace`` (None:
-    not wanted); ``namespaces`` collects the namespaces of the graph topics seen.
+    Return the name :func:`read_bag` gives messages of topic ``recorded``.
+
+    The name it gives with ``any_namespace``, or None when the topic is not wanted; ``namespaces``
+    collects the namespaces of the graph topics seen.
     """
     split = qos.split_graph_topic(recorded)
     if split is None:
@@ -850,9 +867,10 @@ def _field_names(definition: str) -> list[str]:
 
 def fields_missing_from(type_name: str, definition: str) -> tuple | None:
     """
-    The appended fields (see :data:`_APPENDED_FIELDS`) a recording's ``ros2msg`` schema of
-    ``type_name`` lacks: ``()`` for the current definition, ``None`` when it cannot tell (no
-    schema text, or not a known older definition).
+    Return the appended fields a recording's ``ros2msg`` schema of ``type_name`` lacks.
+
+    See :data:`_APPENDED_FIELDS`: ``()`` for the current definition, ``None`` when it cannot tell
+    (no schema text, or not a known older definition).
     """
     appended = _APPENDED_FIELDS.get(type_name, ())
     names = _field_names(definition) if definition else []
@@ -866,9 +884,10 @@ def fields_missing_from(type_name: str, definition: str) -> tuple | None:
 
 def _cdr_defaults(data: bytes, fields) -> bytes:
     """
-    ``data`` (a CDR message with its 4-byte encapsulation header) with ``fields`` ((name,
-    kind, default) each) appended, aligned as CDR aligns them (relative to the end of the
-    header).
+    Return CDR message ``data`` with ``fields`` appended, aligned as CDR aligns them.
+
+    ``data`` is a CDR message with its 4-byte encapsulation header; ``fields`` are (name, kind,
+    default) each, aligned relative to the end of the header.
     """
     little = data[1] & 1  # representation id 0x0001 = CDR little endian, 0x0000 big endian
     order = 'little' if little else 'big'
@@ -900,9 +919,10 @@ def _type_name(msg_class) -> str:
 
 def _reads_defaults(msg, fields) -> bool:
     """
-    Whether the appended ``fields`` read back as the defaults they were appended with: under a
-    wrong older definition the bytes can parse yet shift, and a default then reads as part of
-    another field (e.g. a float from a string's length).
+    Check whether the appended ``fields`` read back as the defaults they were appended with.
+
+    Under a wrong older definition the bytes can parse yet shift, and a default then reads as part
+    of another field (e.g. a float from a string's length).
     """
     for name, kind, value in fields:
         got = getattr(msg, name)
@@ -978,9 +998,10 @@ def deserialize(data: bytes, msg_class, missing: tuple | None = None):
 
 def current_cdr(data: bytes, msg_class, missing: tuple | None = None) -> bytes:
     """
-    ``data`` as the current definition of ``msg_class`` serialises it: a message recorded
-    before fields were appended gets their defaults appended (what a live subscriber can read);
-    a current one comes back unchanged.
+    Return ``data`` as the current definition of ``msg_class`` serialises it.
+
+    A message recorded before fields were appended gets their defaults appended (what a live
+    subscriber can read); a current one comes back unchanged.
 
     Raises
     ------

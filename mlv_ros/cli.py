@@ -57,7 +57,7 @@ class OneLineParser(argparse.ArgumentParser):
 
 def number(kind=float, min_value=None, max_value=None, *, above=None):
     """
-    An argparse ``type`` for a finite int/float within bounds (``above``: strictly greater).
+    Return an argparse ``type`` for a finite int/float within bounds (``above``: strictly greater).
 
     ``nan``, ``inf`` and out-of-range values are refused with the allowed range, so they never
     reach code that would fail far from the option that caused it.
@@ -90,7 +90,7 @@ def one_line(text) -> str:
 
 
 def describe_os_error(exc: OSError) -> str:
-    """An OSError as what happened to which path, and what to do about it."""
+    """Describe an OSError as what happened to which path, and what to do about it."""
     where = exc.filename if exc.filename is not None else ''
     what = exc.strerror or str(exc)
     fix = {

@@ -84,12 +84,12 @@ def from_time(t: Time) -> float:
 
 
 def stamp_text(t: Time) -> str:
-    """A stamp as exact ``sec.nanosec`` text (diagnostics name the offending message by it)."""
+    """Return a stamp as exact ``sec.nanosec`` text (diagnostics name a bad message by it)."""
     return f'{t.sec}.{t.nanosec:09d}'
 
 
 def make_header(stamp: float | Time = 0.0, frame_id: str = PATIENT_FRAME) -> Header:
-    """A ``std_msgs/Header`` in ``frame_id`` at ``stamp`` (seconds or a Time)."""
+    """Build a ``std_msgs/Header`` in ``frame_id`` at ``stamp`` (seconds or a Time)."""
     return Header(stamp=stamp if isinstance(stamp, Time) else to_time(stamp), frame_id=frame_id)
 
 
@@ -116,6 +116,7 @@ def image_to_msg(
     image : ndarray, shape (rows, cols)
         uint8 (``mono8``), uint16 (``mono16``) or float32 (``32FC1``).
     header : Header, optional
+        The message's header (stamp and frame); an empty ``Header()`` if omitted.
     encoding : str, optional
         Override the encoding chosen from the dtype (must match the dtype's size and kind).
 
@@ -213,6 +214,7 @@ def cloud_to_msg(
         One named scalar field per point channel (e.g. ``x, y, z, dx, dy, dz``), any
         PointField-representable dtype; float fields must be finite (``is_dense`` is true).
     header : Header, optional
+        The message's header (stamp and frame); an empty ``Header()`` if omitted.
 
     Returns
     -------
@@ -259,6 +261,8 @@ def msg_to_cloud(
     Parameters
     ----------
     msg : PointCloud2
+        The cloud to unpack: scalar fields (``count`` 1) of PointField datatypes, ``data`` of
+        ``row_step · height`` bytes.
     required : iterable of str
         Field names that must be present (e.g. ``("x", "y", "z")``).
     finite : iterable of str
@@ -334,7 +338,7 @@ def msg_to_cloud(
 
 
 def structured(columns: Mapping[str, np.ndarray], dtype=np.float32) -> np.ndarray:
-    """Mapping name → 1-D array (all length N) → packed structured array of ``dtype`` fields."""
+    """Pack a mapping name → 1-D array (all length N) into a structured array of ``dtype``."""
     if not columns:
         raise ValueError('no columns given for the point cloud')
     lengths = {k: np.shape(v) for k, v in columns.items()}
@@ -391,7 +395,7 @@ def _check_phase(phase_index: int, num_phases: int) -> None:
 
 
 def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices: int) -> None:
-    """A slice index must lie within its view's declared slice count (0 = count unknown)."""
+    """Check a slice index lies within its view's declared slice count (0 = count unknown)."""
     count, name = (
         (num_sa_slices, 'num_sa_slices') if view == VIEW_SA else (num_la_slices, 'num_la_slices')
     )
@@ -403,8 +407,9 @@ def _check_slice(view: int, slice_index: int, num_sa_slices: int, num_la_slices:
 
 def _check_study_id(study_id, name: str = 'study_id') -> str:
     """
-    A message's ``study_id`` (or ``run_id``, by ``name``): text of printable characters, at most
-    :data:`MAX_STUDY_ID` long (empty = unknown).
+    Check a message's ``study_id`` (or ``run_id``, by ``name``).
+
+    It must be text of printable characters, at most :data:`MAX_STUDY_ID` long (empty = unknown).
     """
     study_id = str(study_id)
     if len(study_id) > MAX_STUDY_ID:
@@ -597,7 +602,7 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
 
 
 def _check_origin(v) -> int:
-    """A ``segment_origin`` code (:data:`~mlv_ros.core.types.SEGMENT_ORIGIN_CODES`)."""
+    """Check a ``segment_origin`` code (:data:`~mlv_ros.core.types.SEGMENT_ORIGIN_CODES`)."""
     if isinstance(v, bool) or int(v) != v or int(v) not in SEGMENT_ORIGIN_CODES.values():
         raise ValueError(
             f'segment_origin must be one of {sorted(SEGMENT_ORIGIN_CODES.values())} '
@@ -688,9 +693,10 @@ def _metrics_value(metrics, name):
 
 def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
     """
-    Per-phase motion metrics (mapping or object with the MotionMetrics field names) →
-    ``mlv_msgs/MotionMetrics``. Per-level arrays must share one length; segment arrays must be
-    empty or have 17 entries; values must be finite.
+    Convert per-phase motion metrics to ``mlv_msgs/MotionMetrics``.
+
+    The metrics are a mapping or object with the MotionMetrics field names. Per-level arrays must
+    share one length; segment arrays must be empty or have 17 entries; values must be finite.
     """
     msg = MotionMetricsMsg(header=make_header(stamp))
     msg.phase_index = int(_metrics_value(metrics, 'phase_index'))
@@ -755,8 +761,10 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
 
 def _check_segment_extra(name: str, v: np.ndarray) -> None:
     """
-    Findings / uncertainty arrays: 0 or 17 entries; classes are codes 0…4; NaN (not
-    measured) is allowed, ±inf is not.
+    Check findings / uncertainty arrays.
+
+    They must have 0 or 17 entries; classes are codes 0…4; NaN (not measured) is allowed, ±inf is
+    not.
     """
     if v.size not in (0, 17):
         raise ValueError(f'{name} must have 0 or 17 (AHA segments) entries, got {v.size}')
@@ -931,8 +939,9 @@ def image_to_foxglove(
     image: np.ndarray, window: tuple[float, float], stamp: Time, frame_id: str = PATIENT_FRAME
 ):
     """
-    A slice image → ``foxglove.RawImage`` (``mono8``), grey levels mapped linearly from
-    ``window`` (low → 0, high → 255, clipped; NaN → 0).
+    Convert a slice image to ``foxglove.RawImage`` (``mono8``).
+
+    Grey levels are mapped linearly from ``window`` (low → 0, high → 255, clipped; NaN → 0).
 
     Parameters
     ----------
@@ -942,6 +951,8 @@ def image_to_foxglove(
         Grey levels shown as black and white (:func:`display_window`).
     stamp : builtin_interfaces/Time
         The frame's header stamp (its tag points' annotations carry the same one).
+    frame_id : str, optional
+        The RawImage's ``frame_id`` (default :data:`PATIENT_FRAME`, ``'patient'``).
 
     """
     from foxglove.messages import RawImage
@@ -1014,8 +1025,10 @@ def tagpoints_to_foxglove(
 
 def metrics_to_curves(metrics: Mapping) -> dict:
     """
-    One phase's metrics (:func:`msg_to_metrics`) → the live view's curve point, a JSON object
-    Foxglove's Plot panel reads (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
+    Convert one phase's metrics to the live view's curve point (a JSON object).
+
+    The metrics are :func:`msg_to_metrics`'s; Foxglove's Plot panel reads the object
+    (``/lv/curves.cavity_volume_ml`` against ``.time_fraction``).
 
     Keys: ``phase_index``, ``num_phases``, ``time_fraction`` (0..1), ``verdict`` (0 ok,
     1 degraded, 2 failed) and ``verdict_reasons``; then, except for a failed phase (no measurement:
@@ -1046,8 +1059,9 @@ def metrics_to_curves(metrics: Mapping) -> dict:
 
 def curves_schema() -> dict:
     """
-    JSON schema of :func:`metrics_to_curves`'s objects (advertised with the channel, so
-    Foxglove offers the fields before the first phase).
+    Return the JSON schema of :func:`metrics_to_curves`'s objects.
+
+    It is advertised with the channel, so Foxglove offers the fields before the first phase.
     """
     number = {'type': 'number'}
     props = {

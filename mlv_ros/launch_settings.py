@@ -1,6 +1,7 @@
 """
-What ``launch/pipeline.launch.py`` makes of its arguments, kept free of launch and launch_ros
-(not on PyPI) so it can be tested without them.
+What ``launch/pipeline.launch.py`` makes of its arguments.
+
+Kept free of launch and launch_ros (not on PyPI) so it can be tested without them.
 
 Each launch gets its own run directory unless ``output_dir`` names one: ``runs/<YYYYmmdd-HHMMSS>``
 under the directory ``ros2 launch`` was started from, created at once (``-2``, ``-3``... when
@@ -33,8 +34,9 @@ class GraphSettings:
 
 def fresh_run_dir(base: str | Path = RUNS_DIR, now: float | None = None) -> Path:
     """
-    Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``... when
-    taken).
+    Create and return a new run directory ``base/<YYYYmmdd-HHMMSS>``.
+
+    ``-2``, ``-3``... are appended when the name is taken.
 
     Parameters
     ----------
@@ -70,7 +72,7 @@ def graph_settings(
     cwd: str | Path | None = None,
 ) -> GraphSettings:
     """
-    The graph's namespace, run directory and parameter overrides for the launch arguments.
+    Return the graph's namespace, run directory and parameter overrides for the launch arguments.
 
     Parameters
     ----------

@@ -54,7 +54,7 @@ LATCHED_READER_DEPTH = 10  # subscriptions to the latched topics (see subscripti
 
 def relative(topic: str) -> str:
     """
-    The name a node publishes or subscribes graph topic ``topic`` with.
+    Return the name a node publishes or subscribes graph topic ``topic`` with.
 
     Parameters
     ----------
@@ -73,7 +73,7 @@ def relative(topic: str) -> str:
 
 def split_graph_topic(name: str) -> tuple[str, str] | None:
     """
-    The namespace and the graph topic of a resolved (recorded) topic name.
+    Return the namespace and the graph topic of a resolved (recorded) topic name.
 
     Parameters
     ----------
@@ -161,8 +161,10 @@ def history_qos(depth: int = STREAM_DEPTH) -> QoSProfile:
 
 def topic_qos(topic: str) -> QoSProfile:
     """
-    The profile a graph topic is published with: latched for the registration results, with
-    history for frames and tag points, a deep RELIABLE stream otherwise.
+    Return the profile a graph topic is published with.
+
+    Latched for the registration results, with history for frames and tag points, a deep RELIABLE
+    stream otherwise.
     """
     if topic in LATCHED_TOPICS:
         return latched_qos()
@@ -171,7 +173,7 @@ def topic_qos(topic: str) -> QoSProfile:
 
 def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
     """
-    The profile to subscribe with.
+    Return the profile to subscribe with.
 
     VOLATILE matches any RELIABLE publisher (a bag player, another tool); ``catch_up`` asks for the
     publisher's history (TRANSIENT_LOCAL, which only a TRANSIENT_LOCAL publisher can serve) — the
@@ -186,7 +188,7 @@ def subscription_qos(topic: str, catch_up: bool = False) -> QoSProfile:
 
 
 def qos_dict(profile: QoSProfile) -> dict:
-    """A profile in rosbag2's offered_qos_profiles vocabulary."""
+    """Return a profile in rosbag2's offered_qos_profiles vocabulary."""
     return {
         'history': 'keep_all' if profile.history == HistoryPolicy.KEEP_ALL else 'keep_last',
         'depth': profile.depth,

@@ -1,6 +1,8 @@
 """
-Where the package's data files are: ``config/`` in a source checkout (editable install) or
-``share/mlv_ros/config`` in an installed ROS package (colcon).
+Where the package's data files are.
+
+``config/`` in a source checkout (editable install) or ``share/mlv_ros/config`` in an installed ROS
+package (colcon).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """
-One compute thread in every graph process, whatever the environment says: the same study must
-give the same motion, to the bit, however the graph is laid out (one process, a child process,
-one process per node under ``ros2 launch``, several hosts).
+One compute thread in every graph process, whatever the environment says.
+
+The same study must give the same motion, to the bit, however the graph is laid out (one process, a
+child process, one process per node under ``ros2 launch``, several hosts).
 
 OpenBLAS sums a matrix product's inner dimension in an order that depends on how many threads it
 runs (measured: ``(a·w)ᵀ a`` of a 3000 × 143 design matrix differs by 2e-13 between 1 and 2
@@ -28,9 +29,11 @@ COMPUTE_THREADS = 1
 @contextlib.contextmanager
 def compute_threads():
     """
-    Hold every BLAS/OpenMP pool loaded in this process (numpy's, scipy's and OpenCV's
-    OpenBLAS, any OpenMP runtime) and OpenCV's own pool at :data:`COMPUTE_THREADS` thread(s)
-    while the block runs, then restore what they were.
+    Hold the BLAS/OpenMP and OpenCV thread pools at :data:`COMPUTE_THREADS` in the block.
+
+    Every BLAS/OpenMP pool loaded in this process (numpy's, scipy's and OpenCV's OpenBLAS, any
+    OpenMP runtime) and OpenCV's own pool are held at :data:`COMPUTE_THREADS` thread(s) while the
+    block runs, then restored to what they were.
 
     scipy's OpenBLAS is loaded first (scipy.linalg), so that a node importing it later is held
     too; OpenCV is held only if imported before the block (import the node classes first).

@@ -1,7 +1,9 @@
 """
-What every node shares: declared parameters with descriptors, /diagnostics reporting, the
-study a node keeps to (messages of another study are reported and ignored), and a ``main()``
-runner with clean shutdown on SIGINT/SIGTERM.
+What every node shares: parameters, /diagnostics, its study and a ``main()`` runner.
+
+Declared parameters with descriptors, /diagnostics reporting, the study a node keeps to (messages
+of another study are reported and ignored), and a ``main()`` runner with clean shutdown on
+SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -42,8 +44,10 @@ HARDWARE_ID = 'none'
 @dataclass
 class StreamCount:
     """
-    What one subscription has seen: messages received, and messages its publisher sent that
-    never arrived (sequence-number gaps) or were sent before it matched (``missed``).
+    What one subscription has seen: messages received and messages lost or missed.
+
+    ``lost``: messages its publisher sent that never arrived (sequence-number gaps); ``missed``:
+    messages it sent before this subscription matched.
     """
 
     received: int = 0
@@ -54,7 +58,7 @@ class StreamCount:
 
 
 def stamp_key(stamp) -> tuple[int, int]:
-    """A header stamp as a dict key (what pairs a cloud with its model state)."""
+    """Return a header stamp as a dict key (what pairs a cloud with its model state)."""
     return (int(stamp.sec), int(stamp.nanosec))
 
 
@@ -77,7 +81,7 @@ class Silence:
         self._tick_at = None
 
     def heard(self) -> None:
-        """A message arrived: the stream is alive."""
+        """Note that a message arrived: the stream is alive."""
         self.seconds = 0.0
 
     def tick(self, now: float | None = None) -> float:
@@ -91,9 +95,10 @@ class Silence:
 
 class RecentKeys:
     """
-    The last ``size`` keys added, each with a value (bounded memory): e.g. the stamps of
-    another study's model states → that study, whose point clouds (which cannot carry a study
-    id) are dropped with them.
+    The last ``size`` keys added, each with a value (bounded memory).
+
+    E.g. the stamps of another study's model states → that study, whose point clouds (which cannot
+    carry a study id) are dropped with them.
     """
 
     def __init__(self, size: int = 1000):
@@ -114,8 +119,10 @@ class RecentKeys:
 
 class GraphNode(Node):
     """
-    A Node with typed parameter declaration, a /diagnostics publisher, loss accounting on
-    every subscription, and the study it keeps to (:attr:`study`, :meth:`foreign`).
+    A Node with typed parameters, /diagnostics, loss accounting and the study it keeps to.
+
+    Typed parameter declaration, a /diagnostics publisher, loss accounting on every subscription,
+    and the study it keeps to (:attr:`study`, :meth:`foreign`).
     """
 
     # What this node's one diagnostic task is called: statuses are named "<node>: <task>", as
@@ -166,8 +173,10 @@ class GraphNode(Node):
 
     def topic_name(self, topic: str) -> str:
         """
-        Graph topic ``topic`` (root name, e.g. :data:`qos.FRAMES`) as this node resolves it:
-        ``/study2/mlv/frames`` in namespace ``/study2`` (remappings applied).
+        Return graph topic ``topic`` as this node resolves it.
+
+        ``topic`` is a root name, e.g. :data:`qos.FRAMES`; it resolves to ``/study2/mlv/frames`` in
+        namespace ``/study2`` (remappings applied).
         """
         if topic not in self._topics:
             self._topics[topic] = self.resolve_topic_name(qos.relative(topic))
@@ -176,7 +185,7 @@ class GraphNode(Node):
     def diagnostic_status(
         self, level: int, message: str, values: dict | None = None
     ) -> DiagnosticStatus:
-        """A status of this node's task, named and identified as diagnostic_updater does."""
+        """Return a status of this node's task, named and identified as diagnostic_updater does."""
         status = DiagnosticStatus(
             level=level, name=self.diagnostic_name, message=message, hardware_id=HARDWARE_ID
         )
@@ -300,9 +309,11 @@ class GraphNode(Node):
 
     def foreign(self, study_id: str, topic: str, run_id: str = '', **where) -> str:
         """
-        Whether a message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` belongs to
-        another study or run than this node's (:attr:`study`; an empty id, or none adopted yet, is
-        never foreign): the other's name (:meth:`StudyShape.other`), else ``""``.
+        Return the other study's or run's name if a message is foreign to this node, else ``""``.
+
+        A message of ``study_id`` / ``run_id`` taken from graph topic ``topic`` is foreign when it
+        belongs to another study or run than this node's (:attr:`study`; an empty id, or none
+        adopted yet, is never foreign); the name is :meth:`StudyShape.other`.
 
         A foreign message is reported at once as an ERROR on /diagnostics naming both, the topic
         and ``where`` (stamp, slice, phase...), and counted in every heartbeat; the console gets
@@ -389,8 +400,9 @@ class GraphNode(Node):
 
     def _with_counts(self, status: DiagnosticStatus) -> DiagnosticStatus:
         """
-        ``status`` plus the per-topic counts, as the heartbeat publishes it (at ERROR, saying
-        so, once messages of another study were ignored).
+        Return ``status`` plus the per-topic counts, as the heartbeat publishes it.
+
+        At ERROR, saying so, once messages of another study were ignored.
         """
         extra = []
         for topic, c in self.streams.items():
@@ -421,8 +433,9 @@ class GraphNode(Node):
 
     def report(self, level: int, message: str, **values) -> None:
         """
-        Publish one DiagnosticStatus (:meth:`diagnostic_status`) now, make it the node's
-        current status, and log it.
+        Publish one DiagnosticStatus now, make it the node's current status, and log it.
+
+        The status is :meth:`diagnostic_status`'s.
         """
         self._report(level, message, values)
 
@@ -453,17 +466,20 @@ class GraphNode(Node):
 
 def status_node(status: DiagnosticStatus) -> str:
     """
-    The name of the node that published ``status`` (``tag_detector`` for
-    ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``).
+    Return the name of the node that published ``status``.
+
+    ``tag_detector`` for ``tag_detector: tag tracking`` or ``/study2/tag_detector: tag tracking``.
     """
     return status.name.partition(': ')[0].rpartition('/')[2]
 
 
 def status_place(status: DiagnosticStatus) -> tuple[str | None, str]:
     """
-    (namespace, node) of the node that published ``status``: ``('/study2', 'tag_detector')``
-    for ``/study2/tag_detector: tag tracking`` (named by its fully qualified name), ``(None,
-    'tag_detector')`` for ``tag_detector: tag tracking`` (by its name alone: namespace unknown).
+    Return (namespace, node) of the node that published ``status``.
+
+    ``('/study2', 'tag_detector')`` for ``/study2/tag_detector: tag tracking`` (named by its fully
+    qualified name), ``(None, 'tag_detector')`` for ``tag_detector: tag tracking`` (by its name
+    alone: namespace unknown).
     """
     node = status.name.partition(': ')[0]
     if not node.startswith('/'):
@@ -480,9 +496,11 @@ def status_text(status: DiagnosticStatus) -> str:
 
 def run_node(factory: Callable[..., Node], args=None) -> int:
     """
-    Create the node, spin until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`,
-    then drain what has already arrived and shut down cleanly. Returns 0, 2 for a node that
-    could not start (bad parameters or paths), 1 for one that gave up (:meth:`GraphNode.fail`).
+    Create the node, spin it until told to stop, then drain and shut down cleanly.
+
+    It spins until SIGINT/SIGTERM or the node calls :meth:`GraphNode.stop`, then drains what has
+    already arrived. Returns 0, 2 for a node that could not start (bad parameters or paths), 1 for
+    one that gave up (:meth:`GraphNode.fail`).
 
     rclpy's own signal handlers are replaced by ours: a signal only sets a flag, so the context
     stays valid while the node takes every message still queued (a recorder must not lose what

@@ -1,6 +1,8 @@
 """
-frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames) from a
-simulator preset, a DICOM directory, a recorded bag, or the built-in test pattern.
+frame_source: publishes tagged cine frames (``mlv_msgs/TaggedFrame`` on /mlv/frames).
+
+The frames come from a simulator preset, a DICOM directory, a recorded bag, or the built-in test
+pattern.
 
 Order is slice-major (as scanners acquire: each slice's whole cine in one breath-hold) or
 phase-major; rate is real time × ``rate_factor``, or as fast as possible (``rate_factor: 0``),
@@ -48,9 +50,10 @@ def order_frames(frames: list[Frame], order: str) -> list[Frame]:
 
 def read_bag_frames(path) -> list[Frame]:
     """
-    Every ``/mlv/frames`` message of a recording (in whatever namespace it was recorded), as
-    Frames (also of recordings made before fields were appended to TaggedFrame: their
-    ``study_id`` is empty).
+    Read every ``/mlv/frames`` message of a recording as Frames.
+
+    Whatever namespace it was recorded in, also from recordings made before fields were appended to
+    TaggedFrame (their ``study_id`` is empty).
     """
     return [
         conversions.msg_to_frame(bagio.deserialize(m.data, TaggedFrame, m.missing))
@@ -92,7 +95,7 @@ def study_id_for(
     study_uids: dict | None = None,
 ) -> str:
     """
-    The study id of a source's frames (``TaggedFrame.study_id``).
+    Return the study id of a source's frames (``TaggedFrame.study_id``).
 
     Parameters
     ----------
@@ -119,8 +122,9 @@ def study_id_for(
 
 def count_slices(frames: list[Frame]) -> list[Frame]:
     """
-    Stamp every frame with the acquisition's SA and LA slice counts (consumers use them to
-    know when a phase is complete).
+    Stamp every frame with the acquisition's SA and LA slice counts.
+
+    Consumers use them to know when a phase is complete.
     """
     from mlv_ros.core.types import VIEW_LA, VIEW_SA
 
@@ -332,8 +336,9 @@ class FrameSource(GraphNode):
 
     def halt(self, reason: str) -> None:
         """
-        Stop publishing now (a run being interrupted): frames already sent stay sent, the
-        rest never go out, and the node's job is over.
+        Stop publishing now (a run being interrupted).
+
+        Frames already sent stay sent, the rest never go out, and the node's job is over.
         """
         if self.done:
             return

@@ -73,8 +73,9 @@ def port_error(host: str, port: int, exc: Exception) -> str:
 
 class _Subscriptions:
     """
-    foxglove ServerListener: notes each subscription with what had been served when it came
-    (``state()``: clouds served, phases served), called from the server's thread; the node serves
+    foxglove ServerListener noting what had been served when each subscription came.
+
+    ``state()``: clouds served, phases served; called from the server's thread. The node serves
     what the subscriber missed from its own (:meth:`LiveView._serve_subscribed`).
     """
 
@@ -222,9 +223,11 @@ class LiveView(GraphNode):
 
     def _serve_subscribed(self) -> None:
         """
-        Serve what a client that just subscribed missed: the latest cloud, unless a newer one
-        went out since it subscribed; a slice's images and tag points of the phases shown before
-        it subscribed (others subscribed then see them again, with the same stamps).
+        Serve what a client that just subscribed missed.
+
+        The latest cloud, unless a newer one went out since it subscribed; a slice's images and tag
+        points of the phases shown before it subscribed (others subscribed then see them again,
+        with the same stamps).
         """
         topics = self._fox_listener.topics
         while topics:
@@ -290,8 +293,9 @@ class LiveView(GraphNode):
 
     def _hold(self, held: dict, what: str, key, item) -> None:
         """
-        Keep ``item`` until its pair (same stamp) is in, then serve the phase; the oldest goes
-        (said on /diagnostics) when more than ``max_unpaired`` wait.
+        Keep ``item`` until its pair (same stamp) is in, then serve the phase.
+
+        The oldest goes (said on /diagnostics) when more than ``max_unpaired`` wait.
         """
         held[key] = item
         if key in self._clouds and key in self._states:

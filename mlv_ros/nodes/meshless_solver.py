@@ -1,6 +1,7 @@
 """
-meshless_solver: dense LV motion phase by phase (``/mlv/tag_points`` + the registered model →
-``/lv/motion``, ``/lv/model_state``).
+meshless_solver: dense LV motion phase by phase.
+
+``/mlv/tag_points`` + the registered model → ``/lv/motion``, ``/lv/model_state``.
 
 Tag point sets are assembled per phase as slices arrive, in any order (a duplicate replaces its
 earlier copy). Phase t is solved as soon as every slice's set is in — warm-started from t−1 —
@@ -305,9 +306,10 @@ class MeshlessSolver(GraphNode):
 
     def _outputs_ready(self) -> bool:
         """
-        Whether the results may go out: outputs are VOLATILE streams, so a phase published
-        before a subscriber has matched (e.g. by a solver restarted mid-run, which solves its
-        first phases at once) never reaches it.
+        Check whether the results may go out (a subscriber has matched).
+
+        Outputs are VOLATILE streams, so a phase published before a subscriber has matched (e.g. by
+        a solver restarted mid-run, which solves its first phases at once) never reaches it.
         """
         matched = min(
             self.motion_pub.get_subscription_count(), self.state_pub.get_subscription_count()

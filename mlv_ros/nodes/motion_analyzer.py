@@ -1,6 +1,7 @@
 """
-motion_analyzer: per-phase motion metrics (``/lv/motion`` + ``/lv/model_state`` →
-``/lv/metrics``, ``mlv_msgs/MotionMetrics``).
+motion_analyzer: per-phase motion metrics.
+
+``/lv/motion`` + ``/lv/model_state`` → ``/lv/metrics`` (``mlv_msgs/MotionMetrics``).
 
 Each motion cloud is paired with the model state of identical header stamp (the solver stamps
 both alike; the state carries the phase index), as message_filters' exact-time synchroniser
@@ -103,8 +104,9 @@ class MotionAnalyzer(GraphNode):
 
     def _other_study_cloud(self, topic: str, msg) -> bool:
         """
-        Whether ``msg`` (a point cloud) is paired with a state of another study: then it is
-        dropped with it (reported on /diagnostics, counted).
+        Check whether ``msg`` (a point cloud) is paired with a state of another study.
+
+        Such a cloud is dropped with its state (reported on /diagnostics, counted).
         """
         key = _key(msg.header.stamp)
         if key not in self._foreign_stamps:
@@ -230,8 +232,10 @@ class MotionAnalyzer(GraphNode):
 
     def _hold(self, held: dict, what: str, stamp, item) -> None:
         """
-        Keep ``item`` until its pair (same stamp) arrives; the oldest goes when too many wait
-        (e.g. states whose clouds were dropped as bad), so memory stays bounded, and says so.
+        Keep ``item`` until its pair (same stamp) arrives, with bounded memory.
+
+        The oldest goes when too many wait (e.g. states whose clouds were dropped as bad), so
+        memory stays bounded, and the node says so.
         """
         held[_key(stamp)] = item
         self._pair()
@@ -306,8 +310,9 @@ class MotionAnalyzer(GraphNode):
 
     def _say_findings(self, f) -> None:
         """
-        Say which segments read akinetic / dyskinetic whenever that changes (the findings
-        themselves go out in MotionMetrics).
+        Say which segments read akinetic / dyskinetic whenever that changes.
+
+        The findings themselves go out in MotionMetrics.
         """
         said = (
             tuple(f.abnormal(('akinetic',))),

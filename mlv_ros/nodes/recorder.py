@@ -168,8 +168,10 @@ class Recorder(GraphNode):
 
     def upstream_alive(self) -> bool:
         """
-        Whether a node still publishes on a recorded graph topic (``/diagnostics``, which every
-        node and this one publish, aside): after a signal the recording stays open for it.
+        Check whether a node still publishes on a recorded graph topic (``/diagnostics`` aside).
+
+        ``/diagnostics`` is left aside because every node and this one publish it. After a signal
+        the recording stays open for such a node.
         """
         return any(
             self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS
@@ -196,11 +198,12 @@ class Recorder(GraphNode):
 
     def ours(self, status) -> bool:
         """
-        Whether a /diagnostics status is this graph's: a graph node (:data:`GRAPH_NODE_NAMES`) in
-        this recorder's namespace. A status named by the node's name alone (no namespace) counts
-        as ours at the root, or when this graph does not name its statuses by namespace
-        (``diagnostic_updater.use_fqn`` false here): then another graph's in another namespace
-        cannot be told apart, and is kept.
+        Check whether a /diagnostics status is this graph's.
+
+        It is when it names a graph node (:data:`GRAPH_NODE_NAMES`) in this recorder's namespace. A
+        status named by the node's name alone (no namespace) counts as ours at the root, or when
+        this graph does not name its statuses by namespace (``diagnostic_updater.use_fqn`` false
+        here): then another graph's in another namespace cannot be told apart, and is kept.
         """
         ns, node = status_place(status)
         if node not in GRAPH_NODE_NAMES:
@@ -211,8 +214,10 @@ class Recorder(GraphNode):
 
     def _own_statuses(self, data: bytes) -> bytes | None:
         """
-        ``data`` (a DiagnosticArray) with only this graph's statuses (:meth:`ours`): as received
-        when all are, re-serialised when some are not, None when none is.
+        Return ``data`` (a DiagnosticArray) with only this graph's statuses, or None.
+
+        Statuses are this graph's by :meth:`ours`: ``data`` as received when all are, re-serialised
+        when some are not, None when none is.
         """
         try:
             arr = deserialize_message(data, DiagnosticArray)
@@ -230,8 +235,9 @@ class Recorder(GraphNode):
 
     def _take(self, topic: str, msg, data: bytes, now: int, published) -> bool:
         """
-        Whether ``msg`` is written now (False: left out as another study's, or a cloud held
-        until its state is in).
+        Return whether ``msg`` is written now.
+
+        False: left out as another study's, or a cloud held until its state is in.
         """
         key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
         if topic in CLOUD_STATES:
@@ -278,7 +284,7 @@ class Recorder(GraphNode):
             self._write_failed(exc)
 
     def _write_failed(self, exc: OSError) -> None:
-        """The file cannot take more: close what it has and stop."""
+        """Close what the file has and stop: it cannot take more."""
         code = errno.errorcode.get(exc.errno, str(exc.errno))
         try:
             self.writer.close()  # metadata.yaml for the messages in the file
@@ -299,8 +305,9 @@ class Recorder(GraphNode):
 
     def finish(self) -> None:
         """
-        Close the recording (every message already taken is in it, clouds still waiting for
-        their state too) and report the counts.
+        Close the recording and report the counts.
+
+        Every message already taken is in it, clouds still waiting for their state too.
         """
         if self.writer.closed:
             return

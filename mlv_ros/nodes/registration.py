@@ -1,6 +1,7 @@
 """
-registration: registers the meshless model to the end-diastolic images
-(``/mlv/frames`` → ``/mlv/registered_cloud``, ``/mlv/registered_state``, both latched).
+registration: registers the meshless model to the end-diastolic images.
+
+``/mlv/frames`` → ``/mlv/registered_cloud``, ``/mlv/registered_state``, both latched.
 
 Collects the ED frame (phase 0) of every slice; once all ``num_sa_slices + num_la_slices`` are
 in, or ``ed_timeout_s`` after the first one with at least ``min_sa_slices``, segments them,

@@ -1,6 +1,8 @@
 """
-replay: publishes a recorded MCAP's topics (as ``ros2 bag play`` does), with the original
-timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate: 0``).
+replay: publishes a recorded MCAP's topics (as ``ros2 bag play`` does).
+
+With the original timing scaled by ``rate``, or as fast as the subscribers acknowledge (``rate:
+0``).
 
 The graph's topics are played in the node's namespace whatever namespace they were recorded in
 (``/study2/mlv/frames`` recorded, ``/mlv/frames`` played at the root, ``/study3/mlv/frames``
@@ -35,7 +37,7 @@ CLOCK_TOPIC = '/clock'
 
 def recorded_qos(offered) -> QoSProfile:
     """
-    The first offered QoS profile of a recorded topic (RELIABLE KEEP_LAST(1000) if absent).
+    Return the first offered QoS profile of a recorded topic (RELIABLE KEEP_LAST(1000) if absent).
 
     ``offered`` is the recorded ``offered_qos_profiles`` in any of rosbag2's spellings (YAML text
     or a list of maps, see :func:`mlv_ros.bagio.parse_offered_qos`).
@@ -203,7 +205,7 @@ class Replay(GraphNode):
             self.stop()
 
     def _current(self, m: bagio.BagMessage) -> bytes:
-        """The recorded bytes, with the defaults of fields appended since (if any) added."""
+        """Return the recorded bytes, with the defaults of fields appended since (if any) added."""
         if m.missing == ():
             return m.data
         try:

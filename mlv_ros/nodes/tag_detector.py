@@ -1,6 +1,7 @@
 """
-tag_detector: tag intersections per frame, tracked through each slice's cine
-(``/mlv/frames`` → ``/mlv/tag_points``).
+tag_detector: tag intersections per frame, tracked through each slice's cine.
+
+``/mlv/frames`` → ``/mlv/tag_points``.
 
 One :class:`~mlv_ros.core.tags.SliceTracker` per (view, slice). Frames may arrive in any order
 (slice-major, phase-major, interleaved); each slice's frames are processed in phase order, later
@@ -45,7 +46,7 @@ def _slice_name(key) -> str:
 
 
 def _digest(msg: TaggedFrame) -> bytes:
-    """What tells a re-sent frame from a different one in the same slot."""
+    """Return what tells a re-sent frame from a different one in the same slot."""
     h = hashlib.blake2b(digest_size=16)
     h.update(f'{msg.image.encoding} {msg.image.height}x{msg.image.width}'.encode())
     h.update(bytes(msg.image.data))
@@ -278,7 +279,7 @@ class TagDetector(GraphNode):
 
     def _update_status(self) -> None:
         """
-        The heartbeat's status: the counts, at OK unless something needs the user's eye.
+        Update the heartbeat's status: the counts, at OK unless something needs the user's eye.
 
         Set without publishing or logging (the heartbeat republishes it every second); events
         that need saying were already reported when they happened.
@@ -326,8 +327,10 @@ class TagDetector(GraphNode):
 
     def _publish_empty(self, msg: TaggedFrame, reason: str) -> None:
         """
-        An empty set standing in for a frame that could not be used, if its indices are usable
-        and its slot is the next one its slice expects (a filled or later slot keeps its own).
+        Publish an empty set standing in for a frame that could not be used, if it may.
+
+        Only if the frame's indices are usable and its slot is the next one its slice expects (a
+        filled or later slot keeps its own).
         """
         key = (msg.view, msg.slice_index)
         if msg.phase_index != self.next_phase.get(key, 0) or msg.phase_index in self.pending.get(

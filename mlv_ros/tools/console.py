@@ -1,6 +1,7 @@
 """
-The console of ``mlv-ros run`` and ``mlv-ros demo``: one progress bar over phases while the
-graph runs, then a short summary of the run.
+The console of ``mlv-ros run`` and ``mlv-ros demo``.
+
+One progress bar over phases while the graph runs, then a short summary of the run.
 
 By default a run shows:
 
@@ -34,8 +35,9 @@ _NUMBER = re.compile(r'[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?')
 
 class RunConsole:
     """
-    What a run prints while it runs: the progress bar (:meth:`phase`) and, with ``verbose``,
-    the run's event lines (:meth:`line`).
+    What a run prints while it runs: the progress bar and the run's event lines.
+
+    The progress bar (:meth:`phase`) and, with ``verbose``, the run's event lines (:meth:`line`).
 
     Parameters
     ----------
@@ -56,8 +58,10 @@ class RunConsole:
 
     def quiet_nodes(self):
         """
-        Keep the nodes' INFO lines off the console unless verbose (WARN and ERROR stay: what a
-        user must act on); returns what puts the level back (the process may run more after).
+        Keep the nodes' INFO lines off the console unless verbose.
+
+        WARN and ERROR stay (what a user must act on). Returns what puts the level back (the
+        process may run more after).
 
         The threshold is the default level of every ROS logger in this process, which also
         decides what reaches /rosout: INFO statuses are still on /diagnostics and in the
@@ -73,8 +77,10 @@ class RunConsole:
 
     def line(self, text: str) -> None:
         """
-        An event of the run (``run_graph``'s ``progress``): shown with ``verbose`` only (but
-        the few of :data:`ALWAYS_SHOWN`, e.g. the live view's address).
+        Show an event of the run (``run_graph``'s ``progress``) if it is to be shown.
+
+        Shown with ``verbose`` only, but for the few of :data:`ALWAYS_SHOWN` (e.g. the live view's
+        address).
         """
         if not self.verbose and not text.startswith(ALWAYS_SHOWN):
             return
@@ -175,8 +181,9 @@ def source_text(source: dict) -> str:
 
 def volumes_text(volumes: dict, failed=()) -> str | None:
     """
-    ED / ES cavity volume and the ejection fraction from phase → volume (ml), leaving out
-    failed phases (ES: the smallest volume).
+    Return ED / ES cavity volume and the ejection fraction as text.
+
+    From phase → volume (ml), leaving out failed phases (ES: the smallest volume).
     """
     kept = {
         int(p): float(v)
@@ -195,7 +202,7 @@ def volumes_text(volumes: dict, failed=()) -> str | None:
 
 
 def accuracy_text(accuracy: dict | None) -> list[str]:
-    """The accuracy against the ground truth, in at most two lines."""
+    """Return the accuracy against the ground truth, in at most two lines."""
     if not accuracy:
         return []
     if accuracy.get('error'):
@@ -260,7 +267,7 @@ def summary_lines(
     volumes: dict | None = None,
 ) -> list[str]:
     """
-    The run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
+    Return the run's short summary: at most :data:`MAX_SUMMARY_LINES` lines.
 
     Parameters
     ----------

@@ -1,8 +1,9 @@
 """
-``mlv-ros demo`` (the README's ``make demo``): simulate the built-in ``normal`` LV phantom
-(8 SA + 3 LA tagged cines, 256², 25 phases, SNR 20), run the whole graph on it in one process,
-record the run, build the report and print the accuracy against the phantom's analytic ground
-truth. About a minute and a half on 2 cores.
+``mlv-ros demo`` (the README's ``make demo``): the whole graph on the built-in phantom.
+
+Simulate the built-in ``normal`` LV phantom (8 SA + 3 LA tagged cines, 256², 25 phases, SNR 20),
+run the whole graph on it in one process, record the run, build the report and print the accuracy
+against the phantom's analytic ground truth. About a minute and a half on 2 cores.
 
 The console is ``mlv-ros run``'s (:mod:`mlv_ros.tools.console`): a progress bar over phases on a
 terminal, then a short summary; ``--verbose`` adds the event lines, the nodes' INFO lines and the

@@ -1,6 +1,7 @@
 """
-``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView (and any VTK or CSV
-tool) opens, rebuilt from the recording alone.
+``mlv-ros export RUN --vtk DIR``: a recorded run as files that ParaView opens.
+
+Files that ParaView (and any VTK or CSV tool) opens, rebuilt from the recording alone.
 
 DIR (created; an existing one must be empty) receives:
 
@@ -71,8 +72,9 @@ def add_arguments(parser):
 
 def check_out_dir(out: Path) -> None:
     """
-    ValueError, with the fix, when ``out`` cannot take an export (a file, a non-empty
-    directory: an export never mixes with or overwrites other files).
+    Raise ValueError, with the fix, when ``out`` cannot take an export.
+
+    That is a file or a non-empty directory: an export never mixes with or overwrites other files.
     """
     if out.is_dir():
         if any(out.iterdir()):
@@ -87,8 +89,9 @@ def check_out_dir(out: Path) -> None:
 # --------------------------------------------------------------------------- reading
 def read_phases(mcap: Path) -> dict:
     """
-    Everything the export needs from a recording (checked with
-    :func:`mlv_ros.tools.report.check_recording` first).
+    Read everything the export needs from a recording.
+
+    The recording is checked with :func:`mlv_ros.tools.report.check_recording` first.
 
     Returns
     -------
@@ -155,10 +158,11 @@ def read_phases(mcap: Path) -> dict:
 # --------------------------------------------------------------------------- writing
 def point_arrays(cloud: np.ndarray, ed: np.ndarray | None) -> tuple[np.ndarray, dict]:
     """
-    Positions (N, 3) and the point arrays of one phase's /lv/motion cloud: ``displacement``
-    (N, 3), every other scalar field (``err``, ``ecc``, ``ell``) as it was recorded, and
-    ``ed_position`` (N, 3): the registered ED cloud when it has the same particles, else
-    position − displacement.
+    Return positions (N, 3) and the point arrays of one phase's /lv/motion cloud.
+
+    The arrays: ``displacement`` (N, 3), every other scalar field (``err``, ``ecc``, ``ell``) as it
+    was recorded, and ``ed_position`` (N, 3): the registered ED cloud when it has the same
+    particles, else position − displacement.
     """
     pts = np.stack([cloud[n] for n in _POSITION], axis=-1)
     names = cloud.dtype.names
@@ -183,7 +187,7 @@ def _number(value) -> str:
 
 def segment_rows(phases: dict) -> list[dict]:
     """
-    The CSV rows: every phase with metrics × AHA segment 1–17.
+    Return the CSV rows: every phase with metrics × AHA segment 1–17.
 
     Strain cells are empty where the value is no measurement: a failed phase, a segment without
     particles (``segment_count`` 0), a recording without segment strain.
@@ -277,9 +281,10 @@ def _readme(
 
 def export_vtk(mcap: Path, out: Path) -> dict:
     """
-    Write the export of the recording ``mcap`` (a run directory or its ``.mcap``) into the new
-    or empty directory ``out``; returns a summary (the files, the phases written, left out and
-    degraded).
+    Write the export of the recording ``mcap`` into the new or empty directory ``out``.
+
+    ``mcap`` is a run directory or its ``.mcap``. Returns a summary (the files, the phases written,
+    left out and degraded).
 
     The files are written into a temporary directory beside ``out`` that then takes its name, so
     an export that fails leaves nothing behind.

@@ -1,6 +1,8 @@
 """
-A node of ``mlv-ros run``'s graph in a process of its own, so that it computes on another core
-than the rest of the graph (the tag detector beside the registration and the solver).
+A node of ``mlv-ros run``'s graph in a process of its own.
+
+So that it computes on another core than the rest of the graph (the tag detector beside the
+registration and the solver).
 
 The run starts the child with :meth:`ChildNode.start` (the same interpreter and environment) and
 talks to it over the child's stdin and stdout, one JSON object a line:
@@ -104,8 +106,10 @@ class ChildNode:
         cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict
     ) -> 'ChildNode':
         """
-        Start node ``name`` in a child process (this interpreter, this environment, the
-        directory holding ``mlv_ros`` on its path).
+        Start node ``name`` in a child process.
+
+        The child runs this interpreter, this environment, with the directory holding ``mlv_ros``
+        on its path.
         """
         import mlv_ros
         from rclpy.logging import get_logger_effective_level

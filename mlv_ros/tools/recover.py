@@ -1,6 +1,8 @@
 """
-``mlv-ros recover DAMAGED.mcap OUT.mcap``: rewrite a valid recording from one whose writer was
-killed (every message of every complete chunk is kept; see :func:`mlv_ros.bagio.recover`).
+``mlv-ros recover DAMAGED.mcap OUT.mcap``: rewrite a valid recording from a damaged one.
+
+DAMAGED is a recording whose writer was killed; every message of every complete chunk is kept (see
+:func:`mlv_ros.bagio.recover`).
 
 DAMAGED may be a run directory holding one ``.mcap`` file.
 """
@@ -25,7 +27,7 @@ def _fail(msg) -> int:
 
 
 def _source(damaged: Path) -> Path:
-    """The file to read: DAMAGED itself, or the one .mcap in a directory; ValueError otherwise."""
+    """Return the file to read (DAMAGED, or the one .mcap in a directory); ValueError otherwise."""
     if not damaged.exists():
         raise ValueError(
             f'{damaged} does not exist: give the damaged recording (e.g. RUN_DIR/run.mcap)'

@@ -1,6 +1,7 @@
 """
-``mlv-ros report RUN.mcap [--compare OTHER.mcap]``: the motion report of a recorded run,
-rebuilt from the recording alone (no tracking is recomputed): PNG figures in the spirit of the
+``mlv-ros report RUN.mcap [--compare OTHER.mcap]``: the motion report of a recorded run.
+
+Rebuilt from the recording alone (no tracking is recomputed): PNG figures in the spirit of the
 paper's Fig. 9–16, a bull's-eye of peak strain by AHA segment, ``summary.json`` and an
 ``index.html`` that shows them together.
 """
@@ -28,9 +29,10 @@ def add_arguments(parser):
 
 def check_recording(path: Path) -> None:
     """
-    Raise FileNotFoundError / ValueError, with the fix, for a path that is not a run's recording:
-    missing, or holding another message type on a topic the report reads (deserialising it would
-    fail deep inside rclpy).
+    Raise FileNotFoundError / ValueError, with the fix, for a path that is not a run's recording.
+
+    That is, a path missing, or holding another message type on a topic the report reads
+    (deserialising it would fail deep inside rclpy).
     """
     path = Path(path)
     if not path.exists():
@@ -106,7 +108,7 @@ def load_run_data(path: Path, label: str):
 
 def with_segment_uncertainty(phases, run: dict, frame) -> list:
     """
-    Recorded metrics with their per-segment uncertainties filled in where missing.
+    Return recorded metrics with their per-segment uncertainties filled in where missing.
 
     MotionMetrics carries them since issue 20; for recordings made before, they are recomputed
     here from the recorded motion exactly as the analyzer computes them (:class:`LVAnalyzer` on
@@ -118,9 +120,13 @@ def with_segment_uncertainty(phases, run: dict, frame) -> list:
     Parameters
     ----------
     phases : list of PhaseMetrics
+        The recorded metrics, one per phase; those with 17 per-segment error uncertainties
+        already, or without recorded positions, are returned as they are.
     run : dict
         :func:`mlv_ros.tools.run.read_run` of the recording.
     frame : LVFrame
+        The run's LV frame (from the registered ED cloud and rotation), given with the ED cloud
+        to :class:`LVAnalyzer`.
 
     """
     from dataclasses import replace

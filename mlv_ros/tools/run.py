@@ -1,6 +1,8 @@
 """
-``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap: the tag detector in a process of
-its own (:mod:`mlv_ros.tools.graph_process`), the other nodes in the run's process (one executor).
+``mlv-ros run``: the whole graph, recorded to RUN_DIR/run.mcap.
+
+The tag detector runs in a process of its own (:mod:`mlv_ros.tools.graph_process`), the other nodes
+in the run's process (one executor).
 
     mlv-ros run (--phantom PRESET | --dicom DIR [--study UID] | --bag FILE) --out RUN_DIR
                 [--namespace NS]
@@ -77,8 +79,10 @@ DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is que
 
 class RunStartError(ValueError):
     """
-    The graph could not start (a node refused its parameters, the input has no frames, the
-    run directory cannot be written); nothing was recorded and nothing is left behind.
+    Error raised when the graph could not start.
+
+    A node refused its parameters, the input has no frames, or the run directory cannot be written;
+    nothing was recorded and nothing is left behind.
     """
 
 
@@ -234,6 +238,8 @@ def add_arguments(parser):
 
 def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
     """
+    Return each graph node's rclpy Node keyword arguments (parameters file and overrides).
+
     {node: rclpy Node keyword arguments} giving each graph node the parameters file and the
     overrides {node: {name: value}} (which win over the file).
 
@@ -258,8 +264,10 @@ def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
 
 def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = '/') -> list[str]:
     """
-    Nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` that discovery finds
-    on ROS domain ``domain_id`` within ``wait_s`` seconds (returns as soon as it finds one).
+    Return the mlv_ros graph nodes that discovery finds in ``namespace`` on a ROS domain.
+
+    The nodes of an mlv_ros graph (:data:`GRAPH_NODE_NAMES`) in ``namespace`` on ROS domain
+    ``domain_id``, looked for within ``wait_s`` seconds (returns as soon as it finds one).
 
     A graph in another namespace talks on other topics (``/a/mlv/frames``, ``/b/mlv/frames``):
     it is no conflict, and not counted. The look itself is a hidden node in ``namespace`` named
@@ -335,7 +343,7 @@ def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str =
 
 
 def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = '/') -> str:
-    """The one line refusing a busy domain, with how to choose another (or another namespace)."""
+    """Return the line refusing a busy domain, saying how to pick another domain or namespace."""
     shown = ', '.join(
         'another mlv-ros run starting' if PROBE_PREFIX in n else n for n in nodes[:4]
     )
@@ -352,8 +360,9 @@ def busy_domain_text(domain_id: int, nodes: list[str], namespace: str = '/') -> 
 
 def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
     """
-    (the domain the user chose: ``domain_id`` or ``$ROS_DOMAIN_ID``, or None; whether one was
-    chosen).
+    Return the domain the user chose and whether one was chosen.
+
+    The domain is ``domain_id`` or ``$ROS_DOMAIN_ID``, or None when neither was given.
     """
     if domain_id is not None:
         return int(domain_id), True
@@ -374,8 +383,9 @@ def _chosen_domain(domain_id: int | None) -> tuple[int | None, bool]:
 
 def _prepare_out(out_dir: Path) -> list[Path]:
     """
-    Create the run directory and check it takes files; returns the directories created (the
-    deepest first), for a failed start to remove.
+    Create the run directory, check it takes files and return the directories created.
+
+    The directories created come deepest first, for a failed start to remove.
     """
     if (out_dir / 'run.mcap').exists():
         raise FileExistsError(
@@ -410,8 +420,9 @@ def _remove_dirs(created: list[Path]) -> None:
 
 def _error_text(exc: BaseException) -> str:
     """
-    An exception as one line: expected errors by their message, anything else (a bug) with
-    its type and where it was raised.
+    Return an exception as one line of text.
+
+    Expected errors by their message, anything else (a bug) with its type and where it was raised.
     """
     from rclpy.exceptions import InvalidParameterValueException, ParameterException
 
@@ -452,8 +463,9 @@ def _reason(node) -> str:
 
 def child_nodes() -> tuple[str, ...]:
     """
-    The nodes a run starts in processes of their own (:data:`CHILD_NODES`; none on one core
-    or with ``MLV_ROS_ONE_PROCESS=1``).
+    Return the nodes a run starts in processes of their own.
+
+    :data:`CHILD_NODES`; none on one core or with ``MLV_ROS_ONE_PROCESS=1``.
     """
     if (
         os.environ.get('MLV_ROS_ONE_PROCESS', '').strip() not in ('', '0')
@@ -496,8 +508,9 @@ def _stuck(nodes: dict) -> str | None:
 
 def _activity(nodes: dict) -> int:
     """
-    A number that grows whenever the graph does something (frames, tag points, phases,
-    messages taken); /diagnostics heartbeats are left out.
+    Return a number that grows whenever the graph does something.
+
+    It counts frames, tag points, phases and messages taken; /diagnostics heartbeats are left out.
     """
     from mlv_ros import qos
 
@@ -521,7 +534,7 @@ def _taken(node, topic: str) -> int:
 
 
 def _statuses(nodes: dict) -> str:
-    """The nodes' latest errors (or, without any, their warnings) on one line."""
+    """Return the nodes' latest errors (or, without any, their warnings) on one line."""
     from mlv_ros.nodes.common import OK, status_text
 
     said = [
@@ -1046,8 +1059,10 @@ def _settle(
 
 def verdict_summary(verdicts: dict) -> dict:
     """
-    ``phases_ok`` and the ``degraded`` / ``failed`` phases with their reasons
-    (:mod:`mlv_ros.core.verdict`) from the analyzer's phase → (level, reasons).
+    Return ``phases_ok`` and the degraded / failed phases with their reasons.
+
+    ``phases_ok`` and the ``degraded`` / ``failed`` phases (:mod:`mlv_ros.core.verdict`) come from
+    the analyzer's phase → (level, reasons).
     """
     out = {'phases_ok': sorted(p for p, (v, _) in verdicts.items() if v == 0)}
     for level, name in ((1, 'phases_degraded'), (2, 'phases_failed')):
@@ -1057,9 +1072,11 @@ def verdict_summary(verdicts: dict) -> dict:
 
 def twist_summary(solver, analyzer) -> dict:
     """
-    ``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points
-    cross; None without any) and ``twist_extrapolated`` (what of the twist and torsion is
-    extrapolated, one sentence; '' when nothing is), once the solver has taken its ED phase.
+    Return the run summary's twist fields: the measured levels and what is extrapolated.
+
+    ``twist_measured_levels`` (the levels, 0 apex … 1 base, that SA slices with tag points cross;
+    None without any) and ``twist_extrapolated`` (what of the twist and torsion is extrapolated,
+    one sentence; '' when nothing is), once the solver has taken its ED phase.
     """
     from mlv_ros.core.analysis.frame import twist_extrapolation_note
 
@@ -1073,16 +1090,18 @@ def twist_summary(solver, analyzer) -> dict:
 
 
 def registration_summary(node) -> dict | None:
-    """The ED registration's verdict and reasons (None before it registered)."""
+    """Return the ED registration's verdict and reasons (None before it registered)."""
     v = getattr(node, 'verdict', None)
     return None if v is None else {'verdict': v.name, 'reasons': v.text}
 
 
 def segment_origin_summary(node) -> dict | None:
     """
-    Where the AHA segments' circumferential origin came from (None before it registered):
-    ``source`` detected (the RV in the ED SA images) / prior (not tied to the anatomy) / given,
-    the insertion directions and confidence (:meth:`SeptumEstimate.to_dict`).
+    Return where the AHA segments' circumferential origin came from.
+
+    None before it registered; else ``source`` detected (the RV in the ED SA images) / prior (not
+    tied to the anatomy) / given, the insertion directions and confidence
+    (:meth:`SeptumEstimate.to_dict`).
     """
     res = getattr(node, 'result', None)
     septum = getattr(res, 'septum', None)
@@ -1108,7 +1127,7 @@ def verdict_line(summary: dict) -> str | None:
 
 
 def untracked(summary: dict) -> bool:
-    """The study could not be tracked: every phase after ED that was analysed failed."""
+    """Check whether the study could not be tracked (every analysed phase after ED failed)."""
     after_ed = [p for p in summary.get('phases_ok', []) if int(p) > 0]
     after_ed += [
         p
@@ -1122,9 +1141,10 @@ def untracked(summary: dict) -> bool:
 
 def write_summary(out_dir: Path, summary: dict) -> None:
     """
-    ``summary.json`` in the run directory, whole or not at all (written beside, then renamed:
-    a full disk left an empty file); on a write error the summary says so instead
-    (``summary_error``) and an earlier summary.json stays as it was.
+    Write ``summary.json`` in the run directory, whole or not at all.
+
+    It is written beside, then renamed (a full disk left an empty file); on a write error the
+    summary says so instead (``summary_error``) and an earlier summary.json stays as it was.
     """
     path = Path(out_dir) / 'summary.json'
     part = path.with_name('.summary.json.part')
@@ -1137,7 +1157,7 @@ def write_summary(out_dir: Path, summary: dict) -> None:
 
 
 def read_run(mcap: Path) -> dict:
-    """Registered cloud/state, motion positions and metrics per phase from a recording."""
+    """Read registered cloud/state, motion positions and metrics per phase from a recording."""
     from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
     from mlv_ros import bagio, conversions, qos
     from rclpy.serialization import deserialize_message
@@ -1214,8 +1234,10 @@ def _accuracy(run: dict, motion) -> dict:
 
 def groundtruth_accuracy(mcap: Path, groundtruth: Path) -> dict:
     """
-    Accuracy of a recorded run against a simulated study's ``groundtruth.json`` (its directory
-    or the file), as :func:`phantom_accuracy` does for a preset.
+    Return the accuracy of a recorded run against a simulated study's ground truth.
+
+    ``groundtruth`` is the study's ``groundtruth.json`` or its directory; the accuracy is computed
+    as :func:`phantom_accuracy` does for a preset.
     """
     from mlv_ros.core.io.groundtruth import motion_from_groundtruth
 
@@ -1234,14 +1256,14 @@ def find_groundtruth(dicom_dir: Path) -> Path | None:
 
 
 def _number_error(name: str, value, low, high, what: str = '') -> str | None:
-    """The one-line complaint for an option outside ``low..high`` (or not finite), else None."""
+    """Return the one-line complaint for an option outside ``low..high`` or not finite, or None."""
     if value is None or (math.isfinite(value) and low <= value <= high):
         return None
     return f'{name} must be from {low:g} to {high:g}{what}, got {value}'
 
 
 def check_args(args) -> str | None:
-    """The first mistake in ``mlv-ros run``'s arguments as one line with the fix, else None."""
+    """Return the first mistake in ``mlv-ros run``'s arguments (one line with the fix), or None."""
     problems = [
         _number_error('--snr', args.snr, 0, 1000, ' (0 = noise-free)'),
         _number_error('--size', args.size, 32, 1024, ' pixels'),
@@ -1328,8 +1350,9 @@ def _params_error(path: Path) -> str | None:
 
 def _params_shape(data: dict) -> bool:
     """
-    Whether ``data`` is shaped as a ROS parameters file: node (or namespace) keys down to
-    ``ros__parameters`` maps.
+    Check whether ``data`` is shaped as a ROS parameters file.
+
+    That is, node (or namespace) keys down to ``ros__parameters`` maps.
     """
     return all(
         isinstance(value, dict) or value is None
@@ -1458,7 +1481,7 @@ def _run(args) -> int:
 
 
 def exit_status(summary: dict) -> tuple[int, str]:
-    """What ``mlv-ros run`` exits with for ``summary``, and in a few words why."""
+    """Return what ``mlv-ros run`` exits with for ``summary``, and in a few words why."""
     if summary['interrupted']:
         return SIGNAL_EXIT[
             signal.Signals[summary['interrupted']]
