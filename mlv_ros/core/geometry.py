@@ -68,7 +68,7 @@ class SliceGeometry:
 
     @property
     def normal(self) -> np.ndarray:
-        """Unit slice normal ``row_direction × column_direction``, shape (3,)."""
+        """Return the unit slice normal ``row_direction × column_direction``, shape (3,)."""
         n = np.cross(self.row_direction, self.column_direction)
         return n / np.linalg.norm(n)
 
@@ -123,8 +123,9 @@ class SliceGeometry:
 
     def to_dicom(self) -> dict:
         """
-        DICOM attribute values: ImagePositionPatient, ImageOrientationPatient, PixelSpacing,
-        SliceThickness.
+        Return the DICOM attribute values of this geometry.
+
+        ImagePositionPatient, ImageOrientationPatient, PixelSpacing, SliceThickness.
         """
         return {
             'ImagePositionPatient': [float(v) for v in self.image_position],

@@ -1,7 +1,8 @@
 """
-A built-in analytic test pattern: a short-axis stack of 1-1 SPAMM grid images that rotate
-rigidly over the cycle. Used for smoke tests of the graph before a full phantom is needed; the
-realistic simulator lives in :mod:`mlv_ros.core.sim`.
+A built-in analytic test pattern: a short-axis stack of rotating 1-1 SPAMM grid images.
+
+The grid rotates rigidly over the cycle. Used for smoke tests of the graph before a full phantom is
+needed; the realistic simulator lives in :mod:`mlv_ros.core.sim`.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ def pattern_frames(
     max_rotation_deg: float = 10.0,
 ) -> list[Frame]:
     """
-    Frames (slice-major) of a tag grid rotating by up to ``max_rotation_deg`` about the image
-    centre, uint16 pixels; slices 8 mm apart along patient z.
+    Return the frames (slice-major) of a tag grid rotating about the image centre.
+
+    Rotation up to ``max_rotation_deg``, uint16 pixels; slices 8 mm apart along patient z.
     """
     if num_slices < 1 or num_phases < 1 or size < 8:
         raise ValueError('pattern needs ≥ 1 slice, ≥ 1 phase and size ≥ 8 pixels')

@@ -52,7 +52,7 @@ COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
 
 def data_weights(confidence) -> np.ndarray:
     """
-    Data weight of each tag point from its detection confidence (0..1), shape (K,).
+    Return the data weight of each tag point from its detection confidence (0..1), shape (K,).
 
     A tag point's position error is its phase error times λ/2π, and the phase error falls as
     the Gabor response rises above the noise; the confidence is that response relative to the
@@ -375,10 +375,11 @@ class MotionTracker:
 
     def _constraints(self, sets: dict):
         """
-        ED positions, targets, normals, keys and data weights of every track seen at this phase,
-        slice by slice in (view, slice) order: the solution must not depend on the order the
-        slices arrived in (float sums in another order, then an extra CG iteration, moved a
-        phase by 0.015 mm when the same sets were taken in another order).
+        Collect ED positions, targets, normals, keys and data weights of every track at this phase.
+
+        Slice by slice in (view, slice) order: the solution must not depend on the order the slices
+        arrived in (float sums in another order, then an extra CG iteration, moved a phase by 0.015
+        mm when the same sets were taken in another order).
         """
         keys, rest, targets, normals, conf = [], [], [], [], []
         for key, pts in sorted(sets.items(), key=lambda item: item[0]):
@@ -529,7 +530,7 @@ class MotionTracker:
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
 
     def _verdict(self, sets, inside, residual_mm, keys, rejected, attached):
-        """The phase's data support (:func:`mlv_ros.core.verdict.phase_verdict`)."""
+        """Return the phase's data support (:func:`mlv_ros.core.verdict.phase_verdict`)."""
         used_per_slice: dict = {}
         for k, ok in zip(keys, inside):
             if ok:
@@ -556,8 +557,9 @@ class MotionTracker:
 
     def _multipliers(self) -> tuple[float, float]:
         """
-        The data springs' κ and the fit-error penalty's multiplier, both scaled against the
-        median elastic diagonal.
+        Return the data springs' κ and the fit-error penalty's multiplier.
+
+        Both are scaled against the median elastic diagonal.
         """
         kscale = float(np.median(self._kdiag))
         return (
@@ -569,10 +571,11 @@ class MotionTracker:
 
     def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None):
         """
-        Local deformation δ (paper: internal forces act on the local part only) at elastic
-        equilibrium under the in-plane tag forces: minimise
-        ``κ Σ_k |P_k(Φ_k(x_g + δ) − t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)`` plus the MLS
-        fit error, near-incompressibility and axial stiffness (:mod:`mlv_ros.core.meshless.local`),
+        Solve for the local deformation δ at elastic equilibrium under the in-plane tag forces.
+
+        Paper: internal forces act on the local part only. Minimise ``κ Σ_k |P_k(Φ_k(x_g + δ) −
+        t_k)|² + Σ_i v_i (μ |sym ∇δ_i|² + λ/2 tr(∇δ_i)²)`` plus the MLS fit error,
+        near-incompressibility and axial stiffness (:mod:`mlv_ros.core.meshless.local`),
         warm-started from the previous phase.
 
         Parameters
@@ -630,12 +633,13 @@ class MotionTracker:
 
     def _coupled_axial(self, ax, Fg, x_global) -> np.ndarray:
         """
-        Per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term (see
-        ``longitudinal_coupling``), shape (N, 3, 3): ``M_i : H_i`` is the local longitudinal strain
-        less ρ times the local circumferential one (``c_i`` the circumferential direction about
-        the fitted axis ``a``). ρ = ``longitudinal_coupling`` × the global fit's median
-        longitudinal over circumferential linear strain, within [0, 2]; 0 while the global
-        circumferential strain is above −0.02 (near ED: no ratio to read, no deviation to couple).
+        Return the per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term, (N, 3, 3).
+
+        See ``longitudinal_coupling``. ``M_i : H_i`` is the local longitudinal strain less ρ times
+        the local circumferential one (``c_i`` the circumferential direction about the fitted axis
+        ``a``). ρ = ``longitudinal_coupling`` × the global fit's median longitudinal over
+        circumferential linear strain, within [0, 2]; 0 while the global circumferential strain is
+        above −0.02 (near ED: no ratio to read, no deviation to couple).
         """
         circ = np.cross(ax, x_global - self.model.params.translation)
         circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
@@ -651,15 +655,17 @@ class MotionTracker:
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
         """
-        Twist as a parameter function of height (the parameter functions of Park et al., which
-        the paper's model builds on): rotate each particle about the model's long axis by
-        ``Δφ(h)``, piecewise linear between ``twist_knots`` uniform knots in the material height
-        h, fitted to the in-plane tag residuals of the global fit by penalised least squares
-        (second differences of the knot values, a P-spline): it follows the data where SA slices
-        are, and continues linearly beyond them — for at most ``TWIST_REACH`` of the LV's height
-        (then it stays constant), and only when at least ``TWIST_MIN_SA`` SA slices spanning
-        ``TWIST_MIN_SPAN`` of the height measure it: from two close slices a gradient extrapolated
-        to the apex is noise times a lever (measured: 60° apical twist, p95 error 10 mm).
+        Fit the twist as a parameter function of height and rotate the particles by it.
+
+        The parameter functions of Park et al., which the paper's model builds on: rotate each
+        particle about the model's long axis by ``Δφ(h)``, piecewise linear between ``twist_knots``
+        uniform knots in the material height h, fitted to the in-plane tag residuals of the global
+        fit by penalised least squares (second differences of the knot values, a P-spline): it
+        follows the data where SA slices are, and continues linearly beyond them — for at most
+        ``TWIST_REACH`` of the LV's height (then it stays constant), and only when at least
+        ``TWIST_MIN_SA`` SA slices spanning ``TWIST_MIN_SPAN`` of the height measure it: from two
+        close slices a gradient extrapolated to the apex is noise times a lever (measured: 60°
+        apical twist, p95 error 10 mm).
 
         Parameters
         ----------
@@ -734,8 +740,9 @@ class MotionTracker:
 
     def _model_at(self, points) -> np.ndarray:
         """
-        Current model positions of rest points (M, 3), NaN for those farther than
-        ``max_attach_mm`` from every particle.
+        Return the current model positions of rest points (M, 3).
+
+        NaN for those farther than ``max_attach_mm`` from every particle.
         """
         out = np.full(points.shape, np.nan)
         ok = self._tree.query(points)[0] <= self.max_attach_mm
@@ -745,8 +752,10 @@ class MotionTracker:
 
     def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):
         """
-        Newton step on s per control point: bring the model position of the material line
-        ``p0 + s n`` back onto the image plane (the plane through the measured target).
+        Take a Newton step on s per control point.
+
+        Bring the model position of the material line ``p0 + s n`` back onto the image plane (the
+        plane through the measured target).
 
         ``ctrl``: the pass's attachment of ``p0 + s n`` for the points ``inside`` (in their order),
         reused for the base positions (an attachment is per point, so it equals attaching them
@@ -791,8 +800,10 @@ class MotionTracker:
 
 def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
     """
-    The control points ``keep`` (boolean, shape (M,)) of ``ctrl``: each point's weights depend
-    on its own position only, so this equals attaching those points again.
+    Return the control points ``keep`` (boolean, shape (M,)) of ``ctrl``.
+
+    Each point's weights depend on its own position only, so this equals attaching those points
+    again.
     """
     return ControlPoints(ctrl.weights[keep], ctrl.rest_positions[keep], None, ctrl.shepard[keep])
 

@@ -1,6 +1,7 @@
 """
-Plain data records that flow through the pipeline (pure numpy; the conversion module maps
-each to its ROS message).
+Plain data records that flow through the pipeline.
+
+Pure numpy; the conversion module maps each to its ROS message.
 """
 
 from __future__ import annotations
@@ -160,8 +161,9 @@ class ForeignStudyError(ValueError):
 @dataclass
 class StudyShape:
     """
-    An acquisition's identity and dimensions as its messages declare them; every message must
-    agree.
+    An acquisition's identity and dimensions as its messages declare them.
+
+    Every message must agree.
 
     ``study_id``, ``run_id`` and each dimension are taken from the first message that declares
     them (empty ids and slice counts of 0 mean unknown); a later message of another study, or of
@@ -179,14 +181,15 @@ class StudyShape:
 
     @property
     def label(self) -> str:
-        """The study (and run) kept to, for people: ``study`` or ``study run R``."""
+        """Return the study (and run) kept to, for people: ``study`` or ``study run R``."""
         return f'{self.study_id} run {self.run_id}' if self.run_id else self.study_id
 
     def other(self, study_id: str, run_id: str = '') -> str | None:
         """
-        What makes ``study_id`` / ``run_id`` foreign, named for people (``study_id`` for another
-        study, ``'<study_id> run <run_id>'`` for another run of this one), or None when they are
-        this node's (an unknown id, on either side, is never foreign).
+        Name what makes ``study_id`` / ``run_id`` foreign (for people); None for this node's own.
+
+        ``study_id`` for another study, ``'<study_id> run <run_id>'`` for another run of this one.
+        An unknown id, on either side, is never foreign.
         """
         if self.study_id and study_id and study_id != self.study_id:
             return study_id
@@ -216,8 +219,10 @@ class StudyShape:
 
     def check(self, item) -> None:
         """
-        Adopt or verify the study, run and dimensions of ``item`` (a :class:`Frame` or
-        :class:`TagPointSet`; any object with these attributes, missing ones unknown).
+        Adopt or verify the study, run and dimensions of ``item``.
+
+        ``item`` is a :class:`Frame` or :class:`TagPointSet`; any object with these attributes,
+        missing ones unknown.
 
         Raises
         ------

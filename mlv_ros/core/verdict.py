@@ -88,7 +88,7 @@ class Verdict:
         self.reasons.append(reason)
 
     def merge(self, other: 'Verdict') -> 'Verdict':
-        """The worse of both levels, with both sets of reasons."""
+        """Return the worse of both levels, with both sets of reasons."""
         return Verdict(max(self.level, other.level), [*self.reasons, *other.reasons])
 
     @property

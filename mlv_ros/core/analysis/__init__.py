@@ -1,7 +1,9 @@
 """
-Motion analysis of the dense LV point cloud (issue 9): cardiac frame, displacement
-decomposition, per-level twist / radius, cavity volume, Lagrangian strain and AHA segments, and
-per-segment findings (peak strain with an uncertainty, wall-motion class: :mod:`.findings`).
+Motion analysis of the dense LV point cloud (issue 9).
+
+Cardiac frame, displacement decomposition, per-level twist / radius, cavity volume, Lagrangian
+strain and AHA segments, and per-segment findings (peak strain with an uncertainty, wall-motion
+class: :mod:`.findings`).
 
 Pure numpy/scipy; nothing here imports rclpy. Inputs are arrays in DICOM patient coordinates
 (mm); every function is Lagrangian: quantities are relative to end-diastole (ED, phase 0).

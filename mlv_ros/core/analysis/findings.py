@@ -167,6 +167,7 @@ def segment_lengths(rho, axial, segments) -> dict:
     rho, axial : array_like, shape (N,)
         ED distance from the long axis and along it, mm.
     segments : array_like of int, shape (N,)
+        AHA segment of each particle, 1…17 (other values are ignored).
 
     Returns
     -------
@@ -300,9 +301,11 @@ class Findings:
 
     def message_fields(self) -> dict:
         """
-        The MotionMetrics findings fields: ``findings_es_phase`` (−1: none yet), the
-        :data:`FINDING_ARRAY_FIELDS` (17 floats each, NaN = not measured; empty before any phase
-        with strain) and ``segment_class`` (17 :data:`CLASS_CODES`).
+        Return the MotionMetrics findings fields.
+
+        ``findings_es_phase`` (−1: none yet), the :data:`FINDING_ARRAY_FIELDS` (17 floats each,
+        NaN = not measured; empty before any phase with strain) and ``segment_class``
+        (17 :data:`CLASS_CODES`).
         """
         out = {'findings_es_phase': -1 if self.es_phase is None else int(self.es_phase)}
         if not self.phases_used:
@@ -321,8 +324,10 @@ class Findings:
 
     def to_dict(self) -> dict:
         """
-        JSON-ready: per-segment rows plus the thresholds used (NaN stays NaN: write it with
-        :func:`mlv_ros.core.report.summary.write_summary_json`, which makes it null).
+        Return a JSON-ready dict: per-segment rows plus the thresholds used.
+
+        NaN stays NaN: write it with :func:`mlv_ros.core.report.summary.write_summary_json`, which
+        makes it null.
         """
         rows = []
         for k in range(17):
@@ -381,11 +386,13 @@ class SegmentFindings:
 
     def update(self, metrics) -> Findings:
         """
-        Take one phase (a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`); returns the
-        findings of the cycle so far. A failed phase or one without strain changes nothing;
-        without the uncertainty arrays (e.g. metrics recorded before they existed) each segment
-        gets the support-only uncertainty: the floor, NaN below :data:`MIN_SEGMENT_PARTICLES`
-        particles (unknown count: supported), inflated when the phase is degraded.
+        Take one phase and return the findings of the cycle so far.
+
+        ``metrics`` is a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`. A failed phase or
+        one without strain changes nothing; without the uncertainty arrays (e.g. metrics recorded
+        before they existed) each segment gets the support-only uncertainty: the floor, NaN below
+        :data:`MIN_SEGMENT_PARTICLES` particles (unknown count: supported), inflated when the phase
+        is degraded.
         """
         level = int(getattr(metrics, 'verdict', 0))
         if level >= FAILED or not metrics.has_strain:
@@ -426,8 +433,10 @@ class SegmentFindings:
 
 def segment_findings(phases) -> Findings:
     """
-    Findings of a whole list of :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics` (taken in
-    phase order; duplicates: the last wins).
+    Return the findings of a whole list of phase metrics.
+
+    The :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics` are taken in phase order; duplicates:
+    the last wins.
     """
     by = {int(p.phase_index): p for p in phases}
     sf = SegmentFindings()

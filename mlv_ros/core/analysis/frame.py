@@ -209,6 +209,7 @@ def cardiac_coordinates(
     X : array_like, shape (N, 3)
         ED positions, mm.
     frame : LVFrame
+        Long-axis frame of the LV at ED (apex, long axis, circumferential reference).
     endo_radius, epi_radius : float or array_like of shape (N,), optional
         Endo- and epicardial radii (distance from the long axis, mm) at each particle, e.g.
         from the model's transmural coordinate. If both are given,
@@ -275,10 +276,11 @@ _BIN_EPS = 1e-9  # in bin units: a point this close below a boundary goes to the
 
 def level_bin(h: np.ndarray, levels: int) -> np.ndarray:
     """
-    Bin index 0 … levels−1 of normalised level ``h`` (equal bins on [0, 1]; values outside
-    are clipped into the end bins). Points within 1e-9 bin widths of a boundary go to the upper
-    bin, so a lattice layer lying exactly on a boundary is not split between two bins by
-    rounding.
+    Return the bin index 0 … levels−1 of normalised level ``h``.
+
+    Equal bins on [0, 1]; values outside are clipped into the end bins. Points within 1e-9 bin
+    widths of a boundary go to the upper bin, so a lattice layer lying exactly on a boundary is not
+    split between two bins by rounding.
     """
     if int(levels) < 1:
         raise ValueError(f'levels must be >= 1, got {levels}')
@@ -309,6 +311,9 @@ def estimate_frame(points, reference=None, *, end_fraction: float = 0.15) -> LVF
     reference : array_like, shape (3,), optional
         Circumferential reference direction. If None, the second principal axis is used, which
         has no anatomical meaning: AHA segment orientation is then arbitrary.
+    end_fraction : float
+        Fraction of the axial extent at each end whose particles' mean distance from the axis
+        decides which end is the base (default 0.15).
 
     Returns
     -------
@@ -401,7 +406,7 @@ def levels_outside(level_position, span, levels: int | None = None) -> np.ndarra
 
 def twist_extrapolation_note(span, levels: int = 10) -> str:
     """
-    What of the reported twist is extrapolated, in one sentence ('' when nothing is).
+    Say what of the reported twist is extrapolated, in one sentence ('' when nothing is).
 
     Parameters
     ----------

@@ -183,7 +183,7 @@ class PhaseMetrics:
 
     @property
     def has_strain(self) -> bool:
-        """True when the three segment arrays hold 17 values each."""
+        """Return True when the three segment arrays hold 17 values each."""
         return all(
             getattr(self, f).size == 17 for f in ('segment_err', 'segment_ecc', 'segment_ell')
         )
@@ -198,8 +198,9 @@ class PhaseMetrics:
     @classmethod
     def from_dict(cls, d: dict) -> 'PhaseMetrics':
         """
-        Build from a dict (e.g. a converted MotionMetrics message); unknown keys ignored,
-        missing ones take their defaults.
+        Build from a dict (e.g. a converted MotionMetrics message).
+
+        Unknown keys are ignored, missing ones take their defaults.
         """
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})
@@ -272,8 +273,9 @@ class LVAnalyzer:
 
     def strain(self, x: np.ndarray, F=None) -> dict | None:
         """
-        Cardiac strain components per particle (dict of (N,) arrays) or None when no F is
-        given and estimation is off.
+        Return the cardiac strain components per particle (dict of (N,) arrays).
+
+        None when no F is given and estimation is off.
         """
         if F is None:
             if not self.estimate_strain:
@@ -308,6 +310,7 @@ class LVAnalyzer:
             Deformation gradients ∂x/∂X relative to ED (e.g. the meshless model's MLS
             gradient); NaN rows are skipped in the segment means.
         phase_index, num_phases : int
+            Index of this phase in the cycle (0 = ED) and number of phases in the cycle.
         time_fraction : float, optional
             Default ``phase_index / num_phases`` (0 when num_phases is 0).
         apex : array_like, shape (3,), optional

@@ -62,6 +62,7 @@ def decompose_displacement(X, x, frame: LVFrame) -> np.ndarray:
     X, x : array_like, shape (N, 3)
         ED and current positions, mm.
     frame : LVFrame
+        Long-axis frame of the LV at ED.
 
     Returns
     -------
@@ -163,6 +164,7 @@ def level_metrics(X, x, frame: LVFrame, levels: int = 10) -> dict:
     X, x : array_like, shape (N, 3)
         ED and current positions, mm.
     frame : LVFrame
+        Long-axis frame of the LV at ED; levels are normalised along its axis (0 apex … 1 base).
     levels : int
         Number of equal level bins on [0, 1]; empty bins are left out of the output.
 
@@ -224,7 +226,7 @@ def torsion(twist_deg, axial_ed_mm) -> float:
 
 def la_radius(x, frame: LVFrame, apex=None) -> float:
     """
-    The paper's LA radius: axial distance from the apex to the particle centroid, mm.
+    Return the paper's LA radius: axial distance from the apex to the particle centroid, mm.
 
     Parameters
     ----------
@@ -339,7 +341,7 @@ class CavityModel:
 
     def thickness(self, x: np.ndarray) -> np.ndarray:
         """
-        Current axial thickness of the cell of every populated slab, mm, shape (P,).
+        Return the current axial thickness of the cell of every populated slab, mm, shape (P,).
 
         Cells partition the ED axis: boundaries halfway between consecutive populated slab
         centroids, outer boundaries at the apex and base planes (or the extreme centroids if
@@ -369,8 +371,9 @@ class CavityModel:
 
 def endocardial_mask(X, frame: LVFrame, slabs: int = 20, angle_bins: int = 36) -> np.ndarray:
     """
-    Default endocardial particles of :class:`CavityModel`: the innermost particle of every
-    (slab, sector) at ED. Returns a boolean mask of shape (N,).
+    Return the default endocardial particles of :class:`CavityModel`.
+
+    The innermost particle of every (slab, sector) at ED, as a boolean mask of shape (N,).
     """
     X = as_points(X, 'X')
     m = np.zeros(X.shape[0], dtype=bool)
@@ -389,6 +392,7 @@ def cavity_volume(
     X, x : array_like, shape (N, 3)
         ED and current positions, mm (pass ``x = X`` for the ED volume).
     frame : LVFrame
+        Long-axis frame of the LV at ED (slabs along its axis, sectors around it).
     endo_mask : array_like of bool, shape (N,), optional
         Particles on the endocardium. Default: innermost particle per (slab, sector).
     slabs, angle_bins : int

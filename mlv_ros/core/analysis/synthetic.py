@@ -23,7 +23,7 @@ import numpy as np
 
 def oblique_frame(length: float = 80.0, origin=(12.0, -30.0, 45.0)) -> LVFrame:
     """
-    An LV frame whose axes are not aligned with the patient axes (catches basis mix-ups).
+    Return an LV frame whose axes are not aligned with the patient axes (catches basis mix-ups).
 
     The long axis points mostly toward −y/+z (a typical LPS orientation is not needed here).
     """
@@ -90,9 +90,11 @@ def prolate_shell(
     n_z: int = 80,
 ) -> tuple[np.ndarray, np.ndarray]:
     """
-    Lattice of a truncated thick prolate shell: the half-ellipsoid cavity of radius ``a_in``
-    and depth ``c_in`` below the base plane, wall out to ``a_out``/``c_out`` (frame.length must
-    equal ``c_out``: the epicardial apex is the frame apex).
+    Return the lattice of a truncated thick prolate shell.
+
+    The half-ellipsoid cavity of radius ``a_in`` and depth ``c_in`` below the base plane, wall out
+    to ``a_out``/``c_out`` (frame.length must equal ``c_out``: the epicardial apex is the frame
+    apex).
 
     Levels at slab centres of [0, c_out]; at each level ``n_w`` radii equally spaced from the
     endocardial to the epicardial radius (below the cavity apex the inner radius is 0: a solid
@@ -133,6 +135,7 @@ def cylindrical_motion(
     Parameters
     ----------
     frame : LVFrame
+        LV frame the motion is defined in (z along its long axis from the apex, length L).
     X : array_like, shape (N, 3)
         ED positions, mm.
     s_r, s_l : float
@@ -178,7 +181,7 @@ def synthetic_cycle(
     twist_base_es_deg: float = -3.0,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """
-    A smooth cycle of :func:`cylindrical_motion` with end-systole at ``es_fraction``.
+    Return a smooth cycle of :func:`cylindrical_motion` with end-systole at ``es_fraction``.
 
     The contraction profile is ``g(t) = sin²(π t / (2 t_es))`` up to ES and relaxes as
     ``cos²(π (t − t_es) / (2 (1 − t_es)))`` after it (g = 0 at ED, 1 at ES); every parameter

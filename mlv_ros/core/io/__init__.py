@@ -1,6 +1,7 @@
 """
-Readers and writers: DICOM tagged cine MR (:mod:`.dicom`) and simulator ground truth
-(:mod:`.groundtruth`). Pure Python + pydicom; no rclpy.
+Readers and writers: DICOM tagged cine MR and simulator ground truth.
+
+:mod:`.dicom` and :mod:`.groundtruth`. Pure Python + pydicom; no rclpy.
 
 Public API
 ----------

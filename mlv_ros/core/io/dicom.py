@@ -524,8 +524,9 @@ class DicomReadResult:
 @dataclass
 class _Image:
     """
-    One file that passed every per-file check, with the attributes the grouping needs parsed
-    (so that nothing after :func:`_read_one` touches the raw, possibly malformed dataset).
+    One file that passed every per-file check, with the attributes the grouping needs parsed.
+
+    Parsed so that nothing after :func:`_read_one` touches the raw, possibly malformed dataset.
     """
 
     path: str
@@ -564,7 +565,11 @@ def _get(ds, name):
 
 
 def _optional(ds, name, kind):
-    """Optional attribute as ``kind`` (int/float/str), or None when absent, empty or malformed."""
+    """
+    Return an optional attribute as ``kind`` (int/float/str), or None when absent or malformed.
+
+    An empty value counts as absent.
+    """
     try:
         v = ds.get(name)
         if v is None or str(v).strip() == '':
@@ -603,7 +608,7 @@ def _numbers(ds, name: str, n: int) -> np.ndarray:
 
 def _geometry(ds) -> SliceGeometry:
     """
-    Validated plane geometry; contradictions are refused, not silently repaired.
+    Return the validated plane geometry; contradictions are refused, not silently repaired.
 
     Scanners write ImageOrientationPatient to about 6 digits, so directions within
     ``_IOP_TOL`` of unit length and orthogonality are re-orthonormalised; anything further off
@@ -747,7 +752,7 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
 
 def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
     """
-    Stored pixel values → the working type (:data:`WORKING_DTYPES`), in one conversion.
+    Convert stored pixel values to the working type (:data:`WORKING_DTYPES`) in one conversion.
 
     MONOCHROME1 (minimum = white) is inverted within the stored range (BitsStored and
     PixelRepresentation; a float image within its own min..max) so that, as in MONOCHROME2,
@@ -802,8 +807,9 @@ def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
 
 def _decoder_missing(ts) -> str | None:
     """
-    Why pydicom cannot decode compressed pixel data of transfer syntax ``ts`` here, naming
-    what would decode it; None when a decoder plugin is installed.
+    Say why pydicom cannot decode compressed pixel data of transfer syntax ``ts`` here.
+
+    The message names what would decode it; None when a decoder plugin is installed.
     """
     try:
         decoder = pydicom.pixels.get_decoder(ts)
@@ -989,7 +995,7 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
 
 
 def _image(path: str, ds, pixels: np.ndarray, geom: SliceGeometry, frame: int = 0) -> _Image:
-    """The :class:`_Image` of one checked frame (``ds``: the dataset, or a frame's view of it)."""
+    """Build the :class:`_Image` of one checked frame (``ds``: the dataset or a frame's view)."""
     if frame:  # Enhanced: the frame's phase is its TemporalPositionIndex where it has one
         instance = _optional(ds, 'TemporalPositionIndex', int) or frame
         trigger = next(
@@ -1032,10 +1038,11 @@ def _image(path: str, ds, pixels: np.ndarray, geom: SliceGeometry, frame: int = 
 
 def _mosaic(ds) -> str:
     """
-    Why ``ds`` is a Siemens MOSAIC image ("" when nothing says so): ImageType value MOSAIC, or a
-    NumberOfImagesInMosaic above 1 in the private SIEMENS MR HEADER (0019,xx0A) or in the CSA
-    image header (0029,xx10, read with nibabel's CSA reader). A malformed private element counts
-    as absent.
+    Say why ``ds`` is a Siemens MOSAIC image ("" when nothing says so).
+
+    ImageType value MOSAIC, or a NumberOfImagesInMosaic above 1 in the private SIEMENS MR HEADER
+    (0019,xx0A) or in the CSA image header (0029,xx10, read with nibabel's CSA reader). A malformed
+    private element counts as absent.
     """
     said = []
     image_type = _optional(
@@ -1071,8 +1078,10 @@ def _mosaic(ds) -> str:
 
 def _enhanced(ds) -> bool:
     """
-    An Enhanced (functional-group) image: Enhanced MR, Legacy Converted Enhanced MR, and the
-    like: per-frame attributes in PerFrameFunctionalGroupsSequence.
+    Check for an Enhanced (functional-group) image.
+
+    Enhanced MR, Legacy Converted Enhanced MR, and the like: per-frame attributes in
+    PerFrameFunctionalGroupsSequence.
     """
     try:
         return 'PerFrameFunctionalGroupsSequence' in ds or 'SharedFunctionalGroupsSequence' in ds
@@ -1082,9 +1091,10 @@ def _enhanced(ds) -> bool:
 
 class _FrameView:
     """
-    One frame of an Enhanced multi-frame dataset seen as a single-frame one: ``get(name)``
-    looks in the frame's per-frame functional groups, then the shared ones (each macro's first
-    item: PlanePositionSequence, PlaneOrientationSequence, PixelMeasuresSequence,
+    One frame of an Enhanced multi-frame dataset seen as a single-frame one.
+
+    ``get(name)`` looks in the frame's per-frame functional groups, then the shared ones (each
+    macro's first item: PlanePositionSequence, PlaneOrientationSequence, PixelMeasuresSequence,
     PixelValueTransformationSequence, CardiacSynchronizationSequence, FrameContentSequence,
     MRTimingAndRelatedParametersSequence, the Unassigned…ConvertedAttributesSequence of legacy
     conversions, …), then the dataset itself.
@@ -1105,7 +1115,7 @@ class _FrameView:
 
 
 def _macro_items(group) -> list:
-    """The first item of every sequence in a functional group item (``group`` may be None)."""
+    """Return the first item of each sequence in functional group item ``group`` (may be None)."""
     if group is None:
         return []
     out = []
@@ -1139,8 +1149,9 @@ def _frame_views(ds, nframes: int) -> list[_FrameView]:
 
 def _dicom_seconds(date: str | None, time: str | None) -> tuple[bool, float] | None:
     """
-    DA + TM (``YYYYMMDD``, ``HHMMSS.FFFFFF`` or ``HH:MM:SS``) as ``(has_date, seconds)``; None
-    when the time is absent or malformed.
+    Parse DA + TM as ``(has_date, seconds)``; None when the time is absent or malformed.
+
+    DA is ``YYYYMMDD``, TM ``HHMMSS.FFFFFF`` or ``HH:MM:SS``.
     """
     t = (time or '').strip().replace(':', '')
     try:
@@ -1164,8 +1175,10 @@ def _dicom_seconds(date: str | None, time: str | None) -> tuple[bool, float] | N
 
 def _acquired(ds) -> tuple[bool, float] | None:
     """
-    When the image's series was acquired: AcquisitionDateTime, AcquisitionDate/Time, else
-    SeriesDate/Time (optional tags: a malformed one counts as absent).
+    Return when the image's series was acquired.
+
+    AcquisitionDateTime, AcquisitionDate/Time, else SeriesDate/Time (optional tags: a malformed one
+    counts as absent).
     """
     dt = _optional(ds, 'AcquisitionDateTime', str)
     if dt and len(dt.strip()) > 8:
@@ -1181,10 +1194,11 @@ def _acquired(ds) -> tuple[bool, float] | None:
 
 def _unread_image_of(path: str, study_uid: str) -> bool:
     """
-    Is a file that did not read an MR image of study ``study_uid``, as far as its header
-    still says? (Not: non-image objects of the study such as presentation states, structured
-    reports or key-object selections, images of another modality, or a header that does not
-    read.)
+    Check whether a file that did not read is an MR image of study ``study_uid``.
+
+    As far as its header still says. Not: non-image objects of the study such as presentation
+    states, structured reports or key-object selections, images of another modality, or a header
+    that does not read.
     """
     try:
         with warnings.catch_warnings():
@@ -1434,8 +1448,10 @@ _ALIKE_SPACING = 0.02
 
 def _tag_spectrum(image: np.ndarray):
     """
-    |FFT| of the mean-removed, gently tapered image (central 256² at most), and its
-    frequencies in cycles/px (rows as a column vector, columns as a row vector).
+    Return the FFT magnitude of the mean-removed, gently tapered image, and its frequencies.
+
+    The image is cropped to its central 256² at most; frequencies in cycles/px (rows as a column
+    vector, columns as a row vector).
     """
     a = np.asarray(image, np.float64)
     h, w = a.shape
@@ -1460,10 +1476,11 @@ def _spectral_peaks(
     spec, fr, fc, fmin: float, fmax: float, limit: int = 40, maxima: np.ndarray | None = None
 ) -> list[tuple[float, float, float]]:
     """
-    Local maxima (3 × 3, wrapped; ``maxima`` if already known) of the half spectrum with
-    ``fmin ≤ |f| ≤ fmax``, as ``(prominence, angle, |f|)``, most prominent first; prominence =
-    the peak over the median of its 9 × 9 neighbourhood. Only the ``limit`` highest maxima are
-    measured.
+    Return the most prominent local maxima of the half spectrum with ``fmin ≤ |f| ≤ fmax``.
+
+    Local maxima are 3 × 3, wrapped (``maxima`` if already known), returned as ``(prominence,
+    angle, |f|)``, most prominent first; prominence = the peak over the median of its 9 × 9
+    neighbourhood. Only the ``limit`` highest maxima are measured.
     """
     h, w = spec.shape
     rad = np.hypot(fr, fc)
@@ -1495,7 +1512,7 @@ def _axial_deg(a: float, b: float) -> float:
 
 def _tag_grid(image: np.ndarray, pixel_mm: float) -> tuple[float, float, str]:
     """
-    Does an ED image show a tag grid?
+    Check whether an ED image shows a tag grid.
 
     ``(score, period_mm, reason)``: the weaker of the two strongest spectral peaks ≥ 30° apart with
     periods within 20 % (see :data:`_TAG_CLEAR`), the stronger one's period, and why the score is 0
@@ -1523,7 +1540,7 @@ def _tag_grid(image: np.ndarray, pixel_mm: float) -> tuple[float, float, str]:
 
 
 def _tag_grid_at(image: np.ndarray, pixel_mm: float, period_mm: float) -> tuple[float, float]:
-    """The tag-grid test at a known period (see :data:`_TAG_AT_PERIOD`): ``(score, contrast)``."""
+    """Run the tag-grid test at a known period (:data:`_TAG_AT_PERIOD`): ``(score, contrast)``."""
     spec, fr, fc = _tag_spectrum(image)
     maxima = _local_maxima(spec)
     f0 = pixel_mm / period_mm
@@ -1550,11 +1567,12 @@ def _tag_grid_at(image: np.ndarray, pixel_mm: float, period_mm: float) -> tuple[
 
 def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
     """
-    Per tag period of :data:`_PERIOD_BINS_MM`, the strongest tag grid in any window of an ED
-    image (see :data:`_TAG_STUDY`): the weaker peak's height over its 9 × 9 bin median, of the
-    best pair of local spectral maxima 60–120° apart whose mean period is within the window's
-    spectral resolution (half a bin, + 4 %) of the bin; 0 where no pair. Shape
-    ``(len(_PERIOD_BINS_MM),)``. Some 10–60 ms for 256².
+    Return the strongest tag grid in any window of an ED image, per tag period.
+
+    Per tag period of :data:`_PERIOD_BINS_MM` (see :data:`_TAG_STUDY`): the weaker peak's height
+    over its 9 × 9 bin median, of the best pair of local spectral maxima 60–120° apart whose mean
+    period is within the window's spectral resolution (half a bin, + 4 %) of the bin; 0 where no
+    pair. Shape ``(len(_PERIOD_BINS_MM),)``. Some 10–60 ms for 256².
     """
     a = np.asarray(image, np.float64)
     h, w = a.shape
@@ -1620,9 +1638,10 @@ def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
 
 def _heart_grid(images: list[tuple[np.ndarray, float]]) -> tuple[float, float, np.ndarray]:
     """
-    The tag grid a group of cines shares (tags on the heart alone, see :data:`_TAG_STUDY`),
-    from their ED images ``(pixels, pixel size mm)``: ``(score, period_mm, each image's score
-    at that period)``, score = the largest over periods of the images' median
+    Return the tag grid a group of cines shares (tags on the heart alone, see :data:`_TAG_STUDY`).
+
+    From their ED images ``(pixels, pixel size mm)``: ``(score, period_mm, each image's score at
+    that period)``, score = the largest over periods of the images' median
     :func:`_local_grid_profile`.
     """
     profs = np.array([_local_grid_profile(im, px) for im, px in images])
@@ -1701,7 +1720,7 @@ def _cine_kind(c: _Cine) -> str:
 
 def _later(a: _Cine, b: _Cine) -> bool | None:
     """
-    Was ``a`` acquired after ``b``?
+    Check whether ``a`` was acquired after ``b``.
 
     By acquisition/series time where both have one and they differ, else by SeriesNumber; None when
     nothing tells.
@@ -1715,7 +1734,7 @@ def _later(a: _Cine, b: _Cine) -> bool | None:
 
 
 def _same_place(a: _Cine, b: _Cine) -> bool:
-    """Same slice location: parallel planes (5°) less than half a slab apart."""
+    """Check for the same slice location: parallel planes (5°) less than half a slab apart."""
     ga, gb = a.first.geometry, b.first.geometry
     cos = float(ga.normal @ gb.normal)
     if abs(cos) < _SAME_PLACE_COS:
@@ -1726,8 +1745,10 @@ def _same_place(a: _Cine, b: _Cine) -> bool:
 
 def _match_phases(ref: np.ndarray, t: np.ndarray) -> list[int]:
     """
-    Indices into ``t`` (sorted, ``len(t) ≥ len(ref)``), strictly increasing, one per ``ref``
-    entry, minimising the summed |ref − t| (dynamic programming).
+    Match each ``ref`` entry to one index into ``t``, minimising the summed |ref − t|.
+
+    ``t`` is sorted with ``len(t) ≥ len(ref)``; the indices are strictly increasing (dynamic
+    programming).
     """
     n, m = len(ref), len(t)
     cost = np.abs(ref[:, None] - t[None, :])
@@ -1761,7 +1782,7 @@ class _Selection:
 
 
 def _plan_phases(c: _Cine, warned: list, left_out: list | None) -> None:
-    """A cine used as it is: phase indices from its images (a gap keeps the later indices)."""
+    """Use a cine as it is: phase indices from its images (a gap keeps the later indices)."""
     phases, num, gap = _phase_indices(c.imgs)
     c.use, c.phases, c.num_phases = c.imgs, phases, num
     if gap:
@@ -1774,12 +1795,13 @@ def _plan_phases(c: _Cine, warned: list, left_out: list | None) -> None:
 
 def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None:
     """
-    Give every used cine the study's phase count N (the most common; of a tie the smallest):
-    a cine with more phases gets the N images nearest the study's trigger times (each phase's
-    median over the N-phase cines; phase fractions where a time is missing); one with fewer
-    phases gives each image the study phase nearest its trigger time when every image lies
-    within :data:`_FEWER_PHASES_TOL` of a phase interval of one (distinct phases; the others are
-    missing, so it is listed in ``left_out``), otherwise it is left out (``why``).
+    Give every used cine the study's phase count N (the most common; of a tie the smallest).
+
+    A cine with more phases gets the N images nearest the study's trigger times (each phase's
+    median over the N-phase cines; phase fractions where a time is missing); one with fewer phases
+    gives each image the study phase nearest its trigger time when every image lies within
+    :data:`_FEWER_PHASES_TOL` of a phase interval of one (distinct phases; the others are missing,
+    so it is listed in ``left_out``), otherwise it is left out (``why``).
     """
     if not used:
         return
@@ -1872,8 +1894,9 @@ def _pixel_mm(c: _Cine) -> float:
 
 def _acquired_alike(c: _Cine, tagged: list[_Cine]) -> _Cine | None:
     """
-    A tagged cine ``c`` was acquired like (same matrix, pixel spacing within
-    :data:`_ALIKE_SPACING`), or None.
+    Return the tagged cine that ``c`` was acquired like, or None.
+
+    Alike: same matrix, pixel spacing within :data:`_ALIKE_SPACING`.
     """
     g = c.first.geometry
     for t in tagged:
@@ -2043,10 +2066,11 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
 
 def _judge_untagged(used: list[_Cine], warned: list) -> None:
     """
-    The chosen study's MR cines whose ED image fails the tag test: at the slice of a tagged
-    cine, not used (the tagged one is); of a constant image or acquired unlike every tagged
-    cine (matrix, pixel size), not used; otherwise used with a warning (thin margins on small or
-    mostly blood-pool views must not cost a slice).
+    Return the chosen study's MR cines whose ED image fails the tag test.
+
+    At the slice of a tagged cine, not used (the tagged one is); of a constant image or acquired
+    unlike every tagged cine (matrix, pixel size), not used; otherwise used with a warning (thin
+    margins on small or mostly blood-pool views must not cost a slice).
     """
     tagged = [c for c in used if c.tagged]
     for c in used:
@@ -2083,10 +2107,11 @@ def _judge_untagged(used: list[_Cine], warned: list) -> None:
 
 def _keep_latest(used: list[_Cine], warned: list) -> None:
     """
-    Of cines of different series at one slice location, keep the latest (:func:`_later`) and
-    mark the others (``why``). Where nothing tells which is later, the one with the most images
-    (then the first by SeriesInstanceUID) is kept, with a warning saying so (never both: a slice
-    twice in the stack).
+    Keep the latest of cines of different series at one slice location (:func:`_later`).
+
+    The others are marked (``why``). Where nothing tells which is later, the one with the most
+    images (then the first by SeriesInstanceUID) is kept, with a warning saying so (never both: a
+    slice twice in the stack).
     """
     places: list[list[_Cine]] = []
     for c in used:

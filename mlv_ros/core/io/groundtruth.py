@@ -85,7 +85,7 @@ class GroundTruth:
 
     @property
     def regional(self) -> dict | None:
-        """The ``regional`` entry (per-segment ES strain and class), None in older files."""
+        """Return the ``regional`` entry (per-segment ES strain and class), None in older files."""
         return self.meta.get('regional')
 
 
@@ -98,6 +98,7 @@ def write_groundtruth(
     Parameters
     ----------
     study : mlv_ros.core.sim.Study
+        The simulated study whose motion and settings are written.
     out_dir : str or Path
         Created if needed.
     n_points : int

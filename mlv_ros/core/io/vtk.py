@@ -1,6 +1,8 @@
 """
-VTK XML files for ParaView, VisIt and any VTK reader: point clouds as ``.vtu`` and time series
-as ``.pvd``. Pure numpy + the standard library (no VTK, no rclpy).
+VTK XML files for ParaView, VisIt and any VTK reader.
+
+Point clouds as ``.vtu`` and time series as ``.pvd``. Pure numpy + the standard library (no VTK, no
+rclpy).
 
 ``.vtu`` (VTK XML UnstructuredGrid, file version 1.0): one ``VTK_VERTEX`` cell per point, so
 the points show and filter as they are (no mesh is implied); data arrays inline ``binary`` —
@@ -187,9 +189,10 @@ def write_vtu_points(
 
 def write_pvd(path, datasets: Iterable[tuple[float, str]]) -> Path:
     """
-    Write a ParaView collection (time series) of ``(timestep, file)`` pairs, in the order
-    given; ``file`` as it is to be found from the ``.pvd``'s directory (a relative name keeps the
-    series movable). Timesteps must be finite and strictly increasing.
+    Write a ParaView collection (time series) of ``(timestep, file)`` pairs, in the order given.
+
+    ``file`` as it is to be found from the ``.pvd``'s directory (a relative name keeps the series
+    movable). Timesteps must be finite and strictly increasing.
     """
     path = Path(path)
     root = ET.Element(

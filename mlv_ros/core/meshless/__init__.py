@@ -1,6 +1,8 @@
 """
-Meshless deformable model (paper §2): kernel/phyxels, MLS gradient, St Venant–Kirchhoff
-elasticity, global parametric deformation and the fitting scheme. Pure numpy/scipy.
+Meshless deformable model (paper §2).
+
+Kernel/phyxels, MLS gradient, St Venant–Kirchhoff elasticity, global parametric deformation and the
+fitting scheme. Pure numpy/scipy.
 
 Typical use::
 

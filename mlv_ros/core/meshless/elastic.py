@@ -85,10 +85,13 @@ def internal_forces(
     Parameters
     ----------
     op : MLSOperator
+        MLS gradient operator on the rest configuration.
     u : ndarray, shape (N, 3)
         Displacements from the operator's rest configuration, mm.
     volume : ndarray, shape (N,)
+        Phyxel volumes, mm³.
     lam, mu : float
+        Lamé constants.
 
     Returns
     -------
@@ -145,8 +148,9 @@ def stiffness_diagonal(op: MLSOperator, volume: np.ndarray, lam: float, mu: floa
 
 def stabilisation_weights(op: MLSOperator, volume: np.ndarray) -> np.ndarray:
     """
-    Per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`, shape (P,),
-    with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights).
+    Return the per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`.
+
+    Shape (P,), with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights).
     """
     ph = op.phyxels
     wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
@@ -166,7 +170,9 @@ def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.
     Parameters
     ----------
     op : MLSOperator
+        MLS gradient operator on the rest configuration (its neighbour pairs and gradients).
     u : ndarray, shape (N, 3)
+        Displacements from the operator's rest configuration, mm.
     coef : ndarray, shape (P,)
         From :func:`stabilisation_weights` (times a modulus).
 
@@ -203,8 +209,9 @@ def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.
 
 def stabilisation_diagonal(op: MLSOperator, coef: np.ndarray) -> np.ndarray:
     """
-    Approximate diagonal of :func:`stabilisation_apply` (the direct ``u_j − u_i`` terms),
-    shape (N,); used in the Jacobi preconditioner.
+    Return the approximate diagonal of :func:`stabilisation_apply`, shape (N,).
+
+    The direct ``u_j − u_i`` terms; used in the Jacobi preconditioner.
     """
     ph = op.phyxels
     n = ph.num_particles

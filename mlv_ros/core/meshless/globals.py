@@ -38,7 +38,7 @@ NUM_TANGENT = 11
 
 # --------------------------------------------------------------------------- quaternions
 def quat_normalize(q) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) with w ≥ 0; ValueError for a zero or non-finite input."""
+    """Return the unit quaternion (w, x, y, z), w ≥ 0; ValueError for zero or non-finite input."""
     q = np.asarray(q, dtype=np.float64).reshape(4)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-12:
@@ -60,7 +60,7 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def matrix_to_quat(r) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    """Return the unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
     r = np.asarray(r, dtype=np.float64)
     if r.shape != (3, 3) or not np.all(np.isfinite(r)):
         raise ValueError('rotation must be a finite 3x3 matrix')
@@ -225,6 +225,8 @@ def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
     Parameters
     ----------
     coords : ModelCoordinates
+        Material coordinates of the particles: their basis ``b`` and twist coordinate ``g`` (module
+        docstring).
     a : array_like, shape (4,)
         ``a0`` (mm) and ``a1, a2, a3`` (dimensionless).
     tau : float
@@ -381,8 +383,9 @@ def reduce_rotation(lmat: np.ndarray, q) -> np.ndarray:
 @dataclass
 class ModelFrame:
     """
-    Rest (end-diastolic) model frame: where the model-centred frame sits, and the material
-    coordinates of each particle.
+    Rest (end-diastolic) model frame.
+
+    Where the model-centred frame sits, and the material coordinates of each particle.
 
     Attributes
     ----------

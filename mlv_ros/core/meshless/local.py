@@ -1,6 +1,8 @@
 """
-The local stage of the meshless model: quadratic energy terms on the MLS gradient and one
-block-Jacobi preconditioned CG solve (paper eq. 6, 16, 20–23, linearised at rest).
+The local stage of the meshless model.
+
+Quadratic energy terms on the MLS gradient and one block-Jacobi preconditioned CG solve (paper eq.
+6, 16, 20–23, linearised at rest).
 
 The local deformation ``u`` (N, 3) minimises ``½ uᵀ A u − bᵀ u`` with ``A`` the sum of
 
@@ -47,8 +49,9 @@ _I3 = np.eye(3)
 
 def elastic_tangent(lam: float, mu: float) -> np.ndarray:
     """
-    ``∂S/∂H`` of linear elasticity, ``S = μ (H + Hᵀ) + λ tr(H) I``; shape (3, 3, 3, 3),
-    index ``[a, b, c, d] = ∂S_ab/∂H_cd``.
+    Return ``∂S/∂H`` of linear elasticity, ``S = μ (H + Hᵀ) + λ tr(H) I``.
+
+    Shape (3, 3, 3, 3), index ``[a, b, c, d] = ∂S_ab/∂H_cd``.
     """
     return mu * (
         np.einsum('ac,bd->abcd', _I3, _I3) + np.einsum('ad,bc->abcd', _I3, _I3)
@@ -152,7 +155,7 @@ class LocalOperators:
         coarse: 'CoarseSpace | None' = None,
     ) -> 'LocalSystem':
         """
-        The local-stage system of one solve (elasticity always included, weight 1).
+        Build the local-stage system of one solve (elasticity always included, weight 1).
 
         Parameters
         ----------
@@ -231,7 +234,7 @@ class LocalSystem:
             )
 
     def internal(self, u: np.ndarray) -> np.ndarray:
-        """``A u`` without the data springs, shape (N, 3)."""
+        """Return ``A u`` without the data springs, shape (N, 3)."""
         ops = self.ops
         g = (ops.operator.matrix_csc @ u).reshape(self.n, 9, -1)
         out = ops._adjoint @ np.matmul(self._tangent, g).reshape(3 * self.n, -1)
@@ -242,7 +245,7 @@ class LocalSystem:
         return out
 
     def data_force(self, u: np.ndarray) -> np.ndarray:
-        """Data springs' part of ``A u``, shape (N, 3) (zero without data)."""
+        """Return the data springs' part of ``A u``, shape (N, 3) (zero without data)."""
         if self._data is None:
             return np.zeros_like(u)
         kappa, phi, phi_t, metric = self._data
@@ -250,7 +253,7 @@ class LocalSystem:
         return kappa * (phi_t @ np.matmul(metric, (phi @ u).reshape(m, 3, -1)).reshape(m, -1))
 
     def matvec(self, u: np.ndarray) -> np.ndarray:
-        """``A u``, shape (N, 3)."""
+        """Return ``A u``, shape (N, 3)."""
         out = self.internal(u)
         if self._data is not None:
             out += self.data_force(u)
@@ -258,8 +261,9 @@ class LocalSystem:
 
     def constant_force(self) -> np.ndarray:
         """
-        ``−∂/∂u`` of the energy's linear part in u other than the data's (the incompressibility
-        offsets ``g``), shape (N, 3): add it to the right-hand side.
+        Return ``−∂/∂u`` of the energy's linear part in u other than the data's, shape (N, 3).
+
+        That part is the incompressibility offsets ``g``; add it to the right-hand side.
         """
         if self._offset is None:
             return np.zeros((self.n, 3))
@@ -267,8 +271,10 @@ class LocalSystem:
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
         """
-        ``M⁻¹ r`` for a flat residual (3N,): block-Jacobi, plus the coarse correction
-        ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse space (additive two-level).
+        Return ``M⁻¹ r`` for a flat residual (3N,).
+
+        Block-Jacobi, plus the coarse correction ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse
+        space (additive two-level).
         """
         n = self.n
         z = np.matmul(self._block_inv, r.reshape(n, 3, 1)).ravel()
@@ -291,6 +297,7 @@ class LocalSystem:
         Parameters
         ----------
         rhs : ndarray, shape (N, 3)
+            Right-hand side of ``A u = rhs``.
         x0 : ndarray, shape (N, 3), optional
             Warm start.
         rtol, atol, maxiter :
@@ -317,8 +324,10 @@ class LocalSystem:
 
 def farthest_point_aggregates(points: np.ndarray, num_aggregates: int) -> np.ndarray:
     """
-    Split a cloud into ``num_aggregates`` compact aggregates: seeds by farthest-point sampling
-    from particle 0 (deterministic), every particle joins its nearest seed.
+    Split a cloud into ``num_aggregates`` compact aggregates.
+
+    Seeds by farthest-point sampling from particle 0 (deterministic), every particle joins its
+    nearest seed.
 
     Parameters
     ----------
@@ -353,8 +362,10 @@ def farthest_point_aggregates(points: np.ndarray, num_aggregates: int) -> np.nda
 
 class CoarseSpace:
     """
-    Coarse space of the local stage: the affine displacement fields of each aggregate of
-    particles, with the Galerkin projection of the internal terms built once per model.
+    Coarse space of the local stage.
+
+    The affine displacement fields of each aggregate of particles, with the Galerkin projection of
+    the internal terms built once per model.
 
     Block-Jacobi removes error that varies from particle to particle in a few CG iterations, but
     smooth error — a region of the wall shifting, turning or stretching as a whole against the
@@ -471,7 +482,7 @@ class CoarseSpace:
 
     def factor(self, data: tuple | None = None):
         """
-        The coarse correction of one system: ``r ↦ Z A_c⁻¹ Zᵀ r`` for residuals (N, 3).
+        Build the coarse correction of one system: ``r ↦ Z A_c⁻¹ Zᵀ r`` for residuals (N, 3).
 
         Parameters
         ----------
@@ -524,9 +535,10 @@ def pcg(
     maxiter: int = 400,
 ) -> tuple[np.ndarray, int]:
     """
-    Preconditioned conjugate gradients: the iteration and stopping rule of
-    :func:`scipy.sparse.linalg.cg` (``‖r‖ ≤ max(rtol ‖b‖, atol)``, tested before each
-    iteration), with inner products that do not call BLAS.
+    Solve ``A x = b`` by preconditioned conjugate gradients without BLAS inner products.
+
+    The iteration and stopping rule of :func:`scipy.sparse.linalg.cg` (``‖r‖ ≤ max(rtol ‖b‖,
+    atol)``, tested before each iteration), with inner products that do not call BLAS.
 
     scipy's loop takes them with ``np.dot``; from 10⁴ unknowns OpenBLAS runs those on a second
     thread that then spins on the core the sparse products need — measured on 2 cores at 10k
@@ -537,8 +549,13 @@ def pcg(
     matvec, precond : callable
         ``A v`` and ``M⁻¹ v`` for 1-D arrays (A symmetric positive definite, M SPD).
     b : ndarray, shape (n,)
+        Right-hand side.
     x0 : ndarray, shape (n,), optional
         Start (zero if None).
+    rtol, atol : float
+        Relative and absolute tolerances on the residual norm ``‖r‖``.
+    maxiter : int
+        Most iterations.
 
     Returns
     -------

@@ -82,8 +82,9 @@ class MLSOperator:
     @property
     def matrix_t(self) -> sp.csc_matrix:
         """
-        ``Dᵀ`` as a CSC view of :attr:`matrix` (its products scatter, measured faster than a
-        CSR transpose).
+        Return ``Dᵀ`` as a CSC view of :attr:`matrix`.
+
+        Its products scatter, measured faster than a CSR transpose.
         """
         return self.matrix.T
 
@@ -126,7 +127,7 @@ class MLSOperator:
 
     def full_matrix(self) -> sp.csr_matrix:
         """
-        The 9N × 3N operator ``G`` with ``vec(H) = G vec(u)``.
+        Return the 9N × 3N operator ``G`` with ``vec(H) = G vec(u)``.
 
         Row ``9i + 3a + b`` holds ``∂u_a/∂x_b`` at particle ``i``; column ``3j + a`` is ``u_j[a]``.
         Built on demand (it has 3× the non-zeros of :attr:`matrix`).

@@ -107,9 +107,11 @@ def particle_support_radii(
     support_factor: float = SUPPORT_FACTOR,
 ) -> np.ndarray:
     """
-    Each particle's own support radius, ``support_factor`` × the mean distance to its ``k``
-    nearest other particles, shape (N,): what :func:`attach_control_points` tests a control
-    point's nearest particle against (compute once per cloud and pass it as ``support_radii``).
+    Return each particle's own support radius, shape (N,).
+
+    ``support_factor`` × the mean distance to its ``k`` nearest other particles: what
+    :func:`attach_control_points` tests a control point's nearest particle against (compute once
+    per cloud and pass it as ``support_radii``).
     """
     n = points.shape[0]
     d_pp, _ = tree.query(points, k=min(k + 1, n))
@@ -135,6 +137,12 @@ def attach_control_points(
         Either integer particle indices, shape (M,), or rest positions, shape (M, 3), mm.
     tree : cKDTree, optional
         Tree on ``points``.
+    k : int
+        Number of nearest particles that define a support radius (default
+        :data:`~mlv_ros.core.meshless.kernel.NUM_NEIGHBOURS`).
+    support_factor : float
+        Support radius = ``support_factor`` × the mean distance to those ``k`` particles (default
+        :data:`~mlv_ros.core.meshless.kernel.SUPPORT_FACTOR`).
     support_radii : ndarray, shape (N,), optional
         :func:`particle_support_radii` of ``points`` (with the same ``k`` and
         ``support_factor``), when attaching repeatedly to one cloud.
@@ -214,13 +222,17 @@ def attach_control_points(
 
 def plane_projectors(normals, m: int) -> np.ndarray:
     """
-    In-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3); identity if ``normals`` is None.
+    Return in-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3).
+
+    Identity if ``normals`` is None.
 
     Parameters
     ----------
     normals : array_like, shape (M, 3) or (3,), or None
         Plane normals (any length > 0; normalised here). A row of NaN is not allowed; to
         constrain a point fully pass ``normals=None`` or use separate calls.
+    m : int
+        Number of control points M.
 
     """
     if normals is None:
@@ -373,8 +385,9 @@ class MeshlessModel:
     @property
     def local_operators(self) -> LocalOperators:
         """
-        The local stage's operators on the current phyxels (built on first use): linear SVK and
-        the zero-energy-mode penalty with weights ``v_i ŵ_ij / h_i²``
+        Return the local stage's operators on the current phyxels (built on first use).
+
+        Linear SVK and the zero-energy-mode penalty with weights ``v_i ŵ_ij / h_i²``
         (:func:`~mlv_ros.core.meshless.elastic.stabilisation_weights`).
         """
         if self._local_ops is None:
@@ -399,9 +412,11 @@ class MeshlessModel:
 
     def refresh_support(self, tol: float = 0.25) -> bool:
         """
-        Re-estimate ``h_i = 3 r̄_i`` on the current local configuration (paper: every five
-        iterations) and rebuild the phyxels if any ``h_i`` changed by more than ``tol``
-        (relative). Strain stays Lagrangian: the MLS gradient is always taken on rest positions.
+        Re-estimate ``h_i = 3 r̄_i`` on the current local configuration and rebuild the phyxels.
+
+        Paper: every five iterations. The phyxels are rebuilt only if any ``h_i`` changed by more
+        than ``tol`` (relative). Strain stays Lagrangian: the MLS gradient is always taken on rest
+        positions.
 
         Returns
         -------
@@ -431,7 +446,7 @@ class MeshlessModel:
         return self.d_rest + self.delta @ self.rest_params.matrix
 
     def positions(self) -> np.ndarray:
-        """Current world positions ``x = c + R (s + d)``, shape (N, 3), mm."""
+        """Return the current world positions ``x = c + R (s + d)``, shape (N, 3), mm."""
         p = global_shape(self.coords, self.params.a, self.params.tau) + self.local_deformation
         return self.params.translation + p @ self.params.matrix.T
 
@@ -453,13 +468,15 @@ class MeshlessModel:
 
     def green_lagrange_strain(self) -> np.ndarray:
         """
-        Lagrangian strain ``E = ½(JᵀJ − I)`` relative to rest (½ convention), shape (N, 3, 3),
-        world axes. Project onto a local cardiac frame ``(e_r, e_c, e_l)`` as ``eᵀ E e``.
+        Return the Lagrangian strain ``E = ½(JᵀJ − I)`` relative to rest, shape (N, 3, 3).
+
+        ½ convention, world axes. Project onto a local cardiac frame ``(e_r, e_c, e_l)`` as ``eᵀ E
+        e``.
         """
         return elastic.green_lagrange(self.displacement_gradient())
 
     def state(self, **kw) -> ModelState:
-        """The current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
+        """Return the current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
         p = self.params
         return ModelState(
             translation=p.translation.copy(),
@@ -475,8 +492,9 @@ class MeshlessModel:
 
     def attach(self, control) -> ControlPoints:
         """
-        Attach control points (particle indices or rest positions); see
-        :func:`attach_control_points`. Reuse the result across phases to skip the kernel work.
+        Attach control points (particle indices or rest positions).
+
+        See :func:`attach_control_points`. Reuse the result across phases to skip the kernel work.
         """
         if self._support_radii is None:
             self._support_radii = particle_support_radii(
@@ -493,14 +511,15 @@ class MeshlessModel:
 
     # ---------------------------------------------------------------- fitting
     def _local_system(self, data=None):
-        """The local stage's system: linear SVK + zero-energy-mode penalty + ε (+ ``data``)."""
+        """Build the local system: linear SVK + zero-energy-mode penalty + ε (+ ``data``)."""
         ops = self.local_operators
         return ops.system(fit_error=self.stabilisation * self.mu, data=data, eps=self._eps_delta)
 
     def _local_metric(self, proj, phi, kappa):
         """
-        ``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the Jacobi diagonal of the local
-        stage ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3).
+        Return ``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the local stage's Jacobi diagonal.
+
+        The diagonal is ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3).
         """
         q = self.params.matrix @ self.rest_params.matrix.T
         pq = np.einsum('ba,mbc,cd->mad', q, proj, q)

@@ -147,6 +147,7 @@ def control_subset(n: int, fraction: float, seed: int = 0) -> np.ndarray:
     fraction : float
         In [0, 1]; 0 gives an empty array (which the solver rejects with a ValueError).
     seed : int
+        Seed of :func:`numpy.random.default_rng`.
 
     Returns
     -------

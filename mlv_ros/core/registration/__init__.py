@@ -1,6 +1,7 @@
 """
-ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7;
-paper §2.1 model initialisation, §3.2 registration, Fig. 7). Pure numpy/scipy/OpenCV.
+ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7).
+
+Paper §2.1 model initialisation, §3.2 registration, Fig. 7. Pure numpy/scipy/OpenCV.
 
 Typical use (the ROS ``registration`` node)::
 

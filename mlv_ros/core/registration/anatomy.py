@@ -181,7 +181,7 @@ def _longest_run(hit: np.ndarray) -> tuple[int, int, int]:
 
 def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, str]:
     """
-    The RV blood pool next to the LV on one ED SA slice (module docstring).
+    Find the RV blood pool next to the LV on one ED SA slice (module docstring).
 
     Parameters
     ----------
@@ -272,7 +272,7 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
 
 
 def _ray_direction(geometry, centre_rc, angle, axis) -> np.ndarray:
-    """Unit patient direction ⟂ ``axis`` of the in-plane ray at ``angle`` from ``centre_rc``."""
+    """Return the unit direction ⟂ ``axis`` of the in-plane ray at ``angle`` from ``centre_rc``."""
     d = np.array([math.sin(angle), math.cos(angle)])
     v = geometry.pixel_to_patient(centre_rc + d) - geometry.pixel_to_patient(centre_rc)
     v = np.asarray(v, float).reshape(-1)
@@ -282,7 +282,7 @@ def _ray_direction(geometry, centre_rc, angle, axis) -> np.ndarray:
 
 def estimate_septum(slices, axis, prior) -> SeptumEstimate:
     """
-    The septum from the ED SA slices, or the prior when they do not agree (module docstring).
+    Find the septum from the ED SA slices, or the prior when they do not agree (module docstring).
 
     Parameters
     ----------

@@ -93,8 +93,10 @@ def default_reference(
 @dataclass
 class AxisFrame:
     """
-    Long-axis cylindrical frame: ``origin`` (3,), unit ``axis`` (apex → base), ``e1`` (β = 0),
-    ``e2 = axis × e1``. All mm / unit vectors in patient coordinates.
+    Long-axis cylindrical frame.
+
+    ``origin`` (3,), unit ``axis`` (apex → base), ``e1`` (β = 0), ``e2 = axis × e1``. All mm / unit
+    vectors in patient coordinates.
     """
 
     origin: np.ndarray
@@ -220,8 +222,9 @@ class LVShape:
 
     def inside(self, x: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """
-        Whether patient points (N, 3) lie in the reconstructed myocardium, at least ``margin``
-        mm (radially, and axially at the apex and base) inside its walls.
+        Check whether patient points (N, 3) lie in the reconstructed myocardium.
+
+        At least ``margin`` mm (radially, and axially at the apex and base) inside its walls.
         """
         r, th, z = self.frame.to_cylindrical(x)
         ok = (z >= self.z_apex_epi + margin) & (z <= self.z_base - margin)
@@ -232,8 +235,9 @@ class LVShape:
 
     def surface_points(self, which: str, n_z: int = 40, n_theta: int = 72) -> np.ndarray:
         """
-        Samples of the ``"endo"`` or ``"epi"`` surface, (n_z·n_theta, 3) mm, between its apex
-        and the base.
+        Sample the ``"endo"`` or ``"epi"`` surface between its apex and the base.
+
+        Returns points of shape (n_z·n_theta, 3), mm.
         """
         s = self.endo if which == 'endo' else self.epi
         za = self.z_apex_endo if which == 'endo' else self.z_apex_epi
@@ -247,8 +251,9 @@ class LVShape:
 
     def transmural(self, x: np.ndarray) -> np.ndarray:
         """
-        Transmural depth (0 endo, 1 epi) of patient points (N, 3); in the apical cap below the
-        cavity the endocardial radius is taken as 0.
+        Return the transmural depth (0 endo, 1 epi) of patient points (N, 3).
+
+        In the apical cap below the cavity the endocardial radius is taken as 0.
         """
         r, th, z = self.frame.to_cylindrical(x)
         ren = np.sqrt(np.clip(self.endo.r2(z, th), 0.0, None))
@@ -284,6 +289,7 @@ def reconstruct_shape(
     Parameters
     ----------
     frame : AxisFrame
+        Long-axis cylindrical frame the surfaces are fitted in.
     endo_pts, epi_pts : list of ndarray, each shape (M_i, 3)
         Contour points in patient coordinates, mm (SA and LA together).
     z_base : float
@@ -345,9 +351,12 @@ def sample_particles(
     Parameters
     ----------
     shape : LVShape
+        Reconstructed endo and epi wall surfaces the particles fill.
     n : int
         Number of particles (≥ 100).
     seed : int
+        Seed of :func:`numpy.random.default_rng` (volume sampling, lattice jitter and the subset
+        kept).
     margin_fraction : float
         Particles keep ``margin_fraction × spacing`` mm from the reconstructed walls: a particle
         stands for a cell of that spacing, and the margin absorbs sub-millimetre wall error so
@@ -409,6 +418,7 @@ def model_frame(shape: LVShape, particles: np.ndarray) -> tuple[ModelFrame, dict
     Parameters
     ----------
     shape : LVShape
+        Reconstructed wall surfaces (their frame gives the model centre and axes).
     particles : ndarray, shape (N, 3)
         Rest particle positions, mm.
 

@@ -1,6 +1,7 @@
 """
-Contours, curvature and curvature-based landmarks (paper §3.2: "50 per SA slice … on the
-myocardial contours based on local curvature").
+Contours, curvature and curvature-based landmarks.
+
+Paper §3.2: "50 per SA slice … on the myocardial contours based on local curvature".
 
 A landmark set keeps the points where the contour bends most (extrema of the signed curvature,
 strongest first, at least ``min_separation`` apart) and fills the remainder by farthest-point
@@ -41,7 +42,9 @@ def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
     Parameters
     ----------
     points : array_like, shape (K, 2)
+        Polyline vertices.
     n : int
+        Number of output points.
     closed : bool
         Treat the last vertex as joined to the first.
 
@@ -98,7 +101,9 @@ def curvature_landmarks(
     min_separation: int | None = None,
 ) -> np.ndarray:
     """
-    Indices of ``n`` landmarks on a contour, chosen by local curvature (module docstring).
+    Return the indices of ``n`` landmarks on a contour, chosen by local curvature.
+
+    See the module docstring.
 
     Parameters
     ----------
@@ -107,6 +112,7 @@ def curvature_landmarks(
     n : int
         Number of landmarks.
     closed : bool
+        Treat the last vertex as joined to the first.
     sigma : float
         Curvature smoothing, vertices.
     feature_fraction : float

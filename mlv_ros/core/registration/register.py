@@ -52,9 +52,11 @@ _VIEW = {VIEW_SA: 'SA', VIEW_LA: 'LA'}
 @dataclass
 class SliceReport:
     """
-    Outcome for one slice: ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or
-    ``"mask"``; ``landmarks`` used in the registration; ``residual_mm`` RMS in-plane landmark
-    distance after registration (NaN if none).
+    Outcome of the registration for one slice.
+
+    ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or ``"mask"``; ``landmarks`` used in
+    the registration; ``residual_mm`` RMS in-plane landmark distance after registration (NaN if
+    none).
     """
 
     view: int
@@ -119,9 +121,11 @@ class RegistrationResult:
 
     def wall_thickness_mm(self) -> np.ndarray:
         """
-        ED wall thickness of the registered model, mm: for each epicardial surface sample
-        (:attr:`surfaces`), the distance to the nearest endocardial sample; shape (M,), empty
-        without surfaces. At the apex this is the apical wall (epicardial to endocardial apex).
+        Return the ED wall thickness of the registered model, mm, shape (M,).
+
+        For each epicardial surface sample (:attr:`surfaces`), the distance to the nearest
+        endocardial sample; empty without surfaces. At the apex this is the apical wall (epicardial
+        to endocardial apex).
         """
         from scipy.spatial import cKDTree
 
@@ -165,8 +169,10 @@ def _model_radii(
     shape: LVShape, g, centre_rc, angles, which: str, max_mm: float = 90.0
 ) -> np.ndarray:
     """
-    Radius (px) along each in-plane ray where the reconstructed wall ``which`` is first
-    crossed from inside (the model's contour on this slice); NaN where it is not crossed.
+    Return the radius (px) along each in-plane ray where the wall ``which`` is first crossed.
+
+    Crossed from inside the reconstructed wall (the model's contour on this slice); NaN where it is
+    not crossed.
     """
     step_mm = 0.25
     t = np.arange(0.0, max_mm, step_mm)
@@ -214,8 +220,9 @@ def _contour_landmarks(s: seg.SliceSegmentation, which: str, n: int) -> np.ndarr
 # --------------------------------------------------------------------------- main
 def segment_around_axis(frames: list) -> dict:
     """
-    Automatic ED segmentation of every frame around the geometric long axis, as
-    :func:`register_ed` segments (the batch counterpart of :class:`StreamingMasker`).
+    Segment the ED myocardium of every frame automatically around the geometric long axis.
+
+    As :func:`register_ed` segments (the batch counterpart of :class:`StreamingMasker`).
 
     Parameters
     ----------

@@ -179,11 +179,12 @@ def tag_wavevectors(
     whitened: bool = False,
 ) -> np.ndarray:
     """
-    The two dominant tag wave vectors from the windowed magnitude spectrum.
+    Estimate the two dominant tag wave vectors from the windowed magnitude spectrum.
 
     Parameters
     ----------
     image : ndarray, shape (rows, cols)
+        Tagged image (intensity, any scale).
     min_period_px, max_period_px : float
         Search band of tag periods, px. Keep the upper end near the longest plausible period
         (:func:`tag_period_band_px`): below it, the spectrum of a bright blood pool's outline
@@ -255,6 +256,7 @@ def tag_features(
     Parameters
     ----------
     image : ndarray, shape (rows, cols)
+        Tagged image (intensity, any scale).
     wavevectors : ndarray, shape (2, 2), optional
         (row, col) tag frequencies, cycles / px; estimated from the spectrum by default.
     pixel_spacing_mm : float, optional
@@ -334,8 +336,10 @@ def candidate_features(
 
 def _best_of(results: list) -> 'SliceSegmentation':
     """
-    The segmentation (``(SliceSegmentation, wall contrast-to-noise)`` pairs) to keep: an ``ok``
-    one over a failure, then the highest wall contrast; the first failure's reason otherwise.
+    Pick the segmentation to keep from ``(SliceSegmentation, wall contrast-to-noise)`` pairs.
+
+    An ``ok`` one over a failure, then the highest wall contrast; the first failure's reason
+    otherwise.
     """
     ok = [r for r in results if r[0].ok]
     if not ok:
@@ -592,10 +596,11 @@ def _wall_runs(
 
 def _crossings(s, radii, core, t_in, t_out):
     """
-    Where each ray's profile, followed from its ``core`` sample, falls to ``t_in`` inward and
-    to ``t_out`` outward (linear interpolation), px. Inward: 0 when it never does (the wall
-    starts at the ray origin); outward: the last radius. Both equal ``radii[core]`` when the
-    core itself is not above the level.
+    Find where each ray's profile, followed from its ``core`` sample, falls to the levels, px.
+
+    It falls to ``t_in`` inward and to ``t_out`` outward (linear interpolation). Inward: 0 when it
+    never does (the wall starts at the ray origin); outward: the last radius. Both equal
+    ``radii[core]`` when the core itself is not above the level.
     """
     k, n = s.shape
     rows = np.arange(k)
@@ -651,14 +656,15 @@ def _half_width_table():
 
 
 def _phi(x):
-    """Standard normal CDF."""
+    """Return the standard normal CDF."""
     return ndtr(x)
 
 
 def _bent(r, sigma):
     """
-    Where a circular edge of radius ``r`` around the ray origin appears after a Gaussian blur
-    σ: its half level moves σ²/2r toward the centre of curvature (first order; r ≥ 2σ).
+    Return where a circular edge of radius ``r`` around the ray origin appears after a blur σ.
+
+    Gaussian blur: its half level moves σ²/2r toward the centre of curvature (first order; r ≥ 2σ).
     """
     r = np.asarray(r, dtype=np.float64)
     with np.errstate(invalid='ignore'):
@@ -763,8 +769,9 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
 
 def _parabola_offset(ym, y0, yp):
     """
-    Offset of the vertex of the parabola through (−1, ym), (0, y0), (1, yp), in [−½, ½]
-    (0 where the three are not convex or not finite).
+    Return the vertex offset of the parabola through (−1, ym), (0, y0), (1, yp), in [−½, ½].
+
+    0 where the three are not convex or not finite.
     """
     with np.errstate(invalid='ignore', divide='ignore'):
         den = ym - 2.0 * y0 + yp
@@ -833,8 +840,9 @@ def polar_mask(
     base_level: float = np.inf,
 ) -> np.ndarray:
     """
-    Rasterise the polar myocardium ``endo(θ) ≤ ρ ≤ epi(θ)`` (pixel centres), optionally cut
-    at ``(x − centre)·axis_rc ≤ base_level`` (LA base). NaN rays are outside.
+    Rasterise the polar myocardium ``endo(θ) ≤ ρ ≤ epi(θ)`` (pixel centres).
+
+    Optionally cut at ``(x − centre)·axis_rc ≤ base_level`` (LA base). NaN rays are outside.
 
     Returns
     -------
@@ -947,8 +955,10 @@ def _segment_candidates(
     img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, finish
 ):
     """
-    Wall runs around ``c`` under each of :func:`candidate_features` (or the given ``features``),
-    shaped by ``finish(angles, endo, epi)``; the best by :func:`_best_of`.
+    Find the wall runs around ``c`` under each of :func:`candidate_features` and keep the best.
+
+    Under the given ``features`` instead when passed; runs are shaped by
+    ``finish(angles, endo, epi)``; the best by :func:`_best_of`.
     """
     feats = (
         candidate_features(img, pixel_spacing_mm)
@@ -985,7 +995,7 @@ def _segment_candidates(
 def _sa_from_runs(
     shape, c, angles, endo, epi, pixel_spacing_mm, max_radius_mm, min_wall_mm, max_invalid_fraction
 ):
-    """Checks, smoothing over angle and rasterisation of the SA rays' wall runs."""
+    """Check, smooth over angle and rasterise the SA rays' wall runs."""
     rmax = max_radius_mm / pixel_spacing_mm
     bad = ~np.isfinite(epi)
     if bad.mean() > max_invalid_fraction:
@@ -1030,14 +1040,17 @@ def segment_la(
     Parameters
     ----------
     image : ndarray, shape (rows, cols)
+        Tagged ED long-axis image (intensity, any scale).
     centre_rc : array_like, shape (2,)
         A point of the long axis inside the cavity (e.g. mid SA stack), (row, col) px.
     axis_rc : array_like, shape (2,)
         In-plane long-axis direction apex → base, (row, col) (normalised here).
     pixel_spacing_mm : float
+        In-plane pixel size, mm.
     max_radius_mm : float
         Longest ray, mm (must reach the apex from ``centre_rc``).
     min_wall_mm : float
+        Shortest myocardial run accepted on a ray, mm (as :func:`segment_sa`).
     min_arc_deg : float
         Reject when the contiguous arc of rays that meet myocardium is shorter than this.
     features : TagFeatures, optional
@@ -1118,8 +1131,11 @@ def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
     arc : ndarray of int
         Rays of the horseshoe in increasing circular order.
     valid : ndarray of bool, shape (K,)
+        Whether each ray met myocardium.
     endo, epi : ndarray, shape (K,)
+        Inner and outer wall radius along each ray, px.
     angles : ndarray, shape (K,)
+        Ray angles, rad.
     ax : ndarray, shape (2,)
         Unit axis direction apex → base, (row, col).
     base_dir : float
@@ -1274,9 +1290,11 @@ def segment_from_mask(
     Parameters
     ----------
     mask : ndarray of bool, shape (rows, cols)
+        Myocardium mask of the slice (True = myocardium).
     centre_rc : array_like, shape (2,)
         Long-axis point in the slice, (row, col) px.
     pixel_spacing_mm : float
+        In-plane pixel size, mm.
     axis_rc : array_like, shape (2,), optional
         LA only: in-plane axis direction apex → base; None for SA.
     max_radius_mm : float, optional

@@ -71,9 +71,10 @@ def cavity_centre(s: seg.SliceSegmentation) -> np.ndarray | None:
 
 def _finite_features(img: np.ndarray, sp: float) -> list:
     """
-    :func:`.segment.candidate_features` with finite energy and period: both spectral estimates
-    (a bright RV pool beside the wall can mislead the plain one), the plain one first (the
-    blood-pool search uses it); empty when none is finite.
+    Return the :func:`.segment.candidate_features` with finite energy and period.
+
+    Both spectral estimates (a bright RV pool beside the wall can mislead the plain one), the plain
+    one first (the blood-pool search uses it); empty when none is finite.
     """
     return [
         f
@@ -100,7 +101,9 @@ def blood_pool_candidates(
     feat : TagFeatures
         From :func:`.segment.tag_features`.
     pixel_spacing_mm : float
+        In-plane pixel size, mm (sets the ring widths and the plausible area in pixels).
     max_candidates : int
+        Most centres returned.
 
     Returns
     -------
@@ -165,7 +168,7 @@ def blood_pool_candidates(
 
 
 def _grouped(reasons: list[tuple[str, str]]) -> str:
-    """``"a, b: why; c: other"`` from ``[(a, why), (b, why), (c, other)]``: each reason once."""
+    """Join ``[(a, why), (b, why), (c, other)]`` as ``"a, b: why; c: other"``: each reason once."""
     by_reason: dict = {}
     for how, why in reasons:
         by_reason.setdefault(why, []).append(how)
@@ -299,8 +302,9 @@ class StreamingMasker:
 
     def _fit_line(self, P: np.ndarray, z: np.ndarray, d: np.ndarray):
         """
-        In-plane offset linear in z: x⊥(z) = a + b (z − z̄); a ridge toward b = 0 keeps a
-        two-slice fit from swinging the axis, and the tilt is clipped.
+        Fit an in-plane offset linear in z: x⊥(z) = a + b (z − z̄).
+
+        A ridge toward b = 0 keeps a two-slice fit from swinging the axis, and the tilt is clipped.
         """
         zm = float(z.mean())
         Q = P - np.outer(z, d)
@@ -361,8 +365,9 @@ class StreamingMasker:
 
     def _fingerprint(self, frame: Frame):
         """
-        What the result of :meth:`ed_mask` depends on: the frame (indices, geometry, image
-        bytes) and the SA centres found so far; None when the frame cannot be hashed.
+        Return what the result of :meth:`ed_mask` depends on; None when the frame cannot be hashed.
+
+        The frame (indices, geometry, image bytes) and the SA centres found so far.
         """
         try:
             img = np.ascontiguousarray(frame.image)

@@ -1,6 +1,8 @@
 """
-One-page report of a run (optionally against a second run): PNG figures, summary.json and
-index.html, built from arrays only (the lead feeds it from recorded MCAP runs).
+One-page report of a run (optionally against a second run).
+
+PNG figures, summary.json and index.html, built from arrays only (the lead feeds it from recorded
+MCAP runs).
 
 Missing data never raises: whatever cannot be drawn is listed under "Missing / not shown" on
 the page and in ``summary.json`` (``runs[i].missing`` and ``figures_skipped``).

@@ -42,8 +42,10 @@ def _time(phases) -> np.ndarray:
 
 def _gapped(phases, t, values):
     """
-    ``t`` and ``values`` (first axis = phases) with a NaN row after each missing phase index
-    (a failed phase is left out of the report), so a line breaks there instead of bridging it.
+    Return ``t`` and ``values`` with a NaN row after each missing phase index.
+
+    ``values``' first axis is the phases; a failed phase is left out of the report, so a line
+    breaks there instead of bridging it.
     """
     idx = [int(p.phase_index) for p in phases]
     v = np.asarray(values, dtype=np.float64)
@@ -131,8 +133,9 @@ def plot_displacement_3d(
 
 def _shade_degraded(ax, phases, t) -> bool:
     """
-    Grey bands behind the phases whose verdict is degraded (failed ones are never passed in);
-    True if there were any.
+    Draw grey bands behind the phases whose verdict is degraded; True if there were any.
+
+    Failed phases are never passed in.
     """
     flagged = [k for k, p in enumerate(phases) if int(getattr(p, 'verdict', 0)) == 1]
     half = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.02
@@ -264,10 +267,17 @@ def draw_bullseye(
     Parameters
     ----------
     ax : matplotlib polar Axes
+        Axes to draw on.
     values : array_like, shape (17,)
         Segment values in AHA order; NaN segments are drawn grey and labelled "n/a".
     vlim : float, optional
         Symmetric colour limit (default max |value|).
+    title : str
+        Panel title (none when empty).
+    cmap : str or Colormap
+        Diverging colour map (default ``'coolwarm'``).
+    label : str
+        Not used by the drawing.
 
     Returns
     -------
@@ -332,10 +342,13 @@ def draw_class_bullseye(ax, classes, labels=None, *, title: str = ''):
     Parameters
     ----------
     ax : matplotlib polar Axes
+        Axes to draw on.
     classes : sequence of str, length 17
         Class per segment (AHA order), keys of :data:`CLASS_COLOURS`.
     labels : sequence of str, length 17, optional
         Text under each segment's number (default the class's first four letters).
+    title : str
+        Panel title (none when empty).
 
     """
     if len(classes) != 17:
@@ -374,9 +387,11 @@ def draw_class_bullseye(ax, classes, labels=None, *, title: str = ''):
 
 def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
     """
-    Bull's-eye of the wall-motion class per AHA segment, one panel per run, each segment
-    labelled with its class and function index ``f ± σ_f`` (share of the heart's own function,
-    :mod:`mlv_ros.core.analysis.findings`). None (nothing written) when no run carries strain.
+    Draw the bull's-eye of the wall-motion class per AHA segment, one panel per run.
+
+    Each segment is labelled with its class and function index ``f ± σ_f`` (share of the heart's
+    own function, :mod:`mlv_ros.core.analysis.findings`). None (nothing written) when no run
+    carries strain.
     """
     panels = []
     for run in runs:
@@ -415,8 +430,9 @@ def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
 
 def plot_strain_bullseyes(runs: Sequence[RunData], path) -> Path | None:
     """
-    Peak Err, Ecc, Ell by AHA segment (signed peak over the cycle), one row per run; the
-    colour scale of each strain component is shared across runs. Returns None (and writes
+    Draw peak Err, Ecc, Ell by AHA segment (signed peak over the cycle), one row per run.
+
+    The colour scale of each strain component is shared across runs. Returns None (and writes
     nothing) when no run carries strain.
     """
     peaks = [(run.label, peak_segment_strain(sorted_phases(run.phases)[0])) for run in runs]

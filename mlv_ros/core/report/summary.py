@@ -106,9 +106,10 @@ def level_table(phases: Sequence[PhaseMetrics], name: str) -> tuple[np.ndarray, 
 
 def peak_segment_strain(phases: Sequence[PhaseMetrics]) -> dict[str, np.ndarray] | None:
     """
-    Signed peak over the cycle of each AHA segment's Err, Ecc, Ell, shape (17,) each;
-    None when no phase carries strain. Segments never populated (count 0 where counts are
-    known) are NaN here (and drawn as "n/a").
+    Return the signed peak over the cycle of each AHA segment's Err, Ecc, Ell, shape (17,) each.
+
+    None when no phase carries strain. Segments never populated (count 0 where counts are known)
+    are NaN here (and drawn as "n/a").
     """
     ph = [p for p in phases if p.has_strain]
     if not ph:
@@ -153,9 +154,10 @@ _ORIGIN_NOTES = {
 
 def segment_origin_note(phases: Sequence[PhaseMetrics]) -> dict:
     """
-    Where the AHA segments' circumferential origin came from (the phases' ``segment_origin``,
-    the last phase's): ``source`` unknown / prior / detected / given, ``confidence`` and a
-    sentence ``note`` for the reader.
+    Return where the AHA segments' circumferential origin came from.
+
+    The phases' ``segment_origin``, the last phase's: ``source`` unknown / prior / detected /
+    given, ``confidence`` and a sentence ``note`` for the reader.
     """
     last = phases[-1] if phases else None
     code = int(getattr(last, 'segment_origin', 0)) if last is not None else 0

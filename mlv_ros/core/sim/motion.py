@@ -89,8 +89,10 @@ def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
 
 def infarct_region(infarct: dict) -> dict:
     """
-    A preset's ``motion.infarct`` (one AHA segment) as a region of
-    :mod:`mlv_ros.core.sim.regional` (for the ground truth; its motion is the original one).
+    Return a preset's ``motion.infarct`` (one AHA segment) as a region.
+
+    The region is one of :mod:`mlv_ros.core.sim.regional`, for the ground truth; its motion is the
+    original one.
 
     Parameters
     ----------
@@ -406,8 +408,10 @@ class LVMotion:
 
     def inside_rv(self, X_ed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """
-        ``(wall, blood)``: whether ED points ``X_ed`` (N, 3), mm, are RV free wall and RV
-        blood, each bool (N,) (all False without an RV; :mod:`mlv_ros.core.sim.rv`).
+        Return ``(wall, blood)``: whether ED points are RV free wall and RV blood.
+
+        ``X_ed`` (N, 3), mm; each result bool (N,) (all False without an RV;
+        :mod:`mlv_ros.core.sim.rv`).
         """
         X = np.asarray(X_ed, dtype=np.float64).reshape(-1, 3)
         if self.rv is None:
@@ -417,7 +421,7 @@ class LVMotion:
 
     def rv_insertions(self) -> dict | None:
         """
-        The RV's true insertion points (None without an RV).
+        Return the RV's true insertion points (None without an RV).
 
         Returns
         -------

@@ -504,8 +504,9 @@ def check_items(values: dict) -> dict:
 @lru_cache(maxsize=None)
 def _shape(shape: str) -> dict:
     """
-    Preset facts a protocol needs: length, base descent, the preset's own protocol values and
-    abnormal regions.
+    Return the preset facts a protocol needs.
+
+    Length, base descent, the preset's own protocol values and abnormal regions.
     """
     p = load_preset(shape)
     g, m, im = p['geometry'], p['motion'], p['imaging']
@@ -535,7 +536,7 @@ def _sa_room(shape: str) -> tuple[float, float]:
 
 def default_protocol(shape: str = 'normal') -> dict:
     """
-    The fixed protocol of a shape's preset, as protocol items (every item).
+    Return the fixed protocol of a shape's preset, as protocol items (every item).
 
     Parameters
     ----------
@@ -963,7 +964,7 @@ def _septum_hint(hint, axis, angle_deg: float) -> list[float]:
 
 def protocol_preset(protocol: dict) -> dict:
     """
-    The preset dict that simulates a protocol (see :func:`simulate_study`).
+    Return the preset dict that simulates a protocol (see :func:`simulate_study`).
 
     Parameters
     ----------
@@ -1121,6 +1122,7 @@ def save_protocol(protocol: dict, path, header: str = '') -> Path:
     protocol : dict
         Items to write (in :data:`ITEMS` order).
     path : str or Path
+        Output file.
     header : str
         Comment lines put first (``#`` added).
 

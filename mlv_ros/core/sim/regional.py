@@ -250,11 +250,12 @@ def check_regions(regions, geometry: dict, others=(), where: str = 'regions') ->
 # --------------------------------------------------------------------------- ground truth
 def classify_contraction(c) -> np.ndarray:
     """
-    Truth class name per segment mean contraction (:data:`CLASS_THRESHOLDS`).
+    Return the truth class name per segment mean contraction (:data:`CLASS_THRESHOLDS`).
 
     Parameters
     ----------
     c : array_like, shape (K,)
+        Segment mean contractions (dimensionless).
 
     Returns
     -------
@@ -270,7 +271,7 @@ def classify_contraction(c) -> np.ndarray:
 
 def truth_frame(motion):
     """
-    The analyzer's :class:`~mlv_ros.core.analysis.frame.LVFrame` on the truth's axis.
+    Return the analyzer's :class:`~mlv_ros.core.analysis.frame.LVFrame` on the truth's axis.
 
     Apex = ED epicardial apex, base = base-plane centre, reference = mid-septum with the AHA
     origin at −60° (so the analyzer's segments are the motion's AHA windows).
@@ -283,11 +284,12 @@ def truth_frame(motion):
 
 def strain_components(motion, X_ed, phase, frame=None) -> np.ndarray:
     """
-    True Green–Lagrange normal strains of ED points, cylindrical frame.
+    Return the true Green–Lagrange normal strains of ED points, cylindrical frame.
 
     Parameters
     ----------
     motion : LVMotion
+        Ground-truth LV geometry and motion.
     X_ed : ndarray, shape (N, 3)
         ED positions, mm.
     phase : int or float
@@ -330,6 +332,7 @@ def regional_truth(motion, n_points: int = 20000, seed: int = 0, phase=None) -> 
     Parameters
     ----------
     motion : LVMotion
+        Ground-truth LV geometry and motion (with its abnormal regions).
     n_points : int
         Sample size (20000: sampling error of a segment mean ≈ 0.005 in Err).
     seed : int

@@ -304,6 +304,7 @@ def resolve_parameters(
     Parameters
     ----------
     image : array_like, shape (H, W)
+        Tagged image.
     mask : array_like of bool, optional
         Region for :func:`estimate_tag_parameters` when something must be estimated (the whole
         image is tried if the region alone gives no peaks).
@@ -394,6 +395,7 @@ def kernel_bank(
     shape : tuple of int
         Image shape (H, W).
     params : TagParameters
+        Tag spacing and wave-vector angle of each direction.
     direction : int
         0 or 1.
     orientations_deg : sequence of float
@@ -444,7 +446,7 @@ class GaborMaps:
 
     @property
     def phase(self) -> np.ndarray:
-        """Wrapped phase in (−π, π], rad, shape (2, H, W)."""
+        """Return the wrapped phase in (−π, π], rad, shape (2, H, W)."""
         return np.angle(self.response)
 
 
@@ -464,6 +466,7 @@ def gabor_filter_bank(
     image : ndarray, shape (H, W)
         Finite pixels (see :func:`validate_image`).
     params : TagParameters
+        Tag spacing and wave-vector angle of each direction (the bank's centre).
     orientations_deg, spacing_factors, sigma_u, sigma_v
         See :func:`kernel_bank`. The defaults span ±12° of rotation and −20 %…+25 % of spacing
         change, the range of in-plane tag deformation over a cardiac cycle.

@@ -35,6 +35,7 @@ def harmonic_phase(image, params: TagParameters, bandwidth: float = 0.35) -> Pha
     Parameters
     ----------
     image : array_like, shape (H, W)
+        Tagged image.
     params : TagParameters
         Fundamental frequencies (typically estimated at ED and reused).
     bandwidth : float

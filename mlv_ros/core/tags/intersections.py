@@ -1,6 +1,7 @@
 """
-Tag intersections from Gabor phase maps: candidates, sub-pixel Newton refinement, confidence,
-myocardium restriction and grid labels.
+Tag intersections from Gabor phase maps.
+
+Candidates, sub-pixel Newton refinement, confidence, myocardium restriction and grid labels.
 
 A tag line of direction ``d`` is where the Gabor phase is ≡ π (dark tags; see
 :mod:`mlv_ros.core.tags.gabor`), so with ``ψ_d = wrap(φ_d − π)`` an intersection is a common root
@@ -124,7 +125,9 @@ def masked_normalise(image: np.ndarray, mask: np.ndarray, sigma: float):
     Parameters
     ----------
     image : ndarray, shape (H, W)
+        Image to normalise.
     mask : ndarray of bool, shape (H, W)
+        Region kept (e.g. the myocardium); zero outside.
     sigma : float
         Gaussian window standard deviation, px.
 
@@ -149,8 +152,9 @@ def confidence_map(
     image: np.ndarray, maps: GaborMaps, params: TagParameters, std=None
 ) -> np.ndarray:
     """
-    Per-pixel tag confidence in 0..1, shape (H, W) (see :class:`Detection`); ``std`` is the
-    local standard deviation if already known.
+    Return the per-pixel tag confidence in 0..1, shape (H, W) (see :class:`Detection`).
+
+    ``std`` is the local standard deviation if already known.
     """
     sig = local_std(image, float(np.mean(params.spacing_px))) if std is None else std
     floor = 1e-6 * float(np.ptp(image)) + 1e-30
@@ -183,7 +187,9 @@ def grid_coherence(
     Parameters
     ----------
     image : ndarray, shape (H, W)
+        Tagged image.
     params : TagParameters
+        The grid scored: tag spacing and wave-vector angle of each direction.
     region : ndarray of bool, shape (H, W), optional
         Where tags are expected (the myocardium); default the whole image.
     smoothing_px : float, optional
@@ -222,8 +228,10 @@ def _coherence(work, origin, wavevectors) -> float:
 
 def _half_sum_difference(p: TagParameters) -> TagParameters:
     """
-    The grid whose cross terms k1 ± k2 are ``p``'s two wave vectors: half their sum and
-    difference (a grid's cross terms are spectral peaks too, at 45° and 1/√2 of its period).
+    Return the grid whose cross terms k1 ± k2 are ``p``'s two wave vectors.
+
+    Half their sum and difference (a grid's cross terms are spectral peaks too, at 45° and 1/√2 of
+    its period).
     """
     k = p.wavevectors / (2 * np.pi)
     derived = [(k[0] + k[1]) / 2, (k[0] - k[1]) / 2]
@@ -237,9 +245,11 @@ def _half_sum_difference(p: TagParameters) -> TagParameters:
 
 def _related_grids(p: TagParameters) -> list[TagParameters]:
     """
-    ``p``, the grid of which it holds the cross terms, and the orthogonal equal-period grids of
-    each of their directions (and theirs): on a thin wall often one direction is found well and
-    the other is noise, or a cross term outranks a fundamental.
+    Return ``p``, the grid of which it holds the cross terms, and related orthogonal grids.
+
+    The orthogonal equal-period grids of each of their directions (and theirs): on a thin wall
+    often one direction is found well and the other is noise, or a cross term outranks a
+    fundamental.
     """
     out = [p, _half_sum_difference(p)]
     for g in out[:2]:
@@ -276,6 +286,7 @@ def estimate_grid(
     Parameters
     ----------
     image : array_like, shape (H, W)
+        Tagged image.
     mask : array_like of bool, shape (H, W), optional
         Region for the regional spectrum (e.g. the myocardium dilated).
     score_region : array_like of bool, shape (H, W), optional
@@ -364,10 +375,13 @@ def grid_labels(pixel_rc: np.ndarray, params: TagParameters, shape, weights=None
     Parameters
     ----------
     pixel_rc : ndarray, shape (N, 2)
+        Intersection positions, (row, col) px.
     params : TagParameters
+        Tag spacing and wave-vector angle of each direction of the grid.
     shape : tuple
         Image shape (H, W); labels count from the centre pixel.
     weights : ndarray, shape (N,), optional
+        Weights of the points in the circular mean of each direction's offset (default all 1).
 
     Returns
     -------
@@ -411,6 +425,7 @@ def refine_tuned(
     sigma_u, sigma_v : float
         Envelope standard deviations in units of the local spacing (as in the bank).
     iterations : int
+        Newton steps (at least 1).
 
     Returns
     -------

@@ -37,8 +37,9 @@ class PhaseField:
     @classmethod
     def from_complex(cls, z: np.ndarray) -> 'PhaseField':
         """
-        Phase field of complex maps ``z``, shape (2, H, W) (phase 0 where the quantity of
-        interest is).
+        Build the phase field of complex maps ``z``, shape (2, H, W).
+
+        Phase 0 where the quantity of interest is.
         """
         z = np.asarray(z)
         psi = np.angle(z).astype(np.float32)
@@ -84,7 +85,7 @@ class PhaseField:
 
     def sample(self, pts: np.ndarray):
         """
-        Wrapped phases and Jacobians at sub-pixel points (linearised from the nearest pixel).
+        Return wrapped phases and Jacobians at sub-pixel points (linearised from nearest pixels).
 
         Parameters
         ----------
@@ -125,6 +126,7 @@ def solve_phase(
     Parameters
     ----------
     field : PhaseField
+        Wrapped phases of both directions and their Jacobian.
     start : ndarray, shape (N, 2)
         Initial (row, col), px.
     target : ndarray, shape (N, 2), optional

@@ -73,6 +73,7 @@ class ThinPlateSpline:
         Parameters
         ----------
         src, dst : ndarray, shape (K, 2)
+            Source points and their targets, same units.
         lam : float
             Bending-energy weight, in the squared units of the coordinates (0 = interpolating).
         weights : ndarray, shape (K,), optional
@@ -127,8 +128,10 @@ class ThinPlateSpline:
     @staticmethod
     def basis(src: np.ndarray, kernel: np.ndarray | None = None):
         """
-        Constraint-free basis reused by :meth:`fit` for a fixed ``src`` (shape (K, 2), K ≥ 4):
-        ``(Q₂, K Q₂, Q₂ᵀ K Q₂)`` with ``Q₂`` spanning the null space of ``[1, src]ᵀ``.
+        Return the constraint-free basis reused by :meth:`fit` for a fixed ``src``.
+
+        ``src`` has shape (K, 2), K ≥ 4; the basis is ``(Q₂, K Q₂, Q₂ᵀ K Q₂)`` with ``Q₂`` spanning
+        the null space of ``[1, src]ᵀ``.
         """
         src = np.asarray(src, float)
         kmat = _tps_kernel(src, src) if kernel is None else kernel
@@ -175,8 +178,9 @@ class RPMResult:
 
 def _sinkhorn(m: np.ndarray, iterations: int) -> np.ndarray:
     """
-    Alternate row/column normalisation of the inlier block of ``m`` (shape (K+1, N+1));
-    the outlier row and column absorb mass and are not normalised themselves.
+    Alternate row/column normalisation of the inlier block of ``m`` (shape (K+1, N+1)).
+
+    The outlier row and column absorb mass and are not normalised themselves.
     """
     for _ in range(iterations):
         m[:-1] /= np.maximum(m[:-1].sum(axis=1, keepdims=True), 1e-300)
@@ -231,6 +235,7 @@ def tps_rpm(
     iterations_per_t : int
         Softassign/TPS alternations per temperature.
     sinkhorn_iterations : int
+        Row/column normalisation sweeps of each softassign matrix.
     outlier_distance : float, optional
         Distance (input units) at which a point is as likely an outlier as a match at
         ``t_final``; default 3·sqrt(t_final).

@@ -81,8 +81,10 @@ class TagScene:
 
     def inverse(self, x: np.ndarray, t: float, iterations: int = 30) -> np.ndarray:
         """
-        Material points of image points ``x``, shape (N, 2) (fixed-point inversion of
-        :meth:`forward`; converges because the non-affine term is a contraction).
+        Return the material points of image points ``x``, shape (N, 2).
+
+        Fixed-point inversion of :meth:`forward`; converges because the non-affine term is a
+        contraction.
         """
         x = np.asarray(x, float)
         a = self._amp(t)

@@ -54,8 +54,9 @@ FOLLOW_TUNED_MOVE = 0.2
 
 def tag_period_range_px(pixel_mm: float) -> tuple[float, float]:
     """
-    Tag periods worth searching in an image of ``pixel_mm`` pixels, px (within the spectrum
-    estimate's own limits).
+    Return the tag periods worth searching in an image of ``pixel_mm`` pixels, px.
+
+    Within the spectrum estimate's own limits.
     """
     lo, hi = TAG_PERIOD_RANGE_MM
     return max(MIN_SPACING_PX, lo / pixel_mm), max(
@@ -199,6 +200,7 @@ class SliceTracker:
         Parameters
         ----------
         frame : Frame
+            Image and geometry of the next phase of this slice.
         mask : array_like of bool, shape (H, W), optional
             Myocardium mask for this frame; required for a clean ED set (otherwise tag energy
             decides), optional later (the ED mask is propagated).
