@@ -422,6 +422,32 @@ class MotionTracker:
         inside = dist <= self.max_attach_mm
         return pos, inside
 
+    def _drop(self, inside, ctrl, bad):
+        """
+        Return ``inside`` and ``ctrl`` without the attached points flagged ``bad``.
+
+        ``bad`` is boolean over the attached points (``inside``'s true entries, in order); they
+        are counted as rejected.
+        """
+        keep = np.flatnonzero(inside)[~bad]
+        inside = np.zeros_like(inside)
+        inside[keep] = True
+        self.rejected += int(bad.sum())
+        return inside, _control_rows(ctrl, ~bad)
+
+    def _fit_global(self, ctrl, targets, normals, weights):
+        """Fit the global parameters alone (no local stage) to the attached tag points."""
+        return self.model.fit(
+            ctrl,
+            targets,
+            normals,
+            max_iterations=self.max_iterations,
+            tol=self.tol,
+            local=False,
+            global_prior=self.global_prior,
+            weights=weights,
+        )
+
     def solve(self, phase_index: int, sets: dict, num_phases: int = 0) -> PhaseSolution:
         """
         Fit the model to one phase's tag points (``sets``: (view, slice) → TagPointSet).
@@ -458,42 +484,16 @@ class MotionTracker:
                     ctrl.weights @ self.positions, targets[inside], normals[inside]
                 )
                 if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
-                    keep = np.flatnonzero(inside)[~pre]
-                    inside = np.zeros_like(inside)
-                    inside[keep] = True
-                    self.rejected += int(pre.sum())
-                    ctrl = _control_rows(ctrl, ~pre)
-            result = self.model.fit(
-                ctrl,
-                targets[inside],
-                normals[inside],
-                max_iterations=self.max_iterations,
-                tol=self.tol,
-                local=False,
-                global_prior=self.global_prior,
-                weights=weights[inside],
-            )
+                    inside, ctrl = self._drop(inside, ctrl, pre)
+            result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
             # Robustness: a track that swapped identity or drifted leaves a residual far beyond
             # what the global fit leaves elsewhere; drop such points and refit.
             outlier = self._outliers(
                 ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
             )
             if outlier.any() and (~outlier).sum() >= 4:
-                keep = np.flatnonzero(inside)[~outlier]
-                inside = np.zeros_like(inside)
-                inside[keep] = True
-                self.rejected += int(outlier.sum())
-                ctrl = _control_rows(ctrl, ~outlier)
-                result = self.model.fit(
-                    ctrl,
-                    targets[inside],
-                    normals[inside],
-                    max_iterations=self.max_iterations,
-                    tol=self.tol,
-                    local=False,
-                    global_prior=self.global_prior,
-                    weights=weights[inside],
-                )
+                inside, ctrl = self._drop(inside, ctrl, outlier)
+                result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
             x_global = self.model.positions()
             if self.twist_knots:
                 sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
