@@ -272,9 +272,7 @@ def _bullseye_frame(ax, title: str = '') -> None:
         ax.set_title(title, fontsize=10, pad=14)
 
 
-def draw_bullseye(
-    ax, values, *, vlim: float | None = None, title: str = '', cmap='coolwarm', label: str = ''
-):
+def draw_bullseye(ax, values, *, vlim: float | None = None, title: str = '', cmap='coolwarm'):
     """
     Draw a 17-segment AHA bull's-eye on a polar Axes.
 
@@ -290,8 +288,6 @@ def draw_bullseye(
         Panel title (none when empty).
     cmap : str or Colormap
         Diverging colour map (default ``'coolwarm'``).
-    label : str
-        Not used by the drawing.
 
     Returns
     -------
