@@ -720,10 +720,11 @@ class MotionTracker:
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
         )
-        J = np.stack(
-            [np.einsum('kab,kb->ka', P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)],
-            axis=1,
+        # ∂(P Φ x)/∂(knot j) for all knots from one sparse product with 3m columns
+        moved = (phi @ (tang[:, :, None] * hat[:, None, :]).reshape(len(tang), 3 * m)).reshape(
+            -1, 3, m
         )
+        J = np.matmul(P, moved).reshape(-1, m)
         r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale

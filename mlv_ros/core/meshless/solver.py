@@ -698,12 +698,11 @@ class MeshlessModel:
             self.reset()
 
         phi = ctrl.weights
-        support = np.unique(phi.indices)
+        support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))  # np.unique
         phi_s = phi[:, support].tocsr()
         coords_s = self.coords.subset(support)
-        phi_t = phi.T.tocsr()
         if local:  # the local stage's operators are built on the first fit that uses them
-            ops = self.local_operators
+            ops, phi_t = self.local_operators, phi.T.tocsr()
             kappa = data_weight * float(np.median(self._kdiag))
         vol = self.phyxels.volume
         prior = None
