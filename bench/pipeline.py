@@ -37,6 +37,7 @@ import time
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.tracking import MotionTracker
+from mlv_ros.threads import compute_threads
 from mlv_ros.tools.run import phantom_accuracy, run_graph
 import numpy as np
 from rclpy.serialization import deserialize_message
@@ -221,7 +222,8 @@ def main():
         'run_dir': str(out),
     }
     if not args.no_replay and s['complete']:
-        result['local_stage'] = local_stage_replay(out / 'run.mcap')
+        with compute_threads():  # one BLAS/OpenMP thread, as every graph process runs
+            result['local_stage'] = local_stage_replay(out / 'run.mcap')
     print(json.dumps(result, indent=2))
 
 

@@ -48,7 +48,7 @@ from mlv_ros.core.meshless import (
     polar_frame,
     quat_to_matrix,
 )
-from mlv_ros.core.meshless.local import CoarseSpace, LocalOperators
+from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
 from mlv_ros.core.verdict import phase_verdict
@@ -353,7 +353,7 @@ class MotionTracker:
                 'coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got '
                 f'{coarse_aggregates}'
             )
-        self._coarse = None
+        self._coarse = self._phase_coarse = None
         if coarse_aggregates:
             # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
             kappa, alpha = self._multipliers()
@@ -464,6 +464,7 @@ class MotionTracker:
                 f'phase {phase_index}: no tag point matches an ED reference inside the model'
             )
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
+        self._phase_coarse = None  # the first local solve of the phase factors its coarse part
         worst = (0, 0)  # (rejected, attached) of the pass that rejected the largest share
         passes = max(1, self.slice_following + 1)
         for pass_index in range(passes):
@@ -616,10 +617,8 @@ class MotionTracker:
         # Near-incompressibility of the whole deformation (myocardium keeps its volume): the
         # linearised volume change of F = F_g + ∇δ, J_g (1 + F_g⁻ᵀ : ∇δ) − 1, is penalised.
         Fg = np.eye(3) + op.gradient(x_global - self.rest)
-        Jg = np.linalg.det(Fg)
-        ok = np.abs(Jg) > 1e-6
-        C = np.zeros_like(Fg)
-        C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)  # cofactor of F_g
+        C, Jg = cofactors_3x3(Fg)  # cofactor J_g F_g⁻ᵀ of F_g
+        C[np.abs(Jg) <= 1e-6] = 0.0
         # Local longitudinal stretch (along the fitted long axis) costs kl; see
         # longitudinal_weight.
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
@@ -629,14 +628,18 @@ class MotionTracker:
             plane_projectors(normals, len(normals))
             * control_weights(weights, len(targets))[:, None, None]
         )
+        # The phase's later passes reuse its first pass's coarse factor (LocalOperators.system).
+        reuse = self._phase_coarse
         system = self._local.system(
             fit_error=alpha,
             volume=(self.volume_weight * mu, C, Jg - 1.0),
             axial=(self.longitudinal_weight * mu, ax),
             data=(kappa, phi, P),
             eps=1e-6 * kappa,
-            coarse=self._coarse,
+            coarse=self._coarse if reuse is None else None,
+            coarse_correction=reuse,
         )
+        self._phase_coarse = system.coarse_correction
         r = np.einsum('kab,kb->ka', P, targets - phi @ x_global)
         rhs = kappa * (phi.T @ r) + system.constant_force()
         delta, its = system.solve(
@@ -717,10 +720,11 @@ class MotionTracker:
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
         )
-        J = np.stack(
-            [np.einsum('kab,kb->ka', P, phi @ (tang * hat[:, [j]])).ravel() for j in range(m)],
-            axis=1,
+        # ∂(P Φ x)/∂(knot j) for all knots from one sparse product with 3m columns
+        moved = (phi @ (tang[:, :, None] * hat[:, None, :]).reshape(len(tang), 3 * m)).reshape(
+            -1, 3, m
         )
+        J = np.matmul(P, moved).reshape(-1, m)
         r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         D2 = np.diff(np.eye(m), 2, axis=0)
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
@@ -787,22 +791,6 @@ class MotionTracker:
         else:
             out = self._model_at(np.concatenate([base, probe]))  # each point is independent
             x0, x1 = out[:idx.size], out[idx.size:]
-        f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
-        df = np.einsum('ij,ij->i', x1 - x0, n)
-        good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
-        step = np.zeros(idx.size)
-        step[good] = -f0[good] / df[good]
-        new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
-        return new
-        n = normals[idx]
-        base = rest[idx] + offsets[idx, None] * n
-        probe = base + n  # +1 mm along the normal
-        pos = np.concatenate([base, probe])  # one attachment for both (each point is independent)
-        ok = self._tree.query(pos)[0] <= self.max_attach_mm
-        out = np.full(pos.shape, np.nan)
-        if ok.any():
-            out[ok] = self.model.attach(pos[ok]).weights @ self.positions
-        x0, x1 = out[:idx.size], out[idx.size:]
         f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
         df = np.einsum('ij,ij->i', x1 - x0, n)
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)

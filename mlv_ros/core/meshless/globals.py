@@ -374,9 +374,7 @@ def model_jacobian(
     lmat = np.empty((n, 3, NUM_GLOBAL))
     lmat[:, :, SLICE_C] = np.eye(3)
     lmat[:, :, SLICE_Q] = rotation_jacobian(params.rotation, s + d)
-    lmat[:, :, SLICE_S] = np.einsum(
-        'ab,nbk->nak', params.matrix, shape_jacobian(coords, params.a, params.tau)
-    )
+    lmat[:, :, SLICE_S] = np.matmul(params.matrix, shape_jacobian(coords, params.a, params.tau))
     return lmat
 
 

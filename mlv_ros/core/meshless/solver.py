@@ -217,10 +217,14 @@ def attach_control_points(
     # Linear MLS shape functions φ_j = w_j p_jᵀ M⁻¹ p(y), p = (1, x − y): reproduce affine fields.
     basis = np.concatenate([np.ones((pj.size, 1)), rel / h[pk, None]], axis=1)
     wb = wk[:, None] * basis
-    group = sp.csr_matrix((np.ones(pj.size), (pk, np.arange(pj.size))), shape=(m, pj.size))
-    mom = (group @ (wb[:, :, None] * basis[:, None, :]).reshape(-1, 16)).reshape(m, 4, 4)
-    sv = np.linalg.svd(mom, compute_uv=False)
-    shepard = ~(sv[:, 3] > 1e-8 * sv[:, 0])
+    mom = np.empty((m, 4, 4))  # Σ w p pᵀ per control point: its 10 distinct entries
+    for a in range(4):
+        for b in range(a, 4):
+            mom[:, a, b] = mom[:, b, a] = np.bincount(
+                pk, weights=wb[:, a] * basis[:, b], minlength=m
+            )
+    sv = np.abs(np.linalg.eigvalsh(mom))  # symmetric positive semi-definite: its singular values
+    shepard = ~(sv.min(axis=1) > 1e-8 * sv.max(axis=1))
     rhs = np.zeros((m, 4, 1))
     rhs[:, 0, 0] = 1.0
     coef = np.zeros((m, 4))
@@ -230,7 +234,10 @@ def attach_control_points(
     phi = wk * np.einsum('pa,pa->p', basis, coef[pk])
     wsum = np.bincount(pk, weights=wk, minlength=m)
     phi = np.where(shepard[pk], wk / wsum[pk], phi)
-    w = sp.csr_matrix((phi, (pk, pj)), shape=(m, n))
+    # Rows are already grouped (pk is sorted): the CSR arrays directly, then column-sorted as
+    # the COO conversion left them.
+    w = sp.csr_matrix((phi, pj, np.concatenate([[0], np.cumsum(counts)])), shape=(m, n))
+    w.sort_indices()
     return ControlPoints(w, y.copy(), None, shepard)
 
 
@@ -691,12 +698,11 @@ class MeshlessModel:
             self.reset()
 
         phi = ctrl.weights
-        support = np.unique(phi.indices)
+        support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))  # np.unique
         phi_s = phi[:, support].tocsr()
         coords_s = self.coords.subset(support)
-        phi_t = phi.T.tocsr()
         if local:  # the local stage's operators are built on the first fit that uses them
-            ops = self.local_operators
+            ops, phi_t = self.local_operators, phi.T.tocsr()
             kappa = data_weight * float(np.median(self._kdiag))
         vol = self.phyxels.volume
         prior = None
@@ -705,7 +711,8 @@ class MeshlessModel:
                 model_jacobian(self.params, self.coords, self.local_deformation),
                 self.params.rotation,
             )
-            gmat = float(global_prior) * np.einsum('nak,nal->kl', lall, lall) / lall.shape[0]
+            lf = lall.reshape(-1, lall.shape[-1])  # Σ_n L_nᵀ L_n as one matrix product
+            gmat = float(global_prior) * (lf.T @ lf) / lall.shape[0]
             prior = (gmat, np.zeros(gmat.shape[0]))
 
         def ctrl_positions(params, d_s):
@@ -713,7 +720,7 @@ class MeshlessModel:
             return phi_s @ (params.translation + p @ params.matrix.T)
 
         def residual(params, d_s):
-            return np.einsum('mab,mb->ma', proj, tgt - ctrl_positions(params, d_s))
+            return np.matmul(proj, (tgt - ctrl_positions(params, d_s))[:, :, None])[:, :, 0]
 
         mu_lm = 1e-3
         d_diag_const = None
@@ -728,9 +735,10 @@ class MeshlessModel:
             lmat = model_jacobian(self.params, coords_s, d_s)
             lk = (phi_s @ lmat.reshape(len(support), 3 * NUM_GLOBAL)).reshape(m, 3, NUM_GLOBAL)
             lk = reduce_rotation(lk, self.params.rotation)  # L_k = Σ_j φ_kj L_j (eq. 14)
-            plk = np.einsum('mab,mbk->mak', proj, lk)
-            dmat = np.einsum('mak,mal->kl', plk, plk)  # D = Σ L_kᵀ P_k L_k
-            fq = np.einsum('mak,ma->k', plk, res)  # f_q = Σ L_kᵀ f_k (eq. 10–13)
+            # (batched and plain matrix products: einsum's loops were a third of the fit's time)
+            plk = np.matmul(proj, lk).reshape(3 * m, -1)
+            dmat = plk.T @ plk  # D = Σ L_kᵀ P_k L_k
+            fq = plk.T @ res.ravel()  # f_q = Σ L_kᵀ f_k (eq. 10–13)
             g_step = l_step = 0.0
             x_prev = self.positions() if (local and local_active) else None
             cg_its, ran_local = 0, False
@@ -746,7 +754,7 @@ class MeshlessModel:
                     dd = np.diag(dmat)
                     d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
                 step = dt * fq / d_diag_const
-            g_step = float(np.sqrt(np.mean(np.sum(np.einsum('mak,k->ma', lk, step) ** 2, axis=1))))
+            g_step = float(np.sqrt(np.mean(np.sum((lk @ step) ** 2, axis=1))))
             self.params = self.params.stepped(step)
             res = residual(self.params, d_s)
             if local and not local_active and g_step < local_start:
