@@ -210,16 +210,22 @@ def segment_errors(case: Path, rest, positions, motion) -> dict:
     Return the ES median / p95 3D error (mm) of the worst and of each abnormal AHA segment.
 
     The worst is the AHA segment (the truth's) with the largest median, ``worst_segment``; each
-    abnormal segment of the truth is ``segment_K_CLASS``.
+    abnormal segment of the truth is ``segment_K_CLASS``, with ``segment_K_CLASS_rcl``: the median
+    signed error (ours − truth, mm) along the truth's radial, circumferential and longitudinal
+    directions (an akinetic sector pulled inward with its neighbours reads a negative radial one).
     """
-    from mlv_ros.core.sim.regional import truth_segments
+    from mlv_ros.core.analysis.frame import cardiac_coordinates
+    from mlv_ros.core.sim.regional import truth_frame, truth_segments
 
     gt = json.loads((case / 'study' / 'groundtruth.json').read_text()).get('regional') or {}
     es = int(gt.get('phase', -1))
     if es not in positions:
         return {}
     seg = truth_segments(motion, rest)
-    err = np.linalg.norm(positions[es] - motion.position(rest, es), axis=1)
+    vec = positions[es] - motion.position(rest, es)
+    err = np.linalg.norm(vec, axis=1)
+    cc = cardiac_coordinates(rest, truth_frame(motion))
+    rcl = np.stack([np.einsum('na,na->n', vec, e) for e in (cc.e_r, cc.e_c, cc.e_l)], axis=1)
 
     def stats(k):
         return [
@@ -232,9 +238,13 @@ def segment_errors(case: Path, rest, positions, motion) -> dict:
     return {
         'worst_segment': [worst, *stats(worst)],
         **{
-            f'segment_{sg["segment"]}_{sg["class"]}': stats(sg['segment'])
+            f'segment_{sg["segment"]}_{sg["class"]}{suffix}': value(sg['segment'])
             for sg in gt.get('segments', ())
             if sg['class'] != 'normal' and sg['segment'] in present
+            for suffix, value in (
+                ('', stats),
+                ('_rcl', lambda k: np.round(np.median(rcl[seg == k], axis=0), 2).tolist()),
+            )
         },
     }
 

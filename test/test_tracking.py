@@ -339,13 +339,15 @@ def test_solution_does_not_depend_on_the_order_slices_arrived_in(study):
 
 def test_longitudinal_coupling_follows_an_akinetic_sector():
     """
-    Check that coupled local strain follows the infarct phantom's akinetic sector.
+    Check that the regional coupling finds the infarct phantom's akinetic sector and follows it.
 
     The infarct phantom's akinetic sector (levels 0.4-0.7, AHA 7): SA tags see it not
-    shortening around the axis, only three LA planes see anything along it. Coupled, the local
-    longitudinal strain follows the circumferential one, and the basal wall above the sector
-    (AHA 1) stops descending with the rest of the base: from exact tags its ES median error falls
-    from 1.61 to 1.37 mm (measured), the p95 from 1.93 to 1.77 mm.
+    shortening around the axis, only three LA planes see anything along it. The tag points in it
+    are left outward of the smoothed motion, so the coupling's weight gathers there (measured at
+    ES: mean weight 0.52 in AHA 7, 0.03 away from it and its neighbours), and there the local
+    longitudinal strain follows the circumferential one: from exact tags the ES median error of
+    the sector and the basal wall above it (AHA 7, 1) falls from 1.38 to 1.23 mm, the p95 from
+    1.86 to 1.75 mm, the whole heart's median stays 0.39 mm (measured).
     """
     from mlv_ros.core.sim.regional import truth_segments
 
@@ -353,18 +355,22 @@ def test_longitudinal_coupling_follows_an_akinetic_sector():
     m = study.motion
     refs = grid_tags(study)
     es = int(round(m.es_phase))
-    err = {}
-    for coupling in (0.0, 0.5):
+    err, weight = {}, None
+    for coupling in (0.0, 1.0):
         X, tr = make_tracker(study, n=2000, longitudinal_coupling=coupling)
         for key, g in study.geometries.items():
             tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
         for phase in range(1, es + 1):
             sol = tr.solve(phase, observed(study, refs, phase), m.num_phases)
         err[coupling] = np.linalg.norm(sol.positions - m.position(X, es), axis=1)
-    basal = truth_segments(m, X) == 1
-    assert np.median(err[0.5][basal]) < 0.9 * np.median(err[0.0][basal]), (
-        np.median(err[0.0][basal]),
-        np.median(err[0.5][basal]),
+        if coupling:
+            weight = tr.coupling_weight
+    seg = truth_segments(m, X)
+    sector = np.isin(seg, (1, 7))
+    assert np.mean(weight[seg == 7]) > 5.0 * np.mean(weight[~np.isin(seg, (1, 7, 8, 12, 13))])
+    assert np.median(err[1.0][sector]) < 0.95 * np.median(err[0.0][sector]), (
+        np.median(err[0.0][sector]),
+        np.median(err[1.0][sector]),
     )
-    assert np.percentile(err[0.5], 95) < np.percentile(err[0.0], 95)
-    assert np.median(err[0.5]) < np.median(err[0.0]) + 0.05
+    assert np.percentile(err[1.0], 95) < np.percentile(err[0.0], 95)
+    assert np.median(err[1.0]) < np.median(err[0.0]) + 0.05

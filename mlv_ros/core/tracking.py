@@ -62,6 +62,13 @@ TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
 # The local stage's coarse space (MotionTracker's coarse_aggregates): one aggregate per this many
 # particles, at most this many aggregates (12 coarse unknowns each; a dense Cholesky per solve).
 COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
+# Where the longitudinal coupling acts (MotionTracker._outward_points, _coupling_weight): near tag
+# points the previous pass left inward of their targets by more than COUPLING_Z robust z-scores of
+# the phase's own residuals (weight 0 at the first, 1 at the second), within COUPLING_REACH SA
+# slice spacings of them; a region keeps COUPLING_MEMORY of its weight into the next phase.
+COUPLING_Z = (2.0, 4.0)
+COUPLING_REACH = 2.0
+COUPLING_MEMORY = 0.8
 
 
 def data_weights(confidence) -> np.ndarray:
@@ -210,17 +217,25 @@ class MotionTracker:
         pushed up to 20 mm toward the atria (randomized protocols whose LA tracks faded on one
         side). With it, the volume is kept by thickening, as the myocardium keeps it.
     longitudinal_coupling : float
-        0 (default) keeps the axial term on the local longitudinal strain alone. κ > 0 couples it
-        to the local circumferential strain: the term then holds ``E_ll − ρ E_cc`` of the local
-        deformation, ρ = κ × the heart's own global E_ll / E_cc at this phase, so a region the SA
-        tags show not shortening around the axis does not shorten along it either. Only LA
-        planes measure longitudinal motion, at a few angles; without the coupling an akinetic
-        sector between them is given its neighbours' shortening, thickens by incompressibility,
-        and the basal wall above it descends with the rest of the base. Measured, off against
-        0.5 (``bench/retrack.py CASE --solver longitudinal_coupling=0.5``, ES median / p95 mm):
-        akinetic 1012 0.75 / 2.88 → 0.86 / 2.33, 2006 0.42 / 2.65 → 0.45 / 2.24; healthy 1001
-        0.47 / 1.06 → 0.49 / 1.07, 1007 0.61 / 1.41 → 0.67 / 1.48. Opt-in until measured over the
-        whole robustness bench and the presets.
+        κ in [0, 2]; 0 keeps the axial term on the local longitudinal strain alone. κ > 0 couples
+        it to the local circumferential strain where the data say a region contracts less than
+        the wall around it: the term then holds ``E_ll − w_i ρ E_cc`` of the local deformation,
+        ρ = κ × the heart's own global E_ll / E_cc at this phase, w_i the particle's regional
+        weight (``regional_coupling``). Only LA planes measure longitudinal motion, at a few
+        angles; without the coupling an akinetic sector between them is held to its neighbours'
+        shortening by the axial stiffness, thickens by incompressibility (its wall pulled inward:
+        1012's sector −2.2 mm radially at ES) and the basal wall above it descends with the rest
+        of the base. The stiffness of ~3000 μ is what fights the region's own motion.
+    regional_coupling : bool
+        True (default): the coupling acts only near tag points the previous pass left outward of
+        the motion beyond the phase's own residual spread (:meth:`_outward_points`), i.e. where
+        the wall contracts less than its neighbours; elsewhere the plain axial term holds.
+        False: everywhere (the coupling at κ = 0.5 everywhere took healthy 1007 from 0.61 / 1.41
+        to 0.67 / 1.48 mm). Measured on kept bench cases (offline re-solve of the recorded runs,
+        ES median / p95 mm, off → regional κ = 1): akinetic 1012 0.771 / 2.522 → 0.809 / 2.295,
+        2006 0.418 / 2.543 → 0.428 / 2.262; healthy 1001 0.474 / 1.042 → 0.475 / 1.041, 1004
+        0.610 / 1.325 → 0.602 / 1.308, 1007 0.707 / 1.530 → 0.711 / 1.548, 1014 0.516 / 1.005 →
+        0.521 / 1.005, 2004 0.419 / 1.014 → 0.420 / 1.011.
     global_prior : float
         Weight of the prior that holds the global parameters at the previous phase
         (:meth:`MeshlessModel.fit`'s ``global_prior``): with few or one-sided tag points a weakly
@@ -269,7 +284,8 @@ class MotionTracker:
         twist_smoothing: float = 0.3,
         confidence_weights: bool = True,
         coarse_aggregates: int | None = None,
-        longitudinal_coupling: float = 0.0,
+        longitudinal_coupling: float = 1.0,
+        regional_coupling: bool = True,
     ):
         why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
         if why:
@@ -334,6 +350,10 @@ class MotionTracker:
                 f'longitudinal_coupling must be in [0, 2], got {longitudinal_coupling}'
             )
         self.longitudinal_coupling = float(longitudinal_coupling)
+        self.regional_coupling = bool(regional_coupling)
+        self.coupling_weight = np.zeros(0)  # per particle, the last local solve's (diagnostics)
+        self._coupling_map = None
+        self._flagged = None
         if not 0.0 <= global_prior < 1e6:
             raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
         self.global_prior = float(global_prior)
@@ -465,6 +485,7 @@ class MotionTracker:
             )
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
         self._phase_coarse = None  # the first local solve of the phase factors its coarse part
+        self._flagged = None  # tag points the last pass's motion left outward of their targets
         worst = (0, 0)  # (rejected, attached) of the pass that rejected the largest share
         passes = max(1, self.slice_following + 1)
         for pass_index in range(passes):
@@ -524,6 +545,14 @@ class MotionTracker:
                     rtol=rtol,
                 )
                 self.positions = x_global + self.delta
+                if (
+                    self.longitudinal_coupling
+                    and self.regional_coupling
+                    and pass_index < passes - 1
+                ):  # for the next pass's coupling
+                    self._flagged = self._outward_points(
+                        ctrl, targets[inside], normals[inside]
+                    )
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
             if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
                 worst = (self.rejected - rejected_before, attached)
@@ -650,13 +679,15 @@ class MotionTracker:
 
     def _coupled_axial(self, ax, Fg, x_global) -> np.ndarray:
         """
-        Return the per-particle measure ``M_i = a aᵀ − ρ c_i c_iᵀ`` of the axial term, (N, 3, 3).
+        Return the per-particle measure ``M_i = a aᵀ − w_i ρ c_i c_iᵀ`` of the axial term, (N,3,3).
 
-        See ``longitudinal_coupling``. ``M_i : H_i`` is the local longitudinal strain less ρ times
-        the local circumferential one (``c_i`` the circumferential direction about the fitted axis
-        ``a``). ρ = ``longitudinal_coupling`` × the global fit's median longitudinal over
-        circumferential linear strain, within [0, 2]; 0 while the global circumferential strain is
-        above −0.02 (near ED: no ratio to read, no deviation to couple).
+        See ``longitudinal_coupling``. ``M_i : H_i`` is the local longitudinal strain less w_i ρ
+        times the local circumferential one (``c_i`` the circumferential direction about the
+        fitted axis ``a``). ρ = ``longitudinal_coupling`` × the global fit's median longitudinal
+        over circumferential linear strain, within [0, 2]; 0 while the global circumferential
+        strain is above −0.02 (near ED: no ratio to read, no deviation to couple). ``w_i`` is the
+        region's weight (:meth:`_coupling_weight`; 1 everywhere when ``regional_coupling`` is
+        off).
         """
         circ = np.cross(ax, x_global - self.model.params.translation)
         circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
@@ -668,7 +699,86 @@ class MotionTracker:
             if ecc < -0.02
             else 0.0
         )
-        return np.outer(ax, ax)[None] - rho * circ[:, :, None] * circ[:, None, :]
+        w = self._coupling_weight() if rho and self.regional_coupling else 1.0
+        self.coupling_weight = np.broadcast_to(np.asarray(w, np.float64), (len(circ),))
+        return np.outer(ax, ax)[None] - (rho * self.coupling_weight)[
+            :, None, None
+        ] * circ[:, :, None] * circ[:, None, :]
+
+    def _coupling_weight(self) -> np.ndarray:
+        """
+        Return each particle's share of the coupling: near tag points the motion left inward.
+
+        ``max(COUPLING_MEMORY × the previous weight, max_k w_k (1 − d_ik / ℓ))`` over the points k
+        the previous pass flagged (:meth:`_outward_points`, their weights ``w_k`` and reach ℓ) at
+        ED distance ``d_ik < ℓ``; the memory carries a region found at one phase into the next,
+        where its points may fall short of the threshold.
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            Weights in [0, 1].
+
+        """
+        w = np.zeros(self.rest.shape[0])
+        if COUPLING_MEMORY and self._coupling_map is not None:
+            w = COUPLING_MEMORY * self._coupling_map
+        if self._flagged is None:
+            return w
+        pts, wk, ell = self._flagged
+        for p, v in zip(pts, wk):
+            idx = self._tree.query_ball_point(p, ell)
+            if idx:
+                d = np.linalg.norm(self.rest[idx] - p, axis=1)
+                w[idx] = np.maximum(w[idx], v * (1.0 - d / ell))
+        self._coupling_map = w
+        return w
+
+    def _outward_points(self, ctrl, targets, normals):
+        """
+        Flag the tag points the motion leaves inward of their targets, beyond the study's spread.
+
+        The outward (away from the long axis) component of each in-plane residual, as robust
+        z-scores over the phase's points (median, 1.4826 × MAD): weight 0 at ``COUPLING_Z[0]``
+        rising to 1 at ``COUPLING_Z[1]``. Returns None when no point is flagged, else their ED
+        positions (M, 3), weights (M,) and the reach ℓ (mm): ``COUPLING_REACH`` × the median
+        spacing of the SA planes.
+
+        A region that contracts less than the wall around it (akinetic, hypokinetic, or stretching)
+        leaves its few tag points outward of the smoothed motion; a tracking error has no preferred
+        direction. Relative to the phase's own residual spread, so it holds for any noise level,
+        pixel size and tag period.
+
+        Parameters
+        ----------
+        ctrl : ControlPoints
+            The pass's attachment of the tag points used.
+        targets, normals : ndarray, shape (K, 3)
+            Their measured positions (mm) and image-plane normals.
+
+        """
+        x = ctrl.weights @ self.positions
+        res = np.einsum('kab,kb->ka', plane_projectors(normals, len(normals)), targets - x)
+        axis = quat_to_matrix(self.model.params.rotation)[:, 2]
+        v = x - self.model.params.translation
+        radial = v - (v @ axis)[:, None] * axis
+        radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+        out = np.einsum('ka,ka->k', res, radial)
+        med = float(np.median(out))
+        sigma = max(1.4826 * float(np.median(np.abs(out - med))), 1e-6)
+        z0, z1 = COUPLING_Z
+        wk = np.clip(((out - med) / sigma - z0) / (z1 - z0), 0.0, 1.0)
+        levels = sorted(
+            float(np.dot(pt, axis))
+            for (view, _), (_, pt) in self.normals.items()
+            if view == VIEW_SA
+        )
+        gaps = np.diff(levels)
+        gaps = np.abs(gaps[np.abs(gaps) > 1e-3])
+        if not wk.any() or gaps.size == 0:
+            return None
+        keep = wk > 0
+        return ctrl.rest_positions[keep], wk[keep], COUPLING_REACH * float(np.median(gaps))
 
     def _twist_function(self, phi, targets, normals, x, sa, num_sa_slices, weights=None):
         """
