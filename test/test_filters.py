@@ -51,3 +51,24 @@ def test_running_median_keeps_a_bounded_number_of_images(monkeypatch):
     assert len(filters._cache) <= 2
     with pytest.raises(ValueError):
         filters.running_median(imgs[0], 3)[0, 0] = 1.0
+
+
+@pytest.mark.parametrize(
+    'shape, size, ties',
+    [
+        ((40, 48), 7, False),
+        ((33, 29), 13, True),  # few grey levels: many equal values per window
+        ((9, 64), 17, False),  # window wider than the short side: two reflections, scipy's path
+        ((20, 20), 6, False),  # even window: scipy's path (its origin)
+        ((300, 260), 5, True),  # more pixels than 16-bit ranks hold
+    ],
+)
+def test_running_median_by_rank_is_scipys_to_the_bit(shape, size, ties):
+    rng = np.random.default_rng(size)
+    img = rng.normal(size=shape)
+    if ties:
+        img = np.round(img * 2) / 2
+    filters._cache.clear()
+    assert np.array_equal(
+        filters.running_median(img, size), ndi.median_filter(img, size=size, mode='reflect')
+    )

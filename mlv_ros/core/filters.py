@@ -22,6 +22,13 @@ detector and the registration each take it of every ED frame (tag-period estimat
 :func:`mlv_ros.core.tags.intersections.estimate_grid`), at ~0.2 s per 256² frame the largest
 single cost of a whole study in one process (6.8 s of ~60 s profiled, 33 calls for 11 ED
 frames). A result is returned for bit-identical input only (keyed by a digest of the pixels).
+
+It is computed as scipy's is, to the bit, but ~6× faster (:func:`_median_by_rank`: 20 ms
+instead of 126 ms per 256² ED frame of the default study at a 13-px window): the pixels are
+replaced by their ranks in the whole image (16-bit integers up to 65,536 pixels), each window's
+middle rank is selected with ``np.partition`` over a sliding-window view, and the rank is mapped
+back to its pixel value. The order of values is the order of ranks, so the middle rank is the
+middle value's, ties included.
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ import hashlib
 import threading
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage as ndi
 
 CACHE_SIZE = 32  # images (a study's ED frames, each at one or two window sizes)
@@ -54,7 +62,11 @@ def running_median(image: np.ndarray, size: int) -> np.ndarray:
             _cache.move_to_end(key)
             stats['hits'] += 1
             return out
-    out = ndi.median_filter(img, size=int(size), mode='reflect')
+    size = int(size)
+    if img.ndim == 2 and size % 2 and size // 2 < min(img.shape) and np.isfinite(img).all():
+        out = _median_by_rank(img, size)
+    else:  # even windows (scipy's origin), windows wider than the image, NaN: scipy's own
+        out = ndi.median_filter(img, size=size, mode='reflect')
     out.flags.writeable = False
     with _lock:
         stats['misses'] += 1
@@ -62,3 +74,39 @@ def running_median(image: np.ndarray, size: int) -> np.ndarray:
         while len(_cache) > CACHE_SIZE:
             _cache.popitem(last=False)
     return out
+
+
+def _median_by_rank(img: np.ndarray, size: int, rows: int = 32) -> np.ndarray:
+    """
+    Return ``ndi.median_filter(img, size=size, mode="reflect")`` computed on pixel ranks.
+
+    Parameters
+    ----------
+    img : ndarray of float64, shape (H, W)
+        Finite pixels, any units; the result has the same.
+    size : int
+        Odd window width, px, with ``size // 2 < min(H, W)`` (one reflection at the border).
+    rows : int
+        Output rows per ``np.partition`` call (bounds the work array to
+        ``rows · W · size²`` ranks).
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W)
+
+    """
+    flat = img.ravel()
+    order = np.argsort(flat, kind='stable')
+    rank = np.empty(flat.size, np.uint16 if flat.size <= 1 << 16 else np.uint32)
+    rank[order] = np.arange(flat.size)
+    half = size // 2
+    # numpy's 'symmetric' is scipy's 'reflect' (d c b a | a b c d).
+    pad = np.pad(rank.reshape(img.shape), half, mode='symmetric')
+    h, w = img.shape
+    mid = size * size // 2
+    out = np.empty(img.shape, rank.dtype)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        win = sliding_window_view(pad[r0:r1 + 2 * half], (size, size)).reshape(r1 - r0, w, -1)
+        out[r0:r1] = np.partition(win, mid, axis=-1)[..., mid]
+    return flat[order][out]

@@ -198,35 +198,38 @@ def estimate_tag_parameters(
         # window's or the region's own spectrum) while noise averages down. (Whitened, the ring
         # median would rise with a spread peak instead.)
         spec = np.sqrt(ndi.gaussian_filter(spec**2, 1.0, mode='wrap'))
-    fr = sfft.fftfreq(h)[:, None]
-    fc = sfft.fftfreq(w)[None, :]
-    rad = np.hypot(fr, fc)
+    fr, fc, rad, ang, half = _frequency_grid(h, w)
     # Half plane (fc > 0, or fc == 0 and fr > 0): the spectrum of a real image is Hermitian.
-    half = (fc > 0) | ((fc == 0) & (fr > 0))
     annulus = half & (rad >= 1.0 / max_spacing_px) & (rad <= 1.0 / min_spacing_px)
     if not annulus.any():
         raise TagInputError(
             f'image {h}x{w} too small to resolve tag spacings up to {max_spacing_px} px'
         )
+    # The search runs over the annulus' frequencies only (≈ 1/6 of the spectrum), in row-major
+    # order, so the first maximum is the one a whole-spectrum argmax finds.
+    band = np.flatnonzero(annulus)
+    spec_a, rad_a, ang_a = spec.ravel()[band], rad.ravel()[band], ang.ravel()[band]
     if whiten:
-        # Rings one frequency bin wide (of the longer side); each frequency over its ring's median.
-        labels = np.where(annulus, np.rint(rad * max(h, w)).astype(np.int64) + 1, 0)
-        ids = np.unique(labels[annulus])
-        med = np.zeros(int(labels.max()) + 1)
-        med[ids] = ndi.median(spec, labels, ids)
-        if not np.all(med[ids] > 0):
+        # Rings one frequency bin wide (of the longer side); each frequency over its ring's median
+        # (as ndimage.median over the ring labels: sorted by ring, then value).
+        ring = np.rint(rad_a * max(h, w)).astype(np.int64)
+        order = np.lexsort((spec_a, ring))
+        sorted_spec = spec_a[order]
+        ids, start, count = np.unique(ring[order], return_index=True, return_counts=True)
+        med = (sorted_spec[start + (count - 1) // 2] + sorted_spec[start + count // 2]) / 2
+        if not np.all(med > 0):
             raise TagInputError('image spectrum is empty in the tag frequency band')
-        score = np.where(annulus, spec / np.where(med[labels] > 0, med[labels], np.inf), 0.0)
+        score = spec_a / med[np.searchsorted(ids, ring)]
     else:
-        med = float(np.median(spec[annulus]))
+        med = float(np.median(spec_a))
         if med <= 0:
             raise TagInputError('image spectrum is empty in the tag frequency band')
-        score = np.where(annulus, spec / med, 0.0)
-    ang = np.arctan2(fr, fc)
+        score = spec_a / med
     peaks = []
     for _ in range(2):
-        idx = np.unravel_index(int(np.argmax(score)), score.shape)
-        ratio = float(score[idx])
+        best = int(np.argmax(score))
+        idx = np.unravel_index(int(band[best]), spec.shape)
+        ratio = float(score[best])
         if ratio < min_peak_ratio:
             which = 'first' if not peaks else 'second'
             ref = "its ring's" if whiten else "the band's"
@@ -243,12 +246,12 @@ def estimate_tag_parameters(
         # from this one: a SPAMM grid's two directions share (nearly) one period, while a second
         # peak at another period is anatomy (e.g. a thin wall's own edges).
         theta = np.arctan2(f[0], f[1])
-        diff = np.abs(np.angle(np.exp(1j * 2 * (ang - theta)))) / 2  # axial distance in [0, π/2]
+        diff = np.abs(np.angle(np.exp(1j * 2 * (ang_a - theta)))) / 2  # axial distance, [0, π/2]
         f_abs = np.hypot(*f)
         score = np.where(
             (diff < MIN_DIRECTION_SEPARATION)
-            | (rad < f_abs / MAX_PERIOD_RATIO)
-            | (rad > f_abs * MAX_PERIOD_RATIO),
+            | (rad_a < f_abs / MAX_PERIOD_RATIO)
+            | (rad_a > f_abs * MAX_PERIOD_RATIO),
             0.0,
             score,
         )
@@ -261,6 +264,22 @@ def estimate_tag_parameters(
         peak_ratio=np.array([p[1] for p in peaks])[order],
         source='spectrum',
     )
+
+
+@lru_cache(maxsize=16)
+def _frequency_grid(h: int, w: int):
+    """
+    Return the FFT frequency grid of an (h, w) image, read-only, cycles / px.
+
+    ``(fr (h, 1), fc (1, w), |f| (h, w), angle atan2(fr, fc) (h, w) in rad, half-plane mask
+    (h, w): fc > 0, or fc == 0 and fr > 0)``.
+    """
+    fr = sfft.fftfreq(h)[:, None]
+    fc = sfft.fftfreq(w)[None, :]
+    out = (fr, fc, np.hypot(fr, fc), np.arctan2(fr, fc), (fc > 0) | ((fc == 0) & (fr > 0)))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def _refine_peak(work: np.ndarray, f: np.ndarray, steps: int = 9) -> np.ndarray:

@@ -471,9 +471,16 @@ def refine_tuned(
     # exactly, see c below).
     lam_typ = min(float(np.median(2 * np.pi / np.linalg.norm(k[ok], axis=2))) * 1.1, 32.0)
     half = int(np.ceil(2.5 * max(sigma_u, sigma_v) * lam_typ))
-    off = np.stack(
-        np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1), indexing='ij'), -1
-    ).reshape(-1, 2)  # (P, 2)
+    n = 2 * half + 1
+    o = np.arange(-half, half + 1, dtype=np.float32)  # patch offsets, px (rows and columns)
+    # Patches are views of the image zero-padded by a whole patch (with a 1/0 twin saying which
+    # pixels are inside): a patch centred up to `half` beyond the border sees only padding.
+    pad_img = np.zeros((h + 2 * n, w + 2 * n), np.float32)
+    pad_img[n:n + h, n:n + w] = img
+    pad_in = np.zeros_like(pad_img)
+    pad_in[n:n + h, n:n + w] = 1.0
+    win_img = np.lib.stride_tricks.sliding_window_view(pad_img, (n, n))
+    win_in = np.lib.stride_tricks.sliding_window_view(pad_in, (n, n))
     for _ in range(max(1, iterations)):
         kn = np.linalg.norm(k, axis=2)
         safe_kn = np.where(kn > 0, kn, 1.0)
@@ -482,35 +489,43 @@ def refine_tuned(
         lam = 2 * np.pi / safe_kn
         su = (sigma_u * lam)[..., None]
         sv = (sigma_v * lam)[..., None]
-        q = np.rint(x).astype(int)
-        p = q[:, None, :] + off[None]  # (N, P, 2)
-        inside = (p[..., 0] >= 0) & (p[..., 0] < h) & (p[..., 1] >= 0) & (p[..., 1] < w)
-        vals = (img[np.clip(p[..., 0], 0, h - 1), np.clip(p[..., 1], 0, w - 1)] * inside).astype(
-            np.float32
-        )
-        # Single precision for the (N, 2, P) work arrays (positions stay float64; the sums are
-        # over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level).
-        dlt = (p - x[:, None, :]).astype(np.float32)  # δ = p − y, (N, P, 2)
-        dt = np.swapaxes(dlt, 1, 2)  # (N, 2, P)
-        du = np.matmul(u.astype(np.float32), dt)  # (N, 2 directions, P)
-        dv = np.matmul(v.astype(np.float32), dt)
+        q = np.clip(np.rint(x).astype(int), -half - 1, np.array([h, w]) + half)
+        corner = q - half + n  # the patch's first pixel in the padded image
+        vals = win_img[corner[:, 0], corner[:, 1]]  # (N, n, n)
+        inside = win_in[corner[:, 0], corner[:, 1]]
+        # Single precision for the (N, 2, n, n) work arrays (positions stay float64; the sums
+        # are over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level). Every term is
+        # separable in the patch offsets: δ = p − y = (q − y) + (a, b), so the projections
+        # δ·u, δ·v and the carrier e^{−ik·δ} are built from per-row and per-column factors.
+        d0 = (q - x).astype(np.float32)  # (N, 2)
+        u32, v32, k32 = (z.astype(np.float32) for z in (u, v, k))
+
+        def along(e):  # e·δ for each direction, (N, 2, n, n)
+            base = np.einsum('nda,na->nd', e, d0)[..., None, None]
+            return base + e[..., 0, None, None] * o[:, None] + e[..., 1, None, None] * o
+
+        du, dv = along(u32), along(v32)
         g = np.exp(
-            -0.5 * (du / su.astype(np.float32)) ** 2 - 0.5 * (dv / sv.astype(np.float32)) ** 2
+            -0.5 * (du / su[..., None].astype(np.float32)) ** 2
+            - 0.5 * (dv / sv[..., None].astype(np.float32)) ** 2
         )
-        g *= inside[:, None, :]
+        g *= inside[:, None]
+        e_row = np.exp(-1j * (k32[..., 0, None] * o)).astype(np.complex64)  # (N, 2, n)
+        e_col = np.exp(-1j * (k32[..., 1, None] * o)).astype(np.complex64)
+        e_row *= np.exp(-1j * np.einsum('nda,na->nd', k32, d0)).astype(np.complex64)[..., None]
+        carrier = e_row[..., :, None] * e_col[..., None, :]  # e^{−ik·δ}, (N, 2, n, n)
         # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
-        carrier = np.exp(-1j * np.matmul(k.astype(np.float32), dt))
-        c = np.sum(g * carrier, axis=2, keepdims=True) / np.maximum(
-            np.sum(g, axis=2, keepdims=True), 1e-12
-        )
-        gv = g * vals[:, None, :]
-        r = np.sum(gv * (carrier - c), axis=2).astype(np.complex128)  # (N, 2)
+        gsum = np.sum(g, axis=(2, 3))
+        c = np.sum(g * carrier, axis=(2, 3)) / np.maximum(gsum, 1e-12)
+        gv = g * vals[:, None]
+        gvc = gv * carrier
+        wgt = gvc - c[..., None, None] * gv
+        r = np.sum(wgt, axis=(2, 3)).astype(np.complex128)  # (N, 2)
         # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
-        wgt = gv * (carrier - c)
         dr = (
-            np.sum(wgt * du, axis=2)[..., None] / su**2 * u
-            + np.sum(wgt * dv, axis=2)[..., None] / sv**2 * v
-            + 1j * k * np.sum(gv * carrier, axis=2)[..., None]
+            np.sum(wgt * du, axis=(2, 3))[..., None] / su**2 * u
+            + np.sum(wgt * dv, axis=(2, 3))[..., None] / sv**2 * v
+            + 1j * k * np.sum(gvc, axis=(2, 3))[..., None]
         )  # (N, 2, 2)
         # Local wave vector measured by the tuned kernel: ∇ψ = Im(conj(R) ∇R) / |R|².
         dr = dr.astype(np.complex128)
@@ -524,7 +539,7 @@ def refine_tuned(
         kinv = np.linalg.inv(np.where(ok[:, None, None], k, np.eye(2)))
         step = -np.einsum('nad,nd->na', kinv, psi)
         x = np.where(ok[:, None], x + np.clip(step, -1.0, 1.0), x)
-        mag = np.abs(r) / np.maximum(np.sum(g, axis=2), 1e-12)
+        mag = np.abs(r) / np.maximum(gsum, 1e-12)
     return x, mag, ok
 
 

@@ -32,6 +32,9 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 
+_AFFINE_IDENTITY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # [t; A] of f(x) = x
+
+
 def _tps_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """2-D TPS radial basis ``U(r) = r² log r`` between rows of ``a`` (N, 2) and ``b`` (M, 2)."""
     r2 = cdist(a, b, 'sqeuclidean')
@@ -122,17 +125,51 @@ class ThinPlateSpline:
             a = p.T @ (w[:, None] * p) + s_aff
             b = p.T @ (w[:, None] * dst) + s_aff @ d_id
             return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.linalg.lstsq(a, b, rcond=None)[0])
-        if basis is not None:
-            q2, kq, q2kq = basis
-        else:
+        if basis is None:
             kmat = _tps_kernel(src, src) if kernel is None else kernel
-            q2, kq, q2kq = cls.basis(src, kmat)
+            basis = cls.basis(src, kmat)
+        return cls._fit_spread(src, dst, lam, w, lam_affine, basis)
+
+    @classmethod
+    def _fit_spread(cls, src, dst, lam, w, lam_affine, basis) -> 'ThinPlateSpline':
+        """
+        Solve :meth:`fit`'s normal equations for ≥ 4 source points that are not collinear.
+
+        Parameters
+        ----------
+        src, dst : ndarray of float64, shape (K, 2)
+            Source points and their targets, same units.
+        lam : float
+            Bending-energy weight (:meth:`fit`).
+        w : ndarray of float64, shape (K,)
+            Per-point weights, > 0.
+        lam_affine : float
+            Pull of the linear part toward the identity (:meth:`fit`).
+        basis : tuple
+            :meth:`basis` of ``src``.
+
+        Returns
+        -------
+        ThinPlateSpline
+
+        """
+        q2, kq, q2kq = basis
+        k = len(src)
+        p = np.empty((k, 3))
+        p[:, 0] = 1.0
+        p[:, 1:] = src
+        s_aff = np.diag([0.0, 1.0, 1.0]) * lam_affine
         wkq = w[:, None] * kq
-        a11 = kq.T @ wkq + lam * q2kq
-        a12 = wkq.T @ p
-        a22 = p.T @ (w[:, None] * p) + s_aff
-        lhs = np.block([[a11, a12], [a12.T, a22]])
-        rhs = np.vstack([wkq.T @ dst, p.T @ (w[:, None] * dst) + s_aff @ d_id])
+        wp = w[:, None] * p
+        # The (K − 3 + 3)² system [[a11, a12], [a12ᵀ, a22]], filled in place.
+        lhs = np.empty((k, k))
+        lhs[:k - 3, :k - 3] = kq.T @ wkq + lam * q2kq
+        lhs[:k - 3, k - 3:] = a12 = wkq.T @ p
+        lhs[k - 3:, :k - 3] = a12.T
+        lhs[k - 3:, k - 3:] = p.T @ wp + s_aff
+        rhs = np.empty((k, 2))
+        rhs[:k - 3] = wkq.T @ dst
+        rhs[k - 3:] = p.T @ (w[:, None] * dst) + s_aff @ _AFFINE_IDENTITY
         try:
             sol = np.linalg.solve(lhs, rhs)
         except np.linalg.LinAlgError:
@@ -196,9 +233,12 @@ def _sinkhorn(m: np.ndarray, iterations: int) -> np.ndarray:
 
     The outlier row and column absorb mass and are not normalised themselves.
     """
+    rows, cols = m[:-1], m[:, :-1]
     for _ in range(iterations):
-        m[:-1] /= np.maximum(m[:-1].sum(axis=1, keepdims=True), 1e-300)
-        m[:, :-1] /= np.maximum(m[:, :-1].sum(axis=0, keepdims=True), 1e-300)
+        s = rows.sum(axis=1, keepdims=True)
+        rows /= np.maximum(s, 1e-300, out=s)
+        s = cols.sum(axis=0, keepdims=True)
+        cols /= np.maximum(s, 1e-300, out=s)
     return m
 
 
@@ -297,6 +337,9 @@ def tps_rpm(
     f = None
     kv = _tps_kernel(vn, vn)
     basis = ThinPlateSpline.basis(vn, kv) if k >= 4 else None
+    # ≥ 4 points not on one line (fit's own test, taken once for the fixed source points): each
+    # step solves the spline's normal equations directly.
+    spread = basis is not None and np.linalg.matrix_rank(vn - vn.mean(0)) == 2
     m = np.zeros((k + 1, n + 1))
     steps = 0
     t = tn
@@ -315,14 +358,19 @@ def tps_rpm(
                 w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn
             )
             lam = k * max(lam_init * t / tn, lam_final)
-            f = ThinPlateSpline.fit(
-                vn,
-                tgt,
-                lam=lam,
-                weights=np.maximum(w, 1e-3),
-                lam_affine=k * lam_affine_init * t / tn,
-                kernel=kv,
-                basis=basis,
+            lam_aff = k * lam_affine_init * t / tn
+            f = (
+                ThinPlateSpline._fit_spread(vn, tgt, lam, np.maximum(w, 1e-3), lam_aff, basis)
+                if spread
+                else ThinPlateSpline.fit(
+                    vn,
+                    tgt,
+                    lam=lam,
+                    weights=np.maximum(w, 1e-3),
+                    lam_affine=lam_aff,
+                    kernel=kv,
+                    basis=basis,
+                )
             )
             yn = f.affine[0] + vn @ f.affine[1:] + (kv @ f.coef if len(f.centres) else 0.0)
         steps += 1
