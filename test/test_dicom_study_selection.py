@@ -540,6 +540,21 @@ def test_cines_of_the_study_that_fail_the_tag_test(studies, tmp_path):
     _same_frames(res, studies.ref_a)
 
 
+#: A study tagged on the heart alone: dark surroundings, 128² px of 1.8 mm.
+HEART_ONLY = {
+    'shape': 'normal',
+    'background': 'none',
+    'size': 128,
+    'pixel_spacing_mm': 1.8,
+    'snr': 20.0,
+    'tag_spacing_mm': 7.0,
+    'tag_angle_deg': 30.0,
+    'num_phases': 3,
+    'sa_slices': 6,
+    'la_planes': 2,
+}
+
+
 @pytest.fixture(scope='module')
 def heart_only(tmp_path_factory):
     """
@@ -552,19 +567,7 @@ def heart_only(tmp_path_factory):
     from mlv_ros.core.sim.protocol import protocol_preset
 
     root = tmp_path_factory.mktemp('heart_only')
-    protocol = {
-        'shape': 'normal',
-        'background': 'none',
-        'size': 128,
-        'pixel_spacing_mm': 1.8,
-        'snr': 20.0,
-        'tag_spacing_mm': 7.0,
-        'tag_angle_deg': 30.0,
-        'num_phases': 3,
-        'sa_slices': 6,
-        'la_planes': 2,
-    }
-    preset = protocol_preset(protocol)
+    preset = protocol_preset(HEART_ONLY)
     kw = {'snr': 20.0, 'size': 128, 'num_phases': 3, 'subplanes': 1, 'pixel_spacing': 1.8}
     tagged = simulate_study(preset, seed=21, **kw)
     preset['imaging'].update(tag_spacing_mm=1e6, blood_m0=2.0, sa_slices=9)
@@ -589,9 +592,10 @@ def test_tags_on_the_heart_alone_are_found_by_the_study_vote(heart_only):
         for name in ('tagged', 'untagged')
     }
     assert max(dicom_io._tag_grid(im, 1.8)[0] for im in ed['tagged']) < dicom_io._TAG_CLEAR
-    score, period, each = dicom_io._heart_grid([(im, 1.8) for im in ed['tagged']])
-    assert score >= dicom_io._TAG_STUDY and abs(period / 7.0 - 1.0) <= 0.06
-    assert dicom_io._heart_grid([(im, 1.8) for im in ed['untagged']])[0] < dicom_io._TAG_STUDY
+    vote = dicom_io._study_vote([([im], 1.8) for im in ed['tagged']])
+    assert vote.grid >= dicom_io._TAG_STUDY and abs(vote.period_mm / 7.0 - 1.0) <= 0.06
+    assert not vote.single_line
+    assert dicom_io._study_vote([([im], 1.8) for im in ed['untagged']]).score < 1.0
     res = heart_only.ref
     assert res.study_uid == heart_only.tagged.study_uid and 'tags on the heart alone' in res.choice
     assert len(res.frames) == 24 and res.complete
@@ -731,7 +735,8 @@ def test_below_the_vote_threshold_the_closest_study_still_wins(heart_only, tmp_p
     reach), the choice between studies without a clear tag grid still goes by the vote, not by the
     number of cines: the tagged study, all its cines used, and the choice says how close it came.
     """
-    monkeypatch.setattr(dicom_io, '_TAG_STUDY', 100.0)
+    monkeypatch.setattr(dicom_io, '_TAG_STUDY', 1e6)
+    monkeypatch.setattr(dicom_io, '_TAG_LINES', 1e6)
     shutil.copytree(heart_only.root / 'untagged', tmp_path / '0_untagged')
     shutil.copytree(heart_only.root / 'tagged', tmp_path / '9_tagged')
     res = read_dicom_dir(tmp_path)
@@ -742,3 +747,50 @@ def test_below_the_vote_threshold_the_closest_study_still_wins(heart_only, tmp_p
     )
     _same_frames(res, heart_only.ref)
     assert len(res.not_used) == 11 and res.complete
+
+
+@pytest.fixture(scope='module')
+def single_line(tmp_path_factory, heart_only):
+    """
+    Write a heart-only study tagged with one family of tag lines (``tag_lines: single``).
+
+    The heart-only fixture's protocol with 6 phases (the vote then reads ED and the next image).
+    """
+    from mlv_ros.core.sim.protocol import protocol_preset
+
+    root = tmp_path_factory.mktemp('single_line')
+    protocol = {**HEART_ONLY, 'tag_lines': 'single', 'num_phases': 6}
+    kw = {'snr': 20.0, 'size': 128, 'num_phases': 6, 'subplanes': 1, 'pixel_spacing': 1.8}
+    study = simulate_study(protocol_preset(protocol), seed=23, **kw)
+    write_study_dicom(study, root / 'single')
+    return SimpleNamespace(root=root, study=study)
+
+
+def test_single_line_tags_are_found_then_refused_with_a_reason(single_line, heart_only, tmp_path):
+    """
+    Check that one family of tag lines wins over an untagged study, and is refused in one line.
+
+    Its cines share tag lines in windows (no grid), so it out-votes the untagged bright-blood study
+    with more cines; the tracker follows tag-line crossings, so the read stops with "single-line
+    tags: intersections needed", naming the study.
+    """
+    ed = [f.image for f in single_line.study.frames if f.phase_index == 0]
+    nxt = [f.image for f in single_line.study.frames if f.phase_index == 1]
+    vote = dicom_io._study_vote([([a, b], 1.8) for a, b in zip(ed, nxt)])
+    assert vote.single_line and vote.line >= dicom_io._TAG_LINES
+    assert abs(vote.period_mm / 7.0 - 1.0) <= 0.06
+    shutil.copytree(single_line.root / 'single', tmp_path / '9_single')
+    shutil.copytree(heart_only.root / 'untagged', tmp_path / '0_untagged')
+    with pytest.raises(DicomReadError, match='single-line tags: intersections needed') as err:
+        read_dicom_dir(tmp_path)
+    assert single_line.study.study_uid in str(err.value) and '\n' not in str(err.value)
+    assert heart_only.untagged.study_uid in str(err.value)
+
+
+def test_a_tag_grid_wins_over_single_line_tags(single_line, heart_only, tmp_path):
+    """Check that a heart-only grid study is taken over a single-line one, whatever the order."""
+    shutil.copytree(single_line.root / 'single', tmp_path / '0_single')
+    shutil.copytree(heart_only.root / 'tagged', tmp_path / '9_tagged')
+    res = read_dicom_dir(tmp_path)
+    assert res.study_uid == heart_only.tagged.study_uid, res.choice
+    _same_frames(res, heart_only.ref)

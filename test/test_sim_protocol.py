@@ -123,7 +123,11 @@ def test_draws_stay_in_documented_ranges(draws):
 
 
 def test_every_item_varies_across_seeds(draws):
+    # single tag lines are given, never drawn: the tracker needs a grid's intersections
+    assert {p['tag_lines'] for p in draws} == {'grid'}
     for name in ITEMS:
+        if name == 'tag_lines':
+            continue
         values = {json.dumps(p[name]) for p in draws}
         assert len(values) >= 2, f'{name} took one value over 50 seeds: {values}'
     assert {p['shape'] for p in draws} == set(SHAPES)
@@ -532,3 +536,36 @@ def test_readme_documents_every_item():
     for name in ITEMS:
         assert f'`{name}`' in text, name
     assert '--random' in text and '--protocol' in text
+
+
+def test_single_tag_lines_item_draws_one_family():
+    """
+    Check ``tag_lines: single``: accepted, carried into the preset, one family of lines drawn.
+
+    The pattern varies across the lines (along the turned row direction) and not along them;
+    a grid varies along both; an unknown value is refused by the protocol, the preset and the
+    pattern.
+    """
+    from mlv_ros.core.geometry import SliceGeometry
+    from mlv_ros.core.sim.imaging import tag_pattern
+
+    assert complete_protocol({})['tag_lines'] == 'grid'
+    assert protocol_preset({'tag_lines': 'single'})['imaging']['tag_lines'] == 'single'
+    with pytest.raises(ValueError, match='tag_lines'):
+        complete_protocol({'tag_lines': 'dots'})
+    g = SliceGeometry(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 1.0, 1.0, 8.0)
+    t = np.linspace(0.0, 14.0, 57)
+    a, b = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    centre = np.array([31.5, 31.5, 0.0])
+    across = centre + 1.75 * np.array([-b, a, 0.0]) + t[:, None] * np.array([a, b, 0.0])
+    along = centre + 1.75 + t[:, None] * np.array([-b, a, 0.0])
+    single = [tag_pattern(p, g, (64, 64), 7.0, 30.0, 'single') for p in (across, along)]
+    grid = [tag_pattern(p, g, (64, 64), 7.0, 30.0) for p in (across, along)]
+    assert np.ptp(single[0]) > 0.99 and np.ptp(single[1]) < 1e-9
+    assert np.ptp(grid[0]) > 0.1 and np.ptp(grid[1]) > 0.1
+    with pytest.raises(ValueError, match='single'):
+        tag_pattern(across, g, (64, 64), 7.0, 30.0, 'dots')
+    preset = protocol_preset({})
+    preset['imaging']['tag_lines'] = 'dots'
+    with pytest.raises(ValueError, match='tag_lines'):
+        load_preset(preset)

@@ -45,7 +45,8 @@ reported in ``warnings``. Images are grouped by series and plane (a cine), phase
 TriggerTime then InstanceNumber. Then the study is chosen (:func:`read_dicom_dir`, Notes): cines
 grouped by StudyInstanceUID and FrameOfReferenceUID, the group with the most MR cines whose ED
 image shows a tag grid in its spectrum taken, else the one whose cines share a grid in windows
-most clearly (tags on the heart alone; or the one asked for), its MR cines used (one that
+most clearly (tags on the heart alone, noise-relative; a study of one family of tag lines is
+found, then refused: intersections needed; or the one asked for), its MR cines used (one that
 fails the tag test only where no tagged cine holds its place and it was acquired like them, with
 a warning), a slice acquired twice given by its later series, every cine given the study's phase
 count (by nearest trigger time, or left out); every series not used is listed once with its
@@ -1431,29 +1432,43 @@ _SAME_PLACE_COS = np.cos(np.radians(5.0))
 _FEWER_PHASES_TOL = 0.25
 #: Tags on the heart alone (dark or untagged surroundings) are a small share of the image, so the
 #: whole-image spectrum rarely shows them (scores 2–4.5 against the 6 needed). The study then
-#: votes: each MR cine's ED image is cut into windows of this size (at least
-#: :data:`_LOCAL_MIN_PX` px, half-overlapping) and, per tag period (bins
-#: :data:`_PERIOD_BINS_MM`), the strongest grid in any window is kept (two peaks 60–120° apart,
-#: the weaker one's height over its 9 × 9 bin median, as :data:`_TAG_CLEAR`); a grid is the
-#: study's when the median of its cines at one period reaches :data:`_TAG_STUDY`. Noise alone
-#: gives a maximum of about 3 by chance (the largest of some hundred Rayleigh peaks over their
-#: median), whatever the anatomy; an untagged cine at one period rarely more, and the median
-#: of ≥ :data:`_TAG_STUDY_MIN_CINES` cines at one period still less. Measured (bench
-#: ``tag_test.py``) on 60 random protocols (40 heart-only), 8/12/16 bits, SNR 10–40, periods
-#: 3.5–10 px, each against two untagged twins (zero tag contrast; bright blood 1.5–3 ×
-#: myocardium with bright surroundings): heart-only tagged studies 3.74–15.1 (median 5.8),
-#: untagged 2.77–3.65; on another noise draw (the protocols' own phase counts) 3.60–15.5
-#: against ≤ 3.80 (one bright-blood study whose thin dark wall votes at 2.7 px). The threshold
-#: is thin, so it only names the result: between studies without a clearly tagged cine the
-#: larger vote wins (a heart-only study scored 1.14–5.0 × the larger of its own two twins' in
-#: all 80 pairs, and above every untagged study of its draw in 79 of 80).
+#: votes (:func:`_window_profiles`, :func:`_study_vote`): each MR cine's first images are cut into
+#: windows of :data:`_LOCAL_WINDOW_MM` (at least :data:`_LOCAL_MIN_PX` px, half-overlapping,
+#: Hann-tapered) and each spectral bin's power is divided by the image's own background there:
+#: the larger of the median power on the same ring (|f|, any angle: isotropic anatomy and
+#: noise, of any colour) and the power on the same ray at :data:`_RAY_SCALES` × |f| times the
+#: scale squared (a ray: an edge or band, whose power falls off no faster than 1/|f|²; a tag
+#: peak stands out of its ray). Over white or coloured noise that ratio is exponential with
+#: mean 1 in every bin; the minimum over K images (ED and the next, when it is within
+#: :data:`_VOTE_NEXT_FRACTION` of the cycle; tags stay, noise does not) times K is again
+#: exponential with mean 1, so the scores of one- and two-image cines share one scale. A cine's
+#: profile per tag period (bins :data:`_PERIOD_BINS_MM`, :data:`_VOTE_MIN_PX` px and up) is the
+#: largest over its windows of the strongest bin (``line``: one family of tag lines or more) and
+#: of the weaker of the best two local maxima 60–120° apart (``grid``); the study's is the median
+#: over its cines at one period. Measured (bench ``tag_test.py``, 60 random protocols × 2 noise
+#: draws, 8/12/16 bits, SNR 10–40, periods 3.5–10 px, the RV drawn, each against an untagged
+#: twin and a bright-blood one): untagged studies grid ≤ 6.29, line ≤ 11.2; heart-only grids
+#: grid ≥ 6.75 (median 18.6); one family of lines line ≥ 28.9. Noise alone gives about
+#: ln(tests) ≈ 5–9 by chance. The grid threshold is thin (≥ 1.07 ×), so between studies the
+#: larger vote in units of its threshold wins (worst tagged-over-untagged ratio of 28,800 pairs
+#: 1.12, none lost).
 _LOCAL_WINDOW_MM = 60.0
 _LOCAL_MIN_PX = 32
 _LOCAL_PEAKS = 24
 _PERIOD_BINS_MM = np.exp(
     np.arange(np.log(_TAG_PERIOD_MM[0]), np.log(_TAG_PERIOD_MM[1]) + 1e-9, np.log(1.03))
 )
-_TAG_STUDY = 3.65
+_VOTE_MIN_PX = 3.5  # tag periods under 3.5 px are not looked for in windows
+_VOTE_MIN_BINS = 5.0  # a period spans at most a fifth of the window (≥ 5 spectral bins)
+_RAY_SCALES = (0.5, 0.6, 0.7, 0.8)
+_RAY_GAP_BINS = 2.5  # ray samples this far inside the peak (the Hann main lobe is ± 2 bins)
+_VOTE_NEXT_FRACTION = 0.2
+_TAG_STUDY = 6.5
+_TAG_LINES = 16.0
+#: One family of tag lines (no intersections to track) when the line score is this many times
+#: the grid score: a grid's two families carry the same power (its line score over its grid score
+#: 1.2–3.8 measured), one family's partner is noise (5.4 and more).
+_SINGLE_LINE_RATIO = 4.5
 _TAG_STUDY_MIN_CINES = 3
 #: A cine of the chosen study that fails the tag test is still used when it was acquired like one
 #: of its tagged cines: the same matrix and pixel spacing within this fraction.
@@ -1579,89 +1594,224 @@ def _tag_grid_at(image: np.ndarray, pixel_mm: float, period_mm: float) -> tuple[
     return score, (score / null if null > 0 else (np.inf if score > 0 else 0.0))
 
 
-def _local_grid_profile(image: np.ndarray, pixel_mm: float) -> np.ndarray:
+def _vote_images(imgs: list) -> list[np.ndarray]:
     """
-    Return the strongest tag grid in any window of an ED image, per tag period.
+    Return the images of a cine the study vote looks at: its first, and the next when near it.
 
-    Per tag period of :data:`_PERIOD_BINS_MM` (see :data:`_TAG_STUDY`): the weaker peak's height
-    over its 9 × 9 bin median, of the best pair of local spectral maxima 60–120° apart whose mean
-    period is within the window's spectral resolution (half a bin, + 4 %) of the bin; 0 where no
-    pair. Shape ``(len(_PERIOD_BINS_MM),)``. Some 10–60 ms for 256².
+    ``imgs`` in time order (``_Image``); the next image is used when it lies within
+    :data:`_VOTE_NEXT_FRACTION` of the cycle of the first (by TriggerTime against the cine's
+    span, else by its phase count), and has the first one's shape.
     """
-    a = np.asarray(image, np.float64)
+    first = imgs[0].pixels
+    if len(imgs) < 2 or imgs[1].pixels.shape != first.shape:
+        return [first]
+    t = np.array([i.trigger_ms for i in imgs], np.float64)
+    if np.all(np.isfinite(t)) and t[-1] > t[0]:
+        cycle = (t[-1] - t[0]) * len(t) / (len(t) - 1)
+        near = t[1] - t[0] <= _VOTE_NEXT_FRACTION * cycle
+    else:
+        near = 1.0 / max(len(imgs), imgs[0].cardiac_images or 0) <= _VOTE_NEXT_FRACTION
+    return [first, imgs[1].pixels] if near else [first]
+
+
+def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return a cine's strongest tag line and tag grid in any window, per tag period.
+
+    See :data:`_TAG_STUDY` for the measure.
+
+    Parameters
+    ----------
+    images : list of ndarray
+        One or two images of one plane, each ``(rows, cols)``, the first defining the shape: ED
+        and the image after it (see :func:`_vote_images`).
+    pixel_mm : float
+        Pixel size, mm.
+
+    Returns
+    -------
+    line, grid : ndarray, shape ``(len(_PERIOD_BINS_MM),)``
+        Per period bin: the largest noise-relative power of one spectral bin (``line``) and the
+        weaker of the best pair of local maxima 60–120° apart with periods within the window's
+        resolution (``grid``), over the windows; 0 where the period is not looked for.
+        Some 20–80 ms for two 256² images.
+
+    """
+    a = np.asarray(images[0], np.float64)
     h, w = a.shape
-    prof = np.zeros(len(_PERIOD_BINS_MM))
+    line, grid = np.zeros(len(_PERIOD_BINS_MM)), np.zeros(len(_PERIOD_BINS_MM))
     win = int(min(max(_LOCAL_MIN_PX, round(_LOCAL_WINDOW_MM / pixel_mm)), h, w))
-    lo, hi = max(_TAG_PERIOD_MM[0] / pixel_mm, 2.5), min(_TAG_PERIOD_MM[1] / pixel_mm, win / 3.0)
+    lo = max(_TAG_PERIOD_MM[0] / pixel_mm, _VOTE_MIN_PX)
+    hi = min(_TAG_PERIOD_MM[1] / pixel_mm, win / _VOTE_MIN_BINS)
     if win < 16 or lo >= hi:
-        return prof
+        return line, grid
     step = win // 2
-    tiles = np.array(
-        [
-            a[r:r + win, c:c + win]
-            for r in range(0, h - win + 1, step)
-            for c in range(0, w - win + 1, step)
-        ]
-    )
-    tiles = tiles[np.ptp(tiles, axis=(1, 2)) > 0]
-    if not len(tiles):
-        return prof
-    taper = np.outer(np.hanning(win) ** 0.25, np.hanning(win) ** 0.25)
-    spec = np.abs(np.fft.fft2((tiles - tiles.mean(axis=(1, 2), keepdims=True)) * taper))
+    corners = [(r, c) for r in range(0, h - win + 1, step) for c in range(0, w - win + 1, step)]
+    stacks = [
+        np.array([np.asarray(im, np.float64)[r:r + win, c:c + win] for r, c in corners])
+        for im in images
+    ]
+    keep = np.ptp(stacks[0], axis=(1, 2)) > 0
+    stacks = [s[keep] for s in stacks]
+    n = int(keep.sum())
+    if not n:
+        return line, grid
     f = np.fft.fftfreq(win)
-    fr, fc = f[:, None], f[None, :]
-    maxima = spec > 0
+    fr, fc = np.repeat(f[:, None], win, 1).ravel(), np.repeat(f[None, :], win, 0).ravel()
+    rad, ang = np.hypot(fr, fc), np.arctan2(fr, fc)
+    half = (fc > 0) | ((fc == 0) & (fr > 0))
+    bins = np.flatnonzero(half & (rad >= 1.0 / hi) & (rad <= 1.0 / lo))
+    ring = np.rint(rad * win).astype(int)
+    rings = [np.flatnonzero(half & (ring == k)) for k in range(win // 2 + 1)]
+    off = np.arange(-1, 2)
+    rays = []  # (scale, 3 × 3 patch indices around s·f) per bin
+    for s in _RAY_SCALES:
+        if s != _RAY_SCALES[0]:
+            use = rad[bins] * win * (1.0 - s) >= _RAY_GAP_BINS - 1e-6
+        else:
+            use = np.ones(len(bins), bool)  # the innermost sample always
+        r0 = np.rint(fr[bins] * s * win).astype(int)
+        c0 = np.rint(fc[bins] * s * win).astype(int)
+        idx = ((r0[:, None, None] + off[None, :, None]) % win) * win + (
+            (c0[:, None, None] + off[None, None, :]) % win
+        )
+        rays.append((s, idx.reshape(len(bins), -1), use))
+    taper = np.outer(np.hanning(win), np.hanning(win))
+    ratio = None
+    for s in stacks:
+        p = np.abs(np.fft.fft2((s - s.mean(axis=(1, 2), keepdims=True)) * taper)) ** 2
+        p = p.reshape(n, -1)
+        ring_bg = np.zeros((n, win // 2 + 1))
+        for k, idx in enumerate(rings):
+            if len(idx):  # exponential power: its median is ln 2 × its mean
+                ring_bg[:, k] = np.median(p[:, idx], axis=1) / math.log(2.0)
+        bg = ring_bg[:, ring[bins]]
+        for sc, idx, use in rays:
+            bg = np.maximum(bg, np.where(use, p[:, idx].mean(axis=2) * sc**2, 0.0))
+        r = p[:, bins] / np.maximum(bg, np.finfo(np.float64).tiny)
+        ratio = r if ratio is None else np.minimum(ratio, r)
+    ratio *= len(stacks)
+    fa, th = rad[bins], ang[bins]
+    log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
+    tol = 0.5 / (win * fa) + 0.04
+    near = np.abs(log_bins[None, :] + np.log(fa)[:, None]) <= tol[:, None]  # (bins, periods)
+    for k in range(n):
+        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
+    # local maxima of each window's ratio map (both half planes, wrapped)
+    full = np.zeros((n, win * win))
+    full[:, bins] = ratio
+    full = full.reshape(n, win, win)
+    mirror = (-np.arange(win)) % win
+    full = full + full[:, mirror][:, :, mirror]
+    peak = full > 0
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                maxima &= spec >= np.roll(spec, (dr, dc), axis=(1, 2))
-    rad, ang = np.hypot(fr, fc), np.arctan2(fr, fc)
-    band = ((fc > 0) | ((fc == 0) & (fr > 0))) & (rad >= 1.0 / hi) & (rad <= 1.0 / lo)
-    off = np.arange(-4, 5)
-    log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
-    for k in range(len(tiles)):
-        rows, cols = np.nonzero(band & maxima[k])
-        if len(rows) < 2:
+                peak &= full >= np.roll(full, (dr, dc), axis=(1, 2))
+    peak = peak.reshape(n, -1)[:, bins]
+    for k in range(n):
+        cand = np.flatnonzero(peak[k])
+        top = cand[np.argsort(-ratio[k][cand], kind='stable')[:_LOCAL_PEAKS]]
+        if len(top) < 2:
             continue
-        top = np.argsort(-spec[k][rows, cols], kind='stable')[:_LOCAL_PEAKS]
-        rows, cols = rows[top], cols[top]
-        hood = spec[k][
-            (rows[:, None, None] + off[None, :, None]) % win,
-            (cols[:, None, None] + off[None, None, :]) % win,
-        ]
-        ref = np.median(hood.reshape(len(rows), -1), axis=1)
-        height = np.where(ref > 0, spec[k][rows, cols] / np.where(ref > 0, ref, 1.0), np.inf)
-        fa, th = rad[rows, cols], ang[rows, cols]
-        d = np.abs(th[:, None] - th[None, :]) % np.pi
+        fk, tk, rk = fa[top], th[top], ratio[k][top]
+        d = np.abs(tk[:, None] - tk[None, :]) % np.pi
         apart = np.abs(np.degrees(np.minimum(d, np.pi - d)) - 90.0) <= 30.0
-        fm = 0.5 * (fa[:, None] + fa[None, :])
-        tol = 0.5 / (win * fm) + 0.04
-        ok = (
-            apart
-            & (np.abs(np.log(fa[:, None] / fa[None, :])) <= 2.0 * tol)
-            & np.triu(np.ones_like(apart), 1)
-        )
-        i, j = np.nonzero(ok)
+        fm = 0.5 * (fk[:, None] + fk[None, :])
+        tl = 0.5 / (win * fm) + 0.04
+        ok = apart & (np.abs(np.log(fk[:, None] / fk[None, :])) <= 2.0 * tl)
+        i, j = np.nonzero(np.triu(ok, 1))
         if not len(i):
             continue
-        score = np.minimum(height[i], height[j])
-        near = np.abs(log_bins[None, :] + np.log(fm[i, j])[:, None]) <= tol[i, j][:, None]
-        prof = np.maximum(prof, np.max(np.where(near, score[:, None], 0.0), axis=0))
-    return prof
+        score = np.minimum(rk[i], rk[j])
+        hit = np.abs(log_bins[None, :] + np.log(fm[i, j])[:, None]) <= tl[i, j][:, None]
+        grid = np.maximum(grid, np.max(np.where(hit, score[:, None], 0.0), axis=0))
+    return line, grid
 
 
-def _heart_grid(images: list[tuple[np.ndarray, float]]) -> tuple[float, float, np.ndarray]:
+@dataclass
+class _Vote:
+    """A group of cines' study vote (see :data:`_TAG_STUDY`)."""
+
+    grid: float  # the median grid score at its best period
+    grid_period_mm: float
+    line: float  # the median line score at its best period
+    line_period_mm: float
+    each_grid: np.ndarray  # each cine's grid score at grid_period_mm
+    each_line: np.ndarray  # each cine's line score at line_period_mm
+
+    @property
+    def score(self) -> float:
+        """Return the vote in units of its threshold: the larger of grid and line (≥ 1: tagged)."""
+        return max(self.grid / _TAG_STUDY, self.line / _TAG_LINES)
+
+    @property
+    def single_line(self) -> bool:
+        """Check for one family of tag lines: the line passes, the grid is far weaker."""
+        return self.line >= _TAG_LINES and self.line >= _SINGLE_LINE_RATIO * self.grid
+
+    @property
+    def by_line(self) -> bool:
+        """Check whether the line vote decides (tag lines, or lines above the grid)."""
+        return self.single_line or self.line / _TAG_LINES > self.grid / _TAG_STUDY
+
+    @property
+    def period_mm(self) -> float:
+        """
+        Return the tag period, mm: the strongest family's.
+
+        A grid's best pair can be its diagonal harmonic (λ/√2, the two 45° components of a
+        sin²·sin² grid); its strongest single family is the fundamental.
+        """
+        return self.line_period_mm
+
+    def each(self) -> np.ndarray:
+        """Return each cine's score at the deciding period, in units of its threshold."""
+        return self.each_line / _TAG_LINES if self.by_line else self.each_grid / _TAG_STUDY
+
+
+def _plateau_centre(v: np.ndarray) -> int:
     """
-    Return the tag grid a group of cines shares (tags on the heart alone, see :data:`_TAG_STUDY`).
+    Return the index of the largest value of ``v``, the middle one of a run of equal maxima.
 
-    From their ED images ``(pixels, pixel size mm)``: ``(score, period_mm, each image's score at
-    that period)``, score = the largest over periods of the images' median
-    :func:`_local_grid_profile`.
+    One spectral bin spans several period bins (the window's resolution): the run's middle is
+    its period, where the first would be its shortest.
     """
-    profs = np.array([_local_grid_profile(im, px) for im, px in images])
-    med = np.median(profs, axis=0)
-    k = int(np.argmax(med))
-    return float(med[k]), float(_PERIOD_BINS_MM[k]), profs[:, k]
+    k = int(np.argmax(v))
+    end = k
+    while end + 1 < len(v) and v[end + 1] == v[k]:
+        end += 1
+    return (k + end) // 2
+
+
+def _study_vote(cines: list[tuple[list[np.ndarray], float]]) -> _Vote:
+    """
+    Return the tag grid or tag lines a group of cines shares (tags on the heart alone).
+
+    Parameters
+    ----------
+    cines : list of (images, pixel_mm)
+        Each cine's vote images (:func:`_vote_images`) and pixel size, mm.
+
+    Returns
+    -------
+    _Vote
+        The median over the cines of :func:`_window_profiles` at the best period, grid and line.
+
+    """
+    profs = [_window_profiles(ims, px) for ims, px in cines]
+    line = np.array([p[0] for p in profs])
+    grid = np.array([p[1] for p in profs])
+    ml, mg = np.median(line, axis=0), np.median(grid, axis=0)
+    kl, kg = _plateau_centre(ml), _plateau_centre(mg)
+    return _Vote(
+        float(mg[kg]),
+        float(_PERIOD_BINS_MM[kg]),
+        float(ml[kl]),
+        float(_PERIOD_BINS_MM[kl]),
+        grid[:, kg],
+        line[:, kl],
+    )
 
 
 @dataclass
@@ -1935,21 +2085,22 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     for c in cines:
         groups[c.group].append(c)
     # Tags on the heart alone: a group without a clearly tagged cine votes on a common grid.
-    heart: dict[tuple[str, str], tuple[float, float]] = {}
+    heart: dict[tuple[str, str], _Vote] = {}
     for key, cs in groups.items():
         mr = [c for c in cs if not c.kind]
         if len(mr) >= _TAG_STUDY_MIN_CINES and not any(c.tagged for c in mr):
-            score, period, each = _heart_grid([(c.first.pixels, _pixel_mm(c)) for c in mr])
-            heart[key] = (score, period)
-            if score >= _TAG_STUDY:
-                for c, v in zip(mr, each):
-                    c.tagged, c.period_mm = bool(v >= _TAG_STUDY), period
+            vote = _study_vote([(_vote_images(c.imgs), _pixel_mm(c)) for c in mr])
+            heart[key] = vote
+            if vote.score >= 1.0:
+                what = 'tag lines' if vote.single_line else 'a tag grid'
+                for c, v in zip(mr, vote.each()):
+                    c.tagged, c.period_mm = bool(v >= 1.0), vote.period_mm
                     if not c.tagged:
                         c.tag_reason = (
                             f'{c.tag_reason or "no clear grid in the whole image"}; in windows of '
-                            f"{_LOCAL_WINDOW_MM:g} mm a grid of the study's {period:.1f} mm "
-                            'period '
-                            f'stands {v:.1f}x above its surroundings ({_TAG_STUDY:g} needed)'
+                            f"{_LOCAL_WINDOW_MM:g} mm {what} of the study's "
+                            f'{vote.period_mm:.1f} mm period stand(s) {v:.2f} of the needed '
+                            "height above the image's own spectral background"
                         )
     tally: Counter = Counter()
     for c in cines:
@@ -1958,11 +2109,12 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
 
     def rank(
         key,
-    ):  # clearly tagged cines; else the vote (a heart-only study beats untagged ones); size
-        cs = groups[key]
+    ):  # clearly tagged cines; a passing grid vote; the vote (heart-only beats untagged); size
+        cs, vote = groups[key], heart.get(key)
         return (
             sum(c.tag >= _TAG_CLEAR for c in cs),
-            heart.get(key, (0.0,))[0],
+            vote is not None and vote.score >= 1.0 and not vote.single_line,
+            vote.score if vote is not None else 0.0,
             sum(not c.kind for c in cs),
             sum(len(c.imgs) for c in cs),
         )
@@ -1981,7 +2133,7 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
                 problems,
             )
     best = max(pool, key=rank)
-    n_tagged, n_cines = sum(c.tagged for c in groups[best]), rank(best)[2]
+    n_tagged, n_cines = sum(c.tagged for c in groups[best]), rank(best)[3]
     others = [f'{name(u)} ({n} tagged cine(s))' for u, n in studies.items() if u != best[0]]
     also = f'; also under the folder: study {", study ".join(others)}' if others else ''
     how = ' (asked for)' if study else ''
@@ -2014,6 +2166,17 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
         else np.nan
     )
     on_heart = best in heart and n_tagged > 0  # tagged on the heart alone: the votes decided
+    if on_heart and heart[best].single_line:
+        v = heart[best]
+        raise DicomReadError(
+            f'study {name(best[0])}{how}: single-line tags: intersections needed: its cines show '
+            f'one family of parallel tag lines ({v.period_mm:.1f} mm apart; in windows '
+            f'{v.line / _TAG_LINES:.1f}x the line threshold, a second family only '
+            f'{v.grid / _TAG_STUDY:.2f}x the grid one), and the tracker follows the crossings of '
+            f'a tag grid: give a study tagged in both directions'
+            f'{", or choose another with --study UID" if others else ""}{also}',
+            problems,
+        )
     used = []
     for c in cines:
         why = [c.kind] if c.kind else []
@@ -2054,10 +2217,8 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     if n_tagged and on_heart:
         choice = (
             f'study {name(best[0])}{how}: {n_tagged} tagged cine(s), tags on the heart alone '
-            '(its cines share a '
-            f'{period:.1f} mm grid in windows of their ED images: {heart[best][0]:.1f}x, '
-            f'{_TAG_STUDY:g} '
-            f'needed){also}'
+            f'(its cines share a {period:.1f} mm grid in windows of their first images: '
+            f'{heart[best].score:.1f}x the threshold){also}'
         )
     elif n_tagged:
         choice = f'study {name(best[0])}{how}: {n_tagged} tagged cine(s){also}'
@@ -2065,8 +2226,8 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
         if best in heart:
             which = (
                 'the study whose cines come closest to sharing a tag grid in windows '
-                f'({heart[best][0]:.1f}x, '
-                f'{_TAG_STUDY:g} needed) taken, its {n_cines} MR cine(s) all used'
+                f'({heart[best].score:.2f}x the threshold) taken, its {n_cines} MR cine(s) all '
+                'used'
             )
         else:
             which = f'the study with the most MR cines ({n_cines}) taken, all of them used'
@@ -2236,10 +2397,14 @@ def read_dicom_dir(
     StudyInstanceUID and FrameOfReferenceUID, and an MR cine (≥ 2 images in time) is tagged when
     the spectrum of its ED image shows a tag grid (two peaks of one period, see
     :func:`_tag_grid`; a cine of the chosen study also when it shows one at the study's tag
-    period). A group of ≥ 3 MR cines none of which passes votes on a grid they share in windows
-    (tags on the heart alone, :data:`_TAG_STUDY`). The group with the most clearly tagged cines
-    is taken (whatever the file order), else the one with the largest vote (ties go to more MR
-    cines, more images, then the smaller UID), or the one ``study`` names; a vote below the
+    period). A group of ≥ 3 MR cines none of which passes votes on a grid or on tag lines they
+    share in windows (tags on the heart alone, :data:`_TAG_STUDY`: noise-relative, ED and the
+    next image). The group with the most clearly tagged cines is taken (whatever the file order),
+    else one whose grid vote passes, else the one with the largest vote (ties go to more MR
+    cines, more images, then the smaller UID), or the one ``study`` names. A taken study whose
+    cines share one family of tag lines and no grid (:data:`_SINGLE_LINE_RATIO`) raises
+    DicomReadError ("single-line tags: intersections needed"): the tracker follows tag-line
+    crossings. A vote below the
     threshold takes all the group's MR cines, as does a group of the most MR cines when nothing
     votes; without any MR cine, every image as it is (Siemens MOSAIC images never). The tag test
     chooses, it does not thin the study: a cine of the taken group that fails it is not used at

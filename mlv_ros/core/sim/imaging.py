@@ -29,7 +29,9 @@ Signal model (per sample point ``x`` of an image at trigger time ``t``)
 ``P(X) = sin²(π a / λ) · sin²(π b / λ)`` is the 1-1 SPAMM grid at 45° flips (method notes,
 "Tags"): ``a, b`` are the in-plane coordinates of ``X`` along the image's row and column
 directions (turned by ``imaging.tag_angle_deg``, default 0) measured from the image centre, λ
-the tag spacing, so dark tag planes ⟂ the image lie at ``a, b ∈ λℤ``. ``E = exp(−t / T1)``
+the tag spacing, so dark tag planes ⟂ the image lie at ``a, b ∈ λℤ``. With
+``imaging.tag_lines: single`` (one family of parallel tag lines, a real protocol) ``P(X) =
+sin²(π a / λ)``; the default ``grid`` draws both families. ``E = exp(−t / T1)``
 fades the tags. The slab is integrated over sub-planes at offsets ``±0.75·thickness`` along the
 normal with Gaussian weights (FWHM = thickness); each sub-plane point is mapped back on its
 own, so through-plane motion is real. A Gaussian in-plane PSF (``psf_sigma_px``) stands in for
@@ -264,6 +266,7 @@ def tag_pattern(
     shape: tuple[int, int],
     spacing: float,
     angle_deg: float = 0.0,
+    lines: str = 'grid',
 ) -> np.ndarray:
     """
     1-1 SPAMM grid ``P = sin²(π a/λ) sin²(π b/λ)`` of one image plane, in [0, 1].
@@ -282,18 +285,30 @@ def tag_pattern(
     angle_deg : float
         In-plane rotation of the grid from the image axes, degrees (scanners lay the grid at any
         angle; 0 puts the tag planes ⟂ the row and column directions).
+    lines : str
+        ``'grid'`` (both families) or ``'single'`` (the family ⟂ the turned row direction
+        alone: ``P = sin²(π a/λ)``).
 
     Returns
     -------
     ndarray, shape (N,)
         0 on tag planes, 1 midway between them in both directions.
 
+    Raises
+    ------
+    ValueError
+        ``lines`` is neither ``'grid'`` nor ``'single'``.
+
     """
+    if lines not in ('grid', 'single'):
+        raise ValueError(f"tag lines must be 'grid' or 'single', got {lines!r}")
     d = np.asarray(points, dtype=np.float64) - plane_centre(geometry, shape)
     ca, sa = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     u = ca * geometry.row_direction + sa * geometry.column_direction
     v = -sa * geometry.row_direction + ca * geometry.column_direction
     a = d @ u
+    if lines == 'single':
+        return np.sin(np.pi * a / spacing) ** 2
     b = d @ v
     return (np.sin(np.pi * a / spacing) * np.sin(np.pi * b / spacing)) ** 2
 
@@ -332,6 +347,7 @@ class ImageSynthesizer:
         g = plane.geometry
         self.spacing = float(imaging['tag_spacing_mm'])
         self.tag_angle = float(imaging.get('tag_angle_deg', 0.0))
+        self.tag_lines = str(imaging.get('tag_lines', 'grid'))
         self.offsets, self.weights = slab_profile(
             g.slice_thickness, int(subplanes or imaging['subplanes'])
         )
@@ -358,7 +374,12 @@ class ImageSynthesizer:
 
     def _tags(self, pts):
         return tag_pattern(
-            pts, self.plane.geometry, (self.size, self.size), self.spacing, self.tag_angle
+            pts,
+            self.plane.geometry,
+            (self.size, self.size),
+            self.spacing,
+            self.tag_angle,
+            self.tag_lines,
         )
 
     def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:

@@ -178,3 +178,7 @@ def validate_preset(preset: dict, source: str = '<preset>') -> None:
         check_rv(g['rv'], where=f'{source}: geometry.rv')
     if int(im['sa_slices']) < 2 or int(im['subplanes']) < 1 or int(im['size']) < 16:
         raise ValueError(f'{source}: imaging needs sa_slices >= 2, subplanes >= 1, size >= 16')
+    if im.get('tag_lines', 'grid') not in ('grid', 'single'):
+        raise ValueError(
+            f"{source}: imaging.tag_lines must be 'grid' or 'single', got {im['tag_lines']!r}"
+        )

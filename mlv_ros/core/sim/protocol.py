@@ -276,6 +276,14 @@ _ITEMS = [
         _float(0.0, 180.0, True),
     ),
     Item(
+        'tag_lines',
+        'tag line families: grid (both) | single (one family of parallel lines, ⟂ the grid '
+        "angle's row direction; the tracker needs intersections and refuses it)",
+        'grid (always: single only when given)',
+        'grid | single',
+        _choice(('grid', 'single')),
+    ),
+    Item(
         'tag_spacing_mm',
         'tag period λ, mm',
         f'max(5, {MIN_TAG_PX_DRAWN:g} px) … 10',
@@ -577,6 +585,7 @@ def default_protocol(shape: str = 'normal') -> dict:
         'abnormal_regions': [],
         'right_ventricle': bool(p['geometry'].get('rv')),
         'tag_angle_deg': float(im.get('tag_angle_deg', 0.0)),
+        'tag_lines': str(im.get('tag_lines', 'grid')),
         'tag_spacing_mm': float(im['tag_spacing_mm']),
         'pixel_spacing_mm': float(im['pixel_spacing_mm']),
         'size': int(im['size']),
@@ -881,6 +890,7 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     pick('abnormal_regions', lambda r: _draw_regions(r, p['shape']))
     pick('right_ventricle', lambda r: bool(r.random() < 0.75))
     pick('tag_angle_deg', lambda r: _uniform(r, 0.0, 180.0, 2) % 180.0)
+    pick('tag_lines', lambda r: 'grid')
     pick('pixel_spacing_mm', lambda r: _uniform(r, 1.0, 2.0, 3))
     dx = p['pixel_spacing_mm']
     tag_lo = MIN_TAG_PX_DRAWN * dx
@@ -1032,6 +1042,7 @@ def protocol_preset(protocol: dict) -> dict:
             'la_flip': list(p['la_flip']),
             'tag_spacing_mm': p['tag_spacing_mm'],
             'tag_angle_deg': p['tag_angle_deg'],
+            'tag_lines': p['tag_lines'],
             't1_s': p['t1_s'],
             'background_m0': p['background_m0'],
             'background_tagged': p['background'] == 'tagged',
