@@ -53,12 +53,10 @@ from mlv_ros.nodes.common import (
     stamp_key,
     WARN,
 )
-from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
-MOTION_FIELDS = ('x', 'y', 'z', 'dx', 'dy', 'dz', 'err', 'ecc', 'ell')
 
 
 class MeshlessSolver(GraphNode):
@@ -200,7 +198,7 @@ class MeshlessSolver(GraphNode):
             self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, self._foreign_stamps.get(key))
             return
         try:
-            cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
+            cloud = conversions.msg_to_registered_cloud(msg)
         except ValueError as exc:
             self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
             return
@@ -232,14 +230,14 @@ class MeshlessSolver(GraphNode):
         self.cloud = self._reg_clouds.get(self._rest_key)
         if self.cloud is None:
             return  # its cloud (same stamp) has not come yet
-        c, s = self.cloud, self.rest_state
-        pts = conversions.xyz(c)
+        model = conversions.registered_model(self.cloud, self.rest_state)
+        s, pts = model.state, model.positions
         try:
             self.tracker = MotionTracker(
                 pts,
                 s.translation,
                 s.rotation,
-                polar=(c['alpha'], c['beta'], c['w']),
+                polar=model.polar,
                 shape=(s.a0, s.a1, s.a2, s.a3, s.tau),
                 data_weight=self.data_weight,
                 hourglass_weight=self.hourglass_weight,
@@ -410,22 +408,8 @@ class MeshlessSolver(GraphNode):
             x, E, state = sol.positions, sol.strain, sol.state
         state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
-        d = x - tr.rest
-        cloud = {
-            'x': x[:, 0],
-            'y': x[:, 1],
-            'z': x[:, 2],
-            'dx': d[:, 0],
-            'dy': d[:, 1],
-            'dz': d[:, 2],
-            'err': strain['rr'],
-            'ecc': strain['cc'],
-            'ell': strain['ll'],
-        }
         stamp = self.get_clock().now().to_msg()
-        self.motion_pub.publish(
-            conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp))
-        )
+        self.motion_pub.publish(conversions.motion_to_msg(x, tr.rest, strain, stamp))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
         self.phases_published += 1
         self.report(

@@ -46,7 +46,6 @@ from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
-from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
@@ -152,9 +151,7 @@ class MotionAnalyzer(GraphNode):
         if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
             return
         try:
-            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_cloud(
-                msg, finite=REQUIRED_CLOUD_FIELDS
-            )
+            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_registered_cloud(msg)
         except ValueError as exc:
             self.report(
                 ERROR,
@@ -189,11 +186,12 @@ class MotionAnalyzer(GraphNode):
         self.reg_cloud = self._reg_clouds.get(self._reg_key)
         if self.reg_cloud is None:
             return  # its cloud (same stamp) has not come yet
-        X = conversions.xyz(self.reg_cloud)
+        model = conversions.registered_model(self.reg_cloud, self.reg_state)
+        X = model.positions
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
         endo = None
-        if 'transmural' in self.reg_cloud.dtype.names:
-            endo = self.reg_cloud['transmural'] <= self.endo_fraction
+        if model.transmural is not None:
+            endo = model.transmural <= self.endo_fraction
             endo = endo if endo.sum() >= 20 else None
         try:
             self.analyzer = LVAnalyzer(

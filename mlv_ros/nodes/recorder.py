@@ -47,7 +47,6 @@ never comes is written when the recording closes.
 from __future__ import annotations
 
 import errno
-import importlib
 from pathlib import Path
 import time
 
@@ -81,12 +80,6 @@ GRAPH_NODE_NAMES = (
     'replay',
     'live_view',
 )
-
-
-def message_class(type_name: str):
-    """``pkg/msg/Type`` → the generated Python message class."""
-    pkg, _, name = type_name.split('/')
-    return getattr(importlib.import_module(f'{pkg}.msg'), name)
 
 
 class Recorder(GraphNode):
@@ -165,13 +158,13 @@ class Recorder(GraphNode):
         ] = {}  # graph topic (root name) → the name recorded: as it resolves here
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
-            self.classes[topic] = message_class(type_name)
+            self.classes[topic] = bagio.message_class(type_name)
             self.recorded[topic] = self.topic_name(topic)
             self.writer.add_topic(
                 self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))]
             )
             self.create_subscription(
-                message_class(type_name),
+                bagio.message_class(type_name),
                 qos.relative(topic),
                 lambda data, info, topic=topic: self._on_message(topic, data, info),
                 qos.subscription_qos(topic, catch_up=catch_up),

@@ -37,17 +37,13 @@ import time
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_SA
+from mlv_ros.core.types import RegisteredModel, SEGMENT_ORIGIN_CODES, VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 CHECK_PERIOD_S = 0.25  # how often the ED timeout is looked at
-CLOUD_FIELDS = ('x', 'y', 'z', 'alpha', 'beta', 'w', 'transmural')
-# What consumers need of the cloud (finite, floating point): position and polar model coordinates;
-# ``transmural`` is optional.
-REQUIRED_CLOUD_FIELDS = CLOUD_FIELDS[:6]
 
 
 class Registration(GraphNode):
@@ -226,22 +222,7 @@ class Registration(GraphNode):
             if not rep.ok
         ]
         self.result = res
-        coords = res.frame.coords
-        cloud = {
-            'x': res.particles[:, 0],
-            'y': res.particles[:, 1],
-            'z': res.particles[:, 2],
-            'alpha': res.polar['alpha'],
-            'beta': res.polar['beta'],
-            'w': res.polar['w'],
-            'transmural': res.polar.get('transmural', np.zeros(len(coords))),
-        }
         stamp = self.get_clock().now().to_msg()
-        self.cloud_pub.publish(
-            conversions.cloud_to_msg(
-                conversions.structured(cloud, np.float64), conversions.make_header(stamp)
-            )
-        )
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
         verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
@@ -251,7 +232,17 @@ class Registration(GraphNode):
         if septum is not None:
             state.segment_origin = SEGMENT_ORIGIN_CODES[septum.source]
             state.segment_origin_confidence = float(np.clip(septum.confidence, 0.0, 1.0))
-        self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
+        model = RegisteredModel(
+            res.particles,
+            res.polar['alpha'],
+            res.polar['beta'],
+            res.polar['w'],
+            state,
+            res.polar.get('transmural'),
+        )
+        cloud_msg, state_msg = conversions.registered_to_msgs(model, stamp)
+        self.cloud_pub.publish(cloud_msg)
+        self.state_pub.publish(state_msg)
         extra = {}
         if res.warnings:
             extra['warnings'] = ' | '.join(res.warnings)

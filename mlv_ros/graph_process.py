@@ -134,7 +134,7 @@ class ChildNode:
             [root, *([env['PYTHONPATH']] if env.get('PYTHONPATH') else [])]
         )
         proc = subprocess.Popen(
-            [sys.executable, '-m', 'mlv_ros.tools.graph_process'],
+            [sys.executable, '-m', 'mlv_ros.graph_process'],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
@@ -268,7 +268,7 @@ def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     config = json.loads(sys.stdin.readline() or '{}')
-    from mlv_ros.tools.run import _error_text
+    from mlv_ros.cli import error_text
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -292,7 +292,7 @@ def main() -> int:
                 ],
             )
         except Exception as exc:
-            _emit(out, {'event': 'start_failed', 'reason': _error_text(exc)})
+            _emit(out, {'event': 'start_failed', 'reason': error_text(exc)})
             return 2
         _emit(out, {'event': 'started'})
         line = sys.stdin.readline()
@@ -317,7 +317,7 @@ def main() -> int:
             try:
                 ex.spin_once(timeout_sec=0.05)
             except Exception as exc:  # a callback raised: the node is gone
-                crashed = _error_text(exc)
+                crashed = error_text(exc)
                 break
             state = _state(node)
             if state != last and time.monotonic() - sent_at >= REPORT_PERIOD_S:
@@ -330,7 +330,7 @@ def main() -> int:
                 try:
                     ex.spin_once(timeout_sec=0.05)
                 except Exception as exc:
-                    crashed = _error_text(exc)
+                    crashed = error_text(exc)
                     break
                 if node.messages_handled != handled:
                     handled, quiet_since = node.messages_handled, time.monotonic()
