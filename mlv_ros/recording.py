@@ -26,8 +26,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 
 def read_run(mcap: Path) -> dict:
     """Read registered cloud/state, motion positions and metrics per phase from a recording."""
@@ -233,6 +231,7 @@ def with_segment_uncertainty(phases, run: dict, frame) -> list:
     from dataclasses import replace
 
     from mlv_ros.core.analysis import LVAnalyzer
+    import numpy as np
 
     if run.get('ed') is None or not run.get('positions'):
         return list(phases)

@@ -393,19 +393,7 @@ def _activity(nodes: dict) -> int:
 
     It counts frames, tag points, phases and messages taken; /diagnostics heartbeats are left out.
     """
-    from mlv_ros import qos
-
-    total = 0
-    for name, node in nodes.items():
-        if name == 'recorder':
-            total += sum(
-                c.received for topic, c in node.streams.items() if topic != qos.DIAGNOSTICS
-            )
-            continue
-        for attr in ('published', 'frames_out', 'phases_published', 'messages_handled'):
-            value = getattr(node, attr, 0)
-            total += value if isinstance(value, int) else 0
-    return total
+    return sum(sum(node.progress().values()) for node in nodes.values())
 
 
 def _taken(node, topic: str) -> int:
@@ -751,7 +739,7 @@ def _run_graph(
                 and num_phases
                 and solver.next_phase >= num_phases
                 and not analyzer.clouds
-                and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.phases_published
+                and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.published
             ):
                 break  # every phase attempted (some may have failed; diagnostics say which)
             now = time.monotonic()
@@ -854,8 +842,8 @@ def _run_graph(
             'run_id': src.run_id,
             'seconds': round(time.monotonic() - t0, 2),
             'frames_published': src.published,
-            'tag_sets_published': nodes['tag_detector'].frames_out,
-            'phases_solved': solver.phases_published,
+            'tag_sets_published': nodes['tag_detector'].published,
+            'phases_solved': solver.published,
             'metrics_published': analyzer.published,
             'num_phases': num_phases,
             'recorded_messages': rec.writer.message_count,

@@ -145,6 +145,9 @@ class GraphNode(Node):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
+        # The uniform counters of progress(): messages taken from the graph, results put out.
+        self.messages_handled = 0
+        self.published = 0
         self._topics: dict[str, str] = {}
         self._diag_pub = self.create_publisher(
             DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos()
@@ -184,6 +187,63 @@ class GraphNode(Node):
             if why:
                 return SetParametersResult(successful=False, reason=f'{p.name}={p.value!r}: {why}')
         return SetParametersResult(successful=True)
+
+    def progress(self) -> dict:
+        """
+        Return what the node has done so far, under the same names for every node.
+
+        Returns
+        -------
+        dict
+            ``received``: messages it took from the graph's topics; ``published``: results it
+            put out (frames, tag point sets, phases, metrics, replayed messages).
+
+        """
+        return {'received': int(self.messages_handled), 'published': int(self.published)}
+
+    def publisher(self, topic: str, msg_type):
+        """
+        Create the publisher of graph topic ``topic``, relative to the node's namespace.
+
+        Parameters
+        ----------
+        topic : str
+            A graph topic by its root name (:mod:`mlv_ros.qos`), published with its profile.
+        msg_type : type
+            Its message class.
+
+        Returns
+        -------
+        Publisher
+            The publisher.
+
+        """
+        return self.create_publisher(msg_type, qos.relative(topic), qos.topic_qos(topic))
+
+    def subscribe(self, topic: str, msg_type, callback, catch_up: bool = False):
+        """
+        Subscribe to graph topic ``topic``, relative to the node's namespace, accounting for loss.
+
+        Parameters
+        ----------
+        topic : str
+            A graph topic by its root name (:mod:`mlv_ros.qos`).
+        msg_type : type
+            Its message class.
+        callback : callable
+            Called with each message (see :meth:`create_subscription`).
+        catch_up : bool
+            Ask for the publisher's history (:func:`mlv_ros.qos.subscription_qos`).
+
+        Returns
+        -------
+        Subscription
+            The subscription.
+
+        """
+        return self.create_subscription(
+            msg_type, qos.relative(topic), callback, qos.subscription_qos(topic, catch_up=catch_up)
+        )
 
     def topic_name(self, topic: str) -> str:
         """

@@ -41,7 +41,8 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import plane_level_span
-from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, PhaseAssembler, twist_knots_error
+from mlv_ros.core.streaming import PhaseSchedule
+from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import (
     ERROR,
@@ -148,31 +149,12 @@ class MeshlessSolver(GraphNode):
             max_value=3600.0,
         )
         self._waiting_since = None
-        self.motion_pub = self.create_publisher(
-            PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION)
-        )
-        self.state_pub = self.create_publisher(
-            ModelStateMsg, qos.relative(qos.MODEL_STATE), qos.topic_qos(qos.MODEL_STATE)
-        )
-        self.create_subscription(
-            PointCloud2,
-            qos.relative(qos.REGISTERED_CLOUD),
-            self._on_cloud,
-            qos.subscription_qos(qos.REGISTERED_CLOUD),
-        )
-        self.create_subscription(
-            ModelStateMsg,
-            qos.relative(qos.REGISTERED_STATE),
-            self._on_state,
-            qos.subscription_qos(qos.REGISTERED_STATE),
-        )
-        self.create_subscription(
-            TagPoints,
-            qos.relative(qos.TAG_POINTS),
-            self._on_points,
-            qos.subscription_qos(qos.TAG_POINTS, catch_up=True),
-        )
-        self.assembler = PhaseAssembler()
+        self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
+        self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
+        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_cloud)
+        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_state)
+        self.subscribe(qos.TAG_POINTS, TagPoints, self._on_points, catch_up=True)
+        self.schedule = PhaseSchedule()  # which phase is solved next
         self.cloud = None
         self.rest_state = None
         self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
@@ -181,15 +163,23 @@ class MeshlessSolver(GraphNode):
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
-        self.next_phase = 0
-        self.num_phases = 0
         self.silence = Silence(
             TIMER_PERIOD_S
         )  # on the tag points, counted while this node is spun
-        self.phases_published = 0
+        self.published = 0  # phases solved and published
         self.messages_handled = 0
         self.create_timer(TIMER_PERIOD_S, self._on_timer)
         self.report(OK, 'waiting for the registered model')
+
+    @property
+    def next_phase(self) -> int:
+        """Return the phase solved next (every earlier one is solved or given up)."""
+        return self.schedule.next_phase
+
+    @property
+    def num_phases(self) -> int:
+        """Return the study's phases, as its tag points say (0 before any)."""
+        return self.schedule.num_phases
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -285,8 +275,8 @@ class MeshlessSolver(GraphNode):
                 reason=str(exc),
             )
             return
-        self.num_phases = max(self.num_phases, points.num_phases)
-        if points.phase_index < self.next_phase:
+        taken = self.schedule.add(points)
+        if taken == PhaseSchedule.STALE:
             self.report(
                 WARN,
                 'tag points for an already solved phase ignored',
@@ -296,7 +286,7 @@ class MeshlessSolver(GraphNode):
                 stamp=conversions.stamp_text(msg.header.stamp),
             )
             return
-        if self.assembler.add(points):
+        if taken == PhaseSchedule.DUPLICATE:
             self.report(
                 WARN,
                 'duplicate tag points replace the earlier set',
@@ -309,9 +299,9 @@ class MeshlessSolver(GraphNode):
 
     def _on_timer(self) -> None:
         silent = self.silence.tick()
-        if self.tracker is None or self.next_phase >= max(self.num_phases, 1):
+        if self.tracker is None or self.schedule.finished:
             return
-        if self.assembler.sets(self.next_phase) and silent > self.incomplete_timeout_s:
+        if self.schedule.waiting() and silent > self.incomplete_timeout_s:
             self._advance(force=True)
         elif self._waiting_since is not None:
             self._advance()
@@ -348,26 +338,18 @@ class MeshlessSolver(GraphNode):
         """Solve every phase that is ready, in order."""
         if self.tracker is None or not self._outputs_ready():
             return
-        while self.num_phases and self.next_phase < self.num_phases:
-            p = self.next_phase
-            later_complete = any(
-                self.assembler.complete(q) for q in self.assembler.phases if q > p
-            )
-            if not (self.assembler.complete(p) or later_complete or force):
-                return
+        while (ready := self.schedule.ready(force)) is not None:
             force = False
-            sets = self.assembler.sets(p)
-            if not self.assembler.complete(p):
+            if not ready.complete:
                 self.report(
                     WARN,
                     'solving an incomplete phase',
-                    phase=p,
-                    slices=len(sets),
-                    expected=self.assembler.expected_slices,
+                    phase=ready.phase,
+                    slices=len(ready.sets),
+                    expected=self.schedule.assembler.expected_slices,
                 )
-            self._solve(p, sets)
-            self.assembler.phases.pop(p, None)
-            self.next_phase = p + 1
+            self._solve(ready.phase, ready.sets)
+            self.schedule.done(ready.phase)
             self.silence.heard()  # our own solving time is not input silence
 
     def _solve(self, phase: int, sets: dict) -> None:
@@ -411,7 +393,7 @@ class MeshlessSolver(GraphNode):
         stamp = self.get_clock().now().to_msg()
         self.motion_pub.publish(conversions.motion_to_msg(x, tr.rest, strain, stamp))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
-        self.phases_published += 1
+        self.published += 1
         self.report(
             OK,
             'phase solved',

@@ -85,18 +85,9 @@ class Registration(GraphNode):
             'take frames with their history (TRANSIENT_LOCAL), so a restart '
             'gets the frames already sent; false for a publisher without history',
         )
-        self.cloud_pub = self.create_publisher(
-            PointCloud2, qos.relative(qos.REGISTERED_CLOUD), qos.topic_qos(qos.REGISTERED_CLOUD)
-        )
-        self.state_pub = self.create_publisher(
-            ModelStateMsg, qos.relative(qos.REGISTERED_STATE), qos.topic_qos(qos.REGISTERED_STATE)
-        )
-        self.create_subscription(
-            TaggedFrame,
-            qos.relative(qos.FRAMES),
-            self._on_frame,
-            qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up),
-        )
+        self.cloud_pub = self.publisher(qos.REGISTERED_CLOUD, PointCloud2)
+        self.state_pub = self.publisher(qos.REGISTERED_STATE, ModelStateMsg)
+        self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=self.catch_up)
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
