@@ -43,20 +43,13 @@ import tempfile
 import threading
 import time
 
+from mlv_ros import graph_table
 from mlv_ros.cli import error_text
 import yaml
 
 
-GRAPH = [
-    'recorder',
-    'motion_analyzer',
-    'meshless_solver',
-    'registration',
-    'tag_detector',
-    'frame_source',
-]
-# Node names of an mlv_ros graph (the launch file and console scripts use them too): one of them
-# on a domain means a graph is using it.
+GRAPH = list(graph_table.RUN_NODES)  # downstream first (mlv_ros/graph_table.py)
+# Node names of an mlv_ros graph: one of them on a domain means a graph is using it.
 GRAPH_NODE_NAMES = (*GRAPH, 'replay')
 # Nodes run in a child process each (on a machine with more than one core), so that they compute
 # beside the others: the tag detector's work per frame is as large as the rest of the graph's.
@@ -164,6 +157,27 @@ def node_parameters(params_file: Path, overrides: dict, names=GRAPH) -> dict:
         }
         for node in names
     }
+
+
+def node_class(name: str):
+    """
+    Return the GraphNode subclass of graph node ``name`` (its module imported).
+
+    Parameters
+    ----------
+    name : str
+        A node of :data:`mlv_ros.graph_table.NODES`.
+
+    Returns
+    -------
+    type
+        The class, e.g. ``MeshlessSolver`` for ``meshless_solver``.
+
+    """
+    import importlib
+
+    entry = next(n for n in graph_table.NODES if n.name == name)
+    return getattr(importlib.import_module(f'mlv_ros.nodes.{name}'), entry.node_class)
 
 
 def graph_nodes_on(domain_id: int, wait_s: float | None = None, namespace: str = '/') -> list[str]:
@@ -572,12 +586,6 @@ def _run_graph(
     from mlv_ros import bagio, qos
     from mlv_ros.domain import claim_domain_id
     from mlv_ros.nodes.common import status_text
-    from mlv_ros.nodes.frame_source import FrameSource
-    from mlv_ros.nodes.meshless_solver import MeshlessSolver
-    from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
-    from mlv_ros.nodes.recorder import Recorder
-    from mlv_ros.nodes.registration import Registration
-    from mlv_ros.nodes.tag_detector import TagDetector
     from mlv_ros.resources import config_file
     from mlv_ros.graph_process import ChildNode
     import rclpy
@@ -602,18 +610,7 @@ def _run_graph(
     if bad_params:
         raise RunStartError(bad_params)
     params = node_parameters(params_path, overrides, names)
-    classes = {
-        'recorder': Recorder,
-        'motion_analyzer': MotionAnalyzer,
-        'meshless_solver': MeshlessSolver,
-        'registration': Registration,
-        'tag_detector': TagDetector,
-        'frame_source': FrameSource,
-    }
-    if live is not None:
-        from mlv_ros.nodes.live_view import LiveView
-
-        classes['live_view'] = LiveView
+    classes = {name: node_class(name) for name in names}
     domain_id, chosen = _chosen_domain(domain_id)
     if chosen:
         # A domain the user chose may hold another graph (a second run, a launched one): refuse

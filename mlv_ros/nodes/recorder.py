@@ -51,7 +51,7 @@ from pathlib import Path
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from mlv_ros import bagio, conversions, qos
+from mlv_ros import bagio, conversions, graph_table, qos
 from mlv_ros.nodes.common import (
     ERROR,
     GraphNode,
@@ -68,18 +68,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 STUDY_TOPICS = (qos.FRAMES, qos.TAG_POINTS, qos.REGISTERED_STATE, qos.MODEL_STATE, qos.METRICS)
 CLOUD_STATES = {qos.REGISTERED_CLOUD: qos.REGISTERED_STATE, qos.MOTION: qos.MODEL_STATE}
 MAX_HELD_CLOUDS = 64
-# The nodes of an mlv_ros graph (as the launch file and mlv-ros run name them): their statuses on
-# the shared /diagnostics are the ones a recording keeps.
-GRAPH_NODE_NAMES = (
-    'frame_source',
-    'tag_detector',
-    'registration',
-    'meshless_solver',
-    'motion_analyzer',
-    'recorder',
-    'replay',
-    'live_view',
-)
+# The nodes of an mlv_ros graph: their statuses on the shared /diagnostics are the ones a
+# recording keeps.
+GRAPH_NODE_NAMES = graph_table.NODE_NAMES
 
 
 class Recorder(GraphNode):
