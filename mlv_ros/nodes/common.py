@@ -28,7 +28,7 @@ import inspect
 import signal
 import sys
 import time
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from mlv_ros import qos
@@ -69,6 +69,21 @@ class StreamCount:
     missed: int = 0
     last_sequence: int | None = None
     publisher_restarts: int = 0
+
+
+class Setting(NamedTuple):
+    """
+    One node parameter: name, default, description and range (see :meth:`GraphNode.param`).
+
+    ``check(value)`` returns why a value inside the range is still refused (None: accepted).
+    """
+
+    name: str
+    default: object
+    description: str
+    min_value: float | None = None
+    max_value: float | None = None
+    check: Callable | None = None
 
 
 def stamp_key(stamp) -> tuple[int, int]:
@@ -337,6 +352,27 @@ class GraphNode(Node):
         if choices and value not in choices:
             raise ValueError(f'parameter {name}={value!r} must be one of {choices}')
         return value
+
+    def declare_settings(self, settings) -> None:
+        """
+        Declare each :class:`Setting` as a parameter; keep its value as the attribute of its name.
+
+        Parameters
+        ----------
+        settings : iterable of Setting
+            Declared in this order, each with its range and check (:meth:`param`).
+
+        """
+        for s in settings:
+            value = self.param(
+                s.name,
+                s.default,
+                s.description,
+                min_value=s.min_value,
+                max_value=s.max_value,
+                check=s.check,
+            )
+            setattr(self, s.name, value)
 
     def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
         """

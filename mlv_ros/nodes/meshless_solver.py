@@ -50,6 +50,7 @@ from mlv_ros.nodes.common import (
     OK,
     RecentKeys,
     run_node,
+    Setting,
     Silence,
     stamp_key,
     WARN,
@@ -59,95 +60,83 @@ from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
 
+# The solver's settings, each with its range, declared as node parameters of the same names; the
+# model's own rule (twist_knots: one knot is no function of height) is checked by the core's
+# function, so one place says why a value is refused. TRACKER_SETTINGS are MotionTracker's
+# keyword arguments.
+TRACKER_SETTINGS = (
+    Setting('data_weight', 1.0e4, 'tag-force stiffness relative to elasticity', 1e-3, 1e9),
+    Setting(
+        'hourglass_weight',
+        1.0e3,
+        'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'volume_weight',
+        1.0e3,
+        'near-incompressibility penalty, in units of the shear modulus (0 = off)',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'global_prior',
+        1.0,
+        'prior holding the global parameters at the previous phase, counted like this many '
+        'control points (0 = off)',
+        0.0,
+        1e5,
+    ),
+    Setting(
+        'longitudinal_weight',
+        3.0e3,
+        'stiffness against local stretch along the long axis, in units of the shear '
+        'modulus (0 = off): only LA tags measure it',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'twist_knots',
+        11,
+        'knots of the twist function of height (0 = the single twist factor τ)',
+        0,
+        100,
+        check=twist_knots_error,
+    ),
+    Setting('twist_smoothing', 0.3, 'curvature penalty of the twist function', 1e-6, 1e5),
+    Setting(
+        'slice_following', 1, 're-attachment passes keeping tag points on their planes', 0, 10
+    ),
+    Setting('max_iterations', 100, 'solver iterations per phase', 1, 10000),
+)
+# When to solve and publish (the node's stream, not the model).
+STREAM_SETTINGS = (
+    Setting(
+        'incomplete_timeout_s',
+        5.0,
+        'solve an incomplete phase after this long without input',
+        0.1,
+        3600.0,
+    ),
+    Setting(
+        'wait_for_subscribers',
+        1,
+        'matched subscribers of the motion and state topics to wait for before publishing',
+        0,
+        100,
+    ),
+    Setting('wait_timeout_s', 10.0, 'then publish to those present, with a warning', 0.0, 3600.0),
+)
+
 
 class MeshlessSolver(GraphNode):
     DIAGNOSTIC_TASK = 'motion solve'
 
     def __init__(self, **node_kwargs):
         super().__init__('meshless_solver', **node_kwargs)
-        self.data_weight = self.param(
-            'data_weight',
-            1.0e4,
-            'tag-force stiffness relative to elasticity',
-            min_value=1e-3,
-            max_value=1e9,
-        )
-        self.hourglass_weight = self.param(
-            'hourglass_weight',
-            1.0e3,
-            'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.volume_weight = self.param(
-            'volume_weight',
-            1.0e3,
-            'near-incompressibility penalty, in units of the shear modulus (0 = off)',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.global_prior = self.param(
-            'global_prior',
-            1.0,
-            'prior holding the global parameters at the previous phase, counted like this many '
-            'control points (0 = off)',
-            min_value=0.0,
-            max_value=1e5,
-        )
-        self.longitudinal_weight = self.param(
-            'longitudinal_weight',
-            3.0e3,
-            'stiffness against local stretch along the long axis, in units of the shear '
-            'modulus (0 = off): only LA tags measure it',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.twist_knots = self.param(
-            'twist_knots',
-            11,
-            'knots of the twist function of height (0 = the single twist factor τ)',
-            min_value=0,
-            max_value=100,
-            check=twist_knots_error,
-        )
-        self.twist_smoothing = self.param(
-            'twist_smoothing',
-            0.3,
-            'curvature penalty of the twist function',
-            min_value=1e-6,
-            max_value=1e5,
-        )
-        self.slice_following = self.param(
-            'slice_following',
-            1,
-            're-attachment passes keeping tag points on their planes',
-            min_value=0,
-            max_value=10,
-        )
-        self.max_iterations = self.param(
-            'max_iterations', 100, 'solver iterations per phase', min_value=1, max_value=10000
-        )
-        self.incomplete_timeout_s = self.param(
-            'incomplete_timeout_s',
-            5.0,
-            'solve an incomplete phase after this long without input',
-            min_value=0.1,
-            max_value=3600.0,
-        )
-        self.wait_for_subscribers = self.param(
-            'wait_for_subscribers',
-            1,
-            'matched subscribers of the motion and state topics to wait for before publishing',
-            min_value=0,
-            max_value=100,
-        )
-        self.wait_timeout_s = self.param(
-            'wait_timeout_s',
-            10.0,
-            'then publish to those present, with a warning',
-            min_value=0.0,
-            max_value=3600.0,
-        )
+        # Each setting becomes an attribute of the same name (self.data_weight ...).
+        self.declare_settings(TRACKER_SETTINGS + STREAM_SETTINGS)
         self._waiting_since = None
         self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
         self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
