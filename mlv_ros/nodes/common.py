@@ -31,7 +31,7 @@ import time
 from typing import Callable, NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from mlv_ros import qos
+from mlv_ros import conversions, qos
 from mlv_ros.core.types import StudyShape
 from mlv_ros.threads import compute_threads
 from rcl_interfaces.msg import (
@@ -447,6 +447,33 @@ class GraphNode(Node):
             log=first,
         )
         return other
+
+    def foreign_slice_message(self, msg, topic: str) -> str:
+        """
+        Return :meth:`foreign` for a frame or tag point set, naming its view, slice, phase, stamp.
+
+        Parameters
+        ----------
+        msg : TaggedFrame or TagPoints
+            The message.
+        topic : str
+            The graph topic it came on.
+
+        Returns
+        -------
+        str
+            The other study's or run's name, or ``""`` when the message is this node's.
+
+        """
+        return self.foreign(
+            msg.study_id,
+            topic,
+            run_id=msg.run_id,
+            view=msg.view,
+            slice=msg.slice_index,
+            phase=msg.phase_index,
+            stamp=conversions.stamp_text(msg.header.stamp),
+        )
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
         """

@@ -239,15 +239,7 @@ class MeshlessSolver(GraphNode):
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
-        if self.foreign(
-            msg.study_id,
-            qos.TAG_POINTS,
-            run_id=msg.run_id,
-            view=msg.view,
-            slice=msg.slice_index,
-            phase=msg.phase_index,
-            stamp=conversions.stamp_text(msg.header.stamp),
-        ):
+        if self.foreign_slice_message(msg, qos.TAG_POINTS):
             return  # another graph's tag points (nor are they input to wait on)
         self.silence.heard()
         try:

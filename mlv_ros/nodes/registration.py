@@ -103,15 +103,7 @@ class Registration(GraphNode):
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
-        if self.foreign(
-            msg.study_id,
-            qos.FRAMES,
-            run_id=msg.run_id,
-            view=msg.view,
-            slice=msg.slice_index,
-            phase=msg.phase_index,
-            stamp=conversions.stamp_text(msg.header.stamp),
-        ):
+        if self.foreign_slice_message(msg, qos.FRAMES):
             return  # another graph's frame (nor does it count as activity on our stream)
         self.silence.heard()
         if msg.phase_index != 0 or self.registered:
