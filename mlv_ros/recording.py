@@ -209,7 +209,7 @@ def with_segment_uncertainty(phases, run: dict, frame) -> list:
     """
     Return recorded metrics with their per-segment uncertainties filled in where missing.
 
-    MotionMetrics carries them since issue 20; for recordings made before, they are recomputed
+    MotionMetrics carries them; for recordings made before it did, they are recomputed
     here from the recorded motion exactly as the analyzer computes them (:class:`LVAnalyzer` on
     the registered ED cloud and the run's frame, MLS strain of the recorded positions, the phase's
     solver residual from ``/lv/model_state``); the recorded strains, counts and verdicts are kept.
