@@ -15,21 +15,17 @@
 """ament_python package setup: `colcon build` on a ROS 2 Jazzy install, or `pip install -e .`."""
 
 from glob import glob
+import os
+import runpy
 
 from setuptools import find_packages, setup
 
 package_name = 'mlv_ros'
 
-NODES = [
-    'frame_source',
-    'tag_detector',
-    'registration',
-    'meshless_solver',
-    'motion_analyzer',
-    'recorder',
-    'replay',
-    'live_view',
-]
+# The graph's nodes, from its one table (read by path: nothing of the package is imported here).
+NODES = runpy.run_path(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), 'mlv_ros', 'graph_table.py')
+)['NODES']
 
 setup(
     name=package_name,
@@ -51,7 +47,7 @@ setup(
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={
-        'console_scripts': [f'{n} = mlv_ros.nodes.{n}:main' for n in NODES]
+        'console_scripts': [f'{n.name} = {n.entry_point}' for n in NODES]
         + ['mlv-ros = mlv_ros.cli:main'],
     },
 )

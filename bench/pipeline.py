@@ -37,8 +37,9 @@ import time
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.tracking import MotionTracker
+from mlv_ros.recording import phantom_accuracy
+from mlv_ros.runner import run_graph
 from mlv_ros.threads import compute_threads
-from mlv_ros.tools.run import phantom_accuracy, run_graph
 import numpy as np
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
@@ -208,7 +209,7 @@ def main():
         'graph_s': s['seconds'],
         'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         # the largest of the run's child processes (the tag detector's:
-        # mlv_ros.tools.graph_process)
+        # mlv_ros.graph_process)
         'peak_rss_mb_child_process': round(
             resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1
         ),

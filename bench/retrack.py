@@ -53,7 +53,7 @@ from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import FAILED, OK
-from mlv_ros.tools.run import _accuracy
+from mlv_ros.recording import motion_accuracy
 import numpy as np
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
@@ -272,7 +272,7 @@ def replay_case(
         'positions': positions,
         'sa_planes': sa_planes,
     }
-    acc = _accuracy(run, truth)
+    acc = motion_accuracy(run, truth)
     es = acc['es'] or {}
     return {
         'case': case.name,

@@ -59,7 +59,7 @@ import time
 
 from mlv_msgs.msg import TagPoints
 from mlv_ros import bagio, qos
-from mlv_ros.tools.run import groundtruth_accuracy
+from mlv_ros.recording import groundtruth_accuracy
 from rclpy.serialization import deserialize_message
 import yaml
 

@@ -24,7 +24,7 @@ cylindrical frame of the true axis and septum; :mod:`mlv_ros.core.sim.regional`)
 Ours: the per-segment Err/Ecc/Ell the run published on ``/lv/metrics`` at ES (what a user reads;
 the run's own frame and segments), and the global means from re-analysing the recorded
 ``/lv/motion`` positions with the analyzer (:class:`mlv_ros.core.analysis.LVAnalyzer`, MLS
-strain, as ``mlv_ros.tools.run.groundtruth_accuracy`` does); ``reanalysis_segment_max_diff``
+strain, as ``mlv_ros.recording.groundtruth_accuracy`` does); ``reanalysis_segment_max_diff``
 says how far the published segments are from that re-analysis.
 
 Per case (JSON): the regions, ``global`` (truth, ours, error per component), ``segments``
@@ -82,7 +82,7 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     """
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
     from mlv_ros.core.tracking import lv_frame_axes
-    from mlv_ros.tools.run import read_run
+    from mlv_ros.recording import read_run
 
     run = read_run(mcap)
     if run['ed'] is None or es not in run['positions']:
@@ -101,7 +101,7 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     # per-segment uncertainties as recorded (recomputed from the recorded motion for recordings
     # made before MotionMetrics carried them), streamed phase by phase as the analysis does.
     from mlv_ros.core.analysis import PhaseMetrics, segment_findings
-    from mlv_ros.tools.report import with_segment_uncertainty
+    from mlv_ros.recording import with_segment_uncertainty
 
     phases = with_segment_uncertainty(
         [PhaseMetrics.from_dict(d) for _, d in sorted(run['metrics'].items())], run, an.frame

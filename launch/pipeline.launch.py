@@ -36,16 +36,8 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+from mlv_ros.graph_table import RUN_NODES
 from mlv_ros.launch_settings import graph_settings
-
-NODES = [
-    'recorder',
-    'motion_analyzer',
-    'meshless_solver',
-    'registration',
-    'tag_detector',
-    'frame_source',
-]
 
 
 def launch_setup(context, *args, **kwargs):
@@ -67,7 +59,7 @@ def launch_setup(context, *args, **kwargs):
         f'[mlv_ros] recording to {settings.output_dir / "run.mcap"}'
         + (f' (namespace {settings.namespace})' if settings.namespace else '')
     )
-    nodes = NODES + (['live_view'] if arg['live'] == 'true' else [])
+    nodes = [*RUN_NODES, *(['live_view'] if arg['live'] == 'true' else [])]
     if arg['live'] == 'true':  # the live view's port; the node refuses one out of range at start
         settings.overrides['live_view'] = {
             **settings.overrides.get('live_view', {}),

@@ -47,6 +47,7 @@ This module needs no rclpy: payloads are CDR bytes; message definitions come fro
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import importlib
 import json
 import os
 from pathlib import Path
@@ -979,6 +980,25 @@ def _read_as(data: bytes, msg_class, missing: tuple | None):
                 if _reads_defaults(msg, appended[-k:]):
                     return msg, appended[-k:]
         raise exc
+
+
+def message_class(type_name: str):
+    """
+    Return the generated Python message class of a type named as rosbag2 names it.
+
+    Parameters
+    ----------
+    type_name : str
+        ``pkg/msg/Type``, e.g. ``sensor_msgs/msg/PointCloud2``.
+
+    Returns
+    -------
+    type
+        The class (its package is imported).
+
+    """
+    pkg, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{pkg}.msg'), name)
 
 
 def deserialize(data: bytes, msg_class, missing: tuple | None = None):

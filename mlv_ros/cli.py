@@ -165,3 +165,27 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == '__main__':
     sys.exit(main())
+
+
+def error_text(exc: BaseException) -> str:
+    """
+    Return an exception as one line of text.
+
+    Expected errors by their message, anything else (a bug) with its type and where it was raised.
+    """
+    from rclpy.exceptions import InvalidParameterValueException, ParameterException
+
+    if isinstance(exc, InvalidParameterValueException):  # rclpy's text ends in ": <name>"
+        reason = str(exc).partition('Reason: ')[2].rpartition(': ')[0]
+        return f'{reason or exc} (see --params)'
+    if type(exc).__name__ == 'RCLInvalidROSArgsError':  # rcl refusing the parameters file
+        reason = str(exc).partition('Error: ')[2].partition(', at /')[0]
+        return f'the parameters file cannot be read by ROS: {reason or exc} (see --params)'
+    if isinstance(exc, (ValueError, OSError, ParameterException)):
+        return str(exc)
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    file = os.path.basename(tb.tb_frame.f_code.co_filename) if tb else ''
+    where = f' (at {file}:{tb.tb_lineno})' if tb else ''
+    return f'{type(exc).__name__}: {exc}{where}'

@@ -38,6 +38,7 @@ from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import (
     Frame,
     ModelState,
+    RegisteredModel,
     SEGMENT_ORIGIN_CODES,
     TagPointSet,
     VIEW_LA,
@@ -368,6 +369,118 @@ def structured(columns: Mapping[str, np.ndarray], dtype=np.float32) -> np.ndarra
 def xyz(points: np.ndarray, names: tuple[str, str, str] = ('x', 'y', 'z')) -> np.ndarray:
     """Three fields of a structured point array as a float64 (N, 3) array."""
     return np.stack([points[n].astype(np.float64) for n in names], axis=-1)
+
+
+# --------------------------------------------------------------------------- point cloud schemas
+# The registered ED model's cloud (/mlv/registered_cloud, float64): each particle's position (mm),
+# polar model coordinates (α, β rad, w) and transmural depth (0 endo → 1 epi).
+REGISTERED_CLOUD_FIELDS = ('x', 'y', 'z', 'alpha', 'beta', 'w', 'transmural')
+# What its consumers need of it (finite, floating point); ``transmural`` is optional.
+REGISTERED_REQUIRED_FIELDS = REGISTERED_CLOUD_FIELDS[:6]
+# One phase's motion (/lv/motion, float32): position (mm), displacement from ED (mm) and the
+# Green–Lagrange strain relative to ED in the radial / circumferential / longitudinal frame.
+MOTION_FIELDS = ('x', 'y', 'z', 'dx', 'dy', 'dz', 'err', 'ecc', 'ell')
+
+
+def registered_to_msgs(
+    model: RegisteredModel, stamp: float | Time = 0.0
+) -> tuple[PointCloud2, ModelStateMsg]:
+    """
+    Return the registered model as its cloud and model state, both stamped ``stamp``.
+
+    Parameters
+    ----------
+    model : RegisteredModel
+        The model; a missing ``transmural`` is sent as zeros.
+    stamp : float or Time
+        The header stamp both carry (what pairs them), s.
+
+    Returns
+    -------
+    (PointCloud2, ModelState message)
+        The cloud of :data:`REGISTERED_CLOUD_FIELDS` (float64) and the state.
+
+    """
+    n = len(model)
+    transmural = np.zeros(n) if model.transmural is None else model.transmural
+    columns = dict(zip(REGISTERED_CLOUD_FIELDS, (*model.positions.T, *model.polar, transmural)))
+    cloud = cloud_to_msg(structured(columns, np.float64), make_header(stamp))
+    return cloud, model_state_to_msg(model.state, stamp)
+
+
+def msg_to_registered_cloud(msg: PointCloud2) -> np.ndarray:
+    """
+    Unpack a registered cloud, checking what its consumers need of it.
+
+    Parameters
+    ----------
+    msg : PointCloud2
+        A ``/mlv/registered_cloud`` message.
+
+    Returns
+    -------
+    ndarray
+        Its structured array (:func:`msg_to_cloud`).
+
+    Raises
+    ------
+    ValueError
+        A field of :data:`REGISTERED_REQUIRED_FIELDS` missing, not floating point or not finite
+        (and whatever :func:`msg_to_cloud` refuses).
+
+    """
+    return msg_to_cloud(msg, finite=REGISTERED_REQUIRED_FIELDS)
+
+
+def registered_model(cloud: np.ndarray, state: ModelState) -> RegisteredModel:
+    """
+    Return the registered model from its unpacked cloud and its state.
+
+    Parameters
+    ----------
+    cloud : ndarray
+        :func:`msg_to_registered_cloud` of the cloud.
+    state : ModelState
+        The registered state of the same stamp.
+
+    Returns
+    -------
+    RegisteredModel
+        Positions as float64 (N, 3); the other columns as the cloud holds them.
+
+    """
+    transmural = cloud['transmural'] if 'transmural' in cloud.dtype.names else None
+    return RegisteredModel(
+        xyz(cloud), cloud['alpha'], cloud['beta'], cloud['w'], state, transmural
+    )
+
+
+def motion_to_msg(
+    positions: np.ndarray, rest: np.ndarray, strain: Mapping, stamp: float | Time = 0.0
+) -> PointCloud2:
+    """
+    Return one phase's motion as a ``/lv/motion`` cloud (:data:`MOTION_FIELDS`, float32).
+
+    Parameters
+    ----------
+    positions : ndarray, shape (N, 3)
+        Particle positions at the phase, mm (patient).
+    rest : ndarray, shape (N, 3)
+        The same particles at ED, mm.
+    strain : mapping
+        ``rr``, ``cc``, ``ll``: Green–Lagrange strain relative to ED, each shape (N,).
+    stamp : float or Time
+        Header stamp (the phase's model state carries the same), s.
+
+    Returns
+    -------
+    PointCloud2
+        The cloud.
+
+    """
+    d = np.asarray(positions) - np.asarray(rest)
+    columns = (*np.asarray(positions).T, *d.T, strain['rr'], strain['cc'], strain['ll'])
+    return cloud_to_msg(structured(dict(zip(MOTION_FIELDS, columns))), make_header(stamp))
 
 
 # --------------------------------------------------------------------------- custom messages

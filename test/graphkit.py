@@ -281,7 +281,7 @@ def run_load(
         def progress():
             return (
                 det.messages_handled,
-                det.frames_out,
+                det.published,
                 rec.writer.topics[qos.FRAMES].count,
                 rec.writer.topics[qos.TAG_POINTS].count,
                 len(probe.received('motion')),
@@ -298,7 +298,7 @@ def run_load(
         return LoadReport(
             published=len(msgs),
             detector_received=det.messages_handled,
-            tag_sets=det.frames_out,
+            tag_sets=det.published,
             recorded_frames=counts[qos.FRAMES],
             recorded_tag_sets=counts[qos.TAG_POINTS],
             phases_solved=len(probe.received('motion')),
@@ -451,6 +451,6 @@ def feed_corpus(
         false_alarms=false_alarms,
         phases_analysed=len({m.phase_index for m in probe.received('metrics')}),
         num_phases=num_phases,
-        tag_sets=nodes['tag_detector'].frames_out,
+        tag_sets=nodes['tag_detector'].published,
         seconds=round(time.monotonic() - t0, 2),
     )

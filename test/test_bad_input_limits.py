@@ -58,4 +58,4 @@ def test_tag_detector_refuses_oversized_frames_before_converting(ros_context, ex
     pub.publish(conversions.frame_to_msg(frame))  # 128 × 128 > 64 × 64
     assert spin_until(executor, lambda: len(got) == 1, 20)
     assert got[0].status == 'image too large' and len(got[0].track_id) == 0
-    assert node.frames_out == 1 and not node.trackers  # nothing was tracked or allocated for it
+    assert node.published == 1 and not node.trackers  # nothing was tracked or allocated for it

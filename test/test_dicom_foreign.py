@@ -384,7 +384,8 @@ def test_a_run_on_a_jpeg_lossless_study_gives_the_same_motion(tmp_path):
     One short graph run (2 phases, 200 particles) on a study and on its GDCM JPEG Lossless SV1
     copy: the same motion in every phase (bit-identical frames, a deterministic solver).
     """
-    from mlv_ros.tools.run import read_run, run_graph
+    from mlv_ros.recording import read_run
+    from mlv_ros.runner import run_graph
 
     sim = simulate_study('normal', snr=20.0, size=80, num_phases=2, subplanes=1, seed=3)
     plain = write_study_dicom(sim, tmp_path / 'plain')

@@ -39,7 +39,7 @@ import time
 from conftest import console_script
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mlv_ros import qos
-from mlv_ros.tools.run import run_graph, RunStartError
+from mlv_ros.runner import run_graph, RunStartError
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
@@ -483,7 +483,7 @@ def test_layout_shows_what_the_live_view_serves():
     from conftest import REPO
     from mlv_ros.conversions import curves_schema
     from mlv_ros.nodes.live_view import CLOUD_CHANNEL, CURVES_CHANNEL
-    from mlv_ros.nodes.meshless_solver import MOTION_FIELDS
+    from mlv_ros.conversions import MOTION_FIELDS
 
     layout = json.loads((REPO / 'config' / 'foxglove_layout.json').read_text())
 

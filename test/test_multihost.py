@@ -42,7 +42,7 @@ import time
 from conftest import console_script, REPO
 from mlv_ros import qos
 from mlv_ros.domain import claim_domain_id
-from mlv_ros.tools.run import run_graph
+from mlv_ros.runner import run_graph
 from netns import netns_unavailable, routed_pair, veth_pair
 import numpy as np
 import pytest

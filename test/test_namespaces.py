@@ -34,8 +34,9 @@ from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
 from mlv_ros.nodes.recorder import Recorder
 from mlv_ros.nodes.replay import Replay
 from mlv_ros.nodes.tag_detector import TagDetector
+from mlv_ros.recording import phantom_accuracy
 from mlv_ros.resources import config_file
-from mlv_ros.tools.run import graph_nodes_on, node_parameters, phantom_accuracy
+from mlv_ros.runner import graph_nodes_on, node_parameters
 import pytest
 from rclpy.parameter import Parameter
 

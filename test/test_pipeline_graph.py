@@ -27,7 +27,8 @@ from conftest import console_script, spin_until
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from mlv_ros import bagio, qos
 from mlv_ros.nodes.common import status_node
-from mlv_ros.tools.run import phantom_accuracy, read_run, run_graph
+from mlv_ros.recording import phantom_accuracy, read_run
+from mlv_ros.runner import run_graph
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
@@ -111,10 +112,10 @@ def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
 
 
 def test_report_from_the_recording(phantom_run, tmp_path):
-    from mlv_ros.tools.report import build
+    from mlv_ros.recording import write_report
 
     out, _ = phantom_run
-    index = build(out / 'run.mcap', tmp_path / 'report')
+    index = write_report(out / 'run.mcap', tmp_path / 'report')
     summary = json.loads((tmp_path / 'report' / 'summary.json').read_text())
     assert index.exists() and '<img' in index.read_text()
     assert (tmp_path / 'report' / 'level_curves.png').stat().st_size > 10_000

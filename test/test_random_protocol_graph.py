@@ -29,7 +29,8 @@ from pathlib import Path
 import subprocess
 import sys
 
-from mlv_ros.tools.run import groundtruth_accuracy, run_graph
+from mlv_ros.recording import groundtruth_accuracy
+from mlv_ros.runner import run_graph
 import pytest
 
 pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)

@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-The console of ``mlv-ros run`` / ``demo`` (mlv_ros.tools.console): progress bar and summary.
+The console of ``mlv-ros run`` / ``demo`` (mlv_ros.console): progress bar and summary.
 
-The console of ``mlv-ros run`` / ``demo`` (mlv_ros.tools.console): a progress bar over phases
+The console of ``mlv-ros run`` / ``demo`` (mlv_ros.console): a progress bar over phases
 only on a terminal and not with --no-progress, and a short summary (at most 30 lines whatever the
 run) that says what was run, how it ended, the accuracy, volumes, the verdicts with the
 degraded and failed phases grouped by reason, where the results are and the exit status.
@@ -23,7 +23,7 @@ degraded and failed phases grouped by reason, where the results are and the exit
 
 import io
 
-from mlv_ros.tools.console import (
+from mlv_ros.console import (
     MAX_SUMMARY_LINES,
     phase_ranges,
     reason_groups,

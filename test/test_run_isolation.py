@@ -208,7 +208,7 @@ def data_taken(rec) -> int:
 
 
 def qos_class(topic: str):
-    from mlv_ros.nodes.recorder import message_class
+    from mlv_ros.bagio import message_class
 
     return message_class(qos.TOPIC_TYPES[topic])
 
@@ -216,7 +216,7 @@ def qos_class(topic: str):
 def test_run_refuses_a_domain_another_graph_runs_on(ros_context, executor, tmp_path, capsys):
     from mlv_ros import cli
     from mlv_ros.domain import claim_domain_id
-    from mlv_ros.tools.run import graph_nodes_on
+    from mlv_ros.runner import graph_nodes_on
 
     executor.add_node(
         MotionAnalyzer(context=ros_context)

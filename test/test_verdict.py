@@ -326,7 +326,7 @@ def test_recordings_made_before_the_verdict_still_read():
 
 
 def test_run_summary_names_flagged_phases_and_an_untracked_study():
-    from mlv_ros.tools.run import untracked, verdict_line, verdict_summary
+    from mlv_ros.runner import untracked, verdict_line, verdict_summary
 
     s = {
         'num_phases': 5,

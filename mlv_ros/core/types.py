@@ -159,6 +159,47 @@ class ModelState:
     segment_origin_confidence: float = 0.0
 
 
+@dataclass
+class RegisteredModel:
+    """
+    The registered ED model as the graph hands it on: particles, their model coordinates, state.
+
+    The registration publishes it (paper §3.2) as a point cloud and a model state of the same
+    header stamp; the solver rebuilds exactly the same model from it and the analyzer measures
+    against it.
+
+    Attributes
+    ----------
+    positions : ndarray, shape (N, 3)
+        Particle positions at ED, mm (patient, LPS).
+    alpha, beta : ndarray, shape (N,)
+        Polar model coordinates of each particle (paper eq. 1), rad: α latitude (−π/2 at the
+        apex), β longitude (0 at the reference direction).
+    w : ndarray, shape (N,)
+        Radial model coordinate, ``|p| / a0`` (dimensionless).
+    state : ModelState
+        The global parameters at ED (its ``study_id`` names the study).
+    transmural : ndarray, shape (N,), optional
+        Transmural depth, 0 endocardium → 1 epicardium (None when not given).
+
+    """
+
+    positions: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    w: np.ndarray
+    state: ModelState
+    transmural: np.ndarray | None = None
+
+    @property
+    def polar(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the polar model coordinates (α, β, w), as :class:`MotionTracker` takes them."""
+        return self.alpha, self.beta, self.w
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
 #: ModelState / MotionMetrics ``segment_origin`` codes: where the circumferential reference (and
 #: so the AHA segments) came from (mlv_ros/core/registration/anatomy.py).
 SEGMENT_ORIGIN_CODES = {'unknown': 0, 'prior': 1, 'detected': 2, 'given': 3}

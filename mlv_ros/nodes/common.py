@@ -28,10 +28,10 @@ import inspect
 import signal
 import sys
 import time
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from mlv_ros import qos
+from mlv_ros import conversions, qos
 from mlv_ros.core.types import StudyShape
 from mlv_ros.threads import compute_threads
 from rcl_interfaces.msg import (
@@ -69,6 +69,21 @@ class StreamCount:
     missed: int = 0
     last_sequence: int | None = None
     publisher_restarts: int = 0
+
+
+class Setting(NamedTuple):
+    """
+    One node parameter: name, default, description and range (see :meth:`GraphNode.param`).
+
+    ``check(value)`` returns why a value inside the range is still refused (None: accepted).
+    """
+
+    name: str
+    default: object
+    description: str
+    min_value: float | None = None
+    max_value: float | None = None
+    check: Callable | None = None
 
 
 def stamp_key(stamp) -> tuple[int, int]:
@@ -145,6 +160,9 @@ class GraphNode(Node):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
+        # The uniform counters of progress(): messages taken from the graph, results put out.
+        self.messages_handled = 0
+        self.published = 0
         self._topics: dict[str, str] = {}
         self._diag_pub = self.create_publisher(
             DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos()
@@ -184,6 +202,63 @@ class GraphNode(Node):
             if why:
                 return SetParametersResult(successful=False, reason=f'{p.name}={p.value!r}: {why}')
         return SetParametersResult(successful=True)
+
+    def progress(self) -> dict:
+        """
+        Return what the node has done so far, under the same names for every node.
+
+        Returns
+        -------
+        dict
+            ``received``: messages it took from the graph's topics; ``published``: results it
+            put out (frames, tag point sets, phases, metrics, replayed messages).
+
+        """
+        return {'received': int(self.messages_handled), 'published': int(self.published)}
+
+    def publisher(self, topic: str, msg_type):
+        """
+        Create the publisher of graph topic ``topic``, relative to the node's namespace.
+
+        Parameters
+        ----------
+        topic : str
+            A graph topic by its root name (:mod:`mlv_ros.qos`), published with its profile.
+        msg_type : type
+            Its message class.
+
+        Returns
+        -------
+        Publisher
+            The publisher.
+
+        """
+        return self.create_publisher(msg_type, qos.relative(topic), qos.topic_qos(topic))
+
+    def subscribe(self, topic: str, msg_type, callback, catch_up: bool = False):
+        """
+        Subscribe to graph topic ``topic``, relative to the node's namespace, accounting for loss.
+
+        Parameters
+        ----------
+        topic : str
+            A graph topic by its root name (:mod:`mlv_ros.qos`).
+        msg_type : type
+            Its message class.
+        callback : callable
+            Called with each message (see :meth:`create_subscription`).
+        catch_up : bool
+            Ask for the publisher's history (:func:`mlv_ros.qos.subscription_qos`).
+
+        Returns
+        -------
+        Subscription
+            The subscription.
+
+        """
+        return self.create_subscription(
+            msg_type, qos.relative(topic), callback, qos.subscription_qos(topic, catch_up=catch_up)
+        )
 
     def topic_name(self, topic: str) -> str:
         """
@@ -278,6 +353,27 @@ class GraphNode(Node):
             raise ValueError(f'parameter {name}={value!r} must be one of {choices}')
         return value
 
+    def declare_settings(self, settings) -> None:
+        """
+        Declare each :class:`Setting` as a parameter; keep its value as the attribute of its name.
+
+        Parameters
+        ----------
+        settings : iterable of Setting
+            Declared in this order, each with its range and check (:meth:`param`).
+
+        """
+        for s in settings:
+            value = self.param(
+                s.name,
+                s.default,
+                s.description,
+                min_value=s.min_value,
+                max_value=s.max_value,
+                check=s.check,
+            )
+            setattr(self, s.name, value)
+
     def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
         """
         ``Node.create_subscription`` that also accounts for loss on ``topic``.
@@ -351,6 +447,33 @@ class GraphNode(Node):
             log=first,
         )
         return other
+
+    def foreign_slice_message(self, msg, topic: str) -> str:
+        """
+        Return :meth:`foreign` for a frame or tag point set, naming its view, slice, phase, stamp.
+
+        Parameters
+        ----------
+        msg : TaggedFrame or TagPoints
+            The message.
+        topic : str
+            The graph topic it came on.
+
+        Returns
+        -------
+        str
+            The other study's or run's name, or ``""`` when the message is this node's.
+
+        """
+        return self.foreign(
+            msg.study_id,
+            topic,
+            run_id=msg.run_id,
+            view=msg.view,
+            slice=msg.slice_index,
+            phase=msg.phase_index,
+            stamp=conversions.stamp_text(msg.header.stamp),
+        )
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
         """

@@ -224,9 +224,7 @@ class FrameSource(GraphNode):
         # dicom: which study was taken and why, whether all of it was used, and what was not.
         self.dicom_choice, self.input_complete, self.left_out, self.not_used = '', True, [], []
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
-        self.pub = self.create_publisher(
-            TaggedFrame, qos.relative(qos.FRAMES), qos.topic_qos(qos.FRAMES)
-        )
+        self.pub = self.publisher(qos.FRAMES, TaggedFrame)
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.study_id = self._study_id()

@@ -55,6 +55,7 @@ import json
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
+from mlv_ros.core.streaming import StampPairer
 from mlv_ros.core.verdict import DEGRADED, FAILED, Verdict
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
 from sensor_msgs.msg import PointCloud2
@@ -195,43 +196,18 @@ class LiveView(GraphNode):
         self._last_cloud = (
             None  # the latest foxglove.PointCloud served (for a client that subscribes late)
         )
-        self._clouds: dict = {}  # stamp → (points, stamp msg) waiting for its model state
-        self._states: dict = {}  # stamp → model state waiting for its cloud
+        # stamp → (points, header) of a cloud / model state, each waiting for the other
+        self._pairer = StampPairer(self.max_unpaired)
         self._foreign_stamps = RecentKeys()
         self.phases_not_shown: dict[int, str] = {}  # failed phase → reasons
         self.curves_served = 0
         self.messages_handled = 0
-        self.create_subscription(
-            PointCloud2,
-            qos.relative(qos.MOTION),
-            self._on_motion,
-            qos.subscription_qos(qos.MOTION),
-        )
-        self.create_subscription(
-            ModelStateMsg,
-            qos.relative(qos.MODEL_STATE),
-            self._on_state,
-            qos.subscription_qos(qos.MODEL_STATE),
-        )
-        self.create_subscription(
-            MotionMetrics,
-            qos.relative(qos.METRICS),
-            self._on_metrics,
-            qos.subscription_qos(qos.METRICS),
-        )
+        self.subscribe(qos.MOTION, PointCloud2, self._on_motion)
+        self.subscribe(qos.MODEL_STATE, ModelStateMsg, self._on_state)
+        self.subscribe(qos.METRICS, MotionMetrics, self._on_metrics)
         if self.images:
-            self.create_subscription(
-                TaggedFrame,
-                qos.relative(qos.FRAMES),
-                self._on_frame,
-                qos.subscription_qos(qos.FRAMES, catch_up=catch_up),
-            )
-            self.create_subscription(
-                TagPoints,
-                qos.relative(qos.TAG_POINTS),
-                self._on_tags,
-                qos.subscription_qos(qos.TAG_POINTS, catch_up=catch_up),
-            )
+            self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=catch_up)
+            self.subscribe(qos.TAG_POINTS, TagPoints, self._on_tags, catch_up=catch_up)
         self.create_timer(0.2, self._serve_subscribed)
         self.report(OK, 'serving', url=self.url)
 
@@ -277,7 +253,7 @@ class LiveView(GraphNode):
                 reason=str(exc),
             )
             return
-        self._hold(self._clouds, 'motion cloud', key, (points, msg.header))
+        self._hold('cloud', 'motion cloud', key, (points, msg.header))
 
     def _on_state(self, msg: ModelStateMsg) -> None:
         self.messages_handled += 1
@@ -288,7 +264,7 @@ class LiveView(GraphNode):
         )
         if other:
             self._foreign_stamps.add(key, other)
-            if self._clouds.pop(key, None) is not None:
+            if self._pairer.held['cloud'].pop(key, None) is not None:
                 self.cloud_of_other_study(qos.MOTION, stamp, other)
             return
         try:
@@ -303,23 +279,23 @@ class LiveView(GraphNode):
             )
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold(self._states, 'model state', key, state)
+        self._hold('state', 'model state', key, state)
 
-    def _hold(self, held: dict, what: str, key, item) -> None:
+    def _hold(self, side: str, what: str, key, item) -> None:
         """
         Keep ``item`` until its pair (same stamp) is in, then serve the phase.
 
         The oldest goes (said on /diagnostics) when more than ``max_unpaired`` wait.
         """
-        held[key] = item
-        if key in self._clouds and key in self._states:
-            (points, header), state = self._clouds.pop(key), self._states.pop(key)
+        self._pairer.add(side, key, item)
+        for _, (points, header), state in self._pairer.pairs():
             self._serve_phase(points, header, state)
-        while len(held) > self.max_unpaired:
-            old = next(iter(held))
-            held.pop(old)
+        for old in self._pairer.trim(side):
             self.report(
-                WARN, f'unpaired {what} not shown', stamp=f'{old[0]}.{old[1]:09d}', held=len(held)
+                WARN,
+                f'unpaired {what} not shown',
+                stamp=f'{old[0]}.{old[1]:09d}',
+                held=len(self._pairer.held[side]),
             )
 
     def _serve_phase(self, points, header, state) -> None:

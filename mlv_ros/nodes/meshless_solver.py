@@ -41,7 +41,8 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import plane_level_span
-from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, PhaseAssembler, twist_knots_error
+from mlv_ros.core.streaming import PhaseSchedule
+from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import (
     ERROR,
@@ -49,16 +50,84 @@ from mlv_ros.nodes.common import (
     OK,
     RecentKeys,
     run_node,
+    Setting,
     Silence,
     stamp_key,
     WARN,
 )
-from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
-MOTION_FIELDS = ('x', 'y', 'z', 'dx', 'dy', 'dz', 'err', 'ecc', 'ell')
+
+# The solver's settings, each with its range, declared as node parameters of the same names; the
+# model's own rule (twist_knots: one knot is no function of height) is checked by the core's
+# function, so one place says why a value is refused. TRACKER_SETTINGS are MotionTracker's
+# keyword arguments.
+TRACKER_SETTINGS = (
+    Setting('data_weight', 1.0e4, 'tag-force stiffness relative to elasticity', 1e-3, 1e9),
+    Setting(
+        'hourglass_weight',
+        1.0e3,
+        'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'volume_weight',
+        1.0e3,
+        'near-incompressibility penalty, in units of the shear modulus (0 = off)',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'global_prior',
+        1.0,
+        'prior holding the global parameters at the previous phase, counted like this many '
+        'control points (0 = off)',
+        0.0,
+        1e5,
+    ),
+    Setting(
+        'longitudinal_weight',
+        3.0e3,
+        'stiffness against local stretch along the long axis, in units of the shear '
+        'modulus (0 = off): only LA tags measure it',
+        0.0,
+        1e9,
+    ),
+    Setting(
+        'twist_knots',
+        11,
+        'knots of the twist function of height (0 = the single twist factor τ)',
+        0,
+        100,
+        check=twist_knots_error,
+    ),
+    Setting('twist_smoothing', 0.3, 'curvature penalty of the twist function', 1e-6, 1e5),
+    Setting(
+        'slice_following', 1, 're-attachment passes keeping tag points on their planes', 0, 10
+    ),
+    Setting('max_iterations', 100, 'solver iterations per phase', 1, 10000),
+)
+# When to solve and publish (the node's stream, not the model).
+STREAM_SETTINGS = (
+    Setting(
+        'incomplete_timeout_s',
+        5.0,
+        'solve an incomplete phase after this long without input',
+        0.1,
+        3600.0,
+    ),
+    Setting(
+        'wait_for_subscribers',
+        1,
+        'matched subscribers of the motion and state topics to wait for before publishing',
+        0,
+        100,
+    ),
+    Setting('wait_timeout_s', 10.0, 'then publish to those present, with a warning', 0.0, 3600.0),
+)
 
 
 class MeshlessSolver(GraphNode):
@@ -66,115 +135,15 @@ class MeshlessSolver(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('meshless_solver', **node_kwargs)
-        self.data_weight = self.param(
-            'data_weight',
-            1.0e4,
-            'tag-force stiffness relative to elasticity',
-            min_value=1e-3,
-            max_value=1e9,
-        )
-        self.hourglass_weight = self.param(
-            'hourglass_weight',
-            1.0e3,
-            'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.volume_weight = self.param(
-            'volume_weight',
-            1.0e3,
-            'near-incompressibility penalty, in units of the shear modulus (0 = off)',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.global_prior = self.param(
-            'global_prior',
-            1.0,
-            'prior holding the global parameters at the previous phase, counted like this many '
-            'control points (0 = off)',
-            min_value=0.0,
-            max_value=1e5,
-        )
-        self.longitudinal_weight = self.param(
-            'longitudinal_weight',
-            3.0e3,
-            'stiffness against local stretch along the long axis, in units of the shear '
-            'modulus (0 = off): only LA tags measure it',
-            min_value=0.0,
-            max_value=1e9,
-        )
-        self.twist_knots = self.param(
-            'twist_knots',
-            11,
-            'knots of the twist function of height (0 = the single twist factor τ)',
-            min_value=0,
-            max_value=100,
-            check=twist_knots_error,
-        )
-        self.twist_smoothing = self.param(
-            'twist_smoothing',
-            0.3,
-            'curvature penalty of the twist function',
-            min_value=1e-6,
-            max_value=1e5,
-        )
-        self.slice_following = self.param(
-            'slice_following',
-            1,
-            're-attachment passes keeping tag points on their planes',
-            min_value=0,
-            max_value=10,
-        )
-        self.max_iterations = self.param(
-            'max_iterations', 100, 'solver iterations per phase', min_value=1, max_value=10000
-        )
-        self.incomplete_timeout_s = self.param(
-            'incomplete_timeout_s',
-            5.0,
-            'solve an incomplete phase after this long without input',
-            min_value=0.1,
-            max_value=3600.0,
-        )
-        self.wait_for_subscribers = self.param(
-            'wait_for_subscribers',
-            1,
-            'matched subscribers of the motion and state topics to wait for before publishing',
-            min_value=0,
-            max_value=100,
-        )
-        self.wait_timeout_s = self.param(
-            'wait_timeout_s',
-            10.0,
-            'then publish to those present, with a warning',
-            min_value=0.0,
-            max_value=3600.0,
-        )
+        # Each setting becomes an attribute of the same name (self.data_weight ...).
+        self.declare_settings(TRACKER_SETTINGS + STREAM_SETTINGS)
         self._waiting_since = None
-        self.motion_pub = self.create_publisher(
-            PointCloud2, qos.relative(qos.MOTION), qos.topic_qos(qos.MOTION)
-        )
-        self.state_pub = self.create_publisher(
-            ModelStateMsg, qos.relative(qos.MODEL_STATE), qos.topic_qos(qos.MODEL_STATE)
-        )
-        self.create_subscription(
-            PointCloud2,
-            qos.relative(qos.REGISTERED_CLOUD),
-            self._on_cloud,
-            qos.subscription_qos(qos.REGISTERED_CLOUD),
-        )
-        self.create_subscription(
-            ModelStateMsg,
-            qos.relative(qos.REGISTERED_STATE),
-            self._on_state,
-            qos.subscription_qos(qos.REGISTERED_STATE),
-        )
-        self.create_subscription(
-            TagPoints,
-            qos.relative(qos.TAG_POINTS),
-            self._on_points,
-            qos.subscription_qos(qos.TAG_POINTS, catch_up=True),
-        )
-        self.assembler = PhaseAssembler()
+        self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
+        self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
+        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_cloud)
+        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_state)
+        self.subscribe(qos.TAG_POINTS, TagPoints, self._on_points, catch_up=True)
+        self.schedule = PhaseSchedule()  # which phase is solved next
         self.cloud = None
         self.rest_state = None
         self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
@@ -183,15 +152,23 @@ class MeshlessSolver(GraphNode):
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
-        self.next_phase = 0
-        self.num_phases = 0
         self.silence = Silence(
             TIMER_PERIOD_S
         )  # on the tag points, counted while this node is spun
-        self.phases_published = 0
+        self.published = 0  # phases solved and published
         self.messages_handled = 0
         self.create_timer(TIMER_PERIOD_S, self._on_timer)
         self.report(OK, 'waiting for the registered model')
+
+    @property
+    def next_phase(self) -> int:
+        """Return the phase solved next (every earlier one is solved or given up)."""
+        return self.schedule.next_phase
+
+    @property
+    def num_phases(self) -> int:
+        """Return the study's phases, as its tag points say (0 before any)."""
+        return self.schedule.num_phases
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -200,7 +177,7 @@ class MeshlessSolver(GraphNode):
             self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, self._foreign_stamps.get(key))
             return
         try:
-            cloud = conversions.msg_to_cloud(msg, finite=REQUIRED_CLOUD_FIELDS)
+            cloud = conversions.msg_to_registered_cloud(msg)
         except ValueError as exc:
             self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
             return
@@ -232,14 +209,14 @@ class MeshlessSolver(GraphNode):
         self.cloud = self._reg_clouds.get(self._rest_key)
         if self.cloud is None:
             return  # its cloud (same stamp) has not come yet
-        c, s = self.cloud, self.rest_state
-        pts = conversions.xyz(c)
+        model = conversions.registered_model(self.cloud, self.rest_state)
+        s, pts = model.state, model.positions
         try:
             self.tracker = MotionTracker(
                 pts,
                 s.translation,
                 s.rotation,
-                polar=(c['alpha'], c['beta'], c['w']),
+                polar=model.polar,
                 shape=(s.a0, s.a1, s.a2, s.a3, s.tau),
                 data_weight=self.data_weight,
                 hourglass_weight=self.hourglass_weight,
@@ -262,15 +239,7 @@ class MeshlessSolver(GraphNode):
 
     def _on_points(self, msg: TagPoints) -> None:
         self.messages_handled += 1
-        if self.foreign(
-            msg.study_id,
-            qos.TAG_POINTS,
-            run_id=msg.run_id,
-            view=msg.view,
-            slice=msg.slice_index,
-            phase=msg.phase_index,
-            stamp=conversions.stamp_text(msg.header.stamp),
-        ):
+        if self.foreign_slice_message(msg, qos.TAG_POINTS):
             return  # another graph's tag points (nor are they input to wait on)
         self.silence.heard()
         try:
@@ -287,8 +256,8 @@ class MeshlessSolver(GraphNode):
                 reason=str(exc),
             )
             return
-        self.num_phases = max(self.num_phases, points.num_phases)
-        if points.phase_index < self.next_phase:
+        taken = self.schedule.add(points)
+        if taken == PhaseSchedule.STALE:
             self.report(
                 WARN,
                 'tag points for an already solved phase ignored',
@@ -298,7 +267,7 @@ class MeshlessSolver(GraphNode):
                 stamp=conversions.stamp_text(msg.header.stamp),
             )
             return
-        if self.assembler.add(points):
+        if taken == PhaseSchedule.DUPLICATE:
             self.report(
                 WARN,
                 'duplicate tag points replace the earlier set',
@@ -311,9 +280,9 @@ class MeshlessSolver(GraphNode):
 
     def _on_timer(self) -> None:
         silent = self.silence.tick()
-        if self.tracker is None or self.next_phase >= max(self.num_phases, 1):
+        if self.tracker is None or self.schedule.finished:
             return
-        if self.assembler.sets(self.next_phase) and silent > self.incomplete_timeout_s:
+        if self.schedule.waiting() and silent > self.incomplete_timeout_s:
             self._advance(force=True)
         elif self._waiting_since is not None:
             self._advance()
@@ -350,26 +319,18 @@ class MeshlessSolver(GraphNode):
         """Solve every phase that is ready, in order."""
         if self.tracker is None or not self._outputs_ready():
             return
-        while self.num_phases and self.next_phase < self.num_phases:
-            p = self.next_phase
-            later_complete = any(
-                self.assembler.complete(q) for q in self.assembler.phases if q > p
-            )
-            if not (self.assembler.complete(p) or later_complete or force):
-                return
+        while (ready := self.schedule.ready(force)) is not None:
             force = False
-            sets = self.assembler.sets(p)
-            if not self.assembler.complete(p):
+            if not ready.complete:
                 self.report(
                     WARN,
                     'solving an incomplete phase',
-                    phase=p,
-                    slices=len(sets),
-                    expected=self.assembler.expected_slices,
+                    phase=ready.phase,
+                    slices=len(ready.sets),
+                    expected=self.schedule.assembler.expected_slices,
                 )
-            self._solve(p, sets)
-            self.assembler.phases.pop(p, None)
-            self.next_phase = p + 1
+            self._solve(ready.phase, ready.sets)
+            self.schedule.done(ready.phase)
             self.silence.heard()  # our own solving time is not input silence
 
     def _solve(self, phase: int, sets: dict) -> None:
@@ -410,24 +371,10 @@ class MeshlessSolver(GraphNode):
             x, E, state = sol.positions, sol.strain, sol.state
         state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
-        d = x - tr.rest
-        cloud = {
-            'x': x[:, 0],
-            'y': x[:, 1],
-            'z': x[:, 2],
-            'dx': d[:, 0],
-            'dy': d[:, 1],
-            'dz': d[:, 2],
-            'err': strain['rr'],
-            'ecc': strain['cc'],
-            'ell': strain['ll'],
-        }
         stamp = self.get_clock().now().to_msg()
-        self.motion_pub.publish(
-            conversions.cloud_to_msg(conversions.structured(cloud), conversions.make_header(stamp))
-        )
+        self.motion_pub.publish(conversions.motion_to_msg(x, tr.rest, strain, stamp))
         self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
-        self.phases_published += 1
+        self.published += 1
         self.report(
             OK,
             'phase solved',

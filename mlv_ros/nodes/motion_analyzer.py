@@ -42,11 +42,11 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVAnalyzer, LVFrame, SegmentFindings
+from mlv_ros.core.streaming import StampPairer
 from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
-from mlv_ros.nodes.registration import REQUIRED_CLOUD_FIELDS
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
@@ -75,42 +75,18 @@ class MotionAnalyzer(GraphNode):
             min_value=1,
             max_value=100000,
         )
-        self.pub = self.create_publisher(
-            MotionMetrics, qos.relative(qos.METRICS), qos.topic_qos(qos.METRICS)
-        )
-        self.create_subscription(
-            PointCloud2,
-            qos.relative(qos.REGISTERED_CLOUD),
-            self._on_registered_cloud,
-            qos.subscription_qos(qos.REGISTERED_CLOUD),
-        )
-        self.create_subscription(
-            ModelStateMsg,
-            qos.relative(qos.REGISTERED_STATE),
-            self._on_registered_state,
-            qos.subscription_qos(qos.REGISTERED_STATE),
-        )
-        self.create_subscription(
-            PointCloud2,
-            qos.relative(qos.MOTION),
-            self._on_motion,
-            qos.subscription_qos(qos.MOTION),
-        )
-        self.create_subscription(
-            ModelStateMsg,
-            qos.relative(qos.MODEL_STATE),
-            self._on_state,
-            qos.subscription_qos(qos.MODEL_STATE),
-        )
+        self.pub = self.publisher(qos.METRICS, MotionMetrics)
+        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_registered_cloud)
+        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_registered_state)
+        self.subscribe(qos.MOTION, PointCloud2, self._on_motion)
+        self.subscribe(qos.MODEL_STATE, ModelStateMsg, self._on_state)
         self.reg_cloud = self.reg_state = self.analyzer = None
         self.findings = SegmentFindings()  # per-segment findings of the cycle so far
         self._findings_said = None  # the abnormal segments last reported
         self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
         self._reg_key = None  # stamp of the registered state taken
         self._foreign_stamps = RecentKeys()  # stamps of model states of another study
-        self.clouds: dict = {}
-        self.states: dict = {}
-        self.published = 0
+        self.pairer = StampPairer(self.max_unpaired)  # motion clouds with their model states
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
         self.volumes: dict = {}  # phase → cavity volume, ml, of the latest metrics
         self.messages_handled = 0
@@ -152,9 +128,7 @@ class MotionAnalyzer(GraphNode):
         if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
             return
         try:
-            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_cloud(
-                msg, finite=REQUIRED_CLOUD_FIELDS
-            )
+            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_registered_cloud(msg)
         except ValueError as exc:
             self.report(
                 ERROR,
@@ -189,11 +163,12 @@ class MotionAnalyzer(GraphNode):
         self.reg_cloud = self._reg_clouds.get(self._reg_key)
         if self.reg_cloud is None:
             return  # its cloud (same stamp) has not come yet
-        X = conversions.xyz(self.reg_cloud)
+        model = conversions.registered_model(self.reg_cloud, self.reg_state)
+        X = model.positions
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
         endo = None
-        if 'transmural' in self.reg_cloud.dtype.names:
-            endo = self.reg_cloud['transmural'] <= self.endo_fraction
+        if model.transmural is not None:
+            endo = model.transmural <= self.endo_fraction
             endo = endo if endo.sum() >= 20 else None
         try:
             self.analyzer = LVAnalyzer(
@@ -224,7 +199,7 @@ class MotionAnalyzer(GraphNode):
                 expected=self.analyzer.X.shape[0],
             )
             return
-        self._hold(self.clouds, 'motion cloud', msg.header.stamp, x)
+        self._hold('cloud', 'motion cloud', msg.header.stamp, x)
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
@@ -242,29 +217,39 @@ class MotionAnalyzer(GraphNode):
             )
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold(self.states, 'model state', msg.header.stamp, msg)
+        self._hold('state', 'model state', msg.header.stamp, msg)
 
-    def _hold(self, held: dict, what: str, stamp, item) -> None:
+    @property
+    def clouds(self) -> dict:
+        """Return the motion clouds waiting for their model state (stamp key → positions)."""
+        return self.pairer.held['cloud']
+
+    @property
+    def states(self) -> dict:
+        """Return the model states waiting for their motion cloud (stamp key → message)."""
+        return self.pairer.held['state']
+
+    def _hold(self, side: str, what: str, stamp, item) -> None:
         """
         Keep ``item`` until its pair (same stamp) arrives, with bounded memory.
 
         The oldest goes when too many wait (e.g. states whose clouds were dropped as bad), so
         memory stays bounded, and the node says so.
         """
-        held[_key(stamp)] = item
+        self.pairer.add(side, _key(stamp), item)
         self._pair()
-        while len(held) > self.max_unpaired:
-            sec, nanosec = next(iter(held))
-            held.pop((sec, nanosec))
+        for sec, nanosec in self.pairer.trim(side):
             self.report(
-                WARN, f'unpaired {what} dropped', stamp=f'{sec}.{nanosec:09d}', held=len(held)
+                WARN,
+                f'unpaired {what} dropped',
+                stamp=f'{sec}.{nanosec:09d}',
+                held=len(self.pairer.held[side]),
             )
 
     def _pair(self):
         if self.analyzer is None:
             return
-        for key in [k for k in self.clouds if k in self.states]:
-            x, state = self.clouds.pop(key), self.states.pop(key)
+        for _, x, state in self.pairer.pairs():
             if x.shape[0] != self.analyzer.X.shape[0]:
                 self.report(
                     ERROR,

@@ -47,12 +47,11 @@ never comes is written when the recording closes.
 from __future__ import annotations
 
 import errno
-import importlib
 from pathlib import Path
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from mlv_ros import bagio, conversions, qos
+from mlv_ros import bagio, conversions, graph_table, qos
 from mlv_ros.nodes.common import (
     ERROR,
     GraphNode,
@@ -69,24 +68,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 STUDY_TOPICS = (qos.FRAMES, qos.TAG_POINTS, qos.REGISTERED_STATE, qos.MODEL_STATE, qos.METRICS)
 CLOUD_STATES = {qos.REGISTERED_CLOUD: qos.REGISTERED_STATE, qos.MOTION: qos.MODEL_STATE}
 MAX_HELD_CLOUDS = 64
-# The nodes of an mlv_ros graph (as the launch file and mlv-ros run name them): their statuses on
-# the shared /diagnostics are the ones a recording keeps.
-GRAPH_NODE_NAMES = (
-    'frame_source',
-    'tag_detector',
-    'registration',
-    'meshless_solver',
-    'motion_analyzer',
-    'recorder',
-    'replay',
-    'live_view',
-)
-
-
-def message_class(type_name: str):
-    """``pkg/msg/Type`` → the generated Python message class."""
-    pkg, _, name = type_name.split('/')
-    return getattr(importlib.import_module(f'{pkg}.msg'), name)
+# The nodes of an mlv_ros graph: their statuses on the shared /diagnostics are the ones a
+# recording keeps.
+GRAPH_NODE_NAMES = graph_table.NODE_NAMES
 
 
 class Recorder(GraphNode):
@@ -165,13 +149,13 @@ class Recorder(GraphNode):
         ] = {}  # graph topic (root name) → the name recorded: as it resolves here
         for topic in topics:
             type_name = qos.TOPIC_TYPES[topic]
-            self.classes[topic] = message_class(type_name)
+            self.classes[topic] = bagio.message_class(type_name)
             self.recorded[topic] = self.topic_name(topic)
             self.writer.add_topic(
                 self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))]
             )
             self.create_subscription(
-                message_class(type_name),
+                bagio.message_class(type_name),
                 qos.relative(topic),
                 lambda data, info, topic=topic: self._on_message(topic, data, info),
                 qos.subscription_qos(topic, catch_up=catch_up),
@@ -190,6 +174,19 @@ class Recorder(GraphNode):
         return any(
             self.count_publishers(self.recorded[t]) for t in self.recorded if t != qos.DIAGNOSTICS
         )
+
+    def progress(self) -> dict:
+        """
+        Return the messages of the graph's topics taken (/diagnostics left out: it never stops).
+
+        Returns
+        -------
+        dict
+            ``received`` as the per-topic counts say, ``published`` 0 (it writes a file).
+
+        """
+        received = sum(c.received for t, c in self.streams.items() if t != qos.DIAGNOSTICS)
+        return {'received': received, 'published': 0}
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.messages_handled += 1

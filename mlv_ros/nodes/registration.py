@@ -37,17 +37,13 @@ import time
 from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.types import SEGMENT_ORIGIN_CODES, VIEW_SA
+from mlv_ros.core.types import RegisteredModel, SEGMENT_ORIGIN_CODES, VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 CHECK_PERIOD_S = 0.25  # how often the ED timeout is looked at
-CLOUD_FIELDS = ('x', 'y', 'z', 'alpha', 'beta', 'w', 'transmural')
-# What consumers need of the cloud (finite, floating point): position and polar model coordinates;
-# ``transmural`` is optional.
-REQUIRED_CLOUD_FIELDS = CLOUD_FIELDS[:6]
 
 
 class Registration(GraphNode):
@@ -89,18 +85,9 @@ class Registration(GraphNode):
             'take frames with their history (TRANSIENT_LOCAL), so a restart '
             'gets the frames already sent; false for a publisher without history',
         )
-        self.cloud_pub = self.create_publisher(
-            PointCloud2, qos.relative(qos.REGISTERED_CLOUD), qos.topic_qos(qos.REGISTERED_CLOUD)
-        )
-        self.state_pub = self.create_publisher(
-            ModelStateMsg, qos.relative(qos.REGISTERED_STATE), qos.topic_qos(qos.REGISTERED_STATE)
-        )
-        self.create_subscription(
-            TaggedFrame,
-            qos.relative(qos.FRAMES),
-            self._on_frame,
-            qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up),
-        )
+        self.cloud_pub = self.publisher(qos.REGISTERED_CLOUD, PointCloud2)
+        self.state_pub = self.publisher(qos.REGISTERED_STATE, ModelStateMsg)
+        self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=self.catch_up)
         self.ed_frames: dict = {}
         self.expected = 0
         self.first_at = None
@@ -116,15 +103,7 @@ class Registration(GraphNode):
 
     def _on_frame(self, msg: TaggedFrame) -> None:
         self.messages_handled += 1
-        if self.foreign(
-            msg.study_id,
-            qos.FRAMES,
-            run_id=msg.run_id,
-            view=msg.view,
-            slice=msg.slice_index,
-            phase=msg.phase_index,
-            stamp=conversions.stamp_text(msg.header.stamp),
-        ):
+        if self.foreign_slice_message(msg, qos.FRAMES):
             return  # another graph's frame (nor does it count as activity on our stream)
         self.silence.heard()
         if msg.phase_index != 0 or self.registered:
@@ -226,22 +205,7 @@ class Registration(GraphNode):
             if not rep.ok
         ]
         self.result = res
-        coords = res.frame.coords
-        cloud = {
-            'x': res.particles[:, 0],
-            'y': res.particles[:, 1],
-            'z': res.particles[:, 2],
-            'alpha': res.polar['alpha'],
-            'beta': res.polar['beta'],
-            'w': res.polar['w'],
-            'transmural': res.polar.get('transmural', np.zeros(len(coords))),
-        }
         stamp = self.get_clock().now().to_msg()
-        self.cloud_pub.publish(
-            conversions.cloud_to_msg(
-                conversions.structured(cloud, np.float64), conversions.make_header(stamp)
-            )
-        )
         state = res.state
         state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
         verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
@@ -251,7 +215,17 @@ class Registration(GraphNode):
         if septum is not None:
             state.segment_origin = SEGMENT_ORIGIN_CODES[septum.source]
             state.segment_origin_confidence = float(np.clip(septum.confidence, 0.0, 1.0))
-        self.state_pub.publish(conversions.model_state_to_msg(state, stamp))
+        model = RegisteredModel(
+            res.particles,
+            res.polar['alpha'],
+            res.polar['beta'],
+            res.polar['w'],
+            state,
+            res.polar.get('transmural'),
+        )
+        cloud_msg, state_msg = conversions.registered_to_msgs(model, stamp)
+        self.cloud_pub.publish(cloud_msg)
+        self.state_pub.publish(state_msg)
         extra = {}
         if res.warnings:
             extra['warnings'] = ' | '.join(res.warnings)

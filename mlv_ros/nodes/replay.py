@@ -41,7 +41,6 @@ import time
 
 from mlv_ros import bagio, qos
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
-from mlv_ros.nodes.recorder import message_class
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -146,7 +145,7 @@ class Replay(GraphNode):
                     )
                 continue
             try:
-                cls = message_class(info['type'])
+                cls = bagio.message_class(info['type'])
             except (ImportError, AttributeError, ValueError):
                 self.report(WARN, 'skipping topic of unknown type', topic=topic, type=info['type'])
                 continue

@@ -47,6 +47,7 @@ import hashlib
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.registration.streaming import StreamingMasker
+from mlv_ros.core.streaming import InOrderBuffer
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tags.gabor import TagInputError, validate_image
 from mlv_ros.core.types import TagPointSet
@@ -99,21 +100,13 @@ class TagDetector(GraphNode):
             'take frames with their history (TRANSIENT_LOCAL), so a restart '
             'gets the frames already sent; false for a publisher without history',
         )
-        self.pub = self.create_publisher(
-            TagPoints, qos.relative(qos.TAG_POINTS), qos.topic_qos(qos.TAG_POINTS)
-        )
-        self.create_subscription(
-            TaggedFrame,
-            qos.relative(qos.FRAMES),
-            self._on_frame,
-            qos.subscription_qos(qos.FRAMES, catch_up=self.catch_up),
-        )
+        self.pub = self.publisher(qos.TAG_POINTS, TagPoints)
+        self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=self.catch_up)
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
         self.trackers: dict = {}  # (view, slice) → SliceTracker
-        self.next_phase: dict = {}  # (view, slice) → next phase to process
-        self.pending: dict = {}  # (view, slice) → {phase: (frame, stamp)}
+        self.order = InOrderBuffer(self.max_pending)  # each slice's frames in phase order
         self.messages_handled = 0
-        self.frames_out = 0
+        self.published = 0  # tag point sets published (one a frame)
         self.digests: dict = {}  # (view, slice, phase) → image digest of the frame taken
         self.counts = Counter()  # routine and notable events, carried by the heartbeat
         self.no_tags: dict = {}  # (view, slice) → why its ED detection failed
@@ -151,15 +144,12 @@ class TagDetector(GraphNode):
             return self._publish_empty(msg, f'bad frame: {exc}')
         key = (frame.view, frame.slice_index)
         self.masker.observe_geometry(frame)
-        nxt = self.next_phase.setdefault(key, 0)
-        waiting = self.pending.setdefault(key, {})
         slot = (*key, frame.phase_index)
         digest = _digest(msg)
-        if frame.phase_index < nxt or frame.phase_index in waiting:
+        if not self.order.offer(key, frame.phase_index, (frame, msg.header.stamp)):
             self._duplicate(slot, digest, where, stamp)
             return
         self.digests[slot] = digest
-        waiting[frame.phase_index] = (frame, msg.header.stamp)
         self._drain(key)
 
     def _duplicate(self, slot, digest: bytes, where: str, stamp: str) -> None:
@@ -196,19 +186,15 @@ class TagDetector(GraphNode):
             self.get_logger().debug(f'duplicate frame dropped frame={where} stamp={stamp}')
 
     def _drain(self, key) -> None:
-        waiting = self.pending[key]
-        while waiting:
-            nxt = self.next_phase[key]
-            if nxt not in waiting:
-                if len(waiting) < self.max_pending:
-                    return
+        """Process the slice's frames that are due, in phase order (the missing ones skipped)."""
+        for slot in self.order.drain(key):
+            if slot.item is None:
                 self.counts['frames_missing'] += 1
-                self.report(WARN, 'frame missing; skipped', view=key[0], slice=key[1], phase=nxt)
-                self.next_phase[key] = nxt + 1
-                continue
-            frame, stamp = waiting.pop(nxt)
-            self.next_phase[key] = nxt + 1
-            self._process(key, frame, stamp)
+                self.report(
+                    WARN, 'frame missing; skipped', view=key[0], slice=key[1], phase=slot.phase
+                )
+            else:
+                self._process(key, *slot.item)
 
     def _process(self, key, frame, stamp) -> None:
         tracker = self.trackers.get(key)
@@ -236,7 +222,7 @@ class TagDetector(GraphNode):
             )
         self._judge(key, frame, points, started, conversions.stamp_text(stamp))
         self.pub.publish(conversions.tagpoints_to_msg(points, stamp=stamp))
-        self.frames_out += 1
+        self.published += 1
 
     def _judge(self, key, frame, points: TagPointSet, started: bool, stamp: str) -> None:
         """Say what a user must act on at WARN; count and DEBUG-log what tags do anyway."""
@@ -324,7 +310,7 @@ class TagDetector(GraphNode):
         ed_tracks = sum(len(t.track_id) for t in self.trackers.values())
         alive = sum(len(t.alive) for t in self.trackers.values())
         values = {
-            'frames': self.frames_out,
+            'frames': self.published,
             'slices': len(self.trackers),
             'tracks_at_ed': ed_tracks,
             'tracks_alive': alive,
@@ -333,7 +319,7 @@ class TagDetector(GraphNode):
         message = (
             '; '.join(problems)
             if problems
-            else f'tracking: {self.frames_out} frames, {len(self.trackers)} slices'
+            else f'tracking: {self.published} frames, {len(self.trackers)} slices'
         )
         status = self.diagnostic_status(level, message, values)
         # GraphNode's heartbeat republishes _status (with the per-topic stream counts) at 1 Hz.
@@ -347,9 +333,7 @@ class TagDetector(GraphNode):
         filled or later slot keeps its own).
         """
         key = (msg.view, msg.slice_index)
-        if msg.phase_index != self.next_phase.get(key, 0) or msg.phase_index in self.pending.get(
-            key, {}
-        ):
+        if not self.order.expects(key, msg.phase_index):
             return
         try:
             geometry = conversions.msg_to_geometry(msg.geometry)
@@ -368,11 +352,10 @@ class TagDetector(GraphNode):
             out = conversions.tagpoints_to_msg(points, stamp=msg.header.stamp)
         except ValueError:
             return  # geometry or indices unusable: nothing meaningful to forward
-        self.next_phase[key] = msg.phase_index + 1
+        self.order.fill(key, msg.phase_index)
         self.pub.publish(out)
-        self.frames_out += 1
-        if key in self.pending:
-            self._drain(key)  # later phases that waited for this slot go on
+        self.published += 1
+        self._drain(key)  # later phases that waited for this slot go on
 
 
 def main(args=None):

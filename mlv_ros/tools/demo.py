@@ -19,7 +19,7 @@ Simulate the built-in ``normal`` LV phantom (8 SA + 3 LA tagged cines, 256², 25
 run the whole graph on it in one process, record the run, build the report and print the accuracy
 against the phantom's analytic ground truth. About a minute and a half on 2 cores.
 
-The console is ``mlv-ros run``'s (:mod:`mlv_ros.tools.console`): a progress bar over phases on a
+The console is ``mlv-ros run``'s (:mod:`mlv_ros.console`): a progress bar over phases on a
 terminal, then a short summary; ``--verbose`` adds the event lines, the nodes' INFO lines and the
 result as JSON.
 """
@@ -54,16 +54,9 @@ def add_arguments(parser):
 
 def run(args) -> int:
     from mlv_ros.core.sim import load_preset
-    from mlv_ros.tools.console import RunConsole, summary_lines
-    from mlv_ros.tools.report import build
-    from mlv_ros.tools.run import (
-        exit_status,
-        phantom_accuracy,
-        run_graph,
-        RunInterrupted,
-        SIGNAL_EXIT,
-        verdict_line,
-    )
+    from mlv_ros.console import RunConsole, summary_lines
+    from mlv_ros.recording import phantom_accuracy, write_report
+    from mlv_ros.runner import exit_status, run_graph, RunInterrupted, SIGNAL_EXIT, verdict_line
 
     def fail(msg) -> int:
         print(f'mlv-ros demo: {one_line(msg)}', file=sys.stderr)
@@ -123,7 +116,7 @@ def run(args) -> int:
         )
         return 1
     acc = phantom_accuracy(Path(summary['mcap']), args.preset, summary['num_phases'])
-    index = build(Path(summary['mcap']))
+    index = write_report(Path(summary['mcap']))
     es = acc['es']
     result = {
         'run_dir': str(out),

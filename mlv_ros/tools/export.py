@@ -105,7 +105,7 @@ def read_phases(mcap: Path) -> dict:
     """
     Read everything the export needs from a recording.
 
-    The recording is checked with :func:`mlv_ros.tools.report.check_recording` first.
+    The recording is checked with :func:`mlv_ros.recording.check_recording` first.
 
     Returns
     -------
@@ -118,7 +118,7 @@ def read_phases(mcap: Path) -> dict:
     """
     from mlv_msgs.msg import ModelState
     from mlv_ros import bagio, conversions, qos
-    from mlv_ros.tools.run import read_run
+    from mlv_ros.recording import read_run
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import PointCloud2
 
@@ -315,7 +315,7 @@ def export_vtk(mcap: Path, out: Path) -> dict:
 
     """
     from mlv_ros.core.io.vtk import write_pvd, write_vtu_points
-    from mlv_ros.tools.report import check_recording
+    from mlv_ros.recording import check_recording
 
     mcap, out = Path(mcap), Path(out)
     check_recording(mcap)

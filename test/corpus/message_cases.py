@@ -70,8 +70,6 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import ModelState, TagPointSet, VIEW_LA, VIEW_SA
-from mlv_ros.nodes.meshless_solver import MOTION_FIELDS
-from mlv_ros.nodes.registration import CLOUD_FIELDS, REQUIRED_CLOUD_FIELDS
 import numpy as np
 from sensor_msgs.msg import Image, PointField
 
@@ -877,12 +875,16 @@ def message_cases(
     points = _tag_point_cases(valid)
     motion_sample = conversions.cloud_to_msg(
         conversions.structured(
-            {k: np.linspace(1.0, 2.0, 7) + i for i, k in enumerate(MOTION_FIELDS)}
+            {k: np.linspace(1.0, 2.0, 7) + i for i, k in enumerate(conversions.MOTION_FIELDS)}
         )
     )
     registered_sample = conversions.cloud_to_msg(
         conversions.structured(
-            {k: np.linspace(1.0, 2.0, 7) + i for i, k in enumerate(CLOUD_FIELDS)}, np.float64
+            {
+                k: np.linspace(1.0, 2.0, 7) + i
+                for i, k in enumerate(conversions.REGISTERED_CLOUD_FIELDS)
+            },
+            np.float64,
         )
     )
     motion = _cloud_cases(
@@ -902,7 +904,7 @@ def message_cases(
         qos.REGISTERED_CLOUD,
         'meshless_solver',
         registered_sample,
-        REQUIRED_CLOUD_FIELDS,
+        conversions.REGISTERED_REQUIRED_FIELDS,
         'registered_cloud',
         full=False,
     )

@@ -34,7 +34,7 @@ terminal's Ctrl-C reaches the run only, which stops it once the phases in flight
 the run dies, end of file on stdin stops the child.
 
 :class:`ChildNode` stands in the run for the node: the counters and statuses ``mlv-ros run``
-reads of its nodes (``frames_out``, ``messages_handled``, ``diagnostics_sent``, ``failure``,
+reads of its nodes (:meth:`progress`, ``diagnostics_sent``, ``failure``,
 ``last_error``, ``status``, ``other_studies``), a ``study`` to adopt, and ``crash`` (why the
 process ended, when it ended on its own or a callback raised).
 """
@@ -51,7 +51,7 @@ import sys
 import threading
 import time
 
-STATE_FIELDS = ('frames_out', 'messages_handled', 'diagnostics_sent', 'published')
+STATE_FIELDS = ('messages_handled', 'diagnostics_sent', 'published')
 REPORT_PERIOD_S = 0.1
 DRAIN_QUIET_S = 0.2  # as run_node: queued messages are taken until none came for this long
 
@@ -101,7 +101,7 @@ class ChildNode:
     def __init__(self, name: str, proc: subprocess.Popen):
         self.name, self.proc = name, proc
         self.study = _Study(self)
-        self.frames_out = self.messages_handled = self.diagnostics_sent = self.published = 0
+        self.messages_handled = self.diagnostics_sent = self.published = 0
         self.failure: str | None = None
         self.crash: str | None = None  # why the process ended on its own, or a callback raised
         self.last_error = None
@@ -134,7 +134,7 @@ class ChildNode:
             [root, *([env['PYTHONPATH']] if env.get('PYTHONPATH') else [])]
         )
         proc = subprocess.Popen(
-            [sys.executable, '-m', 'mlv_ros.tools.graph_process'],
+            [sys.executable, '-m', 'mlv_ros.graph_process'],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
@@ -196,6 +196,10 @@ class ChildNode:
             why = f'killed by {signal.Signals(-rc).name}' if rc < 0 else f'exit status {rc}'
             self.crash = f'its process ended unexpectedly ({why})'
         self._events['eof'].set()
+
+    def progress(self) -> dict:
+        """Return the node's counters as :meth:`GraphNode.progress` does, as last reported."""
+        return {'received': int(self.messages_handled), 'published': int(self.published)}
 
     def wait_started(self, timeout: float = 120.0) -> str | None:
         """Block until the node is created; returns why it could not start, else None."""
@@ -268,7 +272,7 @@ def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     config = json.loads(sys.stdin.readline() or '{}')
-    from mlv_ros.tools.run import _error_text
+    from mlv_ros.cli import error_text
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -292,7 +296,7 @@ def main() -> int:
                 ],
             )
         except Exception as exc:
-            _emit(out, {'event': 'start_failed', 'reason': _error_text(exc)})
+            _emit(out, {'event': 'start_failed', 'reason': error_text(exc)})
             return 2
         _emit(out, {'event': 'started'})
         line = sys.stdin.readline()
@@ -317,7 +321,7 @@ def main() -> int:
             try:
                 ex.spin_once(timeout_sec=0.05)
             except Exception as exc:  # a callback raised: the node is gone
-                crashed = _error_text(exc)
+                crashed = error_text(exc)
                 break
             state = _state(node)
             if state != last and time.monotonic() - sent_at >= REPORT_PERIOD_S:
@@ -330,7 +334,7 @@ def main() -> int:
                 try:
                     ex.spin_once(timeout_sec=0.05)
                 except Exception as exc:
-                    crashed = _error_text(exc)
+                    crashed = error_text(exc)
                     break
                 if node.messages_handled != handled:
                     handled, quiet_since = node.messages_handled, time.monotonic()
