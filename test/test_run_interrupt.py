@@ -313,7 +313,10 @@ def test_tag_detector_process_killed_ends_the_run_with_the_reason(tmp_path):
     os.kill(int(children[0]), signal.SIGKILL)
     killed = time.monotonic()
     rc, _, lines = run.finish()
-    assert rc == 1 and time.monotonic() - killed < 10
+    # The reason below tells the child's death from the stall detector's verdict; the bound only
+    # guards against a hang (a fixed 10 s failed at load 13, where the remaining nodes' shutdown
+    # alone took 22 s).
+    assert rc == 1 and time.monotonic() - killed < 60
     said = [line for line in our_lines(lines) if not line.startswith('mlv-ros run: of ')]
     assert (
         len(said) == 1
