@@ -25,10 +25,17 @@ against the simulator's ED myocardium (slab fraction ≥ 0.5, as ``simulate_stud
 * ``batch`` — :func:`segment_sa` / :func:`segment_la` around the long axis that
   :func:`register_ed` estimates from the plane geometry.
 
+Drawn protocols (``--protocols``): the ED frames of ``mlv-ros simulate --random SEED`` studies
+(the protocol's own size, sub-planes and noise; abnormal regions off, as ``bench/robustness.py``
+draws them), each with the right ventricle forced on and/or off (``--rv``), scored on the batch
+path, plus the fraction of :func:`register_ed`'s ED particles inside the true myocardium
+(``--particles``; what ``bench/robustness.py`` reports as ``inside_myocardium``).
+
 Usage: .venv/bin/python bench/segmentation.py [--cases NAME ...] [--random N] [--seed S]
        [--paths stream batch]
+       .venv/bin/python bench/segmentation.py --protocols 2000-2020 [--rv on off] [--particles]
        .venv/bin/mlv-ros bench segmentation -- --cases normal foreign
-(all cases, both paths: ~80 s on one core).
+(all cases, both paths: ~80 s on one core; 21 protocols with and without the RV: ~5 min).
 """
 
 from __future__ import annotations
@@ -37,12 +44,13 @@ import argparse
 import json
 import time
 
+from mlv_ros.core.registration import register_ed, segment_around_axis
 from mlv_ros.core.registration import segment as seg
-from mlv_ros.core.registration import segment_around_axis
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
+from mlv_ros.core.sim.protocol import draw_protocol, protocol_preset
 from mlv_ros.core.types import Frame, VIEW_LA, VIEW_SA
 import numpy as np
 
@@ -117,9 +125,24 @@ def random_cases(n: int, seed: int) -> dict:
     return out
 
 
-def render_ed(spec: dict, seed: int = 0):
+def ed_frames(motion, imaging: dict, size: int, rng, time_s: float = 0.0, scale: float = 1.0):
     """
-    ED frames of every planned slice and their true myocardium masks.
+    Render phase 0 of every planned slice and its true myocardium mask.
+
+    Parameters
+    ----------
+    motion : LVMotion
+        The study's motion.
+    imaging : dict
+        Its preset's ``imaging`` section.
+    size : int
+        Rows = columns, px.
+    rng : numpy.random.Generator
+        Noise draws, in slice order.
+    time_s : float
+        Time of the frame after the tagging, s (tags fade with T1).
+    scale : float
+        Intensity scale applied to every image.
 
     Returns
     -------
@@ -129,21 +152,10 @@ def render_ed(spec: dict, seed: int = 0):
         ``(view, slice_index) -> bool (rows, cols)``.
 
     """
-    p = load_preset(spec.get('preset', 'normal'))
-    p['geometry'].update(spec.get('geometry', {}))
-    im = p['imaging']
-    im.update(spec.get('imaging', {}))
-    im['subplanes'] = 3
-    n = int(np.clip(round(FOV_MM / float(im['pixel_spacing_mm'])), 96, 192))
-    im['size'] = n
-    motion = LVMotion(p)
-    rng = np.random.default_rng(seed)
-    t = float(spec.get('time_s', 0.0))
-    scale = float(spec.get('scale', 1.0))
     frames, truth = [], {}
-    for sl in plan_slices(motion, im, n):
-        syn = ImageSynthesizer(motion, sl, n, im)
-        img = syn.render(0, t, float(im['snr']), rng) * scale
+    for sl in plan_slices(motion, imaging, size):
+        syn = ImageSynthesizer(motion, sl, size, imaging)
+        img = syn.render(0, time_s, float(imaging['snr']), rng) * scale
         frames.append(
             Frame(
                 image=img,
@@ -152,12 +164,133 @@ def render_ed(spec: dict, seed: int = 0):
                 slice_index=sl.index,
                 phase_index=0,
                 num_phases=motion.num_phases,
-                trigger_time=t,
+                trigger_time=time_s,
                 cycle_duration=motion.cycle_duration,
             )
         )
         truth[(sl.view, sl.index)] = syn.tissue_fractions(0)[0] >= 0.5
     return frames, truth
+
+
+def render_ed(spec: dict, seed: int = 0):
+    """
+    ED frames of every planned slice of a named case and their true myocardium masks.
+
+    The preset with the case's overrides, 3 sub-planes, a ~180 mm field of view; returns
+    ``(frames, truth)`` as :func:`ed_frames`.
+    """
+    p = load_preset(spec.get('preset', 'normal'))
+    p['geometry'].update(spec.get('geometry', {}))
+    im = p['imaging']
+    im.update(spec.get('imaging', {}))
+    im['subplanes'] = 3
+    n = int(np.clip(round(FOV_MM / float(im['pixel_spacing_mm'])), 96, 192))
+    im['size'] = n
+    motion = LVMotion(p)
+    frames, truth = ed_frames(
+        motion,
+        im,
+        n,
+        np.random.default_rng(seed),
+        float(spec.get('time_s', 0.0)),
+        float(spec.get('scale', 1.0)),
+    )
+    return frames, truth
+
+
+def render_protocol(seed: int, rv: bool):
+    """
+    ED frames of a drawn protocol, their true myocardium masks and the motion.
+
+    Parameters
+    ----------
+    seed : int
+        Protocol seed (:func:`draw_protocol`); also seeds the noise.
+    rv : bool
+        Right ventricle beside the LV or not (the other items as drawn; abnormal regions off).
+
+    Returns
+    -------
+    protocol : dict
+    frames : list of Frame
+    truth : dict
+        ``(view, slice_index) -> bool (rows, cols)``.
+    motion : LVMotion
+
+    """
+    protocol = draw_protocol(seed, {'right_ventricle': bool(rv), 'abnormal_regions': []})
+    pre = protocol_preset(protocol)
+    motion = LVMotion(pre)
+    im = pre['imaging']
+    frames, truth = ed_frames(motion, im, im['size'], np.random.default_rng(seed))
+    return protocol, frames, truth, motion
+
+
+def protocol_rows(seeds: list, rvs: list, particles: bool) -> dict:
+    """
+    Score the batch path (and optionally the registered particles) on drawn protocols.
+
+    Parameters
+    ----------
+    seeds : list of int
+        Protocol seeds.
+    rvs : list of str
+        ``"on"`` and/or ``"off"``: the right ventricle forced.
+    particles : bool
+        Also register the ED model (3000 particles) and report the fraction inside the truth.
+
+    Returns
+    -------
+    dict
+        ``{"rows": [...], "summary": {rv: {...}}}``.
+
+    """
+    rows = []
+    for rv in rvs:
+        for seed in seeds:
+            protocol, frames, truth, motion = render_protocol(seed, rv == 'on')
+            t0 = time.perf_counter()
+            row = {'seed': seed, 'rv': rv, **score(segment_around_axis(frames), truth)}
+            row['seconds'] = round(time.perf_counter() - t0, 2)
+            row['pixel_mm'] = protocol['pixel_spacing_mm']
+            row['tag_mm'] = protocol['tag_spacing_mm']
+            if particles:
+                try:
+                    reg = register_ed(frames, num_particles=3000)
+                    row['inside_myocardium'] = round(
+                        float(np.mean(motion.inside_myocardium(reg.particles))), 3
+                    )
+                except ValueError as exc:
+                    row['inside_myocardium'] = None
+                    row['registration_error'] = str(exc)
+            rows.append(row)
+    summary = {}
+    for rv in rvs:
+        mine = [r for r in rows if r['rv'] == rv]
+        summary[rv] = {}
+        for view in ('SA', 'LA'):
+            d = [x for r in mine for x in r[view]['per_slice']]
+            summary[rv][view] = {
+                'mean_dice': round(float(np.mean(d)), 3),
+                'failed': sum(len(r[view]['failed']) for r in mine),
+                'slices': len(d),
+            }
+        inside = [r['inside_myocardium'] for r in mine if r.get('inside_myocardium') is not None]
+        if inside:
+            summary[rv]['inside_myocardium'] = {
+                'mean': round(float(np.mean(inside)), 3),
+                'min': round(float(np.min(inside)), 3),
+            }
+    return {'rows': rows, 'summary': summary}
+
+
+def _seed_list(text: str) -> list:
+    """``"2000-2020"`` or ``"1009,2007"`` (or a mix) -> the seeds."""
+    out = []
+    for part in text.split(','):
+        lo, _, hi = part.partition('-')
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
 
 
 def stream_masks(frames: list) -> dict:
@@ -188,7 +321,27 @@ def main():
     ap.add_argument('--random', type=int, default=6, help='random combinations to add')
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--paths', nargs='+', default=['stream', 'batch'], choices=['stream', 'batch'])
+    ap.add_argument(
+        '--protocols',
+        type=_seed_list,
+        default=None,
+        help='drawn protocol seeds instead of the named cases, e.g. 2000-2020 or 1009,2007',
+    )
+    ap.add_argument(
+        '--rv', nargs='+', default=['on', 'off'], choices=['on', 'off'], help='with --protocols'
+    )
+    ap.add_argument(
+        '--particles',
+        action='store_true',
+        help='with --protocols: also the registered particles inside the true myocardium',
+    )
     a = ap.parse_args()
+    if a.protocols:
+        t_all = time.perf_counter()
+        out = protocol_rows(a.protocols, a.rv, a.particles)
+        out['seconds'] = round(time.perf_counter() - t_all, 1)
+        print(json.dumps(out, indent=1))
+        return
     allc = {**cases(), **random_cases(a.random, a.seed)}
     names = a.cases if a.cases else list(allc)
     results = []

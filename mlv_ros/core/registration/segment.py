@@ -43,8 +43,10 @@ estimate thresholds each ray's energy profile where the edges of a Gaussian-blur
 width it shows lie (½ of the peak for a thick wall, more for a thin one); then both features
 are fitted together by least squares (:func:`_fit_walls`), each as cavity level, wall plateau
 and outside level blurred at the two edges: the mean is sharper and untouched by steps, the
-energy carries the wall wherever blood and wall have the same mean. Edges are the partial-volume
-boundary (fraction 0.5, the ground-truth convention).
+energy carries the wall wherever blood and wall have the same mean. The cavity level is one (one
+blood pool); the mean's outside level is each ray's own, read just beyond its wall: beside the
+septum lies the right ventricle's bright untagged blood, elsewhere lung, liver or chest wall.
+Edges are the partial-volume boundary (fraction 0.5, the ground-truth convention).
 
 Shape prior (paper §3.2 relies on a segmentation of both views; we use a geometric prior
 instead of the paper's learned one):
@@ -95,6 +97,11 @@ MIN_WALL_SNR = 4.5
 #: iteration, px.
 REFINE_ITERATIONS = 3
 REFINE_REACH_PX = 3.0
+#: Each ray's own outside level (:func:`_fit_walls`) is read between these distances beyond its
+#: epicardium, in the channel's edge blur σ: past the blurred edge (Φ(−1.8) ≈ 4 % of the wall
+#: left), and within about one more edge width, so that what lies just outside the wall — the
+#: right ventricle's blood on the septal side, lung or tagged tissue elsewhere — sets it.
+OUTSIDE_NEAR_SIGMA = (1.8, 3.6)
 
 
 @dataclass
@@ -592,13 +599,17 @@ def _wall_runs(
         cav[rows] = cav_rows
     _, sm, _ = _sample_rays(feat.mean, centre_rc, angles, max_radius_px)
     e, q = _fit_walls(
-        ((sub, sig, float(feat.blur_px)), (sm[rows], lam / np.sqrt(12.0), lam / np.sqrt(12.0))),
+        (
+            (sub, sig, float(feat.blur_px), False),
+            (sm[rows], lam / np.sqrt(12.0), lam / np.sqrt(12.0), True),
+        ),
         radii,
         e,
         q,
         cav[rows],
         out[rows],
         min_wall_px,
+        inside[rows],
     )
     endo = np.full(n_rays, np.nan)
     epi = np.full(n_rays, np.nan)
@@ -685,14 +696,21 @@ def _bent(r, sigma):
         return np.where(r > 0, r - sigma * sigma / (2.0 * np.maximum(np.abs(r), 2.0 * sigma)), r)
 
 
-def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
+def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
     """
     Least-squares walls [a, b] on several ray channels at once.
 
-    Each channel ``(samples (K, R), blur σ, curvature σ)`` is modelled along a ray as its cavity
-    level, a wall plateau and its outside level, the steps blurred by a Gaussian σ at the
-    edges bent by :func:`_bent`: ``c + (P − c) Φ((r − a')/σ) + (o − P) Φ((r − b')/σ)``. The
-    levels c, o are the channel's medians over the ``cav`` / ``out`` samples; the plateau P
+    Each channel ``(samples (K, R), blur σ, curvature σ, own outside)`` is modelled along a ray
+    as its cavity level, a wall plateau and its outside level, the steps blurred by a Gaussian σ
+    at the edges bent by :func:`_bent`: ``c + (P − c) Φ((r − a')/σ) + (o − P) Φ((r − b')/σ)``.
+    The cavity level c is the channel's median over the ``cav`` samples (one blood pool); the
+    outside level o the median over the ``out`` samples, or, for a channel flagged ``own
+    outside``, each ray's own (:func:`_outside_per_ray`). The tag-free mean is flagged: around
+    the LV it differs (the right ventricle's bright blood beside the septum, dark lung or tissue
+    elsewhere), and one level for all rays pulled the septal epicardium into the RV pool and
+    biased the common plateau, thickening every wall. The energy is not: the RV's blood is
+    untagged, so its energy is the dark surroundings' (measured: per-ray energy levels too moved
+    the normal preset's tagged surroundings, ES median 0.346 → 0.367 mm). The plateau P
     (linear least squares) and the noise variance (residuals) are common to all rays; each
     ray's a, b are the best of a grid of ±:data:`REFINE_REACH_PX` around the current ones
     (rays without a cavity keep a = −∞). :data:`REFINE_ITERATIONS` rounds.
@@ -708,9 +726,13 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
     nd = int(round(REFINE_REACH_PX / step))
     d = np.arange(-nd, nd + 1) * step
     chans = []
-    for samples, sigma, curv in channels:
+    for samples, sigma, curv, own_outside in channels:
         o = float(np.median(samples[out])) if out.sum() >= 20 else float(np.median(samples[:, -1]))
         c = float(np.median(samples[cav])) if cav.sum() >= 20 else o
+        if own_outside:
+            o = _outside_per_ray(samples, radii, b0, sigma, inside, o)
+        else:
+            o = np.full((k, 1), o)
         chans.append({'s': samples, 'sig': float(sigma), 'curv': float(curv), 'c': c, 'o': o})
     a = np.where(a0 > 0, a0, -np.inf)
     b = np.asarray(b0, dtype=np.float64).copy()
@@ -739,13 +761,13 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
             p = float(np.sum(g * yy) / max(float(np.sum(g * g)), 1e-300))
             var = max(
                 float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
-                (1e-3 * max(abs(p - c), abs(p - o), 1e-300)) ** 2,
+                (1e-3 * max(abs(p - c), float(np.max(np.abs(p - o))), 1e-300)) ** 2,
             )
             # Window m of the extended grid holds the profile shifted by (nd − m) samples.
             sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
             sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
             ya = (y[:, None, :] - c - (p - c) * sa) * win[:, None, :]
-            bb = (o - p) * sb * win[:, None, :]
+            bb = (o - p)[:, :, None] * sb * win[:, None, :]
             ss = (
                 np.sum(ya * ya, axis=2)[:, :, None]
                 - 2.0 * np.einsum('kar,kbr->kab', ya, bb)
@@ -779,6 +801,44 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px):
         a = np.where(fin, av[rows, ia] + fa_ * (d[1] - d[0]), a)
         b = np.where(fin, bv[rows, ib] + fb_ * (d[1] - d[0]), b)
     return np.maximum(a, 0.0), b
+
+
+def _outside_per_ray(samples, radii, epi, sigma, inside, fallback):
+    """
+    Each ray's outside level: the median of its samples just beyond its epicardium.
+
+    Parameters
+    ----------
+    samples : ndarray, shape (K, R)
+        One channel's ray samples.
+    radii : ndarray, shape (R,)
+        Sample radii, px.
+    epi : ndarray, shape (K,)
+        Current epicardial radius per ray, px.
+    sigma : float
+        The channel's edge blur, px: samples between :data:`OUTSIDE_NEAR_SIGMA` σ beyond ``epi``.
+    inside : ndarray of bool, shape (K, R), or None
+        Samples within the image (None: all).
+    fallback : float
+        The slice's outside level, kept on rays with fewer than 4 such samples (1 px).
+
+    Returns
+    -------
+    ndarray, shape (K, 1)
+        Outside level per ray (channel units).
+
+    """
+    lo, hi = OUTSIDE_NEAR_SIGMA
+    r = radii[None, :]
+    e = np.asarray(epi, dtype=np.float64)[:, None]
+    near = (r >= e + lo * sigma) & (r <= e + hi * sigma)
+    if inside is not None:
+        near &= inside
+    vals = np.where(near, samples, np.nan)
+    enough = near.sum(axis=1) >= 4
+    with np.errstate(all='ignore'):
+        med = np.nanmedian(np.where(enough[:, None], vals, 0.0), axis=1)
+    return np.where(enough, med, float(fallback))[:, None]
 
 
 def _parabola_offset(ym, y0, yp):
