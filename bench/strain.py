@@ -81,7 +81,7 @@ def ours_at_es(mcap: Path, es: int) -> dict:
 
     """
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
-    from mlv_ros.core.tracking import lv_frame_axes
+    from mlv_ros.core.analysis.frame import lv_frame_axes
     from mlv_ros.recording import read_run
 
     run = read_run(mcap)

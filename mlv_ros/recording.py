@@ -96,7 +96,7 @@ def motion_accuracy(run: dict, motion) -> dict:
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
     from mlv_ros.core.analysis.frame import plane_level_span
     from mlv_ros.core.evaluation import evaluate_run
-    from mlv_ros.core.tracking import lv_frame_axes
+    from mlv_ros.core.analysis.frame import lv_frame_axes
 
     frame = LVFrame(*lv_frame_axes(run['ed'], run['rotation']))
     analyzer = LVAnalyzer(run['ed'], frame)
@@ -190,7 +190,7 @@ def load_run_data(path: Path, label: str):
     from mlv_ros.core.analysis import LVFrame, PhaseMetrics
     from mlv_ros.core.analysis.frame import plane_level_span
     from mlv_ros.core.report.summary import RunData
-    from mlv_ros.core.tracking import lv_frame_axes
+    from mlv_ros.core.analysis.frame import lv_frame_axes
 
     run = read_run(path)
     frame = None

@@ -157,7 +157,7 @@ def test_registration_orients_the_model_by_the_detected_septum():
     """
     from mlv_ros.core.registration import register_ed
     from mlv_ros.core.sim.study import simulate_study
-    from mlv_ros.core.tracking import lv_frame_axes
+    from mlv_ros.core.analysis.frame import lv_frame_axes
 
     p = draw_protocol(
         2002,

@@ -181,7 +181,7 @@ def test_phase_assembler_completeness_and_duplicates(study):
 def apical_twist_error(study, twist_knots):
     """Twist error (degrees) per level at ES, apex first, with exact in-plane tags."""
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
-    from mlv_ros.core.tracking import lv_frame_axes
+    from mlv_ros.core.analysis.frame import lv_frame_axes
 
     m = study.motion
     X, sol = solve_es(study, twist_knots=twist_knots)

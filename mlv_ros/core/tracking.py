@@ -55,7 +55,6 @@ from mlv_ros.core.verdict import phase_verdict
 import numpy as np
 from scipy.spatial import cKDTree
 
-SliceKey = tuple  # (view, slice_index)
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
 # slices spanning this fraction of the LV's height, and extrapolated this far beyond them.
 TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
@@ -365,7 +364,6 @@ class MotionTracker:
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
-        self.last_phase = 0
         if coarse_aggregates is None:
             coarse_aggregates = min(COARSE_MAX_AGGREGATES, self.rest.shape[0] // COARSE_PARTICLES)
         if not isinstance(coarse_aggregates, (int, np.integer)) or coarse_aggregates < 0:
@@ -570,7 +568,6 @@ class MotionTracker:
         state.num_control_points = int(inside.sum())
         verdict = self._verdict(sets, inside, state.residual, keys, *worst)
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
-        self.last_phase = phase_index
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
 
     def _verdict(self, sets, inside, residual_mm, keys, rejected, attached):
@@ -918,23 +915,3 @@ def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
     again.
     """
     return ControlPoints(ctrl.weights[keep], ctrl.rest_positions[keep], None, ctrl.shepard[keep])
-
-
-def lv_frame_axes(particles, rotation):
-    """
-    Apex, base centre and reference of the LV from a registered model (ED).
-
-    The long axis is R's z column (apex → base) through the particles' centroid; apex and base
-    are the extreme projections of the particles on it; the reference is R's x column.
-
-    Returns
-    -------
-    apex, base, reference : ndarray, shape (3,)
-
-    """
-    pts = np.asarray(particles, dtype=np.float64)
-    R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
-    axis, ref = R[:, 2], R[:, 0]
-    c = pts.mean(axis=0)
-    t = (pts - c) @ axis
-    return c + t.min() * axis, c + t.max() * axis, ref

@@ -40,9 +40,9 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
-from mlv_ros.core.analysis.frame import plane_level_span
+from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
 from mlv_ros.core.streaming import PhaseSchedule
-from mlv_ros.core.tracking import lv_frame_axes, MotionTracker, twist_knots_error
+from mlv_ros.core.tracking import MotionTracker, twist_knots_error
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import (
     ERROR,

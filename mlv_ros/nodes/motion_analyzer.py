@@ -42,8 +42,8 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import LVAnalyzer, LVFrame, SegmentFindings
+from mlv_ros.core.analysis.frame import lv_frame_axes
 from mlv_ros.core.streaming import StampPairer
-from mlv_ros.core.tracking import lv_frame_axes
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from mlv_ros.core.meshless.globals import quat_to_matrix
 import numpy as np
 
 _AXIS_TOL = 1e-6  # mm: apex and base must be distinct
@@ -456,3 +457,30 @@ def twist_extrapolation_note(span, levels: int = 10) -> str:
         'and the torsion, '
         'are extrapolated, not measured'
     )
+
+
+def lv_frame_axes(particles, rotation):
+    """
+    Apex, base centre and reference of the LV from a registered model (ED).
+
+    The long axis is R's z column (apex → base) through the particles' centroid; apex and base
+    are the extreme projections of the particles on it; the reference is R's x column.
+
+    Parameters
+    ----------
+    particles : array_like, shape (N, 3)
+        ED particle positions, mm (patient coordinates).
+    rotation : array_like, shape (4,)
+        The registered model's rotation quaternion (w, x, y, z).
+
+    Returns
+    -------
+    apex, base, reference : ndarray, shape (3,)
+
+    """
+    pts = np.asarray(particles, dtype=np.float64)
+    R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
+    axis, ref = R[:, 2], R[:, 0]
+    c = pts.mean(axis=0)
+    t = (pts - c) @ axis
+    return c + t.min() * axis, c + t.max() * axis, ref
