@@ -236,6 +236,30 @@ def tag_wavevectors(
     too, unevenly across a peak's bins).
 
     """
+    return _spectral_peaks(image, min_period_px, max_period_px, (whitened,))[0]
+
+
+def _spectral_peaks(image, min_period_px, max_period_px, whitened):
+    """
+    :func:`tag_wavevectors` for each of the flags ``whitened``, from one pair of spectra.
+
+    The running median and both FFTs depend on neither flag: computed once, shared.
+
+    Parameters
+    ----------
+    image : ndarray, shape (rows, cols)
+        Tagged image (intensity, any scale).
+    min_period_px, max_period_px : float
+        Search band of tag periods, px.
+    whitened : tuple of bool
+        One search per flag (:func:`tag_wavevectors`).
+
+    Returns
+    -------
+    list of ndarray, shape (2, 2)
+        (row, col) frequencies in cycles / px, one per flag.
+
+    """
     img = np.asarray(image, dtype=np.float64)
     win = np.outer(np.hanning(img.shape[0]), np.hanning(img.shape[1]))
     res = img - running_median(img, int(np.ceil(max_period_px)) | 1)
@@ -246,6 +270,11 @@ def tag_wavevectors(
     FY, FX = np.meshgrid(fy, fx, indexing='ij')
     fr = np.hypot(FY, FX)
     band = (fr >= 1.0 / max_period_px) & (fr <= 1.0 / min_period_px)
+    return [_peak_pair(img.shape, found, spec, FY, FX, fr, band, w) for w in whitened]
+
+
+def _peak_pair(shape, found, spec, FY, FX, fr, band, whitened):
+    """Return the two refined spectral peaks of :func:`tag_wavevectors` (its arrays, one flag)."""
     s1 = np.where(band, found * fr if whitened else found, 0.0)
     i = np.unravel_index(int(np.argmax(s1)), s1.shape)
     k1 = np.array([FY[i], FX[i]])
@@ -255,7 +284,7 @@ def tag_wavevectors(
     out = []
     for idx in (i, j):
         k = np.array([FY[idx], FX[idx]], dtype=np.float64)
-        for ax, n in enumerate(img.shape):  # parabolic refinement per axis
+        for ax, n in enumerate(shape):  # parabolic refinement per axis
             lo = list(idx)
             hi = list(idx)
             lo[ax] = (idx[ax] - 1) % n
@@ -345,8 +374,7 @@ def candidate_features(
     """
     img = np.asarray(image, dtype=np.float64)
     band = tag_period_band_px(pixel_spacing_mm)
-    a = tag_wavevectors(img, *band)
-    b = tag_wavevectors(img, *band, whitened=True)
+    a, b = _spectral_peaks(img, *band, (False, True))
 
     def close(x, y):
         return min(np.linalg.norm(x - y), np.linalg.norm(x + y)) <= 0.05 * np.linalg.norm(y)
@@ -671,9 +699,16 @@ def _half_width_table():
     x = np.linspace(0.0, 80.0, 16001)
     out = []
     for w in u:
-        prof = _phi(x + 0.5 * w) - _phi(x - 0.5 * w)
-        half = 0.5 * prof[0]
-        j = int(np.argmax(prof <= half))
+        # The half level lies within w/2 + 1.2 (σ = 1): the profile up to w/2 + 4 finds the
+        # same first sample at or below it as the whole grid (the whole grid only if not).
+        m = int(np.searchsorted(x, 0.5 * w + 4.0)) + 1
+        for xs in (x[:m], x):
+            prof = _phi(xs + 0.5 * w) - _phi(xs - 0.5 * w)
+            half = 0.5 * prof[0]
+            below = prof <= half
+            if below.any():
+                break
+        j = int(np.argmax(below))
         out.append(
             2.0 * (x[j - 1] + (x[j] - x[j - 1]) * (prof[j - 1] - half) / (prof[j - 1] - prof[j]))
         )
@@ -766,11 +801,17 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
             # Window m of the extended grid holds the profile shifted by (nd − m) samples.
             sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
             sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
-            ya = (y[:, None, :] - c - (p - c) * sa) * win[:, None, :]
-            bb = (o - p)[:, :, None] * sb * win[:, None, :]
+            # In place, in the same order of operations: no (K, D, L) temporaries.
+            ya = (p - c) * sa
+            np.subtract(y[:, None, :] - c, ya, out=ya)
+            ya *= win[:, None, :]
+            bb = (o - p)[:, :, None] * sb
+            bb *= win[:, None, :]
+            # Batched matmul (BLAS) for the cross term: ~3x faster than einsum, the same to a
+            # few ulp (every mask and tag point of the default study unchanged, issue 17).
             ss = (
                 np.sum(ya * ya, axis=2)[:, :, None]
-                - 2.0 * np.einsum('kar,kbr->kab', ya, bb)
+                - 2.0 * np.matmul(ya, bb.transpose(0, 2, 1))
                 + np.sum(bb * bb, axis=2)[:, None, :]
             )
             tot = tot + ss / var
