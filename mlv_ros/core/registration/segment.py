@@ -908,22 +908,22 @@ def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
     min_len = int(np.ceil(min_wall_px / step))
     padded = np.concatenate([np.zeros((k, 1), bool), closed, np.zeros((k, 1), bool)], 1)
     d = np.diff(padded.astype(np.int8), axis=1)
-    for i in range(k):  # ≤ a few runs per ray; K = 180
-        starts = np.flatnonzero(d[i] == 1)
-        ends = np.flatnonzero(d[i] == -1)
-        good = np.flatnonzero(ends - starts >= min_len)
-        if good.size == 0:
-            continue
-        a, b = starts[good[0]], ends[good[0]]  # run covers samples [a, b)
-        si = s[i]
-        if a == 0:
-            endo[i] = 0.0
-        else:
-            endo[i] = radii[a - 1] + step * (thr - si[a - 1]) / max(si[a] - si[a - 1], 1e-300)
-        if b >= n:
-            epi[i] = radii[-1]
-        else:
-            epi[i] = radii[b - 1] + step * (si[b - 1] - thr) / max(si[b - 1] - si[b], 1e-300)
+    # Runs in row-major order: the i-th start and the i-th end bound one run (padded rows).
+    row, a = np.nonzero(d == 1)
+    b = np.nonzero(d == -1)[1]
+    good = (b - a) >= min_len
+    rows, first = np.unique(row[good], return_index=True)
+    if rows.size == 0:
+        return endo, epi
+    a, b = a[good][first], b[good][first]  # each ray's first long run covers samples [a, b)
+    a1, b1 = np.maximum(a - 1, 0), np.minimum(b, n - 1)
+    sa0, sa1 = s[rows, a1], s[rows, np.minimum(a, n - 1)]
+    sb0, sb1 = s[rows, b - 1], s[rows, b1]
+    with np.errstate(invalid='ignore', divide='ignore'):
+        e = radii[a1] + step * (thr - sa0) / np.maximum(sa1 - sa0, 1e-300)
+        q = radii[b - 1] + step * (sb0 - thr) / np.maximum(sb0 - sb1, 1e-300)
+    endo[rows] = np.where(a == 0, 0.0, e)
+    epi[rows] = np.where(b >= n, radii[-1], q)
     return endo, epi
 
 
