@@ -236,6 +236,30 @@ def tag_wavevectors(
     too, unevenly across a peak's bins).
 
     """
+    return _spectral_peaks(image, min_period_px, max_period_px, (whitened,))[0]
+
+
+def _spectral_peaks(image, min_period_px, max_period_px, whitened):
+    """
+    :func:`tag_wavevectors` for each of the flags ``whitened``, from one pair of spectra.
+
+    The running median and both FFTs depend on neither flag: computed once, shared.
+
+    Parameters
+    ----------
+    image : ndarray, shape (rows, cols)
+        Tagged image (intensity, any scale).
+    min_period_px, max_period_px : float
+        Search band of tag periods, px.
+    whitened : tuple of bool
+        One search per flag (:func:`tag_wavevectors`).
+
+    Returns
+    -------
+    list of ndarray, shape (2, 2)
+        (row, col) frequencies in cycles / px, one per flag.
+
+    """
     img = np.asarray(image, dtype=np.float64)
     win = np.outer(np.hanning(img.shape[0]), np.hanning(img.shape[1]))
     res = img - running_median(img, int(np.ceil(max_period_px)) | 1)
@@ -246,6 +270,11 @@ def tag_wavevectors(
     FY, FX = np.meshgrid(fy, fx, indexing='ij')
     fr = np.hypot(FY, FX)
     band = (fr >= 1.0 / max_period_px) & (fr <= 1.0 / min_period_px)
+    return [_peak_pair(img.shape, found, spec, FY, FX, fr, band, w) for w in whitened]
+
+
+def _peak_pair(shape, found, spec, FY, FX, fr, band, whitened):
+    """Return the two refined spectral peaks of :func:`tag_wavevectors` (its arrays, one flag)."""
     s1 = np.where(band, found * fr if whitened else found, 0.0)
     i = np.unravel_index(int(np.argmax(s1)), s1.shape)
     k1 = np.array([FY[i], FX[i]])
@@ -255,7 +284,7 @@ def tag_wavevectors(
     out = []
     for idx in (i, j):
         k = np.array([FY[idx], FX[idx]], dtype=np.float64)
-        for ax, n in enumerate(img.shape):  # parabolic refinement per axis
+        for ax, n in enumerate(shape):  # parabolic refinement per axis
             lo = list(idx)
             hi = list(idx)
             lo[ax] = (idx[ax] - 1) % n
@@ -345,8 +374,7 @@ def candidate_features(
     """
     img = np.asarray(image, dtype=np.float64)
     band = tag_period_band_px(pixel_spacing_mm)
-    a = tag_wavevectors(img, *band)
-    b = tag_wavevectors(img, *band, whitened=True)
+    a, b = _spectral_peaks(img, *band, (False, True))
 
     def close(x, y):
         return min(np.linalg.norm(x - y), np.linalg.norm(x + y)) <= 0.05 * np.linalg.norm(y)
@@ -671,9 +699,16 @@ def _half_width_table():
     x = np.linspace(0.0, 80.0, 16001)
     out = []
     for w in u:
-        prof = _phi(x + 0.5 * w) - _phi(x - 0.5 * w)
-        half = 0.5 * prof[0]
-        j = int(np.argmax(prof <= half))
+        # The half level lies within w/2 + 1.2 (σ = 1): the profile up to w/2 + 4 finds the
+        # same first sample at or below it as the whole grid (the whole grid only if not).
+        m = int(np.searchsorted(x, 0.5 * w + 4.0)) + 1
+        for xs in (x[:m], x):
+            prof = _phi(xs + 0.5 * w) - _phi(xs - 0.5 * w)
+            half = 0.5 * prof[0]
+            below = prof <= half
+            if below.any():
+                break
+        j = int(np.argmax(below))
         out.append(
             2.0 * (x[j - 1] + (x[j] - x[j - 1]) * (prof[j - 1] - half) / (prof[j - 1] - prof[j]))
         )
@@ -766,11 +801,17 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
             # Window m of the extended grid holds the profile shifted by (nd − m) samples.
             sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
             sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
-            ya = (y[:, None, :] - c - (p - c) * sa) * win[:, None, :]
-            bb = (o - p)[:, :, None] * sb * win[:, None, :]
+            # In place, in the same order of operations: no (K, D, L) temporaries.
+            ya = (p - c) * sa
+            np.subtract(y[:, None, :] - c, ya, out=ya)
+            ya *= win[:, None, :]
+            bb = (o - p)[:, :, None] * sb
+            bb *= win[:, None, :]
+            # Batched matmul (BLAS) for the cross term: ~3x faster than einsum, the same to a
+            # few ulp (every mask and tag point of the default study unchanged, issue 17).
             ss = (
                 np.sum(ya * ya, axis=2)[:, :, None]
-                - 2.0 * np.einsum('kar,kbr->kab', ya, bb)
+                - 2.0 * np.matmul(ya, bb.transpose(0, 2, 1))
                 + np.sum(bb * bb, axis=2)[:, None, :]
             )
             tot = tot + ss / var
@@ -867,22 +908,22 @@ def _runs_at(s, radii, thr, min_wall_px, max_gap_px):
     min_len = int(np.ceil(min_wall_px / step))
     padded = np.concatenate([np.zeros((k, 1), bool), closed, np.zeros((k, 1), bool)], 1)
     d = np.diff(padded.astype(np.int8), axis=1)
-    for i in range(k):  # ≤ a few runs per ray; K = 180
-        starts = np.flatnonzero(d[i] == 1)
-        ends = np.flatnonzero(d[i] == -1)
-        good = np.flatnonzero(ends - starts >= min_len)
-        if good.size == 0:
-            continue
-        a, b = starts[good[0]], ends[good[0]]  # run covers samples [a, b)
-        si = s[i]
-        if a == 0:
-            endo[i] = 0.0
-        else:
-            endo[i] = radii[a - 1] + step * (thr - si[a - 1]) / max(si[a] - si[a - 1], 1e-300)
-        if b >= n:
-            epi[i] = radii[-1]
-        else:
-            epi[i] = radii[b - 1] + step * (si[b - 1] - thr) / max(si[b - 1] - si[b], 1e-300)
+    # Runs in row-major order: the i-th start and the i-th end bound one run (padded rows).
+    row, a = np.nonzero(d == 1)
+    b = np.nonzero(d == -1)[1]
+    good = (b - a) >= min_len
+    rows, first = np.unique(row[good], return_index=True)
+    if rows.size == 0:
+        return endo, epi
+    a, b = a[good][first], b[good][first]  # each ray's first long run covers samples [a, b)
+    a1, b1 = np.maximum(a - 1, 0), np.minimum(b, n - 1)
+    sa0, sa1 = s[rows, a1], s[rows, np.minimum(a, n - 1)]
+    sb0, sb1 = s[rows, b - 1], s[rows, b1]
+    with np.errstate(invalid='ignore', divide='ignore'):
+        e = radii[a1] + step * (thr - sa0) / np.maximum(sa1 - sa0, 1e-300)
+        q = radii[b - 1] + step * (sb0 - thr) / np.maximum(sb0 - sb1, 1e-300)
+    endo[rows] = np.where(a == 0, 0.0, e)
+    epi[rows] = np.where(b >= n, radii[-1], q)
     return endo, epi
 
 
