@@ -93,8 +93,9 @@ def test_frames_between_nodes_in_one_process(ros_context, executor):
         assert (f.slice_index, f.phase_index) == (g.slice_index, g.phase_index)
         np.testing.assert_array_equal(f.image, g.image)
         np.testing.assert_array_equal(f.geometry.image_position, g.geometry.image_position)
-    # slice-major order: slice 0's whole cine first
-    assert [m.slice_index for m in collector.msgs] == [0] * 4 + [1] * 4
+    # phase-major order (the default): every slice's phase p before any slice's phase p + 1
+    assert [m.slice_index for m in collector.msgs] == [0, 1] * 4
+    assert [m.phase_index for m in collector.msgs] == [0, 0, 1, 1, 2, 2, 3, 3]
 
 
 def test_frames_across_processes_from_console_script(ros_context, executor):

@@ -182,7 +182,10 @@ class FrameSource(GraphNode):
         self.path = self.param(
             'path', '', 'DICOM directory (source: dicom) or MCAP file (source: bag)'
         )
-        self.order = self.param('order', 'slice_major', 'publication order', choices=ORDERS)
+        # Phase-major by default: every slice's ED frame comes first, so registration starts at
+        # once and the solver works on phase p while the tag detector tracks p + 1 (results do not
+        # depend on the order). slice_major replays a study as it was acquired, cine by cine.
+        self.order = self.param('order', 'phase_major', 'publication order', choices=ORDERS)
         self.rate_factor = self.param(
             'rate_factor',
             0.0,
