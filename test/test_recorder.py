@@ -53,6 +53,7 @@ def test_recorder_in_process_and_rosbags_reads_it(ros_context, executor, tmp_pat
         context=ros_context,
         parameter_overrides=[
             Parameter('source', value='pattern'),
+            Parameter('order', value='slice_major'),  # the order the assertions read back
             Parameter('num_phases', value=3),
             Parameter('wait_for_subscribers', value=1),
         ],
@@ -140,6 +141,7 @@ def recorder_process_and_source(ros_context, executor, out, num_phases):
         context=ros_context,
         parameter_overrides=[
             Parameter('source', value='pattern'),
+            Parameter('order', value='slice_major'),  # the order the assertions read back
             Parameter('num_phases', value=num_phases),
         ],
     )
@@ -171,6 +173,7 @@ def record_pattern(ros_context, executor, path, num_phases=3):
         context=ros_context,
         parameter_overrides=[
             Parameter('source', value='pattern'),
+            Parameter('order', value='slice_major'),  # the order the assertions read back
             Parameter('num_phases', value=num_phases),
         ],
     )
@@ -253,6 +256,7 @@ def test_recorder_sigkill_leaves_completed_chunks_that_recover_rewrites(
         context=ros_context,
         parameter_overrides=[
             Parameter('source', value='pattern'),
+            Parameter('order', value='slice_major'),  # the order the assertions read back
             Parameter('num_phases', value=30),
         ],
     )
