@@ -37,6 +37,36 @@ from rosbags.typesys import get_typestore, Stores
 import yaml
 
 
+def pattern_source(ros_context, num_phases, *extra):
+    """
+    Build a pattern frame source publishing slice-major, the order the assertions read back.
+
+    Parameters
+    ----------
+    ros_context : rclpy.context.Context
+        The test's ROS context.
+    num_phases : int
+        Phases per slice.
+    *extra : rclpy.parameter.Parameter
+        Further parameter overrides.
+
+    Returns
+    -------
+    FrameSource
+        The node, not yet added to an executor.
+
+    """
+    return FrameSource(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter('source', value='pattern'),
+            Parameter('order', value='slice_major'),
+            Parameter('num_phases', value=num_phases),
+            *extra,
+        ],
+    )
+
+
 def read_with_rosbags(path):
     """(topic, msgtype, deserialised message) for every message, by rosbags alone."""
     out = []
@@ -49,15 +79,7 @@ def read_with_rosbags(path):
 def test_recorder_in_process_and_rosbags_reads_it(ros_context, executor, tmp_path):
     out = tmp_path / 'run' / 'run.mcap'
     rec = Recorder(context=ros_context, parameter_overrides=[Parameter('output', value=str(out))])
-    src = FrameSource(
-        context=ros_context,
-        parameter_overrides=[
-            Parameter('source', value='pattern'),
-            Parameter('order', value='slice_major'),  # the order the assertions read back
-            Parameter('num_phases', value=3),
-            Parameter('wait_for_subscribers', value=1),
-        ],
-    )
+    src = pattern_source(ros_context, 3, Parameter('wait_for_subscribers', value=1))
     executor.add_node(rec)
     executor.add_node(src)
     assert spin_until(executor, lambda: src.done, timeout=30)
@@ -137,14 +159,7 @@ def recorder_process_and_source(ros_context, executor, out, num_phases):
         stderr=subprocess.STDOUT,
         text=True,
     )
-    src = FrameSource(
-        context=ros_context,
-        parameter_overrides=[
-            Parameter('source', value='pattern'),
-            Parameter('order', value='slice_major'),  # the order the assertions read back
-            Parameter('num_phases', value=num_phases),
-        ],
-    )
+    src = pattern_source(ros_context, num_phases)
     executor.add_node(src)
     return rec, src
 
@@ -169,14 +184,7 @@ def test_recorder_process_keeps_every_message_on_signal(sig, ros_context, execut
 
 def record_pattern(ros_context, executor, path, num_phases=3):
     rec = Recorder(context=ros_context, parameter_overrides=[Parameter('output', value=str(path))])
-    src = FrameSource(
-        context=ros_context,
-        parameter_overrides=[
-            Parameter('source', value='pattern'),
-            Parameter('order', value='slice_major'),  # the order the assertions read back
-            Parameter('num_phases', value=num_phases),
-        ],
-    )
+    src = pattern_source(ros_context, num_phases)
     executor.add_node(rec)
     executor.add_node(src)
     assert spin_until(
@@ -252,14 +260,7 @@ def test_recorder_sigkill_leaves_completed_chunks_that_recover_rewrites(
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    src = FrameSource(
-        context=ros_context,
-        parameter_overrides=[
-            Parameter('source', value='pattern'),
-            Parameter('order', value='slice_major'),  # the order the assertions read back
-            Parameter('num_phases', value=30),
-        ],
-    )
+    src = pattern_source(ros_context, 30)
     executor.add_node(src)
     try:
         assert spin_until(executor, lambda: src.done, timeout=60)
