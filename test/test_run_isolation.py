@@ -30,7 +30,7 @@ from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from graphkit import Probe, wait_matched
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.core.types import ModelState
 from mlv_ros.nodes.frame_source import count_slices
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer

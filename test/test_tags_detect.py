@@ -14,8 +14,8 @@
 
 """Gabor tag-intersection detection on analytic 1-1 SPAMM grids with known geometry."""
 
+from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import detect_intersections, estimate_tag_parameters, TagParameters
-from mlv_ros.core.tags.synthetic import TagScene
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree

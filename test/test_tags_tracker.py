@@ -20,8 +20,8 @@ wobble, fading, noise), and honest loss of points whose tags disappear.
 """
 
 from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import harp_track, SliceTracker
-from mlv_ros.core.tags.synthetic import TagScene
 from mlv_ros.core.types import Frame
 import numpy as np
 from scipy.spatial import cKDTree

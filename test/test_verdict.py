@@ -20,8 +20,8 @@ and left alone by one that should pass — through the real solver and analyzer.
 """
 
 from mlv_ros.core.analysis import LVAnalyzer
-from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.sim import simulate_study
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import DEGRADED, FAILED, metrics_verdict, OK, phase_verdict, Verdict
 import numpy as np
