@@ -28,7 +28,7 @@ import inspect
 import signal
 import sys
 import time
-from typing import Callable, NamedTuple
+from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from mlv_ros import conversions, qos
@@ -69,21 +69,6 @@ class StreamCount:
     missed: int = 0
     last_sequence: int | None = None
     publisher_restarts: int = 0
-
-
-class Setting(NamedTuple):
-    """
-    One node parameter: name, default, description and range (see :meth:`GraphNode.param`).
-
-    ``check(value)`` returns why a value inside the range is still refused (None: accepted).
-    """
-
-    name: str
-    default: object
-    description: str
-    min_value: float | None = None
-    max_value: float | None = None
-    check: Callable | None = None
 
 
 def stamp_key(stamp) -> tuple[int, int]:
@@ -355,14 +340,33 @@ class GraphNode(Node):
 
     def declare_settings(self, settings) -> None:
         """
-        Declare each :class:`Setting` as a parameter; keep its value as the attribute of its name.
+        Declare each setting as a parameter; keep its value as the setting's attribute.
+
+        A grouped setting's keyword is the flat name it had before it was grouped
+        (:mod:`mlv_ros.settings`): a value given under that name (a parameters file, ``-p``, a
+        launch file) would be ignored without a word, so it is refused, naming the new one.
 
         Parameters
         ----------
-        settings : iterable of Setting
+        settings : iterable of mlv_ros.settings.Setting
             Declared in this order, each with its range and check (:meth:`param`).
 
+        Raises
+        ------
+        ValueError
+            A value is given under a setting's former flat name.
+
         """
+        settings = tuple(settings)
+        # rclpy keeps every value given for the node (declared or not) in _parameter_overrides.
+        given = set(self._parameter_overrides)
+        for s in settings:
+            if s.attribute != s.name and s.attribute in given:
+                raise ValueError(
+                    f"parameter '{s.attribute}' is now '{s.name}': rename it in the parameters "
+                    f'file or -p argument ({s.name.split(".")[0]}: {{'
+                    f'{s.name.split(".", 1)[1]}: ...}} in YAML)'
+                )
         for s in settings:
             value = self.param(
                 s.name,
@@ -372,7 +376,7 @@ class GraphNode(Node):
                 max_value=s.max_value,
                 check=s.check,
             )
-            setattr(self, s.name, value)
+            setattr(self, s.attribute, value)
 
     def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
         """
