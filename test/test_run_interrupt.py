@@ -239,6 +239,16 @@ def test_a_former_flat_parameter_name_ends_the_start_naming_the_new_one(tmp_path
     assert not run_dir.exists()
 
 
+def test_a_failed_registration_ends_the_run_with_its_reason(tmp_path):
+    # Noise only (SNR 1.5): no SA slice can be segmented. The registration is left blocked
+    # (progress()), which the run reads instead of waiting for a model that will not come.
+    run_dir = tmp_path / 'run'
+    run = Run([*SMALL, '--phases', '8', '--snr', '1.5', '--out', str(run_dir)])
+    rc, _, lines = run.finish(timeout=120)
+    assert rc == 1
+    assert_one_line_reason(lines, 'registration: registration failed', 'usable SA slices')
+
+
 def test_foreign_bag_ends_at_once_with_the_reason(tmp_path):
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String

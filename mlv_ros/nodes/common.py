@@ -145,9 +145,11 @@ class GraphNode(Node):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
-        # The uniform counters of progress(): messages taken from the graph, results put out.
+        # The uniform counters of progress(): messages taken from the graph, results put out,
+        # and whether the node holds an input it could not use and waits for a new one.
         self.messages_handled = 0
         self.published = 0
+        self.blocked = 0
         self._topics: dict[str, str] = {}
         self._diag_pub = self.create_publisher(
             DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos()
@@ -196,10 +198,17 @@ class GraphNode(Node):
         -------
         dict
             ``received``: messages it took from the graph's topics; ``published``: results it
-            put out (frames, tag point sets, phases, metrics, replayed messages).
+            put out (frames, tag point sets, phases, metrics, replayed messages); ``blocked``: 1
+            while it holds an input it could not use and cannot go on without (a registration
+            that failed, a registered model the solver or analyzer cannot build on: it waits
+            for a new one, its latest ERROR says why), else 0.
 
         """
-        return {'received': int(self.messages_handled), 'published': int(self.published)}
+        return {
+            'received': int(self.messages_handled),
+            'published': int(self.published),
+            'blocked': int(self.blocked),
+        }
 
     def publisher(self, topic: str, msg_type):
         """

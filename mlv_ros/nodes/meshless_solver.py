@@ -41,7 +41,7 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
-from mlv_ros.core.streaming import PhaseSchedule
+from mlv_ros.core.streaming import PhaseSchedule, StampPairer
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import (
@@ -59,6 +59,7 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
+REGISTRATIONS_HELD = 4  # registered clouds / states held while waiting for their pair
 
 
 class MeshlessSolver(GraphNode):
@@ -77,8 +78,9 @@ class MeshlessSolver(GraphNode):
         self.schedule = PhaseSchedule()  # which phase is solved next
         self.cloud = None
         self.rest_state = None
-        self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
-        self._rest_key = None  # stamp of the registered state taken
+        # The registered cloud and state, paired by stamp (latched: one a registration, a few
+        # restarts at most).
+        self.registered = StampPairer(REGISTRATIONS_HELD)
         self._foreign_stamps = RecentKeys()  # stamps of registered states of another study
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
@@ -112,9 +114,8 @@ class MeshlessSolver(GraphNode):
         except ValueError as exc:
             self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
             return
-        self._reg_clouds[key] = cloud
-        while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
-            self._reg_clouds.pop(next(iter(self._reg_clouds)))
+        self.registered.add('cloud', key, cloud)
+        self.registered.trim('cloud')
         self._build()
 
     def _on_state(self, msg: ModelStateMsg) -> None:
@@ -122,7 +123,7 @@ class MeshlessSolver(GraphNode):
         other = self.foreign(msg.study_id, qos.REGISTERED_STATE, run_id=msg.run_id, stamp=stamp)
         if other:
             self._foreign_stamps.add(key, other)
-            if self._reg_clouds.pop(key, None) is not None:
+            if 'cloud' in self.registered.discard(key):
                 self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, other)
             return
         try:
@@ -131,15 +132,17 @@ class MeshlessSolver(GraphNode):
             self.report(ERROR, 'bad registered state', stamp=stamp, reason=str(exc))
             return
         self.study.adopt(state.study_id, state.run_id)
-        self.rest_state, self._rest_key = state, key
+        self.registered.add('state', key, state)
+        self.registered.trim('state')
         self._build()
 
     def _build(self) -> None:
-        if self.rest_state is None or self.tracker is not None:
+        if self.tracker is not None:
             return
-        self.cloud = self._reg_clouds.get(self._rest_key)
-        if self.cloud is None:
-            return  # its cloud (same stamp) has not come yet
+        pairs = self.registered.pairs()
+        if not pairs:
+            return  # the cloud or the state (same stamp) has not come yet
+        _, self.cloud, self.rest_state = pairs[-1]  # the latest registration complete
         model = conversions.registered_model(self.cloud, self.rest_state)
         s, pts = model.state, model.positions
         try:
@@ -153,7 +156,9 @@ class MeshlessSolver(GraphNode):
             )
         except ValueError as exc:
             self.report(ERROR, 'cannot build the model from the registration', reason=str(exc))
+            self.blocked = 1  # until a registration it can build on comes
             return
+        self.blocked = 0
         apex, base, ref = lv_frame_axes(pts, s.rotation)
         self.frame = LVFrame(apex, base, ref)
         self.cardiac = cardiac_coordinates(pts, self.frame)

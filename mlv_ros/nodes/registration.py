@@ -166,6 +166,7 @@ class Registration(GraphNode):
             )
         except ValueError as exc:
             self.report(ERROR, 'registration failed', reason=str(exc), slices=len(self.ed_frames))
+            self.blocked = 1  # it registers once: nothing follows in this run
             return
         left_out = [
             f'{"SA" if rep.view == VIEW_SA else "LA"} {rep.slice_index}: {rep.reason}'
