@@ -302,8 +302,8 @@ def test_value_inside_the_range_the_model_refuses_ends_the_start_at_once(tmp_pat
 
     twist.knots 1 is inside the solver's declared range (0..100), which rclpy cannot cut one
     value out of; the node's parameter check (the core's own rule) refuses it at start-up, so the
-    run ends before anything is recorded, with the core's reason (it used to wait 600 s, then
-    until the registration came).
+    run ends before anything is recorded, with the core's reason, instead of failing only once a
+    registration comes.
     """
     run_dir = tmp_path / 'new' / 'run'
     params = params_file(tmp_path, {'meshless_solver': {'twist': {'knots': 1}}})

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Run isolation (issue 16): two graphs on one ROS domain cannot mix.
+Run isolation: two graphs on one ROS domain cannot mix.
 
 Every message of a study carries its ``study_id``; each node keeps to the study of the first
 message it takes and reports (ERROR on /diagnostics, naming both ids) and ignores the others;

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Regional wall-motion abnormalities of the simulated LV and their ground truth (issue 20).
+Regional wall-motion abnormalities of the simulated LV and their ground truth.
 
 Regions
 -------
