@@ -36,7 +36,7 @@ import sys
 import time
 
 from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
-from mlv_ros.core.phantom import (
+from mlv_ros.core.sim.paper_cylinder import (
     control_subset,
     deform,
     DEFORMATIONS,

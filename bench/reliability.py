@@ -159,7 +159,7 @@ def slow_subscriber(tmp: Path) -> dict:
     """Frames beyond the recorder's queue depth published before its executor runs."""
     from mlv_msgs.msg import TaggedFrame
     from mlv_ros import conversions, qos
-    from mlv_ros.core.pattern import pattern_frames
+    from mlv_ros.core.sim.pattern import pattern_frames
     from mlv_ros.nodes.recorder import Recorder
     import rclpy
     from rclpy.executors import SingleThreadedExecutor

@@ -51,7 +51,7 @@ import sys
 import threading
 import time
 
-STATE_FIELDS = ('messages_handled', 'diagnostics_sent', 'published')
+STATE_FIELDS = ('messages_handled', 'diagnostics_sent', 'published', 'blocked')
 REPORT_PERIOD_S = 0.1
 DRAIN_QUIET_S = 0.2  # as run_node: queued messages are taken until none came for this long
 
@@ -101,7 +101,7 @@ class ChildNode:
     def __init__(self, name: str, proc: subprocess.Popen):
         self.name, self.proc = name, proc
         self.study = _Study(self)
-        self.messages_handled = self.diagnostics_sent = self.published = 0
+        self.messages_handled = self.diagnostics_sent = self.published = self.blocked = 0
         self.failure: str | None = None
         self.crash: str | None = None  # why the process ended on its own, or a callback raised
         self.last_error = None
@@ -199,7 +199,11 @@ class ChildNode:
 
     def progress(self) -> dict:
         """Return the node's counters as :meth:`GraphNode.progress` does, as last reported."""
-        return {'received': int(self.messages_handled), 'published': int(self.published)}
+        return {
+            'received': int(self.messages_handled),
+            'published': int(self.published),
+            'blocked': int(self.blocked),
+        }
 
     def wait_started(self, timeout: float = 120.0) -> str | None:
         """Block until the node is created; returns why it could not start, else None."""

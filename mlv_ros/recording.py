@@ -95,7 +95,7 @@ def motion_accuracy(run: dict, motion) -> dict:
     """Return the accuracy of :func:`read_run`'s ``run`` against a true motion (evaluate_run)."""
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
     from mlv_ros.core.analysis.frame import plane_level_span
-    from mlv_ros.core.evaluation import evaluate_run
+    from mlv_ros.core.sim.evaluation import evaluate_run
     from mlv_ros.core.analysis.frame import lv_frame_axes
 
     frame = LVFrame(*lv_frame_axes(run['ed'], run['rotation']))

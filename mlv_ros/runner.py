@@ -381,23 +381,11 @@ def _stuck(nodes: dict) -> str | None:
     src = nodes['frame_source']
     if src.done and src.halted is None and src.published < len(src.frames):
         return f'frame_source stopped publishing: {_reason(src)}'
-    reg = nodes['registration']
-    if reg.registered and reg.result is None:
-        return f'registration: {_reason(reg)}'
-    # A solver or analyzer that has the registered model but could not build on it waits for ever.
-    solver, analyzer = nodes['meshless_solver'], nodes['motion_analyzer']
-    if (
-        getattr(solver, 'cloud', None) is not None
-        and getattr(solver, 'rest_state', None) is not None
-        and getattr(solver, 'tracker', True) is None
-    ):
-        return f'meshless_solver: {_reason(solver)}'
-    if (
-        getattr(analyzer, 'reg_cloud', None) is not None
-        and getattr(analyzer, 'reg_state', None) is not None
-        and getattr(analyzer, 'analyzer', True) is None
-    ):
-        return f'motion_analyzer: {_reason(analyzer)}'
+    # A node holding an input it cannot use (a failed registration, a registered model the
+    # solver or analyzer cannot build on) waits for a new one, which this run will not send.
+    for name, node in nodes.items():
+        if node.progress()['blocked']:
+            return f'{name}: {_reason(node)}'
     return None
 
 
@@ -407,7 +395,7 @@ def _activity(nodes: dict) -> int:
 
     It counts frames, tag points, phases and messages taken; /diagnostics heartbeats are left out.
     """
-    return sum(sum(node.progress().values()) for node in nodes.values())
+    return sum(p['received'] + p['published'] for p in (n.progress() for n in nodes.values()))
 
 
 def _taken(node, topic: str) -> int:

@@ -21,7 +21,7 @@ from mlv_ros.core.analysis.frame import (
     level_bin,
     LVFrame,
 )
-from mlv_ros.core.analysis.synthetic import cylinder_shell, oblique_frame, to_patient
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, oblique_frame, to_patient
 import numpy as np
 import pytest
 

@@ -19,7 +19,7 @@ import re
 
 from mlv_ros.core.analysis import LVAnalyzer, phase_metrics, PhaseMetrics
 from mlv_ros.core.analysis.metrics import NOT_IN_MSG_YET
-from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, cylindrical_motion, oblique_frame
 import numpy as np
 import pytest
 

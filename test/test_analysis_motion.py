@@ -28,7 +28,7 @@ from mlv_ros.core.analysis.motion import (
     level_metrics,
     torsion,
 )
-from mlv_ros.core.analysis.synthetic import (
+from mlv_ros.core.sim.analytic_lv import (
     cylinder_shell,
     cylindrical_motion,
     oblique_frame,
@@ -150,7 +150,7 @@ def test_random_cloud_volume_default_mask_bias_is_bounded():
     rng = np.random.default_rng(1)
     n = 10000
     r = np.sqrt(rng.uniform(20.0**2, 30.0**2, n))
-    from mlv_ros.core.analysis.synthetic import to_patient
+    from mlv_ros.core.sim.analytic_lv import to_patient
 
     X = to_patient(FR, r, rng.uniform(-np.pi, np.pi, n), rng.uniform(0, 80, n))
     exact = np.pi * 20.0**2 * 80.0 / 1000.0
@@ -222,7 +222,7 @@ def test_layered_cloud_with_empty_slabs_and_layers_on_slab_boundaries():
 def test_pure_twist_exact_on_a_random_cloud():
     # level centroids are off-axis for a random cloud, but rotate with it: still exact
     rng = np.random.default_rng(7)
-    from mlv_ros.core.analysis.synthetic import to_patient
+    from mlv_ros.core.sim.analytic_lv import to_patient
 
     X = to_patient(
         FR, rng.uniform(18, 32, 3000), rng.uniform(-np.pi, np.pi, 3000), rng.uniform(0, 80, 3000)

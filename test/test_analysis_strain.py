@@ -24,7 +24,7 @@ from mlv_ros.core.analysis.strain import (
     mls_neighbourhood,
     segment_means,
 )
-from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, cylindrical_motion, oblique_frame
 import numpy as np
 import pytest
 

@@ -27,7 +27,7 @@ from conftest import console_script, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.nodes.common import status_node
 from mlv_ros.nodes.frame_source import FrameSource
 import numpy as np

@@ -20,7 +20,10 @@ module (``mlv_ros/nodes/*``, but ``common``: the helper every node shares) impor
 module: what two nodes share (message schemas, stream policy) lives in ``conversions``,
 ``core`` or ``nodes/common``. A tool module (``mlv_ros/tools/*``, one per ``mlv-ros``
 subcommand) imports no other tool module: shared pieces (running the graph, reading a run) live
-outside ``tools/``. ``core`` imports neither rclpy nor a message package.
+outside ``tools/``. ``core`` imports neither rclpy nor a message package. Synthetic truth
+(``core/sim``: phantoms, analytic scenes, a run's accuracy against them) is out of the estimating
+core's reach: only the frame source, the tools, reading a run and ``core/io`` (which writes a
+phantom's truth beside its images) import it.
 """
 
 import ast
@@ -100,3 +103,21 @@ def test_core_imports_no_ros():
         if i.split('.')[0] in ('rclpy', 'rosbag2_py') or i.endswith('.msg')
     )
     assert ros == []
+
+
+# Who may import synthetic truth: the phantom frame source, the tools, reading a run (accuracy
+# against a phantom) and core/io's ground-truth files.
+SIM_USERS = ('mlv_ros.core.sim', 'mlv_ros.core.io.', 'mlv_ros.nodes.frame_source',
+             'mlv_ros.tools.', 'mlv_ros.recording')
+
+
+def test_only_the_sources_of_truth_import_the_simulators():
+    found = sorted(
+        f'{src} -> {dst}'
+        for src, dsts in graph().items()
+        if not src.startswith(SIM_USERS)
+        for dst in dsts
+        if dst == 'mlv_ros.core.sim' or dst.startswith('mlv_ros.core.sim.')
+    )
+    assert found == []
+    assert 'mlv_ros.core.sim.evaluation' in graph()['mlv_ros.recording']  # the walk sees them

@@ -31,8 +31,14 @@ from mlv_ros.core.meshless.local import (
     farthest_point_aggregates,
     symmetric_inverse_3x3,
 )
-from mlv_ros.core.phantom import control_subset, deform, H_CYL, R_OUTER, sample_cylinder_shell
 from mlv_ros.core.sim import simulate_study
+from mlv_ros.core.sim.paper_cylinder import (
+    control_subset,
+    deform,
+    H_CYL,
+    R_OUTER,
+    sample_cylinder_shell,
+)
 import numpy as np
 import pytest
 import scipy.sparse as sp

@@ -15,7 +15,12 @@
 """Fitting the meshless deformable model to the cylinder phantom (paper §3.1) and bad input."""
 
 from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel, polar_frame
-from mlv_ros.core.phantom import control_subset, deform, FIG4_DEFORMATIONS, sample_cylinder_shell
+from mlv_ros.core.sim.paper_cylinder import (
+    control_subset,
+    deform,
+    FIG4_DEFORMATIONS,
+    sample_cylinder_shell,
+)
 from mlv_ros.core.types import ModelState
 import numpy as np
 import pytest

@@ -13,14 +13,21 @@
 # limitations under the License.
 
 """
-Parameters refused by the node's parameter check with the core's reason.
+Parameters refused by the node's parameter check with the core's reason, and by their old names.
 
 Parameters a descriptor's range cannot refuse are refused by the node's parameter check with
-the core's reason: at start-up (the node does not start) and when set at run time.
+the core's reason: at start-up (the node does not start) and when set at run time. The solver's
+grouped parameters (``twist.knots``) refuse a value given under their former flat names, and
+``config/graph.yaml`` and the README name every parameter the table declares.
 """
+
+import inspect
+from pathlib import Path
 
 from mlv_ros.core.tracking import MotionTracker, twist_knots_error
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
+from mlv_ros.resources import config_file
+from mlv_ros.settings import REGISTRATION, Setting, SOLVER_MODEL, SOLVER_STREAM
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
@@ -30,7 +37,7 @@ from rclpy.parameter import Parameter
 def test_twist_knots_the_model_takes_are_accepted(knots, ros_context):
     assert twist_knots_error(knots) is None
     node = MeshlessSolver(
-        context=ros_context, parameter_overrides=[Parameter('twist_knots', value=knots)]
+        context=ros_context, parameter_overrides=[Parameter('twist.knots', value=knots)]
     )
     try:
         assert node.twist_knots == knots
@@ -48,10 +55,10 @@ def test_one_twist_knot_is_refused_at_start_with_the_cores_reason(ros_context):
             [[0.0, 0.0, 0.0]] * 4, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], 10.0, twist_knots=1
         )
     with pytest.raises(
-        InvalidParameterValueException, match='twist_knots=1: .*one knot is no function of height'
+        InvalidParameterValueException, match='twist.knots=1: .*one knot is no function of height'
     ):
         MeshlessSolver(
-            context=ros_context, parameter_overrides=[Parameter('twist_knots', value=1)]
+            context=ros_context, parameter_overrides=[Parameter('twist.knots', value=1)]
         )
 
 
@@ -82,3 +89,47 @@ def test_parameter_check_also_answers_a_run_time_set(ros_context):
         assert node.set_parameters([Parameter('knots', value=4)])[0].successful
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize('old', [s for s in SOLVER_MODEL if s.keyword], ids=lambda s: s.keyword)
+def test_a_former_flat_name_is_refused_naming_the_grouped_one(old: Setting, ros_context):
+    # Left unchecked, rclpy would ignore an undeclared name and run with the default.
+    with pytest.raises(ValueError) as refused:
+        MeshlessSolver(
+            context=ros_context, parameter_overrides=[Parameter(old.keyword, value=old.default)]
+        )
+    said = str(refused.value)
+    assert '\n' not in said
+    assert f"'{old.keyword}' is now '{old.name}'" in said
+
+
+def test_the_grouped_names_set_the_model():
+    keywords = inspect.signature(MotionTracker).parameters
+    assert [s.attribute for s in SOLVER_MODEL if s.attribute not in keywords] == []
+    assert all('.' in s.name for s in SOLVER_MODEL)
+
+
+def flat(params: dict, prefix: str = '') -> set:
+    """Return the parameter names of a ``ros__parameters`` map, nested maps joined with dots."""
+    return {
+        name
+        for key, value in params.items()
+        for name in (
+            flat(value, f'{prefix}{key}.') if isinstance(value, dict) else {f'{prefix}{key}'}
+        )
+    }
+
+
+@pytest.mark.parametrize(
+    'node, table',
+    [('meshless_solver', SOLVER_MODEL + SOLVER_STREAM), ('registration', REGISTRATION)],
+)
+def test_graph_yaml_and_the_readme_name_every_setting(node, table):
+    import yaml
+
+    params = yaml.safe_load(config_file('graph.yaml').read_text())[f'/**/{node}']
+    assert flat(params['ros__parameters']) == {s.name for s in table}
+    readme = (Path(__file__).resolve().parents[1] / 'README.md').read_text()
+    start = readme.index(f'- `{node}`')
+    entry = readme[start:].split('\n- `')[0]
+    assert [s.name for s in table if f'`{s.name}`' not in entry] == []

@@ -14,7 +14,7 @@
 
 """Cylinder-shell phantom: geometry and analytic deformations."""
 
-from mlv_ros.core.phantom import (
+from mlv_ros.core.sim.paper_cylinder import (
     control_subset,
     deform,
     DEFORMATIONS,

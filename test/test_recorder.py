@@ -25,7 +25,7 @@ import time
 
 from conftest import console_script, spin_until
 from mlv_ros import bagio, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.nodes.frame_source import FrameSource
 from mlv_ros.nodes.recorder import Recorder
 import numpy as np

@@ -17,10 +17,10 @@
 import json
 
 from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics
-from mlv_ros.core.analysis.synthetic import cylinder_shell, oblique_frame, synthetic_cycle
 from mlv_ros.core.report import build_report, RunData, summarize, write_summary_json
 from mlv_ros.core.report.figures import _aha_wedges
 from mlv_ros.core.report.summary import signed_peak
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, oblique_frame, synthetic_cycle
 import numpy as np
 import pytest
 

@@ -47,7 +47,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from mcap.reader import make_reader
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.nodes.frame_source import FrameSource
 from mlv_ros.nodes.recorder import Recorder
 from mlv_ros.nodes.replay import recorded_qos, Replay

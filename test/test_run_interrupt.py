@@ -217,12 +217,36 @@ def test_signal_while_starting_leaves_nothing(tmp_path):
 # ---------------------------------------------------------------------------------- failures
 def test_bad_parameter_ends_the_start_at_once_and_leaves_nothing(tmp_path):
     run_dir = tmp_path / 'new' / 'run'
-    params = params_file(tmp_path, {'meshless_solver': {'twist_knots': 200}})
+    params = params_file(tmp_path, {'meshless_solver': {'twist': {'knots': 200}}})
     run = Run([*SMALL, '--phases', '4', '--params', params, '--out', str(run_dir)])
     rc, _, lines = run.finish(timeout=30)
     assert rc == 2 and time.monotonic() - run.t0 < 15
-    assert_one_line_reason(lines, 'meshless_solver could not start', 'twist_knots', 'out of range')
+    assert_one_line_reason(lines, 'meshless_solver could not start', 'twist.knots', 'out of range')
     assert not (tmp_path / 'new').exists()  # the directories it made are gone too
+
+
+def test_a_former_flat_parameter_name_ends_the_start_naming_the_new_one(tmp_path):
+    run_dir = tmp_path / 'run'
+    params = params_file(tmp_path, {'meshless_solver': {'hourglass_weight': 10.0}})
+    run = Run([*SMALL, '--phases', '4', '--params', params, '--out', str(run_dir)])
+    rc, _, lines = run.finish(timeout=30)
+    assert rc == 2
+    assert_one_line_reason(
+        lines,
+        'meshless_solver could not start',
+        "'hourglass_weight' is now 'local.fit_error_weight'",
+    )
+    assert not run_dir.exists()
+
+
+def test_a_failed_registration_ends_the_run_with_its_reason(tmp_path):
+    # Noise only (SNR 1.5): no SA slice can be segmented. The registration is left blocked
+    # (progress()), which the run reads instead of waiting for a model that will not come.
+    run_dir = tmp_path / 'run'
+    run = Run([*SMALL, '--phases', '8', '--snr', '1.5', '--out', str(run_dir)])
+    rc, _, lines = run.finish(timeout=120)
+    assert rc == 1
+    assert_one_line_reason(lines, 'registration: registration failed', 'usable SA slices')
 
 
 def test_foreign_bag_ends_at_once_with_the_reason(tmp_path):
@@ -274,22 +298,22 @@ def test_a_folder_of_mosaic_files_ends_at_once_with_the_reason(tmp_path):
 
 def test_value_inside_the_range_the_model_refuses_ends_the_start_at_once(tmp_path):
     """
-    Check that twist_knots 1 ends the run at start-up with the core's reason.
+    Check that twist.knots 1 ends the run at start-up with the core's reason.
 
-    twist_knots 1 is inside the solver's declared range (0..100), which rclpy cannot cut one
+    twist.knots 1 is inside the solver's declared range (0..100), which rclpy cannot cut one
     value out of; the node's parameter check (the core's own rule) refuses it at start-up, so the
-    run ends before anything is recorded, with the core's reason (it used to wait 600 s, then
-    until the registration came).
+    run ends before anything is recorded, with the core's reason, instead of failing only once a
+    registration comes.
     """
     run_dir = tmp_path / 'new' / 'run'
-    params = params_file(tmp_path, {'meshless_solver': {'twist_knots': 1}})
+    params = params_file(tmp_path, {'meshless_solver': {'twist': {'knots': 1}}})
     run = Run([*SMALL, '--phases', '4', '--params', params, '--out', str(run_dir)])
     rc, _, lines = run.finish(timeout=30)
     assert rc == 2 and time.monotonic() - run.t0 < 15
     assert_one_line_reason(
         lines,
         'meshless_solver could not start',
-        'twist_knots=1',
+        'twist.knots=1',
         'one knot is no function of height',
     )
     assert not (tmp_path / 'new').exists()

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Run isolation (issue 16): two graphs on one ROS domain cannot mix.
+Run isolation: two graphs on one ROS domain cannot mix.
 
 Every message of a study carries its ``study_id``; each node keeps to the study of the first
 message it takes and reports (ERROR on /diagnostics, naming both ids) and ignores the others;
@@ -30,7 +30,7 @@ from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from graphkit import Probe, wait_matched
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.core.types import ModelState
 from mlv_ros.nodes.frame_source import count_slices
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer

@@ -28,7 +28,7 @@ from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
-from mlv_ros.core.pattern import pattern_frames
+from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.nodes.common import ERROR, status_node
 from mlv_ros.nodes.recorder import Recorder
 from rclpy.node import Node

@@ -18,8 +18,8 @@ from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import detect_intersections, harp_track, SliceTracker
-from mlv_ros.core.tags.synthetic import TagScene
 from mlv_ros.core.types import Frame
 import numpy as np
 import pytest

@@ -14,8 +14,8 @@
 
 """Gabor tag-intersection detection on analytic 1-1 SPAMM grids with known geometry."""
 
+from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import detect_intersections, estimate_tag_parameters, TagParameters
-from mlv_ros.core.tags.synthetic import TagScene
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -109,8 +109,8 @@ def test_myocardium_with_blood_pool_and_noise():
     Check localisation and false positives on a tagged annulus at SNR 20.
 
     Annulus of tagged myocardium around a bright untagged blood pool, noise σ = 1/20 of the
-    myocardium intensity (SNR 20): localisation within the Must of the issue (0.25 px median)
-    and no false positives.
+    myocardium intensity (SNR 20): localisation within the required 0.25 px median and no false
+    positives.
     """
     scene = TagScene(shape=(128, 128), ring=(17.5, 34.5), noise_sigma=0.05)
     img = scene.render(0.0, seed=3)

@@ -20,8 +20,8 @@ wobble, fading, noise), and honest loss of points whose tags disappear.
 """
 
 from mlv_ros.core.geometry import SliceGeometry
+from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import harp_track, SliceTracker
-from mlv_ros.core.tags.synthetic import TagScene
 from mlv_ros.core.types import Frame
 import numpy as np
 from scipy.spatial import cKDTree
@@ -165,7 +165,7 @@ def test_tracks_follow_the_simulator_ground_truth():
         true_rc, _ = geom.patient_to_pixel(study.motion.position(x_ed[s.track_id], p))
         errs.append(np.linalg.norm(s.pixel_rc - true_rc, axis=1) * geom.row_spacing)
     errs = np.concatenate(errs)
-    assert np.median(errs) < 0.5  # mm, the issue's Must at SNR 20
+    assert np.median(errs) < 0.5  # mm, the accuracy required at SNR 20
     assert np.percentile(errs, 95) < 2.0  # no identity swaps (one tag spacing is 7 mm)
     assert len(sets[int(study.motion.es_phase)]) >= 0.5 * len(sets[0])
 

@@ -20,8 +20,8 @@ and left alone by one that should pass — through the real solver and analyzer.
 """
 
 from mlv_ros.core.analysis import LVAnalyzer
-from mlv_ros.core.analysis.synthetic import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.sim import simulate_study
+from mlv_ros.core.sim.analytic_lv import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import DEGRADED, FAILED, metrics_verdict, OK, phase_verdict, Verdict
 import numpy as np
@@ -279,7 +279,7 @@ def test_recordings_made_before_the_verdict_still_read():
         's',
         'abcd',
         'abcdefg',
-    ):  # recorded before the segment origin and findings (issue 20)
+    ):  # recorded before messages carried the segment origin and findings
         cases += [
             (
                 ModelState,
@@ -380,7 +380,7 @@ def test_registration_and_ed_volume_verdicts():
     holed = registration_verdict(ok, np.r_[rng.normal(8.0, 1.0, 1800), [0.5] * 200])
     assert holed.level == DEGRADED and 'thin over 5 %' in holed.text
     assert registration_verdict(ok, []).level == OK  # no surfaces: not checked
-    # The issue's 40 605 ml EDV is not a heart; 1.2 l is a heart no adult has.
+    # A 40 605 ml EDV is not a heart; 1.2 l is a heart no adult has.
     assert metrics_verdict(0.3, 5.0, 80.0, edv_ml=40605.0).level == FAILED
     huge = metrics_verdict(0.3, 5.0, 80.0, edv_ml=1200.0)
     assert huge.level == DEGRADED and 'ED cavity volume' in huge.text

@@ -28,7 +28,7 @@ import inspect
 import signal
 import sys
 import time
-from typing import Callable, NamedTuple
+from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from mlv_ros import conversions, qos
@@ -69,21 +69,6 @@ class StreamCount:
     missed: int = 0
     last_sequence: int | None = None
     publisher_restarts: int = 0
-
-
-class Setting(NamedTuple):
-    """
-    One node parameter: name, default, description and range (see :meth:`GraphNode.param`).
-
-    ``check(value)`` returns why a value inside the range is still refused (None: accepted).
-    """
-
-    name: str
-    default: object
-    description: str
-    min_value: float | None = None
-    max_value: float | None = None
-    check: Callable | None = None
 
 
 def stamp_key(stamp) -> tuple[int, int]:
@@ -160,9 +145,11 @@ class GraphNode(Node):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
-        # The uniform counters of progress(): messages taken from the graph, results put out.
+        # The uniform counters of progress(): messages taken from the graph, results put out,
+        # and whether the node holds an input it could not use and waits for a new one.
         self.messages_handled = 0
         self.published = 0
+        self.blocked = 0
         self._topics: dict[str, str] = {}
         self._diag_pub = self.create_publisher(
             DiagnosticArray, qos.DIAGNOSTICS, qos.diagnostics_qos()
@@ -211,10 +198,17 @@ class GraphNode(Node):
         -------
         dict
             ``received``: messages it took from the graph's topics; ``published``: results it
-            put out (frames, tag point sets, phases, metrics, replayed messages).
+            put out (frames, tag point sets, phases, metrics, replayed messages); ``blocked``: 1
+            while it holds an input it could not use and cannot go on without (a registration
+            that failed, a registered model the solver or analyzer cannot build on: it waits
+            for a new one, its latest ERROR says why), else 0.
 
         """
-        return {'received': int(self.messages_handled), 'published': int(self.published)}
+        return {
+            'received': int(self.messages_handled),
+            'published': int(self.published),
+            'blocked': int(self.blocked),
+        }
 
     def publisher(self, topic: str, msg_type):
         """
@@ -355,14 +349,33 @@ class GraphNode(Node):
 
     def declare_settings(self, settings) -> None:
         """
-        Declare each :class:`Setting` as a parameter; keep its value as the attribute of its name.
+        Declare each setting as a parameter; keep its value as the setting's attribute.
+
+        A grouped setting's keyword is the flat name it had before it was grouped
+        (:mod:`mlv_ros.settings`): a value given under that name (a parameters file, ``-p``, a
+        launch file) would be ignored without a word, so it is refused, naming the new one.
 
         Parameters
         ----------
-        settings : iterable of Setting
+        settings : iterable of mlv_ros.settings.Setting
             Declared in this order, each with its range and check (:meth:`param`).
 
+        Raises
+        ------
+        ValueError
+            A value is given under a setting's former flat name.
+
         """
+        settings = tuple(settings)
+        # rclpy keeps every value given for the node (declared or not) in _parameter_overrides.
+        given = set(self._parameter_overrides)
+        for s in settings:
+            if s.attribute != s.name and s.attribute in given:
+                raise ValueError(
+                    f"parameter '{s.attribute}' is now '{s.name}': rename it in the parameters "
+                    f'file or -p argument ({s.name.split(".")[0]}: {{'
+                    f'{s.name.split(".", 1)[1]}: ...}} in YAML)'
+                )
         for s in settings:
             value = self.param(
                 s.name,
@@ -372,7 +385,7 @@ class GraphNode(Node):
                 max_value=s.max_value,
                 check=s.check,
             )
-            setattr(self, s.name, value)
+            setattr(self, s.attribute, value)
 
     def create_subscription(self, msg_type, topic: str, callback, qos_profile, **kwargs):
         """

@@ -293,7 +293,7 @@ class FrameSource(GraphNode):
 
     def _load(self) -> list[Frame]:
         if self.source == 'pattern':
-            from mlv_ros.core.pattern import pattern_frames
+            from mlv_ros.core.sim.pattern import pattern_frames
 
             return pattern_frames(num_phases=self.num_phases)
         if self.source == 'phantom':

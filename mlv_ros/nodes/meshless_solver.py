@@ -41,8 +41,8 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
-from mlv_ros.core.streaming import PhaseSchedule
-from mlv_ros.core.tracking import MotionTracker, twist_knots_error
+from mlv_ros.core.streaming import PhaseSchedule, StampPairer
+from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import LEVEL_NAMES
 from mlv_ros.nodes.common import (
     ERROR,
@@ -50,84 +50,16 @@ from mlv_ros.nodes.common import (
     OK,
     RecentKeys,
     run_node,
-    Setting,
     Silence,
     stamp_key,
     WARN,
 )
+from mlv_ros.settings import SOLVER_MODEL, SOLVER_STREAM
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
-
-# The solver's settings, each with its range, declared as node parameters of the same names; the
-# model's own rule (twist_knots: one knot is no function of height) is checked by the core's
-# function, so one place says why a value is refused. TRACKER_SETTINGS are MotionTracker's
-# keyword arguments.
-TRACKER_SETTINGS = (
-    Setting('data_weight', 1.0e4, 'tag-force stiffness relative to elasticity', 1e-3, 1e9),
-    Setting(
-        'hourglass_weight',
-        1.0e3,
-        'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
-        0.0,
-        1e9,
-    ),
-    Setting(
-        'volume_weight',
-        1.0e3,
-        'near-incompressibility penalty, in units of the shear modulus (0 = off)',
-        0.0,
-        1e9,
-    ),
-    Setting(
-        'global_prior',
-        1.0,
-        'prior holding the global parameters at the previous phase, counted like this many '
-        'control points (0 = off)',
-        0.0,
-        1e5,
-    ),
-    Setting(
-        'longitudinal_weight',
-        3.0e3,
-        'stiffness against local stretch along the long axis, in units of the shear '
-        'modulus (0 = off): only LA tags measure it',
-        0.0,
-        1e9,
-    ),
-    Setting(
-        'twist_knots',
-        11,
-        'knots of the twist function of height (0 = the single twist factor τ)',
-        0,
-        100,
-        check=twist_knots_error,
-    ),
-    Setting('twist_smoothing', 0.3, 'curvature penalty of the twist function', 1e-6, 1e5),
-    Setting(
-        'slice_following', 1, 're-attachment passes keeping tag points on their planes', 0, 10
-    ),
-    Setting('max_iterations', 100, 'solver iterations per phase', 1, 10000),
-)
-# When to solve and publish (the node's stream, not the model).
-STREAM_SETTINGS = (
-    Setting(
-        'incomplete_timeout_s',
-        5.0,
-        'solve an incomplete phase after this long without input',
-        0.1,
-        3600.0,
-    ),
-    Setting(
-        'wait_for_subscribers',
-        1,
-        'matched subscribers of the motion and state topics to wait for before publishing',
-        0,
-        100,
-    ),
-    Setting('wait_timeout_s', 10.0, 'then publish to those present, with a warning', 0.0, 3600.0),
-)
+REGISTRATIONS_HELD = 4  # registered clouds / states held while waiting for their pair
 
 
 class MeshlessSolver(GraphNode):
@@ -135,8 +67,8 @@ class MeshlessSolver(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('meshless_solver', **node_kwargs)
-        # Each setting becomes an attribute of the same name (self.data_weight ...).
-        self.declare_settings(TRACKER_SETTINGS + STREAM_SETTINGS)
+        # Each setting becomes an attribute named by its core keyword (self.twist_knots ...).
+        self.declare_settings(SOLVER_MODEL + SOLVER_STREAM)
         self._waiting_since = None
         self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
         self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
@@ -146,8 +78,9 @@ class MeshlessSolver(GraphNode):
         self.schedule = PhaseSchedule()  # which phase is solved next
         self.cloud = None
         self.rest_state = None
-        self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
-        self._rest_key = None  # stamp of the registered state taken
+        # The registered cloud and state, paired by stamp (latched: one a registration, a few
+        # restarts at most).
+        self.registered = StampPairer(REGISTRATIONS_HELD)
         self._foreign_stamps = RecentKeys()  # stamps of registered states of another study
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
@@ -181,9 +114,8 @@ class MeshlessSolver(GraphNode):
         except ValueError as exc:
             self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
             return
-        self._reg_clouds[key] = cloud
-        while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
-            self._reg_clouds.pop(next(iter(self._reg_clouds)))
+        self.registered.add('cloud', key, cloud)
+        self.registered.trim('cloud')
         self._build()
 
     def _on_state(self, msg: ModelStateMsg) -> None:
@@ -191,7 +123,7 @@ class MeshlessSolver(GraphNode):
         other = self.foreign(msg.study_id, qos.REGISTERED_STATE, run_id=msg.run_id, stamp=stamp)
         if other:
             self._foreign_stamps.add(key, other)
-            if self._reg_clouds.pop(key, None) is not None:
+            if 'cloud' in self.registered.discard(key):
                 self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, other)
             return
         try:
@@ -200,15 +132,17 @@ class MeshlessSolver(GraphNode):
             self.report(ERROR, 'bad registered state', stamp=stamp, reason=str(exc))
             return
         self.study.adopt(state.study_id, state.run_id)
-        self.rest_state, self._rest_key = state, key
+        self.registered.add('state', key, state)
+        self.registered.trim('state')
         self._build()
 
     def _build(self) -> None:
-        if self.rest_state is None or self.tracker is not None:
+        if self.tracker is not None:
             return
-        self.cloud = self._reg_clouds.get(self._rest_key)
-        if self.cloud is None:
-            return  # its cloud (same stamp) has not come yet
+        pairs = self.registered.pairs()
+        if not pairs:
+            return  # the cloud or the state (same stamp) has not come yet
+        _, self.cloud, self.rest_state = pairs[-1]  # the latest registration complete
         model = conversions.registered_model(self.cloud, self.rest_state)
         s, pts = model.state, model.positions
         try:
@@ -218,19 +152,13 @@ class MeshlessSolver(GraphNode):
                 s.rotation,
                 polar=model.polar,
                 shape=(s.a0, s.a1, s.a2, s.a3, s.tau),
-                data_weight=self.data_weight,
-                hourglass_weight=self.hourglass_weight,
-                volume_weight=self.volume_weight,
-                longitudinal_weight=self.longitudinal_weight,
-                global_prior=self.global_prior,
-                twist_knots=self.twist_knots,
-                twist_smoothing=self.twist_smoothing,
-                slice_following=self.slice_following,
-                max_iterations=self.max_iterations,
+                **{k.attribute: getattr(self, k.attribute) for k in SOLVER_MODEL},
             )
         except ValueError as exc:
             self.report(ERROR, 'cannot build the model from the registration', reason=str(exc))
+            self.blocked = 1  # until a registration it can build on comes
             return
+        self.blocked = 0
         apex, base, ref = lv_frame_axes(pts, s.rotation)
         self.frame = LVFrame(apex, base, ref)
         self.cardiac = cardiac_coordinates(pts, self.frame)

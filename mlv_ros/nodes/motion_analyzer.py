@@ -51,6 +51,7 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 _key = stamp_key
+REGISTRATIONS_HELD = 4  # registered clouds / states held while waiting for their pair
 
 
 class MotionAnalyzer(GraphNode):
@@ -83,8 +84,9 @@ class MotionAnalyzer(GraphNode):
         self.reg_cloud = self.reg_state = self.analyzer = None
         self.findings = SegmentFindings()  # per-segment findings of the cycle so far
         self._findings_said = None  # the abnormal segments last reported
-        self._reg_clouds: dict = {}  # stamp → registered cloud waiting for its state
-        self._reg_key = None  # stamp of the registered state taken
+        # The registered cloud and state, paired by stamp (latched: one a registration, a few
+        # restarts at most).
+        self.registered = StampPairer(REGISTRATIONS_HELD)
         self._foreign_stamps = RecentKeys()  # stamps of model states of another study
         self.pairer = StampPairer(self.max_unpaired)  # motion clouds with their model states
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
@@ -117,10 +119,10 @@ class MotionAnalyzer(GraphNode):
         key = _key(msg.header.stamp)
         self._foreign_stamps.add(key, other)
         for cloud_topic, held in (
-            (qos.REGISTERED_CLOUD, self._reg_clouds),
-            (qos.MOTION, self.clouds),
+            (qos.REGISTERED_CLOUD, self.registered),
+            (qos.MOTION, self.pairer),
         ):
-            if held.pop(key, None) is not None:
+            if 'cloud' in held.discard(key):
                 self.cloud_of_other_study(cloud_topic, stamp, other)
         return True
 
@@ -128,7 +130,7 @@ class MotionAnalyzer(GraphNode):
         if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
             return
         try:
-            self._reg_clouds[_key(msg.header.stamp)] = conversions.msg_to_registered_cloud(msg)
+            cloud = conversions.msg_to_registered_cloud(msg)
         except ValueError as exc:
             self.report(
                 ERROR,
@@ -136,8 +138,9 @@ class MotionAnalyzer(GraphNode):
                 stamp=conversions.stamp_text(msg.header.stamp),
                 reason=str(exc),
             )
-        while len(self._reg_clouds) > 4:  # latched: one a registration, a few restarts at most
-            self._reg_clouds.pop(next(iter(self._reg_clouds)))
+            return
+        self.registered.add('cloud', _key(msg.header.stamp), cloud)
+        self.registered.trim('cloud')
         self._build()
 
     def _on_registered_state(self, msg):
@@ -152,17 +155,19 @@ class MotionAnalyzer(GraphNode):
                 stamp=conversions.stamp_text(msg.header.stamp),
                 reason=str(exc),
             )
-        else:
-            self.study.adopt(state.study_id, state.run_id)
-            self.reg_state, self._reg_key = state, _key(msg.header.stamp)
+            return
+        self.study.adopt(state.study_id, state.run_id)
+        self.registered.add('state', _key(msg.header.stamp), state)
+        self.registered.trim('state')
         self._build()
 
     def _build(self):
-        if self.analyzer is not None or self.reg_state is None:
+        if self.analyzer is not None:
             return
-        self.reg_cloud = self._reg_clouds.get(self._reg_key)
-        if self.reg_cloud is None:
-            return  # its cloud (same stamp) has not come yet
+        pairs = self.registered.pairs()
+        if not pairs:
+            return  # the cloud or the state (same stamp) has not come yet
+        _, self.reg_cloud, self.reg_state = pairs[-1]  # the latest registration complete
         model = conversions.registered_model(self.reg_cloud, self.reg_state)
         X = model.positions
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
@@ -176,7 +181,9 @@ class MotionAnalyzer(GraphNode):
             )
         except ValueError as exc:
             self.report(ERROR, 'cannot analyse this model', reason=str(exc))
+            self.blocked = 1  # until a registration it can build on comes
             return
+        self.blocked = 0
         self.report(OK, 'analyzer ready', particles=len(X), edv_ml=round(self.analyzer.edv_ml, 1))
         self._pair()
 

@@ -182,11 +182,12 @@ class Recorder(GraphNode):
         Returns
         -------
         dict
-            ``received`` as the per-topic counts say, ``published`` 0 (it writes a file).
+            ``received`` as the per-topic counts say, ``published`` 0 (it writes a file),
+            ``blocked`` as every node's.
 
         """
         received = sum(c.received for t, c in self.streams.items() if t != qos.DIAGNOSTICS)
-        return {'received': received, 'published': 0}
+        return {**super().progress(), 'received': received, 'published': 0}
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         self.messages_handled += 1

@@ -40,6 +40,7 @@ from mlv_ros import conversions, qos
 from mlv_ros.core.types import RegisteredModel, SEGMENT_ORIGIN_CODES, VIEW_SA
 from mlv_ros.core.verdict import registration_verdict
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
+from mlv_ros.settings import REGISTRATION
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
@@ -51,40 +52,7 @@ class Registration(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('registration', **node_kwargs)
-        self.num_particles = self.param(
-            'num_particles', 3000, 'model particles', min_value=100, max_value=200000
-        )
-        self.seed = self.param(
-            'seed', 0, 'particle sampling seed', min_value=0, max_value=2**31 - 1
-        )
-        self.ed_timeout_s = self.param(
-            'ed_timeout_s',
-            5.0,
-            'register with the ED slices present once frames stop arriving for this long',
-            min_value=0.1,
-            max_value=3600.0,
-        )
-        self.min_sa_slices = self.param(
-            'min_sa_slices', 3, 'fewest SA slices to register from', min_value=2, max_value=100
-        )
-        self.mask_path = self.param(
-            'mask_path',
-            '',
-            'optional NIfTI label image of the ED myocardium (empty = automatic segmentation)',
-        )
-        self.mask_label = self.param(
-            'mask_label',
-            2,
-            'myocardium label in mask_path (ACDC: 2)',
-            min_value=0,
-            max_value=65535,
-        )
-        self.catch_up = self.param(
-            'catch_up',
-            True,
-            'take frames with their history (TRANSIENT_LOCAL), so a restart '
-            'gets the frames already sent; false for a publisher without history',
-        )
+        self.declare_settings(REGISTRATION)  # self.num_particles, self.seed ...
         self.cloud_pub = self.publisher(qos.REGISTERED_CLOUD, PointCloud2)
         self.state_pub = self.publisher(qos.REGISTERED_STATE, ModelStateMsg)
         self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=self.catch_up)
@@ -198,6 +166,7 @@ class Registration(GraphNode):
             )
         except ValueError as exc:
             self.report(ERROR, 'registration failed', reason=str(exc), slices=len(self.ed_frames))
+            self.blocked = 1  # it registers once: nothing follows in this run
             return
         left_out = [
             f'{"SA" if rep.view == VIEW_SA else "LA"} {rep.slice_index}: {rep.reason}'

@@ -67,6 +67,9 @@ from mlv_ros.runner import (
     verdict_line,
     write_summary,
 )
+from mlv_ros.settings import REGISTRATION, setting
+
+PARTICLES = setting(REGISTRATION, 'num_particles')  # --particles: the registration's range
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 _UID = re.compile(r'[0-9]+(\.[0-9]+)*')
@@ -108,7 +111,10 @@ def add_arguments(parser):
     )
     parser.add_argument('--order', choices=('slice_major', 'phase_major'), default=None)
     parser.add_argument(
-        '--particles', type=int, default=None, help='model particles (100..200000)'
+        '--particles',
+        type=int,
+        default=None,
+        help=f'model particles ({PARTICLES.min_value}..{PARTICLES.max_value})',
     )
     parser.add_argument(
         '--masks',
@@ -180,7 +186,7 @@ def check_args(args) -> str | None:
         _number_error('--snr', args.snr, 0, 1000, ' (0 = noise-free)'),
         _number_error('--size', args.size, 32, 1024, ' pixels'),
         _number_error('--phases', args.phases, 2, 200),
-        _number_error('--particles', args.particles, 100, 200000),
+        _number_error('--particles', args.particles, PARTICLES.min_value, PARTICLES.max_value),
         _number_error('--domain-id', args.domain_id, 0, 232),
         _number_error('--live-port', args.live_port, 0, 65535, ' (0 = any free port)'),
         None if args.namespace is None else _namespace_error(args.namespace),

@@ -337,7 +337,89 @@ def register_ed(
         )
     timings: dict = {}
     warnings: list[str] = []
-    reports: list[SliceReport] = []
+    by_key = _ed_frames(frames, warnings)
+    sa_keys = sorted(k for k in by_key if k[0] == VIEW_SA)
+    la_keys = sorted(k for k in by_key if k[0] == VIEW_LA)
+    est = estimate_long_axis(
+        [by_key[k].geometry for k in sa_keys],
+        [by_key[k].geometry for k in la_keys],
+        np.array([_fov_centre(by_key[k]) for k in sa_keys]),
+    )
+    axis_pt, axis_dir = est.point, est.direction
+
+    ts = time.perf_counter()
+    segs, reports = _segment_slices(by_key, sa_keys + la_keys, axis_pt, axis_dir, masks or {})
+    timings['segmentation'] = time.perf_counter() - ts
+    usable_sa = _usable_sa_slices(sa_keys, la_keys, segs, reports, warnings)
+    usable_la = [k for k in la_keys if k in segs]
+
+    ref, septum = _reference(by_key, segs, usable_sa, axis_dir, reference_direction)
+    frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
+    if la_keys and not usable_la:
+        warnings.append('no usable LA view: apex and base are extrapolated from the SA stack')
+
+    # ---- 3-D reconstruction (§2.1)
+    ts = time.perf_counter()
+    shape = _reconstruct(by_key, segs, usable_sa, frame3, warnings)
+    particles0 = sample_particles(shape, int(num_particles), seed)
+    mframe, polar = model_frame(shape, particles0)
+    timings['initialisation'] = time.perf_counter() - ts
+
+    # ---- landmark registration (§3.2, Fig. 7)
+    ts = time.perf_counter()
+    landmarks = _landmark_pairs(by_key, segs, shape, landmarks_per_sa_slice)
+    settings = (max_iterations, local_iterations, data_weight)
+    particles, state_kw, surf_model = _fit_landmarks(
+        particles0, mframe, landmarks, reports, warnings, bool(usable_la), settings
+    )
+    timings['registration'] = time.perf_counter() - ts
+
+    if particles is not particles0:
+        mframe, polar = model_frame(shape, particles)
+    polar['transmural'] = shape.transmural(particles0)
+    state = _ed_state(mframe, next(iter(by_key.values())).num_phases, len(particles), state_kw)
+    timings['total'] = time.perf_counter() - t0
+    return RegistrationResult(
+        particles,
+        mframe,
+        polar,
+        state,
+        shape,
+        reports,
+        warnings,
+        axis_pt,
+        axis_dir,
+        {k: s.mask for k, s in segs.items()},
+        _surfaces(shape, surf_model, particles),
+        timings,
+        septum,
+    )
+
+
+def _ed_state(mframe: ModelFrame, num_phases, num_particles: int, fit: dict) -> ModelState:
+    """Return the registered model's ED state: its global parameters and the fit's figures."""
+    p = mframe.params
+    return ModelState(
+        phase_index=0,
+        num_phases=int(num_phases),
+        translation=p.translation.copy(),
+        rotation=p.rotation.copy(),
+        a0=float(p.a[0]),
+        a1=float(p.a[1]),
+        a2=float(p.a[2]),
+        a3=float(p.a[3]),
+        tau=float(p.tau),
+        num_particles=num_particles,
+        **fit,
+    )
+
+
+def _ed_frames(frames, warnings: list) -> dict:
+    """
+    Return each slice's ED frame, ``{(view, slice_index): Frame}``; say what is missing.
+
+    A slice given several phases keeps its lowest; a study without SA slices is refused.
+    """
     if frames is None or len(frames) == 0:
         raise ValueError('register_ed needs the ED frames of the SA (and LA) slices; got none')
     by_key: dict = {}
@@ -349,73 +431,80 @@ def register_ed(
             by_key[k] = f
     if any(f.phase_index != 0 for f in by_key.values()):
         warnings.append('some slices have no phase-0 (ED) frame; their earliest phase was used')
-    sa_keys = sorted(k for k in by_key if k[0] == VIEW_SA)
-    la_keys = sorted(k for k in by_key if k[0] == VIEW_LA)
-    if not sa_keys:
+    views = [k[0] for k in by_key]
+    if VIEW_SA not in views:
         raise ValueError('no SA frames: the registration needs a short-axis stack')
-    if not la_keys:
+    la = views.count(VIEW_LA)
+    if not la:
         warnings.append('no LA views: apex and base are extrapolated from the SA stack')
-    elif len(la_keys) < 2:
+    elif la < 2:
         warnings.append('only one LA view: the long axis comes from the SA normal')
+    return by_key
 
-    est = estimate_long_axis(
-        [by_key[k].geometry for k in sa_keys],
-        [by_key[k].geometry for k in la_keys],
-        np.array([_fov_centre(by_key[k]) for k in sa_keys]),
-    )
-    axis_pt, axis_dir = est.point, est.direction
 
-    user = masks or {}
+def _segment_slices(by_key: dict, keys: list, axis_pt, axis_dir, user: dict):
+    """
+    Segment each slice around the long axis (or take the user's mask).
+
+    Returns ``(segs, reports)``: ``{key: SliceSegmentation}`` of the slices segmented, and one
+    :class:`SliceReport` per slice, in ``keys`` order (a dropped slice with its reason).
+    """
     segs: dict = {}
-    ts = time.perf_counter()
-    for k in sa_keys + la_keys:
-        f = by_key[k]
-        g = f.geometry
-        img = np.asarray(f.image)
-        sp = g.row_spacing
-        if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
-            reports.append(SliceReport(*k, False, 'anisotropic pixel spacing is not supported'))
-            continue
-        if k[0] == VIEW_SA:
-            x = _axis_in_plane(g, axis_pt, axis_dir)
-            if x is None:
-                reports.append(
-                    SliceReport(*k, False, 'SA plane is nearly parallel to the long axis')
-                )
-                continue
-            centre_rc = g.patient_to_pixel(x)[0]
+    reports: list[SliceReport] = []
+    for k in keys:
+        s = _segment_slice(by_key[k], k, axis_pt, axis_dir, user)
+        if isinstance(s, str):
+            reports.append(SliceReport(*k, False, s))
+        elif not s.ok:
+            reports.append(SliceReport(*k, False, s.reason, s.source))
         else:
-            centre_rc, off = g.patient_to_pixel(axis_pt)
-            axis_rc = np.array([axis_dir @ g.column_direction, axis_dir @ g.row_direction])
-            if abs(off) > 10.0 or np.linalg.norm(axis_rc) < 0.9:
-                reports.append(
-                    SliceReport(
-                        *k,
-                        False,
-                        f'LA plane does not contain the long axis '
-                        f'({abs(off):.1f} mm off, in-plane cos {np.linalg.norm(axis_rc):.2f})',
-                    )
-                )
-                continue
-        if k in user:
-            s = _from_mask(
-                user[k], img.shape, k[0], centre_rc, sp, None if k[0] == VIEW_SA else axis_rc
-            )
-            source = 'mask'
-        elif k[0] == VIEW_SA:
-            s = seg.segment_sa(img, centre_rc, sp)
-            source = 'auto'
-        else:
-            s = seg.segment_la(img, centre_rc, axis_rc, sp)
-            source = 'auto'
-        s.source = source
-        if not s.ok:
-            reports.append(SliceReport(*k, False, s.reason, source))
-            continue
-        segs[k] = s
-        reports.append(SliceReport(*k, True, '', source))
-    timings['segmentation'] = time.perf_counter() - ts
+            segs[k] = s
+            reports.append(SliceReport(*k, True, '', s.source))
+    return segs, reports
 
+
+def _segment_slice(f: Frame, k: tuple, axis_pt, axis_dir, user: dict):
+    """
+    Return one slice's segmentation (``source`` 'mask' or 'auto'), or why it cannot be had.
+
+    The user's mask of the slice (``user[k]``) is taken where given.
+
+    The reason (a str) is for a slice whose geometry does not fit the long axis or whose pixels
+    are anisotropic.
+    """
+    g = f.geometry
+    img = np.asarray(f.image)
+    sp = g.row_spacing
+    if abs(g.row_spacing - g.column_spacing) > 1e-3 * sp:
+        return 'anisotropic pixel spacing is not supported'
+    axis_rc = None
+    if k[0] == VIEW_SA:
+        x = _axis_in_plane(g, axis_pt, axis_dir)
+        if x is None:
+            return 'SA plane is nearly parallel to the long axis'
+        centre_rc = g.patient_to_pixel(x)[0]
+    else:
+        centre_rc, off = g.patient_to_pixel(axis_pt)
+        axis_rc = np.array([axis_dir @ g.column_direction, axis_dir @ g.row_direction])
+        if abs(off) > 10.0 or np.linalg.norm(axis_rc) < 0.9:
+            return (
+                f'LA plane does not contain the long axis '
+                f'({abs(off):.1f} mm off, in-plane cos {np.linalg.norm(axis_rc):.2f})'
+            )
+    if k in user:
+        s = _from_mask(user[k], img.shape, k[0], centre_rc, sp, axis_rc)
+        s.source = 'mask'
+        return s
+    if k[0] == VIEW_SA:
+        s = seg.segment_sa(img, centre_rc, sp)
+    else:
+        s = seg.segment_la(img, centre_rc, axis_rc, sp)
+    s.source = 'auto'
+    return s
+
+
+def _usable_sa_slices(sa_keys, la_keys, segs: dict, reports: list, warnings: list) -> list:
+    """Return the segmented SA slices; refuse fewer than MIN_SA_SLICES, naming each reason."""
     usable_sa = [k for k in sa_keys if k in segs]
     if len(usable_sa) < MIN_SA_SLICES:
         why = '; '.join(
@@ -431,34 +520,37 @@ def register_ed(
             f'registered from {len(segs)} of {len(sa_keys) + len(la_keys)} slices; dropped: '
             + ', '.join(f'{_VIEW[r.view]} {r.slice_index}' for r in failed)
         )
-    usable_la = [k for k in la_keys if k in segs]
+    return usable_sa
 
-    # ---- circumferential reference: the septum from the RV in the images, else the prior
-    if reference_direction is None:
-        septum = estimate_septum(
-            [(np.asarray(by_key[k].image), segs[k], by_key[k].geometry) for k in usable_sa],
-            axis_dir,
-            default_reference(axis_dir, rotate_deg=0.0),
-        )
-        if septum.source == SOURCE_DETECTED:
-            ref = default_reference(axis_dir, septum_hint=septum.septum)
-        else:
-            ref = default_reference(
-                axis_dir
-            )  # the segments are then not tied to the anatomy (septum.reason)
-    else:
+
+def _reference(by_key, segs, usable_sa, axis_dir, reference_direction):
+    """
+    Return the circumferential reference (β = 0) and where its septum came from.
+
+    The caller's direction, else the septum from the RV in the images, else the prior.
+    """
+    if reference_direction is not None:
         ref = np.asarray(reference_direction, float)
         septum = SeptumEstimate(
             SOURCE_GIVEN,
             default_reference(axis_dir, septum_hint=ref, rotate_deg=-60.0),
             reason='reference_direction given by the caller',
         )
-    frame3 = AxisFrame(axis_pt, axis_dir, _perp(ref, axis_dir))
-    if la_keys and not usable_la:
-        warnings.append('no usable LA view: apex and base are extrapolated from the SA stack')
+        return ref, septum
+    septum = estimate_septum(
+        [(np.asarray(by_key[k].image), segs[k], by_key[k].geometry) for k in usable_sa],
+        axis_dir,
+        default_reference(axis_dir, rotate_deg=0.0),
+    )
+    if septum.source == SOURCE_DETECTED:
+        return default_reference(axis_dir, septum_hint=septum.septum), septum
+    # The segments are then not tied to the anatomy (septum.reason says why).
+    return default_reference(axis_dir), septum
 
-    # ---- 3-D reconstruction (§2.1)
-    ts = time.perf_counter()
+
+def _reconstruct(by_key, segs, usable_sa, frame3: AxisFrame, warnings: list) -> LVShape:
+    """Reconstruct the 3-D myocardium from every slice's contour points (§2.1)."""
+    axis_pt, axis_dir = frame3.origin, frame3.axis  # the long axis the slices were cut along
     endo_pts, epi_pts, we, wn = [], [], [], []
     z_bases = []
     for k, s in segs.items():
@@ -479,59 +571,92 @@ def register_ed(
         endo_pts.append(pn)
         we.append(np.full(len(pe), w))
         wn.append(np.full(len(pn), w))
-    # Where the long axis crosses each segmented SA slice: myocardium reaches at least the most
-    # basal of them.
+    z_base = _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases, warnings)
+    return reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
+
+
+def _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases: list, warnings: list) -> float:
+    """
+    Return the base's height on the long axis, mm: the LA views' base cut (median).
+
+    The myocardium reaches at least the most basal segmented SA slice (where the long axis
+    crosses it); without an LA view, half a slice thickness beyond it.
+    """
     z_sa_top = max(
         float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir)
         for k in usable_sa
     )
-    if z_bases:
-        z_base = float(np.median(z_bases))
-        if z_base < z_sa_top:
-            # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice
-            # above it.
-            warnings.append(
-                f'LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA '
-                'slice; '
-                'the base is taken at that slice'
-            )
-            z_base = z_sa_top
-    else:
-        z_base = z_sa_top + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
-    shape = reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
-    particles0 = sample_particles(shape, int(num_particles), seed)
-    mframe, polar = model_frame(shape, particles0)
-    timings['initialisation'] = time.perf_counter() - ts
+    if not z_bases:
+        return z_sa_top + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
+    z_base = float(np.median(z_bases))
+    if z_base < z_sa_top:
+        # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice
+        # above it.
+        warnings.append(
+            f'LA views end {z_sa_top - z_base:.0f} mm below the most basal segmented SA '
+            'slice; '
+            'the base is taken at that slice'
+        )
+        z_base = z_sa_top
+    return z_base
 
-    # ---- landmark registration (§3.2, Fig. 7)
-    ts = time.perf_counter()
+
+def _landmark_pairs(by_key, segs, shape: LVShape, landmarks_per_sa_slice: int) -> tuple:
+    """
+    Return the landmark pairs of every slice (Fig. 7) as lists per slice and wall.
+
+    ``(sources, targets, normals, owner)``: model contour points, the image contour points on
+    the same rays, the planes' normals, and the slice key of each pair. LA pairs within 3 mm of
+    the base cut are left out.
+    """
+    axis_pt, axis_dir = shape.frame.origin, shape.frame.axis
     ctrl_rest, targets, normals, owner = [], [], [], []
+    n_each = landmarks_per_sa_slice // 2
     for k, s in segs.items():
         g = by_key[k].geometry
-        walls = ('endo', 'epi')
-        n_each = landmarks_per_sa_slice // 2
-        for which in walls:
+        for which in ('endo', 'epi'):
             lm = _contour_landmarks(s, which, n_each)
             if lm.size == 0:
                 continue
             model_r = _model_radii(shape, g, s.centre_rc, s.angles[lm], which)
             img_r = (s.endo if which == 'endo' else s.epi)[lm]
             ok = np.isfinite(model_r) & np.isfinite(img_r)
-            if k[0] == VIEW_LA:  # keep clear of the base cut
-                ok &= (s.angles[lm] * 0 + 1).astype(bool)
             d = np.stack([np.sin(s.angles[lm]), np.cos(s.angles[lm])], 1)
             src = g.pixel_to_patient(s.centre_rc[None] + model_r[:, None] * d)
             dst = g.pixel_to_patient(s.centre_rc[None] + img_r[:, None] * d)
-            if k[0] == VIEW_LA:
+            if k[0] == VIEW_LA:  # keep clear of the base cut
                 zb = shape.z_base - 3.0
                 ok &= ((src - axis_pt) @ axis_dir < zb) & ((dst - axis_pt) @ axis_dir < zb)
             ctrl_rest.append(src[ok])
             targets.append(dst[ok])
             normals.append(np.tile(g.normal, (int(ok.sum()), 1)))
             owner += [k] * int(ok.sum())
-    particles = particles0
-    state_kw = {'iterations': 0, 'residual': 0.0, 'converged': False, 'num_control_points': 0}
-    if not usable_la:
+    return ctrl_rest, targets, normals, owner
+
+
+def _fit_landmarks(
+    particles0,
+    mframe,
+    landmarks: tuple,
+    reports: list,
+    warnings: list,
+    has_la: bool,
+    settings: tuple,
+):
+    """
+    Fit the model to the landmark pairs; keep the fit only where it brings the contours closer.
+
+    ``settings`` are :func:`register_ed`'s ``(max_iterations, local_iterations, data_weight)``.
+
+    Returns ``(particles, state_kw, model)``: the registered particles (``particles0`` when the
+    fit is skipped or kept out, with the reason in ``warnings``), the ED state's fit fields, and
+    the fitted model (None without a fit). Each slice's report gets its landmark count and
+    residual.
+    """
+    unfitted = {'iterations': 0, 'residual': 0.0, 'converged': False, 'num_control_points': 0}
+    kept = (particles0, unfitted, None)
+    ctrl_rest = landmarks[0]
+    if not has_la:
         # In-plane SA forces do not see the model's extent along the axis, and the global
         # stage's scale couples it to the radii: without an LA view the fit drifts along the
         # axis (measured, normal LV, SA only: 99.8 % of particles inside the true myocardium
@@ -540,111 +665,78 @@ def register_ed(
             'no usable LA view: landmark registration skipped (the axial scale is '
             'unobservable from SA slices); kept the reconstructed model'
         )
-        surf_model = None
-    elif ctrl_rest and sum(len(c) for c in ctrl_rest) >= 12:
-        src = np.concatenate(ctrl_rest)
-        dst = np.concatenate(targets)
-        nrm = np.concatenate(normals)
-        try:
-            model = MeshlessModel(particles0, mframe)
-            ctrl = model.attach(src)
-            # Global stage first (rigid + scale + twist, eq. 9-15), then a bounded local stage:
-            # the reconstruction already sits within ~1 mm, so a few local steps suffice.
-            model.fit(
-                ctrl, dst, plane_normals=nrm, max_iterations=max_iterations, local=False, tol=1e-3
-            )
-            fit = model.fit(
-                ctrl,
-                dst,
-                plane_normals=nrm,
-                max_iterations=local_iterations,
-                data_weight=data_weight,
-                cg_maxiter=25,
-                refresh_every=0,
-                tol=1e-2,
-                local_start=np.inf,
-            )
-            moved = ctrl.weights @ fit.positions
-            proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
-            res = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - moved), axis=1)
-            res0 = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - src), axis=1)
-            if np.all(np.isfinite(fit.positions)) and np.sqrt(np.mean(res**2)) <= np.sqrt(
-                np.mean(res0**2)
-            ):
-                particles = fit.positions
-                owner_arr = np.array(owner)
-                for r in reports:
-                    sel = (
-                        np.all(owner_arr == (r.view, r.slice_index), axis=1)
-                        if len(owner_arr)
-                        else np.zeros(0, bool)
-                    )
-                    r.landmarks = int(sel.sum())
-                    if sel.any():
-                        r.residual_mm = float(np.sqrt(np.mean(res[sel] ** 2)))
-                state_kw = {
-                    'iterations': fit.iterations,
-                    'residual': float(np.sqrt(np.mean(res**2))),
-                    'converged': bool(fit.converged),
-                    'num_control_points': len(src),
-                }
-                surf_model = model
-            else:
-                warnings.append(
-                    'landmark registration did not reduce the contour distance; '
-                    'kept the reconstructed model'
-                )
-                surf_model = None
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            warnings.append(f'landmark registration failed ({exc}); kept the reconstructed model')
-            surf_model = None
-    else:
+        return kept
+    if not ctrl_rest or sum(len(c) for c in ctrl_rest) < 12:
         warnings.append('too few landmarks for registration; kept the reconstructed model')
-        surf_model = None
-    timings['registration'] = time.perf_counter() - ts
+        return kept
+    src, dst, nrm = (np.concatenate(x) for x in landmarks[:3])
+    max_iterations, local_iterations, data_weight = settings
+    try:
+        model = MeshlessModel(particles0, mframe)
+        ctrl = model.attach(src)
+        # Global stage first (rigid + scale + twist, eq. 9-15), then a bounded local stage:
+        # the reconstruction already sits within ~1 mm, so a few local steps suffice.
+        model.fit(
+            ctrl, dst, plane_normals=nrm, max_iterations=max_iterations, local=False, tol=1e-3
+        )
+        fit = model.fit(
+            ctrl,
+            dst,
+            plane_normals=nrm,
+            max_iterations=local_iterations,
+            data_weight=data_weight,
+            cg_maxiter=25,
+            refresh_every=0,
+            tol=1e-2,
+            local_start=np.inf,
+        )
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        warnings.append(f'landmark registration failed ({exc}); kept the reconstructed model')
+        return kept
+    moved = ctrl.weights @ fit.positions
+    proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
+    res = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - moved), axis=1)
+    res0 = np.linalg.norm(np.einsum('mab,mb->ma', proj, dst - src), axis=1)
+    closer = np.sqrt(np.mean(res**2)) <= np.sqrt(np.mean(res0**2))
+    if not (np.all(np.isfinite(fit.positions)) and closer):
+        warnings.append(
+            'landmark registration did not reduce the contour distance; '
+            'kept the reconstructed model'
+        )
+        return kept
+    _report_landmarks(reports, np.array(landmarks[3]), res)
+    state_kw = {
+        'iterations': fit.iterations,
+        'residual': float(np.sqrt(np.mean(res**2))),
+        'converged': bool(fit.converged),
+        'num_control_points': len(src),
+    }
+    return fit.positions, state_kw, model
 
-    if particles is not particles0:
-        mframe, polar = model_frame(shape, particles)
-    polar['transmural'] = shape.transmural(particles0)
+
+def _report_landmarks(reports: list, owner: np.ndarray, res: np.ndarray) -> None:
+    """Give each slice's report its landmark count and in-plane residual (RMS, mm)."""
+    for r in reports:
+        sel = (
+            np.all(owner == (r.view, r.slice_index), axis=1) if len(owner) else np.zeros(0, bool)
+        )
+        r.landmarks = int(sel.sum())
+        if sel.any():
+            r.residual_mm = float(np.sqrt(np.mean(res[sel] ** 2)))
+
+
+def _surfaces(shape: LVShape, model, particles) -> dict:
+    """Return the endo- and epicardial surface samples, moved with the fit where there was one."""
     surfaces = {}
     for which in ('endo', 'epi'):
-        sp_ = shape.surface_points(which)
-        if surf_model is not None:
+        points = shape.surface_points(which)
+        if model is not None:
             try:
-                sp_ = surf_model.attach(sp_).weights @ particles
+                points = model.attach(points).weights @ particles
             except ValueError:
                 pass
-        surfaces[which] = sp_
-    p = mframe.params
-    state = ModelState(
-        phase_index=0,
-        num_phases=int(next(iter(by_key.values())).num_phases),
-        translation=p.translation.copy(),
-        rotation=p.rotation.copy(),
-        a0=float(p.a[0]),
-        a1=float(p.a[1]),
-        a2=float(p.a[2]),
-        a3=float(p.a[3]),
-        tau=float(p.tau),
-        num_particles=len(particles),
-        **state_kw,
-    )
-    timings['total'] = time.perf_counter() - t0
-    return RegistrationResult(
-        particles,
-        mframe,
-        polar,
-        state,
-        shape,
-        reports,
-        warnings,
-        axis_pt,
-        axis_dir,
-        {k: s.mask for k, s in segs.items()},
-        surfaces,
-        timings,
-        septum,
-    )
+        surfaces[which] = points
+    return surfaces
 
 
 def _perp(v, axis) -> np.ndarray:

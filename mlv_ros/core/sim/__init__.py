@@ -47,6 +47,16 @@ draw_protocol(seed, fixed=None) -> dict, protocol_preset(protocol) -> dict
     turn a protocol into a preset for ``simulate_study``; ``dicom_options(protocol, study)``
     gives the matching ``write_study_dicom`` options.
 
+Every other generator of a synthetic truth lives here too, imported by its module (not
+re-exported here):
+
+- :mod:`~mlv_ros.core.sim.paper_cylinder`: the paper's cylinder-shell phantom (§3.1, Fig. 4);
+- :mod:`~mlv_ros.core.sim.tag_scene`: analytic tagged-image scenes with exact intersections;
+- :mod:`~mlv_ros.core.sim.analytic_lv`: LV-like point clouds and analytic motions with exact
+  deformation gradients;
+- :mod:`~mlv_ros.core.sim.pattern`: the rotating tag-grid test pattern (graph smoke tests);
+- :mod:`~mlv_ros.core.sim.evaluation`: a tracked run's accuracy against a phantom's truth.
+
 Examples
 --------
 >>> from mlv_ros.core.sim import simulate_study

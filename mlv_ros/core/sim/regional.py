@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Regional wall-motion abnormalities of the simulated LV and their ground truth (issue 20).
+Regional wall-motion abnormalities of the simulated LV and their ground truth.
 
 Regions
 -------
@@ -353,7 +353,7 @@ def regional_truth(motion, n_points: int = 20000, seed: int = 0, phase=None) -> 
         Sample seed.
     phase : int, optional
         Default the integer phase nearest ES, ``round(motion.es_phase)`` (the phases a run
-        delivers; as :func:`mlv_ros.core.evaluation.evaluate_run`).
+        delivers; as :func:`mlv_ros.core.sim.evaluation.evaluate_run`).
 
     Returns
     -------

@@ -15,10 +15,11 @@
 """
 Synthetic LV-like point clouds and analytic motions with exact deformation gradients.
 
-For tests, demos and report previews; independent of the simulator (issue 5). Clouds are
-lattices in cylindrical coordinates (ρ, θ, z) about the long axis of an :class:`LVFrame`,
-z measured from the apex toward the base, θ CCW seen from the apex (the frame's convention),
-so analytic expectations are exact up to rounding.
+For tests, demos and report previews; independent of the simulator, so an analysis test does
+not share a model of the heart with the code it checks. Clouds are lattices in cylindrical
+coordinates (ρ, θ, z) about the long axis of an :class:`LVFrame`, z measured from the apex
+toward the base, θ CCW seen from the apex (the frame's convention), so analytic expectations
+are exact up to rounding.
 
 The analytic motion (:func:`cylindrical_motion`) is
 

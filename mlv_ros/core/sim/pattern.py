@@ -16,7 +16,7 @@
 A built-in analytic test pattern: a short-axis stack of rotating 1-1 SPAMM grid images.
 
 The grid rotates rigidly over the cycle. Used for smoke tests of the graph before a full phantom is
-needed; the realistic simulator lives in :mod:`mlv_ros.core.sim`.
+needed; the realistic simulator is :func:`mlv_ros.core.sim.simulate_study`.
 """
 
 from __future__ import annotations

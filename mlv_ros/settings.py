@@ -1,0 +1,226 @@
+# Copyright 2026 The mlv_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Node parameters as tables of :class:`Setting` records: name, default, description, range.
+
+A node declares its table (:meth:`mlv_ros.nodes.common.GraphNode.declare_settings`); ``mlv-ros
+run`` checks its options against the same ranges, so a range is written once. Pure Python (no
+rclpy, no numpy at import): the command line reads it before anything heavy is loaded.
+
+The solver's model parameters are grouped as navigation2 groups its own (``twist.knots``,
+``local.fit_error_weight``, ...; in a parameters file, nested maps: ``twist: {knots: 11}``). Each
+keeps the core's keyword argument it is passed as (of
+:class:`~mlv_ros.core.tracking.MotionTracker`), which is also the flat name it had before it was
+grouped: a value given under that name is refused at start-up, naming the grouped one.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+
+class Setting(NamedTuple):
+    """
+    One node parameter: name, default, description and range (see ``GraphNode.param``).
+
+    Attributes
+    ----------
+    name : str
+        The parameter's name, grouped with dots (``twist.knots``).
+    default : bool, int, float or str
+        Its default; its type is the parameter's.
+    description : str
+        What it sets, with its unit.
+    min_value, max_value : float or None
+        Its declared range (numbers only; None: no range).
+    check : callable or None
+        ``check(value)`` returns why a value inside the range is still refused (None: accepted).
+    keyword : str or None
+        The node attribute and core keyword argument the value goes to (None: ``name``).
+
+    """
+
+    name: str
+    default: object
+    description: str
+    min_value: float | None = None
+    max_value: float | None = None
+    check: Callable | None = None
+    keyword: str | None = None
+
+    @property
+    def attribute(self) -> str:
+        """Return where the value goes: the node attribute, the core keyword argument."""
+        return self.keyword or self.name
+
+
+def _twist_knots_error(value) -> str | None:
+    """Return the core's reason to refuse ``value`` as twist knots (None: accepted)."""
+    from mlv_ros.core.tracking import twist_knots_error  # numpy: only when a node declares it
+
+    return twist_knots_error(value)
+
+
+# The solver's model (MotionTracker's keyword arguments). The model's own rule (one twist knot is
+# no function of height) is the core's function, so one place says why a value is refused.
+SOLVER_MODEL = (
+    Setting(
+        'local.data_weight',
+        1.0e4,
+        'tag-force stiffness relative to elasticity',
+        1e-3,
+        1e9,
+        keyword='data_weight',
+    ),
+    Setting(
+        'local.fit_error_weight',
+        1.0e3,
+        'MLS fit-error (zero-energy mode) stiffness relative to elasticity',
+        0.0,
+        1e9,
+        keyword='hourglass_weight',
+    ),
+    Setting(
+        'local.volume_weight',
+        1.0e3,
+        'near-incompressibility penalty, in units of the shear modulus (0 = off)',
+        0.0,
+        1e9,
+        keyword='volume_weight',
+    ),
+    Setting(
+        'local.longitudinal_weight',
+        3.0e3,
+        'stiffness against local stretch along the long axis, in units of the shear '
+        'modulus (0 = off): only LA tags measure it',
+        0.0,
+        1e9,
+        keyword='longitudinal_weight',
+    ),
+    Setting(
+        'global.prior',
+        1.0,
+        'prior holding the global parameters at the previous phase, counted like this many '
+        'control points (0 = off)',
+        0.0,
+        1e5,
+        keyword='global_prior',
+    ),
+    Setting(
+        'global.max_iterations',
+        100,
+        'global-stage iterations per phase',
+        1,
+        10000,
+        keyword='max_iterations',
+    ),
+    Setting(
+        'twist.knots',
+        11,
+        'knots of the twist function of height (0 = the single twist factor τ)',
+        0,
+        100,
+        check=_twist_knots_error,
+        keyword='twist_knots',
+    ),
+    Setting(
+        'twist.smoothing',
+        0.3,
+        'curvature penalty of the twist function',
+        1e-6,
+        1e5,
+        keyword='twist_smoothing',
+    ),
+    Setting(
+        'slice_following.passes',
+        1,
+        're-attachment passes keeping tag points on their planes',
+        0,
+        10,
+        keyword='slice_following',
+    ),
+)
+
+# When the solver solves and publishes (its stream, not the model): flat, as the other nodes'.
+SOLVER_STREAM = (
+    Setting(
+        'incomplete_timeout_s',
+        5.0,
+        'solve an incomplete phase after this long without input',
+        0.1,
+        3600.0,
+    ),
+    Setting(
+        'wait_for_subscribers',
+        1,
+        'matched subscribers of the motion and state topics to wait for before publishing',
+        0,
+        100,
+    ),
+    Setting('wait_timeout_s', 10.0, 'then publish to those present, with a warning', 0.0, 3600.0),
+)
+
+REGISTRATION = (
+    Setting('num_particles', 3000, 'model particles', 100, 200000),
+    Setting('seed', 0, 'particle sampling seed', 0, 2**31 - 1),
+    Setting(
+        'ed_timeout_s',
+        5.0,
+        'register with the ED slices present once frames stop arriving for this long',
+        0.1,
+        3600.0,
+    ),
+    Setting('min_sa_slices', 3, 'fewest SA slices to register from', 2, 100),
+    Setting(
+        'mask_path',
+        '',
+        'optional NIfTI label image of the ED myocardium (empty = automatic segmentation)',
+    ),
+    Setting('mask_label', 2, 'myocardium label in mask_path (ACDC: 2)', 0, 65535),
+    Setting(
+        'catch_up',
+        True,
+        'take frames with their history (TRANSIENT_LOCAL), so a restart gets the frames already '
+        'sent; false for a publisher without history',
+    ),
+)
+
+
+def setting(table, name: str) -> Setting:
+    """
+    Return the setting of ``table`` named ``name``.
+
+    Parameters
+    ----------
+    table : tuple of Setting
+        E.g. :data:`REGISTRATION`.
+    name : str
+        The parameter's name.
+
+    Returns
+    -------
+    Setting
+        The record.
+
+    Raises
+    ------
+    KeyError
+        No setting of that name.
+
+    """
+    for s in table:
+        if s.name == name:
+            return s
+    raise KeyError(name)

@@ -1,0 +1,80 @@
+# Copyright 2026 The mlv_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+A node holding a registered model it cannot build on says so through its progress() counters.
+
+The solver and the analyzer pair the registered cloud with the registered state of the same
+header stamp (:class:`~mlv_ros.core.streaming.StampPairer`); a pair the solver cannot build on
+(here three particles: the model needs at least five) leaves it ``blocked`` with the reason as
+its latest ERROR, which is what ``mlv-ros run`` ends the run with.
+"""
+
+from conftest import spin_until
+from graphkit import Probe
+from mlv_ros import conversions, qos
+from mlv_ros.core.types import ModelState, RegisteredModel
+from mlv_ros.nodes.common import status_text
+from mlv_ros.nodes.meshless_solver import MeshlessSolver
+from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
+import numpy as np
+
+
+def registered(n: int, stamp: float):
+    """Return the cloud and state messages of an n-particle registered model stamped ``stamp``."""
+    rng = np.random.default_rng(0)
+    state = ModelState(
+        phase_index=0,
+        num_phases=4,
+        translation=np.zeros(3),
+        rotation=np.array([1.0, 0.0, 0.0, 0.0]),
+        a0=30.0,
+        study_id='study-blocked',
+    )
+    model = RegisteredModel(
+        rng.normal(0.0, 20.0, (n, 3)),
+        rng.uniform(-1.5, 0.0, n),
+        rng.uniform(-np.pi, np.pi, n),
+        np.ones(n),
+        state,
+    )
+    return conversions.registered_to_msgs(model, stamp)
+
+
+def test_a_model_it_cannot_build_on_leaves_the_node_blocked_with_the_reason(
+    ros_context, executor
+):
+    solver, analyzer = MeshlessSolver(context=ros_context), MotionAnalyzer(context=ros_context)
+    probe = Probe(ros_context)
+    for node in (solver, analyzer, probe):
+        executor.add_node(node)
+    cloud, _ = registered(3, 1.0)
+    _, other_state = registered(3, 2.0)
+    probe.publish(qos.REGISTERED_CLOUD, cloud)
+    probe.publish(qos.REGISTERED_STATE, other_state)  # another stamp: no pair, nothing built
+    assert spin_until(
+        executor, lambda: all(n.messages_handled or n.streams for n in (solver, analyzer)), 15
+    )
+    spin_until(executor, lambda: False, 1.0)
+    assert solver.progress()['blocked'] == analyzer.progress()['blocked'] == 0
+    assert solver.tracker is None and solver.rest_state is None and analyzer.analyzer is None
+
+    _, state = registered(3, 1.0)
+    probe.publish(qos.REGISTERED_STATE, state)  # the cloud's own state: the pair is complete
+    assert spin_until(
+        executor, lambda: solver.progress()['blocked'] and analyzer.analyzer is not None, 15
+    )
+    assert 'cannot build the model' in status_text(solver.last_error)
+    assert 'at least 5 rows' in status_text(solver.last_error)
+    assert analyzer.progress()['blocked'] == 0  # it takes three particles
