@@ -328,6 +328,107 @@ class FitResult:
     wall_time: float = 0.0
 
 
+def _check_fit_options(global_update, local_update, global_prior) -> None:
+    """Raise ValueError for an unknown update scheme or a negative or non-finite prior."""
+    if global_update not in ('gauss-newton', 'explicit'):
+        raise ValueError(
+            f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}"
+        )
+    if local_update not in ('solve', 'explicit'):
+        raise ValueError(f"local_update must be 'solve' or 'explicit', got {local_update!r}")
+    if not (np.isfinite(global_prior) and global_prior >= 0.0):
+        raise ValueError(f'global_prior must be finite and >= 0, got {global_prior}')
+
+class _FitData:
+    """
+    One fit's control points, targets and projectors, and its residual (eq. 10–13).
+
+    ``proj`` is ``√w P`` (it enters the residual, squared in ``D`` and the cost), ``proj_local``
+    ``w P`` (the local stage applies the projector once). ``support`` are the particles some
+    control point's kernel reaches; the global stage works on them only.
+    """
+
+    @classmethod
+    def build(cls, model, control, targets, plane_normals, weights) -> '_FitData':
+        """Check and gather a fit's input (see :meth:`MeshlessModel.fit` for the errors)."""
+        data = cls()
+        data.ctrl = control if isinstance(control, ControlPoints) else model.attach(control)
+        data.m = m = len(data.ctrl)
+        data.tgt = np.asarray(targets, dtype=np.float64)
+        if data.tgt.shape != (m, 3):
+            raise ValueError(
+                f'targets must have shape ({m}, 3) to match the control points, '
+                f'got {data.tgt.shape}'
+            )
+        if not np.all(np.isfinite(data.tgt)):
+            raise ValueError(
+                'targets contain NaN/inf (first bad row '
+                f'{int(np.flatnonzero(~np.isfinite(data.tgt).all(1))[0])})'
+            )
+        proj = plane_projectors(plane_normals, m)
+        data.w = control_weights(weights, m)
+        data.proj_local = proj * data.w[:, None, None]
+        data.proj = proj * np.sqrt(data.w)[:, None, None]
+        return data
+
+    def restrict(self, model) -> None:
+        """Restrict the kernel weights and coordinates to the supported particles."""
+        phi = self.ctrl.weights
+        self.support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))
+        self.phi_s = phi[:, self.support].tocsr()
+        self.phi_t = phi.T.tocsr()
+        self.coords_s = model.coords.subset(self.support)
+
+    def positions(self, params, d_s):
+        """Return the control points' world positions under ``params`` and ``d_s``, mm."""
+        p = global_shape(self.coords_s, params.a, params.tau) + d_s
+        return self.phi_s @ (params.translation + p @ params.matrix.T)
+
+    def residual(self, params, d_s):
+        """Return the projected, weighted residuals ``√w_k P_k (t_k − x_k)``, shape (M, 3)."""
+        return np.matmul(self.proj, (self.tgt - self.positions(params, d_s))[:, :, None])[:, :, 0]
+
+
+class _GlobalStage:
+    """
+    The global stage (eq. 15): a Gauss–Newton/Levenberg–Marquardt step or the paper's.
+
+    'gauss-newton' damps with ``D = LᵀPL`` (+ μ, and the optional prior ``(G, s)``);
+    'explicit' with the paper's constant diagonal, a step of ``dt``.
+    """
+
+    def __init__(self, scheme, dt, prior):
+        self.scheme, self.dt, self.prior = scheme, dt, prior
+        self.mu_lm = 1e-3
+        self.d_diag_const = None
+
+    def step(self, model, data, d_s, res) -> float:
+        """Step ``model.params``; return the RMS control-point motion of the step, mm."""
+        m = data.m
+        lmat = model_jacobian(model.params, data.coords_s, d_s)
+        lk = (data.phi_s @ lmat.reshape(len(data.support), 3 * NUM_GLOBAL)).reshape(
+            m, 3, NUM_GLOBAL
+        )
+        lk = reduce_rotation(lk, model.params.rotation)  # L_k = Σ_j φ_kj L_j (eq. 14)
+        # (batched and plain matrix products: einsum's loops were a third of the fit's time)
+        plk = np.matmul(data.proj, lk).reshape(3 * m, -1)
+        dmat = plk.T @ plk  # D = Σ L_kᵀ P_k L_k
+        fq = plk.T @ res.ravel()  # f_q = Σ L_kᵀ f_k (eq. 10–13)
+        if self.scheme == 'gauss-newton':
+            step, self.mu_lm = model._lm_step(
+                dmat, fq, res, self.mu_lm, lambda p: data.residual(p, d_s), self.prior
+            )
+            if self.prior is not None:
+                self.prior = (self.prior[0], self.prior[1] + step)
+        else:
+            if self.d_diag_const is None:  # paper: D diagonal and constant over time
+                dd = np.diag(dmat)
+                self.d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
+            step = self.dt * fq / self.d_diag_const
+        model.params = model.params.stepped(step)
+        return float(np.sqrt(np.mean(np.sum((lk @ step) ** 2, axis=1))))
+
+
 # --------------------------------------------------------------------------- model
 class MeshlessModel:
     """
@@ -668,133 +769,43 @@ class MeshlessModel:
 
         """
         t0 = time.perf_counter()
-        ctrl = control if isinstance(control, ControlPoints) else self.attach(control)
-        m = len(ctrl)
-        tgt = np.asarray(targets, dtype=np.float64)
-        if tgt.shape != (m, 3):
-            raise ValueError(
-                f'targets must have shape ({m}, 3) to match the control points, got {tgt.shape}'
-            )
-        if not np.all(np.isfinite(tgt)):
-            raise ValueError(
-                'targets contain NaN/inf (first bad row '
-                f'{int(np.flatnonzero(~np.isfinite(tgt).all(1))[0])})'
-            )
-        proj = plane_projectors(plane_normals, m)
-        w = control_weights(weights, m)
-        # The data term is Σ w_k |P_k r_k|²: √w P in the residual (squared in D and the cost),
-        # w P where the local stage applies the projector once.
-        proj_local = proj * w[:, None, None]
-        proj = proj * np.sqrt(w)[:, None, None]
-        if global_update not in ('gauss-newton', 'explicit'):
-            raise ValueError(
-                f"global_update must be 'gauss-newton' or 'explicit', got {global_update!r}"
-            )
-        if local_update not in ('solve', 'explicit'):
-            raise ValueError(f"local_update must be 'solve' or 'explicit', got {local_update!r}")
-        if not (np.isfinite(global_prior) and global_prior >= 0.0):
-            raise ValueError(f'global_prior must be finite and >= 0, got {global_prior}')
+        data = _FitData.build(self, control, targets, plane_normals, weights)
+        _check_fit_options(global_update, local_update, global_prior)
         if not warm_start:
             self.reset()
-
-        phi = ctrl.weights
-        support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))  # np.unique
-        phi_s = phi[:, support].tocsr()
-        coords_s = self.coords.subset(support)
-        if local:  # the local stage's operators are built on the first fit that uses them
-            ops, phi_t = self.local_operators, phi.T.tocsr()
+        data.restrict(self)
+        kappa = None
+        if local and self.local_operators is not None:  # built on first use, with its diagonal
             kappa = data_weight * float(np.median(self._kdiag))
-        vol = self.phyxels.volume
-        prior = None
-        if global_prior > 0.0 and global_update == 'gauss-newton':
-            lall = reduce_rotation(
-                model_jacobian(self.params, self.coords, self.local_deformation),
-                self.params.rotation,
-            )
-            lf = lall.reshape(-1, lall.shape[-1])  # Σ_n L_nᵀ L_n as one matrix product
-            gmat = float(global_prior) * (lf.T @ lf) / lall.shape[0]
-            prior = (gmat, np.zeros(gmat.shape[0]))
-
-        def ctrl_positions(params, d_s):
-            p = global_shape(coords_s, params.a, params.tau) + d_s
-            return phi_s @ (params.translation + p @ params.matrix.T)
-
-        def residual(params, d_s):
-            return np.matmul(proj, (tgt - ctrl_positions(params, d_s))[:, :, None])[:, :, 0]
-
-        mu_lm = 1e-3
-        d_diag_const = None
+        stage = _GlobalStage(
+            global_update, dt, self._global_prior_matrix(global_prior, global_update)
+        )
         history = []
         converged = False
         local_active = not local
         it = 0
-        d_s = self.local_deformation[support]
-        res = residual(self.params, d_s)
+        d_s = self.local_deformation[data.support]
+        res = data.residual(self.params, d_s)
         for it in range(1, max_iterations + 1):
             t_it = time.perf_counter()
-            lmat = model_jacobian(self.params, coords_s, d_s)
-            lk = (phi_s @ lmat.reshape(len(support), 3 * NUM_GLOBAL)).reshape(m, 3, NUM_GLOBAL)
-            lk = reduce_rotation(lk, self.params.rotation)  # L_k = Σ_j φ_kj L_j (eq. 14)
-            # (batched and plain matrix products: einsum's loops were a third of the fit's time)
-            plk = np.matmul(proj, lk).reshape(3 * m, -1)
-            dmat = plk.T @ plk  # D = Σ L_kᵀ P_k L_k
-            fq = plk.T @ res.ravel()  # f_q = Σ L_kᵀ f_k (eq. 10–13)
-            g_step = l_step = 0.0
             x_prev = self.positions() if (local and local_active) else None
-            cg_its, ran_local = 0, False
-            # ---- global stage (eq. 15)
-            if global_update == 'gauss-newton':
-                step, mu_lm = self._lm_step(
-                    dmat, fq, res, mu_lm, lambda p: residual(p, d_s), prior
-                )
-                if prior is not None:
-                    prior = (prior[0], prior[1] + step)
-            else:
-                if d_diag_const is None:  # paper: D diagonal and constant over time
-                    dd = np.diag(dmat)
-                    d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
-                step = dt * fq / d_diag_const
-            g_step = float(np.sqrt(np.mean(np.sum((lk @ step) ** 2, axis=1))))
-            self.params = self.params.stepped(step)
-            res = residual(self.params, d_s)
+            g_step = stage.step(self, data, d_s, res)
+            res = data.residual(self.params, d_s)
+            cg_its, ran_local, l_step = 0, False, 0.0
             if local and not local_active and g_step < local_start:
                 local_active = True
             elif local and local_active:
-                # ---- local stage (eq. 6, 22–23) with the global parameters held
                 ran_local = True
-                q, pq, prec = self._local_metric(proj_local, phi, kappa)
-                force = kappa * (
-                    phi_t @ ((res * np.sqrt(w)[:, None]) @ q)
-                )  # f_ext spread by the kernel
-                if local_update == 'explicit':
-                    fint = elastic.internal_forces(
-                        self.operator, self.delta, vol, self.lam, self.mu
-                    )
-                    if self.stabilisation:
-                        fint = fint - self.stabilisation * self.mu * ops.fit_error_apply(
-                            self.delta
-                        )
-                    dx = dt * (force + fint - self._eps_delta * self.delta) / prec
-                else:
-                    # Equilibrium of D ḋ = f_ext + f_int in one step: solve
-                    # (κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ by PCG.
-                    system = self._local_system((kappa, phi, pq))
-                    dx, cg_its = system.solve(
-                        force - system.internal(self.delta),
-                        rtol=cg_rtol,
-                        atol=1e-9 * kappa * np.sqrt(m),
-                        maxiter=cg_maxiter,
-                    )
-                if np.all(np.isfinite(dx)):
-                    self.delta += dx
-            if ran_local:
+                cg_its = self._local_step(
+                    data, res, kappa, local_update, dt, cg_rtol, cg_maxiter
+                )
                 # Step measure of a local iteration: RMS change of ALL particle positions (δ
                 # alone can trade rigid modes with c and R without moving anything).
                 l_step = float(np.sqrt(np.mean(np.sum((self.positions() - x_prev) ** 2, axis=1))))
-                d_s = self.local_deformation[support]
-                res = residual(self.params, d_s)
-                if refresh_every and it % refresh_every == 0 and self.refresh_support():
-                    vol, ops = self.phyxels.volume, self.local_operators
+                d_s = self.local_deformation[data.support]
+                res = data.residual(self.params, d_s)
+                if refresh_every and it % refresh_every == 0:
+                    self.refresh_support()
             rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
             history.append(
                 {
@@ -813,7 +824,61 @@ class MeshlessModel:
                 converged = True
                 break
         rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-        state = self.state(iterations=it, residual=rms, converged=converged, num_control_points=m)
+        state = self.state(
+            iterations=it, residual=rms, converged=converged, num_control_points=data.m
+        )
         return FitResult(
             self.positions(), state, it, rms, converged, history, time.perf_counter() - t0
         )
+
+    def _global_prior_matrix(self, global_prior, global_update):
+        """
+        Return the Gauss–Newton prior ``(G, s)`` holding the global parameters, or None.
+
+        ``G`` is ``global_prior`` times the mean ``L_nᵀ L_n`` over all particles (the mean
+        squared particle motion a parameter change causes); ``s`` the steps taken so far.
+        """
+        if not (global_prior > 0.0 and global_update == 'gauss-newton'):
+            return None
+        lall = reduce_rotation(
+            model_jacobian(self.params, self.coords, self.local_deformation),
+            self.params.rotation,
+        )
+        lf = lall.reshape(-1, lall.shape[-1])  # Σ_n L_nᵀ L_n as one matrix product
+        gmat = float(global_prior) * (lf.T @ lf) / lall.shape[0]
+        return gmat, np.zeros(gmat.shape[0])
+
+    def _local_step(self, data, res, kappa, scheme, dt, cg_rtol, cg_maxiter) -> int:
+        """
+        Take one local-stage step (eq. 6, 22–23) with the global parameters held.
+
+        ``scheme`` 'solve' reaches the equilibrium of ``D ḋ = f_ext + f_int`` in one step,
+        solving ``(κ ΦᵀQᵀPQΦ + K + ε) Δδ = f_ext − K δ − ε δ`` by PCG; 'explicit' is the
+        paper's step ``dt (f_ext + f_int) / D``. Returns the CG iterations taken.
+        """
+        phi = data.ctrl.weights
+        q, pq, prec = self._local_metric(data.proj_local, phi, kappa)
+        force = kappa * (
+            data.phi_t @ ((res * np.sqrt(data.w)[:, None]) @ q)
+        )  # f_ext spread by the kernel
+        cg_its = 0
+        if scheme == 'explicit':
+            fint = elastic.internal_forces(
+                self.operator, self.delta, self.phyxels.volume, self.lam, self.mu
+            )
+            if self.stabilisation:
+                fint = fint - self.stabilisation * self.mu * self.local_operators.fit_error_apply(
+                    self.delta
+                )
+            dx = dt * (force + fint - self._eps_delta * self.delta) / prec
+        else:
+            system = self._local_system((kappa, phi, pq))
+            dx, cg_its = system.solve(
+                force - system.internal(self.delta),
+                rtol=cg_rtol,
+                atol=1e-9 * kappa * np.sqrt(data.m),
+                maxiter=cg_maxiter,
+            )
+        if np.all(np.isfinite(dx)):
+            self.delta += dx
+        return cg_its
