@@ -378,11 +378,9 @@ def _stuck(nodes: dict) -> str | None:
     for name, node in nodes.items():
         if getattr(node, 'failure', None):
             return f'{name}: {node.failure}'
-    src = nodes['frame_source']
-    if src.done and src.halted is None and src.published < len(src.frames):
-        return f'frame_source stopped publishing: {_reason(src)}'
     # A node holding an input it cannot use (a failed registration, a registered model the
-    # solver or analyzer cannot build on) waits for a new one, which this run will not send.
+    # solver or analyzer cannot build on; frames no subscriber takes) waits for what this run
+    # will not send.
     for name, node in nodes.items():
         if node.progress()['blocked']:
             return f'{name}: {_reason(node)}'

@@ -18,7 +18,8 @@ A node holding a registered model it cannot build on says so through its progres
 The solver and the analyzer pair the registered cloud with the registered state of the same
 header stamp (:class:`~mlv_ros.core.streaming.StampPairer`); a pair the solver cannot build on
 (here three particles: the model needs at least five) leaves it ``blocked`` with the reason as
-its latest ERROR, which is what ``mlv-ros run`` ends the run with.
+its latest ERROR, which is what ``mlv-ros run`` ends the run with. So does a frame source that
+gives up waiting for a subscriber with its frames unsent.
 """
 
 from conftest import spin_until
@@ -26,9 +27,11 @@ from graphkit import Probe
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import ModelState, RegisteredModel
 from mlv_ros.nodes.common import status_text
+from mlv_ros.nodes.frame_source import FrameSource
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
 import numpy as np
+from rclpy.parameter import Parameter
 
 
 def registered(n: int, stamp: float):
@@ -78,3 +81,19 @@ def test_a_model_it_cannot_build_on_leaves_the_node_blocked_with_the_reason(
     assert 'cannot build the model' in status_text(solver.last_error)
     assert 'at least 5 rows' in status_text(solver.last_error)
     assert analyzer.progress()['blocked'] == 0  # it takes three particles
+
+
+def test_a_frame_source_no_one_subscribes_to_is_blocked_with_the_reason(ros_context, executor):
+    source = FrameSource(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter('source', value='pattern'),
+            Parameter('num_phases', value=2),
+            Parameter('wait_for_subscribers', value=1),
+            Parameter('wait_timeout_s', value=0.5),
+        ],
+    )
+    executor.add_node(source)
+    assert spin_until(executor, lambda: source.done, 15)
+    assert source.progress() == {'received': 0, 'published': 0, 'blocked': 1}
+    assert 'no subscriber appeared' in status_text(source.last_error)

@@ -200,8 +200,9 @@ class GraphNode(Node):
             ``received``: messages it took from the graph's topics; ``published``: results it
             put out (frames, tag point sets, phases, metrics, replayed messages); ``blocked``: 1
             while it holds an input it could not use and cannot go on without (a registration
-            that failed, a registered model the solver or analyzer cannot build on: it waits
-            for a new one, its latest ERROR says why), else 0.
+            that failed, a registered model the solver or analyzer cannot build on, frames no
+            subscriber takes: it waits for what will not come, its latest ERROR says why),
+            else 0.
 
         """
         return {

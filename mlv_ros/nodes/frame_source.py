@@ -394,6 +394,7 @@ class FrameSource(GraphNode):
                         waited_s=self.wait_timeout_s,
                     )
                     self.timer.cancel()
+                    self.blocked = 1  # frames left that no one will take
                     self.stop()
                     return
                 # Frames are kept for late joiners (TRANSIENT_LOCAL), but a VOLATILE subscriber
