@@ -27,7 +27,7 @@ studies without the graph (seconds to a minute per study instead of minutes).
 Prints one JSON line per case: ES median / p95 (mm), twist error (all levels and where SA slices
 are), phases solved / degraded / failed, worst phase median, seconds, and the ES median / p95 3D
 error of the worst AHA segment and of each abnormal one (the truth's segments,
-``groundtruth.json`` ``regional``).
+``groundtruth.json`` ``regional``) with its tracks at ED and ES (:func:`segment_tracks`).
 
 ``--ideal`` replaces every tracked point by where the truth puts it (its ED material line, the
 line through its ED position along the slice normal, crossing the image plane at that phase):
@@ -249,6 +249,57 @@ def segment_errors(case: Path, rest, positions, motion) -> dict:
     }
 
 
+def segment_tracks(case: Path, sets: dict, motion) -> dict:
+    """
+    Return how many tracks each abnormal AHA segment (the truth's) holds at ED and at ES.
+
+    ``segment_K_CLASS_tracks``: ``[SA at ED, SA at ES, LA at ED, LA at ES]``, the tracks whose ED
+    point lies in segment K (the truth's segments of the ED positions), and ``sa_tracks_kept``:
+    the share of SA ED tracks still reported at ES in the akinetic and dyskinetic segments and in
+    the normal ones. The solver can
+    follow a region only where tag points are; a tracker that ends the tracks of a region moving
+    unlike its neighbours leaves that region to the neighbours' motion.
+    """
+    from mlv_ros.core.sim.regional import truth_segments
+
+    gt = json.loads((case / 'study' / 'groundtruth.json').read_text()).get('regional') or {}
+    es = int(gt.get('phase', -1))
+    abnormal = [sg['segment'] for sg in gt.get('segments', ()) if sg['class'] != 'normal']
+    if es not in sets or not abnormal:
+        return {}
+    count = {}  # (segment or 0 = elsewhere, view, phase) -> tracks
+    for key, pts in sets[0].items():
+        if not len(pts.track_id):
+            continue
+        seg = truth_segments(motion, np.asarray(pts.position))
+        seg = np.where(np.isin(seg, abnormal), seg, 0)
+        later = sets[es].get(key)
+        alive = np.isin(pts.track_id, later.track_id if later is not None else ())
+        for phase, keep in ((0, np.ones(seg.size, bool)), (es, alive)):
+            for k in np.unique(seg):
+                c = (int(k), int(key[0]) != TaggedFrame.VIEW_SA, phase)
+                count[c] = count.get(c, 0) + int(np.sum(keep & (seg == k)))
+    out = {}
+    for sg in gt['segments']:
+        k = sg['segment']
+        if k in abnormal:
+            out[f'segment_{k}_{sg["class"]}_tracks'] = [
+                count.get((k, la, ph), 0) for la in (False, True) for ph in (0, es)
+            ]
+
+    still = {sg['segment'] for sg in gt['segments'] if sg['class'] in ('akinetic', 'dyskinetic')}
+
+    def kept(segments):
+        ed, now = (
+            sum(v for (k, la, p), v in count.items() if p == ph and not la and k in segments)
+            for ph in (0, es)
+        )
+        return round(now / ed, 2) if ed else None
+
+    out['sa_tracks_kept'] = {'akinetic_dyskinetic': kept(still), 'normal_segments': kept({0})}
+    return out
+
+
 def replay_case(
     case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None
 ) -> dict:
@@ -288,6 +339,7 @@ def replay_case(
         'failed': sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
         'worst_phase_median_mm': round(max(r['median_mm'] for r in acc['per_phase']), 3),
         **segment_errors(case, tr.rest, positions, truth),
+        **segment_tracks(case, sets, truth),
         'track_s': round(t1 - t0, 1),
         'solve_s': round(time.monotonic() - t1, 1),
     }

@@ -17,9 +17,10 @@
 
 ``bench/retrack.py --ideal``: tracked points replaced by where the truth puts them (their ED
 material line crossing the image plane), checked against an independent Newton solve of the same
-crossing on the analytic phantom.
+crossing on the analytic phantom. Also the per-segment track counts the bench reports.
 """
 
+import json
 from pathlib import Path
 import sys
 
@@ -29,7 +30,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
-from retrack import ideal_targets  # noqa: E402
+from retrack import ideal_targets, segment_tracks  # noqa: E402
 from test_tracking import grid_tags, observed, tagset  # noqa: E402
 
 
@@ -89,3 +90,33 @@ def test_every_track_keeps_the_tracks_a_tracker_lost(study):
             s.position[common] - np.array([want[s.track_id[i]] for i in common]), axis=1
         )
         assert err.max() < 0.05, (k, err.max())
+
+
+def test_segment_tracks_counts_what_the_tracker_kept_in_the_abnormal_segment(study, tmp_path):
+    from mlv_ros.core.sim.regional import truth_segments
+
+    m = study.motion
+    refs = grid_tags(study)
+    es = int(round(m.es_phase))
+    segments = [{'segment': k, 'class': 'akinetic' if k == 7 else 'normal'} for k in range(1, 18)]
+    (tmp_path / 'study').mkdir()
+    (tmp_path / 'study' / 'groundtruth.json').write_text(
+        json.dumps({'regional': {'phase': es, 'segments': segments}})
+    )
+    ed, later, want = {}, {}, {}
+    for k, g in study.geometries.items():
+        ids = np.arange(len(refs[k]))
+        ed[k] = tagset(k, g, 0, m.num_phases, refs[k], ids)
+        in7 = truth_segments(m, refs[k]) == 7
+        keep = ~in7 | (np.cumsum(in7) == 1)  # the tracker keeps one track of segment 7 per plane
+        later[k] = tagset(k, g, es, m.num_phases, refs[k][keep], ids[keep])
+        la = k[0] != 0
+        want[la] = np.add(want.get(la, 0), [int(in7.sum()), int(in7.any())])
+    assert want[False][0] > 3  # the grid puts SA tracks in segment 7
+    out = segment_tracks(tmp_path, {0: ed, es: later}, m)
+    assert out['segment_7_akinetic_tracks'] == [*want[False], *want.get(True, [0, 0])]
+    assert out['sa_tracks_kept'] == {
+        'akinetic_dyskinetic': round(want[False][1] / want[False][0], 2),
+        'normal_segments': 1.0,
+    }
+    assert not any(k.startswith('segment_') and '_7_' not in k for k in out)
