@@ -33,9 +33,11 @@ import statistics
 import sys
 import tempfile
 import time
+from types import SimpleNamespace
 
 from mlv_msgs.msg import ModelState, MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import bagio, conversions, qos
+from mlv_ros.core.meshless import local as local_module
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.recording import phantom_accuracy
 from mlv_ros.runner import run_graph
@@ -91,6 +93,85 @@ def stage_latencies(mcap: Path) -> dict:
     }
 
 
+class CpuSplit:
+    """
+    Process time per part of a phase's solve, each part exclusive of the parts it calls.
+
+    ``wrap(owner, name, part)`` replaces ``owner.name`` by a timed copy (:meth:`restore` puts the
+    originals back); :meth:`take` returns the seconds per part since the last call and starts
+    again. The part ``None`` is timed only to be left out of its callers (the reference stage the
+    replay runs beside the solver).
+    """
+
+    def __init__(self):
+        self.seconds: dict = {}
+        self._stack: list = []
+        self._wrapped: list = []
+
+    def wrap(self, owner, name: str, part):
+        """Time ``owner.name`` (a function or bound method) as ``part``."""
+        inner = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            t0 = time.process_time()
+            self._stack.append(0.0)
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                spent = time.process_time() - t0
+                nested = self._stack.pop()
+                if part is not None:
+                    self.seconds[part] = self.seconds.get(part, 0.0) + spent - nested
+                if self._stack:
+                    self._stack[-1] += spent
+
+        self._wrapped.append((owner, name, name in vars(owner), inner))
+        setattr(owner, name, timed)
+        return timed
+
+    def restore(self):
+        """Put back every wrapped attribute, last wrapped first."""
+        for owner, name, own, inner in reversed(self._wrapped):
+            if own:
+                setattr(owner, name, inner)
+            else:  # a bound method: the instance's copy shadowed its class's function
+                delattr(owner, name)
+        self._wrapped.clear()
+
+    def take(self) -> dict:
+        """Return the seconds per part since the last call, and reset them."""
+        out, self.seconds = self.seconds, {}
+        return out
+
+
+def split_tracker(tr: MotionTracker) -> CpuSplit:
+    """
+    Time a tracker's solve by part.
+
+    Parts: ``cg`` (PCG iterations), ``local_setup`` (the system: tangents, blocks, coarse
+    factor), ``local_other`` (the rest of a local solve), ``attach`` (control-point weights and
+    the inside test), ``global_fit``, ``twist``, ``follow`` (slice following), ``outliers``,
+    ``coupling`` and ``other`` (the rest of :meth:`MotionTracker.solve`).
+    """
+    split = CpuSplit()
+    split.wrap(local_module, 'pcg', 'cg')
+    split.wrap(tr._local, 'system', 'local_setup')
+    for name, part in (
+        ('_local_solve', 'local_other'),
+        ('_attach', 'attach'),
+        ('_fit_global', 'global_fit'),
+        ('_twist_function', 'twist'),
+        ('_follow_slices', 'follow'),
+        ('_outliers', 'outliers'),
+        ('_coupled_axial', 'coupling'),
+        ('_outward_points', 'coupling'),
+        ('solve', 'other'),
+    ):
+        split.wrap(tr, name, part)
+    split.wrap(tr.model, 'attach', 'attach')
+    return split
+
+
 def local_stage_replay(mcap: Path) -> dict:
     """
     Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
@@ -123,6 +204,9 @@ def local_stage_replay(mcap: Path) -> dict:
     build_s = time.perf_counter() - t0
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
+    split = split_tracker(tr)
+    reference = SimpleNamespace(solve=tracker_local_solve)
+    split.wrap(reference, 'solve', None)  # left out of the split
     new_solve, cache, calls = tr._local_solve, {}, []
 
     def both(phi, targets, normals, x_global, weights=None, rtol=None):
@@ -134,7 +218,7 @@ def local_stage_replay(mcap: Path) -> dict:
             tr.cg_rtol,
             tr.cg_rtol if rtol is None else rtol,
         )  # the reference at the same tolerance
-        old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, d0, cache)
+        old, _ = reference.solve(tr, phi, targets, normals, x_global, d0, cache)
         tr.cg_rtol = kept
         calls.append(
             (
@@ -146,15 +230,20 @@ def local_stage_replay(mcap: Path) -> dict:
         return new
 
     tr._local_solve = both
-    phase_s, phase_its, num_phases = [], [], max(sets) + 1
+    phase_s, phase_its, phase_cpu, num_phases = [], [], [], max(sets) + 1
     for p in sorted(sets)[1:]:
         before = len(calls)
         tr.cg_iterations.clear()
+        split.take()
         t1 = time.perf_counter()
         tr.solve(p, sets[p], num_phases)
         phase_its.append(sum(tr.cg_iterations))
         phase_s.append(time.perf_counter() - t1 - sum(c[1] for c in calls[before:]))
+        phase_cpu.append(split.take())
+    split.restore()
     new_t, old_t, diff = (np.array(v) for v in zip(*calls))
+    later = phase_cpu[1:] or phase_cpu  # the first phase also builds what later phases reuse
+    parts = sorted({k for d in later for k in d})
     return {
         'particles': tr.num_particles,
         'phases': len(phase_s),
@@ -163,6 +252,13 @@ def local_stage_replay(mcap: Path) -> dict:
         'first_phase_s': round(phase_s[0], 3),
         'solver_per_phase_s_median': round(float(np.median(phase_s)), 3),
         'cg_iterations_per_phase_median': float(np.median(phase_its)),
+        # process time (CPU) per phase after the first, the median of each part and of the sum
+        'solver_cpu_per_phase_ms_median': round(
+            1e3 * float(np.median([sum(d.values()) for d in later])), 1
+        ),
+        'solver_cpu_split_ms_median': {
+            k: round(1e3 * float(np.median([d.get(k, 0.0) for d in later])), 1) for k in parts
+        },
         'new_local_s_median': round(float(np.median(new_t)), 4),
         'old_local_s_median': round(float(np.median(old_t[1:])), 4),
         'ratio_local_median': round(float(np.median(old_t[1:]) / np.median(new_t)), 2),
