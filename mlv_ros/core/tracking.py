@@ -56,8 +56,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
-# slices spanning this fraction of the LV's height, and extrapolated this far beyond them.
-TWIST_MIN_SA, TWIST_MIN_SPAN, TWIST_REACH = 4, 0.3, 0.15
+# slices spanning this fraction of the LV's height (beyond them the twist continues linearly).
+TWIST_MIN_SA, TWIST_MIN_SPAN = 4, 0.3
 # The local stage's coarse space (MotionTracker's coarse_aggregates): one aggregate per this many
 # particles, at most this many aggregates (12 coarse unknowns each; a dense Cholesky per solve).
 COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
@@ -173,6 +173,36 @@ def twist_knots_error(twist_knots) -> str | None:
     return None
 
 
+def _knot_hats(height, knots: int) -> np.ndarray:
+    """Hat functions of ``knots`` uniform knots on [0, 1] at each height, shape (N, knots)."""
+    h = np.asarray(height, dtype=np.float64).reshape(-1)
+    knot = np.linspace(0.0, 1.0, knots)
+    return np.clip(1.0 - np.abs(h[:, None] - knot) * (knots - 1), 0.0, None)
+
+
+def _pspline(J: np.ndarray, r: np.ndarray, lam: float) -> np.ndarray:
+    """Knot values minimising ``|J c − r|² + lam |D² c|²`` (rad); never fails when singular."""
+    m = J.shape[1]
+    D2 = np.diff(np.eye(m), 2, axis=0)
+    # Least squares on the stacked system (e.g. all SA points at one level).
+    return np.linalg.lstsq(
+        np.vstack([J, np.sqrt(lam) * D2]), np.concatenate([r, np.zeros(m - 2)]), rcond=None
+    )[0]
+
+
+def _twist_gradient(height, twist, lo: float, hi: float) -> float:
+    """
+    Least-squares slope of the particles' twist (rad) over those with a height in [lo, hi].
+
+    Heights are material (0 apex … 1 base), so the slope is in radians per LV height; 0 when
+    fewer than two heights are there.
+    """
+    inside = (height >= lo) & (height <= hi)
+    if inside.sum() < 2 or np.ptp(height[inside]) <= 0.0:
+        return 0.0
+    return float(np.polyfit(height[inside], twist[inside], 1)[0])
+
+
 class MotionTracker:
     """
     Dense LV motion through the cycle from tracked tag points.
@@ -244,9 +274,9 @@ class MotionTracker:
         Knots (uniform in height, apex to base) of the twist parameter function fitted after the
         global stage; 0 = the paper's single twist factor τ only. The LV twists non-linearly
         along its axis, and below the last SA slice only the LA planes see the wall, which do
-        not measure circumferential motion: there the twist is extrapolated by this function
-        (linearly, by its curvature penalty) instead of being left to the local elasticity,
-        which would continue it as a rigid rotation.
+        not measure circumferential motion: there the total twist continues linearly in height
+        with the measured gradient (:meth:`_twist_function`) instead of being left to the local
+        elasticity, which would continue it as a rigid rotation.
     twist_smoothing : float
         Curvature penalty of the twist function relative to its data term (dimensionless).
     confidence_weights : bool
@@ -788,12 +818,27 @@ class MotionTracker:
         The parameter functions of Park et al., which the paper's model builds on: rotate each
         particle about the model's long axis by ``Δφ(h)``, piecewise linear between ``twist_knots``
         uniform knots in the material height h, fitted to the in-plane tag residuals of the global
-        fit by penalised least squares (second differences of the knot values, a P-spline): it
-        follows the data where SA slices are, and continues linearly beyond them — for at most
-        ``TWIST_REACH`` of the LV's height (then it stays constant), and only when at least
+        fit by penalised least squares (second differences of the knot values, a P-spline). It
+        follows the data between the lowest and the highest SA tag point, and only when at least
         ``TWIST_MIN_SA`` SA slices spanning ``TWIST_MIN_SPAN`` of the height measure it: from two
         close slices a gradient extrapolated to the apex is noise times a lever (measured: 60°
         apical twist, p95 error 10 mm).
+
+        Beyond that span only LA planes see the wall, and they do not measure circumferential
+        motion. There each particle's *total* twist (the global stage's ``π τ g`` since ED plus
+        ``Δφ``) continues linearly in height from its value at the span's end. The global twist
+        alone flattens toward the apex (``g = sin α``), and the P-spline's own end slope rests on
+        the last slices' residuals: with exact tags and the stack ending at 0.36–0.45 of the
+        height, holding it turned the apex 10–12° the wrong way. The gradient follows what is
+        known of the LV: rotation changes monotonically from base to apex and its gradient grows
+        toward the apex (end-systole: apex ≈ +10°, base ≈ −3°, zero rotation near mid-ventricle;
+        Young & Cowan, J Cardiovasc Magn Reson 2012;14:49, and the paper's Fig. 9). So beyond
+        the apical end the gradient is the steeper of the span's mean gradient (a least-squares
+        line through the total twist of the particles within the span) and the gradient over
+        the span's last knot interval, beyond the basal end the shallower; an end gradient of the
+        other sign than the mean is noise, and is replaced by the mean (apical) or by none
+        (basal). The result stays labelled extrapolated
+        (:func:`~mlv_ros.core.analysis.frame.twist_extrapolation_note`).
 
         Parameters
         ----------
@@ -824,9 +869,8 @@ class MotionTracker:
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
         tang = np.cross(axis, x - centre)  # ∂x/∂φ, mm/rad
-        m = self.twist_knots
-        knots = np.linspace(0.0, 1.0, m)
-        hat = np.clip(1.0 - np.abs(self._height[:, None] - knots) * (m - 1), 0.0, None)  # (N, m)
+        m, height = self.twist_knots, self._height
+        hat = _knot_hats(height, m)  # (N, m)
         P = (
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
@@ -837,18 +881,30 @@ class MotionTracker:
         )
         J = np.matmul(P, moved).reshape(-1, m)
         r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
-        D2 = np.diff(np.eye(m), 2, axis=0)
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
-        # Least squares on the stacked system: never singular-fails (e.g. all SA points at one
-        # level).
-        self.twist_coefficients, *_ = np.linalg.lstsq(
-            np.vstack([J, np.sqrt(lam) * D2]), np.concatenate([r, np.zeros(m - 2)]), rcond=None
+        self.twist_coefficients = _pspline(J, r, lam)
+        # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
+        psi = (
+            np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
         )
-        h = np.clip(self._height, h_sa.min() - TWIST_REACH, h_sa.max() + TWIST_REACH)
-        angle = (
-            np.clip(1.0 - np.abs(h[:, None] - knots) * (m - 1), 0.0, None)
-            @ self.twist_coefficients
-        )
+        total = psi + hat @ self.twist_coefficients
+        lo, hi, band = float(h_sa.min()), float(h_sa.max()), 1.0 / (m - 1)
+        mean = _twist_gradient(height, total, lo, hi)
+        apical = _twist_gradient(height, total, lo, min(hi, lo + band))
+        basal = _twist_gradient(height, total, max(lo, hi - band), hi)
+        if apical * mean <= 0.0 or abs(apical) < abs(mean):
+            apical = mean
+        basal = min(basal, mean, key=abs) if basal * mean > 0.0 else 0.0
+        angle = _knot_hats(np.clip(height, lo, hi), m) @ self.twist_coefficients
+        for end, side, gradient in ((lo, height < lo, apical), (hi, height > hi, basal)):
+            near = np.abs(height - end) <= band
+            if not side.any() or near.sum() < 2 or np.ptp(height[near]) <= 0.0:
+                continue
+            # the global twist at the end's height: a line through the particles near it
+            slope, intercept = np.polyfit(height[near], psi[near], 1)
+            at_end = float(_knot_hats([end], m)[0] @ self.twist_coefficients)
+            at_end += intercept + slope * end
+            angle[side] = at_end + gradient * (height[side] - end) - psi[side]
         v = x - centre
         along = (v @ axis)[:, None] * axis
         perp = v - along
