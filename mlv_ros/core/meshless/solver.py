@@ -339,6 +339,7 @@ def _check_fit_options(global_update, local_update, global_prior) -> None:
     if not (np.isfinite(global_prior) and global_prior >= 0.0):
         raise ValueError(f'global_prior must be finite and >= 0, got {global_prior}')
 
+
 class _FitData:
     """
     One fit's control points, targets and projectors, and its residual (eq. 10–13).
