@@ -279,3 +279,45 @@ def test_ed_detection_finds_the_intersections_of_a_wall_thinner_than_a_tag_perio
     thick_plain, _, _ = detect((30.0, 40.0), 1, ed_coverage=False)
     thick, found, _ = detect((30.0, 40.0), 1)
     assert np.array_equal(thick.pixel_rc, thick_plain.pixel_rc) and found >= 0.9
+
+
+def test_a_lost_slice_is_taken_up_again_where_its_ed_grid_returns():
+    # Fading tags (T1 of 0.8 cycles, σ = 4 % noise) vanish from the whole wall mid-cycle (noise
+    # only, as when the material leaves the slab), so every track ends. As the cycle closes, the
+    # wall returns toward its ED configuration: the tracks are taken up again with their ED ids,
+    # each on its own intersection (a wrong one is a whole 6 px period off). Without revival they
+    # stay lost; while the wall is far from ED nothing is taken up.
+    phases = 16
+    scene = TagScene(shape=(128, 128), ring=(20, 31), noise_sigma=0.04, t1_fraction=0.8)
+    X, _ = scene.intersections(margin=-1.0)
+
+    def run(**kw):
+        tr, out = SliceTracker(GEOM, **kw), []
+        for p in range(phases):
+            t = p / phases
+            img = scene.render(t, seed=p)
+            if 5 <= p <= 11:
+                m = scene.myocardium_mask(t)
+                img[m] = scene.myocardium + scene.noise_sigma * np.random.default_rng(
+                    100 + p
+                ).standard_normal(m.sum())
+            out.append(
+                tr.update(
+                    Frame(img, GEOM, 0, 2, p, phases),
+                    mask=scene.myocardium_mask(0.0) if p == 0 else None,
+                )
+            )
+        return out
+
+    out = run()
+    n_ed = len(out[0])
+    _, i = cKDTree(X).query(out[0].pixel_rc)
+    counts = [len(s) for s in out]
+    assert n_ed >= 30 and max(counts[5:12]) <= 0.1 * n_ed, counts
+    for p in range(14, phases):
+        assert len(out[p]) >= 0.5 * n_ed, (p, len(out[p]), n_ed)
+        truth = scene.forward(X[i][out[p].track_id], p / phases)
+        err = np.linalg.norm(out[p].pixel_rc - truth, axis=1)
+        assert np.median(err) < 0.5 and err.max() < 1.5, (p, err)
+    lost = [len(s) for s in run(revive=False)]
+    assert max(lost[6:]) <= 0.1 * n_ed, lost

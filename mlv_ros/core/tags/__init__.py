@@ -36,7 +36,9 @@ Public API
     tracked). Later phases: prediction by the previous displacement, the ED mask carried along
     by a TPS through the tracks, detection near the prediction, TPS-RPM matching, then a second
     detection with the mask carried through the matched points that must confirm each match;
-    undetected points are dropped (after ``max_gap`` coasting phases), never invented. Points carry
+    undetected points are dropped (after ``max_gap`` coasting phases), never invented; a slice
+    left with fewer than 4 tracks ends them and takes its tracks up again only where its ED grid
+    is seen again (``REACQUIRE_SHARE`` of them at once). Points carry
     patient coordinates (mm) from the slice geometry. Never raises: problems come back as an empty
     (or partial) set with ``status`` set.
 
