@@ -84,6 +84,22 @@ def test_sa_slices_without_points_degrade_and_none_fails(study):
     assert none.verdict == FAILED and 'no SA slice' in none.verdict_reasons
 
 
+def test_an_end_slice_of_the_stack_without_points_degrades_an_inner_one_does_not(study):
+    es = int(round(study.motion.es_phase))
+    sa = sorted(k for k in study.geometries if k[0] == VIEW_SA)
+
+    def drop(key):
+        return lambda sets: {k: v for k, v in sets.items() if k != key}
+
+    end = solve(study, es, drop(sa[-1]))  # the levels past the last one left are extrapolated
+    assert end.verdict == DEGRADED and 'at the end of the stack' in end.verdict_reasons
+    assert f'beyond slice {sa[-2][1]}' in end.verdict_reasons
+    first = solve(study, es, drop(sa[0]))
+    assert first.verdict == DEGRADED and f'beyond slice {sa[1][1]}' in first.verdict_reasons
+    inner = solve(study, es, drop(sa[len(sa) // 2]))  # its neighbours bound it on both sides
+    assert inner.verdict == OK, inner.verdict_reasons
+
+
 def test_a_fit_that_misses_its_tracks_by_half_a_pixel_is_degraded(study):
     es = int(round(study.motion.es_phase))
     rng = np.random.default_rng(1)

@@ -43,7 +43,8 @@ LEVEL_NAMES = ('ok', 'degraded', 'failed')
 TRACKED_DEGRADED, TRACKED_FAILED = 0.3, 0.1
 #: Below this fraction of the SA slices (those with ED tag points) still holding
 #: MIN_SLICE_POINTS control points: degraded. No SA slice at all: failed (twist and
-#: circumferential motion are measured only in short-axis planes).
+#: circumferential motion are measured only in short-axis planes). An end slice of the stack
+#: below MIN_SLICE_POINTS: degraded (the levels beyond the last measured one are extrapolated).
 SA_SLICES_DEGRADED = 0.6
 MIN_SLICE_POINTS = 3
 #: RMS in-plane residual at the control points above this, in pixels: degraded (intersections
@@ -149,7 +150,9 @@ def phase_verdict(
         ED tag points inside the model (the references tracks are matched to).
     sa_points : dict
         SA slice index → control points used on it at this phase, for every SA slice that has
-        ED references (0 for a slice whose tracks are all lost).
+        ED references (0 for a slice whose tracks are all lost). Indices run in stack order
+        (by position along the LV's long axis, either way), so the lowest and highest are the
+        stack's ends.
     residual_mm : float
         RMS in-plane residual at the control points, mm.
     pixel_mm : float
@@ -192,6 +195,17 @@ def phase_verdict(
                 DEGRADED,
                 f'{len(live)} of {len(sa_points)} SA slices with {MIN_SLICE_POINTS}+ tag points '
                 f'({share:.0%} < {SA_SLICES_DEGRADED:.0%})',
+            )
+        ends = sorted(sa_points)
+        lost = [k for k in ends if live and (k < live[0] or k > live[-1])]
+        if lost:
+            # The stack's measured span has shrunk: the model goes on past its last measured
+            # level unconstrained, however many slices inside the span still hold points.
+            v.flag(
+                DEGRADED,
+                f'SA slice{"s" if len(lost) > 1 else ""} {", ".join(map(str, lost))} at the end '
+                f'of the stack without {MIN_SLICE_POINTS}+ tag points: the motion beyond slice'
+                f' {live[0] if lost[0] < live[0] else live[-1]} is extrapolated',
             )
     else:
         v.flag(
