@@ -615,6 +615,11 @@ class MotionTracker:
             for key, ref in self.reference.items()
             if key[0] == VIEW_SA and ref
         }
+        # Tag points found on each SA slice, inside the model or not: a basal slice the base
+        # moves out of keeps its tags (beyond the model) and is no level lost.
+        sa_found = {
+            k: len(sets[(VIEW_SA, k)].track_id) if (VIEW_SA, k) in sets else 0 for k in sa_points
+        }
         spacing = [
             min(p.geometry.row_spacing, p.geometry.column_spacing)
             for p in sets.values()
@@ -628,6 +633,7 @@ class MotionTracker:
             float(np.median(spacing)) if spacing else 0.0,
             rejected=int(rejected),
             candidates=int(attached),
+            sa_found=sa_found,
         )
 
     def _multipliers(self) -> tuple[float, float]:

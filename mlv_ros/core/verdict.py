@@ -138,6 +138,7 @@ def phase_verdict(
     pixel_mm: float,
     rejected: int = 0,
     candidates: int = 0,
+    sa_found: dict | None = None,
 ) -> Verdict:
     """
     How far one phase's tag data supports its solution.
@@ -160,6 +161,10 @@ def phase_verdict(
     rejected, candidates : int
         Tag points rejected as outliers, of the ``candidates`` inside the model (the solver pass
         that rejected the largest share).
+    sa_found : dict, optional
+        SA slice index → tag points the tag detector found on it at this phase, inside the
+        model or not (default: ``sa_points``). An end slice is lost when it has fewer than
+        ``MIN_SLICE_POINTS`` of these: a basal slice the base moves out of keeps its tags.
 
     Returns
     -------
@@ -196,8 +201,9 @@ def phase_verdict(
                 f'{len(live)} of {len(sa_points)} SA slices with {MIN_SLICE_POINTS}+ tag points '
                 f'({share:.0%} < {SA_SLICES_DEGRADED:.0%})',
             )
-        ends = sorted(sa_points)
-        lost = [k for k in ends if live and (k < live[0] or k > live[-1])]
+        found = sa_points if sa_found is None else sa_found
+        kept = [k for k in sorted(sa_points) if found.get(k, 0) >= MIN_SLICE_POINTS]
+        lost = [k for k in sorted(sa_points) if kept and (k < kept[0] or k > kept[-1])]
         if lost:
             # The stack's measured span has shrunk: the model goes on past its last measured
             # level unconstrained, however many slices inside the span still hold points.
@@ -205,7 +211,7 @@ def phase_verdict(
                 DEGRADED,
                 f'SA slice{"s" if len(lost) > 1 else ""} {", ".join(map(str, lost))} at the end '
                 f'of the stack without {MIN_SLICE_POINTS}+ tag points: the motion beyond slice'
-                f' {live[0] if lost[0] < live[0] else live[-1]} is extrapolated',
+                f' {kept[0] if lost[0] < kept[0] else kept[-1]} is extrapolated',
             )
     else:
         v.flag(
