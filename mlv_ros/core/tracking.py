@@ -524,72 +524,143 @@ class MotionTracker:
             rejected_before = self.rejected
             pos, inside = self._attach(rest, normals, offsets)
             attached = int(inside.sum())
-            if inside.sum() < 4:
+            if attached < 4:
                 raise ValueError(
-                    f'phase {phase_index}: only {int(inside.sum())} tag points lie inside the '
-                    'model'
+                    f'phase {phase_index}: only {attached} tag points lie inside the model'
                 )
-            ctrl = self.model.attach(pos[inside])
-            if self.prescreen:
-                # A track that slipped by a tag period sits a period away from where the previous
-                # phase's motion puts it, while its neighbours sit within the phase-to-phase
-                # motion: screen against that prediction before the first fit can be dragged.
-                pre = self._outliers(
-                    ctrl.weights @ self.positions, targets[inside], normals[inside]
-                )
-                if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
-                    inside, ctrl = self._drop(inside, ctrl, pre)
-            result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
-            # Robustness: a track that swapped identity or drifted leaves a residual far beyond
-            # what the global fit leaves elsewhere; drop such points and refit.
-            outlier = self._outliers(
-                ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+            inside, ctrl, result = self._robust_global_fit(pos, inside, targets, normals, weights)
+            self._pass_motion(
+                keys, inside, ctrl, targets, normals, weights, last=pass_index == passes - 1
             )
-            if outlier.any() and (~outlier).sum() >= 4:
-                inside, ctrl = self._drop(inside, ctrl, outlier)
-                result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
-            x_global = self.model.positions()
-            if self.twist_knots:
-                sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
-                sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
-                x_global = self._twist_function(
-                    ctrl.weights,
-                    targets[inside],
-                    normals[inside],
-                    x_global,
-                    sa,
-                    len(sa_slices),
-                    weights[inside],
-                )
-            self.positions = x_global
-            if self.local:
-                rtol = (
-                    self.cg_rtol
-                    if pass_index == passes - 1
-                    else max(self.cg_rtol, self.cg_rtol_following)
-                )
-                self.delta = self._local_solve(
-                    ctrl.weights,
-                    targets[inside],
-                    normals[inside],
-                    x_global,
-                    weights[inside],
-                    rtol=rtol,
-                )
-                self.positions = x_global + self.delta
-                if (
-                    self.longitudinal_coupling
-                    and self.regional_coupling
-                    and pass_index < passes - 1
-                ):  # for the next pass's coupling
-                    self._flagged = self._outward_points(
-                        ctrl, targets[inside], normals[inside]
-                    )
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
-            if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
-                worst = (self.rejected - rejected_before, attached)
+            worst = _larger_rejected_share(worst, self.rejected - rejected_before, attached)
         for k, s in zip(keys, offsets):
             self.offsets[k] = float(s)
+        return self._phase_solution(
+            phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
+        )
+
+    def _robust_global_fit(self, pos, inside, targets, normals, weights):
+        """
+        Attach the tag points, screen out slipped tracks and fit the global parameters.
+
+        Parameters
+        ----------
+        pos : ndarray, shape (K, 3)
+            The tag points' material positions at ED (``p0 + s n``), mm.
+        inside : ndarray of bool, shape (K,)
+            Which of them lie within ``max_attach_mm`` of the model.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        weights : ndarray, shape (K,)
+            Data weights (:func:`data_weights`).
+
+        Returns
+        -------
+        inside : ndarray of bool, shape (K,)
+            ``inside`` less the points rejected as outliers.
+        ctrl : ControlPoints
+            The attachment of the points kept (in their order).
+        result : FitResult
+            The global fit to them (the model holds its parameters).
+
+        """
+        ctrl = self.model.attach(pos[inside])
+        if self.prescreen:
+            # A track that slipped by a tag period sits a period away from where the previous
+            # phase's motion puts it, while its neighbours sit within the phase-to-phase
+            # motion: screen against that prediction before the first fit can be dragged.
+            pre = self._outliers(ctrl.weights @ self.positions, targets[inside], normals[inside])
+            if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
+                inside, ctrl = self._drop(inside, ctrl, pre)
+        result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
+        # Robustness: a track that swapped identity or drifted leaves a residual far beyond
+        # what the global fit leaves elsewhere; drop such points and refit.
+        outlier = self._outliers(
+            ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+        )
+        if outlier.any() and (~outlier).sum() >= 4:
+            inside, ctrl = self._drop(inside, ctrl, outlier)
+            result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
+        return inside, ctrl, result
+
+    def _pass_motion(self, keys, inside, ctrl, targets, normals, weights, last):
+        """
+        Set ``positions`` to the global fit plus the twist function and the local deformation δ.
+
+        Parameters
+        ----------
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+        inside : ndarray of bool, shape (K,)
+            The points used (attached and not rejected).
+        ctrl : ControlPoints
+            Their attachment, in their order.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        weights : ndarray, shape (K,)
+            Data weights (:func:`data_weights`).
+        last : bool
+            Whether this is the phase's last pass (the full CG tolerance; no coupling to flag
+            for a next pass).
+
+        """
+        x_global = self.model.positions()
+        if self.twist_knots:
+            sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
+            sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
+            x_global = self._twist_function(
+                ctrl.weights,
+                targets[inside],
+                normals[inside],
+                x_global,
+                sa,
+                len(sa_slices),
+                weights[inside],
+            )
+        self.positions = x_global
+        if not self.local:
+            return
+        # The passes before the last only place the material lines for the next one.
+        rtol = self.cg_rtol if last else max(self.cg_rtol, self.cg_rtol_following)
+        self.delta = self._local_solve(
+            ctrl.weights, targets[inside], normals[inside], x_global, weights[inside], rtol=rtol
+        )
+        self.positions = x_global + self.delta
+        if self.longitudinal_coupling and self.regional_coupling and not last:
+            self._flagged = self._outward_points(ctrl, targets[inside], normals[inside])
+
+    def _phase_solution(
+        self, phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
+    ) -> PhaseSolution:
+        """
+        Return the phase's solution: positions, displacement, Green strain, state and verdict.
+
+        Parameters
+        ----------
+        phase_index, num_phases : int
+            The phase solved and the phases per cycle (0: unknown).
+        sets : dict
+            (view, slice) → TagPointSet of the phase.
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+        inside : ndarray of bool, shape (K,)
+            The points the last pass used.
+        ctrl : ControlPoints
+            Their attachment, in their order.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        result : FitResult
+            The last pass's global fit (its state is completed and returned).
+        worst : tuple of int
+            (rejected, attached) of the pass that rejected the largest share.
+
+        Returns
+        -------
+        PhaseSolution
+            The phase's solution.
+
+        """
         x = self.positions
         H = self.model.operator.gradient(x - self.rest)  # H[i, a, b] = ∂u_a/∂X_b
         F = np.eye(3) + H
@@ -971,6 +1042,28 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
         return new
+
+
+def _larger_rejected_share(worst, rejected, attached):
+    """
+    Return whichever of ``worst`` and ``(rejected, attached)`` rejected the larger share.
+
+    Parameters
+    ----------
+    worst : tuple of int
+        (rejected, attached) of the worst pass so far; ``(0, 0)`` before the first.
+    rejected, attached : int
+        Tag points this pass rejected as outliers, and those it attached.
+
+    Returns
+    -------
+    tuple of int
+        (rejected, attached); a tie keeps ``worst`` (compared by cross-multiplying, no division).
+
+    """
+    if worst[1] == 0 or rejected * worst[1] > worst[0] * attached:
+        return (rejected, attached)
+    return worst
 
 
 def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
