@@ -323,15 +323,7 @@ class MotionTracker:
             raise ValueError(f'twist_smoothing must be in (0, 1e6), got {twist_smoothing}')
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
-        if polar is not None:
-            a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
-            params = GlobalParameters(
-                np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4]
-            )
-            frame = ModelFrame(params, ModelCoordinates.polar(*polar))
-        else:
-            frame = polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
-        self.model = MeshlessModel(pts, frame)
+        self.model = MeshlessModel(pts, _model_frame(pts, centre, rotation, R, a0, polar, shape))
         self.rest = self.model.rest_points
         self._tree = cKDTree(self.rest)
         self.data_weight = float(data_weight)
@@ -341,6 +333,37 @@ class MotionTracker:
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.local = bool(local)
+        self.outlier_mm = 3.0
+        self.prescreen = True
+        self.rejected = 0
+        self._init_local_stage(hourglass_weight, volume_weight)
+        self._init_coupling(longitudinal_weight, longitudinal_coupling, regional_coupling)
+        if not 0.0 <= global_prior < 1e6:
+            raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
+        self.global_prior = float(global_prior)
+        self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
+        self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
+        t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
+        self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
+        self.positions = self.rest.copy()
+        self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
+        self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
+        self._coarse = self._phase_coarse = None
+        self._init_coarse_space(coarse_aggregates)
+
+    def _init_local_stage(self, hourglass_weight, volume_weight):
+        """
+        Set the local stage's CG settings, operators and penalty weights.
+
+        Parameters
+        ----------
+        hourglass_weight : float
+            Fit-error penalty relative to the elastic diagonal (kept as given).
+        volume_weight : float
+            Near-incompressibility penalty, in units of μ.
+
+        """
         # Warm-started from the previous phase. Measured over whole cycles (normal, hypertrophic,
         # infarct; worst median, p95, twist and radius error over the phases): 1e-3 matches 1e-5
         # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase). With the
@@ -367,12 +390,28 @@ class MotionTracker:
         self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (
             mu + (mu + lam) / 3.0
         )
-        self.data_weight, self.hourglass_weight = float(data_weight), hourglass_weight
-        self.outlier_mm = 3.0
-        self.prescreen = True
-        self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
+
+    def _init_coupling(self, longitudinal_weight, longitudinal_coupling, regional_coupling):
+        """
+        Check and set the local stage's axial stiffness and its longitudinal coupling.
+
+        Parameters
+        ----------
+        longitudinal_weight : float
+            Local longitudinal stiffness, in units of μ, in [0, 1e12).
+        longitudinal_coupling : float
+            Coupling factor, in [0, 2] (see the class docstring).
+        regional_coupling : bool
+            Whether the coupling is weighted by region (:meth:`_coupling_weight`).
+
+        Raises
+        ------
+        ValueError
+            A weight or factor outside its range.
+
+        """
         if not 0.0 <= longitudinal_weight < 1e12:
             raise ValueError(
                 f'longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}'
@@ -387,17 +426,23 @@ class MotionTracker:
         self.coupling_weight = np.zeros(0)  # per particle, the last local solve's (diagnostics)
         self._coupling_map = None
         self._flagged = None
-        if not 0.0 <= global_prior < 1e6:
-            raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
-        self.global_prior = float(global_prior)
-        self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
-        self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
-        t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
-        self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
-        self.positions = self.rest.copy()
-        self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
-        self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
-        self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
+
+    def _init_coarse_space(self, coarse_aggregates):
+        """
+        Build the local stage's coarse space once, with the model (none when 0 aggregates).
+
+        Parameters
+        ----------
+        coarse_aggregates : int or None
+            Aggregates; None: one per ``COARSE_PARTICLES`` particles, at most
+            ``COARSE_MAX_AGGREGATES``.
+
+        Raises
+        ------
+        ValueError
+            ``coarse_aggregates`` not an integer >= 0.
+
+        """
         if coarse_aggregates is None:
             coarse_aggregates = min(COARSE_MAX_AGGREGATES, self.rest.shape[0] // COARSE_PARTICLES)
         if not isinstance(coarse_aggregates, (int, np.integer)) or coarse_aggregates < 0:
@@ -405,7 +450,6 @@ class MotionTracker:
                 'coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got '
                 f'{coarse_aggregates}'
             )
-        self._coarse = self._phase_coarse = None
         if coarse_aggregates:
             # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
             kappa, alpha = self._multipliers()
@@ -413,9 +457,9 @@ class MotionTracker:
                 self._local,
                 min(int(coarse_aggregates), self.rest.shape[0]),
                 fit_error=alpha,
-                volume_weight=self.volume_weight * mu,
+                volume_weight=self.volume_weight * self.model.mu,
                 axial=(
-                    self.longitudinal_weight * mu,
+                    self.longitudinal_weight * self.model.mu,
                     quat_to_matrix(self.model.rest_params.rotation)[:, 2],
                 ),
                 eps=1e-6 * kappa,
@@ -1042,6 +1086,42 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
         return new
+
+
+def _model_frame(pts, centre, rotation, R, a0, polar, shape) -> ModelFrame:
+    """
+    Return the model's frame: from given polar coordinates and shape, or fitted to the particles.
+
+    Parameters
+    ----------
+    pts : ndarray, shape (N, 3)
+        Particle positions at ED, mm.
+    centre : array_like, shape (3,)
+        Model centre, mm.
+    rotation : array_like, shape (4,)
+        Model orientation quaternion.
+    R : ndarray, shape (3, 3)
+        ``rotation`` as a matrix (its columns the model's axes).
+    a0 : float or None
+        Model scale, mm.
+    polar : tuple or None
+        Given polar coordinates (:meth:`ModelCoordinates.polar`'s arguments); None: fitted.
+    shape : sequence of 5 floats or None
+        Shape parameters (4 scales, taper) with ``polar``; None: ``(a0 or 1, 1, 1, 1, 0)``.
+
+    Returns
+    -------
+    ModelFrame
+        The frame.
+
+    """
+    if polar is not None:
+        a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
+        params = GlobalParameters(
+            np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4]
+        )
+        return ModelFrame(params, ModelCoordinates.polar(*polar))
+    return polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
 
 
 def _larger_rejected_share(worst, rejected, attached):
