@@ -203,6 +203,88 @@ def _twist_gradient(height, twist, lo: float, hi: float) -> float:
     return float(np.polyfit(height[inside], twist[inside], 1)[0])
 
 
+def _twist_angle(height, psi, hat, coefficients, lo: float, hi: float) -> np.ndarray:
+    """
+    Return each particle's twist Δφ: the P-spline within the SA span, a line in height beyond.
+
+    Beyond the span, the *total* twist ``psi + Δφ`` continues linearly from its value at the
+    span's end, with the gradients chosen in :meth:`MotionTracker._twist_function`.
+
+    Parameters
+    ----------
+    height : ndarray, shape (N,)
+        Material heights, 0 apex … 1 base.
+    psi : ndarray, shape (N,)
+        The global stage's own twist of each particle since ED, radians.
+    hat : ndarray, shape (N, m)
+        The knots' hat functions at ``height`` (:func:`_knot_hats`).
+    coefficients : ndarray, shape (m,)
+        The fitted knot values, radians.
+    lo, hi : float
+        Heights of the lowest and the highest SA tag point.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Δφ, radians.
+
+    """
+    m = len(coefficients)
+    total = psi + hat @ coefficients
+    band = 1.0 / (m - 1)
+    mean = _twist_gradient(height, total, lo, hi)
+    apical = _twist_gradient(height, total, lo, min(hi, lo + band))
+    basal = _twist_gradient(height, total, max(lo, hi - band), hi)
+    # An end gradient of the other sign than the mean is noise; the apex turns steeper, the
+    # base shallower.
+    if apical * mean <= 0.0 or abs(apical) < abs(mean):
+        apical = mean
+    basal = min(basal, mean, key=abs) if basal * mean > 0.0 else 0.0
+    angle = _knot_hats(np.clip(height, lo, hi), m) @ coefficients
+    for end, side, gradient in ((lo, height < lo, apical), (hi, height > hi, basal)):
+        near = np.abs(height - end) <= band
+        if not side.any() or near.sum() < 2 or np.ptp(height[near]) <= 0.0:
+            continue
+        # the global twist at the end's height: a line through the particles near it
+        slope, intercept = np.polyfit(height[near], psi[near], 1)
+        at_end = float(_knot_hats([end], m)[0] @ coefficients)
+        at_end += intercept + slope * end
+        angle[side] = at_end + gradient * (height[side] - end) - psi[side]
+    return angle
+
+
+def _rotate_about_axis(x, centre, axis, angle) -> np.ndarray:
+    """
+    Rotate each point about the axis through ``centre`` by its own angle.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, 3)
+        Points, mm.
+    centre : ndarray, shape (3,)
+        A point on the axis, mm.
+    axis : ndarray, shape (3,)
+        Unit direction of the axis.
+    angle : ndarray, shape (N,)
+        Angles, radians (right-handed about ``axis``).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        The rotated points, mm.
+
+    """
+    v = x - centre
+    along = (v @ axis)[:, None] * axis
+    perp = v - along
+    return (
+        centre
+        + along
+        + perp * np.cos(angle)[:, None]
+        + np.cross(axis, perp) * np.sin(angle)[:, None]
+    )
+
+
 class MotionTracker:
     """
     Dense LV motion through the cycle from tracked tag points.
@@ -989,9 +1071,42 @@ class MotionTracker:
             return x
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
-        tang = np.cross(axis, x - centre)  # ∂x/∂φ, mm/rad
         m, height = self.twist_knots, self._height
         hat = _knot_hats(height, m)  # (N, m)
+        self.twist_coefficients = self._fit_twist_knots(
+            phi, targets, normals, x, weights, np.cross(axis, x - centre), hat
+        )
+        # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
+        psi = (
+            np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
+        )
+        angle = _twist_angle(
+            height, psi, hat, self.twist_coefficients, float(h_sa.min()), float(h_sa.max())
+        )
+        return _rotate_about_axis(x, centre, axis, angle)
+
+    def _fit_twist_knots(self, phi, targets, normals, x, weights, tang, hat) -> np.ndarray:
+        """
+        Return the twist's knot values fitted to the in-plane tag residuals (P-spline), radians.
+
+        Parameters
+        ----------
+        phi, targets, normals, x, weights
+            The control-point weights (K, N), measured positions and image-plane normals (K, 3),
+            global-model particle positions (N, 3) and data weights (K,) or None, as in
+            :meth:`_twist_function`.
+        tang : ndarray, shape (N, 3)
+            ``∂x/∂φ``, each particle's motion per radian about the long axis, mm/rad.
+        hat : ndarray, shape (N, m)
+            The knots' hat functions at each particle's height (:func:`_knot_hats`).
+
+        Returns
+        -------
+        ndarray, shape (m,)
+            Knot values, radians.
+
+        """
+        m = hat.shape[1]
         P = (
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
@@ -1003,38 +1118,7 @@ class MotionTracker:
         J = np.matmul(P, moved).reshape(-1, m)
         r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
-        self.twist_coefficients = _pspline(J, r, lam)
-        # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
-        psi = (
-            np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
-        )
-        total = psi + hat @ self.twist_coefficients
-        lo, hi, band = float(h_sa.min()), float(h_sa.max()), 1.0 / (m - 1)
-        mean = _twist_gradient(height, total, lo, hi)
-        apical = _twist_gradient(height, total, lo, min(hi, lo + band))
-        basal = _twist_gradient(height, total, max(lo, hi - band), hi)
-        if apical * mean <= 0.0 or abs(apical) < abs(mean):
-            apical = mean
-        basal = min(basal, mean, key=abs) if basal * mean > 0.0 else 0.0
-        angle = _knot_hats(np.clip(height, lo, hi), m) @ self.twist_coefficients
-        for end, side, gradient in ((lo, height < lo, apical), (hi, height > hi, basal)):
-            near = np.abs(height - end) <= band
-            if not side.any() or near.sum() < 2 or np.ptp(height[near]) <= 0.0:
-                continue
-            # the global twist at the end's height: a line through the particles near it
-            slope, intercept = np.polyfit(height[near], psi[near], 1)
-            at_end = float(_knot_hats([end], m)[0] @ self.twist_coefficients)
-            at_end += intercept + slope * end
-            angle[side] = at_end + gradient * (height[side] - end) - psi[side]
-        v = x - centre
-        along = (v @ axis)[:, None] * axis
-        perp = v - along
-        return (
-            centre
-            + along
-            + perp * np.cos(angle)[:, None]
-            + np.cross(axis, perp) * np.sin(angle)[:, None]
-        )
+        return _pspline(J, r, lam)
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
