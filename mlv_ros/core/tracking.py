@@ -203,6 +203,88 @@ def _twist_gradient(height, twist, lo: float, hi: float) -> float:
     return float(np.polyfit(height[inside], twist[inside], 1)[0])
 
 
+def _twist_angle(height, psi, hat, coefficients, lo: float, hi: float) -> np.ndarray:
+    """
+    Return each particle's twist Δφ: the P-spline within the SA span, a line in height beyond.
+
+    Beyond the span, the *total* twist ``psi + Δφ`` continues linearly from its value at the
+    span's end, with the gradients chosen in :meth:`MotionTracker._twist_function`.
+
+    Parameters
+    ----------
+    height : ndarray, shape (N,)
+        Material heights, 0 apex … 1 base.
+    psi : ndarray, shape (N,)
+        The global stage's own twist of each particle since ED, radians.
+    hat : ndarray, shape (N, m)
+        The knots' hat functions at ``height`` (:func:`_knot_hats`).
+    coefficients : ndarray, shape (m,)
+        The fitted knot values, radians.
+    lo, hi : float
+        Heights of the lowest and the highest SA tag point.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Δφ, radians.
+
+    """
+    m = len(coefficients)
+    total = psi + hat @ coefficients
+    band = 1.0 / (m - 1)
+    mean = _twist_gradient(height, total, lo, hi)
+    apical = _twist_gradient(height, total, lo, min(hi, lo + band))
+    basal = _twist_gradient(height, total, max(lo, hi - band), hi)
+    # An end gradient of the other sign than the mean is noise; the apex turns steeper, the
+    # base shallower.
+    if apical * mean <= 0.0 or abs(apical) < abs(mean):
+        apical = mean
+    basal = min(basal, mean, key=abs) if basal * mean > 0.0 else 0.0
+    angle = _knot_hats(np.clip(height, lo, hi), m) @ coefficients
+    for end, side, gradient in ((lo, height < lo, apical), (hi, height > hi, basal)):
+        near = np.abs(height - end) <= band
+        if not side.any() or near.sum() < 2 or np.ptp(height[near]) <= 0.0:
+            continue
+        # the global twist at the end's height: a line through the particles near it
+        slope, intercept = np.polyfit(height[near], psi[near], 1)
+        at_end = float(_knot_hats([end], m)[0] @ coefficients)
+        at_end += intercept + slope * end
+        angle[side] = at_end + gradient * (height[side] - end) - psi[side]
+    return angle
+
+
+def _rotate_about_axis(x, centre, axis, angle) -> np.ndarray:
+    """
+    Rotate each point about the axis through ``centre`` by its own angle.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, 3)
+        Points, mm.
+    centre : ndarray, shape (3,)
+        A point on the axis, mm.
+    axis : ndarray, shape (3,)
+        Unit direction of the axis.
+    angle : ndarray, shape (N,)
+        Angles, radians (right-handed about ``axis``).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        The rotated points, mm.
+
+    """
+    v = x - centre
+    along = (v @ axis)[:, None] * axis
+    perp = v - along
+    return (
+        centre
+        + along
+        + perp * np.cos(angle)[:, None]
+        + np.cross(axis, perp) * np.sin(angle)[:, None]
+    )
+
+
 class MotionTracker:
     """
     Dense LV motion through the cycle from tracked tag points.
@@ -323,15 +405,7 @@ class MotionTracker:
             raise ValueError(f'twist_smoothing must be in (0, 1e6), got {twist_smoothing}')
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
-        if polar is not None:
-            a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
-            params = GlobalParameters(
-                np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4]
-            )
-            frame = ModelFrame(params, ModelCoordinates.polar(*polar))
-        else:
-            frame = polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
-        self.model = MeshlessModel(pts, frame)
+        self.model = MeshlessModel(pts, _model_frame(pts, centre, rotation, R, a0, polar, shape))
         self.rest = self.model.rest_points
         self._tree = cKDTree(self.rest)
         self.data_weight = float(data_weight)
@@ -341,6 +415,37 @@ class MotionTracker:
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.local = bool(local)
+        self.outlier_mm = 3.0
+        self.prescreen = True
+        self.rejected = 0
+        self._init_local_stage(hourglass_weight, volume_weight)
+        self._init_coupling(longitudinal_weight, longitudinal_coupling, regional_coupling)
+        if not 0.0 <= global_prior < 1e6:
+            raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
+        self.global_prior = float(global_prior)
+        self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
+        self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
+        t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
+        self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
+        self.positions = self.rest.copy()
+        self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
+        self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
+        self._coarse = self._phase_coarse = None
+        self._init_coarse_space(coarse_aggregates)
+
+    def _init_local_stage(self, hourglass_weight, volume_weight):
+        """
+        Set the local stage's CG settings, operators and penalty weights.
+
+        Parameters
+        ----------
+        hourglass_weight : float
+            Fit-error penalty relative to the elastic diagonal (kept as given).
+        volume_weight : float
+            Near-incompressibility penalty, in units of μ.
+
+        """
         # Warm-started from the previous phase. Measured over whole cycles (normal, hypertrophic,
         # infarct; worst median, p95, twist and radius error over the phases): 1e-3 matches 1e-5
         # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase). With the
@@ -367,12 +472,28 @@ class MotionTracker:
         self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (
             mu + (mu + lam) / 3.0
         )
-        self.data_weight, self.hourglass_weight = float(data_weight), hourglass_weight
-        self.outlier_mm = 3.0
-        self.prescreen = True
-        self.rejected = 0
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
+
+    def _init_coupling(self, longitudinal_weight, longitudinal_coupling, regional_coupling):
+        """
+        Check and set the local stage's axial stiffness and its longitudinal coupling.
+
+        Parameters
+        ----------
+        longitudinal_weight : float
+            Local longitudinal stiffness, in units of μ, in [0, 1e12).
+        longitudinal_coupling : float
+            Coupling factor, in [0, 2] (see the class docstring).
+        regional_coupling : bool
+            Whether the coupling is weighted by region (:meth:`_coupling_weight`).
+
+        Raises
+        ------
+        ValueError
+            A weight or factor outside its range.
+
+        """
         if not 0.0 <= longitudinal_weight < 1e12:
             raise ValueError(
                 f'longitudinal_weight must be in [0, 1e12), got {longitudinal_weight}'
@@ -387,17 +508,23 @@ class MotionTracker:
         self.coupling_weight = np.zeros(0)  # per particle, the last local solve's (diagnostics)
         self._coupling_map = None
         self._flagged = None
-        if not 0.0 <= global_prior < 1e6:
-            raise ValueError(f'global_prior must be in [0, 1e6), got {global_prior}')
-        self.global_prior = float(global_prior)
-        self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
-        self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
-        t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
-        self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
-        self.positions = self.rest.copy()
-        self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
-        self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
-        self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
+
+    def _init_coarse_space(self, coarse_aggregates):
+        """
+        Build the local stage's coarse space once, with the model (none when 0 aggregates).
+
+        Parameters
+        ----------
+        coarse_aggregates : int or None
+            Aggregates; None: one per ``COARSE_PARTICLES`` particles, at most
+            ``COARSE_MAX_AGGREGATES``.
+
+        Raises
+        ------
+        ValueError
+            ``coarse_aggregates`` not an integer >= 0.
+
+        """
         if coarse_aggregates is None:
             coarse_aggregates = min(COARSE_MAX_AGGREGATES, self.rest.shape[0] // COARSE_PARTICLES)
         if not isinstance(coarse_aggregates, (int, np.integer)) or coarse_aggregates < 0:
@@ -405,7 +532,6 @@ class MotionTracker:
                 'coarse_aggregates must be an integer >= 0 (0 = block-Jacobi only), got '
                 f'{coarse_aggregates}'
             )
-        self._coarse = self._phase_coarse = None
         if coarse_aggregates:
             # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
             kappa, alpha = self._multipliers()
@@ -413,9 +539,9 @@ class MotionTracker:
                 self._local,
                 min(int(coarse_aggregates), self.rest.shape[0]),
                 fit_error=alpha,
-                volume_weight=self.volume_weight * mu,
+                volume_weight=self.volume_weight * self.model.mu,
                 axial=(
-                    self.longitudinal_weight * mu,
+                    self.longitudinal_weight * self.model.mu,
                     quat_to_matrix(self.model.rest_params.rotation)[:, 2],
                 ),
                 eps=1e-6 * kappa,
@@ -524,72 +650,143 @@ class MotionTracker:
             rejected_before = self.rejected
             pos, inside = self._attach(rest, normals, offsets)
             attached = int(inside.sum())
-            if inside.sum() < 4:
+            if attached < 4:
                 raise ValueError(
-                    f'phase {phase_index}: only {int(inside.sum())} tag points lie inside the '
-                    'model'
+                    f'phase {phase_index}: only {attached} tag points lie inside the model'
                 )
-            ctrl = self.model.attach(pos[inside])
-            if self.prescreen:
-                # A track that slipped by a tag period sits a period away from where the previous
-                # phase's motion puts it, while its neighbours sit within the phase-to-phase
-                # motion: screen against that prediction before the first fit can be dragged.
-                pre = self._outliers(
-                    ctrl.weights @ self.positions, targets[inside], normals[inside]
-                )
-                if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
-                    inside, ctrl = self._drop(inside, ctrl, pre)
-            result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
-            # Robustness: a track that swapped identity or drifted leaves a residual far beyond
-            # what the global fit leaves elsewhere; drop such points and refit.
-            outlier = self._outliers(
-                ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+            inside, ctrl, result = self._robust_global_fit(pos, inside, targets, normals, weights)
+            self._pass_motion(
+                keys, inside, ctrl, targets, normals, weights, last=pass_index == passes - 1
             )
-            if outlier.any() and (~outlier).sum() >= 4:
-                inside, ctrl = self._drop(inside, ctrl, outlier)
-                result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
-            x_global = self.model.positions()
-            if self.twist_knots:
-                sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
-                sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
-                x_global = self._twist_function(
-                    ctrl.weights,
-                    targets[inside],
-                    normals[inside],
-                    x_global,
-                    sa,
-                    len(sa_slices),
-                    weights[inside],
-                )
-            self.positions = x_global
-            if self.local:
-                rtol = (
-                    self.cg_rtol
-                    if pass_index == passes - 1
-                    else max(self.cg_rtol, self.cg_rtol_following)
-                )
-                self.delta = self._local_solve(
-                    ctrl.weights,
-                    targets[inside],
-                    normals[inside],
-                    x_global,
-                    weights[inside],
-                    rtol=rtol,
-                )
-                self.positions = x_global + self.delta
-                if (
-                    self.longitudinal_coupling
-                    and self.regional_coupling
-                    and pass_index < passes - 1
-                ):  # for the next pass's coupling
-                    self._flagged = self._outward_points(
-                        ctrl, targets[inside], normals[inside]
-                    )
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
-            if worst[1] == 0 or (self.rejected - rejected_before) * worst[1] > worst[0] * attached:
-                worst = (self.rejected - rejected_before, attached)
+            worst = _larger_rejected_share(worst, self.rejected - rejected_before, attached)
         for k, s in zip(keys, offsets):
             self.offsets[k] = float(s)
+        return self._phase_solution(
+            phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
+        )
+
+    def _robust_global_fit(self, pos, inside, targets, normals, weights):
+        """
+        Attach the tag points, screen out slipped tracks and fit the global parameters.
+
+        Parameters
+        ----------
+        pos : ndarray, shape (K, 3)
+            The tag points' material positions at ED (``p0 + s n``), mm.
+        inside : ndarray of bool, shape (K,)
+            Which of them lie within ``max_attach_mm`` of the model.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        weights : ndarray, shape (K,)
+            Data weights (:func:`data_weights`).
+
+        Returns
+        -------
+        inside : ndarray of bool, shape (K,)
+            ``inside`` less the points rejected as outliers.
+        ctrl : ControlPoints
+            The attachment of the points kept (in their order).
+        result : FitResult
+            The global fit to them (the model holds its parameters).
+
+        """
+        ctrl = self.model.attach(pos[inside])
+        if self.prescreen:
+            # A track that slipped by a tag period sits a period away from where the previous
+            # phase's motion puts it, while its neighbours sit within the phase-to-phase
+            # motion: screen against that prediction before the first fit can be dragged.
+            pre = self._outliers(ctrl.weights @ self.positions, targets[inside], normals[inside])
+            if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
+                inside, ctrl = self._drop(inside, ctrl, pre)
+        result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
+        # Robustness: a track that swapped identity or drifted leaves a residual far beyond
+        # what the global fit leaves elsewhere; drop such points and refit.
+        outlier = self._outliers(
+            ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+        )
+        if outlier.any() and (~outlier).sum() >= 4:
+            inside, ctrl = self._drop(inside, ctrl, outlier)
+            result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
+        return inside, ctrl, result
+
+    def _pass_motion(self, keys, inside, ctrl, targets, normals, weights, last):
+        """
+        Set ``positions`` to the global fit plus the twist function and the local deformation δ.
+
+        Parameters
+        ----------
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+        inside : ndarray of bool, shape (K,)
+            The points used (attached and not rejected).
+        ctrl : ControlPoints
+            Their attachment, in their order.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        weights : ndarray, shape (K,)
+            Data weights (:func:`data_weights`).
+        last : bool
+            Whether this is the phase's last pass (the full CG tolerance; no coupling to flag
+            for a next pass).
+
+        """
+        x_global = self.model.positions()
+        if self.twist_knots:
+            sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
+            sa_slices = {k[1] for k, ok in zip(keys, inside) if ok and k[0] == VIEW_SA}
+            x_global = self._twist_function(
+                ctrl.weights,
+                targets[inside],
+                normals[inside],
+                x_global,
+                sa,
+                len(sa_slices),
+                weights[inside],
+            )
+        self.positions = x_global
+        if not self.local:
+            return
+        # The passes before the last only place the material lines for the next one.
+        rtol = self.cg_rtol if last else max(self.cg_rtol, self.cg_rtol_following)
+        self.delta = self._local_solve(
+            ctrl.weights, targets[inside], normals[inside], x_global, weights[inside], rtol=rtol
+        )
+        self.positions = x_global + self.delta
+        if self.longitudinal_coupling and self.regional_coupling and not last:
+            self._flagged = self._outward_points(ctrl, targets[inside], normals[inside])
+
+    def _phase_solution(
+        self, phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
+    ) -> PhaseSolution:
+        """
+        Return the phase's solution: positions, displacement, Green strain, state and verdict.
+
+        Parameters
+        ----------
+        phase_index, num_phases : int
+            The phase solved and the phases per cycle (0: unknown).
+        sets : dict
+            (view, slice) → TagPointSet of the phase.
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+        inside : ndarray of bool, shape (K,)
+            The points the last pass used.
+        ctrl : ControlPoints
+            Their attachment, in their order.
+        targets, normals : ndarray, shape (K, 3)
+            Measured positions (mm) and their image-plane normals.
+        result : FitResult
+            The last pass's global fit (its state is completed and returned).
+        worst : tuple of int
+            (rejected, attached) of the pass that rejected the largest share.
+
+        Returns
+        -------
+        PhaseSolution
+            The phase's solution.
+
+        """
         x = self.positions
         H = self.model.operator.gradient(x - self.rest)  # H[i, a, b] = ∂u_a/∂X_b
         F = np.eye(3) + H
@@ -874,9 +1071,42 @@ class MotionTracker:
             return x
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
-        tang = np.cross(axis, x - centre)  # ∂x/∂φ, mm/rad
         m, height = self.twist_knots, self._height
         hat = _knot_hats(height, m)  # (N, m)
+        self.twist_coefficients = self._fit_twist_knots(
+            phi, targets, normals, x, weights, np.cross(axis, x - centre), hat
+        )
+        # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
+        psi = (
+            np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
+        )
+        angle = _twist_angle(
+            height, psi, hat, self.twist_coefficients, float(h_sa.min()), float(h_sa.max())
+        )
+        return _rotate_about_axis(x, centre, axis, angle)
+
+    def _fit_twist_knots(self, phi, targets, normals, x, weights, tang, hat) -> np.ndarray:
+        """
+        Return the twist's knot values fitted to the in-plane tag residuals (P-spline), radians.
+
+        Parameters
+        ----------
+        phi, targets, normals, x, weights
+            The control-point weights (K, N), measured positions and image-plane normals (K, 3),
+            global-model particle positions (N, 3) and data weights (K,) or None, as in
+            :meth:`_twist_function`.
+        tang : ndarray, shape (N, 3)
+            ``∂x/∂φ``, each particle's motion per radian about the long axis, mm/rad.
+        hat : ndarray, shape (N, m)
+            The knots' hat functions at each particle's height (:func:`_knot_hats`).
+
+        Returns
+        -------
+        ndarray, shape (m,)
+            Knot values, radians.
+
+        """
+        m = hat.shape[1]
         P = (
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
@@ -888,38 +1118,7 @@ class MotionTracker:
         J = np.matmul(P, moved).reshape(-1, m)
         r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
-        self.twist_coefficients = _pspline(J, r, lam)
-        # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
-        psi = (
-            np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
-        )
-        total = psi + hat @ self.twist_coefficients
-        lo, hi, band = float(h_sa.min()), float(h_sa.max()), 1.0 / (m - 1)
-        mean = _twist_gradient(height, total, lo, hi)
-        apical = _twist_gradient(height, total, lo, min(hi, lo + band))
-        basal = _twist_gradient(height, total, max(lo, hi - band), hi)
-        if apical * mean <= 0.0 or abs(apical) < abs(mean):
-            apical = mean
-        basal = min(basal, mean, key=abs) if basal * mean > 0.0 else 0.0
-        angle = _knot_hats(np.clip(height, lo, hi), m) @ self.twist_coefficients
-        for end, side, gradient in ((lo, height < lo, apical), (hi, height > hi, basal)):
-            near = np.abs(height - end) <= band
-            if not side.any() or near.sum() < 2 or np.ptp(height[near]) <= 0.0:
-                continue
-            # the global twist at the end's height: a line through the particles near it
-            slope, intercept = np.polyfit(height[near], psi[near], 1)
-            at_end = float(_knot_hats([end], m)[0] @ self.twist_coefficients)
-            at_end += intercept + slope * end
-            angle[side] = at_end + gradient * (height[side] - end) - psi[side]
-        v = x - centre
-        along = (v @ axis)[:, None] * axis
-        perp = v - along
-        return (
-            centre
-            + along
-            + perp * np.cos(angle)[:, None]
-            + np.cross(axis, perp) * np.sin(angle)[:, None]
-        )
+        return _pspline(J, r, lam)
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
@@ -971,6 +1170,64 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
         return new
+
+
+def _model_frame(pts, centre, rotation, R, a0, polar, shape) -> ModelFrame:
+    """
+    Return the model's frame: from given polar coordinates and shape, or fitted to the particles.
+
+    Parameters
+    ----------
+    pts : ndarray, shape (N, 3)
+        Particle positions at ED, mm.
+    centre : array_like, shape (3,)
+        Model centre, mm.
+    rotation : array_like, shape (4,)
+        Model orientation quaternion.
+    R : ndarray, shape (3, 3)
+        ``rotation`` as a matrix (its columns the model's axes).
+    a0 : float or None
+        Model scale, mm.
+    polar : tuple or None
+        Given polar coordinates (:meth:`ModelCoordinates.polar`'s arguments); None: fitted.
+    shape : sequence of 5 floats or None
+        Shape parameters (4 scales, taper) with ``polar``; None: ``(a0 or 1, 1, 1, 1, 0)``.
+
+    Returns
+    -------
+    ModelFrame
+        The frame.
+
+    """
+    if polar is not None:
+        a = shape if shape is not None else (a0 or 1.0, 1.0, 1.0, 1.0, 0.0)
+        params = GlobalParameters(
+            np.asarray(centre, float), np.asarray(rotation, float), a[:4], a[4]
+        )
+        return ModelFrame(params, ModelCoordinates.polar(*polar))
+    return polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
+
+
+def _larger_rejected_share(worst, rejected, attached):
+    """
+    Return whichever of ``worst`` and ``(rejected, attached)`` rejected the larger share.
+
+    Parameters
+    ----------
+    worst : tuple of int
+        (rejected, attached) of the worst pass so far; ``(0, 0)`` before the first.
+    rejected, attached : int
+        Tag points this pass rejected as outliers, and those it attached.
+
+    Returns
+    -------
+    tuple of int
+        (rejected, attached); a tie keeps ``worst`` (compared by cross-multiplying, no division).
+
+    """
+    if worst[1] == 0 or rejected * worst[1] > worst[0] * attached:
+        return (rejected, attached)
+    return worst
 
 
 def _control_rows(ctrl: ControlPoints, keep) -> ControlPoints:
