@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from mlv_ros.core.meshless.kernel import validate_points
+from mlv_ros.core.types import ModelState
 import numpy as np
 
 #: Layout of the 12-vector of global parameters.
@@ -347,6 +348,34 @@ class GlobalParameters:
             quat_multiply(self.rotation, quat_from_rotvec(step[3:6])),
             self.a + step[6:10],
             self.tau + float(step[10]),
+        )
+
+    def state(self, num_particles: int, **values) -> ModelState:
+        """
+        Return these parameters as a :class:`~mlv_ros.core.types.ModelState`.
+
+        Parameters
+        ----------
+        num_particles : int
+            The model's particle count.
+        **values
+            Further ModelState fields (phase, convergence record, ...).
+
+        Returns
+        -------
+        ModelState
+
+        """
+        return ModelState(
+            translation=self.translation.copy(),
+            rotation=self.rotation.copy(),
+            a0=float(self.a[0]),
+            a1=float(self.a[1]),
+            a2=float(self.a[2]),
+            a3=float(self.a[3]),
+            tau=float(self.tau),
+            num_particles=num_particles,
+            **values,
         )
 
     def copy(self) -> 'GlobalParameters':

@@ -600,18 +600,7 @@ class MeshlessModel:
 
     def state(self, **kw) -> ModelState:
         """Return the current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
-        p = self.params
-        return ModelState(
-            translation=p.translation.copy(),
-            rotation=p.rotation.copy(),
-            a0=float(p.a[0]),
-            a1=float(p.a[1]),
-            a2=float(p.a[2]),
-            a3=float(p.a[3]),
-            tau=float(p.tau),
-            num_particles=self.num_particles,
-            **kw,
-        )
+        return self.params.state(self.num_particles, **kw)
 
     def attach(self, control) -> ControlPoints:
         """

@@ -398,20 +398,7 @@ def register_ed(
 
 def _ed_state(mframe: ModelFrame, num_phases, num_particles: int, fit: dict) -> ModelState:
     """Return the registered model's ED state: its global parameters and the fit's figures."""
-    p = mframe.params
-    return ModelState(
-        phase_index=0,
-        num_phases=int(num_phases),
-        translation=p.translation.copy(),
-        rotation=p.rotation.copy(),
-        a0=float(p.a[0]),
-        a1=float(p.a[1]),
-        a2=float(p.a[2]),
-        a3=float(p.a[3]),
-        tau=float(p.tau),
-        num_particles=num_particles,
-        **fit,
-    )
+    return mframe.params.state(num_particles, phase_index=0, num_phases=int(num_phases), **fit)
 
 
 def _ed_frames(frames, warnings: list) -> dict:
