@@ -250,6 +250,17 @@ REGISTRATION = (
     ),
 )
 
+# Nodes that pair each motion cloud with its model state (motion_analyzer, live_view).
+PAIRING = (
+    Setting(
+        'max_unpaired',
+        200,
+        'motion clouds / model states held while waiting for their pair',
+        1,
+        100000,
+    ),
+)
+
 
 def setting(table, name: str) -> Setting:
     """
