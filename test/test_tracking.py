@@ -229,7 +229,7 @@ def sparse_sa_solve(study, sa_slices, **tracker_options):
 
 def test_twist_function_needs_enough_sa_slices(study):
     # From three SA slices an apical twist extrapolated from their gradient is noise times a lever
-    # (60° and a 10 mm p95 error were seen before this guard): the function stays off, the solve
+    # (unguarded, 60° and a 10 mm p95 error): the function stays off, the solve
     # is the τ-only one. From four spread slices it is fitted and does no harm.
     few, few_err = sparse_sa_solve(study, {1, 3, 5})
     _, tau_err = sparse_sa_solve(study, {1, 3, 5}, twist_knots=0)
@@ -275,8 +275,8 @@ def test_apical_twist_beyond_the_sa_stack_continues_the_measured_gradient(lowest
     # Only the SA slices above lowest_level of the height (and every LA view): 0.3–0.4 of the LV
     # below the stack, no view sees the apex rotate. The twist there must continue the twist
     # the stack measures, linearly in height, as the truth does (apex +9° in its lowest level
-    # bin). Main before this: the function's own end slope, held beyond 0.15 of the height,
-    # turned the apex the wrong way, 10.4° / 11.7° off; now 1.1° / 0.8°.
+    # bin). Holding the function's own end slope beyond 0.15 of the height instead turns the
+    # apex the wrong way (10.4° / 11.7° off, against 1.1° / 0.8° continuing the gradient).
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
     from mlv_ros.core.analysis.frame import lv_frame_axes
 
