@@ -106,8 +106,7 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
     """
     Solve every phase as the solver node does.
 
-    Keywords MotionTracker does not take are set as its attributes (``outlier_mm``, ``prescreen``,
-    ...).
+    Keywords MotionTracker does not take are set as its attributes (``prescreen``, ...).
     """
     import inspect
 

@@ -35,8 +35,8 @@ passing.
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal
                               --rv on]
 
-The drawn abnormal regions and right ventricle (issue 20) are left out unless ``--abnormal``: the
-cases stay the normal hearts these seeds drew before, comparable with earlier runs. ``--rv
+The drawn abnormal regions and right ventricle are left out unless ``--abnormal``: the cases
+stay the normal hearts these seeds draw without them, comparable with kept results. ``--rv
 drawn|on|off`` sets the right ventricle alone (e.g. ``--rv on``: every study with an RV beside the
 LV, as real studies have).
 
@@ -89,7 +89,7 @@ def run_case(
     Run one case.
 
     ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw (75 % of
-    studies); None: drawn with ``abnormal``, off without (the studies before issue 20).
+    studies); None: drawn with ``abnormal``, off without (the seeds' normal hearts).
     """
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-CPU time of the tag detector's work on the default study, replayed as the node does (issue 17).
+CPU time of the tag detector's work on the default study, replayed as the node does.
 
 The default study (``normal`` preset, 256², 25 phases, SNR 20, seed 0: what ``mlv-ros run
 --phantom normal`` and ``bench pipeline`` simulate) goes frame by frame, in the source's

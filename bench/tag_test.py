@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-The DICOM reader's tag tests on random protocols: tagged studies against untagged ones (issue 15).
+The DICOM reader's tag tests on random protocols: tagged studies against untagged ones.
 
 For each protocol seed a random acquisition protocol is drawn
 (:func:`mlv_ros.core.sim.protocol.draw_protocol`, its RV drawn as usual; the surroundings cycle

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Tag detection/tracking benchmark on simulated tagged-MRI studies (issue 6).
+Tag detection/tracking benchmark on simulated tagged-MRI studies.
 
 For each preset (normal, hypertrophic) and SNR (inf, 20, 10) one study is simulated with
 :func:`mlv_ros.core.sim.simulate_study`; every slice's cine goes through

@@ -297,8 +297,9 @@ def parse_offered_qos(value) -> list[dict]:
     Parse recorded ``offered_qos_profiles`` into a list of maps with policies by name.
 
     Accepts the version-9 sequence, the YAML string of MCAP channel metadata and of metadata.yaml
-    before version 9 (our runs before the fix wrote the string form in version 9 too), and empty
-    values; policies written as numbers (rosbag2 before version 9) are turned into their names.
+    before version 9 (recordings of an earlier mlv_ros carry the string form in version 9 too),
+    and empty values; policies written as numbers (rosbag2 before version 9) are turned into
+    their names.
     """
     if isinstance(value, str):
         try:
@@ -825,7 +826,7 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
 # stays readable. A recording lacks some last part of each tuple (the fields appended after it).
 _APPENDED_FIELDS = {
     # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
-    # ...; then segment_origin (uint8 0 = unknown) and its confidence (issue 20); MotionMetrics
+    # ...; then segment_origin (uint8 0 = unknown) and its confidence; MotionMetrics
     # then the segment uncertainties and findings (empty, ES phase −1: none).
     'mlv_msgs/msg/ModelState': (
         ('verdict', 'uint8', 0),

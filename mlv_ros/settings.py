@@ -151,6 +151,59 @@ SOLVER_MODEL = (
         10,
         keyword='slice_following',
     ),
+    Setting(
+        'slice_following.max_step_mm',
+        5.0,
+        "largest move of a tag point's material line along its plane normal per pass, mm",
+        0.01,
+        1000.0,
+        keyword='follow_step_mm',
+    ),
+    # How closely the local stage's conjugate gradients solve (warm-started from the previous
+    # phase; why these defaults: MotionTracker's docstring).
+    Setting(
+        'cg.rtol',
+        2e-3,
+        "relative residual at which the local stage's conjugate gradients stop",
+        1e-12,
+        0.5,
+        keyword='cg_rtol',
+    ),
+    Setting(
+        'cg.max_iterations',
+        400,
+        'most conjugate-gradient iterations per local solve',
+        1,
+        100000,
+        keyword='cg_maxiter',
+    ),
+    Setting(
+        'cg.rtol_following',
+        1e-2,
+        'CG tolerance of the slice-following passes before the last (the looser of it and '
+        'cg.rtol): they only place the tag points for the next pass',
+        1e-12,
+        0.5,
+        keyword='cg_rtol_following',
+    ),
+    # Which tag points are dropped as slipped or swapped tracks before the global fit.
+    Setting(
+        'outliers.floor_mm',
+        3.0,
+        'in-plane tag residual never counted an outlier, mm',
+        0.0,
+        1000.0,
+        keyword='outlier_mm',
+    ),
+    Setting(
+        'outliers.sigmas',
+        5.0,
+        'a residual beyond the median by this many robust standard deviations (1.4826 MAD) is '
+        'an outlier',
+        0.5,
+        1000.0,
+        keyword='outlier_sigmas',
+    ),
 )
 
 # When the solver solves and publishes (its stream, not the model): flat, as the other nodes'.
@@ -194,6 +247,17 @@ REGISTRATION = (
         True,
         'take frames with their history (TRANSIENT_LOCAL), so a restart gets the frames already '
         'sent; false for a publisher without history',
+    ),
+)
+
+# Nodes that pair each motion cloud with its model state (motion_analyzer, live_view).
+PAIRING = (
+    Setting(
+        'max_unpaired',
+        200,
+        'motion clouds / model states held while waiting for their pair',
+        1,
+        100000,
     ),
 )
 

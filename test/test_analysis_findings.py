@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-Per-segment findings (issue 20) on a simulated heart with akinetic and dyskinetic regions.
+Per-segment findings on a simulated heart with akinetic and dyskinetic regions.
 
-Per-segment findings (issue 20): the true motion of a simulated heart with an akinetic and a
+Per-segment findings: the true motion of a simulated heart with an akinetic and a
 dyskinetic region, analysed phase by phase, names those segments and calls the remote ones
 normal; missing support gives 'indeterminate', never a class; the report draws the classes.
 """

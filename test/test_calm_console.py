@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-A calm console (issue 16, item 5): counts for routine events, WARN only for what needs action.
+A calm console: counts for routine events, WARN only for what needs action.
 
-A calm console (issue 16, item 5): routine events are counts, WARN is for what a user must act
+A calm console: routine events are counts, WARN is for what a user must act
 on, and every CLI mistake is one line with the fix.
 
 The tag detector runs over real Fast DDS on a short simulated cine whose tags fade (T1 recovery

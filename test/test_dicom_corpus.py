@@ -22,7 +22,7 @@ Every bad file must be reported with its reason, every legal-but-odd file must l
 pixels it holds), and every valid frame must load exactly as it does without the corpus beside it.
 Beside the study, a legal-but-odd case that is not a tagged cine of it (a single image, a cine
 with nothing in it) is read but not used: it is listed once, by its first file, with the reason
-(issue 15's study selection); read alone, it loads.
+(the reader's study selection); read alone, it loads.
 """
 
 import shutil

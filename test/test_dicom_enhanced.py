@@ -13,12 +13,12 @@
 # limitations under the License.
 
 """
-Enhanced MR multi-frame input (issue 15, item 3).
+Enhanced MR multi-frame input.
 
-Enhanced MR multi-frame input (issue 15, item 3): a simulated study converted at test time
+Enhanced MR multi-frame input: a simulated study converted at test time
 (``corpus/enhanced.py`` writes the functional groups) loads frame for frame as its classic files
 do, one file per cine, per stack, per frame, or as a Legacy Converted Enhanced MR; damaged
-functional groups are reported per file; and a run on it (the one full run of issue 15) analyses
+functional groups are reported per file; and a full run on it analyses
 the study with what was left out and not used in its summary.
 """
 
@@ -179,9 +179,9 @@ def test_enhanced_mr_beside_classic_files_and_damaged_functional_groups(study, t
 
 def test_run_on_enhanced_mr_with_a_study_chosen_and_parts_left_out(tmp_path):
     """
-    Check the one full ``mlv-ros run`` of issue 15 on an Enhanced MR study.
+    Check a full ``mlv-ros run`` on an Enhanced MR study.
 
-    The one full ``mlv-ros run`` of issue 15: a study as Enhanced MR (one file per cine) in a
+    A full ``mlv-ros run``: a study as Enhanced MR (one file per cine) in a
     folder with CT_small, and one of its cines acquired with 2 phases of 3 (left out), chosen with
     --study. Every phase is analysed from exactly the classic files' frames, but the run is not
     complete (exit 1): summary.json says what was left out and what was not used.

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-DICOM as other writers make it (issue 15: pixels, transfer syntaxes, folders).
+DICOM as other writers make it (pixels, transfer syntaxes, folders).
 
 The corpus is built at test time: our simulated study re-encoded by pydicom (every stored pixel
 type with a rescale, no rescale, MONOCHROME1, big endian, RLE / JPEG-LS / JPEG 2000 lossless,

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Study selection in the DICOM reader (issue 15, item 4): the tagged study out of a messy folder.
+Study selection in the DICOM reader: the tagged study out of a messy folder.
 
 Real files written at test time: small simulated tagged studies (``write_study_dicom``), pydicom's
 bundled ``CT_small.dcm`` / ``MR_small.dcm`` (``get_testdata_file(..., download=False)``: never a

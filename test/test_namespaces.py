@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-Namespaces (issue 18): the graph, its config, runs and recordings under a ROS namespace.
+Namespaces: the graph, its config, runs and recordings under a ROS namespace.
 
-Namespaces (issue 18): every node names its topics relative, so a graph started under a
+Namespaces: every node names its topics relative, so a graph started under a
 namespace talks on ``/NS/mlv/*`` and ``/NS/lv/*`` (the root names unchanged without one);
 ``config/graph.yaml`` applies in any namespace (``/**/node`` keys); ``mlv-ros run --namespace``
 runs and records the whole graph there, two such runs share one ROS domain, and a namespaced

@@ -107,6 +107,11 @@ def test_the_grouped_names_set_the_model():
     keywords = inspect.signature(MotionTracker).parameters
     assert [s.attribute for s in SOLVER_MODEL if s.attribute not in keywords] == []
     assert all('.' in s.name for s in SOLVER_MODEL)
+    # The node's defaults are the core's: a graph run solves as the tracker does by default.
+    differ = [s.name for s in SOLVER_MODEL if s.default != keywords[s.attribute].default]
+    assert differ == []
+    assert all(type(s.default) is type(keywords[s.attribute].default) for s in SOLVER_MODEL)
+    assert all(s.min_value <= s.default <= s.max_value for s in SOLVER_MODEL)
 
 
 def flat(params: dict, prefix: str = '') -> set:

@@ -52,7 +52,7 @@ def random_study_run(request, tmp_path_factory):
     seed = request.param
     root = tmp_path_factory.mktemp(f'random{seed}')
     study = root / 'study'
-    # Displacement accuracy of normal hearts: no drawn abnormal regions nor RV (issue 20; the
+    # Displacement accuracy of normal hearts: no drawn abnormal regions nor RV (the
     # other items are drawn from their own streams, so the studies are the ones these seeds
     # always drew).
     fixed = root / 'no_regions.yaml'

@@ -12,7 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""NIfTI label volumes as user myocardium masks for the ED registration (issue 7)."""
+"""NIfTI label volumes as user myocardium masks for the ED registration."""
 
 from mlv_ros.core.registration import masks_for_frames, register_ed
 from mlv_ros.core.sim import simulate_study

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-The phantom's right ventricle and the septum found from it (issue 20).
+The phantom's right ventricle and the septum found from it.
 
 Small ED short-axis stacks of drawn protocols (any septum direction, grid, pixel size, contrast,
 SA orientation): the RV's insertion points are in the truth, and the septum found in the images

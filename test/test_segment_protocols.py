@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-ED segmentation on tagged studies unlike our default phantom (issue 14).
+ED segmentation on tagged studies unlike our default phantom.
 
 Each case is a preset with some imaging or geometry keys overridden, as another scanner or
 simulator would acquire it: grid at 45° with only the heart tagged, bright blood, a 17 mm wall,
@@ -36,7 +36,7 @@ from mlv_ros.core.types import Frame, VIEW_LA, VIEW_SA
 import numpy as np
 import pytest
 
-#: Acceptance (issue 14): every slice segmented, Dice ≥ 0.8 SA and ≥ 0.75 LA.
+#: Acceptance: every slice segmented, Dice ≥ 0.8 SA and ≥ 0.75 LA.
 MIN_DICE = {VIEW_SA: 0.80, VIEW_LA: 0.75}
 
 CASES = {

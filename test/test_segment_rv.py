@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-ED segmentation next to a bright right ventricle (issue 14: real studies always have one).
+ED segmentation next to a bright right ventricle (real studies always have one).
 
 Drawn protocols with the RV forced on and bright blood (1.26-1.28 x myocardium): the RV's blood
 crescent beside the septum has an outline whose spectrum, falling off as 1/frequency, used to

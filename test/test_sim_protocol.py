@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-Randomised acquisition protocols (issue 14): draws, CLI options and DICOM read-back.
+Randomised acquisition protocols: draws, CLI options and DICOM read-back.
 
-Randomised acquisition protocols (issue 14): draws stay in their documented ranges and vary,
+Randomised acquisition protocols: draws stay in their documented ranges and vary,
 ``--random``/``--protocol``, and drawn studies written to DICOM read back right (slice counts, SA
 order by position, geometry as in the ground truth, pixels within the stored quantisation, the
 tag grid at the drawn angle and period).

@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-Regional wall-motion abnormalities of the simulator (issue 20).
+Regional wall-motion abnormalities of the simulator.
 
-Regional wall-motion abnormalities of the simulator (issue 20): akinetic, hypokinetic and
+Regional wall-motion abnormalities of the simulator: akinetic, hypokinetic and
 dyskinetic regions move as documented, stay smooth and invertible, leave the rest of the heart
 alone; protocols draw, fix and round-trip them; the ground truth carries their strain and class.
 """

@@ -312,6 +312,32 @@ class MotionTracker:
         Re-attachment passes per phase that keep each control point on its image plane.
     max_attach_mm : float
         Tag points farther than this from every particle (outside the model) are not used.
+    cg_rtol : float
+        Relative residual at which the local stage's conjugate gradients stop. Each solve is
+        warm-started from the previous phase's δ; at 2e-3 the iterate is 6–20 µm RMS (86 µm at
+        worst) from the converged solution, a tenth of a phase's own in-plane tag residual
+        (0.10–0.22 mm RMS); the ES median, p95, twist and radius error of the normal,
+        hypertrophic and infarct presets move by at most 0.004 mm and 0.014° from 1e-3, itself
+        within 0.005 mm and 0.011° of 1e-6. A tighter tolerance costs iterations the data cannot
+        repay.
+    cg_maxiter : int
+        Most CG iterations per local solve; one that reaches it keeps its last iterate.
+    cg_rtol_following : float
+        CG tolerance of the slice-following passes before a phase's last (the looser of it and
+        ``cg_rtol``): they only place the tag points' material lines for the next pass, which
+        starts from their δ (a quarter fewer CG iterations per phase at 1e-2 on the default
+        study).
+    outlier_mm : float
+        In-plane tag residual (mm) never counted an outlier: below it, a point is within the
+        motion's own error however tight the other residuals are.
+    outlier_sigmas : float
+        A tag point whose in-plane residual exceeds the median by this many robust standard
+        deviations (1.4826 MAD) is an outlier (a track that slipped or swapped identity): it is
+        dropped and the global stage refitted.
+    follow_step_mm : float
+        Largest move (mm) of a tag point's material line along its plane normal per
+        slice-following pass: it bounds the Newton step where the motion along the normal is far
+        from linear.
     hourglass_weight : float
         Stiffness of the MLS fit-error penalty (paper eq. 16) that removes the zero-energy modes
         of the local strain energy, relative to the elastic stiffness.
@@ -386,6 +412,12 @@ class MotionTracker:
         max_attach_mm: float = 3.0,
         max_iterations: int = 100,
         tol: float = 1e-3,
+        cg_rtol: float = 2e-3,
+        cg_maxiter: int = 400,
+        cg_rtol_following: float = 1e-2,
+        outlier_mm: float = 3.0,
+        outlier_sigmas: float = 5.0,
+        follow_step_mm: float = 5.0,
         local: bool = True,
         hourglass_weight: float = 1.0e3,
         volume_weight: float = 1.0e3,
@@ -415,7 +447,10 @@ class MotionTracker:
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.local = bool(local)
-        self.outlier_mm = 3.0
+        self.cg_rtol, self.cg_maxiter = float(cg_rtol), int(cg_maxiter)
+        self.cg_rtol_following = float(cg_rtol_following)
+        self.outlier_mm, self.outlier_sigmas = float(outlier_mm), float(outlier_sigmas)
+        self.follow_step_mm = float(follow_step_mm)
         self.prescreen = True
         self.rejected = 0
         self._init_local_stage(hourglass_weight, volume_weight)
@@ -436,7 +471,7 @@ class MotionTracker:
 
     def _init_local_stage(self, hourglass_weight, volume_weight):
         """
-        Set the local stage's CG settings, operators and penalty weights.
+        Set the local stage's operators and penalty weights.
 
         Parameters
         ----------
@@ -446,21 +481,6 @@ class MotionTracker:
             Near-incompressibility penalty, in units of μ.
 
         """
-        # Warm-started from the previous phase. Measured over whole cycles (normal, hypertrophic,
-        # infarct; worst median, p95, twist and radius error over the phases): 1e-3 matches 1e-5
-        # to 0.01 mm and 0.01° and halves the solver's time (2.1 → 1.0 s per phase). With the
-        # coarse correction, ES median, p95, twist and radius at 1e-3 are within 0.005 mm and
-        # 0.011° of rtol 1e-6 on the three presets' recorded tags (block-Jacobi alone at 1e-3
-        # was 0.09 mm off in the infarct's p95). 2e-3 (issue 17): the CG iterate's error against
-        # the converged solution (rtol 1e-9) is 6–20 µm RMS, 22–86 µm at worst (normal, phases
-        # 2/6/9/14/20), a tenth of the phase's own in-plane tag residual (0.10–0.22 mm RMS); ES
-        # median, p95, twist and radius of the three presets within 0.004 mm and 0.014° of 1e-3,
-        # kept robustness cases 1000/1004/1007/1012 within 0.005 mm; 12–17 % fewer CG iterations.
-        self.cg_rtol, self.cg_maxiter = 2e-3, 400
-        # The passes before the last (slice following) only place the tag points' material lines
-        # for the next pass, which starts from their δ: a looser tolerance there cut the CG
-        # iterations per phase by a quarter on the default study's recorded tag points.
-        self.cg_rtol_following = 1e-2
         self.cg_iterations = deque(
             maxlen=1000
         )  # CG iterations of the latest local solves (benchmarks)
@@ -1121,12 +1141,12 @@ class MotionTracker:
         return _pspline(J, r, lam)
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
-        """In-plane residuals beyond ``max(outlier_mm, median + 5 σ_MAD)`` (boolean, per point)."""
+        """Return which in-plane residuals exceed ``max(outlier_mm, med + outlier_sigmas σ)``."""
         P = plane_projectors(normals, len(normals))
         r = np.linalg.norm(np.einsum('kab,kb->ka', P, targets - x), axis=1)
         med = float(np.median(r))
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
-        return r > max(self.outlier_mm, med + 5.0 * sigma)
+        return r > max(self.outlier_mm, med + self.outlier_sigmas * sigma)
 
     def _model_at(self, points) -> np.ndarray:
         """
@@ -1168,7 +1188,7 @@ class MotionTracker:
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
         step = np.zeros(idx.size)
         step[good] = -f0[good] / df[good]
-        new[idx] = offsets[idx] + np.clip(step, -5.0, 5.0)
+        new[idx] = offsets[idx] + np.clip(step, -self.follow_step_mm, self.follow_step_mm)
         return new
 
 

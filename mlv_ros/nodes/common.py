@@ -31,7 +31,9 @@ import time
 from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_ros import conversions, qos
+from mlv_ros.core.streaming import StampPairer
 from mlv_ros.core.types import StudyShape
 from mlv_ros.threads import compute_threads
 from rcl_interfaces.msg import (
@@ -48,11 +50,15 @@ from rclpy.node import Node
 from rclpy.qos import QoSPolicyKind
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
+from sensor_msgs.msg import PointCloud2
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 USE_FQN = 'diagnostic_updater.use_fqn'
 # diagnostic_updater's hardware_id for what has no hardware of its own ("set this value to none").
 HARDWARE_ID = 'none'
+# Registered clouds / states held while waiting for their pair: the registration publishes one
+# pair (latched), a restart another.
+REGISTRATIONS_HELD = 4
 
 
 @dataclass
@@ -179,6 +185,11 @@ class GraphNode(Node):
         # whoever starts the graph); messages of any other study are reported and ignored.
         self.study = StudyShape()
         self.other_studies: Counter = Counter()  # other study id → its messages ignored
+        # Stamps of model states of another study → that study: the clouds of those stamps (a
+        # cloud cannot carry a study) go with them, the ones held in these (topic, StampPairer)
+        # at once, later ones as they come (other_study_state, other_study_cloud).
+        self._other_study_stamps = RecentKeys()
+        self.held_clouds: list[tuple[str, StampPairer]] = []
 
     # Parameter checks beyond what a descriptor's range can say (param's ``check``): rclpy runs
     # this callback when a parameter is declared with its start-up value and whenever one is set.
@@ -488,6 +499,178 @@ class GraphNode(Node):
             phase=msg.phase_index,
             stamp=conversions.stamp_text(msg.header.stamp),
         )
+
+    def converted(
+        self,
+        msg,
+        convert: Callable,
+        message: str,
+        level: int = ERROR,
+        check_study: bool = False,
+        **where,
+    ):
+        """
+        Return ``convert(msg)``, or None once the ValueError it raised is reported.
+
+        Parameters
+        ----------
+        msg : message with a header
+            What arrived.
+        convert : callable
+            ``convert(msg)`` returns what the node works on (never None) or raises ValueError
+            saying why ``msg`` is unusable (:mod:`mlv_ros.conversions`).
+        message : str
+            What the report says happened to ``msg`` (e.g. ``'bad motion cloud dropped'``).
+        level : int
+            The report's level (``ERROR``; ``WARN`` for what only is not shown).
+        check_study : bool
+            Also adopt or verify the study and dimensions the result declares
+            (:meth:`StudyShape.check`; a frame or tag point set).
+        **where
+            Values naming ``msg`` (phase, slice...), reported before its stamp and the reason.
+
+        Returns
+        -------
+        object or None
+            ``convert(msg)``; None when it raised (the caller drops ``msg``).
+
+        """
+        try:
+            item = convert(msg)
+            if check_study:
+                self.study.check(item)
+            return item
+        except ValueError as exc:
+            stamp = conversions.stamp_text(msg.header.stamp)
+            self.report(level, message, **where, stamp=stamp, reason=str(exc))
+            return None
+
+    def hold(self, pairer: StampPairer, side: str, key, item, serve: Callable, dropped: str):
+        """
+        Hold ``item`` in ``pairer`` until its pair is in, and report what its bound drops.
+
+        Parameters
+        ----------
+        pairer : StampPairer
+            Where it waits.
+        side : str
+            Its side of the pairer.
+        key : tuple of int
+            Its stamp (:func:`stamp_key`).
+        item : object
+            What waits.
+        serve : callable
+            Called with no argument once ``item`` is in: takes the complete pairs out.
+        dropped : str
+            What the WARN of each item that had waited longest says, when more than the pairer's
+            ``max_unpaired`` wait (so memory stays bounded, and the node says so).
+
+        """
+        pairer.add(side, key, item)
+        serve()
+        for sec, nanosec in pairer.trim(side):
+            self.report(WARN, dropped, stamp=f'{sec}.{nanosec:09d}', held=len(pairer.held[side]))
+
+    def other_study_state(self, msg, topic: str, **where) -> bool:
+        """
+        Return whether model state ``msg`` is of another study (reported); its clouds go too.
+
+        Its stamp is kept: a cloud of that stamp held in :attr:`held_clouds` is dropped now and
+        reported, one that comes later by :meth:`other_study_cloud`.
+
+        Parameters
+        ----------
+        msg : mlv_msgs.msg.ModelState
+            The state.
+        topic : str
+            The graph topic it came on.
+        **where
+            Values naming it (e.g. its phase), reported before its stamp.
+
+        Returns
+        -------
+        bool
+            True: ``msg`` is another study's, the caller ignores it.
+
+        """
+        stamp = conversions.stamp_text(msg.header.stamp)
+        other = self.foreign(msg.study_id, topic, run_id=msg.run_id, **where, stamp=stamp)
+        if not other:
+            return False
+        key = stamp_key(msg.header.stamp)
+        self._other_study_stamps.add(key, other)
+        for cloud_topic, held in self.held_clouds:
+            if 'cloud' in held.discard(key):
+                self.cloud_of_other_study(cloud_topic, stamp, other)
+        return True
+
+    def other_study_cloud(self, topic: str, msg) -> bool:
+        """
+        Return whether point cloud ``msg`` goes with a model state of another study (reported).
+
+        Parameters
+        ----------
+        topic : str
+            The graph topic it came on.
+        msg : sensor_msgs.msg.PointCloud2
+            The cloud; its stamp is its state's (:meth:`other_study_state`).
+
+        Returns
+        -------
+        bool
+            True: the caller drops ``msg``.
+
+        """
+        key = stamp_key(msg.header.stamp)
+        if key not in self._other_study_stamps:
+            return False
+        stamp = conversions.stamp_text(msg.header.stamp)
+        self.cloud_of_other_study(topic, stamp, self._other_study_stamps.get(key))
+        return True
+
+    def subscribe_registration(self, build: Callable) -> None:
+        """
+        Take the registered cloud and state into :attr:`registered`, paired by stamp.
+
+        Each is checked on arrival (its study, its fields); a bad one is reported and dropped.
+        The registration stamps cloud and state alike, so a cloud whose state is of another
+        study is dropped with it.
+
+        Parameters
+        ----------
+        build : callable
+            ``build(model)``: called with the :class:`~mlv_ros.core.types.RegisteredModel` of
+            each registration complete (cloud and state in), the latest first taken.
+
+        """
+        self.registered = StampPairer(REGISTRATIONS_HELD)
+        self.held_clouds.append((qos.REGISTERED_CLOUD, self.registered))
+        self._build_on_registration = build
+        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_registered_cloud)
+        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_registered_state)
+
+    def _on_registered_cloud(self, msg) -> None:
+        if self.other_study_cloud(qos.REGISTERED_CLOUD, msg):
+            return
+        cloud = self.converted(msg, conversions.msg_to_registered_cloud, 'bad registered cloud')
+        if cloud is not None:
+            self._take_registered('cloud', msg, cloud)
+
+    def _on_registered_state(self, msg) -> None:
+        if self.other_study_state(msg, qos.REGISTERED_STATE):
+            return
+        state = self.converted(msg, conversions.msg_to_model_state, 'bad registered state')
+        if state is not None:
+            self.study.adopt(state.study_id, state.run_id)
+            self._take_registered('state', msg, state)
+
+    def _take_registered(self, side: str, msg, item) -> None:
+        self.registered.add(side, stamp_key(msg.header.stamp), item)
+        self.registered.trim(side)
+        pairs = self.registered.pairs()
+        if pairs:  # else the cloud or the state (same stamp) has not come yet
+            _, cloud, state = pairs[-1]  # the latest registration complete
+            self._build_on_registration(conversions.registered_model(cloud, state))
 
     def cloud_of_other_study(self, topic: str, stamp: str, other_study: str) -> None:
         """

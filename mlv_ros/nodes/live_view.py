@@ -57,7 +57,8 @@ from mlv_msgs.msg import MotionMetrics, TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.streaming import StampPairer
 from mlv_ros.core.verdict import DEGRADED, FAILED, Verdict
-from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
+from mlv_ros.nodes.common import GraphNode, OK, run_node, stamp_key, WARN
+from mlv_ros.settings import PAIRING
 from sensor_msgs.msg import PointCloud2
 
 CLOUD_CHANNEL = 'lv/motion'  # foxglove.PointCloud, relative to the node's namespace
@@ -140,13 +141,7 @@ class LiveView(GraphNode):
             'take frames and tag points with their history (TRANSIENT_LOCAL); '
             'false for a publisher without history',
         )
-        self.max_unpaired = self.param(
-            'max_unpaired',
-            200,
-            'motion clouds / model states held while waiting for their pair',
-            min_value=1,
-            max_value=100000,
-        )
+        self.declare_settings(PAIRING)  # self.max_unpaired
         backlog = self.param(
             'message_backlog',
             1024,
@@ -198,7 +193,7 @@ class LiveView(GraphNode):
         )
         # stamp → (points, header) of a cloud / model state, each waiting for the other
         self._pairer = StampPairer(self.max_unpaired)
-        self._foreign_stamps = RecentKeys()
+        self.held_clouds.append((qos.MOTION, self._pairer))
         self.phases_not_shown: dict[int, str] = {}  # failed phase → reasons
         self.curves_served = 0
         self.messages_handled = 0
@@ -237,66 +232,35 @@ class LiveView(GraphNode):
     # ------------------------------------------------------------------ motion clouds
     def _on_motion(self, msg: PointCloud2) -> None:
         self.messages_handled += 1
+        if self.other_study_cloud(qos.MOTION, msg):
+            return
+        points = self.converted(msg, _finite_cloud, 'bad motion cloud not shown')
+        if points is None:
+            return
         key = stamp_key(msg.header.stamp)
-        if key in self._foreign_stamps:
-            self.cloud_of_other_study(
-                qos.MOTION, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key)
-            )
-            return
-        try:
-            points = conversions.msg_to_cloud(msg, finite=('x', 'y', 'z'))
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad motion cloud not shown',
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
-            return
-        self._hold('cloud', 'motion cloud', key, (points, msg.header))
+        item = (points, msg.header)
+        self.hold(self._pairer, 'cloud', key, item, self._serve, 'unpaired motion cloud not shown')
 
     def _on_state(self, msg: ModelStateMsg) -> None:
         self.messages_handled += 1
-        stamp = conversions.stamp_text(msg.header.stamp)
-        key = stamp_key(msg.header.stamp)
-        other = self.foreign(
-            msg.study_id, qos.MODEL_STATE, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp
-        )
-        if other:
-            self._foreign_stamps.add(key, other)
-            if self._pairer.held['cloud'].pop(key, None) is not None:
-                self.cloud_of_other_study(qos.MOTION, stamp, other)
+        if self.other_study_state(msg, qos.MODEL_STATE, phase=msg.phase_index):
             return
-        try:
-            state = conversions.msg_to_model_state(msg)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad model state: its phase is not shown',
-                phase=msg.phase_index,
-                stamp=stamp,
-                reason=str(exc),
-            )
+        state = self.converted(
+            msg,
+            conversions.msg_to_model_state,
+            'bad model state: its phase is not shown',
+            phase=msg.phase_index,
+        )
+        if state is None:
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold('state', 'model state', key, state)
+        key = stamp_key(msg.header.stamp)
+        self.hold(self._pairer, 'state', key, state, self._serve, 'unpaired model state not shown')
 
-    def _hold(self, side: str, what: str, key, item) -> None:
-        """
-        Keep ``item`` until its pair (same stamp) is in, then serve the phase.
-
-        The oldest goes (said on /diagnostics) when more than ``max_unpaired`` wait.
-        """
-        self._pairer.add(side, key, item)
+    def _serve(self) -> None:
+        """Serve every phase whose cloud and state (same stamp) are both in."""
         for _, (points, header), state in self._pairer.pairs():
             self._serve_phase(points, header, state)
-        for old in self._pairer.trim(side):
-            self.report(
-                WARN,
-                f'unpaired {what} not shown',
-                stamp=f'{old[0]}.{old[1]:09d}',
-                held=len(self._pairer.held[side]),
-            )
 
     def _serve_phase(self, points, header, state) -> None:
         from foxglove import StatusLevel
@@ -349,15 +313,8 @@ class LiveView(GraphNode):
             stamp=conversions.stamp_text(msg.header.stamp),
         ):
             return
-        try:
-            curves = conversions.metrics_to_curves(conversions.msg_to_metrics(msg))
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad metrics not shown',
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
+        curves = self.converted(msg, _curves, 'bad metrics not shown')
+        if curves is None:
             return
         self.curves_channel.log(curves)
         self.curves_served += 1
@@ -428,6 +385,16 @@ class LiveView(GraphNode):
             server.stop()
             self.server = None
         return super().destroy_node()
+
+
+def _finite_cloud(msg: PointCloud2):
+    """Return a motion cloud's points, refusing non-finite positions (ValueError)."""
+    return conversions.msg_to_cloud(msg, finite=('x', 'y', 'z'))
+
+
+def _curves(msg: MotionMetrics) -> dict:
+    """Return a metrics message as the curves served (ValueError: unusable metrics)."""
+    return conversions.metrics_to_curves(conversions.msg_to_metrics(msg))
 
 
 def main(args=None):

@@ -41,25 +41,15 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
-from mlv_ros.core.streaming import PhaseSchedule, StampPairer
+from mlv_ros.core.streaming import PhaseSchedule
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import LEVEL_NAMES
-from mlv_ros.nodes.common import (
-    ERROR,
-    GraphNode,
-    OK,
-    RecentKeys,
-    run_node,
-    Silence,
-    stamp_key,
-    WARN,
-)
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
 from mlv_ros.settings import SOLVER_MODEL, SOLVER_STREAM
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 TIMER_PERIOD_S = 0.2  # how often waits (incomplete phases, outputs) are looked at
-REGISTRATIONS_HELD = 4  # registered clouds / states held while waiting for their pair
 
 
 class MeshlessSolver(GraphNode):
@@ -72,16 +62,10 @@ class MeshlessSolver(GraphNode):
         self._waiting_since = None
         self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
         self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
-        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_cloud)
-        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_state)
+        self.subscribe_registration(self._build)  # self.registered
         self.subscribe(qos.TAG_POINTS, TagPoints, self._on_points, catch_up=True)
         self.schedule = PhaseSchedule()  # which phase is solved next
-        self.cloud = None
-        self.rest_state = None
-        # The registered cloud and state, paired by stamp (latched: one a registration, a few
-        # restarts at most).
-        self.registered = StampPairer(REGISTRATIONS_HELD)
-        self._foreign_stamps = RecentKeys()  # stamps of registered states of another study
+        self.rest_state = None  # the registered state the tracker is built on
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
@@ -104,46 +88,10 @@ class MeshlessSolver(GraphNode):
         return self.schedule.num_phases
 
     # ------------------------------------------------------------------ inputs
-    def _on_cloud(self, msg: PointCloud2) -> None:
-        key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
-        if key in self._foreign_stamps:
-            self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, self._foreign_stamps.get(key))
-            return
-        try:
-            cloud = conversions.msg_to_registered_cloud(msg)
-        except ValueError as exc:
-            self.report(ERROR, 'bad registered cloud', stamp=stamp, reason=str(exc))
-            return
-        self.registered.add('cloud', key, cloud)
-        self.registered.trim('cloud')
-        self._build()
-
-    def _on_state(self, msg: ModelStateMsg) -> None:
-        key, stamp = stamp_key(msg.header.stamp), conversions.stamp_text(msg.header.stamp)
-        other = self.foreign(msg.study_id, qos.REGISTERED_STATE, run_id=msg.run_id, stamp=stamp)
-        if other:
-            self._foreign_stamps.add(key, other)
-            if 'cloud' in self.registered.discard(key):
-                self.cloud_of_other_study(qos.REGISTERED_CLOUD, stamp, other)
-            return
-        try:
-            state = conversions.msg_to_model_state(msg)
-        except ValueError as exc:
-            self.report(ERROR, 'bad registered state', stamp=stamp, reason=str(exc))
-            return
-        self.study.adopt(state.study_id, state.run_id)
-        self.registered.add('state', key, state)
-        self.registered.trim('state')
-        self._build()
-
-    def _build(self) -> None:
+    def _build(self, model) -> None:
         if self.tracker is not None:
             return
-        pairs = self.registered.pairs()
-        if not pairs:
-            return  # the cloud or the state (same stamp) has not come yet
-        _, self.cloud, self.rest_state = pairs[-1]  # the latest registration complete
-        model = conversions.registered_model(self.cloud, self.rest_state)
+        self.rest_state = model.state
         s, pts = model.state, model.positions
         try:
             self.tracker = MotionTracker(
@@ -170,41 +118,33 @@ class MeshlessSolver(GraphNode):
         if self.foreign_slice_message(msg, qos.TAG_POINTS):
             return  # another graph's tag points (nor are they input to wait on)
         self.silence.heard()
-        try:
-            points = conversions.msg_to_tagpoints(msg)
-            self.study.check(points)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad tag points dropped',
-                view=msg.view,
-                slice=msg.slice_index,
-                phase=msg.phase_index,
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
+        points = self.converted(
+            msg,
+            conversions.msg_to_tagpoints,
+            'bad tag points dropped',
+            check_study=True,
+            view=msg.view,
+            slice=msg.slice_index,
+            phase=msg.phase_index,
+        )
+        if points is None:
             return
         taken = self.schedule.add(points)
-        if taken == PhaseSchedule.STALE:
+        said = {
+            PhaseSchedule.STALE: 'tag points for an already solved phase ignored',
+            PhaseSchedule.DUPLICATE: 'duplicate tag points replace the earlier set',
+        }.get(taken)
+        if said:
             self.report(
                 WARN,
-                'tag points for an already solved phase ignored',
+                said,
                 view=points.view,
                 slice=points.slice_index,
                 phase=points.phase_index,
                 stamp=conversions.stamp_text(msg.header.stamp),
             )
-            return
-        if taken == PhaseSchedule.DUPLICATE:
-            self.report(
-                WARN,
-                'duplicate tag points replace the earlier set',
-                view=points.view,
-                slice=points.slice_index,
-                phase=points.phase_index,
-                stamp=conversions.stamp_text(msg.header.stamp),
-            )
-        self._advance()
+        if taken != PhaseSchedule.STALE:
+            self._advance()
 
     def _on_timer(self) -> None:
         silent = self.silence.tick()

@@ -46,12 +46,10 @@ from mlv_ros.core.analysis.frame import lv_frame_axes
 from mlv_ros.core.streaming import StampPairer
 from mlv_ros.core.verdict import DEGRADED, Verdict
 from mlv_ros.core.verdict import OK as OK_VERDICT
-from mlv_ros.nodes.common import ERROR, GraphNode, OK, RecentKeys, run_node, stamp_key, WARN
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, stamp_key, WARN
+from mlv_ros.settings import PAIRING
 import numpy as np
 from sensor_msgs.msg import PointCloud2
-
-_key = stamp_key
-REGISTRATIONS_HELD = 4  # registered clouds / states held while waiting for their pair
 
 
 class MotionAnalyzer(GraphNode):
@@ -69,106 +67,25 @@ class MotionAnalyzer(GraphNode):
             min_value=0.01,
             max_value=1.0,
         )
-        self.max_unpaired = self.param(
-            'max_unpaired',
-            200,
-            'motion clouds / model states held while waiting for their pair',
-            min_value=1,
-            max_value=100000,
-        )
+        self.declare_settings(PAIRING)  # self.max_unpaired
         self.pub = self.publisher(qos.METRICS, MotionMetrics)
-        self.subscribe(qos.REGISTERED_CLOUD, PointCloud2, self._on_registered_cloud)
-        self.subscribe(qos.REGISTERED_STATE, ModelStateMsg, self._on_registered_state)
+        self.subscribe_registration(self._build)  # self.registered
         self.subscribe(qos.MOTION, PointCloud2, self._on_motion)
         self.subscribe(qos.MODEL_STATE, ModelStateMsg, self._on_state)
-        self.reg_cloud = self.reg_state = self.analyzer = None
+        self.reg_state = self.analyzer = None
         self.findings = SegmentFindings()  # per-segment findings of the cycle so far
         self._findings_said = None  # the abnormal segments last reported
-        # The registered cloud and state, paired by stamp (latched: one a registration, a few
-        # restarts at most).
-        self.registered = StampPairer(REGISTRATIONS_HELD)
-        self._foreign_stamps = RecentKeys()  # stamps of model states of another study
         self.pairer = StampPairer(self.max_unpaired)  # motion clouds with their model states
+        self.held_clouds.append((qos.MOTION, self.pairer))
         self.verdicts: dict = {}  # phase → (verdict level, reasons) of the latest metrics
         self.volumes: dict = {}  # phase → cavity volume, ml, of the latest metrics
         self.messages_handled = 0
         self.report(OK, 'waiting for the registered model')
 
-    def _other_study_cloud(self, topic: str, msg) -> bool:
-        """
-        Check whether ``msg`` (a point cloud) is paired with a state of another study.
-
-        Such a cloud is dropped with its state (reported on /diagnostics, counted).
-        """
-        key = _key(msg.header.stamp)
-        if key not in self._foreign_stamps:
-            return False
-        self.cloud_of_other_study(
-            topic, conversions.stamp_text(msg.header.stamp), self._foreign_stamps.get(key)
-        )
-        return True
-
-    def _state_of_other_study(self, msg, topic: str) -> bool:
-        """Whether the model state ``msg`` is of another study (reported); its cloud goes too."""
-        stamp = conversions.stamp_text(msg.header.stamp)
-        other = self.foreign(
-            msg.study_id, topic, run_id=msg.run_id, phase=msg.phase_index, stamp=stamp
-        )
-        if not other:
-            return False
-        key = _key(msg.header.stamp)
-        self._foreign_stamps.add(key, other)
-        for cloud_topic, held in (
-            (qos.REGISTERED_CLOUD, self.registered),
-            (qos.MOTION, self.pairer),
-        ):
-            if 'cloud' in held.discard(key):
-                self.cloud_of_other_study(cloud_topic, stamp, other)
-        return True
-
-    def _on_registered_cloud(self, msg):
-        if self._other_study_cloud(qos.REGISTERED_CLOUD, msg):
-            return
-        try:
-            cloud = conversions.msg_to_registered_cloud(msg)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad registered cloud',
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
-            return
-        self.registered.add('cloud', _key(msg.header.stamp), cloud)
-        self.registered.trim('cloud')
-        self._build()
-
-    def _on_registered_state(self, msg):
-        if self._state_of_other_study(msg, qos.REGISTERED_STATE):
-            return
-        try:
-            state = conversions.msg_to_model_state(msg)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad registered state',
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
-            return
-        self.study.adopt(state.study_id, state.run_id)
-        self.registered.add('state', _key(msg.header.stamp), state)
-        self.registered.trim('state')
-        self._build()
-
-    def _build(self):
+    def _build(self, model):
         if self.analyzer is not None:
             return
-        pairs = self.registered.pairs()
-        if not pairs:
-            return  # the cloud or the state (same stamp) has not come yet
-        _, self.reg_cloud, self.reg_state = pairs[-1]  # the latest registration complete
-        model = conversions.registered_model(self.reg_cloud, self.reg_state)
+        self.reg_state = model.state
         X = model.positions
         apex, base, ref = lv_frame_axes(X, self.reg_state.rotation)
         endo = None
@@ -189,42 +106,36 @@ class MotionAnalyzer(GraphNode):
 
     def _on_motion(self, msg: PointCloud2):
         self.messages_handled += 1
-        stamp = conversions.stamp_text(msg.header.stamp)
-        if self._other_study_cloud(qos.MOTION, msg):
+        if self.other_study_cloud(qos.MOTION, msg):
             return
-        try:
-            x = conversions.xyz(conversions.msg_to_cloud(msg, finite=('x', 'y', 'z')))
-        except ValueError as exc:
-            self.report(ERROR, 'bad motion cloud dropped', stamp=stamp, reason=str(exc))
+        x = self.converted(msg, _motion_positions, 'bad motion cloud dropped')
+        if x is None:
             return
         if self.analyzer is not None and x.shape[0] != self.analyzer.X.shape[0]:
             self.report(
                 ERROR,
                 'motion cloud does not match the registered model',
-                stamp=stamp,
+                stamp=conversions.stamp_text(msg.header.stamp),
                 points=x.shape[0],
                 expected=self.analyzer.X.shape[0],
             )
             return
-        self._hold('cloud', 'motion cloud', msg.header.stamp, x)
+        # Held until its state comes (e.g. a state dropped as bad leaves its cloud waiting).
+        key = stamp_key(msg.header.stamp)
+        self.hold(self.pairer, 'cloud', key, x, self._pair, 'unpaired motion cloud dropped')
 
     def _on_state(self, msg: ModelStateMsg):
         self.messages_handled += 1
-        if self._state_of_other_study(msg, qos.MODEL_STATE):
+        if self.other_study_state(msg, qos.MODEL_STATE, phase=msg.phase_index):
             return
-        try:
-            state = conversions.msg_to_model_state(msg)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad model state dropped',
-                phase=msg.phase_index,
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
+        state = self.converted(
+            msg, conversions.msg_to_model_state, 'bad model state dropped', phase=msg.phase_index
+        )
+        if state is None:
             return
         self.study.adopt(state.study_id, state.run_id)
-        self._hold('state', 'model state', msg.header.stamp, msg)
+        key = stamp_key(msg.header.stamp)
+        self.hold(self.pairer, 'state', key, msg, self._pair, 'unpaired model state dropped')
 
     @property
     def clouds(self) -> dict:
@@ -235,23 +146,6 @@ class MotionAnalyzer(GraphNode):
     def states(self) -> dict:
         """Return the model states waiting for their motion cloud (stamp key → message)."""
         return self.pairer.held['state']
-
-    def _hold(self, side: str, what: str, stamp, item) -> None:
-        """
-        Keep ``item`` until its pair (same stamp) arrives, with bounded memory.
-
-        The oldest goes when too many wait (e.g. states whose clouds were dropped as bad), so
-        memory stays bounded, and the node says so.
-        """
-        self.pairer.add(side, _key(stamp), item)
-        self._pair()
-        for sec, nanosec in self.pairer.trim(side):
-            self.report(
-                WARN,
-                f'unpaired {what} dropped',
-                stamp=f'{sec}.{nanosec:09d}',
-                held=len(self.pairer.held[side]),
-            )
 
     def _pair(self):
         if self.analyzer is None:
@@ -336,6 +230,11 @@ class MotionAnalyzer(GraphNode):
             dyskinetic=list(said[1]) or 'none',
             indeterminate_segments=said[2],
         )
+
+
+def _motion_positions(msg: PointCloud2) -> np.ndarray:
+    """Return a motion cloud's positions (N, 3), mm, refusing non-finite ones (ValueError)."""
+    return conversions.xyz(conversions.msg_to_cloud(msg, finite=('x', 'y', 'z')))
 
 
 def main(args=None):

@@ -76,18 +76,15 @@ class Registration(GraphNode):
         self.silence.heard()
         if msg.phase_index != 0 or self.registered:
             return
-        try:
-            frame = conversions.msg_to_frame(msg, allow_nonfinite=True)
-            self.study.check(frame)
-        except ValueError as exc:
-            self.report(
-                ERROR,
-                'bad ED frame ignored',
-                view=msg.view,
-                slice=msg.slice_index,
-                stamp=conversions.stamp_text(msg.header.stamp),
-                reason=str(exc),
-            )
+        frame = self.converted(
+            msg,
+            lambda m: conversions.msg_to_frame(m, allow_nonfinite=True),
+            'bad ED frame ignored',
+            check_study=True,
+            view=msg.view,
+            slice=msg.slice_index,
+        )
+        if frame is None:
             return
         key = (frame.view, frame.slice_index)
         if key in self.ed_frames:

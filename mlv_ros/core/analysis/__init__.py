@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Motion analysis of the dense LV point cloud (issue 9).
+Motion analysis of the dense LV point cloud.
 
 Cardiac frame, displacement decomposition, per-level twist / radius, cavity volume, Lagrangian
 strain and AHA segments, and per-segment findings (peak strain with an uncertainty, wall-motion

@@ -29,7 +29,7 @@ computes it::
     σ_k² = FLOOR_k² + (√2 ρ / ℓ_k)² + s_k² / n_eff        (× VERDICT_INFLATION if degraded)
 
 * ``FLOOR_k`` (:data:`UNCERTAINTY_FLOOR`): what we never claim to beat — the spread between
-  experienced readers of tagged MRI (issue 20's goal: Ecc, Ell 0.02; Err 0.05).
+  experienced readers of tagged MRI (Ecc, Ell 0.02; Err 0.05).
 * ``ρ``: the solver's RMS in-plane residual at the control points of this phase, mm
   (``ModelState.residual``, the fit residual: tag motion the model did not explain). A
   displacement error ρ at both ends of a length ℓ changes its mean strain by about √2 ρ / ℓ;
@@ -85,7 +85,7 @@ import numpy as np
 
 COMPONENTS = ('err', 'ecc', 'ell')
 #: Smallest uncertainty of a segment mean, per component: the spread between experienced readers
-#: of tagged MRI (issue 20's goal); we do not claim to measure better than they read.
+#: of tagged MRI; we do not claim to measure better than they read.
 UNCERTAINTY_FLOOR = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
 #: Fewer particles with strain than this in a segment: not measured (two MLS neighbourhoods).
 MIN_SEGMENT_PARTICLES = 24

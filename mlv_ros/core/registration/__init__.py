@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-ED myocardium segmentation, curvature landmarks and meshless-model registration (issue 7).
+ED myocardium segmentation, curvature landmarks and meshless-model registration.
 
 Paper §2.1 model initialisation, §3.2 registration, Fig. 7. Pure numpy/scipy/OpenCV.
 

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-User myocardium masks from a NIfTI label volume, resampled onto the tagged ED planes (issue 7).
+User myocardium masks from a NIfTI label volume, resampled onto the tagged ED planes.
 
 :func:`masks_for_frames` turns a 3-D integer label image (e.g. an ACDC-style segmentation:
 0 background, 1 RV, 2 myocardium, 3 LV cavity) into the per-slice boolean masks that

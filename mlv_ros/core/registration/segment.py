@@ -808,7 +808,7 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
             bb = (o - p)[:, :, None] * sb
             bb *= win[:, None, :]
             # Batched matmul (BLAS) for the cross term: ~3x faster than einsum, the same to a
-            # few ulp (every mask and tag point of the default study unchanged, issue 17).
+            # few ulp (every mask and tag point of the default study unchanged).
             ss = (
                 np.sum(ya * ya, axis=2)[:, :, None]
                 - 2.0 * np.matmul(ya, bb.transpose(0, 2, 1))

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Randomised acquisition protocols: any tagged study, not only ours (issue 14).
+Randomised acquisition protocols: any tagged study, not only ours.
 
 A *protocol* is a flat mapping ``item -> value`` that names every acquisition choice the
 simulator and the DICOM writer make: the heart (shape, orientation, position), the tag grid,
