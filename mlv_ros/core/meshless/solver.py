@@ -53,6 +53,7 @@ less than ``tol`` mm RMS), or when the control residual RMS is below ``residual_
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from itertools import chain
 import time
 from typing import Callable
@@ -71,6 +72,7 @@ from mlv_ros.core.meshless.kernel import (
     build_phyxels,
     NUM_NEIGHBOURS,
     poly6,
+    poly6_norm,
     SUPPORT_FACTOR,
     validate_points,
 )
@@ -139,6 +141,7 @@ def attach_control_points(
     k: int = NUM_NEIGHBOURS,
     support_factor: float = SUPPORT_FACTOR,
     support_radii: np.ndarray | None = None,
+    neighbours: tuple | None = None,
 ) -> ControlPoints:
     """
     Attach control points to the particle cloud.
@@ -160,6 +163,9 @@ def attach_control_points(
     support_radii : ndarray, shape (N,), optional
         :func:`particle_support_radii` of ``points`` (with the same ``k`` and
         ``support_factor``), when attaching repeatedly to one cloud.
+    neighbours : (dist, idx), optional
+        ``tree.query(control, k)`` of the control positions, each shape (M, k), when the caller
+        has queried them already (the same numbers, so the same weights).
 
     Returns
     -------
@@ -190,8 +196,7 @@ def attach_control_points(
     y = validate_points(c, 'control point positions')
     m = y.shape[0]
     tree = cKDTree(points) if tree is None else tree
-    kk = min(k, n)
-    dist, nn = tree.query(y, k=kk)
+    dist, nn = tree.query(y, k=min(k, n)) if neighbours is None else neighbours
     dist, nn = dist.reshape(m, -1), nn.reshape(m, -1)
     h = support_factor * dist.mean(axis=1)
     # Outside the cloud: farther from its nearest particle than that particle's own support
@@ -211,18 +216,65 @@ def attach_control_points(
     lists = tree.query_ball_point(y, r=h, return_sorted=False)
     counts = np.fromiter(map(len, lists), dtype=np.int64, count=m)
     pj = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+    phi, shepard = _mls_shape_functions(points, y, h, pj, counts)
+    # Rows are already grouped (pk is sorted): the CSR arrays directly, then column-sorted as
+    # the COO conversion left them.
+    w = sp.csr_matrix((phi, pj, np.concatenate([[0], np.cumsum(counts)])), shape=(m, n))
+    w.sort_indices()
+    return ControlPoints(w, y.copy(), None, shepard)
+
+
+#: (a, b) of the 10 distinct entries of a symmetric 4 × 4 moment matrix, row by row.
+_MOMENT_ENTRIES = np.array([(a, b) for a in range(4) for b in range(a, 4)])
+
+
+def _mls_shape_functions(points, y, h, pj, counts):
+    """
+    Return the linear-MLS shape functions of control points and which fell back to Shepard.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Rest particle positions, mm.
+    y : ndarray, shape (M, 3)
+        Control positions, mm.
+    h : ndarray, shape (M,)
+        Their support radii, mm.
+    pj : ndarray of int, shape (P,)
+        The particles within each support, grouped by control point in order.
+    counts : ndarray of int, shape (M,)
+        How many of ``pj`` belong to each control point.
+
+    Returns
+    -------
+    phi : ndarray, shape (P,)
+        ``φ`` of each pair (poly6 weights ``w``, ``φ_j = w_j p_jᵀ M⁻¹ p(y)``, ``p = (1, x − y)``:
+        they reproduce affine fields), or normalised kernel weights where ``M`` is degenerate.
+    shepard : ndarray of bool, shape (M,)
+        Control points whose moment matrix was degenerate (e.g. all nearby particles coplanar).
+
+    """
+    m = y.shape[0]
     pk = np.repeat(np.arange(m), counts)
     rel = points[pj] - y[pk]
-    wk = poly6(np.linalg.norm(rel, axis=1), h[pk])
-    # Linear MLS shape functions φ_j = w_j p_jᵀ M⁻¹ p(y), p = (1, x − y): reproduce affine fields.
-    basis = np.concatenate([np.ones((pj.size, 1)), rel / h[pk, None]], axis=1)
+    hk = h[pk]
+    # the kernel's normalisation once per control point, not per pair
+    wk = poly6(np.linalg.norm(rel, axis=1), hk, poly6_norm(h)[pk])
+    basis = np.empty((pj.size, 4))
+    basis[:, 0] = 1.0
+    np.divide(rel, hk[:, None], out=basis[:, 1:])
     wb = wk[:, None] * basis
-    mom = np.empty((m, 4, 4))  # Σ w p pᵀ per control point: its 10 distinct entries
-    for a in range(4):
-        for b in range(a, 4):
-            mom[:, a, b] = mom[:, b, a] = np.bincount(
-                pk, weights=wb[:, a] * basis[:, b], minlength=m
-            )
+    # Σ w p pᵀ per control point, its 10 distinct entries in one bincount (each bin sums its
+    # pairs in the same order as a bincount per entry would).
+    ea, eb = _MOMENT_ENTRIES.T
+    sums = np.bincount(
+        (pk[:, None] * 10 + np.arange(10)).ravel(),
+        weights=(wb[:, ea] * basis[:, eb]).ravel(),
+        minlength=10 * m,
+    ).reshape(m, 10)
+    mom = np.empty((m, 4, 4))
+    mom[:, ea, eb] = sums
+    mom[:, eb, ea] = sums
     sv = np.abs(np.linalg.eigvalsh(mom))  # symmetric positive semi-definite: its singular values
     shepard = ~(sv.min(axis=1) > 1e-8 * sv.max(axis=1))
     rhs = np.zeros((m, 4, 1))
@@ -232,13 +284,10 @@ def attach_control_points(
     if ok.any():
         coef[ok] = np.linalg.solve(mom[ok], rhs[ok])[:, :, 0]
     phi = wk * np.einsum('pa,pa->p', basis, coef[pk])
-    wsum = np.bincount(pk, weights=wk, minlength=m)
-    phi = np.where(shepard[pk], wk / wsum[pk], phi)
-    # Rows are already grouped (pk is sorted): the CSR arrays directly, then column-sorted as
-    # the COO conversion left them.
-    w = sp.csr_matrix((phi, pj, np.concatenate([[0], np.cumsum(counts)])), shape=(m, n))
-    w.sort_indices()
-    return ControlPoints(w, y.copy(), None, shepard)
+    if shepard.any():
+        wsum = np.bincount(pk, weights=wk, minlength=m)
+        phi = np.where(shepard[pk], wk / wsum[pk], phi)
+    return phi, shepard
 
 
 def plane_projectors(normals, m: int) -> np.ndarray:
@@ -377,8 +426,16 @@ class _FitData:
         phi = self.ctrl.weights
         self.support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))
         self.phi_s = phi[:, self.support].tocsr()
-        self.phi_t = phi.T.tocsr()
         self.coords_s = model.coords.subset(self.support)
+
+    @cached_property
+    def phi_t(self):
+        """
+        Return ``Φᵀ`` as CSR, shape (N, M), built on first use.
+
+        The local stage spreads forces with it; global-only fits never need it.
+        """
+        return self.ctrl.weights.T.tocsr()
 
     def positions(self, params, d_s):
         """Return the control points' world positions under ``params`` and ``d_s``, mm."""
@@ -602,11 +659,12 @@ class MeshlessModel:
         """Return the current global parameters as a :class:`~mlv_ros.core.types.ModelState`."""
         return self.params.state(self.num_particles, **kw)
 
-    def attach(self, control) -> ControlPoints:
+    def attach(self, control, neighbours: tuple | None = None) -> ControlPoints:
         """
         Attach control points (particle indices or rest positions).
 
         See :func:`attach_control_points`. Reuse the result across phases to skip the kernel work.
+        ``neighbours``: :meth:`nearest` of the positions, when the caller has it already.
         """
         if self._support_radii is None:
             self._support_radii = particle_support_radii(
@@ -619,7 +677,28 @@ class MeshlessModel:
             self._k,
             self._support_factor,
             self._support_radii,
+            neighbours,
         )
+
+    def nearest(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the distances (mm) and indices of each point's nearest rest particles.
+
+        Parameters
+        ----------
+        points : ndarray, shape (M, 3)
+            Positions at rest, mm.
+
+        Returns
+        -------
+        dist, idx : ndarray, shape (M, k)
+            The ``k`` (the model's support neighbours) nearest, nearest first: what
+            :meth:`attach` queries, so ``attach(points[s], (dist[s], idx[s]))`` skips the query.
+
+        """
+        dist, idx = self._tree.query(points, k=min(self._k, self.num_particles))
+        m = len(points)
+        return dist.reshape(m, -1), idx.reshape(m, -1)
 
     # ---------------------------------------------------------------- fitting
     def _local_system(self, data=None):
