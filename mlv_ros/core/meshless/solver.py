@@ -60,13 +60,13 @@ from typing import Callable
 
 from mlv_ros.core.meshless import elastic
 from mlv_ros.core.meshless.globals import (
+    control_jacobian,
     global_shape,
     GlobalParameters,
-    model_jacobian,
     ModelCoordinates,
     ModelFrame,
-    NUM_GLOBAL,
     reduce_rotation,
+    tangent_gram,
 )
 from mlv_ros.core.meshless.kernel import (
     build_phyxels,
@@ -463,11 +463,9 @@ class _GlobalStage:
     def step(self, model, data, d_s, res) -> float:
         """Step ``model.params``; return the RMS control-point motion of the step, mm."""
         m = data.m
-        lmat = model_jacobian(model.params, data.coords_s, d_s)
-        lk = (data.phi_s @ lmat.reshape(len(data.support), 3 * NUM_GLOBAL)).reshape(
-            m, 3, NUM_GLOBAL
+        lk = reduce_rotation(  # L_k = Σ_j φ_kj L_j (eq. 14)
+            control_jacobian(model.params, data.coords_s, d_s, data.phi_s), model.params.rotation
         )
-        lk = reduce_rotation(lk, model.params.rotation)  # L_k = Σ_j φ_kj L_j (eq. 14)
         # (batched and plain matrix products: einsum's loops were a third of the fit's time)
         plk = np.matmul(data.proj, lk).reshape(3 * m, -1)
         dmat = plk.T @ plk  # D = Σ L_kᵀ P_k L_k
@@ -909,12 +907,8 @@ class MeshlessModel:
         """
         if not (global_prior > 0.0 and global_update == 'gauss-newton'):
             return None
-        lall = reduce_rotation(
-            model_jacobian(self.params, self.coords, self.local_deformation),
-            self.params.rotation,
-        )
-        lf = lall.reshape(-1, lall.shape[-1])  # Σ_n L_nᵀ L_n as one matrix product
-        gmat = float(global_prior) * (lf.T @ lf) / lall.shape[0]
+        gram = tangent_gram(self.params, self.coords, self.local_deformation)  # Σ_n L_nᵀ L_n
+        gmat = float(global_prior) * gram / self.num_particles
         return gmat, np.zeros(gmat.shape[0])
 
     def _local_step(self, data, res, kappa, scheme, dt, cg_rtol, cg_maxiter) -> int:
