@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import chain
 
 from mlv_ros.core.meshless import (
     ControlPoints,
@@ -971,11 +972,13 @@ class MotionTracker:
         if self._flagged is None:
             return w
         pts, wk, ell = self._flagged
-        for p, v in zip(pts, wk):
-            idx = self._tree.query_ball_point(p, ell)
-            if idx:
-                d = np.linalg.norm(self.rest[idx] - p, axis=1)
-                w[idx] = np.maximum(w[idx], v * (1.0 - d / ell))
+        # every flagged point's particles at once; a maximum is the same in any order
+        lists = self._tree.query_ball_point(pts, ell)
+        counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+        idx = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+        k = np.repeat(np.arange(len(lists)), counts)
+        d = np.linalg.norm(self.rest[idx] - pts[k], axis=1)
+        np.maximum.at(w, idx, wk[k] * (1.0 - d / ell))
         self._coupling_map = w
         return w
 
