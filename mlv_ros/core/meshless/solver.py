@@ -459,9 +459,16 @@ class _GlobalStage:
         self.scheme, self.dt, self.prior = scheme, dt, prior
         self.mu_lm = 1e-3
         self.d_diag_const = None
+        self.residual = None  # the residual at the stepped parameters, when the step took it
 
     def step(self, model, data, d_s, res) -> float:
-        """Step ``model.params``; return the RMS control-point motion of the step, mm."""
+        """
+        Step ``model.params``; return the RMS control-point motion of the step, mm.
+
+        A Gauss–Newton step leaves the residual it accepted the step with in :attr:`residual`
+        (None otherwise).
+        """
+        self.residual = None
         m = data.m
         lk = reduce_rotation(  # L_k = Σ_j φ_kj L_j (eq. 14)
             control_jacobian(model.params, data.coords_s, d_s, data.phi_s), model.params.rotation
@@ -471,7 +478,7 @@ class _GlobalStage:
         dmat = plk.T @ plk  # D = Σ L_kᵀ P_k L_k
         fq = plk.T @ res.ravel()  # f_q = Σ L_kᵀ f_k (eq. 10–13)
         if self.scheme == 'gauss-newton':
-            step, self.mu_lm = model._lm_step(
+            step, self.mu_lm, accepted = model._lm_step(
                 dmat, fq, res, self.mu_lm, lambda p: data.residual(p, d_s), self.prior
             )
             if self.prior is not None:
@@ -480,8 +487,11 @@ class _GlobalStage:
             if self.d_diag_const is None:  # paper: D diagonal and constant over time
                 dd = np.diag(dmat)
                 self.d_diag_const = np.maximum(dd, 1e-12 * max(dd.max(), 1e-300))
-            step = self.dt * fq / self.d_diag_const
-        model.params = model.params.stepped(step)
+            step, accepted = self.dt * fq / self.d_diag_const, None
+        if accepted is None:
+            model.params = model.params.stepped(step)
+        else:  # the parameters the residual was taken at (the same numbers as stepping again)
+            model.params, self.residual = accepted
         return float(np.sqrt(np.mean(np.sum((lk @ step) ** 2, axis=1))))
 
 
@@ -724,6 +734,9 @@ class MeshlessModel:
         too few or in-plane-only control points) are dropped instead of inverted. μ shrinks
         after a step that lowers the residual and grows (up to 12 tries) otherwise. ``prior``
         ``(G, s)`` adds ``(s + Δ)ᵀ G (s + Δ)`` to the cost (``s``: the steps taken so far).
+
+        Returns ``(step, μ, accepted)``: ``accepted`` is ``(parameters, residual)`` after the step
+        when one lowered the cost, else None (the step is then zero).
         """
 
         def prior_cost(step):
@@ -741,11 +754,12 @@ class MeshlessModel:
         fn = evecs.T @ (fq / scale)
         for _ in range(12):
             step = (evecs[:, keep] @ (fn[keep] / (evals[keep] + mu_lm))) / scale
-            res_t = residual_fn(self.params.stepped(step))
+            params = self.params.stepped(step)
+            res_t = residual_fn(params)
             if float(np.einsum('ma,ma->', res_t, res_t)) + prior_cost(step) <= cost:
-                return step, max(mu_lm / 3.0, 1e-9)
+                return step, max(mu_lm / 3.0, 1e-9), (params, res_t)
             mu_lm *= 4.0
-        return np.zeros_like(fq), mu_lm
+        return np.zeros_like(fq), mu_lm, None
 
     def fit(
         self,
@@ -857,7 +871,7 @@ class MeshlessModel:
             t_it = time.perf_counter()
             x_prev = self.positions() if (local and local_active) else None
             g_step = stage.step(self, data, d_s, res)
-            res = data.residual(self.params, d_s)
+            res = data.residual(self.params, d_s) if stage.residual is None else stage.residual
             cg_its, ran_local, l_step = 0, False, 0.0
             if local and not local_active and g_step < local_start:
                 local_active = True
