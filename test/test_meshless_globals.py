@@ -15,6 +15,7 @@
 """Global deformation: shape (eq. 1–3), Jacobians B and J (eq. 7–8, 13) by finite differences."""
 
 from mlv_ros.core.meshless.globals import (
+    control_jacobian,
     cylindrical_frame,
     global_shape,
     GlobalParameters,
@@ -28,10 +29,12 @@ from mlv_ros.core.meshless.globals import (
     reduce_rotation,
     rotation_jacobian,
     shape_jacobian,
+    tangent_gram,
     world_positions,
 )
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 RNG = np.random.default_rng(7)
 N = 40
@@ -114,6 +117,41 @@ def test_model_jacobian_and_tangent_step(coords):
         ) / (2 * h)
         np.testing.assert_allclose(lmat[:, :, k], fd, rtol=1e-5, atol=1e-6)
     assert np.all(np.isfinite(x0))
+
+
+@pytest.mark.parametrize('coords', COORDS, ids=['polar', 'cylindrical'])
+def test_control_jacobian_is_the_weighted_sum_of_particle_jacobians(coords):
+    # L_k = Σ_j φ_kj L_j (eq. 14) against finite differences of the control points' motion
+    params = GlobalParameters([1.0, -2.0, 3.0], quat_from_axis_angle([1, 1, 0], 0.4), A, TAU)
+    d = RNG.normal(size=(N, 3)) * 0.5
+    phi = sp.random(7, N, density=0.3, random_state=3, format='csr')
+    lk = reduce_rotation(control_jacobian(params, coords, d, phi), params.rotation)
+    for k in range(11):
+        step = np.zeros(11)
+        step[k] = 1e-6
+        fd = phi @ (
+            world_positions(params.stepped(step), coords, d)
+            - world_positions(params.stepped(-step), coords, d)
+        ) / 2e-6
+        np.testing.assert_allclose(lk[:, :, k], fd, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize('coords', COORDS, ids=['polar', 'cylindrical'])
+def test_tangent_gram_sums_the_particles_squared_jacobians(coords):
+    # Σ_n L_nᵀ L_n from the finite-difference Jacobian of every particle
+    params = GlobalParameters([1.0, -2.0, 3.0], quat_from_axis_angle([0, 1, 1], -0.7), A, TAU)
+    d = RNG.normal(size=(N, 3)) * 0.5
+    fd = np.empty((N, 3, 11))
+    for k in range(11):
+        step = np.zeros(11)
+        step[k] = 1e-6
+        fd[:, :, k] = (
+            world_positions(params.stepped(step), coords, d)
+            - world_positions(params.stepped(-step), coords, d)
+        ) / 2e-6
+    gram = tangent_gram(params, coords, d)
+    np.testing.assert_allclose(gram, gram.T, rtol=0, atol=0)
+    np.testing.assert_allclose(gram, np.einsum('nak,nal->kl', fd, fd), rtol=1e-5, atol=1e-4)
 
 
 def test_quaternion_roundtrip_and_validation():

@@ -127,6 +127,22 @@ def test_control_points_as_positions(phantom):
     assert dense_rms(model, deform(x, 'combination')) < 0.05
 
 
+def test_attach_reuses_the_nearest_particles_it_is_given(phantom):
+    # MotionTracker queries each tag point's nearest particles once (its inside test) and hands
+    # them to attach: the weights must be those of attaching the points alone, to the bit.
+    x, model = phantom
+    rng = np.random.default_rng(9)
+    rho, th = rng.uniform(10.0, 14.0, 60), rng.uniform(-np.pi, np.pi, 60)
+    pts = np.column_stack([rho * np.cos(th), rho * np.sin(th), rng.uniform(-13, 13, 60)])
+    dist, idx = model.nearest(pts)
+    assert dist.shape == idx.shape == (60, 10) and np.all(np.diff(dist, axis=1) >= 0)
+    np.testing.assert_allclose(dist[:, 0], np.min(np.linalg.norm(x - pts[:, None], axis=2), 1))
+    keep = np.arange(60) % 3 > 0
+    given = model.attach(pts[keep], (dist[keep], idx[keep])).weights
+    alone = model.attach(pts[keep]).weights
+    assert (given != alone).nnz == 0 and np.array_equal(given.indices, alone.indices)
+
+
 def test_polar_frame_model_fits_scaling():
     x = sample_cylinder_shell(800, seed=1)
     model = MeshlessModel(x, polar_frame(x, [0, 0, 0], [0, 0, 1]))

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import chain
 
 from mlv_ros.core.meshless import (
     ControlPoints,
@@ -615,10 +616,15 @@ class MotionTracker:
         return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals), weights
 
     def _attach(self, rest, normals, offsets):
+        """
+        Return the material positions ``p0 + s n``, which lie inside the model, and their nearest.
+
+        The nearest particles (:meth:`MeshlessModel.nearest`) are what the attachment queries.
+        """
         pos = rest + offsets[:, None] * normals
-        dist, _ = self._tree.query(pos)
-        inside = dist <= self.max_attach_mm
-        return pos, inside
+        near = self.model.nearest(pos)
+        inside = near[0][:, 0] <= self.max_attach_mm
+        return pos, inside, near
 
     def _drop(self, inside, ctrl, bad):
         """
@@ -668,13 +674,15 @@ class MotionTracker:
         passes = max(1, self.slice_following + 1)
         for pass_index in range(passes):
             rejected_before = self.rejected
-            pos, inside = self._attach(rest, normals, offsets)
+            pos, inside, near = self._attach(rest, normals, offsets)
             attached = int(inside.sum())
             if attached < 4:
                 raise ValueError(
                     f'phase {phase_index}: only {attached} tag points lie inside the model'
                 )
-            inside, ctrl, result = self._robust_global_fit(pos, inside, targets, normals, weights)
+            inside, ctrl, result = self._robust_global_fit(
+                pos, inside, targets, normals, weights, near
+            )
             self._pass_motion(
                 keys, inside, ctrl, targets, normals, weights, last=pass_index == passes - 1
             )
@@ -686,7 +694,7 @@ class MotionTracker:
             phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
         )
 
-    def _robust_global_fit(self, pos, inside, targets, normals, weights):
+    def _robust_global_fit(self, pos, inside, targets, normals, weights, near=None):
         """
         Attach the tag points, screen out slipped tracks and fit the global parameters.
 
@@ -700,6 +708,8 @@ class MotionTracker:
             Measured positions (mm) and their image-plane normals.
         weights : ndarray, shape (K,)
             Data weights (:func:`data_weights`).
+        near : (dist, idx), optional
+            :meth:`MeshlessModel.nearest` of ``pos`` (queried here when not given).
 
         Returns
         -------
@@ -711,7 +721,9 @@ class MotionTracker:
             The global fit to them (the model holds its parameters).
 
         """
-        ctrl = self.model.attach(pos[inside])
+        ctrl = self.model.attach(
+            pos[inside], None if near is None else (near[0][inside], near[1][inside])
+        )
         if self.prescreen:
             # A track that slipped by a tag period sits a period away from where the previous
             # phase's motion puts it, while its neighbours sit within the phase-to-phase
@@ -980,11 +992,13 @@ class MotionTracker:
         if self._flagged is None:
             return w
         pts, wk, ell = self._flagged
-        for p, v in zip(pts, wk):
-            idx = self._tree.query_ball_point(p, ell)
-            if idx:
-                d = np.linalg.norm(self.rest[idx] - p, axis=1)
-                w[idx] = np.maximum(w[idx], v * (1.0 - d / ell))
+        # every flagged point's particles at once; a maximum is the same in any order
+        lists = self._tree.query_ball_point(pts, ell)
+        counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+        idx = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+        k = np.repeat(np.arange(len(lists)), counts)
+        d = np.linalg.norm(self.rest[idx] - pts[k], axis=1)
+        np.maximum.at(w, idx, wk[k] * (1.0 - d / ell))
         self._coupling_map = w
         return w
 
@@ -1155,9 +1169,10 @@ class MotionTracker:
         NaN for those farther than ``max_attach_mm`` from every particle.
         """
         out = np.full(points.shape, np.nan)
-        ok = self._tree.query(points)[0] <= self.max_attach_mm
+        dist, idx = self.model.nearest(points)
+        ok = dist[:, 0] <= self.max_attach_mm
         if ok.any():
-            out[ok] = self.model.attach(points[ok]).weights @ self.positions
+            out[ok] = self.model.attach(points[ok], (dist[ok], idx[ok])).weights @ self.positions
         return out
 
     def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):

@@ -407,6 +407,74 @@ def model_jacobian(
     return lmat
 
 
+def control_jacobian(
+    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray, phi
+) -> np.ndarray:
+    """
+    Return ``L_k = Σ_j φ_kj L_j`` (eq. 14) of control points, shape (M, 3, 12).
+
+    The same as ``phi @`` :func:`model_jacobian` per particle, without forming it: the rotation
+    block ``B = ∂(R p)/∂q`` is linear in ``p``, so it is taken once per control point at
+    ``Σ_j φ_kj p_j``; only the shape block is projected particle by particle.
+
+    Parameters
+    ----------
+    params : GlobalParameters
+        Where the derivative is taken.
+    coords : ModelCoordinates
+        Material coordinates of the N particles ``phi`` weights.
+    d : ndarray, shape (N, 3)
+        Their local deformation in the model-centred frame, mm.
+    phi : scipy.sparse matrix, shape (M, N)
+        The control points' kernel weights.
+
+    """
+    s = global_shape(coords, params.a, params.tau)
+    n, m = s.shape[0], phi.shape[0]
+    lk = np.empty((m, 3, NUM_GLOBAL))
+    lk[:, :, SLICE_C] = (phi @ np.ones(n))[:, None, None] * np.eye(3)
+    lk[:, :, SLICE_Q] = rotation_jacobian(params.rotation, phi @ (s + d))
+    jac = (phi @ shape_jacobian(coords, params.a, params.tau).reshape(n, 15)).reshape(m, 3, 5)
+    lk[:, :, SLICE_S] = np.matmul(params.matrix, jac)
+    return lk
+
+
+def tangent_gram(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray) -> np.ndarray:
+    """
+    Return ``Σ_n L_nᵀ L_n`` of the particles' Jacobians in the tangent space, shape (11, 11).
+
+    The same sum as over :func:`reduce_rotation` of :func:`model_jacobian` (``L_n = [I, −R [p_n]×,
+    R J_n]``, ``p_n = s_n + d_n``), from sums over the particles instead of an (N, 3, 11) array:
+    ``Σ [p]×ᵀ[p]× = Σ (|p|² I − p pᵀ)``, ``Σ (−R [p]×)ᵀ R J = Σ [p]× J``.
+
+    Parameters
+    ----------
+    params : GlobalParameters
+        Where the derivative is taken.
+    coords : ModelCoordinates
+        The particles' material coordinates.
+    d : ndarray, shape (N, 3)
+        Their local deformation in the model-centred frame, mm.
+
+    """
+    p = global_shape(coords, params.a, params.tau) + d
+    jac = shape_jacobian(coords, params.a, params.tau)  # (N, 3, 5)
+    r = params.matrix
+    gram = np.empty((NUM_TANGENT, NUM_TANGENT))
+    gram[0:3, 0:3] = p.shape[0] * np.eye(3)
+    gram[0:3, 3:6] = -r @ skew(p.sum(axis=0))
+    gram[0:3, 6:11] = r @ jac.sum(axis=0)
+    gram[3:6, 3:6] = np.einsum('na,na->', p, p) * np.eye(3) - p.T @ p
+    for a in range(3):  # Σ_n (p_n × J_n[:, k])_a for the 5 columns k
+        b, c = (a + 1) % 3, (a + 2) % 3
+        gram[3 + a, 6:11] = p[:, b] @ jac[:, c] - p[:, c] @ jac[:, b]
+    jf = jac.reshape(-1, 5)
+    gram[6:11, 6:11] = jf.T @ jf
+    lower = np.tril_indices(NUM_TANGENT, -1)
+    gram[lower] = gram.T[lower]
+    return gram
+
+
 def reduce_rotation(lmat: np.ndarray, q) -> np.ndarray:
     """
     Map ``L`` (…, 3, 12) to the 11-dim tangent space: ``B_ω = B ½ Gᵀ = −R [p]×``.

@@ -41,7 +41,7 @@ COND_MAX = 1.0e4
 DUPLICATE_FRACTION = 1.0e-6
 
 
-def poly6(r: np.ndarray, h: np.ndarray | float) -> np.ndarray:
+def poly6(r: np.ndarray, h: np.ndarray | float, norm: np.ndarray | None = None) -> np.ndarray:
     """
     Normalised poly6 kernel (paper eq. 4 divided by its integral).
 
@@ -53,6 +53,9 @@ def poly6(r: np.ndarray, h: np.ndarray | float) -> np.ndarray:
         Distances, mm (broadcast against ``h``).
     h : array_like or float
         Support radii, mm, > 0.
+    norm : array_like, optional
+        :func:`poly6_norm` of ``h``, when the caller has it (e.g. taken once per support and
+        indexed per pair: the same numbers without a power per pair).
 
     Returns
     -------
@@ -63,7 +66,20 @@ def poly6(r: np.ndarray, h: np.ndarray | float) -> np.ndarray:
     r = np.asarray(r, dtype=np.float64)
     h = np.asarray(h, dtype=np.float64)
     q = np.clip(h * h - r * r, 0.0, None)
-    return 315.0 / (64.0 * np.pi * h**9) * q**3
+    return (poly6_norm(h) if norm is None else norm) * q**3
+
+
+def poly6_norm(h: np.ndarray | float) -> np.ndarray:
+    """
+    Return the poly6 kernel's normalisation ``315 / (64 π h⁹)``, mm⁻⁹.
+
+    Parameters
+    ----------
+    h : array_like or float
+        Support radii, mm, > 0.
+
+    """
+    return 315.0 / (64.0 * np.pi * np.asarray(h, dtype=np.float64) ** 9)
 
 
 def validate_points(points, name: str = 'points', min_count: int = 1) -> np.ndarray:
