@@ -79,10 +79,20 @@ SOLVER_MODEL = (
     Setting(
         'local.data_weight',
         1.0e4,
-        'tag-force stiffness relative to elasticity',
+        'tag-force stiffness relative to elasticity, for a tag point of local.tag_noise_mm',
         1e-3,
         1e9,
         keyword='data_weight',
+    ),
+    Setting(
+        'local.tag_noise_mm',
+        0.15,
+        'tag-point localisation noise (mm, per in-plane axis) at which local.data_weight holds: '
+        'a slice whose tracks jitter more in time (σ measured from their second differences) '
+        'gets data_weight × (tag_noise_mm / σ)² (0 = off)',
+        0.0,
+        100.0,
+        keyword='tag_noise_mm',
     ),
     Setting(
         'local.fit_error_weight',

@@ -69,6 +69,76 @@ COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
 COUPLING_Z = (2.0, 4.0)
 COUPLING_REACH = 2.0
 COUPLING_MEMORY = 0.8
+# Each slice's tag-point noise (MotionTracker._noise_scale): from the second differences in time
+# of its tracks seen at three consecutive phases, less an affine fit over the slice (the wall's
+# own acceleration), at a phase with at least NOISE_MIN_TRACKS of them; a difference beyond
+# NOISE_SLIP times the slice's median one is a slipped track, not noise. A slice's estimate is the
+# median of its last NOISE_SAMPLES samples once it has NOISE_MIN_SAMPLES, else the study's.
+NOISE_MIN_TRACKS, NOISE_SLIP = 6, 5.0
+NOISE_MIN_SAMPLES, NOISE_SAMPLES = 8, 400
+
+
+def second_difference_noise(x, d2) -> np.ndarray | None:
+    """
+    Return one slice's squared noise samples from its tracks' second differences in time, mm².
+
+    A track's second difference ``t_p − 2 t_{p−1} + t_{p−2}`` over three consecutive phases holds
+    6 times its position variance plus the wall's acceleration, which is smooth over the slice:
+    an affine fit in position removes it. The squared residuals are scaled by ``m / (m − rank)``
+    (the fit's degrees of freedom), so that each has expectation ``6 × 2 σ²`` for white noise of
+    σ per in-plane axis. Slipped tracks (beyond ``NOISE_SLIP`` times the median residual) are
+    left out of the fit and the samples.
+
+    Parameters
+    ----------
+    x : ndarray, shape (K, 3)
+        The tracks' measured positions at the latest phase, mm.
+    d2 : ndarray, shape (K, 3)
+        Their second differences in time, mm.
+
+    Returns
+    -------
+    ndarray, shape (M,) or None
+        Squared residuals, mm²; None with fewer than ``NOISE_MIN_TRACKS`` tracks or too few left
+        beyond the fit's own parameters.
+
+    """
+    n = len(x)
+    if n < NOISE_MIN_TRACKS:
+        return None
+    A = np.column_stack([np.ones(n), x - x.mean(axis=0)])
+    keep = np.ones(n, dtype=bool)
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], d2[keep], rcond=None)[0]
+        r = np.sum((d2 - A @ coef) ** 2, axis=1)
+        keep = r <= NOISE_SLIP**2 * np.median(r)
+    m, rank = int(keep.sum()), int(np.linalg.matrix_rank(A[keep]))
+    if m <= rank + 2:
+        return None
+    return r[keep] * (m / (m - rank))
+
+
+def noise_sigma(samples) -> float | None:
+    """
+    Return the noise σ per in-plane axis (mm) from squared second-difference samples (mm²).
+
+    For white noise of σ per axis a sample is ``6 σ² χ²₂`` (two axes), whose median is
+    ``12 σ² ln 2``; the median keeps what slipped tracks are left from pulling it.
+
+    Parameters
+    ----------
+    samples : array_like, shape (M,)
+        Squared samples (:func:`second_difference_noise`), mm².
+
+    Returns
+    -------
+    float or None
+        σ, mm; None when there is no sample.
+
+    """
+    if not len(samples):
+        return None
+    return float(np.sqrt(np.median(np.asarray(samples, dtype=np.float64)) / (12.0 * np.log(2.0))))
 
 
 def data_weights(confidence) -> np.ndarray:
@@ -391,6 +461,22 @@ class MotionTracker:
     confidence_weights : bool
         Weight each tag point's spring by :func:`data_weights` of its detection confidence
         (False: all points alike).
+    tag_noise_mm : float
+        Tag-point localisation noise (mm, standard deviation per in-plane axis) for which
+        ``data_weight`` holds; 0 = off. Each slice's own noise σ is measured from its tracks'
+        second differences in time (:func:`second_difference_noise`: white noise adds 6 σ² per
+        axis to them, the wall's smooth acceleration is fitted out), and a point of a slice with
+        σ > ``tag_noise_mm`` gets the spring ``data_weight × (tag_noise_mm / σ)²``, its inverse
+        variance relative to a point of ``tag_noise_mm`` (a slice measured below it keeps
+        ``data_weight``: its error is then the tracker's systematic one, which differences in
+        time do not see, and a stiffer spring only follows that). Until a slice has
+        ``NOISE_MIN_SAMPLES`` samples it takes the study's pooled σ; before any (the first two
+        phases), every point keeps ``data_weight``. The factor also weights the point in the
+        global fit and the twist function (relative there). In mm, so it holds for any pixel
+        size, SNR and tracker: 0.15 mm is the noise of the presets the default ``data_weight``
+        was chosen on (normal preset: 0.12 mm study-wide, 0.09–0.16 mm by slice). Measured on
+        the kept bench runs (offline re-solve, ES median / p95 mm, off → 0.15 mm): see the
+        README (Data weights).
     coarse_aggregates : int, optional
         Aggregates of the local stage's coarse space
         (:class:`~mlv_ros.core.meshless.local.CoarseSpace`, built once with the model; 0 =
@@ -430,6 +516,7 @@ class MotionTracker:
         coarse_aggregates: int | None = None,
         longitudinal_coupling: float = 1.0,
         regional_coupling: bool = True,
+        tag_noise_mm: float = 0.15,
     ):
         why = twist_knots_error(twist_knots)  # before the model is built: a mistake costs nothing
         if why:
@@ -469,6 +556,13 @@ class MotionTracker:
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self._coarse = self._phase_coarse = None
         self._init_coarse_space(coarse_aggregates)
+        if not 0.0 <= tag_noise_mm < 1e3:
+            raise ValueError(f'tag_noise_mm must be in [0, 1000) mm, got {tag_noise_mm}')
+        self.tag_noise_mm = float(tag_noise_mm)
+        self._history: dict = {}  # (view, slice, track_id) → {phase: measured position (3,)}
+        self._noise_samples: dict = {}  # (view, slice) → deque of squared noise samples, mm²
+        self._noise_phase = -1  # the last phase whose second differences were sampled
+        self.noise_mm: dict = {}  # (view, slice) → σ of the last phase's scale, mm (diagnostics)
 
     def _init_local_stage(self, hourglass_weight, volume_weight):
         """
@@ -615,6 +709,73 @@ class MotionTracker:
         weights = data_weights(np.asarray(conf)) if self.confidence_weights else np.ones(len(keys))
         return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals), weights
 
+    def _record_noise(self, phase_index, keys, targets):
+        """
+        Sample each slice's tag-point noise from its tracks' second differences in time.
+
+        Parameters
+        ----------
+        phase_index : int
+            The phase being solved; a phase not after the last one sampled adds no sample (a
+            phase solved again must not count twice).
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+        targets : ndarray, shape (K, 3)
+            Their measured positions, mm.
+
+        """
+        p = int(phase_index)
+        rows: dict = {}
+        for k, t in zip(keys, targets):
+            hist = self._history.setdefault(k, {})
+            hist[p] = np.asarray(t, dtype=np.float64)
+            for old in [q for q in hist if q < p - 2]:
+                del hist[old]
+            if p - 1 in hist and p - 2 in hist:
+                d2 = hist[p] - 2.0 * hist[p - 1] + hist[p - 2]
+                rows.setdefault(k[:2], []).append((hist[p], d2))
+        if p <= self._noise_phase:
+            return
+        self._noise_phase = p
+        for key, kr in rows.items():
+            r = second_difference_noise(np.array([x for x, _ in kr]), np.array([d for _, d in kr]))
+            if r is not None:
+                self._noise_samples.setdefault(key, deque(maxlen=NOISE_SAMPLES)).extend(r)
+
+    def _noise_scale(self, keys) -> np.ndarray:
+        """
+        Return each tag point's spring factor ``min(1, (tag_noise_mm / σ)²)``, shape (K,).
+
+        σ is the point's slice's measured noise (mm, per in-plane axis; :func:`noise_sigma` of
+        its samples, the study's pooled samples while it has fewer than ``NOISE_MIN_SAMPLES``),
+        so a point's spring is ``data_weight`` times its inverse variance relative to a point of
+        ``tag_noise_mm``. 1 everywhere when ``tag_noise_mm`` is 0 or nothing is measured yet.
+
+        Parameters
+        ----------
+        keys : list of tuple
+            (view, slice, track_id) of every tag point, shape (K,).
+
+        Returns
+        -------
+        ndarray, shape (K,)
+            Factors in (0, 1].
+
+        """
+        scale = np.ones(len(keys))
+        if not self.tag_noise_mm:
+            return scale
+        study = noise_sigma([v for q in self._noise_samples.values() for v in q])
+        self.noise_mm = {}
+        for i, k in enumerate(keys):
+            if k[:2] not in self.noise_mm:
+                q = self._noise_samples.get(k[:2], ())
+                self.noise_mm[k[:2]] = noise_sigma(q) if len(q) >= NOISE_MIN_SAMPLES else study
+            sigma = self.noise_mm[k[:2]]
+            if sigma is not None and sigma > self.tag_noise_mm:
+                scale[i] = (self.tag_noise_mm / sigma) ** 2
+        return scale
+
     def _attach(self, rest, normals, offsets):
         """
         Return the material positions ``p0 + s n``, which lie inside the model, and their nearest.
@@ -667,6 +828,8 @@ class MotionTracker:
             raise ValueError(
                 f'phase {phase_index}: no tag point matches an ED reference inside the model'
             )
+        self._record_noise(phase_index, keys, targets)
+        scale = self._noise_scale(keys)
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
         self._phase_coarse = None  # the first local solve of the phase factors its coarse part
         self._flagged = None  # tag points the last pass's motion left outward of their targets
@@ -681,10 +844,10 @@ class MotionTracker:
                     f'phase {phase_index}: only {attached} tag points lie inside the model'
                 )
             inside, ctrl, result = self._robust_global_fit(
-                pos, inside, targets, normals, weights, near
+                pos, inside, targets, normals, weights * scale, near
             )
             self._pass_motion(
-                keys, inside, ctrl, targets, normals, weights, last=pass_index == passes - 1
+                keys, inside, ctrl, targets, normals, (weights, scale), pass_index == passes - 1
             )
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
             worst = _larger_rejected_share(worst, self.rejected - rejected_before, attached)
@@ -756,13 +919,16 @@ class MotionTracker:
             Their attachment, in their order.
         targets, normals : ndarray, shape (K, 3)
             Measured positions (mm) and their image-plane normals.
-        weights : ndarray, shape (K,)
-            Data weights (:func:`data_weights`).
+        weights : tuple of ndarray, each shape (K,)
+            The confidence weights (:func:`data_weights`, relative) and the noise scale
+            (:meth:`_noise_scale`, absolute): the global fit and the twist take their product
+            relative, the local stage the confidences relative times the scale.
         last : bool
             Whether this is the phase's last pass (the full CG tolerance; no coupling to flag
             for a next pass).
 
         """
+        weights, scale = weights
         x_global = self.model.positions()
         if self.twist_knots:
             sa = np.array([k[0] == VIEW_SA for k in keys])[inside]
@@ -774,7 +940,7 @@ class MotionTracker:
                 x_global,
                 sa,
                 len(sa_slices),
-                weights[inside],
+                (weights * scale)[inside],
             )
         self.positions = x_global
         if not self.local:
@@ -782,7 +948,13 @@ class MotionTracker:
         # The passes before the last only place the material lines for the next one.
         rtol = self.cg_rtol if last else max(self.cg_rtol, self.cg_rtol_following)
         self.delta = self._local_solve(
-            ctrl.weights, targets[inside], normals[inside], x_global, weights[inside], rtol=rtol
+            ctrl.weights,
+            targets[inside],
+            normals[inside],
+            x_global,
+            weights[inside],
+            rtol=rtol,
+            scale=scale[inside],
         )
         self.positions = x_global + self.delta
         if self.longitudinal_coupling and self.regional_coupling and not last:
@@ -879,7 +1051,7 @@ class MotionTracker:
             / max(float(np.median(self._local.fit_error_diagonal)), 1e-300),
         )
 
-    def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None):
+    def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None, scale=None):
         """
         Solve for the local deformation δ at elastic equilibrium under the in-plane tag forces.
 
@@ -900,6 +1072,9 @@ class MotionTracker:
             Data weights (:func:`data_weights`); default all 1.
         rtol : float, optional
             CG tolerance; default ``cg_rtol``.
+        scale : ndarray, shape (K,), optional
+            Each point's noise scale (:meth:`_noise_scale`), multiplying its spring after the
+            weights are scaled to mean 1; default all 1.
 
         Returns
         -------
@@ -919,10 +1094,10 @@ class MotionTracker:
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
         if self.longitudinal_coupling:
             ax = self._coupled_axial(ax, Fg, x_global)
-        P = (
-            plane_projectors(normals, len(normals))
-            * control_weights(weights, len(targets))[:, None, None]
-        )
+        w = control_weights(weights, len(targets))
+        if scale is not None:
+            w = w * scale  # absolute: the noise scale is not renormalised, confidences are
+        P = plane_projectors(normals, len(normals)) * w[:, None, None]
         # The phase's later passes reuse its first pass's coarse factor (LocalOperators.system).
         reuse = self._phase_coarse
         system = self._local.system(
