@@ -88,9 +88,12 @@ def test_tracks_follow_ground_truth():
         assert np.median(err) < 0.3
 
 
-def test_points_whose_tags_vanish_are_dropped_not_invented():
+@pytest.mark.parametrize('register', [False, True])
+def test_points_whose_tags_vanish_are_dropped_not_invented(register):
+    # register=True: a noise detection matched in the blanked half (phase 5) is refused because
+    # the track's ED neighbourhood does not register there (kept, it failed this test).
     scene = TagScene(shape=(128, 128), ring=(19.8, 31.5), noise_sigma=0.02)
-    tr, out, _ = _run(scene, blank_from=4)
+    tr, out, _ = _run(scene, blank_from=4, register=register)
     # Rotation and shift move the wall by < 6 px: ids clearly on one side stay on that side.
     left_ids = out[0].track_id[out[0].pixel_rc[:, 1] < scene.centre[1] - 8]
     right_ids = out[0].track_id[out[0].pixel_rc[:, 1] > scene.centre[1] + 8]

@@ -157,12 +157,12 @@ class SliceTracker:
         Move each matched point to where its own ED neighbourhood (inside the ED wall mask)
         registers in the image by a local affine map and a linear intensity change
         (:func:`~mlv_ros.core.tags.register.register_points`), within ``REGISTER_MAX_MOVE``
-        periods of the detection. The Gabor phase averages tags over about a period and reads
-        intersections toward mid-wall where the wall thickens unevenly (end-systole); the
-        registration follows the point's own material. ED points stay the detections. Off by
-        default: it lowers the tracked points' ES error on most bench studies but moved the
-        solver's extrapolated apical twist and one healthy study's p95 (README, 'Tag
-        tracking against the truth').
+        periods of the detection; a match that does not register counts as not seen. The
+        Gabor phase averages tags over about a period and reads intersections toward mid-wall
+        where the wall thickens unevenly (end-systole); the registration follows the point's
+        own material. ED points stay the detections. Off by default: it lowers the tracked
+        points' ES error on most bench studies but moved the solver's extrapolated apical twist
+        and some studies' p95 (README, 'Tag tracking against the truth').
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -419,7 +419,11 @@ class SliceTracker:
                 new[idx[~found]] = res.warped[idx[~found]]
                 hit[idx[~found]] = False
         if self.register and hit.any():
-            new[hit] = self._registered(image, live[hit], new[hit], sp)
+            # A match whose own ED neighbourhood does not register there is not its material.
+            idx = np.nonzero(hit)[0]
+            new[idx], seen = self._registered(image, live[idx], new[idx], sp)
+            new[idx[~seen]] = res.warped[idx[~seen]]
+            hit[idx[~seen]] = False
         self._coast(live[~hit], pred[~hit], new[~hit])
         prev = self._pos[live[hit]]
         self._step[live[hit]] = new[hit] - prev
@@ -443,21 +447,23 @@ class SliceTracker:
         cf = np.concatenate([conf[hit], back[2]])
         return self._result(frame, pts, ids, cf, status)
 
-    def _registered(self, image, idx, rc, spacing: float) -> np.ndarray:
+    def _registered(self, image, idx, rc, spacing: float):
         """
         Return matched points moved to where their ED neighbourhoods register (``register``).
 
         See :func:`~mlv_ros.core.tags.register.register_points`: each track's ED neighbourhood
         inside the ED wall, mapped by a local affine map that starts from (and is held toward)
-        the track's own map of the previous phase. A point keeps its detection where the fit
-        fails or moves it more than ``REGISTER_MAX_MOVE`` periods. Updates the tracks' maps.
+        the track's own map of the previous phase. Returns ``(positions, seen)``: ``seen`` is
+        False where the fit fails or would move the point more than ``REGISTER_MAX_MOVE``
+        periods (the detection is then not taken as the track's material). Updates the tracks'
+        maps.
         """
         if (
             self.ed_image is None
             or self.ed_mask is None
             or self.ed_image.shape != np.shape(image)
         ):
-            return rc
+            return rc, np.ones(len(rc), bool)
         out, local_map, ok, _ = register_points(
             self.ed_image,
             self.ed_mask,
@@ -469,7 +475,7 @@ class SliceTracker:
         )
         ok &= np.linalg.norm(out - rc, axis=1) <= REGISTER_MAX_MOVE * spacing
         self._map[idx[ok]] = local_map[ok]
-        return np.where(ok[:, None], out, rc)
+        return np.where(ok[:, None], out, rc), ok
 
     def follow_threshold(self) -> float:
         """Confidence a detection needs to continue a live track at the next phase (0..1)."""
