@@ -34,6 +34,11 @@ line through its ED position along the slice normal, crossing the image plane at
 the same tracks, none of their tracking error. ``--ideal every-track`` also keeps every ED
 track at every phase (a tracker that loses nothing). Solving those separates what the tracker
 loses from what the solver does with perfect tag points.
+
+``--tracks`` adds the tracker's own error against the truth (:func:`track_errors`): per view at
+ES, the tracks kept, the in-plane error of each reported point against its ED material line's
+crossing, split radial / circumferential and pooled by ED wall quarter and AHA segment, and the
+median error per phase; ``--no-solve`` only tracks (seconds per study).
 """
 
 from __future__ import annotations
@@ -299,13 +304,168 @@ def segment_tracks(case: Path, sets: dict, motion) -> dict:
     return out
 
 
+def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
+    """
+    Return the tracker's own error against the truth, per track, at end-systole and per phase.
+
+    Every reported point is compared with where the truth puts its track (its ED material line
+    crossing the image plane, :func:`ideal_targets`); the in-plane error is split along the
+    truth's radial and circumferential directions (cylindrical, about the true long axis, at the
+    true position; radial positive outward) and pooled by the track's ED wall quarter (the
+    truth's transmural depth ``(r − r_endo)/(r_epi − r_endo)`` at its ED point, endo → epi) and
+    by AHA segment (the truth's). Survival counts, per quarter, the ED tracks still reported at
+    ES among those whose material line still crosses the plane then (the others cannot be seen).
+
+    Parameters
+    ----------
+    sets : dict
+        ``{phase: {(view, slice): TagPointSet}}`` as :func:`track` makes them.
+    motion : LVMotion
+        The study's true motion.
+    period_mm : float, optional
+        Tag period, mm: a point more than half a period off is counted ``wrong`` (another
+        intersection); None leaves the count out.
+
+    Returns
+    -------
+    dict
+        ``es_phase``; per view (``sa``, ``la``): ``ed`` tracks, ``visible`` at ES, ``kept`` at ES,
+        ES in-plane error median / p95 (mm), ``wrong``, ``radial_mm`` / ``circ_mm`` (median
+        signed), and ``quarters``: per wall quarter ``[ED tracks, kept share, radial median,
+        circumferential median, |error| median]`` (mm); ``sa_segments``: per AHA segment present
+        ``[ED tracks, kept share, radial median]``; ``sa_phase_err_mm``: per phase ≥ 1 the median
+        SA in-plane error (mm) and the points reported.
+
+    """
+    from mlv_ros.core.sim.regional import truth_segments
+
+    es = int(round(motion.es_phase))
+    fr = motion.frame
+    ideal, _ = ideal_targets(sets, motion)
+    every, _ = ideal_targets(sets, motion, every_track=True)
+
+    def depth(x):
+        r, th, z = fr.to_local(x)
+        endo, epi = motion.endo_radius(z), motion.epi_radius(z, th)
+        return (r - endo) / np.maximum(epi - endo, 1e-9)
+
+    def radial_circ(x):
+        _, th, _ = fr.to_local(x)
+        e_r = np.cos(th)[:, None] * fr.septum + np.sin(th)[:, None] * fr.e2
+        e_c = -np.sin(th)[:, None] * fr.septum + np.cos(th)[:, None] * fr.e2
+        return e_r, e_c
+
+    rows = []  # view (0 SA), phase, quarter, segment, |err|, radial, circ
+    visible, ed_rows = set(), []
+    for key, pts in sets.get(0, {}).items():
+        if not len(pts.track_id):
+            continue
+        la = int(key[0] != TaggedFrame.VIEW_SA)
+        q = np.clip((depth(pts.position) * 4).astype(int), 0, 3)
+        seg = truth_segments(motion, pts.position)
+        info = {int(t): (qq, sg) for t, qq, sg in zip(pts.track_id, q, seg)}
+        later = every.get(es, {}).get(key)
+        if later is not None:
+            visible |= {(key, int(t)) for t in later.track_id}
+        ed_rows += [(key, int(t), la, *map(int, info[int(t)])) for t in pts.track_id]
+        for phase in sorted(p for p in sets if p > 0):
+            got, want = sets[phase].get(key), ideal.get(phase, {}).get(key)
+            if got is None or not len(got.track_id):
+                continue
+            err = np.asarray(got.position) - np.asarray(want.position)
+            e_r, e_c = radial_circ(np.asarray(want.position))
+            for t, e, er, ec in zip(got.track_id, err, e_r, e_c):
+                if int(t) in info:
+                    rows.append((la, phase, *info[int(t)], np.linalg.norm(e), e @ er, e @ ec))
+    if not rows:
+        return {}
+    r = np.array(rows, float)
+    kept = {
+        (key, int(t)) for key, pts in sets.get(es, {}).items() for t in pts.track_id
+    }
+
+    def med(x):
+        return round(float(np.median(x)), 2) if len(x) else None
+
+    out = {'es_phase': es}
+    for la, name in ((0, 'sa'), (1, 'la')):
+        at = r[(r[:, 0] == la) & (r[:, 1] == es)]
+        eds = [e for e in ed_rows if e[2] == la]
+        if not eds:
+            continue
+        seen = [e for e in eds if (e[0], e[1]) in visible]
+
+        def share(group):
+            if not group:
+                return None
+            return round(sum((e[0], e[1]) in kept for e in group) / len(group), 2)
+
+        out[name] = {
+            'ed': len(eds),
+            'visible': len(seen),
+            'kept': int(sum((e[0], e[1]) in kept for e in eds)),
+            'err_median_mm': med(at[:, 4]),
+            'err_p95_mm': round(float(np.percentile(at[:, 4], 95)), 2) if len(at) else None,
+            **(
+                {'wrong': int(np.sum(at[:, 4] > 0.5 * period_mm))} if period_mm else {}
+            ),
+            'radial_mm': med(at[:, 5]),
+            'circ_mm': med(at[:, 6]),
+            'quarters': [
+                [
+                    int(sum(e[3] == k for e in eds)),
+                    share([e for e in seen if e[3] == k]),
+                    med(at[at[:, 2] == k, 5]),
+                    med(at[at[:, 2] == k, 6]),
+                    med(at[at[:, 2] == k, 4]),
+                ]
+                for k in range(4)
+            ],
+        }
+        if la == 0:
+            sa_seen = seen
+            out['sa_segments'] = {
+                int(k): [
+                    int(sum(e[4] == k for e in eds)),
+                    share([e for e in sa_seen if e[4] == k]),
+                    med(at[at[:, 3] == k, 5]),
+                ]
+                for k in sorted({e[4] for e in eds})
+            }
+    sa = r[r[:, 0] == 0]
+    out['sa_phase_err_mm'] = [
+        [int(p), med(sa[sa[:, 1] == p, 4]), int(np.sum(sa[:, 1] == p))]
+        for p in sorted(set(sa[:, 1].astype(int)))
+    ]
+    return out
+
+
+def protocol_period_mm(case: Path) -> float | None:
+    """Tag period of a simulated study (its ``protocol.yaml``), mm; None when not recorded."""
+    f = case / 'study' / 'protocol.yaml'
+    if not f.is_file():
+        return None
+    value = (yaml.safe_load(f.read_text()) or {}).get('tag_spacing_mm')
+    return float(value) if value else None
+
+
 def replay_case(
-    case: Path, tracker_kwargs=None, solver_kwargs=None, ideal: str | None = None
+    case: Path,
+    tracker_kwargs=None,
+    solver_kwargs=None,
+    ideal: str | None = None,
+    tracks: bool = False,
+    solve_phases: bool = True,
 ) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / 'run' / 'run.mcap')
     sets = track(frames, **(tracker_kwargs or {}))
     truth = motion_from_groundtruth(case / 'study')
+    report = (
+        {'tracks': track_errors(sets, truth, protocol_period_mm(case))} if tracks else {}
+    )
+    if not solve_phases:
+        return {'case': case.name, **report, 'track_s': round(time.monotonic() - t0, 1)}
     not_ideal = None
     if ideal:
         sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == 'every-track')
@@ -339,6 +499,7 @@ def replay_case(
         'worst_phase_median_mm': round(max(r['median_mm'] for r in acc['per_phase']), 3),
         **segment_errors(case, tr.rest, positions, truth),
         **segment_tracks(case, sets, truth),
+        **report,
         'track_s': round(t1 - t0, 1),
         'solve_s': round(time.monotonic() - t1, 1),
     }
@@ -370,6 +531,15 @@ def main():
         help='replace the tracked points by where the truth puts them (no tracking error); '
         'every-track: every ED track at every phase as well (no track lost)',
     )
+    ap.add_argument(
+        '--tracks',
+        action='store_true',
+        help="report the tracker's own error against the truth (track_errors): per wall "
+        'quarter and AHA segment, radial / circumferential, survival to ES',
+    )
+    ap.add_argument(
+        '--no-solve', action='store_true', help='track only (with --tracks: the tracker alone)'
+    )
     args = ap.parse_args()
     kw = [
         {k: yaml.safe_load(v) for k, v in (a.split('=', 1) for a in opts)}
@@ -378,7 +548,9 @@ def main():
     for case in args.cases:
         print(
             json.dumps(
-                replay_case(case, *kw, ideal=args.ideal)
+                replay_case(
+                    case, *kw, ideal=args.ideal, tracks=args.tracks, solve_phases=not args.no_solve
+                )
                 | ({'tracker': kw[0]} if kw[0] else {})
                 | ({'solver': kw[1]} if kw[1] else {})
             ),

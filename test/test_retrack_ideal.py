@@ -30,7 +30,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
-from retrack import ideal_targets, segment_tracks  # noqa: E402
+from retrack import ideal_targets, segment_tracks, track_errors  # noqa: E402
 from test_tracking import grid_tags, observed, tagset  # noqa: E402
 
 
@@ -120,3 +120,37 @@ def test_segment_tracks_counts_what_the_tracker_kept_in_the_abnormal_segment(stu
         'normal_segments': 1.0,
     }
     assert not any(k.startswith('segment_') and '_7_' not in k for k in out)
+
+
+def test_track_errors_measure_a_known_radial_offset_and_the_tracks_kept(study):
+    # Every other SA track kept at ES, each moved 0.6 mm outward along the truth's radial
+    # direction (at its true position): the report reads +0.6 mm radial, 0 circumferential, in
+    # every wall quarter, and the SA tracks kept counted; LA points left exact read 0.
+    m = study.motion
+    refs = grid_tags(study)
+    es = int(round(m.es_phase))
+    ed = {
+        k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k])))
+        for k, g in study.geometries.items()
+    }
+    later = observed(study, refs, es)
+    fr = m.frame
+    n_kept = 0
+    for k, pts in later.items():
+        if k[0] != 0:
+            continue
+        keep = np.arange(len(pts.track_id)) % 2 == 0
+        n_kept += int(keep.sum())
+        pos, ids = pts.position[keep], pts.track_id[keep]
+        _, th, _ = fr.to_local(pos)
+        e_r = np.cos(th)[:, None] * fr.septum + np.sin(th)[:, None] * fr.e2
+        later[k] = tagset(k, pts.geometry, es, m.num_phases, pos + 0.6 * e_r, ids)
+    out = track_errors({0: ed, es: later}, m, period_mm=8.0)
+    sa, la = out['sa'], out['la']
+    assert out['es_phase'] == es and sa['wrong'] == 0
+    assert sa['radial_mm'] == pytest.approx(0.6, abs=0.05)
+    assert abs(sa['circ_mm']) <= 0.05 and sa['err_median_mm'] == pytest.approx(0.6, abs=0.05)
+    for n_ed, _, radial, circ, _ in sa['quarters']:
+        assert n_ed > 0 and radial == pytest.approx(0.6, abs=0.05) and abs(circ) <= 0.05
+    assert sa['kept'] == n_kept and n_kept < sa['visible'] <= sa['ed']
+    assert la['err_median_mm'] <= 0.05 and la['kept'] <= la['visible'] <= la['ed']
