@@ -58,6 +58,10 @@ from scipy.spatial import cKDTree
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
 # slices spanning this fraction of the LV's height (beyond them the twist continues linearly).
 TWIST_MIN_SA, TWIST_MIN_SPAN = 4, 0.3
+# A slice's own in-plane shift is fitted with its rotation only from this many of its tag points:
+# from 2–3 (4–6 equations for 3 unknowns) the rotation is those points' noise (study 1009, 2–8
+# points per slice: ES twist error 1.64° → 1.95° with a shift on every slice, 1.63° without them).
+TWIST_SHIFT_MIN_POINTS = 4
 # The local stage's coarse space (MotionTracker's coarse_aggregates): one aggregate per this many
 # particles, at most this many aggregates (12 coarse unknowns each; a dense Cholesky per solve).
 COARSE_PARTICLES, COARSE_MAX_AGGREGATES = 96, 64
@@ -198,14 +202,15 @@ def _slice_shifts(P: np.ndarray, axis: np.ndarray, sa_slice: np.ndarray) -> np.n
     """
     Return the in-plane residual per unit shift of each SA slice, shape (3K, 2 S).
 
-    Two columns per SA slice (``sa_slice`` ≥ 0; S distinct), a shift along each of two directions
-    ⟂ ``axis``, non-zero only on that slice's rows; ``P`` (K, 3, 3) are the rows' weighted
-    in-plane projectors.
+    Two columns per SA slice with at least ``TWIST_SHIFT_MIN_POINTS`` points (``sa_slice`` ≥ 0;
+    S such slices), a shift along each of two directions ⟂ ``axis``, non-zero only on that
+    slice's rows; ``P`` (K, 3, 3) are the rows' weighted in-plane projectors.
     """
     e1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
     e1 /= np.linalg.norm(e1)
     shift = np.einsum('kab,eb->kae', P, np.stack([e1, np.cross(axis, e1)]))  # (K, 3, 2)
-    slices = np.unique(sa_slice[sa_slice >= 0])
+    slices, count = np.unique(sa_slice[sa_slice >= 0], return_counts=True)
+    slices = slices[count >= TWIST_SHIFT_MIN_POINTS]
     on = (sa_slice[:, None] == slices[None, :]).astype(np.float64)  # (K, S)
     return (shift[:, :, None, :] * on[:, None, :, None]).reshape(len(P) * 3, 2 * len(slices))
 
@@ -1041,14 +1046,15 @@ class MotionTracker:
         apical twist, p95 error 10 mm).
 
         The twist is each level's rotation about its own centre (as the analysis measures it), so
-        each SA slice also gets a free in-plane shift in the fit (:func:`_slice_shifts`, two
-        unknowns per slice, not applied). The global stage moves every level alike; whatever
-        shift of a slice it leaves, with that slice's tracks not spread evenly round it (a thin
-        apical wall that loses tracks), read as rotation about the one long axis. Measured on
-        study 1011 (infarct, stack ending at 0.23 of the height), ES: with the truth's tag points
-        the apical level was 1.30° off, 0.06° with the shifts; with the tracked ones 3.14° →
-        2.45°, the rest being the tracker's apical slices (their twist gradient 25 % flatter than
-        the truth's points give).
+        each SA slice with at least ``TWIST_SHIFT_MIN_POINTS`` tag points also gets a free
+        in-plane shift in the fit (:func:`_slice_shifts`, two unknowns per slice, not applied).
+        The global stage moves every level alike; whatever shift of a slice it leaves, with that
+        slice's tracks not spread evenly round it (a thin apical wall that loses tracks), read as
+        rotation about the one long axis. Measured on study 1011 (infarct, stack ending at 0.23
+        of the height), ES: with the truth's tag points the apical level was 1.30° off, 0.06°
+        with the shifts; with the tracked ones 3.14° → 2.45°, the rest being the tracker's
+        apical slices (their ES twist ±0.3° off the truth's points, phase-to-phase noise, which
+        the extrapolation's lever multiplies).
 
         Beyond that span only LA planes see the wall, and they do not measure circumferential
         motion. There each particle's *total* twist (the global stage's ``π τ g`` since ED plus
