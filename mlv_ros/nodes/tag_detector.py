@@ -100,6 +100,12 @@ class TagDetector(GraphNode):
             'take frames with their history (TRANSIENT_LOCAL), so a restart '
             'gets the frames already sent; false for a publisher without history',
         )
+        self.register = self.param(
+            'tracking.register',
+            False,
+            'move each tracked tag point to where its own ED neighbourhood registers in the '
+            'image (local affine map; corrects the pull of the tag filter toward mid-wall)',
+        )
         self.pub = self.publisher(qos.TAG_POINTS, TagPoints)
         self.subscribe(qos.FRAMES, TaggedFrame, self._on_frame, catch_up=self.catch_up)
         self.masker = StreamingMasker()  # ED myocardium masks from what has streamed in so far
@@ -202,7 +208,7 @@ class TagDetector(GraphNode):
         started = tracker is None or frame.phase_index == 0
         if started:
             tracker = self.trackers[key] = SliceTracker(
-                frame.geometry, spacing_px=self.spacing_px or None
+                frame.geometry, spacing_px=self.spacing_px or None, register=self.register
             )
             self.no_tags.pop(key, None)
             mask, why = self.masker.ed_mask(frame)
