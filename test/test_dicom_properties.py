@@ -114,8 +114,16 @@ def test_written_frames_read_back_exactly(frame):
 
 
 def _valid_files(d: Path) -> list[Path]:
-    """Three valid 16×16 frames of three series; returns their paths (the third is mutated)."""
+    """
+    Write two 3-phase 16×16 cines and the first image of a third (to mutate); return its path last.
+
+    One study and frame of reference: a mutant can then change which study or frame of reference
+    a reader chooses only by damaging its own identifiers, and single frames that are not cines
+    (which a reader rightly leaves out beside cines) are not what the mutant competes with.
+    """
     rng = np.random.default_rng(5)
+    study = pydicom.uid.generate_uid(entropy_srcs=['property study'])
+    frame_of_reference = pydicom.uid.generate_uid(entropy_srcs=['property frame'])
     paths = []
     for k in range(3):
         geom = SliceGeometry(
@@ -126,31 +134,34 @@ def _valid_files(d: Path) -> list[Path]:
             1.5,
             8.0,
         )
-        fr = Frame(
-            image=rng.random((16, 16)).astype(np.float32),
-            geometry=geom,
-            view=VIEW_SA,
-            slice_index=k,
-            phase_index=0,
-            num_phases=1,
-            trigger_time=0.0,
-            cycle_duration=1.0,
-            series_uid=pydicom.uid.generate_uid(entropy_srcs=['property', str(k)]),
-        )
-        paths.append(d / f'valid_{k}.dcm')
-        frame_to_dataset(fr).save_as(paths[-1], enforce_file_format=True)
+        for phase in range(3 if k < 2 else 1):
+            fr = Frame(
+                image=rng.random((16, 16)).astype(np.float32),
+                geometry=geom,
+                view=VIEW_SA,
+                slice_index=k,
+                phase_index=phase,
+                num_phases=3,
+                trigger_time=0.3 * phase,
+                cycle_duration=1.0,
+                series_uid=pydicom.uid.generate_uid(entropy_srcs=['property', str(k)]),
+            )
+            paths.append(d / f'valid_{k}_{phase}.dcm')
+            frame_to_dataset(
+                fr, study_uid=study, frame_of_reference_uid=frame_of_reference
+            ).save_as(paths[-1], enforce_file_format=True)
     return paths
 
 
 @pytest.fixture(scope='module')
 def mutant_dir(tmp_path_factory):
-    """Two valid files, their images as read alone, and the bytes of a third to mutate."""
+    """Two valid cines, their images as read alone, and the bytes of a third cine's image."""
     d = tmp_path_factory.mktemp('dicom_mutants')
     valid = _valid_files(d)
-    original = valid[2].read_bytes()
-    valid[2].unlink()
+    original = valid[-1].read_bytes()
+    valid[-1].unlink()
     clean = {f: fr.image for f, fr in frames_by_path(read_dicom_dir(d)).items()}
-    assert len(clean) == 2
+    assert len(clean) == 6
     return d, clean, original
 
 
