@@ -33,7 +33,9 @@ error of the worst AHA segment and of each abnormal one (the truth's segments,
 line through its ED position along the slice normal, crossing the image plane at that phase):
 the same tracks, none of their tracking error. ``--ideal every-track`` also keeps every ED
 track at every phase (a tracker that loses nothing). Solving those separates what the tracker
-loses from what the solver does with perfect tag points.
+loses from what the solver does with perfect tag points. ``--ideal-segments K,...`` replaces
+only the tracks whose ED point lies in those AHA segments (the truth's): whose tracking error
+moves a segment's solved motion, its own tracks' or the rest's.
 
 ``--tracks`` adds the tracker's own error against the truth (:func:`track_errors`): per view at
 ES, the tracks kept, the in-plane error of each reported point against its ED material line's
@@ -145,7 +147,12 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
 
 
 def ideal_targets(
-    sets: dict, motion, reach_mm: float = 20.0, step_mm: float = 0.25, every_track: bool = False
+    sets: dict,
+    motion,
+    reach_mm: float = 20.0,
+    step_mm: float = 0.25,
+    every_track: bool = False,
+    segments=None,
 ) -> tuple[dict, int]:
     """
     Return ``sets`` with every tracked point moved to where the truth puts it.
@@ -154,13 +161,32 @@ def ideal_targets(
     plane nearest ``s = 0`` within ±``reach_mm``, located to ``step_mm`` and interpolated linearly.
     Points whose line does not cross the plane within reach, and tracks without an ED point, keep
     their measured position. ``every_track``: every ED track at every phase (a tracker that loses
-    nothing), those whose line does not cross left out. Returns the new sets and how many points
-    kept their measured position (or were left out).
+    nothing), those whose line does not cross left out. ``segments``: only the tracks whose ED
+    point lies in these AHA segments (the truth's) move, the others keep their measured position
+    (and are counted so); not with ``every_track``. Returns the new sets and how many points kept their measured position (or
+    were left out).
     """
+    from mlv_ros.core.sim.regional import truth_segments
+
+    if segments is not None and every_track:
+        raise ValueError('segments: only the tracked points move, not with every_track')
     ed = {
         key: dict(zip(map(int, pts.track_id), pts.position))
         for key, pts in sets.get(0, {}).items()
     }
+    if segments is not None:
+        ed = {
+            key: {
+                t: x
+                for (t, x), sg in zip(
+                    pts.items(), truth_segments(motion, np.array(list(pts.values())))
+                )
+                if int(sg) in set(segments)
+            }
+            if pts
+            else pts
+            for key, pts in ed.items()
+        }
     s = np.arange(-reach_mm, reach_mm + 0.5 * step_mm, step_mm)
     out, kept = {0: sets.get(0, {})}, 0
     for phase, by_key in sets.items():
@@ -455,6 +481,7 @@ def replay_case(
     solver_kwargs=None,
     ideal: str | None = None,
     tracks: bool = False,
+    ideal_segments=None,
     solve_phases: bool = True,
 ) -> dict:
     t0 = time.monotonic()
@@ -468,7 +495,9 @@ def replay_case(
         return {'case': case.name, **report, 'track_s': round(time.monotonic() - t0, 1)}
     not_ideal = None
     if ideal:
-        sets, not_ideal = ideal_targets(sets, truth, every_track=ideal == 'every-track')
+        sets, not_ideal = ideal_targets(
+            sets, truth, every_track=ideal == 'every-track', segments=ideal_segments
+        )
     t1 = time.monotonic()
     tr, positions, verdicts = solve(sets, cloud, state, **(solver_kwargs or {}))
     sa_planes = [
@@ -487,6 +516,7 @@ def replay_case(
     return {
         'case': case.name,
         **({'ideal': ideal, 'points_not_ideal': not_ideal} if ideal else {}),
+        **({'ideal_segments': sorted(ideal_segments)} if ideal and ideal_segments else {}),
         **{
             k: round(es[k], 3)
             for k in ('median_mm', 'p95_mm', 'twist_error_deg', 'twist_error_measured_deg')
@@ -532,6 +562,14 @@ def main():
         'every-track: every ED track at every phase as well (no track lost)',
     )
     ap.add_argument(
+        '--ideal-segments',
+        type=lambda v: {int(k) for k in v.split(',')},
+        default=None,
+        metavar='K,...',
+        help='with --ideal (implied): only the tracks whose ED point lies in these AHA segments '
+        "(the truth's)",
+    )
+    ap.add_argument(
         '--tracks',
         action='store_true',
         help="report the tracker's own error against the truth (track_errors): per wall "
@@ -541,6 +579,9 @@ def main():
         '--no-solve', action='store_true', help='track only (with --tracks: the tracker alone)'
     )
     args = ap.parse_args()
+    if args.ideal_segments and args.ideal == 'every-track':
+        ap.error('--ideal-segments moves the tracked points only: use it with --ideal tracks')
+    ideal = 'tracks' if args.ideal_segments and not args.ideal else args.ideal
     kw = [
         {k: yaml.safe_load(v) for k, v in (a.split('=', 1) for a in opts)}
         for opts in (args.tracker, args.solver)
@@ -549,7 +590,12 @@ def main():
         print(
             json.dumps(
                 replay_case(
-                    case, *kw, ideal=args.ideal, tracks=args.tracks, solve_phases=not args.no_solve
+                    case,
+                    *kw,
+                    ideal=ideal,
+                    tracks=args.tracks,
+                    solve_phases=not args.no_solve,
+                    ideal_segments=args.ideal_segments,
                 )
                 | ({'tracker': kw[0]} if kw[0] else {})
                 | ({'solver': kw[1]} if kw[1] else {})

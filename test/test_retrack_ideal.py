@@ -66,21 +66,52 @@ def test_ideal_targets_are_the_material_lines_crossing_the_planes(study):
     assert ideal[0] is sets[0]
 
 
-def test_every_track_keeps_the_tracks_a_tracker_lost(study):
+def _ed_and_es(study):
+    """Return the grid's ED tag sets and the truth's ES ones (``observed``), by view key."""
     m = study.motion
     refs = grid_tags(study)
-    es = int(round(m.es_phase))
     ed = {
         k: tagset(k, g, 0, m.num_phases, refs[k], np.arange(len(refs[k])))
         for k, g in study.geometries.items()
     }
-    tracked = observed(study, refs, es)
+    return ed, observed(study, refs, int(round(m.es_phase)))
+
+
+def test_ideal_segments_move_only_the_tracks_of_those_segments(study):
+    from mlv_ros.core.sim.regional import truth_segments
+
+    m = study.motion
+    es = int(round(m.es_phase))
+    ed, tracked = _ed_and_es(study)
+    rng = np.random.default_rng(1)
+    for s in tracked.values():  # tracked points off by up to 3 mm
+        s.position = s.position + rng.uniform(-3.0, 3.0, s.position.shape)
+    sets = {0: ed, es: tracked}
+    every, _ = ideal_targets(sets, m)
+    seg = {k: dict(zip(p.track_id, truth_segments(m, p.position))) for k, p in ed.items()}
+    chosen = {int(v) for d in seg.values() for v in d.values() if v % 2}
+    part, _ = ideal_targets(sets, m, segments=chosen)
+    moved = 0
+    for k, s in part[es].items():
+        inside = np.array([int(seg[k][t]) in chosen for t in s.track_id])
+        assert np.array_equal(s.position[inside], every[es][k].position[inside])
+        assert np.array_equal(s.position[~inside], tracked[k].position[~inside])
+        moved += int(inside.sum())
+    assert 0 < moved < sum(len(s) for s in tracked.values())
+    with pytest.raises(ValueError, match='every_track'):
+        ideal_targets(sets, m, every_track=True, segments=chosen)
+
+
+def test_every_track_keeps_the_tracks_a_tracker_lost(study):
+    m = study.motion
+    es = int(round(m.es_phase))
+    ed, tracked = _ed_and_es(study)
     for s in tracked.values():  # the tracker kept only every third track
         keep = np.arange(len(s.track_id)) % 3 == 0
         s.position, s.track_id, s.pixel_rc = s.position[keep], s.track_id[keep], s.pixel_rc[keep]
         s.confidence = s.confidence[keep]
     ideal, _ = ideal_targets({0: ed, es: tracked}, m, every_track=True)
-    exact = observed(study, refs, es)
+    _, exact = _ed_and_es(study)
     for k, s in ideal[es].items():
         assert s.phase_index == es and len(s) > len(tracked[k])
         want = dict(zip(exact[k].track_id, exact[k].position))
