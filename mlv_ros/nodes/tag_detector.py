@@ -102,7 +102,7 @@ class TagDetector(GraphNode):
         )
         self.register = self.param(
             'tracking.register',
-            False,
+            True,
             'move each tracked tag point to where its own ED neighbourhood registers in the '
             'image (local affine map; corrects the pull of the tag filter toward mid-wall)',
         )
