@@ -163,8 +163,8 @@ def ideal_targets(
     their measured position. ``every_track``: every ED track at every phase (a tracker that loses
     nothing), those whose line does not cross left out. ``segments``: only the tracks whose ED
     point lies in these AHA segments (the truth's) move, the others keep their measured position
-    (and are counted so); not with ``every_track``. Returns the new sets and how many points kept their measured position (or
-    were left out).
+    (and are counted so); not with ``every_track``. Returns the new sets and how many points kept
+    their measured position (or were left out).
     """
     from mlv_ros.core.sim.regional import truth_segments
 
