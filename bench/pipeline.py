@@ -209,10 +209,12 @@ def local_stage_replay(mcap: Path) -> dict:
     split.wrap(reference, 'solve', None)  # left out of the split
     new_solve, cache, calls = tr._local_solve, {}, []
 
-    def both(phi, targets, normals, x_global, weights=None, rtol=None):
+    def both(phi, targets, normals, x_global, weights=None, rtol=None, scale=None):
+        # The reference has no per-point weights (confidence, slice noise): where a phase has
+        # them, the two differ by that as well.
         d0 = None if tr.delta is None else tr.delta.copy()
         t1 = time.perf_counter()
-        new = new_solve(phi, targets, normals, x_global, weights, rtol)
+        new = new_solve(phi, targets, normals, x_global, weights, rtol, scale)
         t2 = time.perf_counter()
         kept, tr.cg_rtol = (
             tr.cg_rtol,
