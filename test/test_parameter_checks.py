@@ -138,3 +138,34 @@ def test_graph_yaml_and_the_readme_name_every_setting(node, table):
     start = readme.index(f'- `{node}`')
     entry = readme[start:].split('\n- `')[0]
     assert [s.name for s in table if f'`{s.name}`' not in entry] == []
+
+
+def test_tracking_register_reaches_every_slice_tracker(ros_context):
+    # The same tagged slice through a tag detector with and without registration: the parameter
+    # is what each slice's tracker runs with, and it changes where the tracks end up.
+    from mlv_ros import conversions
+    from mlv_ros.core.sim.tag_scene import TagScene
+    from mlv_ros.core.types import Frame, SliceGeometry
+    from mlv_ros.nodes.tag_detector import TagDetector
+    import numpy as np
+
+    geom = SliceGeometry(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 1.3, 1.3, 6.0)
+    scene = TagScene(shape=(128, 128), ring=(19.8, 31.5), noise_sigma=0.02)
+    positions = {}
+    for value in (True, False):
+        node = TagDetector(
+            context=ros_context, parameter_overrides=[Parameter('tracking.register', value=value)]
+        )
+        try:
+            for p in range(4):
+                image = scene.render(p / 10, seed=p).astype(np.float32)
+                frame = Frame(image, geom, 0, 2, p, 10, trigger_time=0.1 * p)
+                node._on_frame(conversions.frame_to_msg(frame, stamp=0.1 * p))
+            tracker = node.trackers[(0, 2)]
+            assert tracker.register is value and tracker.alive.size >= 4
+            positions[value] = tracker._pos[~tracker._dead].copy()
+        finally:
+            node.destroy_node()
+    assert positions[True].shape != positions[False].shape or not np.allclose(
+        positions[True], positions[False]
+    )

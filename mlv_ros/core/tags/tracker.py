@@ -161,7 +161,7 @@ class SliceTracker:
         Gabor phase averages tags over about a period and reads intersections toward mid-wall
         where the wall thickens unevenly (end-systole); the registration follows the point's
         own material. ED points stay the detections. On by default: over the 24 kept bench
-        studies it lowers the ES median in 20 and the presets' ES error by 0.14–0.18 mm; it
+        studies it lowers the ES median in 23 and the presets' ES error by 0.14–0.18 mm; it
         lengthens the extrapolated apical twist on some and loses an akinetic sector's tracks on
         one (README, 'Tag tracking against the truth').
     **detect_kwargs
