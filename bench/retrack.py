@@ -41,6 +41,12 @@ moves a segment's solved motion, its own tracks' or the rest's.
 ES, the tracks kept, the in-plane error of each reported point against its ED material line's
 crossing, split radial / circumferential and pooled by ED wall quarter and AHA segment, and the
 median error per phase; ``--no-solve`` only tracks (seconds per study).
+
+``--strain`` adds ``bench/strain.py``'s ES strain comparison and wall-motion findings
+(:func:`strain_errors`) of the re-solved motion and, beside it, of the truth's motion of the same
+particles: with ``--ideal`` it tells a strain error of the tracker (ideal points right) from one
+of the solver (ideal points wrong) and from one of the analysis and its frame (truth motion
+wrong).
 """
 
 from __future__ import annotations
@@ -113,7 +119,8 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
     """
     Solve every phase as the solver node does.
 
-    Keywords MotionTracker does not take are set as its attributes (``prescreen``, ...).
+    Keywords MotionTracker does not take are set as its attributes (``prescreen``, ...). Returns
+    the tracker, phase → positions and phase → (verdict level, reasons, RMS residual mm).
     """
     import inspect
 
@@ -139,10 +146,10 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
         try:
             sol = tr.solve(p, sets.get(p, {}), n)
         except ValueError as exc:
-            verdicts[p] = (FAILED, f'not solved: {exc}')
+            verdicts[p] = (FAILED, f'not solved: {exc}', 0.0)
             continue
         positions[p] = sol.positions
-        verdicts[p] = (sol.state.verdict, sol.state.verdict_reasons)
+        verdicts[p] = (sol.state.verdict, sol.state.verdict_reasons, sol.state.residual)
     return tr, positions, verdicts
 
 
@@ -475,6 +482,36 @@ def protocol_period_mm(case: Path) -> float | None:
     return float(value) if value else None
 
 
+def strain_errors(case: Path, rest, rotation, positions, verdicts, motion) -> dict:
+    """
+    Return the ES strain errors and the findings of the re-solve, and of the truth's motion.
+
+    ``strain``: ``bench/strain.py``'s comparison (:func:`strain.brief`) of the solved motion,
+    analysed as the analysis node does (:func:`strain.ours_from_positions`); ``strain_truth``:
+    the same for the truth's motion of the same ED particles in the same frame (no motion error:
+    what the analysis, its frame and its segments make of perfect motion). Empty when the study
+    has no regional truth or its ES phase was not solved.
+    """
+    import strain as bench_strain
+
+    gt = json.loads((case / 'study' / 'groundtruth.json').read_text()).get('regional')
+    if not gt or int(gt['phase']) not in positions:
+        return {}
+    es = int(gt['phase'])
+    exact = {p: motion.position(rest, p) for p in positions}
+    return {
+        name: bench_strain.brief(
+            bench_strain.compare(
+                gt, bench_strain.ours_from_positions(rest, rotation, pos, es, states)
+            )
+        )
+        for name, pos, states in (
+            ('strain', positions, verdicts),
+            ('strain_truth', exact, None),
+        )
+    }
+
+
 def replay_case(
     case: Path,
     tracker_kwargs=None,
@@ -483,6 +520,7 @@ def replay_case(
     tracks: bool = False,
     ideal_segments=None,
     solve_phases: bool = True,
+    strain: bool = False,
 ) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / 'run' / 'run.mcap')
@@ -524,11 +562,16 @@ def replay_case(
         },
         'coverage': round(acc['coverage'], 3),
         'solved': f'{len(positions)}/{max(sets) + 1}',
-        'degraded': sorted(p for p, (v, _) in verdicts.items() if OK < v < FAILED),
-        'failed': sorted(p for p, (v, _) in verdicts.items() if v >= FAILED),
+        'degraded': sorted(p for p, (v, *_) in verdicts.items() if OK < v < FAILED),
+        'failed': sorted(p for p, (v, *_) in verdicts.items() if v >= FAILED),
         'worst_phase_median_mm': round(max(r['median_mm'] for r in acc['per_phase']), 3),
         **segment_errors(case, tr.rest, positions, truth),
         **segment_tracks(case, sets, truth),
+        **(
+            strain_errors(case, tr.rest, state.rotation, positions, verdicts, truth)
+            if strain
+            else {}
+        ),
         **report,
         'track_s': round(t1 - t0, 1),
         'solve_s': round(time.monotonic() - t1, 1),
@@ -578,6 +621,12 @@ def main():
     ap.add_argument(
         '--no-solve', action='store_true', help='track only (with --tracks: the tracker alone)'
     )
+    ap.add_argument(
+        '--strain',
+        action='store_true',
+        help='add the ES strain errors and wall-motion findings against the truth '
+        '(bench/strain.py), of the re-solve and of the truth motion',
+    )
     args = ap.parse_args()
     if args.ideal_segments and args.ideal == 'every-track':
         ap.error('--ideal-segments moves the tracked points only: use it with --ideal tracks')
@@ -596,6 +645,7 @@ def main():
                     tracks=args.tracks,
                     solve_phases=not args.no_solve,
                     ideal_segments=args.ideal_segments,
+                    strain=args.strain,
                 )
                 | ({'tracker': kw[0]} if kw[0] else {})
                 | ({'solver': kw[1]} if kw[1] else {})

@@ -118,6 +118,97 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     }
 
 
+def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> dict:
+    """
+    Return :func:`compare`'s ``ours`` for motion not published by a run (an offline re-solve).
+
+    The analysis node's steps, offline: :class:`LVAnalyzer` on the ED cloud and its frame, MLS
+    strain of every phase's positions, the solver's verdict merged with the analysis', the
+    findings streamed in phase order.
+
+    Parameters
+    ----------
+    ed : ndarray, shape (N, 3)
+        ED particle positions, mm.
+    rotation : array_like, shape (4,)
+        The registered model's rotation quaternion (w, x, y, z): the LV frame's axes.
+    positions : dict
+        phase → positions, shape (N, 3), mm (phases not solved are left out).
+    es : int
+        The phase compared (the truth's ES).
+    states : dict, optional
+        phase → (verdict level, verdict text, RMS residual mm) of the solver; default ok and 0.
+
+    Returns
+    -------
+    dict
+        As :func:`ours_at_es`: the segments and globals from the analysis of ``positions[es]``.
+
+    Raises
+    ------
+    ValueError
+        ``es`` not among the phases of ``positions``.
+
+    """
+    from mlv_ros.core.analysis import LVAnalyzer, LVFrame, segment_findings
+    from mlv_ros.core.analysis.frame import lv_frame_axes
+    from mlv_ros.core.verdict import Verdict
+
+    if es not in positions:
+        raise ValueError(f'no motion at the ES phase {es}')
+    an = LVAnalyzer(ed, LVFrame(*lv_frame_axes(ed, rotation)))
+    n = max(positions) + 1
+    phases = []
+    for p in sorted(positions):
+        level, text, residual = (states or {}).get(p, (0, '', 0.0))
+        m = an.phase(positions[p], phase_index=p, num_phases=n, residual_mm=residual)
+        v = Verdict.from_parts(level, text).merge(Verdict.from_parts(m.verdict, m.verdict_reasons))
+        m.verdict, m.verdict_reasons = v.level, v.text
+        phases.append(m)
+    at = next(m for m in phases if m.phase_index == es)
+    st = an.strain(positions[es])
+    segs = {c: np.asarray(getattr(at, f'segment_{c}')) for c in COMPONENTS}
+    found = segment_findings(phases)
+    return {
+        'segments': segs,
+        'count': np.asarray(at.segment_count),
+        'published': False,
+        'global': {c: float(np.nanmean(st[c[1:]])) for c in COMPONENTS},
+        'reanalysis': segs,
+        'classes': found.classes,
+        'findings': found,
+    }
+
+
+def brief(result: dict) -> dict:
+    """
+    Return the headline of a :func:`compare` result (one JSON line).
+
+    ``global_error`` per component, ``ecc_within_0.05``, ``signs`` right / checked, the
+    akinetic + dyskinetic segments found (``tp``, ``fn``, ``fp``, indeterminate abnormal),
+    ``classes``: truth -> our class of every segment that is abnormal in either, and ``must``.
+    """
+    cls = result['classification'] or {}
+    return {
+        'global_error': {c: result['global'][c]['error'] for c in COMPONENTS},
+        'ecc_within_0.05': result['segments']['ecc_within_0.05'],
+        'signs': f'{result["signs"]["right"]}/{result["signs"]["checked"]}',
+        'found': {
+            k: cls.get(v)
+            for k, v in (
+                ('tp', 'true_positive'),
+                ('fn', 'false_negative'),
+                ('fp', 'false_positive'),
+                ('indeterminate', 'indeterminate_abnormal'),
+            )
+        },
+        'classes': {
+            s['segment']: f'{s["truth"]} -> {s["ours"]}' for s in cls.get('per_segment', ())
+        },
+        'must': result['must'],
+    }
+
+
 def compare(truth: dict, ours: dict) -> dict:
     """Strain errors of one case (see the module docstring)."""
     seg = truth['segments']
