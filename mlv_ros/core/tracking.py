@@ -1292,7 +1292,7 @@ class MotionTracker:
         for the mean gradient, 0.61° / 2.11° for the gradient over the half span nearest the
         end, 0.63° / 2.10° for the average of the end and mean gradients and 1.69° / 3.16° for
         the span's least-squares line itself (the end gradient was the steeper in all 24); on
-        the unseen 3000–3004 1.02° / 1.94° against 1.27° / 2.39° at best. Their truth steepens
+        the unseen 3000–3005 0.72° / 1.94° against 0.92° / 2.39° at best. Their truth steepens
         toward the apex; on synthetic profiles that are linear or flatten there, with the lowest
         slice's twist misread by 1°, the rule stays within the stated uncertainty
         (``test_extrapolated_twist_stays_within_its_stated_uncertainty``). What leaves the largest
