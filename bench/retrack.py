@@ -47,6 +47,12 @@ median error per phase; ``--no-solve`` only tracks (seconds per study).
 particles: with ``--ideal`` it tells a strain error of the tracker (ideal points right) from one
 of the solver (ideal points wrong) and from one of the analysis and its frame (truth motion
 wrong).
+
+``--twist`` adds the ES twist per analysis level (:func:`twist_levels`): the solved and the
+true twist, their difference, the levels the SA stack spans and each extrapolated level's
+distance beyond it (its lever), and the same difference with the twist function alone (the
+global stage and the twist function, no local stage), which separates what the extrapolation
+does from what the local stage does to it.
 """
 
 from __future__ import annotations
@@ -473,6 +479,67 @@ def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
     return out
 
 
+def twist_levels(tr, sets, cloud, state, positions, truth, span) -> dict:
+    """
+    Return the ES twist per analysis level against the truth, with and without the local stage.
+
+    Parameters
+    ----------
+    tr : MotionTracker
+        The tracker that solved every phase.
+    sets : dict
+        ``{phase: {(view, slice): TagPointSet}}``, as solved.
+    cloud, state
+        The registered cloud and model state (to solve again up to ES without the local stage).
+    positions : dict
+        Solved positions per phase, mm.
+    truth : LVMotion
+        The ground truth.
+    span : (float, float) or None
+        Levels the SA planes with tag points cross (0 apex … 1 base).
+
+    Returns
+    -------
+    dict
+        ``twist_levels``: level centres; ``twist_true_deg``, ``twist_level_error_deg`` and
+        ``twist_level_error_no_local_deg`` per level (degrees, solved − true);
+        ``twist_span``; ``twist_lever``: per level, its distance beyond the span (0 inside),
+        in fractions of the LV's length.
+
+    """
+    from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+    from mlv_ros.core.analysis.frame import lv_frame_axes
+
+    es, n = int(round(truth.es_phase)), max(sets) + 1
+    if es not in positions:
+        return {}
+    analyzer = LVAnalyzer(tr.rest, LVFrame(*lv_frame_axes(tr.rest, state.rotation)))
+
+    def twist(x):
+        return analyzer.phase(x, phase_index=es, num_phases=n).twist_deg
+
+    true = twist(truth.position(tr.rest, es))
+    _, global_only, _ = solve(
+        {p: sets[p] for p in sets if p <= es}, cloud, state, local=False
+    )
+    levels = analyzer.phase(positions[es], phase_index=es, num_phases=n).level_position
+    lever = (
+        np.zeros(len(levels))
+        if span is None
+        else np.maximum(np.maximum(span[0] - levels, levels - span[1]), 0.0)
+    )
+    return {
+        'twist_levels': np.round(levels, 3).tolist(),
+        'twist_true_deg': np.round(true, 2).tolist(),
+        'twist_level_error_deg': np.round(twist(positions[es]) - true, 2).tolist(),
+        'twist_level_error_no_local_deg': (
+            np.round(twist(global_only[es]) - true, 2).tolist() if es in global_only else None
+        ),
+        'twist_span': None if span is None else [round(v, 3) for v in span],
+        'twist_lever': np.round(lever, 3).tolist(),
+    }
+
+
 def protocol_period_mm(case: Path) -> float | None:
     """Tag period of a simulated study (its ``protocol.yaml``), mm; None when not recorded."""
     f = case / 'study' / 'protocol.yaml'
@@ -521,6 +588,7 @@ def replay_case(
     ideal_segments=None,
     solve_phases: bool = True,
     strain: bool = False,
+    twist: bool = False,
 ) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / 'run' / 'run.mcap')
@@ -551,6 +619,12 @@ def replay_case(
     }
     acc = motion_accuracy(run, truth)
     es = acc['es'] or {}
+    if twist:
+        from mlv_ros.core.analysis import LVFrame
+        from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
+
+        span = plane_level_span(LVFrame(*lv_frame_axes(tr.rest, state.rotation)), sa_planes)
+        report |= twist_levels(tr, sets, cloud, state, positions, truth, span)
     return {
         'case': case.name,
         **({'ideal': ideal, 'points_not_ideal': not_ideal} if ideal else {}),
@@ -627,6 +701,12 @@ def main():
         help='add the ES strain errors and wall-motion findings against the truth '
         '(bench/strain.py), of the re-solve and of the truth motion',
     )
+    ap.add_argument(
+        '--twist',
+        action='store_true',
+        help='report the ES twist per level against the truth, its lever beyond the SA stack, '
+        'and the same without the local stage (twist_levels)',
+    )
     args = ap.parse_args()
     if args.ideal_segments and args.ideal == 'every-track':
         ap.error('--ideal-segments moves the tracked points only: use it with --ideal tracks')
@@ -646,6 +726,7 @@ def main():
                     solve_phases=not args.no_solve,
                     ideal_segments=args.ideal_segments,
                     strain=args.strain,
+                    twist=args.twist,
                 )
                 | ({'tracker': kw[0]} if kw[0] else {})
                 | ({'solver': kw[1]} if kw[1] else {})

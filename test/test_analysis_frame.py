@@ -130,6 +130,7 @@ def test_plane_levels_and_what_twist_is_extrapolated():
         levels_outside,
         plane_level_span,
         twist_extrapolation_note,
+        TWIST_EXTRAPOLATION_DEG_PER_TENTH,
     )
 
     fr = oblique_frame()
@@ -149,7 +150,14 @@ def test_plane_levels_and_what_twist_is_extrapolated():
     # Bins more than half a bin beyond the span: 0.05…0.35 below 0.42, 0.95 above 0.85.
     assert list(np.flatnonzero(levels_outside(centres, (0.42, hi)))) == [0, 1, 2, 3, 9]
     note = twist_extrapolation_note((lo, hi))
-    assert '0.40 and 0.85' in note and 'apical and basal' in note and 'torsion' in note
+    assert '0.40 and 0.85' in note and 'torsion' in note
+    # How far beyond the slices each end's farthest bin lies, and how uncertain its twist is:
+    # apical 0.40 − 0.05, basal 0.95 − 0.85 of the length, at the stated rate per 0.1.
+    rate = TWIST_EXTRAPOLATION_DEG_PER_TENTH
+    assert 'apical levels (up to 0.35 of the length below them' in note, note
+    assert f'about ±{rate["apical"] * 3.5:.1f}°' in note, note
+    assert 'basal levels (up to 0.10 of the length above them' in note, note
+    assert f'about ±{rate["basal"] * 1.0:.1f}°' in note, note
     assert 'apical' in twist_extrapolation_note(
         (0.3, 0.97)
     ) and 'basal' not in twist_extrapolation_note((0.3, 0.97))
