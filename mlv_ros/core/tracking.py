@@ -1114,7 +1114,11 @@ class MotionTracker:
         kappa, alpha = self._multipliers()
         # Near-incompressibility of the whole deformation (myocardium keeps its volume): the
         # linearised volume change of F = F_g + ∇δ, J_g (1 + F_g⁻ᵀ : ∇δ) − 1, is penalised.
-        Fg = np.eye(3) + op.gradient(x_global - self.rest)
+        # The global field's gradient and the warm start's (CG's first residual) in one pass.
+        start = self.delta is not None and np.any(self.delta)
+        fields = (x_global - self.rest, self.delta) if start else (x_global - self.rest,)
+        grads = op.apply(*fields)
+        Fg = np.eye(3) + grads[0].reshape(-1, 3, 3).transpose(0, 2, 1)
         C, Jg = cofactors_3x3(Fg)  # cofactor J_g F_g⁻ᵀ of F_g
         C[np.abs(Jg) <= 1e-6] = 0.0
         # Local longitudinal stretch (along the fitted long axis) costs kl; see
@@ -1139,9 +1143,15 @@ class MotionTracker:
         )
         self._phase_coarse = system.coarse_correction
         r = np.einsum('kab,kb->ka', P, targets - phi @ x_global)
-        rhs = kappa * (phi.T @ r) + system.constant_force()
+        rhs, residual = system.right_hand_side(
+            kappa * (phi.T @ r), self.delta if start else None, grads[-1] if start else None
+        )
         delta, its = system.solve(
-            rhs, self.delta, rtol=self.cg_rtol if rtol is None else rtol, maxiter=self.cg_maxiter
+            rhs,
+            self.delta,
+            rtol=self.cg_rtol if rtol is None else rtol,
+            maxiter=self.cg_maxiter,
+            residual=residual,
         )
         self.cg_iterations.append(its)
         return delta
