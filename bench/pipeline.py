@@ -148,13 +148,15 @@ def split_tracker(tr: MotionTracker) -> CpuSplit:
     """
     Time a tracker's solve by part.
 
-    Parts: ``cg`` (PCG iterations), ``local_setup`` (the system: tangents, blocks, coarse
+    Parts: ``cg`` (PCG iterations), ``cg_start`` (the right-hand side and CG's first residual,
+    :meth:`LocalSystem.right_hand_side`), ``local_setup`` (the system: tangents, blocks, coarse
     factor), ``local_other`` (the rest of a local solve), ``attach`` (control-point weights and
     the inside test), ``global_fit``, ``twist``, ``follow`` (slice following), ``outliers``,
     ``coupling`` and ``other`` (the rest of :meth:`MotionTracker.solve`).
     """
     split = CpuSplit()
     split.wrap(local_module, 'pcg', 'cg')
+    split.wrap(local_module.LocalSystem, 'right_hand_side', 'cg_start')
     split.wrap(tr._local, 'system', 'local_setup')
     for name, part in (
         ('_local_solve', 'local_other'),

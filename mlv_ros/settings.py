@@ -189,7 +189,7 @@ SOLVER_MODEL = (
     ),
     Setting(
         'cg.rtol_following',
-        1e-2,
+        5e-2,
         'CG tolerance of the slice-following passes before the last (the looser of it and '
         'cg.rtol): they only place the tag points for the next pass',
         1e-12,

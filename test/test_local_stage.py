@@ -115,6 +115,36 @@ def test_block_diagonal_is_the_exact_diagonal_block_of_every_term(study):
         tr._local.system(coarse=tr._coarse, coarse_correction=lambda r: r)
 
 
+def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
+    """``right_hand_side`` and ``MLSOperator.apply`` stack columns: the same sums, bit for bit."""
+    _, tr, _ = referenced_tracker(study, n=800)
+    n, rng = tr.num_particles, np.random.default_rng(2)
+    op = tr.model.operator
+    x, x0 = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    gx, gx0 = op.apply(x, x0)
+    assert np.array_equal(gx.reshape(n, 3, 3).transpose(0, 2, 1), op.gradient(x))
+    assert np.array_equal(gx0, op.matrix_csc @ x0)
+    C, J = cofactors_3x3(np.eye(3) + 0.1 * rng.normal(size=(n, 3, 3)))
+    ctrl = tr.model.attach(tr.rest[rng.choice(n, 40, replace=False)])
+    P = plane_projectors(rng.normal(size=(40, 3)), 40)
+    force = rng.normal(size=(n, 3))
+    for fit_error, offsets in ((3.0, J - 1.0), (0.0, J - 1.0), (3.0, None)):
+        system = tr._local.system(
+            fit_error=fit_error,
+            volume=(50.0, C, offsets),
+            axial=(7.0, np.array([0.0, 0.6, 0.8])),
+            data=(2.0, ctrl.weights, P),
+            eps=0.1,
+        )
+        b = force + system.constant_force()
+        for start, grad in ((x0, None), (x0, gx0)):
+            rhs, residual = system.right_hand_side(force, start, grad)
+            assert np.array_equal(rhs, b)
+            assert np.array_equal(residual.ravel(), b.ravel() - system.matvec(x0).ravel())
+        rhs, residual = system.right_hand_side(force, np.zeros((n, 3)))
+        assert residual is None and np.array_equal(rhs, b)
+
+
 def test_cofactors_and_block_inverses_equal_numpys():
     rng = np.random.default_rng(2)
     m = rng.normal(size=(50, 3, 3))

@@ -228,12 +228,29 @@ class ModelCoordinates:
         return ModelCoordinates(self.kind, self.basis[idx], self.twist[idx])
 
 
-def _rz(phi: np.ndarray, v: np.ndarray) -> np.ndarray:
-    c, s = np.cos(phi), np.sin(phi)
-    return np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1)
+def twist_cos_sin(coords: ModelCoordinates, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return ``cos φ`` and ``sin φ`` of each particle's twist angle ``φ = π τ g`` (eq. 2–3).
+
+    :func:`global_shape` and :func:`shape_jacobian` at one ``τ`` share them (``cos_sin``).
+
+    Parameters
+    ----------
+    coords : ModelCoordinates
+        Material coordinates of the particles (their twist coordinate ``g``).
+    tau : float
+        Twist factor.
+
+    Returns
+    -------
+    cos, sin : ndarray, shape (N,)
+
+    """
+    phi = np.pi * tau * coords.twist
+    return np.cos(phi), np.sin(phi)
 
 
-def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
+def global_shape(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.ndarray:
     """
     ``s = T(e(b; a0..a3))`` with twist ``φ = π τ g`` (eq. 1–3).
 
@@ -246,6 +263,8 @@ def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
         ``a0`` (mm) and ``a1, a2, a3`` (dimensionless).
     tau : float
         Twist factor.
+    cos_sin : tuple of ndarray, optional
+        :func:`twist_cos_sin` of ``coords`` at ``tau``, when the caller has it.
 
     Returns
     -------
@@ -255,33 +274,50 @@ def global_shape(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
     """
     a = np.asarray(a, dtype=np.float64)
     e = a[0] * coords.basis * a[1:]
-    return _rz(np.pi * tau * coords.twist, e)
+    c, s = twist_cos_sin(coords, tau) if cos_sin is None else cos_sin
+    out = np.empty_like(e)  # R_z(φ) e, component by component
+    np.subtract(c * e[:, 0], s * e[:, 1], out=out[:, 0])
+    np.add(s * e[:, 0], c * e[:, 1], out=out[:, 1])
+    out[:, 2] = e[:, 2]
+    return out
 
 
-def shape_jacobian(coords: ModelCoordinates, a, tau: float) -> np.ndarray:
-    """``J = ∂s/∂(a0, a1, a2, a3, τ)`` (eq. 7–8, 13), analytic, shape (N, 3, 5)."""
+def shape_jacobian(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.ndarray:
+    """
+    Return ``J = ∂s/∂(a0, a1, a2, a3, τ)`` (eq. 7–8, 13), analytic, shape (N, 3, 5).
+
+    Parameters
+    ----------
+    coords : ModelCoordinates
+        Material coordinates of the particles.
+    a : array_like, shape (4,)
+        ``a0`` (mm) and ``a1, a2, a3``.
+    tau : float
+        Twist factor.
+    cos_sin : tuple of ndarray, optional
+        :func:`twist_cos_sin` of ``coords`` at ``tau``, when the caller has it.
+
+    """
     a = np.asarray(a, dtype=np.float64)
     b = coords.basis
-    phi = np.pi * tau * coords.twist
-    c, s_ = np.cos(phi), np.sin(phi)
-    n = b.shape[0]
-    jac = np.empty((n, 3, 5))
-    ex = np.stack([c, s_, np.zeros(n)], 1)  # Rz(φ) e_x
-    ey = np.stack([-s_, c, np.zeros(n)], 1)  # Rz(φ) e_y
-    ez = np.tile([0.0, 0.0, 1.0], (n, 1))
-    t1, t2, t3 = (
-        (b[:, 0] * a[1])[:, None] * ex,
-        (b[:, 1] * a[2])[:, None] * ey,
-        (b[:, 2] * a[3])[:, None] * ez,
-    )
-    jac[:, :, 0] = t1 + t2 + t3  # = s / a0
-    jac[:, :, 1] = (a[0] * b[:, 0])[:, None] * ex
-    jac[:, :, 2] = (a[0] * b[:, 1])[:, None] * ey
-    jac[:, :, 3] = (a[0] * b[:, 2])[:, None] * ez
-    sh = a[0] * jac[:, :, 0]
-    jac[:, :, 4] = (np.pi * coords.twist)[:, None] * np.stack(
-        [-sh[:, 1], sh[:, 0], np.zeros(n)], 1
-    )
+    c, s_ = twist_cos_sin(coords, tau) if cos_sin is None else cos_sin
+    # Entry by entry (the rotated axes R_z(φ) e_x = (c, s, 0), e_y = (−s, c, 0), e_z): the
+    # same products as scaling the three axes, without their zero entries.
+    jac = np.zeros((b.shape[0], 3, 5))
+    t1, t2, t3 = b[:, 0] * a[1], b[:, 1] * a[2], b[:, 2] * a[3]
+    np.add(t1 * c, t2 * -s_, out=jac[:, 0, 0])  # = s / a0
+    np.add(t1 * s_, t2 * c, out=jac[:, 1, 0])
+    jac[:, 2, 0] = t3
+    a0b = a[0] * b[:, 0]
+    np.multiply(a0b, c, out=jac[:, 0, 1])
+    np.multiply(a0b, s_, out=jac[:, 1, 1])
+    a0b = a[0] * b[:, 1]
+    np.multiply(a0b, -s_, out=jac[:, 0, 2])
+    np.multiply(a0b, c, out=jac[:, 1, 2])
+    np.multiply(a[0], b[:, 2], out=jac[:, 2, 3])
+    pg = np.pi * coords.twist
+    np.multiply(pg, -(a[0] * jac[:, 1, 0]), out=jac[:, 0, 4])
+    np.multiply(pg, a[0] * jac[:, 0, 0], out=jac[:, 1, 4])
     return jac
 
 
@@ -398,12 +434,14 @@ def model_jacobian(
 
     (The block ``R`` acting on ``d`` is handled by the local stage.)
     """
-    s = global_shape(coords, params.a, params.tau)
+    cs = twist_cos_sin(coords, params.tau)
+    s = global_shape(coords, params.a, params.tau, cs)
     n = s.shape[0]
     lmat = np.empty((n, 3, NUM_GLOBAL))
     lmat[:, :, SLICE_C] = np.eye(3)
     lmat[:, :, SLICE_Q] = rotation_jacobian(params.rotation, s + d)
-    lmat[:, :, SLICE_S] = np.matmul(params.matrix, shape_jacobian(coords, params.a, params.tau))
+    jac = shape_jacobian(coords, params.a, params.tau, cs)
+    lmat[:, :, SLICE_S] = np.matmul(params.matrix, jac)
     return lmat
 
 
@@ -429,12 +467,13 @@ def control_jacobian(
         The control points' kernel weights.
 
     """
-    s = global_shape(coords, params.a, params.tau)
+    cs = twist_cos_sin(coords, params.tau)
+    s = global_shape(coords, params.a, params.tau, cs)
     n, m = s.shape[0], phi.shape[0]
     lk = np.empty((m, 3, NUM_GLOBAL))
     lk[:, :, SLICE_C] = (phi @ np.ones(n))[:, None, None] * np.eye(3)
     lk[:, :, SLICE_Q] = rotation_jacobian(params.rotation, phi @ (s + d))
-    jac = (phi @ shape_jacobian(coords, params.a, params.tau).reshape(n, 15)).reshape(m, 3, 5)
+    jac = (phi @ shape_jacobian(coords, params.a, params.tau, cs).reshape(n, 15)).reshape(m, 3, 5)
     lk[:, :, SLICE_S] = np.matmul(params.matrix, jac)
     return lk
 
@@ -457,8 +496,9 @@ def tangent_gram(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarr
         Their local deformation in the model-centred frame, mm.
 
     """
-    p = global_shape(coords, params.a, params.tau) + d
-    jac = shape_jacobian(coords, params.a, params.tau)  # (N, 3, 5)
+    cs = twist_cos_sin(coords, params.tau)
+    p = global_shape(coords, params.a, params.tau, cs) + d
+    jac = shape_jacobian(coords, params.a, params.tau, cs)  # (N, 3, 5)
     r = params.matrix
     gram = np.empty((NUM_TANGENT, NUM_TANGENT))
     gram[0:3, 0:3] = p.shape[0] * np.eye(3)

@@ -374,6 +374,57 @@ class LocalSystem:
             return np.zeros((self.n, 3))
         return -(self.ops._adjoint @ self._offset.reshape(3 * self.n, 3))
 
+    def right_hand_side(self, force: np.ndarray, x0=None, gradient_x0=None):
+        """
+        Return ``b = force +`` :meth:`constant_force` and the residual ``b − A x0`` of a start.
+
+        Both from one adjoint product: the stresses of ``x0`` and the incompressibility offsets
+        stacked as six columns (scipy's kernel then reads the matrix once; each column's sums
+        are the ones :meth:`matvec` and :meth:`constant_force` make, bit for bit). 2.1 against
+        3.0 ms for the two products at 3000 particles.
+
+        Parameters
+        ----------
+        force : ndarray, shape (N, 3)
+            The data springs' part of the right-hand side.
+        x0 : ndarray, shape (N, 3), optional
+            The start :meth:`solve` will take; None or zero: no residual (CG starts from b).
+        gradient_x0 : ndarray, shape (3N, 3), optional
+            ``D x0`` in the operator's layout, when the caller has it
+            (:meth:`~mlv_ros.core.meshless.mls.MLSOperator.apply`).
+
+        Returns
+        -------
+        b : ndarray, shape (N, 3)
+        residual : ndarray, shape (N, 3) or None
+            ``b − A x0``; None without a non-zero start.
+
+        """
+        n, ops = self.n, self.ops
+        force = np.asarray(force, dtype=np.float64)
+        if x0 is None or not np.any(x0):
+            return force + self.constant_force(), None
+        u = np.asarray(x0, dtype=np.float64).reshape(n, 3)
+        g = ops.operator.matrix_csc @ u if gradient_x0 is None else gradient_x0
+        cols = 3 if self._offset is None else 6
+        rows = 4 * n if self.fit_error else 3 * n
+        stacked = np.zeros((rows, cols))
+        stacked[:3 * n, :3] = np.matmul(self._tangent, g.reshape(n, 9, -1)).reshape(3 * n, 3)
+        if self._offset is not None:
+            stacked[:3 * n, 3:] = self._offset.reshape(3 * n, 3)
+        if self.fit_error:
+            stacked[3 * n:, :3] = u
+            out = ops.adjoint_with_laplacian(self.fit_error) @ stacked
+        else:
+            out = ops._adjoint @ stacked
+        ax = np.array(out[:, :3])  # A x0, summed as matvec sums it
+        if self.eps:
+            ax += self.eps * u
+        if self._data is not None:
+            ax += self.data_force(u)
+        b = force + (np.zeros((n, 3)) if self._offset is None else -out[:, 3:])
+        return b, b - ax
+
     def precondition(self, r: np.ndarray) -> np.ndarray:
         """
         Return ``M⁻¹ r`` for a flat residual (3N,).
@@ -395,6 +446,7 @@ class LocalSystem:
         rtol: float = 1e-3,
         atol: float = 0.0,
         maxiter: int = 400,
+        residual: np.ndarray | None = None,
     ) -> tuple[np.ndarray, int]:
         """
         Preconditioned CG on ``A u = rhs`` (:func:`pcg`, :meth:`precondition`).
@@ -407,6 +459,8 @@ class LocalSystem:
             Warm start.
         rtol, atol, maxiter :
             Stop when ``‖r‖ ≤ max(rtol ‖rhs‖, atol)`` or after ``maxiter`` iterations.
+        residual : ndarray, shape (N, 3), optional
+            ``rhs − A x0`` (:meth:`right_hand_side`), instead of a product here.
 
         Returns
         -------
@@ -423,6 +477,7 @@ class LocalSystem:
             rtol=rtol,
             atol=atol,
             maxiter=maxiter,
+            r0=None if residual is None else np.ravel(residual),
         )
         return x.reshape(n, 3), its
 
@@ -694,6 +749,7 @@ def pcg(
     rtol: float = 1e-3,
     atol: float = 0.0,
     maxiter: int = 400,
+    r0: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """
     Solve ``A x = b`` by preconditioned conjugate gradients without BLAS inner products.
@@ -717,6 +773,8 @@ def pcg(
         Relative and absolute tolerances on the residual norm ``‖r‖``.
     maxiter : int
         Most iterations.
+    r0 : ndarray, shape (n,), optional
+        ``b − A x0`` when the caller has it (used only with a non-zero ``x0``).
 
     Returns
     -------
@@ -733,7 +791,7 @@ def pcg(
         x, r = np.zeros_like(b), b.copy()
     else:
         x = np.array(x0, dtype=np.float64)
-        r = b - matvec(x)
+        r = b - matvec(x) if r0 is None else np.array(r0, dtype=np.float64)
     p = rho_prev = None
     for it in range(int(maxiter)):
         if np.sqrt(_dot(r, r)) < tol:

@@ -424,9 +424,16 @@ class _FitData:
 
     def restrict(self, model) -> None:
         """Restrict the kernel weights and coordinates to the supported particles."""
-        phi = self.ctrl.weights
-        self.support = np.flatnonzero(np.bincount(phi.indices, minlength=phi.shape[1]))
-        self.phi_s = phi[:, self.support].tocsr()
+        phi = sp.csr_matrix(self.ctrl.weights)
+        n = phi.shape[1]
+        self.support = np.flatnonzero(np.bincount(phi.indices, minlength=n))
+        # The columns renumbered in place of phi[:, support]: the same entries in the same order
+        # (the support keeps the columns' order), without scipy's column indexing.
+        column = np.zeros(n, dtype=phi.indices.dtype)
+        column[self.support] = np.arange(self.support.size, dtype=phi.indices.dtype)
+        self.phi_s = sp.csr_matrix(
+            (phi.data, column[phi.indices], phi.indptr), shape=(phi.shape[0], self.support.size)
+        )
         self.coords_s = model.coords.subset(self.support)
 
     @cached_property
