@@ -50,14 +50,15 @@ import json
 from pathlib import Path
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
 
-BIN = Path(sys.executable).parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _graph_case import run_dicom, simulate  # noqa: E402, I100
+
 COMPONENTS = ('err', 'ecc', 'ell')
 #: The issue's must-criteria.
 MUST_GLOBAL = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
@@ -223,45 +224,17 @@ def run_case(seed: int, out: Path, timeout: float, phases: int | None) -> dict:
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}
     t0 = time.monotonic()
-    cmd = [
-        str(BIN / 'mlv-ros'),
-        'simulate',
-        '--random',
-        str(seed),
-        '--out',
-        str(study),
-        '--no-progress',
-    ]
-    if phases:
-        cmd += ['--phases', str(phases)]
-    sim = subprocess.run(cmd, capture_output=True, text=True)
-    if sim.returncode != 0:
-        return case | {'error': f'simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}'}
+    error = simulate(seed, study, *(['--phases', str(phases)] if phases else []))
+    if error:
+        return case | {'error': error}
     truth = json.loads((study / 'groundtruth.json').read_text())['regional']
     case['shape'] = json.loads((study / 'groundtruth.json').read_text())['protocol']['shape']
     case['regions'] = truth['regions']
-    run = subprocess.run(
-        [
-            str(BIN / 'mlv-ros'),
-            'run',
-            '--dicom',
-            str(study / 'dicom'),
-            '--out',
-            str(run_dir),
-            '--quiet',
-            '--timeout',
-            str(timeout),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    run_exit, error = run_dicom(study, run_dir, timeout)
     case['seconds'] = round(time.monotonic() - t0, 1)
-    case['run_exit'] = run.returncode
-    if not (run_dir / 'run.mcap').exists():
-        return case | {
-            'error': f'run exited {run.returncode} without a recording: '
-            f'{run.stderr.strip()[-400:]}'
-        }
+    case['run_exit'] = run_exit
+    if error:
+        return case | {'error': error}
     try:
         ours = ours_at_es(run_dir / 'run.mcap', int(truth['phase']))
     except ValueError as exc:
