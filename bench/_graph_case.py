@@ -23,11 +23,57 @@ underscore keeps it out of ``mlv-ros bench``'s list). Each call runs this interp
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
+import shutil
 import subprocess
 import sys
+import tempfile
 
 BIN = Path(sys.executable).parent
+
+
+def add_case_options(ap) -> None:
+    """
+    Add the options every graph benchmark takes: ``--out``, ``--keep`` and ``--timeout``.
+
+    Parameters
+    ----------
+    ap : argparse.ArgumentParser
+        The benchmark's parser.
+
+    """
+    ap.add_argument(
+        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
+    )
+    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
+    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+
+
+@contextmanager
+def cases_folder(args, name: str):
+    """
+    Yield the folder the cases are written under: ``--out``, or a temporary one.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        With ``out`` and ``keep`` (:func:`add_case_options`).
+    name : str
+        The benchmark's name, in the temporary folder's.
+
+    Yields
+    ------
+    Path
+        The folder; a temporary one is removed afterwards unless ``--keep``.
+
+    """
+    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix=f'mlv-bench-{name}-'))
+    try:
+        yield root
+    finally:
+        if not args.out and not args.keep:
+            shutil.rmtree(root, ignore_errors=True)
 
 
 def mlv_ros(*args: str) -> subprocess.CompletedProcess:

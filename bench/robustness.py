@@ -50,10 +50,8 @@ from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
 import json
 from pathlib import Path
-import shutil
 import statistics
 import sys
-import tempfile
 import time
 
 from mlv_msgs.msg import TagPoints
@@ -63,7 +61,7 @@ from rclpy.serialization import deserialize_message
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _graph_case import run_dicom, simulate  # noqa: E402, I100
+from _graph_case import add_case_options, cases_folder, run_dicom, simulate  # noqa: E402, I100
 
 MUST = {'median_mm': 1.0, 'p95_mm': 2.5, 'twist_error_deg': 2.0}
 # Errors are measured on the model's particles: a model that misses the base scores well on what
@@ -211,11 +209,7 @@ def main():
     ap.add_argument(
         '--seed', type=int, default=1000, help='first protocol seed (cases use seed, seed+1, …)'
     )
-    ap.add_argument(
-        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
-    )
-    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
-    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+    add_case_options(ap)
     ap.add_argument(
         '--jobs',
         type=int,
@@ -238,8 +232,6 @@ def main():
     args = ap.parse_args()
     if args.cases < 1:
         ap.error('--cases must be >= 1')
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-robustness-'))
-    cases = []
 
     def one(seed):
         case = run_case(seed, root / f'case-{seed}', args.timeout, args.abnormal, args.rv)
@@ -264,12 +256,9 @@ def main():
         )
         return case
 
-    try:
+    with cases_folder(args, 'robustness') as root:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             cases = list(pool.map(one, range(args.seed, args.seed + args.cases)))
-    finally:
-        if not args.out and not args.keep:
-            shutil.rmtree(root, ignore_errors=True)
     print(
         json.dumps(
             {

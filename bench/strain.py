@@ -48,16 +48,14 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-import shutil
 import statistics
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _graph_case import run_dicom, simulate  # noqa: E402, I100
+from _graph_case import add_case_options, cases_folder, run_dicom, simulate  # noqa: E402, I100
 
 COMPONENTS = ('err', 'ecc', 'ell')
 #: The issue's must-criteria.
@@ -292,11 +290,7 @@ def main():
         help='skip seeds whose protocol draws no abnormal region (cases still --cases)',
     )
     ap.add_argument('--phases', type=int, default=None, help='fix the phase count (shorter runs)')
-    ap.add_argument(
-        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
-    )
-    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
-    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+    add_case_options(ap)
     args = ap.parse_args()
     if args.cases < 1:
         ap.error('--cases must be >= 1')
@@ -307,9 +301,8 @@ def main():
         if not args.abnormal_only or draw_protocol(s)['abnormal_regions']:
             seeds.append(s)
         s += 1
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-strain-'))
     cases = []
-    try:
+    with cases_folder(args, 'strain') as root:
         for seed in seeds:
             case = run_case(seed, root / f'case-{seed}', args.timeout, args.phases)
             print(
@@ -320,9 +313,6 @@ def main():
                 flush=True,
             )
             cases.append(case)
-    finally:
-        if not args.out and not args.keep:
-            shutil.rmtree(root, ignore_errors=True)
     print(
         json.dumps(
             {
