@@ -229,7 +229,7 @@ SOLVER_MODEL = (
     Setting(
         'outliers.floor_mm',
         3.0,
-        'in-plane tag residual never counted an outlier, mm',
+        'in-plane tag residual never counted an outlier, mm (kept below one tag period, a slip)',
         0.0,
         1000.0,
         keyword='outlier_mm',
