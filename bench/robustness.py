@@ -50,11 +50,8 @@ from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
 import json
 from pathlib import Path
-import shutil
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 
 from mlv_msgs.msg import TagPoints
@@ -63,6 +60,9 @@ from mlv_ros.recording import groundtruth_accuracy
 from rclpy.serialization import deserialize_message
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _graph_case import add_case_options, cases_folder, run_dicom, simulate  # noqa: E402, I100
+
 MUST = {'median_mm': 1.0, 'p95_mm': 2.5, 'twist_error_deg': 2.0}
 # Errors are measured on the model's particles: a model that misses the base scores well on what
 # it has. Passing also needs the model to cover this much of the true myocardium.
@@ -70,7 +70,6 @@ MIN_COVERAGE = 0.9
 GOAL_MEDIAN_MM = 0.5
 # A phase more than this far off (median 3D error, mm) must not be delivered with verdict ok.
 SILENT_MM = 2.0
-BIN = Path(sys.executable).parent
 
 
 def tag_points_per_slice(mcap: Path) -> dict:
@@ -106,52 +105,18 @@ def run_case(
         out.mkdir(parents=True, exist_ok=True)
         (out / 'fixed.yaml').write_text(fixed)
         extra = ['--protocol', str(out / 'fixed.yaml')]
-    sim = subprocess.run(
-        [
-            str(BIN / 'mlv-ros'),
-            'simulate',
-            '--random',
-            str(seed),
-            *extra,
-            '--out',
-            str(study),
-            '--no-progress',
-        ],
-        capture_output=True,
-        text=True,
-    )
+    error = simulate(seed, study, *extra)
     case['simulate_seconds'] = round(time.monotonic() - t0, 1)
-    if sim.returncode != 0:
-        return case | {
-            'error': f'simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}',
-            'pass': False,
-        }
+    if error:
+        return case | {'error': error, 'pass': False}
     case['protocol'] = yaml.safe_load((study / 'protocol.yaml').read_text())
     t0 = time.monotonic()
-    run = subprocess.run(
-        [
-            str(BIN / 'mlv-ros'),
-            'run',
-            '--dicom',
-            str(study / 'dicom'),
-            '--out',
-            str(run_dir),
-            '--quiet',
-            '--timeout',
-            str(timeout),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    run_exit, error = run_dicom(study, run_dir, timeout)
     case['run_seconds'] = round(time.monotonic() - t0, 1)
-    case['run_exit'] = run.returncode
+    case['run_exit'] = run_exit
+    if error:
+        return case | {'error': error, 'pass': False}
     mcap = run_dir / 'run.mcap'
-    if not mcap.exists():
-        return case | {
-            'error': f'run exited {run.returncode} without a recording: '
-            f'{run.stderr.strip()[-400:]}',
-            'pass': False,
-        }
     summary = (
         json.loads((run_dir / 'summary.json').read_text())
         if (run_dir / 'summary.json').exists()
@@ -244,11 +209,7 @@ def main():
     ap.add_argument(
         '--seed', type=int, default=1000, help='first protocol seed (cases use seed, seed+1, …)'
     )
-    ap.add_argument(
-        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
-    )
-    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
-    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+    add_case_options(ap)
     ap.add_argument(
         '--jobs',
         type=int,
@@ -271,8 +232,6 @@ def main():
     args = ap.parse_args()
     if args.cases < 1:
         ap.error('--cases must be >= 1')
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-robustness-'))
-    cases = []
 
     def one(seed):
         case = run_case(seed, root / f'case-{seed}', args.timeout, args.abnormal, args.rv)
@@ -297,12 +256,9 @@ def main():
         )
         return case
 
-    try:
+    with cases_folder(args, 'robustness') as root:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             cases = list(pool.map(one, range(args.seed, args.seed + args.cases)))
-    finally:
-        if not args.out and not args.keep:
-            shutil.rmtree(root, ignore_errors=True)
     print(
         json.dumps(
             {

@@ -48,16 +48,15 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-import shutil
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
 
-BIN = Path(sys.executable).parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _graph_case import add_case_options, cases_folder, run_dicom, simulate  # noqa: E402, I100
+
 COMPONENTS = ('err', 'ecc', 'ell')
 #: The issue's must-criteria.
 MUST_GLOBAL = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
@@ -314,45 +313,17 @@ def run_case(seed: int, out: Path, timeout: float, phases: int | None) -> dict:
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}
     t0 = time.monotonic()
-    cmd = [
-        str(BIN / 'mlv-ros'),
-        'simulate',
-        '--random',
-        str(seed),
-        '--out',
-        str(study),
-        '--no-progress',
-    ]
-    if phases:
-        cmd += ['--phases', str(phases)]
-    sim = subprocess.run(cmd, capture_output=True, text=True)
-    if sim.returncode != 0:
-        return case | {'error': f'simulate exited {sim.returncode}: {sim.stderr.strip()[-400:]}'}
+    error = simulate(seed, study, *(['--phases', str(phases)] if phases else []))
+    if error:
+        return case | {'error': error}
     truth = json.loads((study / 'groundtruth.json').read_text())['regional']
     case['shape'] = json.loads((study / 'groundtruth.json').read_text())['protocol']['shape']
     case['regions'] = truth['regions']
-    run = subprocess.run(
-        [
-            str(BIN / 'mlv-ros'),
-            'run',
-            '--dicom',
-            str(study / 'dicom'),
-            '--out',
-            str(run_dir),
-            '--quiet',
-            '--timeout',
-            str(timeout),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    run_exit, error = run_dicom(study, run_dir, timeout)
     case['seconds'] = round(time.monotonic() - t0, 1)
-    case['run_exit'] = run.returncode
-    if not (run_dir / 'run.mcap').exists():
-        return case | {
-            'error': f'run exited {run.returncode} without a recording: '
-            f'{run.stderr.strip()[-400:]}'
-        }
+    case['run_exit'] = run_exit
+    if error:
+        return case | {'error': error}
     try:
         ours = ours_at_es(run_dir / 'run.mcap', int(truth['phase']))
     except ValueError as exc:
@@ -410,11 +381,7 @@ def main():
         help='skip seeds whose protocol draws no abnormal region (cases still --cases)',
     )
     ap.add_argument('--phases', type=int, default=None, help='fix the phase count (shorter runs)')
-    ap.add_argument(
-        '--out', default=None, help='keep studies and runs here (default: a temporary directory)'
-    )
-    ap.add_argument('--keep', action='store_true', help='keep the temporary directory')
-    ap.add_argument('--timeout', type=float, default=900.0, help='per-run limit, seconds')
+    add_case_options(ap)
     args = ap.parse_args()
     if args.cases < 1:
         ap.error('--cases must be >= 1')
@@ -425,9 +392,8 @@ def main():
         if not args.abnormal_only or draw_protocol(s)['abnormal_regions']:
             seeds.append(s)
         s += 1
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='mlv-bench-strain-'))
     cases = []
-    try:
+    with cases_folder(args, 'strain') as root:
         for seed in seeds:
             case = run_case(seed, root / f'case-{seed}', args.timeout, args.phases)
             print(
@@ -438,9 +404,6 @@ def main():
                 flush=True,
             )
             cases.append(case)
-    finally:
-        if not args.out and not args.keep:
-            shutil.rmtree(root, ignore_errors=True)
     print(
         json.dumps(
             {

@@ -255,16 +255,6 @@ def offered_qos(profiles: list[dict]) -> list[dict]:
     ]
 
 
-def qos_yaml(profiles: list[dict]) -> str:
-    """
-    Return the MCAP channel's ``offered_qos_profiles`` metadata as YAML text.
-
-    :func:`offered_qos` as YAML text (MCAP channel metadata is a string map;
-    ``serialize_rclcpp_qos_vector`` in qos.cpp).
-    """
-    return rosbag2_yaml(offered_qos(profiles))
-
-
 # Policies as rosbag2 wrote them before version 9: rmw's enum values (rmw/types.h).
 _POLICY_NUMBERS = {
     'history': {0: 'system_default', 1: 'keep_last', 2: 'keep_all', 3: 'unknown'},

@@ -35,6 +35,7 @@ the recording with everything received and mark it incomplete.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import json
 import os
 from pathlib import Path
@@ -42,6 +43,7 @@ import signal
 import tempfile
 import threading
 import time
+from typing import Callable
 
 from mlv_ros import graph_table
 from mlv_ros.cli import error_text
@@ -67,6 +69,8 @@ EXIT_INCOMPLETE, EXIT_USAGE, EXIT_UNTRACKED = 1, 2, 3
 SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
 QUIET_S = 0.5  # no graph activity for this long: the phases in flight are done
 DRAIN_QUIET_S, DRAIN_MAX_S = 0.3, 3.0  # the recorder's last take of what is queued
+# The nodes whose counters say when a run is done: source, solver, analyzer.
+GRAPH_ROLES = ('frame_source', 'meshless_solver', 'motion_analyzer')
 
 
 class RunStartError(ValueError):
@@ -555,6 +559,469 @@ def run_graph(
         signals.restore()
 
 
+@dataclass
+class _Running:
+    """
+    A graph that runs: its executor, nodes, the study's phase count, where its lines go.
+
+    Attributes
+    ----------
+    ex : SingleThreadedExecutor
+        Spins the nodes of this process.
+    nodes : dict
+        Node name → node (a :class:`~mlv_ros.graph_process.ChildNode` for one in a process of its
+        own).
+    num_phases : int
+        Phases of the study the frame source holds.
+    t0 : float
+        ``time.monotonic()`` when the context started.
+    progress : callable
+        Called with one line per event worth showing.
+    on_phase : callable
+        Called with (phases analysed, phases in the study).
+    signals : _Signals
+        The signals received.
+
+    """
+
+    ex: object
+    nodes: dict
+    num_phases: int
+    t0: float
+    progress: Callable
+    on_phase: Callable
+    signals: '_Signals'
+
+    def phase_analysed(self, n: int) -> None:
+        """Show that ``n`` phases are analysed."""
+        self.progress(
+            f'[mlv-ros] phase {n}/{self.num_phases} analysed ({time.monotonic() - self.t0:.1f} s)'
+        )
+        self.on_phase(n, self.num_phases)
+
+
+def _graph_parameters(source, mcap, params_file, overrides, namespace, live):
+    """
+    Return the nodes to start, the namespace, the parameters file and each node's parameters.
+
+    Parameters
+    ----------
+    source, params_file, namespace, live
+        As :func:`run_graph`'s.
+    mcap : Path
+        The recording the recorder writes.
+    overrides : dict or None
+        As :func:`run_graph`'s (not modified).
+
+    Returns
+    -------
+    names : list of str
+        The nodes, downstream first (the live view first of all: it sees every phase).
+    namespace : str
+        The full namespace.
+    params_path : Path
+        The parameters file.
+    params : dict
+        Node name → its keyword arguments (:func:`node_parameters`).
+    overrides : dict
+        Node name → its parameters over the file's (those of a node in a process of its own).
+
+    Raises
+    ------
+    RunStartError
+        The parameters file is not one the nodes can read.
+
+    """
+    from mlv_ros import qos
+    from mlv_ros.resources import config_file
+
+    overrides = {k: dict(v) for k, v in (overrides or {}).items()}
+    overrides.setdefault('frame_source', {}).update(source)
+    overrides.setdefault('recorder', {})['output'] = str(mcap)
+    names = GRAPH if live is None else ['live_view', *GRAPH]
+    if live is not None:
+        overrides['live_view'] = {**dict(live), **overrides.get('live_view', {})}
+    namespace = qos.full_namespace(namespace)
+    if namespace != '/':  # /diagnostics is shared: say which graph's node each status is
+        for name in names:
+            overrides.setdefault(name, {})['diagnostic_updater.use_fqn'] = True
+    params_path = Path(params_file) if params_file else config_file('graph.yaml')
+    bad_params = params_error(params_path)
+    if bad_params:
+        raise RunStartError(bad_params)
+    return names, namespace, params_path, node_parameters(params_path, overrides, names), overrides
+
+
+def _claimed_domain(domain_id: int | None, namespace: str) -> int:
+    """
+    Return the domain the run talks on: the one chosen, if no other graph is on it, or its own.
+
+    Raises
+    ------
+    DomainBusyError
+        A domain the user chose holds another mlv_ros graph in ``namespace``.
+
+    """
+    from mlv_ros.domain import claim_domain_id
+
+    domain_id, chosen = _chosen_domain(domain_id)
+    if not chosen:
+        return claim_domain_id()
+    # A domain the user chose may hold another graph (a second run, a launched one): refuse
+    # it before anything is created. A claimed private one is this process's alone.
+    busy = graph_nodes_on(domain_id, namespace=namespace)
+    if busy:
+        raise DomainBusyError(busy_domain_text(domain_id, busy, namespace))
+    return domain_id
+
+
+def _start_nodes(ex, ctx, nodes: dict, names, classes, start: dict, source: dict) -> None:
+    """
+    Start every node into ``nodes`` and have each keep to the input's study.
+
+    Parameters
+    ----------
+    ex : SingleThreadedExecutor
+        Spins the nodes of this process.
+    ctx : rclpy.Context
+        Their context.
+    nodes : dict
+        Filled with node name → node as each starts (what to destroy if one fails).
+    names : list of str
+        The nodes, downstream first, so every subscriber exists before frames flow.
+    classes : dict
+        Node name → its class (:func:`node_class`).
+    start : dict
+        ``domain_id``, ``namespace``, ``params_path``, ``params`` and ``overrides``
+        (:func:`_graph_parameters`).
+    source : dict
+        As :func:`run_graph`'s.
+
+    Raises
+    ------
+    RunStartError
+        A node could not start, or the input has no frames.
+
+    """
+    from mlv_ros.graph_process import ChildNode
+
+    separate = child_nodes()
+    for name in names:
+        if name in separate:  # started now, so it starts while the others do
+            try:
+                nodes[name] = ChildNode.start(
+                    name,
+                    start['domain_id'],
+                    start['namespace'],
+                    start['params_path'],
+                    start['overrides'].get(name, {}),
+                )
+            except OSError as exc:
+                raise RunStartError(f'{name} could not start: {exc.strerror or exc}') from exc
+            continue
+        try:
+            nodes[name] = classes[name](
+                context=ctx, namespace=start['namespace'], **start['params'][name]
+            )
+        except RunInterrupted:
+            raise
+        except Exception as exc:
+            raise RunStartError(f'{name} could not start: {error_text(exc)}') from exc
+        ex.add_node(nodes[name])
+    for name, node in nodes.items():
+        if isinstance(node, ChildNode):
+            why = node.wait_started()
+            if why:
+                raise RunStartError(f'{name} could not start: {why}')
+    src = nodes['frame_source']
+    if not src.frames:
+        raise RunStartError(_no_frames(src, source))
+    # Every node keeps to this study from the start, so another graph's messages are never
+    # taken for ours, even when they come first.
+    for node in nodes.values():
+        node.study.adopt(src.study_id, src.run_id)
+    nodes['recorder'].writer.custom_data.update(study_id=src.study_id, run_id=src.run_id)
+
+
+def _announce(run: _Running, source: dict, mcap, domain_id: int, namespace: str) -> None:
+    """Show what runs: frames, phases, the recording, the domain, the live view, the input."""
+    src = run.nodes['frame_source']
+    where = '' if namespace == '/' else f', namespace {namespace}'
+    run.progress(
+        f'[mlv-ros] {len(src.frames)} frames, {run.num_phases} phases -> {mcap} '
+        f'(ROS_DOMAIN_ID={domain_id}{where}, '
+        f'study {src.study_id}, run {src.run_id})'
+    )
+    if 'live_view' in run.nodes:
+        run.progress(
+            f'[mlv-ros] live view: {run.nodes["live_view"].url} (Foxglove: Open connection, '
+            'Foxglove WebSocket; '
+            f'layout config/foxglove_layout.json)'
+        )
+    if src.not_used or src.left_out or source.get('study'):
+        run.progress(
+            f'[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, '
+            f'{len(src.left_out)} part(s) of the study left out (see not_used / left_out in '
+            'summary.json)'
+        )
+    run.on_phase(0, run.num_phases)
+
+
+def _finished(run: _Running) -> bool:
+    """Return whether every phase is analysed, or attempted (the input all sent)."""
+    from mlv_ros import qos
+
+    src, solver, analyzer = (run.nodes[n] for n in GRAPH_ROLES)
+    if not (src.done and run.num_phases):
+        return False
+    return analyzer.published >= run.num_phases or (
+        solver.next_phase >= run.num_phases
+        and not analyzer.clouds
+        and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.published
+    )  # every phase attempted (some may have failed; diagnostics say which)
+
+
+def _spin(run: _Running, timeout: float) -> tuple[str | None, str | None]:
+    """
+    Spin the graph until it is done, a signal comes, or it fails, stalls or times out.
+
+    Returns
+    -------
+    interrupted : str or None
+        The first signal's name.
+    failed : str or None
+        Why the run failed (a node raised, was stuck, nothing happened, the time ran out).
+
+    """
+    nodes, ex = run.nodes, run.ex
+    src, solver, analyzer = (nodes[n] for n in GRAPH_ROLES)
+    # Longest a healthy graph stays idle: registration and the solver wait this long for input
+    # that may still come before acting on what they have (the solver also for its subscribers),
+    # and the source, before publishing, for its subscribers.
+    waits = [
+        getattr(nodes['registration'], 'ed_timeout_s', 5.0),
+        getattr(solver, 'incomplete_timeout_s', 5.0),
+        getattr(solver, 'wait_timeout_s', 10.0),
+    ]
+    stall_after = {
+        False: 15.0 + max(waits + [getattr(src, 'wait_timeout_s', 30.0)]),
+        True: 15.0 + max(waits),
+    }
+    seen = 0
+    activity, active_at = _activity(nodes), time.monotonic()
+    while True:
+        try:
+            ex.spin_once(timeout_sec=0.05)
+        except Exception as exc:  # a callback raised: that node is gone
+            return None, f'{_raising_node(exc, nodes)} failed: {error_text(exc)}'
+        if analyzer.published > seen:
+            seen = analyzer.published
+            run.phase_analysed(seen)
+        if run.signals.received:
+            return run.signals.first, None
+        failed = _stuck(nodes)
+        if failed or _finished(run):
+            return None, failed
+        now = time.monotonic()
+        if _activity(nodes) != activity:
+            activity, active_at = _activity(nodes), now
+        elif now - active_at > stall_after[src.done]:
+            waiting = (
+                'after the last frame, the solver still waiting for phase '
+                f'{solver.next_phase} of '
+                f'{run.num_phases} (is the input cut short?)'
+                if src.done
+                else 'before the input ended'
+            )
+            return None, (
+                f'nothing happened for {now - active_at:.0f} s {waiting}; {_statuses(nodes)}'
+            )
+        if now - run.t0 > timeout:
+            return None, f'timed out after {timeout:g} s (--timeout); {_statuses(nodes)}'
+
+
+def _wind_down(run: _Running, interrupted, failed, grace: float) -> None:
+    """
+    Let the phases in flight finish, then let the recorder take what was sent.
+
+    After a signal: the input stops, and the graph settles for at most ``grace`` seconds (a
+    second signal stops waiting). After a failure: the input stops. After a run that ended by
+    itself: the last results reach their subscribers. Then only the recorder is spun.
+    """
+    from mlv_ros.graph_process import ChildNode
+
+    src, rec = run.nodes['frame_source'], run.nodes['recorder']
+    if interrupted:
+        src.halt(f'{interrupted} received')
+        run.progress(
+            f'[mlv-ros] {interrupted}: input stopped after {src.published} of '
+            f'{len(src.frames)} frames; '
+            f'finishing the phases in flight (at most {grace:g} s; {interrupted} again '
+            'stops now)'
+        )
+        _settle(
+            run.ex,
+            run.nodes,
+            lambda: len(run.signals.received) > 1,
+            quiet_s=QUIET_S,
+            max_s=grace,
+            on_phase=run.phase_analysed,
+        )
+    elif failed:
+        src.halt('the run failed')
+    else:  # ended by itself: let the last results reach their subscribers
+        _settle(
+            run.ex, run.nodes, lambda: bool(run.signals.received), quiet_s=QUIET_S, max_s=grace
+        )
+    # Only the recorder from here: it takes what was sent, nothing new is computed (a node in
+    # a child process first publishes what it has taken, then ends with its final counts).
+    for name, node in run.nodes.items():
+        if isinstance(node, ChildNode):
+            node.stop()
+        elif name != 'recorder':
+            run.ex.remove_node(node)
+    _settle(
+        run.ex,
+        {'recorder': rec},
+        lambda: False,
+        quiet_s=DRAIN_QUIET_S,
+        max_s=DRAIN_MAX_S,
+        count=lambda: rec.messages_handled,
+    )
+
+
+def _close_recording(run: _Running, mcap, interrupted, failed) -> tuple[bool, str | None]:
+    """
+    Close the recording with the marks that say how the run ended.
+
+    The bag's metadata (metadata.yaml and the file's rosbag2 record) says how the run ended, so
+    the recording alone tells an unfinished run.
+
+    Returns
+    -------
+    complete : bool
+        Every phase analysed, not interrupted, nothing failed.
+    failed : str or None
+        Why the run failed (``failed``, or the recorder's own failure).
+
+    """
+    from mlv_ros import bagio
+
+    rec, analyzer = run.nodes['recorder'], run.nodes['motion_analyzer']
+
+    def outcome():
+        why = failed or (f'recorder: {rec.failure}' if rec.failure else None)
+        done = (
+            not interrupted
+            and not why
+            and bool(run.num_phases)
+            and analyzer.published >= run.num_phases
+        )
+        marks = {
+            'complete': str(done).lower(),
+            **({'interrupted': interrupted} if interrupted else {}),
+            **({'failed': why} if why else {}),
+        }
+        return done, why, marks
+
+    was_closed = rec.writer.closed  # by a write error, before the marks
+    rec.writer.custom_data.update(outcome()[2])
+    rec.finish()
+    complete, failed, marks = outcome()
+    if was_closed or marks != {k: rec.writer.custom_data.get(k) for k in marks}:
+        rec.writer.custom_data.update(marks)
+        try:
+            bagio.write_bag_metadata(mcap, rec.writer)
+        except OSError:
+            pass  # a full disk: the recorder reported it, the summary says so
+    return complete, failed
+
+
+def _run_summary(run: _Running, source: dict, out_dir, mcap, domain_id, namespace, ended) -> dict:
+    """
+    Return the run's summary (see :func:`run_graph`).
+
+    Parameters
+    ----------
+    run : _Running
+        The graph, after :func:`_close_recording`.
+    source, out_dir, namespace
+        As :func:`run_graph`'s.
+    mcap : Path
+        The recording.
+    domain_id : int
+        The domain the run talked on.
+    ended : dict
+        ``complete``, ``interrupted`` and ``failed``: how the run ended.
+
+    Returns
+    -------
+    dict
+        The summary written to ``summary.json``.
+
+    """
+    from mlv_ros.nodes.common import status_text
+
+    nodes = run.nodes
+    src, solver, analyzer = (nodes[n] for n in GRAPH_ROLES)
+    rec = nodes['recorder']
+    summary = {
+        'source': source,
+        'run_dir': str(out_dir),
+        'mcap': str(mcap),
+        'ros_domain_id': domain_id,
+        'namespace': namespace,
+        'study_id': src.study_id,
+        'run_id': src.run_id,
+        'seconds': round(time.monotonic() - run.t0, 2),
+        'frames_published': src.published,
+        'tag_sets_published': nodes['tag_detector'].published,
+        'phases_solved': solver.published,
+        'metrics_published': analyzer.published,
+        'num_phases': run.num_phases,
+        'recorded_messages': rec.writer.message_count,
+        'diagnostics_sent': sum(n.diagnostics_sent for n in nodes.values()),
+        'complete': ended['complete'] and src.input_complete,
+        'interrupted': ended['interrupted'],
+        'failed': ended['failed'],
+        'phases_complete': ended['complete'],
+        **verdict_summary(analyzer.verdicts),
+        'cavity_volume_ml': {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
+        'registration_verdict': registration_summary(nodes['registration']),
+        'segment_origin': segment_origin_summary(nodes['registration']),
+        **twist_summary(solver, analyzer),
+        # the latest ERROR of each node that had one: why an incomplete run is incomplete
+        'last_errors': {
+            name: status_text(n.last_error)
+            for name, n in nodes.items()
+            if n.last_error is not None
+        },
+    }
+    if source.get('source') == 'dicom':
+        # What of the input was used: the study taken and why, what of it was left out (then
+        # the run is not complete), and every series under the folder not used, with why.
+        summary['input_complete'] = src.input_complete
+        summary['dicom_study'] = src.dicom_choice
+        summary['left_out'] = [f'{path}: {why}' for path, why in src.left_out]
+        summary['not_used'] = [f'{path}: {why}' for path, why in src.not_used]
+    other = {name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies}
+    if other:  # another graph on the domain: its messages were reported and left out
+        summary['messages_of_other_studies'] = other
+    if rec.other_graph_statuses:  # /diagnostics of other graphs' nodes, left out of the recording
+        summary['statuses_of_other_graphs'] = rec.other_graph_statuses
+    if 'live_view' in nodes:
+        view = nodes['live_view']
+        summary['live_view'] = {
+            'url': view.url,
+            'phases_shown': view.clouds_served,
+            'phases_not_shown': {str(p): why for p, why in sorted(view.phases_not_shown.items())},
+        }
+    if rec.writer.error is not None:
+        summary['recording_error'] = str(rec.writer.error)
+        summary['messages_not_recorded'] = rec.dropped
+    return summary
+
+
 def _run_graph(
     source,
     out_dir,
@@ -569,85 +1036,31 @@ def _run_graph(
     live=None,
     on_phase=lambda done, total: None,
 ) -> dict:
-    from mlv_ros import bagio, qos
-    from mlv_ros.domain import claim_domain_id
-    from mlv_ros.nodes.common import status_text
-    from mlv_ros.resources import config_file
-    from mlv_ros.graph_process import ChildNode
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     mcap = out_dir / 'run.mcap'
-    overrides = {k: dict(v) for k, v in (overrides or {}).items()}
-    overrides.setdefault('frame_source', {}).update(source)
-    overrides.setdefault('recorder', {})['output'] = str(mcap)
-    names = (
-        GRAPH if live is None else ['live_view', *GRAPH]
-    )  # the live view first: it sees every phase
-    if live is not None:
-        overrides['live_view'] = {**dict(live), **overrides.get('live_view', {})}
-    namespace = qos.full_namespace(namespace)
-    if namespace != '/':  # /diagnostics is shared: say which graph's node each status is
-        for name in names:
-            overrides.setdefault(name, {})['diagnostic_updater.use_fqn'] = True
-    params_path = Path(params_file) if params_file else config_file('graph.yaml')
-    bad_params = params_error(params_path)
-    if bad_params:
-        raise RunStartError(bad_params)
-    params = node_parameters(params_path, overrides, names)
+    names, namespace, params_path, params, overrides = _graph_parameters(
+        source, mcap, params_file, overrides, namespace, live
+    )
     classes = {name: node_class(name) for name in names}
-    domain_id, chosen = _chosen_domain(domain_id)
-    if chosen:
-        # A domain the user chose may hold another graph (a second run, a launched one): refuse
-        # it before anything is created. A claimed private one is this process's alone.
-        busy = graph_nodes_on(domain_id, namespace=namespace)
-        if busy:
-            raise DomainBusyError(busy_domain_text(domain_id, busy, namespace))
-    else:
-        domain_id = claim_domain_id()
+    domain_id = _claimed_domain(domain_id, namespace)
     created = _prepare_out(out_dir)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     t0 = time.monotonic()
     nodes = {}
+    start = {
+        'domain_id': domain_id,
+        'namespace': namespace,
+        'params_path': params_path,
+        'params': params,
+        'overrides': overrides,
+    }
     try:
         ex = SingleThreadedExecutor(context=ctx)
-        separate = child_nodes()
-        for name in names:  # downstream first, so every subscriber exists before frames flow
-            if name in separate:  # started now, so it starts while the others do
-                try:
-                    nodes[name] = ChildNode.start(
-                        name, domain_id, namespace, params_path, overrides.get(name, {})
-                    )
-                except OSError as exc:
-                    raise RunStartError(f'{name} could not start: {exc.strerror or exc}') from exc
-                continue
-            try:
-                nodes[name] = classes[name](context=ctx, namespace=namespace, **params[name])
-            except RunInterrupted:
-                raise
-            except Exception as exc:
-                raise RunStartError(f'{name} could not start: {error_text(exc)}') from exc
-            ex.add_node(nodes[name])
-        src, solver, analyzer, rec = (
-            nodes['frame_source'],
-            nodes['meshless_solver'],
-            nodes['motion_analyzer'],
-            nodes['recorder'],
-        )
-        for name, node in nodes.items():
-            if isinstance(node, ChildNode):
-                why = node.wait_started()
-                if why:
-                    raise RunStartError(f'{name} could not start: {why}')
-        if not src.frames:
-            raise RunStartError(_no_frames(src, source))
-        # Every node keeps to this study from the start, so another graph's messages are never
-        # taken for ours, even when they come first.
-        for node in nodes.values():
-            node.study.adopt(src.study_id, src.run_id)
-        rec.writer.custom_data.update(study_id=src.study_id, run_id=src.run_id)
+        _start_nodes(ex, ctx, nodes, names, classes, start, source)
         signals.starting = False
     except (RunStartError, RunInterrupted):
         # Nothing was spun, so nothing was recorded: leave no empty run behind to block --out.
@@ -660,221 +1073,15 @@ def _run_graph(
             node.destroy_node()
         ctx.try_shutdown()
         raise
-    num_phases = max((f.num_phases for f in src.frames), default=0)
-    where = '' if namespace == '/' else f', namespace {namespace}'
-    progress(
-        f'[mlv-ros] {len(src.frames)} frames, {num_phases} phases -> {mcap} '
-        f'(ROS_DOMAIN_ID={domain_id}{where}, '
-        f'study {src.study_id}, run {src.run_id})'
-    )
-    if live is not None:
-        progress(
-            f'[mlv-ros] live view: {nodes["live_view"].url} (Foxglove: Open connection, '
-            'Foxglove WebSocket; '
-            f'layout config/foxglove_layout.json)'
-        )
-    if src.not_used or src.left_out or source.get('study'):
-        progress(
-            f'[mlv-ros] {src.dicom_choice}; {len(src.not_used)} series under the folder not used, '
-            f'{len(src.left_out)} part(s) of the study left out (see not_used / left_out in '
-            'summary.json)'
-        )
-    on_phase(0, num_phases)
-    # Longest a healthy graph stays idle: registration and the solver wait this long for input
-    # that may still come before acting on what they have (the solver also for its subscribers),
-    # and the source, before publishing, for its subscribers.
-    waits = [
-        getattr(nodes['registration'], 'ed_timeout_s', 5.0),
-        getattr(solver, 'incomplete_timeout_s', 5.0),
-        getattr(solver, 'wait_timeout_s', 10.0),
-    ]
-    stall_after = {
-        False: 15.0 + max(waits + [getattr(src, 'wait_timeout_s', 30.0)]),
-        True: 15.0 + max(waits),
-    }
-    interrupted = failed = None
+    num_phases = max((f.num_phases for f in nodes['frame_source'].frames), default=0)
+    run = _Running(ex, nodes, num_phases, t0, progress, on_phase, signals)
+    _announce(run, source, mcap, domain_id, namespace)
     try:
-        seen = 0
-        activity, active_at = _activity(nodes), time.monotonic()
-        while True:
-            try:
-                ex.spin_once(timeout_sec=0.05)
-            except Exception as exc:  # a callback raised: that node is gone
-                name = _raising_node(exc, nodes)
-                failed = f'{name} failed: {error_text(exc)}'
-                break
-            if analyzer.published > seen:
-                seen = analyzer.published
-                progress(
-                    f'[mlv-ros] phase {seen}/{num_phases} analysed ({time.monotonic() - t0:.1f} s)'
-                )
-                on_phase(seen, num_phases)
-            if signals.received:
-                interrupted = signals.first
-                break
-            failed = _stuck(nodes)
-            if failed:
-                break
-            if src.done and num_phases and analyzer.published >= num_phases:
-                break
-            if (
-                src.done
-                and num_phases
-                and solver.next_phase >= num_phases
-                and not analyzer.clouds
-                and _taken(analyzer, analyzer.topic_name(qos.MOTION)) >= solver.published
-            ):
-                break  # every phase attempted (some may have failed; diagnostics say which)
-            now = time.monotonic()
-            if _activity(nodes) != activity:
-                activity, active_at = _activity(nodes), now
-            elif now - active_at > stall_after[src.done]:
-                waiting = (
-                    'after the last frame, the solver still waiting for phase '
-                    f'{solver.next_phase} of '
-                    f'{num_phases} (is the input cut short?)'
-                    if src.done
-                    else 'before the input ended'
-                )
-                failed = (
-                    f'nothing happened for {now - active_at:.0f} s {waiting}; {_statuses(nodes)}'
-                )
-                break
-            if now - t0 > timeout:
-                failed = f'timed out after {timeout:g} s (--timeout); {_statuses(nodes)}'
-                break
-        if interrupted:
-            src.halt(f'{interrupted} received')
-            progress(
-                f'[mlv-ros] {interrupted}: input stopped after {src.published} of '
-                f'{len(src.frames)} frames; '
-                f'finishing the phases in flight (at most {grace:g} s; {interrupted} again '
-                'stops now)'
-            )
-            _settle(
-                ex,
-                nodes,
-                lambda: len(signals.received) > 1,
-                quiet_s=QUIET_S,
-                max_s=grace,
-                on_phase=lambda n: (
-                    progress(
-                        f'[mlv-ros] phase {n}/{num_phases} analysed '
-                        f'({time.monotonic() - t0:.1f} s)'
-                    ),
-                    on_phase(n, num_phases),
-                ),
-            )
-        elif failed:
-            src.halt('the run failed')
-        else:  # ended by itself: let the last results reach their subscribers
-            _settle(ex, nodes, lambda: bool(signals.received), quiet_s=QUIET_S, max_s=grace)
-        # Only the recorder from here: it takes what was sent, nothing new is computed (a node in
-        # a child process first publishes what it has taken, then ends with its final counts).
-        for name, node in nodes.items():
-            if isinstance(node, ChildNode):
-                node.stop()
-            elif name != 'recorder':
-                ex.remove_node(node)
-        _settle(
-            ex,
-            {'recorder': rec},
-            lambda: False,
-            quiet_s=DRAIN_QUIET_S,
-            max_s=DRAIN_MAX_S,
-            count=lambda: rec.messages_handled,
-        )
-
-        # The bag's metadata (metadata.yaml and the file's rosbag2 record) says how the run
-        # ended, so the recording alone tells an unfinished run.
-        def outcome():
-            why = failed or (f'recorder: {rec.failure}' if rec.failure else None)
-            done = (
-                not interrupted
-                and not why
-                and bool(num_phases)
-                and analyzer.published >= num_phases
-            )
-            return (
-                done,
-                why,
-                {
-                    'complete': str(done).lower(),
-                    **({'interrupted': interrupted} if interrupted else {}),
-                    **({'failed': why} if why else {}),
-                },
-            )
-
-        was_closed = rec.writer.closed  # by a write error, before the marks
-        rec.writer.custom_data.update(outcome()[2])
-        rec.finish()
-        complete, failed, marks = outcome()
-        if was_closed or marks != {k: rec.writer.custom_data.get(k) for k in marks}:
-            rec.writer.custom_data.update(marks)
-            try:
-                bagio.write_bag_metadata(mcap, rec.writer)
-            except OSError:
-                pass  # a full disk: the recorder reported it, the summary says so
-        summary = {
-            'source': source,
-            'run_dir': str(out_dir),
-            'mcap': str(mcap),
-            'ros_domain_id': domain_id,
-            'namespace': namespace,
-            'study_id': src.study_id,
-            'run_id': src.run_id,
-            'seconds': round(time.monotonic() - t0, 2),
-            'frames_published': src.published,
-            'tag_sets_published': nodes['tag_detector'].published,
-            'phases_solved': solver.published,
-            'metrics_published': analyzer.published,
-            'num_phases': num_phases,
-            'recorded_messages': rec.writer.message_count,
-            'diagnostics_sent': sum(n.diagnostics_sent for n in nodes.values()),
-            'complete': complete and src.input_complete,
-            'interrupted': interrupted,
-            'failed': failed,
-            'phases_complete': complete,
-            **verdict_summary(analyzer.verdicts),
-            'cavity_volume_ml': {str(p): round(v, 2) for p, v in sorted(analyzer.volumes.items())},
-            'registration_verdict': registration_summary(nodes['registration']),
-            'segment_origin': segment_origin_summary(nodes['registration']),
-            **twist_summary(solver, analyzer),
-            # the latest ERROR of each node that had one: why an incomplete run is incomplete
-            'last_errors': {
-                name: status_text(n.last_error)
-                for name, n in nodes.items()
-                if n.last_error is not None
-            },
-        }
-        if source.get('source') == 'dicom':
-            # What of the input was used: the study taken and why, what of it was left out (then
-            # the run is not complete), and every series under the folder not used, with why.
-            summary['input_complete'] = src.input_complete
-            summary['dicom_study'] = src.dicom_choice
-            summary['left_out'] = [f'{path}: {why}' for path, why in src.left_out]
-            summary['not_used'] = [f'{path}: {why}' for path, why in src.not_used]
-        other = {
-            name: sum(n.other_studies.values()) for name, n in nodes.items() if n.other_studies
-        }
-        if other:  # another graph on the domain: its messages were reported and left out
-            summary['messages_of_other_studies'] = other
-        if (
-            rec.other_graph_statuses
-        ):  # /diagnostics of other graphs' nodes, left out of the recording
-            summary['statuses_of_other_graphs'] = rec.other_graph_statuses
-        if live is not None:
-            view = nodes['live_view']
-            summary['live_view'] = {
-                'url': view.url,
-                'phases_shown': view.clouds_served,
-                'phases_not_shown': {
-                    str(p): why for p, why in sorted(view.phases_not_shown.items())
-                },
-            }
-        if rec.writer.error is not None:
-            summary['recording_error'] = str(rec.writer.error)
-            summary['messages_not_recorded'] = rec.dropped
+        interrupted, failed = _spin(run, timeout)
+        _wind_down(run, interrupted, failed, grace)
+        complete, failed = _close_recording(run, mcap, interrupted, failed)
+        ended = {'complete': complete, 'interrupted': interrupted, 'failed': failed}
+        summary = _run_summary(run, source, out_dir, mcap, domain_id, namespace, ended)
     finally:
         for node in nodes.values():
             node.destroy_node()

@@ -16,8 +16,9 @@
 Node parameters as tables of :class:`Setting` records: name, default, description, range.
 
 A node declares its table (:meth:`mlv_ros.nodes.common.GraphNode.declare_settings`); ``mlv-ros
-run`` checks its options against the same ranges, so a range is written once. Pure Python (no
-rclpy, no numpy at import): the command line reads it before anything heavy is loaded.
+run`` checks its options against the same ranges, and :class:`~mlv_ros.core.tracking.MotionTracker`
+its keyword arguments (:func:`check_keywords`), so a range is written once. Pure Python (no rclpy,
+no numpy at import): the command line reads it before anything heavy is loaded.
 
 The solver's model parameters are grouped as navigation2 groups its own (``twist.knots``,
 ``local.fit_error_weight``, ...; in a parameters file, nested maps: ``twist: {knots: 11}``). Each
@@ -28,6 +29,7 @@ grouped: a value given under that name is refused at start-up, naming the groupe
 
 from __future__ import annotations
 
+import numbers
 from typing import Callable, NamedTuple
 
 
@@ -64,6 +66,33 @@ class Setting(NamedTuple):
     def attribute(self) -> str:
         """Return where the value goes: the node attribute, the core keyword argument."""
         return self.keyword or self.name
+
+    def error(self, value) -> str | None:
+        """
+        Return why ``value`` is refused (its type, range or ``check``), or None when it is taken.
+
+        Parameters
+        ----------
+        value : object
+            A value for this setting: an integer for an integer setting, a real number for a
+            float one (NaN is outside every range).
+
+        Returns
+        -------
+        str or None
+            The reason, one line (e.g. ``must be from 1e-12 to 0.5``), or None.
+
+        """
+        number = isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
+        if number:
+            integer = isinstance(self.default, int)
+            if isinstance(value, bool) or not isinstance(
+                value, numbers.Integral if integer else numbers.Real
+            ):
+                return f'must be {"an integer" if integer else "a number"}'
+            if self.min_value is not None and not self.min_value <= value <= self.max_value:
+                return f'must be from {self.min_value:g} to {self.max_value:g}'
+        return None if self.check is None else self.check(value)
 
 
 def _twist_knots_error(value) -> str | None:
@@ -200,7 +229,7 @@ SOLVER_MODEL = (
     Setting(
         'outliers.floor_mm',
         3.0,
-        'in-plane tag residual never counted an outlier, mm',
+        'in-plane tag residual never counted an outlier, mm (kept below one tag period, a slip)',
         0.0,
         1000.0,
         keyword='outlier_mm',
@@ -298,3 +327,32 @@ def setting(table, name: str) -> Setting:
         if s.name == name:
             return s
     raise KeyError(name)
+
+
+def check_keywords(table, values: dict) -> None:
+    """
+    Check keyword arguments against the settings they come from: one range for node and core.
+
+    Parameters
+    ----------
+    table : tuple of Setting
+        E.g. :data:`SOLVER_MODEL`; each setting checks the value of its keyword
+        (:attr:`Setting.attribute`) in ``values``.
+    values : dict
+        Keyword → value; keywords the table does not name are not looked at.
+
+    Raises
+    ------
+    ValueError
+        The first value a setting refuses (:meth:`Setting.error`), naming the keyword, the value,
+        the reason and the node parameter, e.g. ``cg_rtol=0: must be from 1e-12 to 0.5 (node
+        parameter cg.rtol)``.
+
+    """
+    for s in table:
+        if s.attribute in values:
+            why = s.error(values[s.attribute])
+            if why:
+                raise ValueError(
+                    f'{s.attribute}={values[s.attribute]!r}: {why} (node parameter {s.name})'
+                )

@@ -19,14 +19,19 @@ The solver and the analyzer pair the registered cloud with the registered state 
 header stamp (:class:`~mlv_ros.core.streaming.StampPairer`); a pair the solver cannot build on
 (here three particles: the model needs at least five) leaves it ``blocked`` with the reason as
 its latest ERROR, which is what ``mlv-ros run`` ends the run with. So does a frame source that
-gives up waiting for a subscriber with its frames unsent.
+gives up waiting for a subscriber with its frames unsent; one that finds fewer subscribers than
+it waits for publishes to those present, with a WARN (:class:`SubscriberWait`, the solver's and
+the replay's wait too).
 """
+
+import time
 
 from conftest import spin_until
 from graphkit import Probe
+from mlv_msgs.msg import TaggedFrame
 from mlv_ros import conversions, qos
 from mlv_ros.core.types import ModelState, RegisteredModel
-from mlv_ros.nodes.common import status_text
+from mlv_ros.nodes.common import status_text, SubscriberWait, WARN
 from mlv_ros.nodes.frame_source import FrameSource
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.nodes.motion_analyzer import MotionAnalyzer
@@ -97,3 +102,43 @@ def test_a_frame_source_no_one_subscribes_to_is_blocked_with_the_reason(ros_cont
     assert spin_until(executor, lambda: source.done, 15)
     assert source.progress() == {'received': 0, 'published': 0, 'blocked': 1}
     assert 'no subscriber appeared' in status_text(source.last_error)
+
+
+def test_a_subscriber_wait_goes_on_only_with_enough_or_after_its_time_limit():
+    wait = SubscriberWait(2, 5.0)
+    assert wait.poll(2) == SubscriberWait.GO and not wait.waiting
+    assert wait.poll(1) == SubscriberWait.WAIT and wait.waiting  # the wait starts now
+    assert wait.poll(2, ready=False) == SubscriberWait.WAIT  # something else not there yet
+    assert wait.poll(3) == SubscriberWait.GO and not wait.waiting  # enough: the wait ends
+    late = SubscriberWait(2, 5.0, since=time.monotonic() - 6.0)
+    assert late.poll(1) == late.poll(0) == SubscriberWait.LATE
+    assert SubscriberWait(0, 0.0).poll(0) == SubscriberWait.GO  # 0 expected: never waits
+
+
+def test_a_frame_source_with_fewer_subscribers_than_expected_publishes_to_them_and_warns(
+    ros_context, executor
+):
+    source = FrameSource(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter('source', value='pattern'),
+            Parameter('num_phases', value=2),
+            Parameter('wait_for_subscribers', value=2),
+            Parameter('wait_timeout_s', value=0.5),
+            Parameter('exit_when_done', value=False),
+        ],
+    )
+    probe = Probe(ros_context)  # the /diagnostics listener the source also waits for
+    frames = []
+    probe.create_subscription(
+        TaggedFrame, qos.FRAMES, frames.append, qos.subscription_qos(qos.FRAMES)
+    )
+    for node in (source, probe):
+        executor.add_node(node)
+    assert spin_until(executor, lambda: len(frames) == len(source.frames), 20), len(frames)
+    warned = [
+        v for _, level, m, v in probe.statuses() if level == WARN and 'fewer subscribers' in m
+    ]
+    assert warned and warned[0]['matched'] == '1' and warned[0]['expected'] == '2', warned
+    assert source.subscriber_wait.expected == 1  # it waits no more for the absent one
+    assert source.progress()['blocked'] == 0

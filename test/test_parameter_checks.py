@@ -18,7 +18,8 @@ Parameters refused by the node's parameter check with the core's reason, and by 
 Parameters a descriptor's range cannot refuse are refused by the node's parameter check with
 the core's reason: at start-up (the node does not start) and when set at run time. The solver's
 grouped parameters (``twist.knots``) refuse a value given under their former flat names, and
-``config/graph.yaml`` and the README name every parameter the table declares.
+``config/graph.yaml`` and the README name every parameter the table declares. MotionTracker,
+called as a library, refuses what the node refuses, by the same table.
 """
 
 import inspect
@@ -27,7 +28,7 @@ from pathlib import Path
 from mlv_ros.core.tracking import MotionTracker, twist_knots_error
 from mlv_ros.nodes.meshless_solver import MeshlessSolver
 from mlv_ros.resources import config_file
-from mlv_ros.settings import REGISTRATION, Setting, SOLVER_MODEL, SOLVER_STREAM
+from mlv_ros.settings import check_keywords, REGISTRATION, Setting, SOLVER_MODEL, SOLVER_STREAM
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
@@ -112,6 +113,37 @@ def test_the_grouped_names_set_the_model():
     assert differ == []
     assert all(type(s.default) is type(keywords[s.attribute].default) for s in SOLVER_MODEL)
     assert all(s.min_value <= s.default <= s.max_value for s in SOLVER_MODEL)
+
+
+def bad_values(s: Setting) -> list:
+    """Return values the setting ``s`` must refuse: beyond each end, NaN, a wrong type."""
+    step = 1 if isinstance(s.default, int) else max(abs(s.min_value), abs(s.max_value)) * 1e-3
+    bad = [s.min_value - step, s.max_value + step, 'fast', True]
+    return bad + ([s.default + 0.5] if isinstance(s.default, int) else [float('nan')])
+
+
+@pytest.mark.parametrize('s', SOLVER_MODEL, ids=lambda s: s.name)
+def test_the_tracker_refuses_what_the_node_refuses_by_the_same_table(s: Setting):
+    assert s.error(s.min_value) is None or s.check  # a check may refuse an end (twist.knots 1)
+    assert s.error(s.max_value) is None and s.error(s.default) is None
+    for value in bad_values(s):
+        assert s.error(value), value
+        with pytest.raises(ValueError) as refused:
+            MotionTracker(
+                [[0.0, 0.0, 0.0]] * 4,
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0, 0.0],
+                10.0,
+                **{s.attribute: value},
+            )
+        said = str(refused.value)
+        assert said.startswith(f'{s.attribute}=') and s.name in said and '\n' not in said, said
+
+
+def test_keywords_a_table_does_not_name_are_left_to_their_owner():
+    check_keywords(SOLVER_MODEL, {'coarse_aggregates': -1, 'cg_rtol': 2e-3})  # not its to check
+    with pytest.raises(ValueError, match=r'^cg_rtol=0: must be from 1e-12 to 0.5 \(node '):
+        check_keywords(SOLVER_MODEL, {'cg_rtol': 0})
 
 
 def flat(params: dict, prefix: str = '') -> set:

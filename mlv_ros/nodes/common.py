@@ -113,6 +113,87 @@ class Silence:
         return self.seconds
 
 
+class SubscriberWait:
+    """
+    A publisher's wait for its subscribers: up to a time limit, then on with those present.
+
+    A subscriber that matches after a message went out on a VOLATILE topic never gets it, so a
+    node waits for ``expected`` matched subscribers before it publishes; one that never comes must
+    not hold the graph for ever: after ``timeout_s`` the node goes on with those present
+    (:meth:`go_on`: one WARN naming how many it waited for) or gives up.
+
+    Parameters
+    ----------
+    expected : int
+        Matched subscribers to wait for (0: never wait).
+    timeout_s : float
+        Seconds to wait, from ``since`` or from the first :meth:`poll` that finds too few.
+    since : float, optional
+        ``time.monotonic()`` when the wait began (default: at the first poll that waits).
+
+    """
+
+    WAIT, GO, LATE = 'wait', 'go', 'late'
+
+    def __init__(self, expected: int, timeout_s: float, since: float | None = None):
+        self.expected = int(expected)
+        self.timeout_s = float(timeout_s)
+        self.since = since
+
+    @property
+    def waiting(self) -> bool:
+        """Return whether a wait is under way (the last poll did not find enough)."""
+        return self.since is not None
+
+    def poll(self, matched: int, ready: bool = True) -> str:
+        """
+        Return whether to publish now: GO, WAIT, or LATE (the wait ran out).
+
+        Parameters
+        ----------
+        matched : int
+            Subscribers matched now.
+        ready : bool
+            Whatever else the node waits for is there (e.g. a /diagnostics listener).
+
+        Returns
+        -------
+        str
+            GO: ``matched`` ≥ ``expected`` and ``ready`` (the wait ends); WAIT: not yet, within
+            ``timeout_s``; LATE: not yet, and ``timeout_s`` has passed.
+
+        """
+        if matched >= self.expected and ready:
+            self.since = None
+            return self.GO
+        now = time.monotonic()
+        if self.since is None:
+            self.since = now
+        return self.WAIT if now - self.since < self.timeout_s else self.LATE
+
+    def go_on(self, node: 'GraphNode', matched: int) -> None:
+        """
+        Publish to the subscribers present after a LATE poll; wait no more for the absent.
+
+        Parameters
+        ----------
+        node : GraphNode
+            Reports the WARN when fewer than ``expected`` matched.
+        matched : int
+            Subscribers matched now: the new ``expected``.
+
+        """
+        if matched < self.expected:
+            node.report(
+                WARN,
+                'fewer subscribers than expected; publishing anyway',
+                matched=matched,
+                expected=self.expected,
+                waited_s=self.timeout_s,
+            )
+        self.expected = matched
+
+
 class RecentKeys:
     """
     The last ``size`` keys added, each with a value (bounded memory).

@@ -48,7 +48,7 @@ import time
 from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
-from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, SubscriberWait, WARN
 from rclpy.duration import Duration
 
 SOURCES = ('phantom', 'dicom', 'bag', 'pattern')
@@ -238,7 +238,9 @@ class FrameSource(GraphNode):
         self.study.adopt(self.study_id, self.run_id)
         self.published = 0
         self.halted: str | None = None  # why publishing was stopped early (see halt)
-        self._t0 = time.monotonic()
+        self.subscriber_wait = SubscriberWait(
+            self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
+        )
         self._started = None
         self.timer = self.create_timer(0.001, self._tick)
         extra = (
@@ -384,29 +386,21 @@ class FrameSource(GraphNode):
                 or not self.wait_for_subscribers
                 or self.count_subscribers(qos.DIAGNOSTICS) > 0
             )
-            if matched < self.wait_for_subscribers or not heard:
-                if time.monotonic() - self._t0 <= self.wait_timeout_s:
-                    return
-                if matched == 0:
-                    self.report(
-                        ERROR,
-                        'no subscriber appeared; not publishing',
-                        waited_s=self.wait_timeout_s,
-                    )
-                    self.timer.cancel()
-                    self.blocked = 1  # frames left that no one will take
-                    self.stop()
-                    return
+            wait = self.subscriber_wait.poll(matched, ready=heard)
+            if wait == SubscriberWait.WAIT:
+                return
+            if wait == SubscriberWait.LATE and matched == 0:
+                self.report(
+                    ERROR, 'no subscriber appeared; not publishing', waited_s=self.wait_timeout_s
+                )
+                self.timer.cancel()
+                self.blocked = 1  # frames left that no one will take
+                self.stop()
+                return
+            if wait == SubscriberWait.LATE:
                 # Frames are kept for late joiners (TRANSIENT_LOCAL), but a VOLATILE subscriber
                 # that appears later misses them: say so rather than wait for ever.
-                if matched < self.wait_for_subscribers:
-                    self.report(
-                        WARN,
-                        'fewer subscribers than expected; publishing anyway',
-                        matched=matched,
-                        expected=self.wait_for_subscribers,
-                        waited_s=self.wait_timeout_s,
-                    )
+                self.subscriber_wait.go_on(self, matched)
             self._started = time.monotonic()
             self._next_at = self._started
         if self._reports:

@@ -44,7 +44,7 @@ from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
 from mlv_ros.core.streaming import PhaseSchedule
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import LEVEL_NAMES
-from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, WARN
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, Silence, SubscriberWait, WARN
 from mlv_ros.settings import SOLVER_MODEL, SOLVER_STREAM
 import numpy as np
 from sensor_msgs.msg import PointCloud2
@@ -59,7 +59,7 @@ class MeshlessSolver(GraphNode):
         super().__init__('meshless_solver', **node_kwargs)
         # Each setting becomes an attribute named by its core keyword (self.twist_knots ...).
         self.declare_settings(SOLVER_MODEL + SOLVER_STREAM)
-        self._waiting_since = None
+        self.subscriber_wait = SubscriberWait(self.wait_for_subscribers, self.wait_timeout_s)
         self.motion_pub = self.publisher(qos.MOTION, PointCloud2)
         self.state_pub = self.publisher(qos.MODEL_STATE, ModelStateMsg)
         self.subscribe_registration(self._build)  # self.registered
@@ -152,7 +152,7 @@ class MeshlessSolver(GraphNode):
             return
         if self.schedule.waiting() and silent > self.incomplete_timeout_s:
             self._advance(force=True)
-        elif self._waiting_since is not None:
+        elif self.subscriber_wait.waiting:
             self._advance()
 
     def _outputs_ready(self) -> bool:
@@ -165,22 +165,10 @@ class MeshlessSolver(GraphNode):
         matched = min(
             self.motion_pub.get_subscription_count(), self.state_pub.get_subscription_count()
         )
-        if matched >= self.wait_for_subscribers:
-            self._waiting_since = None
-            return True
-        if self._waiting_since is None:
-            self._waiting_since = time.monotonic()
-        if time.monotonic() - self._waiting_since < self.wait_timeout_s:
-            return False
-        self.report(
-            WARN,
-            'fewer subscribers than expected; publishing anyway',
-            matched=matched,
-            expected=self.wait_for_subscribers,
-            waited_s=self.wait_timeout_s,
-        )
-        self.wait_for_subscribers = matched  # once: do not wait again for the same absentees
-        return True
+        state = self.subscriber_wait.poll(matched)
+        if state == SubscriberWait.LATE:
+            self.subscriber_wait.go_on(self, matched)
+        return state != SubscriberWait.WAIT
 
     # ------------------------------------------------------------------ solving
     def _advance(self, force: bool = False) -> None:

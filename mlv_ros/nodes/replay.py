@@ -40,7 +40,7 @@ from __future__ import annotations
 import time
 
 from mlv_ros import bagio, qos
-from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
+from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, SubscriberWait, WARN
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -170,7 +170,9 @@ class Replay(GraphNode):
         self.clocks_published = 0
         self.messages = iter(bagio.read_bag(self.path, topics=list(self.pubs)))
         self.published = 0
-        self._t0 = time.monotonic()
+        self.subscriber_wait = SubscriberWait(
+            self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
+        )
         self._start = None
         self._next = next(self.messages, None)
         self.timer = self.create_timer(0.001, self._tick)
@@ -179,15 +181,14 @@ class Replay(GraphNode):
     def _tick(self):
         if self._start is None:
             matched = sum(p.get_subscription_count() for p in self.pubs.values())
-            if matched < self.wait_for_subscribers:
-                if time.monotonic() - self._t0 > self.wait_timeout_s:
-                    self.report(
-                        ERROR,
-                        'no subscriber appeared; not replaying',
-                        waited_s=self.wait_timeout_s,
-                    )
-                    self.timer.cancel()
-                    self.stop()
+            wait = self.subscriber_wait.poll(matched)
+            if wait == SubscriberWait.LATE:
+                self.report(
+                    ERROR, 'no subscriber appeared; not replaying', waited_s=self.wait_timeout_s
+                )
+                self.timer.cancel()
+                self.stop()
+            if wait != SubscriberWait.GO:
                 return
             self._start = (time.monotonic(), self._next.log_time_ns if self._next else 0)
         while self._next is not None:

@@ -259,11 +259,8 @@ def run(args) -> int:
         return SIGNAL_EXIT[signal.SIGINT]
 
 
-def _run(args) -> int:
-    mistake = check_args(args)
-    if mistake:
-        print(f'mlv-ros run: {mistake}', file=sys.stderr)
-        return EXIT_USAGE
+def _source_and_overrides(args) -> tuple[dict, dict]:
+    """Return the frame source's parameters and the other nodes' overrides the options give."""
     if args.phantom:
         source = {'source': 'phantom', 'preset': args.phantom}
         for key, val in (('snr', args.snr), ('size', args.size), ('num_phases', args.phases)):
@@ -282,52 +279,31 @@ def _run(args) -> int:
         overrides['registration']['num_particles'] = args.particles
     if args.masks:
         overrides['registration']['mask_path'] = str(Path(args.masks).resolve())
-    console = RunConsole(verbose=args.verbose, progress=not (args.no_progress or args.quiet))
-    restore = console.quiet_nodes()
-    try:
-        summary = run_graph(
-            source,
-            Path(args.out),
-            args.params,
-            overrides,
-            args.timeout,
-            progress=console.line,
-            domain_id=args.domain_id,
-            grace=args.grace,
-            namespace=args.namespace,
-            live=({} if args.live_port is None else {'port': args.live_port})
-            if args.live or args.live_port is not None
-            else None,
-            on_phase=console.phase,
-        )
-    except RunInterrupted as exc:
-        print(f'mlv-ros run: {exc}; nothing recorded', file=sys.stderr)
-        return SIGNAL_EXIT[exc.signum]
-    except (
-        FileExistsError,
-        FileNotFoundError,
-        ValueError,
-    ) as exc:  # RunStartError is a ValueError
-        print(f'mlv-ros run: {exc}', file=sys.stderr)
-        return EXIT_USAGE
-    finally:
-        console.close()
-        restore()
+    return source, overrides
+
+
+def _add_accuracy(args, summary: dict) -> None:
+    """Add the accuracy against the truth (a phantom's, a simulated study's) to the summary."""
     truth = find_groundtruth(Path(args.dicom)) if args.dicom else None
-    if (args.phantom or truth) and summary['phases_complete']:
-        acc = (
-            phantom_accuracy(Path(summary['mcap']), args.phantom, summary['num_phases'])
-            if args.phantom
-            else groundtruth_accuracy(Path(summary['mcap']), truth)
-        )
-        summary['accuracy'] = {
-            'es_phase': acc.get('es_phase'),
-            'es': acc.get('es'),
-            'inside_myocardium': acc.get('inside_myocardium'),
-            'coverage': acc.get('coverage'),
-            'per_phase': acc.get('per_phase'),
-        }
-        write_summary(Path(args.out), summary)
+    if not ((args.phantom or truth) and summary['phases_complete']):
+        return
+    acc = (
+        phantom_accuracy(Path(summary['mcap']), args.phantom, summary['num_phases'])
+        if args.phantom
+        else groundtruth_accuracy(Path(summary['mcap']), truth)
+    )
+    summary['accuracy'] = {
+        'es_phase': acc.get('es_phase'),
+        'es': acc.get('es'),
+        'inside_myocardium': acc.get('inside_myocardium'),
+        'coverage': acc.get('coverage'),
+        'per_phase': acc.get('per_phase'),
+    }
+    write_summary(Path(args.out), summary)
+
+
+def _show(args, summary: dict) -> int:
+    """Print the run's summary lines (stdout) and what to make of it (stderr); return the code."""
     if args.verbose:
         print(
             json.dumps(
@@ -367,3 +343,44 @@ def _run(args) -> int:
         # only why, in one line).
         print(f'mlv-ros run: {summary["twist_extrapolated"]}', file=sys.stderr)
     return code
+
+
+def _run(args) -> int:
+    mistake = check_args(args)
+    if mistake:
+        print(f'mlv-ros run: {mistake}', file=sys.stderr)
+        return EXIT_USAGE
+    source, overrides = _source_and_overrides(args)
+    console = RunConsole(verbose=args.verbose, progress=not (args.no_progress or args.quiet))
+    restore = console.quiet_nodes()
+    try:
+        summary = run_graph(
+            source,
+            Path(args.out),
+            args.params,
+            overrides,
+            args.timeout,
+            progress=console.line,
+            domain_id=args.domain_id,
+            grace=args.grace,
+            namespace=args.namespace,
+            live=({} if args.live_port is None else {'port': args.live_port})
+            if args.live or args.live_port is not None
+            else None,
+            on_phase=console.phase,
+        )
+    except RunInterrupted as exc:
+        print(f'mlv-ros run: {exc}; nothing recorded', file=sys.stderr)
+        return SIGNAL_EXIT[exc.signum]
+    except (
+        FileExistsError,
+        FileNotFoundError,
+        ValueError,
+    ) as exc:  # RunStartError is a ValueError
+        print(f'mlv-ros run: {exc}', file=sys.stderr)
+        return EXIT_USAGE
+    finally:
+        console.close()
+        restore()
+    _add_accuracy(args, summary)
+    return _show(args, summary)

@@ -42,13 +42,6 @@ def _as_curve(points, name: str = 'contour') -> np.ndarray:
     return p
 
 
-def arc_length(points, closed: bool = True) -> np.ndarray:
-    """Cumulative arc length at each vertex, shape (K,) (0 at the first); units of ``points``."""
-    p = _as_curve(points)
-    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(seg)])
-
-
 def resample_contour(points, n: int, closed: bool = True) -> np.ndarray:
     """
     Resample a polyline to ``n`` points evenly spaced in arc length.

@@ -294,6 +294,100 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 """
 
 
+def _flagged_phases(run: RunData) -> dict:
+    """Return ``phases_degraded`` / ``phases_failed``: phase index → reasons, of a run."""
+    return {
+        name: {
+            int(p.phase_index): str(getattr(p, 'verdict_reasons', ''))
+            for p in run.phases
+            if int(getattr(p, 'verdict', 0)) == level
+        }
+        for level, name in ((DEGRADED, 'phases_degraded'), (FAILED, 'phases_failed'))
+    }
+
+
+def _figures(out: Path, runs: list, summaries: list) -> tuple[list, list]:
+    """
+    Draw the report's figures into ``out``; a figure that fails is named, never raised.
+
+    Parameters
+    ----------
+    out : Path
+        The report directory.
+    runs : list of RunData
+        The runs, failed phases left out.
+    summaries : list of dict
+        Their :func:`summarize` results.
+
+    Returns
+    -------
+    figures : list of (str, str)
+        File name and caption of each figure drawn.
+    skipped : list of str
+        Each figure not drawn, with why.
+
+    """
+    figures: list[tuple[str, str]] = []
+    skipped: list[str] = []
+
+    def attempt(name: str, caption: str, fn):
+        try:
+            p = fn()
+        except Exception as exc:  # a figure must never take the report down; say why instead
+            log.exception('report figure %s failed', name)
+            skipped.append(f'{name} failed: {type(exc).__name__}: {exc}')
+            return
+        if p is not None:
+            figures.append((Path(p).name, caption))
+
+    with_phases = [r for r, s in zip(runs, summaries) if s['phases_present']]
+    if with_phases:
+        attempt(
+            'level_curves.png',
+            'Average SA radius, long-axis motion and twist per level over the cycle (cf. Fig. '
+            '11–16).',
+            lambda: plot_level_curves(with_phases, out / 'level_curves.png'),
+        )
+        attempt(
+            'global_curves.png',
+            'Cavity volume (with EF), LA radius and torsion over the cycle.',
+            lambda: plot_global_curves(with_phases, out / 'global_curves.png'),
+        )
+        attempt(
+            'strain_bullseye.png',
+            "Peak Err / Ecc / Ell by AHA segment (bull's-eye seen from the apex).",
+            lambda: plot_strain_bullseyes(with_phases, out / 'strain_bullseye.png'),
+        )
+        attempt(
+            'segment_findings.png',
+            'Wall motion by AHA segment at end-systole: normal / hypokinetic / akinetic / '
+            'dyskinetic, '
+            "indeterminate (hatched) where the data cannot tell; f = share of the heart's own "
+            'function ± σ.',
+            lambda: plot_segment_findings(with_phases, out / 'segment_findings.png'),
+        )
+    else:
+        skipped.append('no phases in any run: no curves')
+    views = []
+    for r, s in zip(runs, summaries):
+        v = _es_view(r, s, skipped) if s['phases_present'] else None
+        if v is not None:
+            views.append(v)
+    if views:
+        attempt(
+            'displacement_es.png',
+            'Particles at end-systole coloured by long-axis, radial and circumferential '
+            'displacement (cf. Fig. 9–10).',
+            lambda: plot_displacement_3d(
+                *views[0][:3],
+                out / 'displacement_es.png',
+                title=views[0][3],
+                compare=views[1] if len(views) > 1 else None,
+            ),
+        )
+    return figures, skipped
+
+
 def build_report(
     out_dir,
     phases: Sequence,
@@ -358,81 +452,13 @@ def build_report(
             runs.append(RunData(list(compare), label=str(meta.get('compare_label', 'comparison'))))
     # A failed phase is not a measurement: it never enters a curve, a peak or a table; degraded
     # and failed phases are named at the top of the page with their reasons.
-    verdicts = []
-    for r in runs:
-        verdicts.append(
-            {
-                name: {
-                    int(p.phase_index): str(getattr(p, 'verdict_reasons', ''))
-                    for p in r.phases
-                    if int(getattr(p, 'verdict', 0)) == level
-                }
-                for level, name in ((DEGRADED, 'phases_degraded'), (FAILED, 'phases_failed'))
-            }
-        )
+    verdicts = [_flagged_phases(r) for r in runs]
     runs = [
         replace(r, phases=[p for p in r.phases if int(getattr(p, 'verdict', 0)) < FAILED])
         for r in runs
     ]
     summaries = [summarize(r.phases, r.label, r.twist_span) | v for r, v in zip(runs, verdicts)]
-    figures: list[tuple[str, str]] = []
-    skipped: list[str] = []
-
-    def attempt(name: str, caption: str, fn):
-        try:
-            p = fn()
-        except Exception as exc:  # a figure must never take the report down; say why instead
-            log.exception('report figure %s failed', name)
-            skipped.append(f'{name} failed: {type(exc).__name__}: {exc}')
-            return
-        if p is not None:
-            figures.append((Path(p).name, caption))
-
-    with_phases = [r for r, s in zip(runs, summaries) if s['phases_present']]
-    if with_phases:
-        attempt(
-            'level_curves.png',
-            'Average SA radius, long-axis motion and twist per level over the cycle (cf. Fig. '
-            '11–16).',
-            lambda: plot_level_curves(with_phases, out / 'level_curves.png'),
-        )
-        attempt(
-            'global_curves.png',
-            'Cavity volume (with EF), LA radius and torsion over the cycle.',
-            lambda: plot_global_curves(with_phases, out / 'global_curves.png'),
-        )
-        attempt(
-            'strain_bullseye.png',
-            "Peak Err / Ecc / Ell by AHA segment (bull's-eye seen from the apex).",
-            lambda: plot_strain_bullseyes(with_phases, out / 'strain_bullseye.png'),
-        )
-        attempt(
-            'segment_findings.png',
-            'Wall motion by AHA segment at end-systole: normal / hypokinetic / akinetic / '
-            'dyskinetic, '
-            "indeterminate (hatched) where the data cannot tell; f = share of the heart's own "
-            'function ± σ.',
-            lambda: plot_segment_findings(with_phases, out / 'segment_findings.png'),
-        )
-    else:
-        skipped.append('no phases in any run: no curves')
-    views = []
-    for r, s in zip(runs, summaries):
-        v = _es_view(r, s, skipped) if s['phases_present'] else None
-        if v is not None:
-            views.append(v)
-    if views:
-        attempt(
-            'displacement_es.png',
-            'Particles at end-systole coloured by long-axis, radial and circumferential '
-            'displacement (cf. Fig. 9–10).',
-            lambda: plot_displacement_3d(
-                *views[0][:3],
-                out / 'displacement_es.png',
-                title=views[0][3],
-                compare=views[1] if len(views) > 1 else None,
-            ),
-        )
+    figures, skipped = _figures(out, runs, summaries)
     title = str(meta.get('title', 'LV motion report'))
     write_summary_json(
         out / 'summary.json',

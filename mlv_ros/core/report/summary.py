@@ -228,6 +228,38 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = 'run', twist_span=Fal
         missing_phases=gaps,
         phases=[p.to_dict() for p in ph],
     )
+    missing += _missing_notes(ph, n_exp, gaps, dup)
+    pos, tw = level_table(ph, 'twist_deg')
+    out['key'] = _key_numbers(ph, pos, tw)
+    if twist_span is not False:
+        _add_twist_span(out, ph, pos, twist_span)
+    _add_strain(out, ph)
+    return out
+
+
+def _missing_notes(ph: list, n_exp: int, gaps: list, dup: list) -> list[str]:
+    """
+    Return what the phases lack, a sentence each (for :func:`summarize`'s ``missing``).
+
+    Parameters
+    ----------
+    ph : list of PhaseMetrics
+        The phases present, in phase order (:func:`sorted_phases`).
+    n_exp : int
+        Phases expected.
+    gaps : list of int
+        The phases missing.
+    dup : list of int
+        Phases received more than once.
+
+    Returns
+    -------
+    list of str
+        The sentences.
+
+    """
+    missing = []
+    present = [p.phase_index for p in ph]
     if gaps:
         missing.append(f'{len(gaps)} of {n_exp} phases missing: {gaps}')
     if 0 not in present:
@@ -255,14 +287,33 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = 'run', twist_span=Fal
         missing.append(f'strain missing in phases {no_strain}: peaks use the other phases')
     if all(p.level_position.size == 0 for p in ph):
         missing.append('no per-level metrics in any phase')
+    return missing
 
+
+def _key_numbers(ph: list, pos: np.ndarray, tw: np.ndarray) -> dict:
+    """
+    Return the headline numbers: volumes, ES, LA radius, torsion, twist, radius, base motion.
+
+    Parameters
+    ----------
+    ph : list of PhaseMetrics
+        The phases present, in phase order; the first is ED.
+    pos, tw : ndarray
+        :func:`level_table` of ``twist_deg``: level positions and the twist per phase, deg.
+
+    Returns
+    -------
+    dict
+        :func:`summarize`'s ``key`` less the strain and twist-span entries (None where not
+        computable).
+
+    """
     vol = np.array([p.cavity_volume_ml for p in ph])
     es = int(np.argmin(vol))
     ed = ph[0]
-    pos, tw = level_table(ph, 'twist_deg')
     _, rad = level_table(ph, 'sa_radius_mm')
     _, lon = level_table(ph, 'longitudinal_displacement_mm')
-    key = out['key']
+    key = {}
     key['edv_ml'] = _f(ed.cavity_volume_ml)
     key['esv_ml'] = _f(vol[es])
     key['ejection_fraction'] = (
@@ -288,37 +339,73 @@ def summarize(phases: Sequence[PhaseMetrics], label: str = 'run', twist_span=Fal
             'peak_base_longitudinal_mm',
         ):
             key[k] = None
-    if twist_span is not False:
-        levels = max((p.level_position.size for p in ph), default=0)
-        out['twist_measured_levels'] = None if twist_span is None else [_f(v) for v in twist_span]
-        out['twist_extrapolated'] = twist_extrapolation_note(twist_span, levels) if levels else ''
-        outside = levels_outside(pos, twist_span, levels) if pos.size else np.zeros(0, bool)
-        ends = {
-            'peak_twist_apex_deg': bool(outside[:1].any()),
-            'peak_twist_base_deg': bool(outside[-1:].any()),
-        }
-        ends['peak_torsion_deg_per_cm'] = twist_span is None or any(ends.values())
-        key['extrapolated'] = sorted(k for k, v in ends.items() if v)
+    return key
+
+
+def _add_twist_span(out: dict, ph: list, pos: np.ndarray, twist_span) -> None:
+    """
+    Add where twist is measured, and which twist keys come from levels no SA slice measured.
+
+    Parameters
+    ----------
+    out : dict
+        :func:`summarize`'s result so far; gets ``twist_measured_levels``,
+        ``twist_extrapolated`` and ``key["extrapolated"]``.
+    ph : list of PhaseMetrics
+        The phases present.
+    pos : ndarray
+        Level positions (:func:`level_table`).
+    twist_span : tuple of float or None
+        As :func:`summarize`'s (None: no SA slice measured twist).
+
+    """
+    levels = max((p.level_position.size for p in ph), default=0)
+    out['twist_measured_levels'] = None if twist_span is None else [_f(v) for v in twist_span]
+    out['twist_extrapolated'] = twist_extrapolation_note(twist_span, levels) if levels else ''
+    outside = levels_outside(pos, twist_span, levels) if pos.size else np.zeros(0, bool)
+    ends = {
+        'peak_twist_apex_deg': bool(outside[:1].any()),
+        'peak_twist_base_deg': bool(outside[-1:].any()),
+    }
+    ends['peak_torsion_deg_per_cm'] = twist_span is None or any(ends.values())
+    out['key']['extrapolated'] = sorted(k for k, v in ends.items() if v)
+
+
+def _add_strain(out: dict, ph: list) -> None:
+    """
+    Add the peak segment strains, the segment findings and the peak global strains.
+
+    Parameters
+    ----------
+    out : dict
+        :func:`summarize`'s result so far; gets ``peak_segment_strain``, ``segment_findings``
+        and ``key``'s ``peak_global_err/ecc/ell`` (None without strain) and
+        ``akinetic_segments`` / ``dyskinetic_segments``.
+    ph : list of PhaseMetrics
+        The phases present.
+
+    """
+    key = out['key']
     seg = peak_segment_strain(ph)
     for c in ('err', 'ecc', 'ell'):
         key[f'peak_global_{c}'] = None
-    if seg is not None:
-        out['peak_segment_strain'] = {k: [_f(x) for x in v] for k, v in seg.items()}
-        found = segment_findings(ph)
-        out['segment_findings'] = found.to_dict()
-        out['segment_findings']['segment_origin'] = segment_origin_note(ph)
-        for kind in ('akinetic', 'dyskinetic'):
-            key[f'{kind}_segments'] = found.abnormal((kind,))
-        for c in ('err', 'ecc', 'ell'):
-            g = []
-            for p in ph:
-                if not p.has_strain:
-                    continue
-                v = getattr(p, f'segment_{c}')
-                w = p.segment_count if p.segment_count.size == 17 else np.ones(17)
-                g.append(float(v @ w / w.sum()) if w.sum() > 0 else math.nan)
-            key[f'peak_global_{c}'] = _f(signed_peak(g))
-    return out
+    if seg is None:
+        return
+    out['peak_segment_strain'] = {k: [_f(x) for x in v] for k, v in seg.items()}
+    found = segment_findings(ph)
+    out['segment_findings'] = found.to_dict()
+    out['segment_findings']['segment_origin'] = segment_origin_note(ph)
+    for kind in ('akinetic', 'dyskinetic'):
+        key[f'{kind}_segments'] = found.abnormal((kind,))
+    for c in ('err', 'ecc', 'ell'):
+        g = []
+        for p in ph:
+            if not p.has_strain:
+                continue
+            v = getattr(p, f'segment_{c}')
+            w = p.segment_count if p.segment_count.size == 17 else np.ones(17)
+            g.append(float(v @ w / w.sum()) if w.sum() > 0 else math.nan)
+        key[f'peak_global_{c}'] = _f(signed_peak(g))
 
 
 def _json_default(o):

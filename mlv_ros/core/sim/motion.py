@@ -351,10 +351,6 @@ class LVMotion:
         fall = 0.5 * (1.0 + np.cos(np.pi * np.clip((f - es) / rel, 0.0, 1.0)))
         return np.where(f <= es, rise, fall)
 
-    def phase_of_time(self, t) -> np.ndarray:
-        """Fractional phase index of a trigger time ``t`` (s)."""
-        return np.asarray(t, dtype=np.float64) * self.num_phases / self.cycle_duration
-
     # ----------------------------------------------------------------- ED geometry
     def endo_radius(self, z) -> np.ndarray:
         """ED endocardial radius at height z (mm; 0 where there is no cavity)."""
