@@ -33,7 +33,8 @@ from mlv_msgs.msg import ModelState as ModelStateMsg
 from mlv_msgs.msg import MotionMetrics as MotionMetricsMsg
 from mlv_msgs.msg import SliceGeometry as SliceGeometryMsg
 from mlv_msgs.msg import TaggedFrame, TagPoints
-from mlv_ros.core.analysis.findings import CLASS_CODES, FINDING_ARRAY_FIELDS
+from mlv_ros.core.analysis import metrics as metrics_fields
+from mlv_ros.core.analysis.findings import CLASS_CODES
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import (
     Frame,
@@ -787,31 +788,13 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
     return state
 
 
-# MotionMetrics: per-level arrays share one length L; segment arrays are empty or 17 long.
-METRIC_LEVEL_FIELDS = (
-    'level_position',
-    'twist_deg',
-    'sa_radius_mm',
-    'longitudinal_displacement_mm',
-    'radial_displacement_mm',
-    'circumferential_displacement_mm',
-)
-METRIC_SCALAR_FIELDS = (
-    'time_fraction',
-    'la_radius_mm',
-    'torsion_deg_per_cm',
-    'cavity_volume_ml',
-    'ejection_fraction',
-)
-METRIC_SEGMENT_FIELDS = ('segment_err', 'segment_ecc', 'segment_ell')
-METRIC_COUNT_FIELDS = ('level_count', 'segment_count')  # optional in the input (default empty)
-# Optional in the input (default empty): per-segment uncertainties and findings, 0 or 17 entries,
-# NaN allowed (not measured), and the wall-motion class codes.
-METRIC_NAN_SEGMENT_FIELDS = (
-    'segment_err_unc',
-    'segment_ecc_unc',
-    'segment_ell_unc',
-) + FINDING_ARRAY_FIELDS
+# MotionMetrics' field groups; the counts and the NaN-allowed segment fields are optional in the
+# input (default empty).
+METRIC_LEVEL_FIELDS = metrics_fields.LEVEL_FIELDS
+METRIC_SCALAR_FIELDS = metrics_fields.SCALAR_FIELDS
+METRIC_SEGMENT_FIELDS = metrics_fields.SEGMENT_FIELDS
+METRIC_COUNT_FIELDS = metrics_fields.COUNT_FIELDS
+METRIC_NAN_SEGMENT_FIELDS = metrics_fields.NAN_SEGMENT_FIELDS
 
 
 def _metrics_value(metrics, name):

@@ -56,25 +56,33 @@ from mlv_ros.core.analysis.strain import (
 from mlv_ros.core.verdict import metrics_verdict
 import numpy as np
 
+# MotionMetrics' field groups (conversions.py checks and converts by them): per-level arrays
+# share one length L; segment arrays are empty or 17 long.
+LEVEL_FIELDS = (
+    'level_position',
+    'twist_deg',
+    'sa_radius_mm',
+    'longitudinal_displacement_mm',
+    'radial_displacement_mm',
+    'circumferential_displacement_mm',
+)
+SCALAR_FIELDS = (
+    'time_fraction',
+    'la_radius_mm',
+    'torsion_deg_per_cm',
+    'cavity_volume_ml',
+    'ejection_fraction',
+)
+SEGMENT_FIELDS = ('segment_err', 'segment_ecc', 'segment_ell')
+COUNT_FIELDS = ('level_count', 'segment_count')
+# Per-segment uncertainties and findings: 0 or 17 entries, NaN allowed (not measured).
+NAN_SEGMENT_FIELDS = (
+    'segment_err_unc',
+    'segment_ecc_unc',
+    'segment_ell_unc',
+) + FINDING_ARRAY_FIELDS
 _ARRAY_FIELDS = (
-    (
-        'level_position',
-        'twist_deg',
-        'sa_radius_mm',
-        'longitudinal_displacement_mm',
-        'radial_displacement_mm',
-        'circumferential_displacement_mm',
-        'segment_err',
-        'segment_ecc',
-        'segment_ell',
-        'level_count',
-        'segment_count',
-        'segment_err_unc',
-        'segment_ecc_unc',
-        'segment_ell_unc',
-    )
-    + FINDING_ARRAY_FIELDS
-    + ('segment_class',)
+    LEVEL_FIELDS + SEGMENT_FIELDS + COUNT_FIELDS + NAN_SEGMENT_FIELDS + ('segment_class',)
 )
 
 #: PhaseMetrics fields MotionMetrics.msg does not carry (none since the findings went in).
@@ -198,9 +206,7 @@ class PhaseMetrics:
     @property
     def has_strain(self) -> bool:
         """Return True when the three segment arrays hold 17 values each."""
-        return all(
-            getattr(self, f).size == 17 for f in ('segment_err', 'segment_ecc', 'segment_ell')
-        )
+        return all(getattr(self, f).size == 17 for f in SEGMENT_FIELDS)
 
     def to_dict(self) -> dict:
         """JSON-friendly dict (arrays as lists); inverse of :meth:`from_dict`."""

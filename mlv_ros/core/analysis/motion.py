@@ -51,8 +51,6 @@ from __future__ import annotations
 from mlv_ros.core.analysis.frame import angle_bin, as_points, level_bin, LVFrame
 import numpy as np
 
-_TWO_PI = 2.0 * np.pi
-
 
 def _pair(X, x) -> tuple[np.ndarray, np.ndarray]:
     X = as_points(X, 'X (ED positions)')
@@ -60,11 +58,6 @@ def _pair(X, x) -> tuple[np.ndarray, np.ndarray]:
     if X.shape != x.shape:
         raise ValueError(f'X and x must have the same shape, got {X.shape} and {x.shape}')
     return X, x
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    """Wrap angles (rad) to (−π, π]."""
-    return np.pi - np.mod(np.pi - a, _TWO_PI)
 
 
 def decompose_displacement(X, x, frame: LVFrame) -> np.ndarray:
