@@ -53,17 +53,21 @@ MIN_DICE = 0.8
 MAX_BASE_ERROR_MM = 3.0 * PROTOCOL['pixel_spacing_mm']
 
 
-@pytest.fixture(scope='module')
-def la_planes():
-    """``[(image, truth mask, centre_rc, axis_rc, pixel spacing)]`` of the LA planes at ED."""
-    p = protocol_preset(complete_protocol(PROTOCOL))
+def render_la(protocol: dict, noise_seed: int, centre_fraction: float = 0.5):
+    """
+    Render the ED LA planes of a protocol (3 sub-planes).
+
+    Returns ``(motion, [(image, truth mask, centre_rc, axis_rc, pixel spacing)])``: the
+    centre is the axis point ``centre_fraction`` of the length from the apex (in the cavity).
+    """
+    p = protocol_preset(complete_protocol(protocol))
     im = p['imaging']
     im['subplanes'] = 3
     n = int(im['size'])
     motion = LVMotion(p)
-    rng = np.random.default_rng(NOISE_SEED)
+    rng = np.random.default_rng(noise_seed)
     f = motion.frame
-    mid = f.apex + 0.5 * motion.length * f.long_axis  # a point of the axis in the cavity
+    mid = f.apex + centre_fraction * motion.length * f.long_axis
     out = []
     for sl in plan_slices(motion, im, n):
         if sl.view != VIEW_LA:
@@ -81,6 +85,13 @@ def la_planes():
                 g.row_spacing,
             )
         )
+    return motion, out
+
+
+@pytest.fixture(scope='module')
+def la_planes():
+    """``[(image, truth mask, centre_rc, axis_rc, pixel spacing)]`` of the LA planes at ED."""
+    _, out = render_la(PROTOCOL, NOISE_SEED)
     assert len(out) == 4
     return out
 

@@ -567,7 +567,9 @@ def _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases: list, warnings: l
     Return the base's height on the long axis, mm: the LA views' base cut (median).
 
     The myocardium reaches at least the most basal segmented SA slice (where the long axis
-    crosses it); without an LA view, half a slice thickness beyond it.
+    crosses it); without an LA view, half a slice thickness beyond it. A view whose horseshoe
+    ends below that slice is contradicted by the SA stack's tagged annulus there (its wall was
+    lost or cut short), so the median is over the views that reach it, when any does.
     """
     z_sa_top = max(
         float((_axis_in_plane(by_key[k].geometry, axis_pt, axis_dir) - axis_pt) @ axis_dir)
@@ -575,7 +577,8 @@ def _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases: list, warnings: l
     )
     if not z_bases:
         return z_sa_top + 0.5 * by_key[usable_sa[0]].geometry.slice_thickness
-    z_base = float(np.median(z_bases))
+    reaching = [z for z in z_bases if z >= z_sa_top]
+    z_base = float(np.median(reaching or z_bases))
     if z_base < z_sa_top:
         # A horseshoe cut short (thick slab, faint base) would otherwise drop every SA slice
         # above it.

@@ -76,6 +76,11 @@ NUM_RAYS = 180
 RADIAL_STEP_PX = 0.25
 #: LA: gaps in the horseshoe up to this wide are bridged, deg (the atrium's opening is wider).
 LA_MAX_GAP_DEG = 10.0
+#: LA: the horseshoe's side ends before this many consecutive rays (2° apart) that are thinner
+#: than ``LA_THIN_END_FRACTION`` of its median wall or met nothing (:func:`_thin_ends_cut`):
+#: the atrium's edge past the base is a step, thinner than any ventricular wall.
+LA_THIN_END_RAYS = 3
+LA_THIN_END_FRACTION = 0.5
 #: Shortest tag period resolved, px.
 MIN_TAG_PERIOD_PX = 2.5
 #: Gaussian envelope of the tag-energy filter, in tag periods: σ = λ/2 passes the grid's
@@ -1052,7 +1057,7 @@ def segment_sa(
         max_radius_mm,
         min_wall_mm,
         'SA',
-        lambda angles, endo, epi: _sa_from_runs(
+        lambda angles, endo, epi, feat: _sa_from_runs(
             img.shape,
             c,
             angles,
@@ -1073,7 +1078,7 @@ def _segment_candidates(
     Find the wall runs around ``c`` under each of :func:`candidate_features` and keep the best.
 
     Under the given ``features`` instead when passed; runs are shaped by
-    ``finish(angles, endo, epi)``; the best by :func:`_best_of`.
+    ``finish(angles, endo, epi, features)``; the best by :func:`_best_of`.
     """
     feats = (
         candidate_features(img, pixel_spacing_mm)
@@ -1103,7 +1108,7 @@ def _segment_candidates(
                 )
             )
         else:
-            results.append((finish(angles, endo, epi), _wall_cnr(lv, feat)))
+            results.append((finish(angles, endo, epi, feat), _wall_cnr(lv, feat)))
     return _best_of(results)
 
 
@@ -1192,8 +1197,16 @@ def segment_la(
         max_radius_mm,
         min_wall_mm,
         'LA',
-        lambda angles, endo, epi: _la_from_runs(
-            img.shape, c, ax, angles, endo, epi, rmax, min_arc_deg
+        lambda angles, endo, epi, feat: _la_from_runs(
+            img.shape,
+            c,
+            ax,
+            angles,
+            endo,
+            epi,
+            rmax,
+            min_arc_deg,
+            _mid_wall_energy(feat, c, angles, endo, epi),
         ),
     )
 
@@ -1294,7 +1307,119 @@ def _level_ends(arc, valid, endo, epi, angles, ax, base_dir):
     return np.array(arc), endo, epi
 
 
-def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
+def _longest_run(v: np.ndarray) -> int:
+    """Return the length of the longest run of True in a boolean sequence."""
+    d = np.diff(np.concatenate([[0], np.asarray(v, np.int8), [0]]))
+    return int(np.max(np.flatnonzero(d == -1) - np.flatnonzero(d == 1), initial=0))
+
+
+def _thin_ends_cut(arc, found, endo, epi, angles, base_dir, strength=None):
+    """
+    End each side of the horseshoe where the ventricular wall ends, not on the atrium's edge.
+
+    Past the base the rays toward the atrium can still meet runs: the edge of the untagged
+    atrial blood against the dark or differently tagged surroundings leaves a thin residue in the
+    tag energy (a step, not a tagged wall), and the runs continue up the atrium's side and
+    across its roof (measured on a dilated LV with bright blood and dark surroundings: runs 2–5
+    mm thick up to 26 mm above the base, the wall 7–10 mm; the horseshoe and the base then
+    reached the atrium's roof; their tag energy 0.02–0.08 against the wall's 0.06–0.18).
+    Walking from the horseshoe's middle (the apex) toward each end,
+    over the rays that point basally of the axis point, the wall ends before the first
+    :data:`LA_THIN_END_RAYS` consecutive rays that are each thinner than
+    :data:`LA_THIN_END_FRACTION` of the horseshoe's own median wall thickness or met nothing,
+    at least one of them a thin run (a stretch that met nothing is a gap in a faint wall, which
+    the callers bridge, not an end), and beyond which no stretch of twice as many consecutive
+    rays meets a full wall (a weak stretch within a thin wall is followed by more wall; past the
+    base only the atrium's corners, a few rays). The end is the last ray before them that met a
+    full wall.
+    Every constant is relative to the slice's own wall and ray spacing.
+
+    Parameters
+    ----------
+    arc : ndarray of int
+        Rays of the horseshoe in increasing circular order.
+    found : ndarray of bool, shape (K,)
+        Whether each ray's own run met a wall (before gaps were bridged).
+    endo, epi : ndarray, shape (K,)
+        Inner and outer wall radius along each ray, px.
+    angles : ndarray, shape (K,)
+        Ray angles, rad.
+    base_dir : float
+        Angle of the in-plane axis direction apex → base, rad.
+    strength : ndarray, shape (K,), optional
+        Tag energy at each ray's mid-wall point (:func:`_mid_wall_energy`); a ray below
+        :data:`LA_THIN_END_FRACTION` of the horseshoe's median counts as thin too (the atrium's
+        edge is a step's residue, weaker than the tagged wall).
+
+    Returns
+    -------
+    ndarray of int
+        The horseshoe's rays, each side ended where its wall ends.
+
+    """
+    arc = np.asarray(arc)
+    wall = epi - np.maximum(endo, 0.0)
+    own = found[arc]
+    if own.sum() < 2 * LA_THIN_END_RAYS:
+        return arc
+    thin = wall < LA_THIN_END_FRACTION * float(np.median(wall[arc][own]))
+    if strength is not None:
+        e = np.asarray(strength, float)
+        ok = own & np.isfinite(e[arc])
+        if ok.any():
+            with np.errstate(invalid='ignore'):
+                thin |= e < LA_THIN_END_FRACTION * float(np.median(e[arc][ok]))
+    basal = np.cos(angles - base_dir) > 0
+    mid = arc.size // 2
+    lo, hi = 0, arc.size - 1
+    for side in (-1, 1):
+        order = np.arange(mid, -1, -1) if side < 0 else np.arange(mid, arc.size)
+        rays = arc[order]
+        weak = ~found[rays] | thin[rays]
+        for j in range(len(rays) - LA_THIN_END_RAYS + 1):
+            win = rays[j:j + LA_THIN_END_RAYS]
+            if not (basal[win].all() and weak[j:j + LA_THIN_END_RAYS].all()):
+                continue
+            if not (found[win] & thin[win]).any():
+                continue
+            if _longest_run(~weak[j:]) >= 2 * LA_THIN_END_RAYS:  # more wall beyond
+                continue
+            full = np.flatnonzero(found[rays[:j]] & ~thin[rays[:j]])
+            if full.size:
+                end = int(order[full[-1]])
+                lo, hi = (end, hi) if side < 0 else (lo, end)
+            break
+    return arc[lo:hi + 1]
+
+
+def _mid_wall_energy(feat: TagFeatures, c, angles, endo, epi) -> np.ndarray:
+    """
+    Return the tag energy at each ray's mid-wall point (NaN where the ray met no wall).
+
+    Parameters
+    ----------
+    feat : TagFeatures
+        The features the runs were found in.
+    c : ndarray, shape (2,)
+        Ray origin, (row, col) px.
+    angles : ndarray, shape (K,)
+        Ray angles, rad.
+    endo, epi : ndarray, shape (K,)
+        Inner and outer wall radius along each ray, px (NaN: no wall).
+
+    Returns
+    -------
+    ndarray, shape (K,)
+        Energy, image intensity units.
+
+    """
+    mid = 0.5 * (np.maximum(np.nan_to_num(endo), 0.0) + np.nan_to_num(epi))
+    rc = c[None] + mid[:, None] * np.stack([np.sin(angles), np.cos(angles)], 1)
+    e = ndi.map_coordinates(np.asarray(feat.energy, float), rc.T, order=1, mode='nearest')
+    return np.where(np.isfinite(epi), e, np.nan)
+
+
+def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg, strength=None):
     """
     Horseshoe arc, base cut and rasterisation of the LA rays' wall runs.
 
@@ -1306,6 +1431,7 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     :func:`_level_ends` for the side walls).
     """
     valid = np.isfinite(epi) & (epi < rmax - 1)
+    found = valid.copy()  # the rays whose own run met a wall (before any bridging)
     base_dir = np.arctan2(ax[0], ax[1])
     # Bridge gaps of a few rays (noise, a wall locally thinner than the smallest run): the
     # atrium's opening is tens of degrees wide.
@@ -1345,6 +1471,7 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg):
     arc = (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
     if np.cos(angles[arc[arc.size // 2]] - base_dir) < 0:
         arc, endo, epi = _level_ends(arc, valid, endo, epi, angles, ax, base_dir)
+        arc = _thin_ends_cut(arc, found, endo, epi, angles, base_dir, strength)
     # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
     arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
     if arc_deg < min_arc_deg:
