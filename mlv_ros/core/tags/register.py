@@ -88,6 +88,7 @@ def register_points(
     sigma: float = 0.5,
     smoothing: float = 0.1,
     iterations: int = 8,
+    map_prior: float = MAP_PRIOR,
 ):
     """
     Locate ED points in a later image by a local affine registration of their ED neighbourhood.
@@ -120,6 +121,9 @@ def register_points(
         tags' band is kept, the pixel noise above it is not fitted.
     iterations : int
         Gauss–Newton steps (at least 1).
+    map_prior : float
+        Weight holding the local map at ``start_map``, as a share of the map's own curvature in
+        the data (``MAP_PRIOR``; large values fit only the position and intensity change).
 
     Returns
     -------
@@ -148,10 +152,10 @@ def register_points(
             f'ed_image, ed_mask and image must be 2-D of one shape; got {ed.shape}, '
             f'{msk.shape}, {im.shape}'
         )
-    if not (period_px > 0 and radius > 0 and sigma > 0 and smoothing >= 0):
+    if not (period_px > 0 and radius > 0 and sigma > 0 and smoothing >= 0 and map_prior >= 0):
         raise ValueError(
-            f'period_px, radius and sigma must be positive and smoothing ≥ 0; got {period_px}, '
-            f'{radius}, {sigma}, {smoothing}'
+            f'period_px, radius and sigma must be positive, smoothing and map_prior ≥ 0; got '
+            f'{period_px}, {radius}, {sigma}, {smoothing}, {map_prior}'
         )
     if smoothing > 0:  # both images alike: the band of the tags, not the pixel noise
         ed = cv2.GaussianBlur(ed, (0, 0), smoothing * period_px)
@@ -204,7 +208,7 @@ def register_points(
         H = np.einsum('np,npi,npj->nij', w, jac, jac)
         g = np.einsum('np,npi,np->ni', w, jac, res)
         if it == 0:  # the prior's weight: the map block's own curvature at the start
-            prior = MAP_PRIOR * np.diagonal(H, axis1=1, axis2=2)[:, 2:6].mean(axis=1)
+            prior = map_prior * np.diagonal(H, axis1=1, axis2=2)[:, 2:6].mean(axis=1)
         H[:, 2:6, 2:6] += prior[:, None, None] * np.eye(4)
         g[:, 2:6] += prior[:, None] * (G - G0).reshape(-1, 4)
         H = H + DAMPING * eye8 * np.diagonal(H, axis1=1, axis2=2)[:, :, None]
