@@ -1313,13 +1313,17 @@ class MotionTracker:
         every level on all three, the truth's −0.001…−0.007), so the local stage restores the 43 %
         through the linearised ``J_g(1 + F_g⁻ᵀ : ∇δ)``; dropping only the offset ``J_g − 1`` swings
         3001's apex −0.93 → +1.19° (1001 −0.54 → −0.58, 1012 −0.36 → −0.48), the whole volume term
-        off −0.61 / −0.52 / −0.35°. (2) The apical SA targets against the material point the slice
-        following attached (median through-plane miss 0.07 mm on 1001's lowest slice): the truth of
-        the attached points as targets mends 1001 (−0.54 → −0.12°), not 3001 (−0.92) or 1012
-        (−0.35); a second following pass (``slice_following=2``, every phase) leaves 1001 at
-        −0.54°. (3) Data weight ×10 / ÷10: −0.67 / −0.71, −1.53 / −0.20, −0.21 / −0.55, no common
-        direction; the fit-error weight ×10 −0.52° on 3001, −0.60° on 1012; the axial stiffness or
-        its coupling off within 0.13° of the default on all three.
+        off −0.61 / −0.52 / −0.35°. With the tracked points 3001's apex is −2.00°, −0.19° without
+        the offset. The local stage overshoots the apical cap's volume (J − 1 +0.07 / +0.11 / +0.08
+        in the apical bin) and the offset's pull there is not through δ's rotations coupling to
+        ``F_g⁻ᵀ``: the cofactor's symmetric part alone makes it worse (3001 −0.93 → −1.47°, tracked
+        −2.00 → −3.27°). (2) The apical SA targets against the material point the slice following
+        attached (median through-plane miss 0.07 mm on 1001's lowest slice): the truth of the
+        attached points as targets mends 1001 (−0.54 → −0.12°), not 3001 (−0.92) or 1012 (−0.35); a
+        second following pass (``slice_following=2``, every phase) leaves 1001 at −0.54°. (3) Data
+        weight ×10 / ÷10: −0.67 / −0.71, −1.53 / −0.20, −0.21 / −0.55, no common direction; the
+        fit-error weight ×10 −0.52° on 3001, −0.60° on 1012; the axial stiffness or its coupling
+        off within 0.13° of the default on all three.
 
         Parameters
         ----------
