@@ -1316,6 +1316,28 @@ class MotionTracker:
         follow the apical tracks' error and the local stage takes about 1° off the apex even
         from exact points (``bench/retrack.py --twist``, ``--ideal``).
 
+        Why, measured on those exact points (issue 14, ``bench/local_twist.py --ideal``: each
+        variant re-solves the ES local stage from the same global configuration, CG to 1e-6; apical
+        bin error default → variant, 3001 / 1001 / 1012): no one term, and none that a weight would
+        mend. The apical cap's rotation is a soft mode of the local stage: no SA point measures it
+        and the LA springs do not (with the SA points' weights 0 every level errs by +6 to +10°),
+        so target offsets of 0.005–0.05 mm (median) or a volume force move it by 0.5–2°. (1) The
+        volume term's offset: the global stage does not conserve volume (its ES J − 1 is −0.43 at
+        every level on all three, the truth's −0.001…−0.007), so the local stage restores the 43 %
+        through the linearised ``J_g(1 + F_g⁻ᵀ : ∇δ)``; dropping only the offset ``J_g − 1`` swings
+        3001's apex −0.93 → +1.19° (1001 −0.54 → −0.58, 1012 −0.36 → −0.48), the whole volume term
+        off −0.61 / −0.52 / −0.35°. With the tracked points 3001's apex is −2.00°, −0.19° without
+        the offset. The local stage overshoots the apical cap's volume (J − 1 +0.07 / +0.11 / +0.08
+        in the apical bin) and the offset's pull there is not through δ's rotations coupling to
+        ``F_g⁻ᵀ``: the cofactor's symmetric part alone makes it worse (3001 −0.93 → −1.47°, tracked
+        −2.00 → −3.27°). (2) The apical SA targets against the material point the slice following
+        attached (median through-plane miss 0.07 mm on 1001's lowest slice): the truth of the
+        attached points as targets mends 1001 (−0.54 → −0.12°), not 3001 (−0.92) or 1012 (−0.35); a
+        second following pass (``slice_following=2``, every phase) leaves 1001 at −0.54°. (3) Data
+        weight ×10 / ÷10: −0.67 / −0.71, −1.53 / −0.20, −0.21 / −0.55, no common direction; the
+        fit-error weight ×10 −0.52° on 3001, −0.60° on 1012; the axial stiffness or its coupling
+        off within 0.13° of the default on all three.
+
         Parameters
         ----------
         phi : sparse (K, N)
