@@ -584,6 +584,7 @@ class MotionTracker:
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
         t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
         self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
+        self._hats = None  # _knot_hats of _height, built at the first twist fit
         self.positions = self.rest.copy()
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
@@ -1366,7 +1367,10 @@ class MotionTracker:
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
         m, height = self.twist_knots, self._height
-        hat = _knot_hats(height, m)  # (N, m)
+        if self._hats is None or self._hats.shape[1] != m:  # material: once per model
+            self._hats = _knot_hats(height, m)  # (N, m)
+            self._hats.flags.writeable = False
+        hat = self._hats
         self.twist_coefficients = self._fit_twist_knots(
             phi, targets, normals, x, weights, hat, sa_slice, (axis, centre)
         )
