@@ -609,3 +609,38 @@ def test_longitudinal_coupling_follows_an_akinetic_sector():
     )
     assert np.percentile(err[1.0], 95) < np.percentile(err[0.0], 95)
     assert np.median(err[1.0]) < np.median(err[0.0]) + 0.05
+
+
+def test_track_rows_and_slice_groups_act_as_the_dicts_they_replace():
+    """
+    Check the per-slice arrays against dicts per track: the last of a repeated id, merges, groups.
+
+    A dict assigned track by track keeps a repeated id's last position and, assigned again
+    (a phase solved again), keeps the ids the second assignment lacks; the arrays must look up
+    the same positions and report ids they do not hold as missing. Slices are grouped in the
+    order each first appears, also when their keys are not contiguous.
+    """
+    from mlv_ros.core.tracking import _slice_groups, _track_rows
+
+    rng = np.random.default_rng(3)
+    first_ids, second_ids = np.array([7, 3, 9, 3, 12]), np.array([9, 4, 4, 20])
+    first_pos, second_pos = rng.normal(size=(5, 3)), rng.normal(size=(4, 3))
+    expected = {}
+    for ids, pos in ((first_ids, first_pos), (second_ids, second_pos)):
+        for t, p in zip(ids, pos):
+            expected[int(t)] = p
+    rows = _track_rows(second_ids, second_pos, _track_rows(first_ids, first_pos))
+    query = np.array([3, 4, 5, 7, 9, 12, 20, 21])
+    hit, pos = rows.lookup(query)
+    assert hit.tolist() == [int(t) in expected for t in query]
+    for t, h, p in zip(query, hit, pos):
+        if h:
+            assert np.array_equal(p, expected[int(t)]), t
+    empty_hit, _ = _track_rows(np.zeros(0, int), np.zeros((0, 3))).lookup(query)
+    assert not empty_hit.any()
+
+    keys = [(0, 2, 5), (0, 2, 6), (1, 0, 1), (0, 1, 8), (0, 2, 9)]
+    groups = _slice_groups(keys)
+    assert [g[0] for g in groups] == [(0, 2), (1, 0), (0, 1)]
+    assert [g[1].tolist() for g in groups] == [[0, 1, 4], [2], [3]]
+    assert [g[2].tolist() for g in groups] == [[5, 6, 9], [1], [8]]

@@ -584,14 +584,16 @@ class MotionTracker:
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
         t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
         self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
+        self._hats = None  # _knot_hats of _height, built at the first twist fit
         self.positions = self.rest.copy()
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
+        self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self._coarse = self._phase_coarse = None
         self._init_coarse_space(coarse_aggregates)
         self.tag_noise_mm = float(tag_noise_mm)
-        self._history: dict = {}  # (view, slice, track_id) → {phase: measured position (3,)}
+        self._history: dict = {}  # (view, slice) → {phase: _track_rows of measured positions}
         self._noise_samples: dict = {}  # (view, slice) → deque of squared noise samples, mm²
         self._noise_phase = -1  # the last phase whose second differences were sampled
         self.noise_mm: dict = {}  # (view, slice) → σ of the last phase's scale, mm (diagnostics)
@@ -699,12 +701,17 @@ class MotionTracker:
         key = (int(points.view), int(points.slice_index))
         if len(points) == 0:
             self.reference[key] = {}
+            self._reference_rows.pop(key, None)
             return 0
         dist, _ = self._tree.query(points.position)
         keep = (dist <= self.max_attach_mm) & (points.track_id >= 0)
         self.reference[key] = {
             int(t): p for t, p in zip(points.track_id[keep], points.position[keep])
         }
+        self._reference_rows[key] = _track_rows(
+            np.fromiter(self.reference[key], dtype=np.int64, count=len(self.reference[key])),
+            np.asarray(list(self.reference[key].values())).reshape(-1, 3),
+        )
         self.normals[key] = (points.geometry.normal, points.geometry.image_position)
         return int(keep.sum())
 
@@ -714,30 +721,31 @@ class MotionTracker:
 
         Slice by slice in (view, slice) order: the solution must not depend on the order the slices
         arrived in (float sums in another order, then an extra CG iteration, moved a phase by 0.015
-        mm when the same sets were taken in another order).
+        mm when the same sets were taken in another order). Within a slice, the set's order.
         """
         keys, rest, targets, normals, conf = [], [], [], [], []
         for key, pts in sorted(sets.items(), key=lambda item: item[0]):
-            ref = self.reference.get(key)
-            if not ref or len(pts) == 0:
+            ref = self._reference_rows.get(key)
+            if ref is None or len(pts) == 0:
                 continue
-            n = pts.geometry.normal
+            tid = np.asarray(pts.track_id, dtype=np.int64)
+            hit, p0 = ref.lookup(tid)
+            if not hit.any():
+                continue
+            keys.extend((*key, t) for t in tid[hit].tolist())
+            rest.append(p0[hit])
+            targets.append(np.asarray(pts.position)[hit])
+            normals.append(np.repeat(np.asarray(pts.geometry.normal)[None], int(hit.sum()), 0))
             c = pts.confidence if len(pts.confidence) == len(pts) else np.ones(len(pts))
-            for tid, pos, ck in zip(pts.track_id, pts.position, c):
-                p0 = ref.get(int(tid))
-                if p0 is None:
-                    continue
-                keys.append((*key, int(tid)))
-                rest.append(p0)
-                targets.append(pos)
-                normals.append(n)
-                conf.append(ck)
+            conf.append(np.asarray(c)[hit])
         if not keys:
             return keys, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-        weights = data_weights(np.asarray(conf)) if self.confidence_weights else np.ones(len(keys))
-        return keys, np.asarray(rest), np.asarray(targets), np.asarray(normals), weights
+        conf = np.concatenate(conf)
+        weights = data_weights(conf) if self.confidence_weights else np.ones(len(keys))
+        rest, targets, normals = (np.concatenate(a) for a in (rest, targets, normals))
+        return keys, rest, targets, normals, weights
 
-    def _record_noise(self, phase_index, keys, targets):
+    def _record_noise(self, phase_index, keys, targets, groups=None):
         """
         Sample each slice's tag-point noise from its tracks' second differences in time.
 
@@ -750,27 +758,36 @@ class MotionTracker:
             (view, slice, track_id) of every tag point, shape (K,).
         targets : ndarray, shape (K, 3)
             Their measured positions, mm.
+        groups : list, optional
+            :func:`_slice_groups` of ``keys`` (computed here when not given).
 
         """
         p = int(phase_index)
-        rows: dict = {}
-        for k, t in zip(keys, targets):
-            hist = self._history.setdefault(k, {})
-            hist[p] = np.asarray(t, dtype=np.float64)
+        x = np.asarray(targets, dtype=np.float64)
+        fresh = p > self._noise_phase
+        rows = []
+        for key, idx, tid in _slice_groups(keys) if groups is None else groups:
+            hist = self._history.setdefault(key, {})
+            # A phase solved again keeps what its earlier solve held for tracks not seen now.
+            hist[p] = _track_rows(tid, x[idx], hist.get(p))
             for old in [q for q in hist if q < p - 2]:
                 del hist[old]
-            if p - 1 in hist and p - 2 in hist:
-                d2 = hist[p] - 2.0 * hist[p - 1] + hist[p - 2]
-                rows.setdefault(k[:2], []).append((hist[p], d2))
-        if p <= self._noise_phase:
+            if fresh and p - 1 in hist and p - 2 in hist:
+                hit1, x1 = hist[p - 1].lookup(tid)
+                hit2, x2 = hist[p - 2].lookup(tid)
+                both = hit1 & hit2
+                if both.any():
+                    xb = x[idx][both]
+                    rows.append((key, xb, xb - 2.0 * x1[both] + x2[both]))
+        if not fresh:
             return
         self._noise_phase = p
-        for key, kr in rows.items():
-            r = second_difference_noise(np.array([x for x, _ in kr]), np.array([d for _, d in kr]))
+        for key, xs, d2 in rows:
+            r = second_difference_noise(xs, d2)
             if r is not None:
                 self._noise_samples.setdefault(key, deque(maxlen=NOISE_SAMPLES)).extend(r)
 
-    def _noise_scale(self, keys) -> np.ndarray:
+    def _noise_scale(self, keys, groups=None) -> np.ndarray:
         """
         Return each tag point's spring factor ``min(1, (tag_noise_mm / σ)²)``, shape (K,).
 
@@ -783,6 +800,8 @@ class MotionTracker:
         ----------
         keys : list of tuple
             (view, slice, track_id) of every tag point, shape (K,).
+        groups : list, optional
+            :func:`_slice_groups` of ``keys`` (computed here when not given).
 
         Returns
         -------
@@ -793,15 +812,16 @@ class MotionTracker:
         scale = np.ones(len(keys))
         if not self.tag_noise_mm:
             return scale
-        study = noise_sigma([v for q in self._noise_samples.values() for v in q])
+        pooled = [np.asarray(q, dtype=np.float64) for q in self._noise_samples.values() if q]
+        study = noise_sigma(np.concatenate(pooled)) if pooled else None
         self.noise_mm = {}
-        for i, k in enumerate(keys):
-            if k[:2] not in self.noise_mm:
-                q = self._noise_samples.get(k[:2], ())
-                self.noise_mm[k[:2]] = noise_sigma(q) if len(q) >= NOISE_MIN_SAMPLES else study
-            sigma = self.noise_mm[k[:2]]
+        for key, idx, _ in _slice_groups(keys) if groups is None else groups:
+            q = self._noise_samples.get(key, ())
+            sigma = self.noise_mm[key] = (
+                noise_sigma(q) if len(q) >= NOISE_MIN_SAMPLES else study
+            )
             if sigma is not None and sigma > self.tag_noise_mm:
-                scale[i] = (self.tag_noise_mm / sigma) ** 2
+                scale[idx] = (self.tag_noise_mm / sigma) ** 2
         return scale
 
     def _attach(self, rest, normals, offsets):
@@ -856,8 +876,9 @@ class MotionTracker:
             raise ValueError(
                 f'phase {phase_index}: no tag point matches an ED reference inside the model'
             )
-        self._record_noise(phase_index, keys, targets)
-        scale = self._noise_scale(keys)
+        groups = _slice_groups(keys)
+        self._record_noise(phase_index, keys, targets, groups)
+        scale = self._noise_scale(keys, groups)
         offsets = np.array([self.offsets.get(k, 0.0) for k in keys])
         self._phase_coarse = None  # the first local solve of the phase factors its coarse part
         self._flagged = None  # tag points the last pass's motion left outward of their targets
@@ -1368,7 +1389,10 @@ class MotionTracker:
         R = quat_to_matrix(self.model.params.rotation)
         axis, centre = R[:, 2], self.model.params.translation
         m, height = self.twist_knots, self._height
-        hat = _knot_hats(height, m)  # (N, m)
+        if self._hats is None or self._hats.shape[1] != m:  # material: once per model
+            self._hats = _knot_hats(height, m)  # (N, m)
+            self._hats.flags.writeable = False
+        hat = self._hats
         self.twist_coefficients = self._fit_twist_knots(
             phi, targets, normals, x, weights, hat, sa_slice, (axis, centre)
         )
@@ -1507,6 +1531,79 @@ def _model_frame(pts, centre, rotation, R, a0, polar, shape) -> ModelFrame:
         )
         return ModelFrame(params, ModelCoordinates.polar(*polar))
     return polar_frame(pts, centre, R[:, 2], R[:, 0], a0)
+
+
+@dataclass(frozen=True)
+class _TrackRows:
+    """
+    One slice's positions per track id, sorted by id: what a dict per track held, as arrays.
+
+    Parameters
+    ----------
+    track_id : ndarray of int, shape (T,)
+        Track ids, ascending and distinct.
+    position : ndarray, shape (T, 3)
+        Their positions, mm.
+
+    """
+
+    track_id: np.ndarray
+    position: np.ndarray
+
+    def lookup(self, track_id):
+        """
+        Return which of ``track_id`` (shape (K,)) are held, and their positions (K, 3) in mm.
+
+        Rows of ids not held are the first held position (meaningless; mask them).
+        """
+        if self.track_id.size == 0:
+            return np.zeros(len(track_id), dtype=bool), np.zeros((len(track_id), 3))
+        j = np.minimum(np.searchsorted(self.track_id, track_id), self.track_id.size - 1)
+        return self.track_id[j] == track_id, self.position[j]
+
+
+def _track_rows(track_id, position, before=None) -> _TrackRows:
+    """
+    Return ``position`` (K, 3) per ``track_id`` (K,), a repeated id's last kept (as a dict would).
+
+    ``before``: rows held already, which keep the ids that ``track_id`` lacks.
+    """
+    tid = np.asarray(track_id, dtype=np.int64)
+    pos = np.asarray(position)
+    if before is not None and before.track_id.size:
+        old = ~np.isin(before.track_id, tid)
+        tid = np.concatenate([before.track_id[old], tid])
+        pos = np.concatenate([before.position[old], pos])
+    # np.unique keeps the first of equal ids: on the reversed arrays, the last assigned
+    u, first = np.unique(tid[::-1], return_index=True)
+    return _TrackRows(u, pos[::-1][first])
+
+
+def _slice_groups(keys) -> list:
+    """
+    Group tag-point keys by slice, in the order each slice first appears.
+
+    Parameters
+    ----------
+    keys : list of tuple
+        (view, slice, track_id) of every tag point, shape (K,).
+
+    Returns
+    -------
+    list of tuple
+        ``((view, slice), indices into keys (ascending), their track ids)`` per slice.
+
+    """
+    if not keys:
+        return []
+    arr = np.asarray(keys, dtype=np.int64).reshape(len(keys), 3)
+    _, first, inverse = np.unique(arr[:, :2], axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    out = []
+    for g in np.argsort(first):
+        idx = np.flatnonzero(inverse == g)
+        out.append(((int(arr[idx[0], 0]), int(arr[idx[0], 1])), idx, arr[idx, 2]))
+    return out
 
 
 def _larger_rejected_share(worst, rejected, attached):
