@@ -142,22 +142,9 @@ def simulate_study(
     Study
 
     """
-    p = load_preset(preset)
-    if quick:
-        size = size or QUICK['size']
-        num_phases = num_phases or QUICK['num_phases']
-        subplanes = subplanes or QUICK['subplanes']
+    p = _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick)
     im = p['imaging']
-    n = int(size or im['size'])
-    if n < 16:
-        raise ValueError(f'size must be >= 16 pixels, got {n}')
-    if num_phases is not None:
-        p['motion']['num_phases'] = int(num_phases)
-    if subplanes is not None:
-        im['subplanes'] = int(subplanes)
-    if pixel_spacing is not None:
-        im['pixel_spacing_mm'] = float(pixel_spacing)
-    im['size'] = n
+    n = im['size']
     motion = LVMotion(p)
     slices = plan_slices(motion, im, n)
     rng = np.random.default_rng(seed)
@@ -208,3 +195,37 @@ def simulate_study(
         seed=seed,
         descriptions=desc,
     )
+
+
+def _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick) -> dict:
+    """
+    Load a preset with simulate_study's overrides applied (its parameters of the same names).
+
+    Returns
+    -------
+    dict
+        The preset; ``imaging.size`` is the image size in pixels (int).
+
+    Raises
+    ------
+    ValueError
+        ``size`` below 16 pixels.
+
+    """
+    p = load_preset(preset)
+    if quick:
+        size = size or QUICK['size']
+        num_phases = num_phases or QUICK['num_phases']
+        subplanes = subplanes or QUICK['subplanes']
+    im = p['imaging']
+    n = int(size or im['size'])
+    if n < 16:
+        raise ValueError(f'size must be >= 16 pixels, got {n}')
+    if num_phases is not None:
+        p['motion']['num_phases'] = int(num_phases)
+    if subplanes is not None:
+        im['subplanes'] = int(subplanes)
+    if pixel_spacing is not None:
+        im['pixel_spacing_mm'] = float(pixel_spacing)
+    im['size'] = n
+    return p
