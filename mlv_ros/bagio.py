@@ -1091,64 +1091,19 @@ def recover(damaged, out) -> dict:
     damaged file has only the one written when it was opened). Returns ``{"messages": n,
     "topics": {topic: n}, "stopped_at": reason}``.
     """
-    from mcap.records import Channel as ChannelRec
-    from mcap.records import Message as MessageRec
-    from mcap.records import Metadata as MetadataRec
-    from mcap.records import Schema as SchemaRec
     from mcap.stream_reader import StreamReader
 
     damaged, out = Path(damaged), Path(out)
     if out.exists():
         raise FileExistsError(f'refusing to overwrite {out}')
-    schemas, channels, counts = {}, {}, {}
-    topics: dict[int, _Topic] = {}
-    custom_data = None
-    start_ns, end_ns = None, 0
     stopped = 'end of file'
     with open(damaged, 'rb') as fh, open(out, 'wb') as oh:
         writer = Writer(oh, compression=CompressionType.ZSTD)
         writer.start(profile='ros2', library=f'mlv_ros {__version__} (recovered)')
-        sid_map, cid_map = {}, {}
+        copy = _RecordCopy(writer)
         try:
             for rec in StreamReader(fh, validate_crcs=True).records:
-                if isinstance(rec, SchemaRec):
-                    sid_map[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
-                    schemas[rec.id] = rec.name
-                elif isinstance(rec, ChannelRec):
-                    cid_map[rec.id] = writer.register_channel(
-                        rec.topic,
-                        rec.message_encoding,
-                        sid_map.get(rec.schema_id, 0),
-                        rec.metadata,
-                    )
-                    channels[rec.id] = rec.topic
-                    topics[rec.id] = _Topic(
-                        rec.topic,
-                        schemas.get(rec.schema_id, ''),
-                        cid_map[rec.id],
-                        parse_offered_qos(rec.metadata.get('offered_qos_profiles', '')),
-                        rec.metadata.get('topic_type_hash', ''),
-                    )
-                elif isinstance(rec, MetadataRec) and rec.name == 'rosbag2':
-                    try:
-                        custom_data = yaml.safe_load(
-                            rec.metadata.get('serialized_metadata', '')
-                        ).get('custom_data')
-                    except (yaml.YAMLError, AttributeError):
-                        pass
-                elif isinstance(rec, MessageRec) and rec.channel_id in cid_map:
-                    writer.add_message(
-                        cid_map[rec.channel_id],
-                        rec.log_time,
-                        rec.data,
-                        rec.publish_time,
-                        rec.sequence,
-                    )
-                    topic = channels[rec.channel_id]
-                    counts[topic] = counts.get(topic, 0) + 1
-                    topics[rec.channel_id].count += 1
-                    start_ns = rec.log_time if start_ns is None else min(start_ns, rec.log_time)
-                    end_ns = max(end_ns, rec.log_time)
+                copy.add(rec)
         except Exception as exc:  # truncated or corrupt tail: keep what came before it
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
@@ -1157,11 +1112,80 @@ def recover(damaged, out) -> dict:
             writer,
             bag_metadata(
                 out.name,
-                topics.values(),
-                start_ns,
-                end_ns,
-                custom_data if isinstance(custom_data, dict) else None,
+                copy.topics.values(),
+                copy.start_ns,
+                copy.end_ns,
+                copy.custom_data if isinstance(copy.custom_data, dict) else None,
             ),
         )
         writer.finish()
+    counts = copy.counts
     return {'messages': sum(counts.values()), 'topics': counts, 'stopped_at': stopped}
+
+
+class _RecordCopy:
+    """
+    Copy a recording's records one by one into a new one, keeping what a final record needs.
+
+    Parameters
+    ----------
+    writer : mcap.writer.Writer
+        The new recording, started.
+
+    """
+
+    def __init__(self, writer: Writer):
+        self.writer = writer
+        self.schemas, self.channels, self.counts = {}, {}, {}
+        self.topics: dict[int, _Topic] = {}
+        self.custom_data = None
+        self.start_ns, self.end_ns = None, 0
+        self.sid_map, self.cid_map = {}, {}
+
+    def add(self, rec) -> None:
+        """Copy a schema, channel or message record; read the rosbag2 custom data; skip others."""
+        from mcap.records import Channel as ChannelRec
+        from mcap.records import Message as MessageRec
+        from mcap.records import Metadata as MetadataRec
+        from mcap.records import Schema as SchemaRec
+
+        writer = self.writer
+        if isinstance(rec, SchemaRec):
+            self.sid_map[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
+            self.schemas[rec.id] = rec.name
+        elif isinstance(rec, ChannelRec):
+            self.cid_map[rec.id] = writer.register_channel(
+                rec.topic,
+                rec.message_encoding,
+                self.sid_map.get(rec.schema_id, 0),
+                rec.metadata,
+            )
+            self.channels[rec.id] = rec.topic
+            self.topics[rec.id] = _Topic(
+                rec.topic,
+                self.schemas.get(rec.schema_id, ''),
+                self.cid_map[rec.id],
+                parse_offered_qos(rec.metadata.get('offered_qos_profiles', '')),
+                rec.metadata.get('topic_type_hash', ''),
+            )
+        elif isinstance(rec, MetadataRec) and rec.name == 'rosbag2':
+            try:
+                self.custom_data = yaml.safe_load(
+                    rec.metadata.get('serialized_metadata', '')
+                ).get('custom_data')
+            except (yaml.YAMLError, AttributeError):
+                pass
+        elif isinstance(rec, MessageRec) and rec.channel_id in self.cid_map:
+            writer.add_message(
+                self.cid_map[rec.channel_id],
+                rec.log_time,
+                rec.data,
+                rec.publish_time,
+                rec.sequence,
+            )
+            topic = self.channels[rec.channel_id]
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+            self.topics[rec.channel_id].count += 1
+            t = rec.log_time
+            self.start_ns = t if self.start_ns is None else min(self.start_ns, t)
+            self.end_ns = max(self.end_ns, t)

@@ -327,24 +327,7 @@ def summary_lines(
     if vol:
         lines.append(vol)
     lines += verdict_lines(summary)
-    if summary.get('left_out'):
-        lines.append(
-            f'input: {len(summary["left_out"])} part(s) of the study left out (left_out in '
-            'summary.json)'
-        )
-    other = sum((summary.get('messages_of_other_studies') or {}).values())
-    statuses = summary.get('statuses_of_other_graphs') or 0
-    if other or statuses:
-        lines.append(
-            f'isolation: {other} message(s) of another study or run ignored, {statuses} '
-            '/diagnostics '
-            'status(es) of other graphs left out of the recording'
-        )
-    view = summary.get('live_view')
-    if view:
-        lines.append(f'live view: {view.get("url")}, {view.get("phases_shown", 0)} phase(s) shown')
-    if summary.get('recording_error'):
-        lines.append(f'recording: stopped early: {_clip(summary["recording_error"], 150)}')
+    lines += _side_notes(summary)
     run_dir = summary.get('run_dir', '')
     where = (
         f'{run_dir}/summary.json'
@@ -361,3 +344,27 @@ def summary_lines(
     if len(lines) > MAX_SUMMARY_LINES:  # keep the head and the exit line
         lines = lines[:MAX_SUMMARY_LINES - 2] + ['... (see summary.json)', lines[-1]]
     return lines
+
+
+def _side_notes(summary: dict) -> list[str]:
+    """Return the summary's lines on what the run left out, ignored, showed or failed to record."""
+    out = []
+    if summary.get('left_out'):
+        out.append(
+            f'input: {len(summary["left_out"])} part(s) of the study left out (left_out in '
+            'summary.json)'
+        )
+    other = sum((summary.get('messages_of_other_studies') or {}).values())
+    statuses = summary.get('statuses_of_other_graphs') or 0
+    if other or statuses:
+        out.append(
+            f'isolation: {other} message(s) of another study or run ignored, {statuses} '
+            '/diagnostics '
+            'status(es) of other graphs left out of the recording'
+        )
+    view = summary.get('live_view')
+    if view:
+        out.append(f'live view: {view.get("url")}, {view.get("phases_shown", 0)} phase(s) shown')
+    if summary.get('recording_error'):
+        out.append(f'recording: stopped early: {_clip(summary["recording_error"], 150)}')
+    return out

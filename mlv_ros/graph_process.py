@@ -319,29 +319,9 @@ def main() -> int:
         threading.Thread(target=watch_stdin, daemon=True).start()
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
-        last, sent_at = None, 0.0
-        crashed = None
-        while not stop.is_set() and not node.done:
-            try:
-                ex.spin_once(timeout_sec=0.05)
-            except Exception as exc:  # a callback raised: the node is gone
-                crashed = error_text(exc)
-                break
-            state = _state(node)
-            if state != last and time.monotonic() - sent_at >= REPORT_PERIOD_S:
-                _emit(out, {'event': 'counts', **state})
-                last, sent_at = state, time.monotonic()
+        crashed = _spin(ex, node, stop, out)
         if crashed is None and not node.done:
-            # Drain: what arrived before the stop is still taken and published.
-            handled, quiet_since = node.messages_handled, time.monotonic()
-            while time.monotonic() - quiet_since < DRAIN_QUIET_S:
-                try:
-                    ex.spin_once(timeout_sec=0.05)
-                except Exception as exc:
-                    crashed = error_text(exc)
-                    break
-                if node.messages_handled != handled:
-                    handled, quiet_since = node.messages_handled, time.monotonic()
+            crashed = _drain(ex, node)
         if crashed is not None:
             _emit(out, {'event': 'crashed', 'reason': crashed, **_state(node)})
             return 1
@@ -351,6 +331,57 @@ def main() -> int:
         if node is not None:
             node.destroy_node()
         ctx.try_shutdown()
+
+
+def _spin(ex, node, stop: threading.Event, out) -> str | None:
+    """
+    Spin the node until stopped or done, reporting its counts as they change.
+
+    Parameters
+    ----------
+    ex : rclpy.executors.Executor
+        Holds the node.
+    node : GraphNode
+        The node.
+    stop : threading.Event
+        Set by a signal or the parent's stop line.
+    out : file
+        The protocol stream (:func:`_emit`).
+
+    Returns
+    -------
+    str or None
+        Why a callback raised (the node is gone), or None.
+
+    """
+    from mlv_ros.cli import error_text
+
+    last, sent_at = None, 0.0
+    while not stop.is_set() and not node.done:
+        try:
+            ex.spin_once(timeout_sec=0.05)
+        except Exception as exc:  # a callback raised: the node is gone
+            return error_text(exc)
+        state = _state(node)
+        if state != last and time.monotonic() - sent_at >= REPORT_PERIOD_S:
+            _emit(out, {'event': 'counts', **state})
+            last, sent_at = state, time.monotonic()
+    return None
+
+
+def _drain(ex, node) -> str | None:
+    """Take and publish what arrived before the stop, until quiet; say why it crashed, or None."""
+    from mlv_ros.cli import error_text
+
+    handled, quiet_since = node.messages_handled, time.monotonic()
+    while time.monotonic() - quiet_since < DRAIN_QUIET_S:
+        try:
+            ex.spin_once(timeout_sec=0.05)
+        except Exception as exc:
+            return error_text(exc)
+        if node.messages_handled != handled:
+            handled, quiet_since = node.messages_handled, time.monotonic()
+    return None
 
 
 if __name__ == '__main__':

@@ -154,6 +154,46 @@ class FrameSource(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('frame_source', **node_kwargs)
+        self._declare_parameters()
+        self._declare_publishing_parameters()
+        # dicom: which study was taken and why, whether all of it was used, and what was not.
+        self.dicom_choice, self.input_complete, self.left_out, self.not_used = '', True, [], []
+        self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
+        self.pub = self.publisher(qos.FRAMES, TaggedFrame)
+        self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
+        self.frames = order_frames(count_slices(self._load()), self.order)
+        self.study_id = self._study_id()
+        # This run: every frame carries it (a recording's frames are published anew by this run).
+        self.run_id = secrets.token_hex(8)
+        for f in self.frames:
+            f.run_id = self.run_id
+        self.study.adopt(self.study_id, self.run_id)
+        self.published = 0
+        self.halted: str | None = None  # why publishing was stopped early (see halt)
+        self.subscriber_wait = SubscriberWait(
+            self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
+        )
+        self._started = None
+        self.timer = self.create_timer(0.001, self._tick)
+        extra = (
+            {'input_complete': self.input_complete, 'left_out': len(self.left_out)}
+            if self.source == 'dicom'
+            else {}
+        )
+        self.report(
+            OK,
+            'frames loaded',
+            source=self.source,
+            frames=len(self.frames),
+            order=self.order,
+            problems=len(self._reports),
+            study=self.study_id,
+            run=self.run_id,
+            **extra,
+        )
+
+    def _declare_parameters(self):
+        """Declare the parameters of where frames come from: the source, its simulator or files."""
         self.source = self.param('source', 'phantom', 'where frames come from', choices=SOURCES)
         self.preset = self.param('preset', 'normal', 'simulator preset (source: phantom)')
         self.snr = self.param(
@@ -182,6 +222,9 @@ class FrameSource(GraphNode):
         self.path = self.param(
             'path', '', 'DICOM directory (source: dicom) or MCAP file (source: bag)'
         )
+
+    def _declare_publishing_parameters(self):
+        """Declare the parameters of how frames go out: order, pace, waits, and DICOM limits."""
         # Phase-major by default: every slice's ED frame comes first, so registration starts at
         # once and the solver works on phase p while the tag detector tracks p + 1 (results do not
         # depend on the order). slice_major replays a study as it was acquired, cine by cine.
@@ -223,41 +266,6 @@ class FrameSource(GraphNode):
             '',
             'StudyInstanceUID to load from the DICOM directory; empty = the study with the '
             'most tagged cines (source: dicom)',
-        )
-        # dicom: which study was taken and why, whether all of it was used, and what was not.
-        self.dicom_choice, self.input_complete, self.left_out, self.not_used = '', True, [], []
-        self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
-        self.pub = self.publisher(qos.FRAMES, TaggedFrame)
-        self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
-        self.frames = order_frames(count_slices(self._load()), self.order)
-        self.study_id = self._study_id()
-        # This run: every frame carries it (a recording's frames are published anew by this run).
-        self.run_id = secrets.token_hex(8)
-        for f in self.frames:
-            f.run_id = self.run_id
-        self.study.adopt(self.study_id, self.run_id)
-        self.published = 0
-        self.halted: str | None = None  # why publishing was stopped early (see halt)
-        self.subscriber_wait = SubscriberWait(
-            self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
-        )
-        self._started = None
-        self.timer = self.create_timer(0.001, self._tick)
-        extra = (
-            {'input_complete': self.input_complete, 'left_out': len(self.left_out)}
-            if self.source == 'dicom'
-            else {}
-        )
-        self.report(
-            OK,
-            'frames loaded',
-            source=self.source,
-            frames=len(self.frames),
-            order=self.order,
-            problems=len(self._reports),
-            study=self.study_id,
-            run=self.run_id,
-            **extra,
         )
 
     def _study_id(self) -> str:

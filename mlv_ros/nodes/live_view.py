@@ -121,34 +121,7 @@ class LiveView(GraphNode):
                 f"the live view needs Foxglove's SDK ({exc}): pip install foxglove-sdk==0.30.3"
             ) from None
 
-        self.host = self.param(
-            'host',
-            '127.0.0.1',
-            'address the Foxglove WebSocket listens on '
-            '(127.0.0.1: this machine only; 0.0.0.0: every interface)',
-        )
-        port = self.param(
-            'port',
-            8765,
-            'Foxglove WebSocket port (0 = any free port)',
-            min_value=0,
-            max_value=65535,
-        )
-        self.images = self.param('images', True, "serve each slice's images and tag points")
-        catch_up = self.param(
-            'catch_up',
-            True,
-            'take frames and tag points with their history (TRANSIENT_LOCAL); '
-            'false for a publisher without history',
-        )
-        self.declare_settings(PAIRING)  # self.max_unpaired
-        backlog = self.param(
-            'message_backlog',
-            1024,
-            'messages queued per Foxglove client (the oldest go when a slow client falls behind)',
-            min_value=16,
-            max_value=1000000,
-        )
+        port, catch_up, backlog = self._declare_parameters()
         self._fox = foxglove
         self.fox_context = foxglove.Context()
         prefix = self.get_namespace().rstrip('/')
@@ -158,19 +131,7 @@ class LiveView(GraphNode):
             frozenset()
         )  # phases served, replaced (not changed) as phases go out: read by the listener
         self._fox_listener = _Subscriptions(lambda: (self.clouds_served, self._served))
-        try:
-            self.server = foxglove.start_server(
-                name='mlv_ros live view',
-                host=self.host,
-                port=port,
-                context=self.fox_context,
-                message_backlog_size=backlog,
-                server_listener=self._fox_listener,
-            )
-        except RuntimeError as exc:
-            raise ValueError(port_error(self.host, port, exc)) from None
-        self.port = self.server.port
-        self.url = f'ws://{self.host}:{self.port}'
+        self._start_server(port, backlog)
         self.cloud_channel = PointCloudChannel(
             self._channel_name(CLOUD_CHANNEL), context=self.fox_context
         )
@@ -205,6 +166,58 @@ class LiveView(GraphNode):
             self.subscribe(qos.TAG_POINTS, TagPoints, self._on_tags, catch_up=catch_up)
         self.create_timer(0.2, self._serve_subscribed)
         self.report(OK, 'serving', url=self.url)
+
+    def _start_server(self, port: int, backlog: int) -> None:
+        """Start the Foxglove WebSocket server (``port`` 0: any free one); say why it cannot."""
+        try:
+            self.server = self._fox.start_server(
+                name='mlv_ros live view',
+                host=self.host,
+                port=port,
+                context=self.fox_context,
+                message_backlog_size=backlog,
+                server_listener=self._fox_listener,
+            )
+        except RuntimeError as exc:
+            raise ValueError(port_error(self.host, port, exc)) from None
+        self.port = self.server.port
+        self.url = f'ws://{self.host}:{self.port}'
+
+    def _declare_parameters(self):
+        """
+        Declare the node's parameters: where it serves, what, and how much it holds back.
+
+        Returns the ones used only while starting: ``port``, ``catch_up`` and ``backlog``.
+        """
+        self.host = self.param(
+            'host',
+            '127.0.0.1',
+            'address the Foxglove WebSocket listens on '
+            '(127.0.0.1: this machine only; 0.0.0.0: every interface)',
+        )
+        port = self.param(
+            'port',
+            8765,
+            'Foxglove WebSocket port (0 = any free port)',
+            min_value=0,
+            max_value=65535,
+        )
+        self.images = self.param('images', True, "serve each slice's images and tag points")
+        catch_up = self.param(
+            'catch_up',
+            True,
+            'take frames and tag points with their history (TRANSIENT_LOCAL); '
+            'false for a publisher without history',
+        )
+        self.declare_settings(PAIRING)  # self.max_unpaired
+        backlog = self.param(
+            'message_backlog',
+            1024,
+            'messages queued per Foxglove client (the oldest go when a slow client falls behind)',
+            min_value=16,
+            max_value=1000000,
+        )
+        return port, catch_up, backlog
 
     def _serve_subscribed(self) -> None:
         """

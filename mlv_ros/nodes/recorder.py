@@ -78,6 +78,56 @@ class Recorder(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('recorder', **node_kwargs)
+        topics, chunk_kib, compression, catch_up = self._declare_parameters()
+        self.other_graph_statuses = (
+            0  # statuses of other graphs' (or other) nodes left out of /diagnostics
+        )
+        self._arrays_left_out = (
+            0  # /diagnostics messages left out whole (none of their statuses ours)
+        )
+        unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
+        if unknown:
+            raise ValueError(
+                f'cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}'
+            )
+        self.writer = bagio.BagWriter(
+            Path(self.output), chunk_size=chunk_kib * 1024, compression=compression
+        )
+        self.messages_handled = 0
+        self.dropped = 0  # messages received after the recording stopped on a write error
+        self.ignored = 0  # messages of another study left out
+        self.classes: dict = {}
+        # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
+        self._held: dict = {}
+        self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
+        self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
+        self.recorded: dict[
+            str, str
+        ] = {}  # graph topic (root name) → the name recorded: as it resolves here
+        for topic in topics:
+            type_name = qos.TOPIC_TYPES[topic]
+            self.classes[topic] = bagio.message_class(type_name)
+            self.recorded[topic] = self.topic_name(topic)
+            self.writer.add_topic(
+                self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))]
+            )
+            self.create_subscription(
+                bagio.message_class(type_name),
+                qos.relative(topic),
+                lambda data, info, topic=topic: self._on_message(topic, data, info),
+                qos.subscription_qos(topic, catch_up=catch_up),
+                raw=True,
+            )
+        self.create_timer(self.flush_period_s, self.writer.flush)
+        self.report(OK, 'recording', output=self.output, topics=len(topics))
+
+    def _declare_parameters(self):
+        """
+        Declare the node's parameters: where and what to record, and when to stop.
+
+        Returns the ones used only while starting: ``topics``, ``chunk_kib``, ``compression``
+        and ``catch_up``.
+        """
         self.output = self.param(
             'output', 'runs/latest/run.mcap', 'MCAP file to write (its directory is created)'
         )
@@ -122,47 +172,7 @@ class Recorder(GraphNode):
             "record every status on /diagnostics (false: only this graph's: the graph's "
             'node names in this namespace)',
         )
-        self.other_graph_statuses = (
-            0  # statuses of other graphs' (or other) nodes left out of /diagnostics
-        )
-        self._arrays_left_out = (
-            0  # /diagnostics messages left out whole (none of their statuses ours)
-        )
-        unknown = [t for t in topics if t not in qos.TOPIC_TYPES]
-        if unknown:
-            raise ValueError(
-                f'cannot record unknown topic(s) {unknown}; known: {sorted(qos.TOPIC_TYPES)}'
-            )
-        self.writer = bagio.BagWriter(
-            Path(self.output), chunk_size=chunk_kib * 1024, compression=compression
-        )
-        self.messages_handled = 0
-        self.dropped = 0  # messages received after the recording stopped on a write error
-        self.ignored = 0  # messages of another study left out
-        self.classes: dict = {}
-        # (state topic, stamp) → (cloud topic, bytes, log time, publish time)
-        self._held: dict = {}
-        self._ours = RecentKeys()  # (state topic, stamp) of states of this study written
-        self._foreign_stamps = RecentKeys()  # (state topic, stamp) of states of another study
-        self.recorded: dict[
-            str, str
-        ] = {}  # graph topic (root name) → the name recorded: as it resolves here
-        for topic in topics:
-            type_name = qos.TOPIC_TYPES[topic]
-            self.classes[topic] = bagio.message_class(type_name)
-            self.recorded[topic] = self.topic_name(topic)
-            self.writer.add_topic(
-                self.recorded[topic], type_name, [qos.qos_dict(qos.topic_qos(topic))]
-            )
-            self.create_subscription(
-                bagio.message_class(type_name),
-                qos.relative(topic),
-                lambda data, info, topic=topic: self._on_message(topic, data, info),
-                qos.subscription_qos(topic, catch_up=catch_up),
-                raw=True,
-            )
-        self.create_timer(self.flush_period_s, self.writer.flush)
-        self.report(OK, 'recording', output=self.output, topics=len(topics))
+        return topics, chunk_kib, compression, catch_up
 
     def upstream_alive(self) -> bool:
         """

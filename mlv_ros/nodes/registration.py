@@ -133,30 +133,7 @@ class Registration(GraphNode):
         self.registered = True
         t0 = time.monotonic()
         frames = list(self.ed_frames.values())
-        masks = None
-        if self.mask_path:
-            from mlv_ros.core.registration.nifti import masks_for_frames
-
-            try:
-                masks, reasons = masks_for_frames(self.mask_path, frames, label=self.mask_label)
-            except ValueError as exc:
-                self.report(
-                    ERROR,
-                    'user mask unusable; segmenting automatically',
-                    path=self.mask_path,
-                    reason=str(exc),
-                )
-            else:
-                if reasons:  # one line for all of them: the same fix (the mask file) for each
-                    self.report(
-                        WARN,
-                        'the user mask does not cover every slice; segmenting those automatically',
-                        path=self.mask_path,
-                        slices='; '.join(
-                            f'{"SA" if view == VIEW_SA else "LA"} {idx}: {why}'
-                            for (view, idx), why in sorted(reasons.items())
-                        ),
-                    )
+        masks = self._user_masks(frames)
         try:
             res = register_ed(
                 frames, num_particles=self.num_particles, seed=self.seed, masks=masks
@@ -172,15 +149,7 @@ class Registration(GraphNode):
         ]
         self.result = res
         stamp = self.get_clock().now().to_msg()
-        state = res.state
-        state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
-        verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
-        state.verdict, state.verdict_reasons = verdict.level, verdict.text
-        state.study_id, state.run_id = self.study.study_id, self.study.run_id
-        septum = res.septum
-        if septum is not None:
-            state.segment_origin = SEGMENT_ORIGIN_CODES[septum.source]
-            state.segment_origin_confidence = float(np.clip(septum.confidence, 0.0, 1.0))
+        state, verdict, septum = self._state_of(res)
         model = RegisteredModel(
             res.particles,
             res.polar['alpha'],
@@ -218,6 +187,47 @@ class Registration(GraphNode):
             residual_mm=round(float(state.residual), 3),
             **extra,
         )
+
+    def _user_masks(self, frames: list):
+        """Return the user's ED masks of the frames (None without), reporting what they miss."""
+        masks = None
+        if self.mask_path:
+            from mlv_ros.core.registration.nifti import masks_for_frames
+
+            try:
+                masks, reasons = masks_for_frames(self.mask_path, frames, label=self.mask_label)
+            except ValueError as exc:
+                self.report(
+                    ERROR,
+                    'user mask unusable; segmenting automatically',
+                    path=self.mask_path,
+                    reason=str(exc),
+                )
+            else:
+                if reasons:  # one line for all of them: the same fix (the mask file) for each
+                    self.report(
+                        WARN,
+                        'the user mask does not cover every slice; segmenting those automatically',
+                        path=self.mask_path,
+                        slices='; '.join(
+                            f'{"SA" if view == VIEW_SA else "LA"} {idx}: {why}'
+                            for (view, idx), why in sorted(reasons.items())
+                        ),
+                    )
+        return masks
+
+    def _state_of(self, res):
+        """Complete the registration's model state: phases, verdict, study and segment origin."""
+        state = res.state
+        state.num_phases = state.num_phases or max(f.num_phases for f in self.ed_frames.values())
+        verdict = self.verdict = registration_verdict(res.slice_reports, res.wall_thickness_mm())
+        state.verdict, state.verdict_reasons = verdict.level, verdict.text
+        state.study_id, state.run_id = self.study.study_id, self.study.run_id
+        septum = res.septum
+        if septum is not None:
+            state.segment_origin = SEGMENT_ORIGIN_CODES[septum.source]
+            state.segment_origin_confidence = float(np.clip(septum.confidence, 0.0, 1.0))
+        return state, verdict, septum
 
 
 def main(args=None):

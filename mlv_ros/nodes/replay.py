@@ -75,48 +75,7 @@ class Replay(GraphNode):
 
     def __init__(self, **node_kwargs):
         super().__init__('replay', **node_kwargs)
-        self.path = self.param('path', '', 'MCAP file (or rosbag2 directory) to play')
-        self.rate = self.param(
-            'rate',
-            0.0,
-            'time scale of the original timing; 0 = as fast as possible',
-            min_value=0.0,
-            max_value=1000.0,
-        )
-        only = self.param(
-            'topics', [''], 'topics to play, by recorded or (graph topics) root name; empty = all'
-        )
-        self.wait_for_subscribers = self.param(
-            'wait_for_subscribers',
-            1,
-            'matched subscribers (on any topic) to wait for',
-            min_value=0,
-            max_value=100,
-        )
-        self.wait_timeout_s = self.param(
-            'wait_timeout_s',
-            30.0,
-            'give up waiting after this long',
-            min_value=0.0,
-            max_value=3600.0,
-        )
-        self.exit_when_done = self.param(
-            'exit_when_done', True, 'stop once everything is played and acknowledged'
-        )
-        self.republish_diagnostics = self.param(
-            'republish_diagnostics',
-            False,
-            f'also play the recorded {qos.DIAGNOSTICS} onto the live topic (off: old statuses '
-            'of nodes that '
-            'are not running would mix with the live ones)',
-        )
-        self.publish_clock = self.param(
-            'publish_clock',
-            False,
-            f"publish {CLOCK_TOPIC} (rosgraph_msgs/Clock) with each message's recorded time, "
-            'before the '
-            'message, for nodes running with use_sim_time',
-        )
+        only = self._declare_parameters()
         if not self.path:
             raise ValueError('parameter path is required: the MCAP file to play')
         wanted = [t for t in only if t]
@@ -177,6 +136,56 @@ class Replay(GraphNode):
         self._next = next(self.messages, None)
         self.timer = self.create_timer(0.001, self._tick)
         self.report(OK, 'replaying', path=self.path, topics=len(self.pubs), rate=self.rate)
+
+    def _declare_parameters(self):
+        """
+        Declare the node's parameters: the recording, what of it to replay, and the pace.
+
+        Returns the topics to play, as given (``topics``).
+        """
+        self.path = self.param('path', '', 'MCAP file (or rosbag2 directory) to play')
+        self.rate = self.param(
+            'rate',
+            0.0,
+            'time scale of the original timing; 0 = as fast as possible',
+            min_value=0.0,
+            max_value=1000.0,
+        )
+        only = self.param(
+            'topics', [''], 'topics to play, by recorded or (graph topics) root name; empty = all'
+        )
+        self.wait_for_subscribers = self.param(
+            'wait_for_subscribers',
+            1,
+            'matched subscribers (on any topic) to wait for',
+            min_value=0,
+            max_value=100,
+        )
+        self.wait_timeout_s = self.param(
+            'wait_timeout_s',
+            30.0,
+            'give up waiting after this long',
+            min_value=0.0,
+            max_value=3600.0,
+        )
+        self.exit_when_done = self.param(
+            'exit_when_done', True, 'stop once everything is played and acknowledged'
+        )
+        self.republish_diagnostics = self.param(
+            'republish_diagnostics',
+            False,
+            f'also play the recorded {qos.DIAGNOSTICS} onto the live topic (off: old statuses '
+            'of nodes that '
+            'are not running would mix with the live ones)',
+        )
+        self.publish_clock = self.param(
+            'publish_clock',
+            False,
+            f"publish {CLOCK_TOPIC} (rosgraph_msgs/Clock) with each message's recorded time, "
+            'before the '
+            'message, for nodes running with use_sim_time',
+        )
+        return only
 
     def _tick(self):
         if self._start is None:

@@ -53,27 +53,18 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from mlv_ros.core.sim import load_preset
     from mlv_ros.console import RunConsole, summary_lines
     from mlv_ros.recording import phantom_accuracy, write_report
-    from mlv_ros.runner import exit_status, run_graph, RunInterrupted, SIGNAL_EXIT, verdict_line
+    from mlv_ros.runner import run_graph, RunInterrupted, SIGNAL_EXIT, verdict_line
 
     def fail(msg) -> int:
         print(f'mlv-ros demo: {one_line(msg)}', file=sys.stderr)
         return 2
 
     out = Path(args.out or f'runs/demo-{time.strftime("%Y%m%d-%H%M%S")}')
-    # What can be checked in a moment is, before the graph starts.
-    try:
-        load_preset(args.preset)
-    except (FileNotFoundError, ValueError) as exc:
-        return fail(exc)
-    if (out / 'run.mcap').exists():
-        return fail(f'{out} already holds a run: choose a new --out (runs are never overwritten)')
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return fail(f'cannot write --out: {describe_os_error(exc)}')
+    wrong = _check_before_start(args.preset, out)
+    if wrong:
+        return fail(wrong)
     print(
         f"[demo] simulating the '{args.preset}' phantom and running the graph -> {out}",
         file=sys.stderr,
@@ -97,6 +88,69 @@ def run(args) -> int:
     finally:
         console.close()
         restore()
+    if summary.get('interrupted') or not summary['complete']:
+        return _unfinished(args, summary)
+    acc = phantom_accuracy(Path(summary['mcap']), args.preset, summary['num_phases'])
+    index = write_report(Path(summary['mcap']))
+    result = _result(out, summary, acc, index)
+    (out / 'accuracy.json').write_text(json.dumps(acc, indent=2))
+    if args.verbose:
+        print(json.dumps(result, indent=2))
+    print(
+        '\n'.join(
+            summary_lines(
+                summary, exit_status=0, exit_reason='complete', accuracy=acc, report=str(index)
+            )
+        )
+    )
+    quality = verdict_line(summary)
+    if quality:
+        print(f'mlv-ros demo: {quality}', file=sys.stderr)
+    return 0
+
+
+def _check_before_start(preset: str, out: Path):
+    """
+    Check what can be checked in a moment, before the graph starts; create ``out``.
+
+    Returns the complaint (an exception or a line), or None when the preset loads and ``out`` is
+    writable and holds no run.
+    """
+    from mlv_ros.core.sim import load_preset
+
+    try:
+        load_preset(preset)
+    except (FileNotFoundError, ValueError) as exc:
+        return exc
+    if (out / 'run.mcap').exists():
+        return f'{out} already holds a run: choose a new --out (runs are never overwritten)'
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f'cannot write --out: {describe_os_error(exc)}'
+    return None
+
+
+def _unfinished(args, summary: dict) -> int:
+    """
+    Say why a demo run did not finish, and return its exit status.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command line (``verbose``).
+    summary : dict
+        The run's summary (:func:`mlv_ros.runner.run_graph`), interrupted or not complete.
+
+    Returns
+    -------
+    int
+        The signal's exit status if interrupted, else 1.
+
+    """
+    from mlv_ros.console import summary_lines
+    from mlv_ros.runner import exit_status, SIGNAL_EXIT
+
     if summary.get('interrupted'):
         print(
             f'mlv-ros demo: interrupted by {summary["interrupted"]}; the recording keeps the '
@@ -105,20 +159,39 @@ def run(args) -> int:
             file=sys.stderr,
         )
         return SIGNAL_EXIT[signal.Signals[summary['interrupted']]]
-    if not summary['complete']:
-        if args.verbose:
-            print(json.dumps(summary, indent=2))
-        _, how = exit_status(summary)
-        print('\n'.join(summary_lines(summary, exit_status=1, exit_reason=how)))
-        print(
-            'mlv-ros demo: the run did not complete; see /diagnostics in the recording',
-            file=sys.stderr,
-        )
-        return 1
-    acc = phantom_accuracy(Path(summary['mcap']), args.preset, summary['num_phases'])
-    index = write_report(Path(summary['mcap']))
+    if args.verbose:
+        print(json.dumps(summary, indent=2))
+    _, how = exit_status(summary)
+    print('\n'.join(summary_lines(summary, exit_status=1, exit_reason=how)))
+    print(
+        'mlv-ros demo: the run did not complete; see /diagnostics in the recording',
+        file=sys.stderr,
+    )
+    return 1
+
+
+def _result(out: Path, summary: dict, acc: dict, index: Path) -> dict:
+    """
+    Gather what the demo prints as JSON with --verbose: the run and its phantom accuracy.
+
+    Parameters
+    ----------
+    out : Path
+        The run directory.
+    summary : dict
+        The run's summary.
+    acc : dict
+        Its accuracy against the phantom's truth (:func:`mlv_ros.recording.phantom_accuracy`).
+    index : Path
+        The report's index.html.
+
+    Returns
+    -------
+    dict
+
+    """
     es = acc['es']
-    result = {
+    return {
         'run_dir': str(out),
         'recording': summary['mcap'],
         'report': str(index),
@@ -139,17 +212,3 @@ def run(args) -> int:
         'particles_inside_true_myocardium': round(acc['inside_myocardium'], 4),
         'true_myocardium_covered': round(acc['coverage'], 4),
     }
-    (out / 'accuracy.json').write_text(json.dumps(acc, indent=2))
-    if args.verbose:
-        print(json.dumps(result, indent=2))
-    print(
-        '\n'.join(
-            summary_lines(
-                summary, exit_status=0, exit_reason='complete', accuracy=acc, report=str(index)
-            )
-        )
-    )
-    quality = verdict_line(summary)
-    if quality:
-        print(f'mlv-ros demo: {quality}', file=sys.stderr)
-    return 0

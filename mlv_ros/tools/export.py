@@ -314,7 +314,7 @@ def export_vtk(mcap: Path, out: Path) -> dict:
         The recording cannot be read.
 
     """
-    from mlv_ros.core.io.vtk import write_pvd, write_vtu_points
+    from mlv_ros.core.io.vtk import write_pvd
     from mlv_ros.recording import check_recording
 
     mcap, out = Path(mcap), Path(out)
@@ -330,20 +330,7 @@ def export_vtk(mcap: Path, out: Path) -> dict:
         )
 
     width = max(3, len(str(max(max(phases), max(ph['num_phases'] for ph in phases.values()) - 1))))
-    written = [
-        (p, ph)
-        for p, ph in sorted(phases.items())
-        if ph['cloud'] is not None and ph['verdict'] != FAILED
-    ]
-    failed = [
-        (p, ph['verdict_reasons']) for p, ph in sorted(phases.items()) if ph['verdict'] == FAILED
-    ]
-    degraded = [
-        (p, ph['verdict_reasons']) for p, ph in sorted(phases.items()) if ph['verdict'] == 1
-    ]
-    no_cloud = [
-        p for p, ph in sorted(phases.items()) if ph['cloud'] is None and ph['verdict'] != FAILED
-    ]
+    written, failed, degraded, no_cloud = _sort_phases(phases)
     steps, step_kind = _timesteps(written)
 
     tmp = out.parent / f'.{out.name}.export-{uuid.uuid4().hex[:12]}'
@@ -353,23 +340,7 @@ def export_vtk(mcap: Path, out: Path) -> dict:
     except OSError as exc:
         raise ExportWriteError(out, exc) from exc
     try:
-        files = []
-        for (p, ph), t in zip(written, steps):
-            pts, arrays = point_arrays(ph['cloud'], data['ed'])
-            name = f'phase_{p:0{width}d}.vtu'
-            write_vtu_points(
-                tmp / name,
-                pts,
-                arrays,
-                {
-                    'phase_index': np.int32(p),
-                    'num_phases': np.int32(ph['num_phases']),
-                    'time_fraction': np.float64(ph['time_fraction']),
-                    'TimeValue': np.float64(t),
-                    'verdict': np.int32(ph['verdict']),
-                },
-            )
-            files.append(name)
+        files = _write_phase_files(tmp, written, steps, data['ed'], width)
         write_pvd(tmp / PVD_NAME, zip(steps, files))
         with open(tmp / CSV_NAME, 'w', newline='', encoding='utf-8') as fh:
             writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
@@ -432,3 +403,78 @@ def run(args) -> int:
         + '\n}'
     )
     return 0
+
+
+def _sort_phases(phases: dict) -> tuple[list, list, list, list]:
+    """
+    Sort the recorded phases by what the export does with them, each in phase order.
+
+    Returns
+    -------
+    written : list of (int, dict)
+        Phases with a cloud, not failed.
+    failed, degraded : list of (int, list)
+        Phases failed (left out) and degraded, with their verdict reasons.
+    no_cloud : list of int
+        Phases not failed but without a cloud (left out).
+
+    """
+    written = [
+        (p, ph)
+        for p, ph in sorted(phases.items())
+        if ph['cloud'] is not None and ph['verdict'] != FAILED
+    ]
+    failed = [
+        (p, ph['verdict_reasons']) for p, ph in sorted(phases.items()) if ph['verdict'] == FAILED
+    ]
+    degraded = [
+        (p, ph['verdict_reasons']) for p, ph in sorted(phases.items()) if ph['verdict'] == 1
+    ]
+    no_cloud = [
+        p for p, ph in sorted(phases.items()) if ph['cloud'] is None and ph['verdict'] != FAILED
+    ]
+    return written, failed, degraded, no_cloud
+
+
+def _write_phase_files(tmp: Path, written: list, steps, ed, width: int) -> list[str]:
+    """
+    Write one ``.vtu`` of points per phase written; return their names.
+
+    Parameters
+    ----------
+    tmp : Path
+        The directory written into.
+    written : list of (int, dict)
+        The phases (:func:`_sort_phases`).
+    steps : sequence of float
+        Each phase's TimeValue (:func:`_timesteps`).
+    ed : np.ndarray or None
+        The registered ED cloud (:func:`point_arrays`).
+    width : int
+        Digits of the phase number in the file names.
+
+    Returns
+    -------
+    list of str
+
+    """
+    from mlv_ros.core.io.vtk import write_vtu_points
+
+    files = []
+    for (p, ph), t in zip(written, steps):
+        pts, arrays = point_arrays(ph['cloud'], ed)
+        name = f'phase_{p:0{width}d}.vtu'
+        write_vtu_points(
+            tmp / name,
+            pts,
+            arrays,
+            {
+                'phase_index': np.int32(p),
+                'num_phases': np.int32(ph['num_phases']),
+                'time_fraction': np.float64(ph['time_fraction']),
+                'TimeValue': np.float64(t),
+                'verdict': np.int32(ph['verdict']),
+            },
+        )
+        files.append(name)
+    return files

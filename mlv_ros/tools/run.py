@@ -76,6 +76,15 @@ _UID = re.compile(r'[0-9]+(\.[0-9]+)*')
 
 
 def add_arguments(parser):
+    """
+    Declare ``mlv-ros run``'s options, in the order --help lists them.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+
+    """
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument(
         '--phantom',
@@ -97,6 +106,13 @@ def add_arguments(parser):
     parser.add_argument(
         '--params', default=None, help='graph parameters YAML (default config/graph.yaml)'
     )
+    _add_phantom_arguments(parser)
+    _add_console_arguments(parser)
+    _add_graph_arguments(parser)
+
+
+def _add_phantom_arguments(parser):
+    """Declare the options that shape the phantom and the model (``parser``: argparse)."""
     parser.add_argument(
         '--snr',
         type=float,
@@ -121,6 +137,10 @@ def add_arguments(parser):
         default=None,
         help='NIfTI label image of the ED myocardium (label 2) instead of automatic segmentation',
     )
+
+
+def _add_console_arguments(parser):
+    """Declare the options of time limits and of what the console shows (``parser``: argparse)."""
     parser.add_argument(
         '--timeout', type=float, default=600.0, help='give up after this many seconds'
     )
@@ -142,6 +162,10 @@ def add_arguments(parser):
         action='store_true',
         help="also the nodes' INFO lines, one line per event and the whole summary as JSON",
     )
+
+
+def _add_graph_arguments(parser):
+    """Declare the options of where the graph runs and who can watch it (``parser``: argparse)."""
     parser.add_argument(
         '--domain-id',
         type=int,

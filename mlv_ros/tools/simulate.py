@@ -129,7 +129,7 @@ def _protocol(args):
 
 def run(args) -> int:
     from mlv_ros.core.io import write_groundtruth, write_study_dicom
-    from mlv_ros.core.sim import load_preset, simulate_study
+    from mlv_ros.core.sim import load_preset
     from tqdm import tqdm
 
     randomised = args.random is not None or args.protocol is not None
@@ -151,31 +151,10 @@ def run(args) -> int:
     else:
         snr = preset['imaging']['snr'] if args.snr is None else args.snr
         snr = None if snr == 0 else snr
-    bar = tqdm(total=1, unit='img', desc=f'simulate {preset["name"]}', disable=args.no_progress)
-
-    def progress(done, total):
-        bar.total = total
-        bar.update(done - bar.n)
-
     try:
-        if protocol is not None:  # size and phases are protocol items
-            study = simulate_study(
-                preset, snr=snr, seed=seed, subplanes=args.subplanes, progress=progress
-            )
-        else:
-            study = simulate_study(
-                preset,
-                snr=snr,
-                size=args.size,
-                num_phases=args.phases,
-                seed=seed,
-                subplanes=args.subplanes,
-                progress=progress,
-            )
+        study = _simulate(args, preset, protocol, snr, seed)
     except ValueError as exc:
-        bar.close()
         return _fail(exc)
-    bar.close()
     out = Path(args.out)
     extra, options = None, {}
     if protocol is not None:
@@ -202,21 +181,69 @@ def run(args) -> int:
         f'{npath.name}'
     )
     if protocol is not None:
-        how = (
-            f'--random {args.random}' if args.random is not None else f'--protocol {args.protocol}'
-        )
-        sub = f' --subplanes {args.subplanes}' if args.subplanes is not None else ''
-        save_protocol(
-            protocol,
-            out / 'protocol.yaml',
-            header=(
-                f'Acquisition protocol of this study (mlv-ros simulate {how}; noise seed '
-                f'{seed}).\n'
-                f'Reproduce: mlv-ros simulate --protocol protocol.yaml --seed {seed}{sub} '
-                '--out DIR\n'
-                f"Items and ranges: README.md, 'Random protocols'."
-            ),
-        )
+        save_protocol(protocol, out / 'protocol.yaml', header=_protocol_header(args, seed))
         msg += ', protocol.yaml'
     print(msg)
     return 0
+
+
+def _simulate(args, preset: dict, protocol: dict | None, snr, seed: int):
+    """
+    Simulate the study behind a progress bar (closed however it ends).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command line (``size``, ``phases``, ``subplanes``, ``no_progress``).
+    preset : dict
+        The phantom preset.
+    protocol : dict or None
+        A drawn protocol: its size and phases are protocol items, the command line's are not used.
+    snr : float or None
+        Noise level (None: noiseless).
+    seed : int
+        Noise seed.
+
+    Returns
+    -------
+    mlv_ros.core.sim.Study
+
+    """
+    from mlv_ros.core.sim import simulate_study
+    from tqdm import tqdm
+
+    bar = tqdm(total=1, unit='img', desc=f'simulate {preset["name"]}', disable=args.no_progress)
+
+    def progress(done, total):
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        if protocol is not None:  # size and phases are protocol items
+            return simulate_study(
+                preset, snr=snr, seed=seed, subplanes=args.subplanes, progress=progress
+            )
+        return simulate_study(
+            preset,
+            snr=snr,
+            size=args.size,
+            num_phases=args.phases,
+            seed=seed,
+            subplanes=args.subplanes,
+            progress=progress,
+        )
+    finally:
+        bar.close()
+
+
+def _protocol_header(args, seed: int) -> str:
+    """Say in protocol.yaml where the protocol came from and how to simulate it again."""
+    how = f'--random {args.random}' if args.random is not None else f'--protocol {args.protocol}'
+    sub = f' --subplanes {args.subplanes}' if args.subplanes is not None else ''
+    return (
+        f'Acquisition protocol of this study (mlv-ros simulate {how}; noise seed '
+        f'{seed}).\n'
+        f'Reproduce: mlv-ros simulate --protocol protocol.yaml --seed {seed}{sub} '
+        '--out DIR\n'
+        f"Items and ranges: README.md, 'Random protocols'."
+    )

@@ -265,41 +265,13 @@ def write_study_dicom(
         a rescale.
 
     """
-    if bits_stored not in BITS_STORED:
-        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
-    for name, v, choices in (
-        ('sa_series', sa_series, SA_SERIES),
-        ('instance_numbers', instance_numbers, INSTANCE_NUMBERS),
-        ('file_names', file_names, FILE_NAMES),
-    ):
-        if v not in choices:
-            raise ValueError(f'{name} must be one of {choices}, got {v!r}')
-    if not (np.isfinite(pixel_scale) and pixel_scale > 0):
-        raise ValueError(
-            f'pixel_scale must be a positive number of stored units per intensity '
-            f'unit, got {pixel_scale}'
-        )
-    if not np.isfinite(rescale_intercept) or (not rescale and rescale_intercept != 0.0):
-        raise ValueError(
-            f'rescale_intercept must be finite, and 0 without a rescale; got {rescale_intercept}'
-        )
+    _check_write_options(
+        bits_stored, sa_series, instance_numbers, file_names, pixel_scale, rescale,
+        rescale_intercept,
+    )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    keys = study.keys
-    series_number = {key: i + 1 for i, key in enumerate(keys)}
-    series_uid: dict = {}
-    descriptions = {
-        key: study.descriptions.get(key, f'tagged {VIEW_NAMES[key[0]]} {key[1]}') for key in keys
-    }
-    position = {key: i for i, key in enumerate(keys)}  # slice's place in its series' numbering
-    if sa_series == 'single':
-        sa_keys = [k for k in keys if k[0] == VIEW_SA]
-        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, 'SA stack'])
-        others = [k for k in keys if k[0] != VIEW_SA]
-        series_number = {k: 1 for k in sa_keys} | {k: i + 2 for i, k in enumerate(others)}
-        series_uid = {k: stack_uid for k in sa_keys}
-        descriptions.update({k: 'tagged SA stack' for k in sa_keys})
-        position = {k: i for i, k in enumerate(sa_keys)} | {k: 0 for k in others}
+    series_number, series_uid, descriptions, position = _series_layout(study, sa_series)
     total = len(study.frames)
     names = _random_paths(out, total, names_seed) if file_names == 'random' else None
     paths = []
@@ -335,6 +307,59 @@ def write_study_dicom(
     return paths
 
 
+def _check_write_options(
+    bits_stored, sa_series, instance_numbers, file_names, pixel_scale, rescale, rescale_intercept
+) -> None:
+    """Refuse write_study_dicom options outside their choices (its parameters; ValueError)."""
+    if bits_stored not in BITS_STORED:
+        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
+    for name, v, choices in (
+        ('sa_series', sa_series, SA_SERIES),
+        ('instance_numbers', instance_numbers, INSTANCE_NUMBERS),
+        ('file_names', file_names, FILE_NAMES),
+    ):
+        if v not in choices:
+            raise ValueError(f'{name} must be one of {choices}, got {v!r}')
+    if not (np.isfinite(pixel_scale) and pixel_scale > 0):
+        raise ValueError(
+            f'pixel_scale must be a positive number of stored units per intensity '
+            f'unit, got {pixel_scale}'
+        )
+    if not np.isfinite(rescale_intercept) or (not rescale and rescale_intercept != 0.0):
+        raise ValueError(
+            f'rescale_intercept must be finite, and 0 without a rescale; got {rescale_intercept}'
+        )
+
+
+def _series_layout(study, sa_series: str) -> tuple[dict, dict, dict, dict]:
+    """
+    Give each series its number, UID and description, and each slice its place in its series.
+
+    Returns
+    -------
+    series_number, series_uid, descriptions, position : dict
+        By ``(view, slice_index)`` key: SeriesNumber, SeriesInstanceUID (where not the
+        frame's own), SeriesDescription, and the slice's place in its series' numbering.
+
+    """
+    keys = study.keys
+    series_number = {key: i + 1 for i, key in enumerate(keys)}
+    series_uid: dict = {}
+    descriptions = {
+        key: study.descriptions.get(key, f'tagged {VIEW_NAMES[key[0]]} {key[1]}') for key in keys
+    }
+    position = {key: i for i, key in enumerate(keys)}  # slice's place in its series' numbering
+    if sa_series == 'single':
+        sa_keys = [k for k in keys if k[0] == VIEW_SA]
+        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, 'SA stack'])
+        others = [k for k in keys if k[0] != VIEW_SA]
+        series_number = {k: 1 for k in sa_keys} | {k: i + 2 for i, k in enumerate(others)}
+        series_uid = {k: stack_uid for k in sa_keys}
+        descriptions.update({k: 'tagged SA stack' for k in sa_keys})
+        position = {k: i for i, k in enumerate(sa_keys)} | {k: 0 for k in others}
+    return series_number, series_uid, descriptions, position
+
+
 def frame_to_dataset(
     frame: Frame,
     pixel_scale: float = PIXEL_SCALE,
@@ -366,26 +391,7 @@ def frame_to_dataset(
         Not a 2-D image, an unsupported ``bits_stored``, or integer pixels that do not fit it.
 
     """
-    img = np.asarray(frame.image)
-    if img.ndim != 2:
-        raise ValueError(f'frame image must be 2-D, got shape {img.shape}')
-    if bits_stored not in BITS_STORED:
-        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
-    top = (1 << bits_stored) - 1
-    dtype = np.uint8 if bits_stored == 8 else np.uint16
-    if img.dtype == dtype:
-        if img.size and int(img.max()) > top:
-            raise ValueError(
-                f'integer pixels up to {int(img.max())} do not fit in {bits_stored} bits'
-            )
-        stored, slope, inter = img, 1.0, 0.0
-    else:
-        x = img.astype(np.float64)
-        if rescale_intercept:
-            x = x - float(rescale_intercept)
-        stored = np.clip(np.rint(x * pixel_scale), 0, top).astype(dtype)
-        slope, inter = 1.0 / pixel_scale, float(rescale_intercept)
-    g = frame.geometry
+    stored, slope, inter = _stored_pixels(frame.image, pixel_scale, bits_stored, rescale_intercept)
     sop_uid = pydicom.uid.generate_uid(
         entropy_srcs=[frame.series_uid, str(frame.phase_index), str(frame.slice_index)]
     )
@@ -414,16 +420,7 @@ def frame_to_dataset(
     ds.ScanningSequence = 'GR'
     ds.SequenceVariant = 'SP'
     ds.MRAcquisitionType = '2D'
-    ds.TriggerTime = _ds(frame.trigger_time * 1000.0)
-    ds.NominalInterval = int(round(frame.cycle_duration * 1000.0))  # IS: whole ms
-    ds.CardiacNumberOfImages = int(frame.num_phases)
-    ds.ImagePositionPatient = [_ds(v) for v in g.image_position]
-    ds.ImageOrientationPatient = [
-        _ds(v) for v in np.concatenate([g.row_direction, g.column_direction])
-    ]
-    ds.PixelSpacing = [_ds(g.row_spacing), _ds(g.column_spacing)]
-    ds.SliceThickness = _ds(g.slice_thickness)
-    ds.SliceLocation = _ds(float(g.image_position @ g.normal))
+    _set_timing_and_geometry(ds, frame)
     ds.Rows, ds.Columns = stored.shape
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = 'MONOCHROME2'
@@ -439,6 +436,70 @@ def frame_to_dataset(
     ds.WindowWidth = _ds(1.2 * pixel_scale)
     ds.PixelData = np.ascontiguousarray(stored).tobytes()
     return ds
+
+
+def _stored_pixels(
+    image, pixel_scale: float, bits_stored: int, rescale_intercept: float
+) -> tuple[np.ndarray, float, float]:
+    """
+    Return an image's stored values, RescaleSlope and RescaleIntercept (see frame_to_dataset).
+
+    Parameters
+    ----------
+    image : array_like
+        2-D image: float intensities, or integers of the stored type (stored as they are).
+    pixel_scale : float
+        Stored units per intensity unit.
+    bits_stored : int
+        One of :data:`BITS_STORED`.
+    rescale_intercept : float
+        Intensity of stored value 0.
+
+    Returns
+    -------
+    stored : np.ndarray
+        uint8 for 8 bits, else uint16, within ``0 .. 2**bits_stored − 1``.
+    slope, intercept : float
+
+    Raises
+    ------
+    ValueError
+        Not a 2-D image, an unsupported ``bits_stored``, or integer pixels that do not fit it.
+
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f'frame image must be 2-D, got shape {img.shape}')
+    if bits_stored not in BITS_STORED:
+        raise ValueError(f'bits_stored must be one of {BITS_STORED}, got {bits_stored!r}')
+    top = (1 << bits_stored) - 1
+    dtype = np.uint8 if bits_stored == 8 else np.uint16
+    if img.dtype == dtype:
+        if img.size and int(img.max()) > top:
+            raise ValueError(
+                f'integer pixels up to {int(img.max())} do not fit in {bits_stored} bits'
+            )
+        return img, 1.0, 0.0
+    x = img.astype(np.float64)
+    if rescale_intercept:
+        x = x - float(rescale_intercept)
+    stored = np.clip(np.rint(x * pixel_scale), 0, top).astype(dtype)
+    return stored, 1.0 / pixel_scale, float(rescale_intercept)
+
+
+def _set_timing_and_geometry(ds: Dataset, frame: Frame) -> None:
+    """Write a frame's cardiac timing (ms) and plane geometry (mm) into its dataset."""
+    g = frame.geometry
+    ds.TriggerTime = _ds(frame.trigger_time * 1000.0)
+    ds.NominalInterval = int(round(frame.cycle_duration * 1000.0))  # IS: whole ms
+    ds.CardiacNumberOfImages = int(frame.num_phases)
+    ds.ImagePositionPatient = [_ds(v) for v in g.image_position]
+    ds.ImageOrientationPatient = [
+        _ds(v) for v in np.concatenate([g.row_direction, g.column_direction])
+    ]
+    ds.PixelSpacing = [_ds(g.row_spacing), _ds(g.column_spacing)]
+    ds.SliceThickness = _ds(g.slice_thickness)
+    ds.SliceLocation = _ds(float(g.image_position @ g.normal))
 
 
 # ---------------------------------------------------------------------------------- reading
@@ -714,6 +775,13 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
             'file '
             f'expected, or an Enhanced (functional-group) multi-frame image'
         )
+    _check_greyscale(ds)
+    _check_bits(ds, pixel_tag)
+    return rows, cols
+
+
+def _check_greyscale(ds) -> None:
+    """Refuse a colour image: tagged MR is greyscale, and colour grey levels are no intensities."""
     spp = _required_int(ds, 'SamplesPerPixel')
     photometric = str(_get(ds, 'PhotometricInterpretation')).strip()
     if spp < 1:
@@ -746,12 +814,16 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
         )
     if photometric not in ('MONOCHROME1', 'MONOCHROME2'):
         raise _Skip(f'PhotometricInterpretation {photometric!r}: greyscale MONOCHROME1/2 expected')
+
+
+def _check_bits(ds, pixel_tag: str) -> None:
+    """Refuse bit depths and signs that contradict each other or the pixel data element."""
     bits = _required_int(ds, 'BitsAllocated')
     if pixel_tag != 'PixelData':
         want = 32 if pixel_tag == 'FloatPixelData' else 64
         if bits != want:
             raise _Skip(f'BitsAllocated {bits} contradicts {pixel_tag} ({want} expected)')
-        return rows, cols
+        return
     if bits not in (8, 16, 32):
         raise _Skip(f'BitsAllocated {bits}: 8, 16 or 32 expected for greyscale pixels')
     stored = _required_int(ds, 'BitsStored')
@@ -762,7 +834,6 @@ def _check_encoding(ds, pixel_tag: str) -> tuple[int, int]:
     sign = _required_int(ds, 'PixelRepresentation')
     if sign not in (0, 1):
         raise _Skip(f'PixelRepresentation {sign}: 0 (unsigned) or 1 (signed) expected')
-    return rows, cols
 
 
 def _working_pixels(ds, pixels: np.ndarray, tag: str) -> np.ndarray:
@@ -877,11 +948,51 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
     One image per frame: an Enhanced multi-frame file gives each frame with its functional groups
     (:func:`_frame_views`).
     """
+    ds = _open_header(path)
+    ts, tag = _check_header(path, ds)
+    # The Image Pixel module first: pydicom resolves the pixel element's VR (OB or OW) from it.
+    rows, cols = _check_encoding(ds, tag)
+    encapsulated = _check_pixel_element(ds, ts, tag)
+    nframes = _check_size(ds, rows, cols, max_pixels)
+    views = _frame_views(ds, nframes) if _enhanced(ds) else [ds]
+    geoms = []
+    for k, view in enumerate(views):
+        try:
+            geoms.append(_geometry(view))
+        except _Skip as why:
+            raise _Skip(
+                f'frame {k + 1} of {nframes}: {why}' if len(views) > 1 else str(why)
+            ) from None
+    bits = _required_int(ds, 'BitsAllocated')
+    if not encapsulated:
+        _check_pixel_length(ds, tag, rows * cols * bits // 8 * nframes, nframes)
+    if encapsulated:
+        missing = _decoder_missing(ts)
+        if missing:
+            raise _Skip(missing)
+    try:
+        pixels = ds.pixel_array
+    except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
+        raise _Skip(
+            f'pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})'
+        ) from None
+    want_shape = (nframes, rows, cols) if nframes > 1 else (rows, cols)
+    if pixels.shape != want_shape:
+        raise _Skip(
+            f'pixel data decodes to shape {pixels.shape}, header says '
+            f'{"x".join(map(str, want_shape))}'
+        )
+    if views[0] is ds:
+        return [_image(path, ds, _working_pixels(ds, pixels, tag), geoms[0])]
+    return _frame_images(path, views, geoms, pixels.reshape(nframes, rows, cols), tag)
+
+
+def _open_header(path: str) -> Dataset:
+    """Read a file's header, leaving large values (pixel data) on disk until it is checked."""
     if os.path.getsize(path) == 0:
         raise _Skip('empty file (0 bytes)')
     try:
-        # Large values (pixel data) are left on disk until the header has been checked.
-        ds = pydicom.dcmread(path, defer_size=_DEFER_BYTES)
+        return pydicom.dcmread(path, defer_size=_DEFER_BYTES)
     except InvalidDicomError as exc:
         raise _Skip(f'not a DICOM file ({exc})') from None
     except Exception as exc:  # pydicom raises many types on damaged files
@@ -893,6 +1004,32 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
         raise _Skip(
             f'unreadable DICOM: damaged or truncated ({type(exc).__name__}: {exc}{where})'
         ) from None
+
+
+def _check_header(path: str, ds: Dataset) -> tuple[pydicom.uid.UID, str]:
+    """
+    Check that a file is an image with one pixel data element under a known transfer syntax.
+
+    Parameters
+    ----------
+    path : str
+        The file (a DICOMDIR's listed files are looked up next to it).
+    ds : Dataset
+        Its dataset as read by :func:`_open_header`.
+
+    Returns
+    -------
+    ts : pydicom.uid.UID
+        The transfer syntax.
+    tag : str
+        The keyword of the pixel data element (one of :data:`_PIXEL_TAGS`).
+
+    Raises
+    ------
+    _Skip
+        Why the file is not read.
+
+    """
     meta = getattr(ds, 'file_meta', None) or Dataset()
     cut = _truncated_meta(path, meta)
     if cut:
@@ -918,11 +1055,13 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
         raise _Skip(_no_pixels_reason(ds))
     if len(present) > 1:
         raise _Skip(f'more than one pixel data element ({", ".join(present)}): ambiguous')
-    tag = present[0]
     if not ts.is_transfer_syntax:
         raise _Skip(f'unknown transfer syntax {ts}')
-    # The Image Pixel module first: pydicom resolves the pixel element's VR (OB or OW) from it.
-    rows, cols = _check_encoding(ds, tag)
+    return ts, present[0]
+
+
+def _check_pixel_element(ds: Dataset, ts: pydicom.uid.UID, tag: str) -> bool:
+    """Return whether the pixel data is encapsulated, refusing one its transfer syntax denies."""
     try:
         raw = ds.get_item(tag)
     except Exception as exc:  # pydicom resolves the VR and may convert the value here
@@ -937,6 +1076,11 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
         )
     if encapsulated and not ts.is_compressed:
         raise _Skip(f'{tag} is encapsulated but the transfer syntax {ts.name} is uncompressed')
+    return encapsulated
+
+
+def _check_size(ds: Dataset, rows: int, cols: int, max_pixels: int) -> int:
+    """Return the frame count, refusing an image or file too large to read (``max_pixels``)."""
     if rows * cols > max_pixels:
         raise _Skip(
             f'image declares {rows}x{cols} = {rows * cols} pixels, more than max_pixels = '
@@ -951,51 +1095,50 @@ def _load_images(path: str, max_pixels: int) -> list[_Image]:
             'max_pixels '
             f'= {_MAX_FILE_FRAMES_PIXELS * max_pixels} pixels in one file'
         )
-    views = _frame_views(ds, nframes) if _enhanced(ds) else [ds]
-    geoms = []
-    for k, view in enumerate(views):
-        try:
-            geoms.append(_geometry(view))
-        except _Skip as why:
-            raise _Skip(
-                f'frame {k + 1} of {nframes}: {why}' if len(views) > 1 else str(why)
-            ) from None
-    bits = _required_int(ds, 'BitsAllocated')
-    if not encapsulated:
-        want = rows * cols * bits // 8 * nframes
-        have = len(_get(ds, tag) or b'')
-        if have < want:
-            raise _Skip(
-                f'pixel data unreadable: truncated, {have} of {want} bytes present '
-                f'(Rows × Columns × BitsAllocated/8{" × NumberOfFrames" if nframes > 1 else ""})'
-            )
-        if have > want + 1:  # one byte of padding to an even length is legal
-            raise _Skip(
-                f'pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8'
-                f'{" × NumberOfFrames" if nframes > 1 else ""} = {want} '
-                f'(wrong Rows, Columns or BitsAllocated?)'
-            )
-    if encapsulated:
-        missing = _decoder_missing(ts)
-        if missing:
-            raise _Skip(missing)
-    try:
-        pixels = ds.pixel_array
-    except Exception as exc:  # decoders (pydicom's own, Pillow, ...) raise assorted types
+    return nframes
+
+
+def _check_pixel_length(ds: Dataset, tag: str, want: int, nframes: int) -> None:
+    """Refuse native pixel data shorter or longer than the header's ``want`` bytes."""
+    have = len(_get(ds, tag) or b'')
+    if have < want:
         raise _Skip(
-            f'pixel data unreadable (transfer syntax {ts.name}; {type(exc).__name__}: {exc})'
-        ) from None
-    want_shape = (nframes, rows, cols) if nframes > 1 else (rows, cols)
-    if pixels.shape != want_shape:
-        raise _Skip(
-            f'pixel data decodes to shape {pixels.shape}, header says '
-            f'{"x".join(map(str, want_shape))}'
+            f'pixel data unreadable: truncated, {have} of {want} bytes present '
+            f'(Rows × Columns × BitsAllocated/8{" × NumberOfFrames" if nframes > 1 else ""})'
         )
-    if views[0] is ds:
-        return [_image(path, ds, _working_pixels(ds, pixels, tag), geoms[0])]
-    # Enhanced: each frame its own image, timing from its functional groups; without a phase
-    # count, the largest TemporalPositionIndex stands for it.
-    stack = pixels.reshape(nframes, rows, cols)
+    if have > want + 1:  # one byte of padding to an even length is legal
+        raise _Skip(
+            f'pixel data too long: {have} bytes for Rows × Columns × BitsAllocated/8'
+            f'{" × NumberOfFrames" if nframes > 1 else ""} = {want} '
+            f'(wrong Rows, Columns or BitsAllocated?)'
+        )
+
+
+def _frame_images(path: str, views, geoms, stack: np.ndarray, tag: str) -> list[_Image]:
+    """
+    Make an Enhanced file's frames images, each timed by its functional groups.
+
+    Without a phase count, the largest TemporalPositionIndex stands for it.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    views : list
+        Each frame's view of the dataset (:func:`_frame_views`).
+    geoms : list of SliceGeometry
+        Each frame's geometry.
+    stack : np.ndarray
+        Decoded pixels, shape (frames, rows, cols).
+    tag : str
+        The pixel data element's keyword.
+
+    Returns
+    -------
+    list of _Image
+
+    """
+    nframes = len(stack)
     out = []
     for k, (view, geom) in enumerate(zip(views, geoms)):
         try:
@@ -1656,47 +1799,91 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
     n = int(keep.sum())
     if not n:
         return line, grid
-    f = np.fft.fftfreq(win)
-    fr, fc = np.repeat(f[:, None], win, 1).ravel(), np.repeat(f[None, :], win, 0).ravel()
-    rad, ang = np.hypot(fr, fc), np.arctan2(fr, fc)
-    half = (fc > 0) | ((fc == 0) & (fr > 0))
-    bins = np.flatnonzero(half & (rad >= 1.0 / hi) & (rad <= 1.0 / lo))
-    ring = np.rint(rad * win).astype(int)
-    rings = [np.flatnonzero(half & (ring == k)) for k in range(win // 2 + 1)]
-    off = np.arange(-1, 2)
-    rays = []  # (scale, 3 × 3 patch indices around s·f) per bin
-    for s in _RAY_SCALES:
-        if s != _RAY_SCALES[0]:
-            use = rad[bins] * win * (1.0 - s) >= _RAY_GAP_BINS - 1e-6
-        else:
-            use = np.ones(len(bins), bool)  # the innermost sample always
-        r0 = np.rint(fr[bins] * s * win).astype(int)
-        c0 = np.rint(fc[bins] * s * win).astype(int)
-        idx = ((r0[:, None, None] + off[None, :, None]) % win) * win + (
-            (c0[:, None, None] + off[None, None, :]) % win
-        )
-        rays.append((s, idx.reshape(len(bins), -1), use))
+    wb = _WindowBins(win, lo, hi)
+    ratio = _window_ratio(stacks, wb)
+    fa = wb.rad[wb.bins]
+    log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
+    tol = 0.5 / (win * fa) + 0.04
+    near = np.abs(log_bins[None, :] + np.log(fa)[:, None]) <= tol[:, None]  # (bins, periods)
+    for k in range(n):
+        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
+    return line, _window_grid(ratio, wb, log_bins)
+
+
+class _WindowBins:
+    """
+    The spectral bins of a window looked at for tags, and the samples of their background.
+
+    Parameters
+    ----------
+    win : int
+        Window size, pixels.
+    lo, hi : float
+        Tag periods looked for, pixels.
+
+    """
+
+    def __init__(self, win: int, lo: float, hi: float):
+        self.win = win
+        f = np.fft.fftfreq(win)
+        fr, fc = np.repeat(f[:, None], win, 1).ravel(), np.repeat(f[None, :], win, 0).ravel()
+        self.rad, self.ang = np.hypot(fr, fc), np.arctan2(fr, fc)
+        rad = self.rad
+        half = (fc > 0) | ((fc == 0) & (fr > 0))
+        bins = np.flatnonzero(half & (rad >= 1.0 / hi) & (rad <= 1.0 / lo))
+        self.bins = bins
+        self.ring = np.rint(rad * win).astype(int)
+        self.rings = [np.flatnonzero(half & (self.ring == k)) for k in range(win // 2 + 1)]
+        off = np.arange(-1, 2)
+        self.rays = []  # (scale, 3 × 3 patch indices around s·f) per bin
+        for s in _RAY_SCALES:
+            if s != _RAY_SCALES[0]:
+                use = rad[bins] * win * (1.0 - s) >= _RAY_GAP_BINS - 1e-6
+            else:
+                use = np.ones(len(bins), bool)  # the innermost sample always
+            r0 = np.rint(fr[bins] * s * win).astype(int)
+            c0 = np.rint(fc[bins] * s * win).astype(int)
+            idx = ((r0[:, None, None] + off[None, :, None]) % win) * win + (
+                (c0[:, None, None] + off[None, None, :]) % win
+            )
+            self.rays.append((s, idx.reshape(len(bins), -1), use))
+
+
+def _window_ratio(stacks: list[np.ndarray], wb: _WindowBins) -> np.ndarray:
+    """
+    Return each window's noise-relative power per bin, the weaker over the images, × images.
+
+    ``stacks``: per image, its windows ``(n, win, win)``; the result is ``(n, len(wb.bins))``.
+    """
+    win, bins, n = wb.win, wb.bins, len(stacks[0])
     taper = np.outer(np.hanning(win), np.hanning(win))
     ratio = None
     for s in stacks:
         p = np.abs(np.fft.fft2((s - s.mean(axis=(1, 2), keepdims=True)) * taper)) ** 2
         p = p.reshape(n, -1)
         ring_bg = np.zeros((n, win // 2 + 1))
-        for k, idx in enumerate(rings):
+        for k, idx in enumerate(wb.rings):
             if len(idx):  # exponential power: its median is ln 2 × its mean
                 ring_bg[:, k] = np.median(p[:, idx], axis=1) / math.log(2.0)
-        bg = ring_bg[:, ring[bins]]
-        for sc, idx, use in rays:
+        bg = ring_bg[:, wb.ring[bins]]
+        for sc, idx, use in wb.rays:
             bg = np.maximum(bg, np.where(use, p[:, idx].mean(axis=2) * sc**2, 0.0))
         r = p[:, bins] / np.maximum(bg, np.finfo(np.float64).tiny)
         ratio = r if ratio is None else np.minimum(ratio, r)
     ratio *= len(stacks)
-    fa, th = rad[bins], ang[bins]
-    log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
-    tol = 0.5 / (win * fa) + 0.04
-    near = np.abs(log_bins[None, :] + np.log(fa)[:, None]) <= tol[:, None]  # (bins, periods)
-    for k in range(n):
-        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
+    return ratio
+
+
+def _window_grid(ratio: np.ndarray, wb: _WindowBins, log_bins: np.ndarray) -> np.ndarray:
+    """
+    Return per period bin the best grid any window shows (see :func:`_window_profiles`).
+
+    A grid: the weaker of a pair of local maxima of the window's ratio map 60–120° apart, with
+    periods within the window's resolution. ``log_bins``: log of the period bins in pixels.
+    """
+    win, bins, n = wb.win, wb.bins, len(ratio)
+    fa, th = wb.rad[bins], wb.ang[bins]
+    grid = np.zeros(len(log_bins))
     # local maxima of each window's ratio map (both half planes, wrapped)
     full = np.zeros((n, win * win))
     full[:, bins] = ratio
@@ -1726,7 +1913,7 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
         score = np.minimum(rk[i], rk[j])
         hit = np.abs(log_bins[None, :] + np.log(fm[i, j])[:, None]) <= tl[i, j][:, None]
         grid = np.maximum(grid, np.max(np.where(hit, score[:, None], 0.0), axis=0))
-    return line, grid
+    return grid
 
 
 @dataclass
@@ -1989,66 +2176,109 @@ def _match_study_phases(used: list[_Cine], warned: list, left_out: list) -> None
         if num == n:
             _plan_phases(c, warned, left_out)
         elif num < n or len(c.imgs) < n:
-            t = np.array([i.trigger_ms for i in c.imgs])
-            step = float(np.median(np.diff(ref))) if n > 1 and np.all(np.isfinite(ref)) else np.nan
-            if np.all(np.isfinite(t)) and np.isfinite(step) and step > 0 and len(t) <= n:
-                pick = _match_phases(t, ref)  # a distinct study phase for each image
-                off = float(np.max(np.abs(ref[pick] - t)))
-                if off <= _FEWER_PHASES_TOL * step:
-                    c.use, c.phases, c.num_phases = list(c.imgs), list(pick), n
-                    missing = sorted(set(range(n)) - set(pick))
-                    left_out.append(
-                        (
-                            c.first.path,
-                            (
-                                f'{c.describe()}: {num} phase(s) in a study of {n}: each image '
-                                'used as the study phase '
-                                f'nearest its TriggerTime (largest difference {off:.0f} ms, '
-                                f'{_FEWER_PHASES_TOL:g} of the '
-                                f'{step:.0f} ms phase interval allowed); phase(s) '
-                                f'{", ".join(str(k + 1) for k in missing)} '
-                                f'of {n} missing'
-                            ),
-                        )
-                    )
-                    continue
-                far = (
-                    f"; its TriggerTimes lie up to {off:.0f} ms from the study's "
-                    f'({_FEWER_PHASES_TOL:g} of the '
-                    f'{step:.0f} ms phase interval allowed)'
-                )
-            else:
-                far = (
-                    '; TriggerTimes missing'
-                    if not np.all(np.isfinite(t)) or not np.isfinite(step)
-                    else ''
-                )
-            c.why = (
-                f'{num} phase(s) ({len(c.imgs)} image(s)) where the study has {n}: too few to '
-                'give every '
-                f"phase, and not matched to the study's phases by TriggerTime{far}"
-            )
-            left_out.append((c.first.path, f'{c.describe()} not used: {c.why}'))
+            _fit_fewer_phases(c, num, ref, left_out)
         else:
-            t = np.array([i.trigger_ms for i in c.imgs])
-            timed = bool(np.all(np.isfinite(ref)) and np.all(np.isfinite(t)))
-            r, tt = (ref, t) if timed else (np.arange(n) / n, np.asarray(phases, np.float64) / num)
-            pick = _match_phases(r, tt)
-            c.use, c.phases, c.num_phases = [c.imgs[j] for j in pick], list(range(n)), n
-            off = float(np.max(np.abs(r - tt[pick])))
-            how = (
-                f'largest difference {off:.0f} ms'
-                if timed
-                else f'by phase fraction (TriggerTime missing), largest difference {off:.2f} '
-                'of the cycle'
-            )
-            warned.append(
+            _fit_more_phases(c, phases, num, ref, warned)
+
+
+def _fit_fewer_phases(c: _Cine, num: int, ref: np.ndarray, left_out: list) -> None:
+    """
+    Place each image of a cine of ``num`` phases at the nearest of the study's, or leave it out.
+
+    Parameters
+    ----------
+    c : _Cine
+        The cine; its ``use``/``phases``/``num_phases`` are set, or ``why`` says why not.
+    num : int
+        Its phase count.
+    ref : np.ndarray
+        The study's trigger time of each phase (ms, NaN where unknown), shape (N,).
+    left_out : list
+        ``(path, reason)`` appended either way (the study misses phases of this slice).
+
+    """
+    n = len(ref)
+    t = np.array([i.trigger_ms for i in c.imgs])
+    step = float(np.median(np.diff(ref))) if n > 1 and np.all(np.isfinite(ref)) else np.nan
+    if np.all(np.isfinite(t)) and np.isfinite(step) and step > 0 and len(t) <= n:
+        pick = _match_phases(t, ref)  # a distinct study phase for each image
+        off = float(np.max(np.abs(ref[pick] - t)))
+        if off <= _FEWER_PHASES_TOL * step:
+            c.use, c.phases, c.num_phases = list(c.imgs), list(pick), n
+            missing = sorted(set(range(n)) - set(pick))
+            left_out.append(
                 (
                     c.first.path,
-                    f"{c.describe()}: {num} phases in a study of {n}: the {n} nearest the study's "
-                    f'trigger times used ({how}), {len(c.imgs) - n} image(s) not used',
+                    (
+                        f'{c.describe()}: {num} phase(s) in a study of {n}: each image '
+                        'used as the study phase '
+                        f'nearest its TriggerTime (largest difference {off:.0f} ms, '
+                        f'{_FEWER_PHASES_TOL:g} of the '
+                        f'{step:.0f} ms phase interval allowed); phase(s) '
+                        f'{", ".join(str(k + 1) for k in missing)} '
+                        f'of {n} missing'
+                    ),
                 )
             )
+            return
+        far = (
+            f"; its TriggerTimes lie up to {off:.0f} ms from the study's "
+            f'({_FEWER_PHASES_TOL:g} of the '
+            f'{step:.0f} ms phase interval allowed)'
+        )
+    else:
+        far = (
+            '; TriggerTimes missing'
+            if not np.all(np.isfinite(t)) or not np.isfinite(step)
+            else ''
+        )
+    c.why = (
+        f'{num} phase(s) ({len(c.imgs)} image(s)) where the study has {n}: too few to '
+        'give every '
+        f"phase, and not matched to the study's phases by TriggerTime{far}"
+    )
+    left_out.append((c.first.path, f'{c.describe()} not used: {c.why}'))
+
+
+def _fit_more_phases(c: _Cine, phases: list[int], num: int, ref: np.ndarray, warned) -> None:
+    """
+    Use the images of a cine of ``num`` phases nearest the study's N trigger times.
+
+    Parameters
+    ----------
+    c : _Cine
+        The cine; its ``use``/``phases``/``num_phases`` are set.
+    phases : list of int
+        Its images' own phase indices.
+    num : int
+        Its phase count.
+    ref : np.ndarray
+        The study's trigger time of each phase (ms, NaN where unknown), shape (N,); phase
+        fractions stand in where a time is missing.
+    warned : list
+        ``(path, warning)`` appended: the images not used.
+
+    """
+    n = len(ref)
+    t = np.array([i.trigger_ms for i in c.imgs])
+    timed = bool(np.all(np.isfinite(ref)) and np.all(np.isfinite(t)))
+    r, tt = (ref, t) if timed else (np.arange(n) / n, np.asarray(phases, np.float64) / num)
+    pick = _match_phases(r, tt)
+    c.use, c.phases, c.num_phases = [c.imgs[j] for j in pick], list(range(n)), n
+    off = float(np.max(np.abs(r - tt[pick])))
+    how = (
+        f'largest difference {off:.0f} ms'
+        if timed
+        else f'by phase fraction (TriggerTime missing), largest difference {off:.2f} '
+        'of the cycle'
+    )
+    warned.append(
+        (
+            c.first.path,
+            f"{c.describe()}: {num} phases in a study of {n}: the {n} nearest the study's "
+            f'trigger times used ({how}), {len(c.imgs) - n} image(s) not used',
+        )
+    )
 
 
 def _pixel_mm(c: _Cine) -> float:
@@ -2076,15 +2306,80 @@ def _acquired_alike(c: _Cine, tagged: list[_Cine]) -> _Cine | None:
 
 def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -> _Selection:
     """Choose the study, and the cines of it to use (see :func:`read_dicom_dir`)."""
+    _test_tags(cines)
+    groups: dict[tuple[str, str], list[_Cine]] = defaultdict(list)
+    for c in cines:
+        groups[c.group].append(c)
+    heart = _heart_votes(groups)
+    tally: Counter = Counter()
+    for c in cines:
+        tally[c.first.study_uid] += int(c.tagged)
+    studies = dict(sorted(tally.items(), key=lambda kv: (-kv[1], kv[0])))
+    best, pool = _pick_group(groups, heart, study, studies, root, problems)
+    n_tagged = sum(c.tagged for c in groups[best])
+    n_cines = sum(not c.kind for c in groups[best])
+    others = [
+        f'{_study_name(u)} ({n} tagged cine(s))' for u, n in studies.items() if u != best[0]
+    ]
+    also = f'; also under the folder: study {", study ".join(others)}' if others else ''
+    how = ' (asked for)' if study else ''
+    if not n_tagged and not n_cines:
+        return _select_every_image(cines, pool, study, best[0], studies, also)
+    period = (
+        float(np.nanmedian([c.period_mm for c in groups[best] if c.tagged]))
+        if n_tagged
+        else np.nan
+    )
+    vote = heart.get(best)
+    on_heart = vote is not None and n_tagged > 0  # tagged on the heart alone: the votes decided
+    if on_heart and vote.single_line:
+        raise DicomReadError(
+            f'study {_study_name(best[0])}{how}: single-line tags: intersections needed: its '
+            f'cines show one family of parallel tag lines ({vote.period_mm:.1f} mm apart; in '
+            f'windows {vote.line / _TAG_LINES:.1f}x the line threshold, a second family only '
+            f'{vote.grid / _TAG_STUDY:.2f}x the grid one), and the tracker follows the crossings '
+            f'of a tag grid: give a study tagged in both directions'
+            f'{", or choose another with --study UID" if others else ""}{also}',
+            problems,
+        )
+    warned: list[tuple[str, str]] = []
+    left_out: list[tuple[str, str]] = []
+    used = _mark_unused(cines, best, n_tagged, period, on_heart, left_out)
+    if n_tagged:
+        _judge_untagged(used, warned)
+        used = [c for c in used if not c.why]
+    _keep_latest(used, warned)
+    used = [c for c in used if not c.why]
+    _match_study_phases(used, warned, left_out)
+    used = [c for c in used if not c.why]
+    choice = _choice_text(
+        f'study {_study_name(best[0])}{how}', also, n_tagged, n_cines, period, vote
+    )
+    return _Selection(used, best[0], studies, choice, _series_problems(cines), warned, left_out)
+
+
+def _study_name(uid: str) -> str:
+    """Name a study in messages, also one without a StudyInstanceUID."""
+    return uid or '(no StudyInstanceUID)'
+
+
+def _test_tags(cines: list[_Cine]) -> None:
+    """Say what each cine is (``kind``), and whether an MR cine's ED image shows a tag grid."""
     for c in cines:
         c.kind = _cine_kind(c)
         if not c.kind:
             c.tag, c.period_mm, c.tag_reason = _tag_grid(c.first.pixels, _pixel_mm(c))
             c.tagged = c.tag >= _TAG_CLEAR
-    groups: dict[tuple[str, str], list[_Cine]] = defaultdict(list)
-    for c in cines:
-        groups[c.group].append(c)
-    # Tags on the heart alone: a group without a clearly tagged cine votes on a common grid.
+
+
+def _heart_votes(groups: dict[tuple[str, str], list[_Cine]]) -> dict[tuple[str, str], _Vote]:
+    """
+    Let each group without a clearly tagged cine vote on a grid its cines share in windows.
+
+    Tags on the heart alone are too small a part of each image for its spectrum; a passing vote
+    marks the cines that carry the grid (``tagged``, ``period_mm``) and says why the others fail.
+    Returns the votes by group.
+    """
     heart: dict[tuple[str, str], _Vote] = {}
     for key, cs in groups.items():
         mr = [c for c in cs if not c.kind]
@@ -2102,87 +2397,150 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
                             f'{vote.period_mm:.1f} mm period stand(s) {v:.2f} of the needed '
                             "height above the image's own spectral background"
                         )
-    tally: Counter = Counter()
-    for c in cines:
-        tally[c.first.study_uid] += int(c.tagged)
-    studies = dict(sorted(tally.items(), key=lambda kv: (-kv[1], kv[0])))
+    return heart
 
-    def rank(
-        key,
-    ):  # clearly tagged cines; a passing grid vote; the vote (heart-only beats untagged); size
-        cs, vote = groups[key], heart.get(key)
-        return (
-            sum(c.tag >= _TAG_CLEAR for c in cs),
-            vote is not None and vote.score >= 1.0 and not vote.single_line,
-            vote.score if vote is not None else 0.0,
-            sum(not c.kind for c in cs),
-            sum(len(c.imgs) for c in cs),
-        )
 
-    def name(uid):
-        return uid or '(no StudyInstanceUID)'
+def _rank(cs: list[_Cine], vote: _Vote | None) -> tuple:
+    """
+    Rank a group of cines as a candidate study: the larger, the better.
 
+    By clearly tagged cines, then a passing grid vote, then the vote (tags on the heart alone
+    beat untagged), then the number of MR cines and of images.
+    """
+    return (
+        sum(c.tag >= _TAG_CLEAR for c in cs),
+        vote is not None and vote.score >= 1.0 and not vote.single_line,
+        vote.score if vote is not None else 0.0,
+        sum(not c.kind for c in cs),
+        sum(len(c.imgs) for c in cs),
+    )
+
+
+def _pick_group(groups, heart, study, studies, root, problems) -> tuple[tuple[str, str], list]:
+    """
+    Take the best-ranked group (:func:`_rank`) of the study asked for, if one is.
+
+    Parameters
+    ----------
+    groups : dict
+        Cines by (StudyInstanceUID, FrameOfReferenceUID).
+    heart : dict
+        Grid votes by group (:func:`_heart_votes`).
+    study : str or None
+        The StudyInstanceUID asked for.
+    studies : dict
+        Tagged cines by StudyInstanceUID, most first (for the message).
+    root : Path
+        The folder read (for the message).
+    problems : list
+        Carried by the error.
+
+    Returns
+    -------
+    best : (str, str)
+        The group taken.
+    pool : list of (str, str)
+        The groups it was taken from, sorted.
+
+    Raises
+    ------
+    DicomReadError
+        ``study`` is not under ``root``.
+
+    """
     pool = sorted(groups)  # of equal ranks, max() keeps the first: the smaller UIDs
     if study:
         pool = [k for k in pool if k[0] == study]
         if not pool:
-            there = ', '.join(f'{name(u)} ({n} tagged cine(s))' for u, n in studies.items())
+            there = ', '.join(f'{_study_name(u)} ({n} tagged cine(s))' for u, n in studies.items())
             raise DicomReadError(
                 f'study {study} is not under {root}; the studies there: {there}: '
                 f'ask for one of these',
                 problems,
             )
-    best = max(pool, key=rank)
-    n_tagged, n_cines = sum(c.tagged for c in groups[best]), rank(best)[3]
-    others = [f'{name(u)} ({n} tagged cine(s))' for u, n in studies.items() if u != best[0]]
-    also = f'; also under the folder: study {", study ".join(others)}' if others else ''
-    how = ' (asked for)' if study else ''
+    return max(pool, key=lambda k: _rank(groups[k], heart.get(k))), pool
+
+
+def _select_every_image(cines, pool, study, best_uid, studies, also) -> _Selection:
+    """
+    Select every image (of the study asked for) as it is: without an MR cine, none to choose by.
+
+    Single images and other modalities load for downstream to say what they are; Siemens MOSAIC
+    images never do.
+
+    Parameters
+    ----------
+    cines : list of _Cine
+        Every cine read.
+    pool : list of (str, str)
+        The groups of the study asked for (else all).
+    study : str or None
+        The StudyInstanceUID asked for.
+    best_uid : str
+        The StudyInstanceUID of the best-ranked group.
+    studies : dict
+        Tagged cines by StudyInstanceUID.
+    also : str
+        The other studies under the folder, for the message.
+
+    Returns
+    -------
+    _Selection
+
+    """
     warned: list[tuple[str, str]] = []
-    left_out: list[tuple[str, str]] = []
-    if not n_tagged and not n_cines:
-        # No MR cine anywhere (single images, other modalities): nothing to choose by; every image
-        # (of the study asked for) loads as it is, for downstream to say what it is.
-        used = [c for c in cines if c.group in pool and not c.mosaic]
-        for c in cines:
-            if c.group not in pool:
-                c.why = f'another study (StudyInstanceUID {name(c.first.study_uid)})'
-            elif c.mosaic:
-                c.why = c.kind
-        for c in used:
-            _plan_phases(c, warned, None)
-        what = f'study {study}' if study else 'the folder'
-        return _Selection(
-            used,
-            best[0] if study else '',
-            studies,
-            f'no MR cine in {what}: every image loaded as it is{also if study else ""}',
-            _series_problems(cines),
-            warned,
-            left_out,
-        )
-    period = (
-        float(np.nanmedian([c.period_mm for c in groups[best] if c.tagged]))
-        if n_tagged
-        else np.nan
+    used = [c for c in cines if c.group in pool and not c.mosaic]
+    for c in cines:
+        if c.group not in pool:
+            c.why = f'another study (StudyInstanceUID {_study_name(c.first.study_uid)})'
+        elif c.mosaic:
+            c.why = c.kind
+    for c in used:
+        _plan_phases(c, warned, None)
+    what = f'study {study}' if study else 'the folder'
+    return _Selection(
+        used,
+        best_uid if study else '',
+        studies,
+        f'no MR cine in {what}: every image loaded as it is{also if study else ""}',
+        _series_problems(cines),
+        warned,
+        [],
     )
-    on_heart = best in heart and n_tagged > 0  # tagged on the heart alone: the votes decided
-    if on_heart and heart[best].single_line:
-        v = heart[best]
-        raise DicomReadError(
-            f'study {name(best[0])}{how}: single-line tags: intersections needed: its cines show '
-            f'one family of parallel tag lines ({v.period_mm:.1f} mm apart; in windows '
-            f'{v.line / _TAG_LINES:.1f}x the line threshold, a second family only '
-            f'{v.grid / _TAG_STUDY:.2f}x the grid one), and the tracker follows the crossings of '
-            f'a tag grid: give a study tagged in both directions'
-            f'{", or choose another with --study UID" if others else ""}{also}',
-            problems,
-        )
+
+
+def _mark_unused(cines, best, n_tagged, period, on_heart, left_out) -> list[_Cine]:
+    """
+    Mark why each cine outside the chosen group, or not a tagged MR cine, is not used.
+
+    Parameters
+    ----------
+    cines : list of _Cine
+        Every cine read; ``why`` is set on those not used.
+    best : (str, str)
+        The chosen (StudyInstanceUID, FrameOfReferenceUID).
+    n_tagged : int
+        Tagged cines of the chosen group.
+    period : float
+        The study's tag period (mm; NaN without a tagged cine).
+    on_heart : bool
+        The study is tagged on the heart alone (its cines voted; no second test).
+    left_out : list
+        ``(path, reason)`` appended for MR cines of the chosen study in another frame of
+        reference.
+
+    Returns
+    -------
+    list of _Cine
+        The cines still to be used.
+
+    """
     used = []
     for c in cines:
         why = [c.kind] if c.kind else []
         if c.group != best:
             if c.first.study_uid != best[0]:
-                why.append(f'another study (StudyInstanceUID {name(c.first.study_uid)})')
+                why.append(f'another study (StudyInstanceUID {_study_name(c.first.study_uid)})')
             else:
                 why.append(
                     f'another frame of reference of the chosen study (FrameOfReferenceUID '
@@ -2191,52 +2549,73 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
                 if not c.kind and (c.tagged or not n_tagged):
                     left_out.append((c.first.path, f'{c.describe()} not used: {why[-1]}'))
         elif not c.kind and n_tagged and not c.tagged and not on_heart:
-            score, contrast = _tag_grid_at(c.first.pixels, _pixel_mm(c), period)
-            c.tagged = score >= _TAG_AT_PERIOD and contrast >= _TAG_AT_PERIOD_CONTRAST
-            if not c.tagged:
-                c.tag_reason = (
-                    c.tag_reason
-                    or f'its strongest grid stands {c.tag:.1f}x above its surroundings, '
-                    f'{_TAG_CLEAR:g} needed'
-                ) + (
-                    f"; at the study's tag period ({period:.1f} mm) {score:.1f}x, "
-                    f'{contrast:.2f}x the neighbouring '
-                    f'frequencies ({_TAG_AT_PERIOD:g} and {_TAG_AT_PERIOD_CONTRAST:g} needed)'
-                )
+            _test_at_period(c, period)
         if why:
             c.why = '; '.join(why)
         else:
             used.append(c)
-    if n_tagged:
-        _judge_untagged(used, warned)
-        used = [c for c in used if not c.why]
-    _keep_latest(used, warned)
-    used = [c for c in used if not c.why]
-    _match_study_phases(used, warned, left_out)
-    used = [c for c in used if not c.why]
-    if n_tagged and on_heart:
-        choice = (
-            f'study {name(best[0])}{how}: {n_tagged} tagged cine(s), tags on the heart alone '
+    return used
+
+
+def _test_at_period(c: _Cine, period: float) -> None:
+    """Test again at the study's tag period (mm) a cine whose own strongest grid is unclear."""
+    score, contrast = _tag_grid_at(c.first.pixels, _pixel_mm(c), period)
+    c.tagged = score >= _TAG_AT_PERIOD and contrast >= _TAG_AT_PERIOD_CONTRAST
+    if not c.tagged:
+        c.tag_reason = (
+            c.tag_reason
+            or f'its strongest grid stands {c.tag:.1f}x above its surroundings, '
+            f'{_TAG_CLEAR:g} needed'
+        ) + (
+            f"; at the study's tag period ({period:.1f} mm) {score:.1f}x, "
+            f'{contrast:.2f}x the neighbouring '
+            f'frequencies ({_TAG_AT_PERIOD:g} and {_TAG_AT_PERIOD_CONTRAST:g} needed)'
+        )
+
+
+def _choice_text(which_study, also, n_tagged, n_cines, period, vote) -> str:
+    """
+    Say which study was taken and why (:attr:`DicomReadResult.choice`).
+
+    Parameters
+    ----------
+    which_study : str
+        ``study <UID>``, with `` (asked for)`` where it was.
+    also : str
+        The other studies under the folder.
+    n_tagged, n_cines : int
+        Tagged cines and MR cines of the chosen group.
+    period : float
+        The study's tag period (mm).
+    vote : _Vote or None
+        The chosen group's grid vote, where it voted.
+
+    Returns
+    -------
+    str
+
+    """
+    if n_tagged and vote is not None:
+        return (
+            f'{which_study}: {n_tagged} tagged cine(s), tags on the heart alone '
             f'(its cines share a {period:.1f} mm grid in windows of their first images: '
-            f'{heart[best].score:.1f}x the threshold){also}'
+            f'{vote.score:.1f}x the threshold){also}'
         )
-    elif n_tagged:
-        choice = f'study {name(best[0])}{how}: {n_tagged} tagged cine(s){also}'
+    if n_tagged:
+        return f'{which_study}: {n_tagged} tagged cine(s){also}'
+    if vote is not None:
+        which = (
+            'the study whose cines come closest to sharing a tag grid in windows '
+            f'({vote.score:.2f}x the threshold) taken, its {n_cines} MR cine(s) all '
+            'used'
+        )
     else:
-        if best in heart:
-            which = (
-                'the study whose cines come closest to sharing a tag grid in windows '
-                f'({heart[best].score:.2f}x the threshold) taken, its {n_cines} MR cine(s) all '
-                'used'
-            )
-        else:
-            which = f'the study with the most MR cines ({n_cines}) taken, all of them used'
-        choice = (
-            f"study {name(best[0])}{how}: no cine shows a tag grid in its ED image's spectrum, "
-            'nor do its '
-            f'cines share one in windows; {which}{also}'
-        )
-    return _Selection(used, best[0], studies, choice, _series_problems(cines), warned, left_out)
+        which = f'the study with the most MR cines ({n_cines}) taken, all of them used'
+    return (
+        f"{which_study}: no cine shows a tag grid in its ED image's spectrum, "
+        'nor do its '
+        f'cines share one in windows; {which}{also}'
+    )
 
 
 def _judge_untagged(used: list[_Cine], warned: list) -> None:
@@ -2432,11 +2811,79 @@ def read_dicom_dir(
     files, problems = _list_files(root)
     if not files:
         raise DicomReadError(f'no files under {root}: nothing to read', problems)
+    images, unread = _read_images(files, int(max_pixels), problems)
+    cines = _build_cines(images, problems)
+    if not cines:
+        raise DicomReadError(
+            f'no usable DICOM image under {root} ({len(problems)} file(s) rejected; first: '
+            f'{problems[0][0]}: {problems[0][1]})',
+            problems,
+        )
+    sel = _select_study(cines, study, root, problems)
+    problems += sel.problems
+    if not sel.cines:
+        raise DicomReadError(
+            f'no usable cine under {root}: every series is left out ({len(sel.problems)} '
+            'series; first: '
+            f'{sel.problems[0][0]}: {sel.problems[0][1]})'
+            if sel.problems
+            else f'no usable cine under {root}: {sel.choice}',
+            problems,
+        )
+    planes = sel.cines
+    if sel.study_uid:  # MR images of the chosen study that could not be read are left out of it
+        sel.left_out += [
+            (f, f'an image of the study not read: {why}')
+            for f, why in unread
+            if _unread_image_of(f, sel.study_uid)
+        ]
+    sa_planes, la_planes, axis = _order_planes(planes)
+    frames, series = _frames_and_series(sa_planes, la_planes)
+    studies = Counter(i.study_uid for p in planes for i in p.use if i.study_uid)
+    return DicomReadResult(
+        frames=frames,
+        problems=problems,
+        series=series,
+        long_axis=axis,
+        warnings=sel.warnings,
+        study_uids=dict(studies.most_common()),
+        study_uid=sel.study_uid,
+        studies=sel.studies,
+        choice=sel.choice,
+        complete=not sel.left_out,
+        left_out=sel.left_out,
+        not_used=list(sel.problems),
+    )
+
+
+def _read_images(
+    files: list[str], max_pixels: int, problems: list
+) -> tuple[list[_Image], list[tuple[str, str]]]:
+    """
+    Read every file once, so that a copy of an instance (same SOPInstanceUID) is not read twice.
+
+    Parameters
+    ----------
+    files : list of str
+        Paths in the order they are read (sorted); of two copies the first is kept.
+    max_pixels : int
+        Largest image accepted (Rows × Columns).
+    problems : list
+        ``(path, reason)`` appended for each file skipped or duplicated.
+
+    Returns
+    -------
+    images : list of _Image
+        One per frame read.
+    unread : list of (str, str)
+        The files skipped and why.
+
+    """
     images: list[_Image] = []
     unread: list[tuple[str, str]] = []
     first_with_uid: dict[tuple[str, int], str] = {}
     for f in files:
-        imgs, why = _read_one(f, int(max_pixels))
+        imgs, why = _read_one(f, max_pixels)
         if imgs is None:
             problems.append((f, why))
             unread.append((f, why))
@@ -2451,12 +2898,21 @@ def read_dicom_dir(
             if img.sop_uid:
                 first_with_uid[key] = f
             images.append(img)
+    return images, unread
 
+
+def _build_cines(images: list[_Image], problems: list) -> list[_Cine]:
+    """
+    Group the images into cines (one per series and plane), in time order.
+
+    An image of another size than most of its cine, or repeating one's TriggerTime and
+    InstanceNumber, is reported in ``problems`` (``(path, reason)``) and left out.
+    """
     groups: dict[tuple, list[_Image]] = defaultdict(list)
     for img in images:
         groups[_plane_key(img)].append(img)
     cines: list[_Cine] = []
-    for key, imgs in groups.items():
+    for imgs in groups.values():
         sizes = Counter(i.pixels.shape for i in imgs)
         ((shape, _),) = sizes.most_common(1)
         keep: list[_Image] = []
@@ -2484,32 +2940,32 @@ def read_dicom_dir(
                 keep.append(i)
         keep.sort(key=lambda i: (np.nan_to_num(i.trigger_ms, nan=np.inf), i.instance or 0, i.path))
         cines.append(_Cine(keep))
-    if not cines:
-        raise DicomReadError(
-            f'no usable DICOM image under {root} ({len(problems)} file(s) rejected; first: '
-            f'{problems[0][0]}: {problems[0][1]})',
-            problems,
-        )
-    sel = _select_study(cines, study, root, problems)
-    problems += sel.problems
-    if not sel.cines:
-        raise DicomReadError(
-            f'no usable cine under {root}: every series is left out ({len(sel.problems)} '
-            'series; first: '
-            f'{sel.problems[0][0]}: {sel.problems[0][1]})'
-            if sel.problems
-            else f'no usable cine under {root}: {sel.choice}',
-            problems,
-        )
-    planes = sel.cines
-    if sel.study_uid:  # MR images of the chosen study that could not be read are left out of it
-        sel.left_out += [
-            (f, f'an image of the study not read: {why}')
-            for f, why in unread
-            if _unread_image_of(f, sel.study_uid)
-        ]
+    return cines
 
-    # Classify: largest cluster of parallel planes at >= 2 distinct positions = SA stack.
+
+def _order_planes(
+    planes: list[_Cine],
+) -> tuple[list[_Cine], list[_Cine], LongAxisEstimate | None]:
+    """
+    Split the cines into the short-axis stack and the long-axis views, each in its order.
+
+    The short-axis stack is the largest cluster of parallel planes at ≥ 2 distinct positions,
+    ordered base to apex along the long axis; long-axis views are ordered by SeriesNumber, then
+    their angle about the axis (degrees, mod 180), then path.
+
+    Parameters
+    ----------
+    planes : list of _Cine
+        The cines used.
+
+    Returns
+    -------
+    sa_planes, la_planes : list of _Cine
+        Short-axis cines, base first, and long-axis cines.
+    axis : LongAxisEstimate or None
+        The estimated long axis (:func:`estimate_long_axis`).
+
+    """
     normals = [p.first.geometry.normal for p in planes]
     clusters: list[list[int]] = []
     for i, n in enumerate(normals):
@@ -2552,10 +3008,15 @@ def read_dicom_dir(
         return (p.first.series_number, ang, p.first.path)
 
     la_planes.sort(key=la_key)
+    return sa_planes, la_planes, axis
 
+
+def _frames_and_series(
+    sa_planes: list[_Cine], la_planes: list[_Cine]
+) -> tuple[list[Frame], list[SeriesInfo]]:
+    """Turn the ordered cines into frames (one per image) and a SeriesInfo per cine."""
     frames: list[Frame] = []
     series: list[SeriesInfo] = []
-    studies = Counter(i.study_uid for p in planes for i in p.use if i.study_uid)
     for view, group in ((VIEW_SA, sa_planes), (VIEW_LA, la_planes)):
         for idx, cine in enumerate(group):
             imgs, first = cine.use, cine.first
@@ -2585,20 +3046,7 @@ def read_dicom_dir(
                     files=[i.path for i in imgs],
                 )
             )
-    return DicomReadResult(
-        frames=frames,
-        problems=problems,
-        series=series,
-        long_axis=axis,
-        warnings=sel.warnings,
-        study_uids=dict(studies.most_common()),
-        study_uid=sel.study_uid,
-        studies=sel.studies,
-        choice=sel.choice,
-        complete=not sel.left_out,
-        left_out=sel.left_out,
-        not_used=list(sel.problems),
-    )
+    return frames, series
 
 
 def _phase_indices(imgs: list[_Image]) -> tuple[list[int], int, str | None]:

@@ -77,6 +77,20 @@ _CONVENTIONS = (
     'fractions of the ED apex-to-base length measured from the epicardial apex (material levels). '
     'Phase p is at trigger time p * cycle_duration_s / num_phases; phase 0 = end-diastole.'
 )
+# What each array of groundtruth.npz holds, written into groundtruth.json for a reader.
+_ARRAYS = {
+    'ed_masks': "bool (S, rows, cols): ED myocardium per slice, in 'slices' order",
+    'material_points': 'float64 (N, 3): ED positions, mm',
+    'trajectories': 'float32 (P, N, 3): positions at each phase, mm',
+    'levels': '(K,): fractions of the length from the apex',
+    **{k: '(P, K)' for k in _CURVES},
+    'base_descent_mm': '(P,): base-plane displacement toward the apex, mm',
+    'strain': 'float32 (P, N, 3): true Green-Lagrange E_rr, E_cc, E_ll of the material '
+    'points',
+    'segments': 'int8 (N,): AHA segment 1..17 of the material points (truth frame)',
+    'contraction': 'float32 (N,): prescribed share of normal motion (1 normal, 0 '
+    'akinetic, <0 dyskinetic)',
+}
 
 
 @dataclass
@@ -147,24 +161,7 @@ def write_groundtruth(
     strain = np.stack([strain_components(m, X, p, tf) for p in range(m.num_phases)]).astype(
         np.float32
     )
-    f = m.frame
-    slices = []
-    masks = []
-    for sl in study.slices:
-        key = (sl.view, sl.index)
-        mask = study.ed_masks[key]
-        masks.append(mask)
-        slices.append(
-            {
-                'view': VIEW_NAMES[sl.view],
-                'slice_index': sl.index,
-                'series_uid': study.series_uids[key],
-                'description': sl.description,
-                'rows': int(mask.shape[0]),
-                'columns': int(mask.shape[1]),
-                'geometry': sl.geometry.to_dicom(),
-            }
-        )
+    slices, masks = _slice_entries(study)
     meta = {
         'format': FORMAT,
         'version': VERSION,
@@ -175,31 +172,12 @@ def write_groundtruth(
         'es_phase': float(m.es_phase),
         'snr': None if study.snr is None or not np.isfinite(study.snr) else float(study.snr),
         'seed': int(study.seed),
-        'frame': {
-            'apex': f.apex.tolist(),
-            'base_centre': f.base_centre.tolist(),
-            'long_axis': f.long_axis.tolist(),
-            'septum': f.septum.tolist(),
-            'e2': f.e2.tolist(),
-            'length_mm': f.length,
-        },
+        'frame': _frame_entry(m.frame),
         'slices': slices,
         'conventions': _CONVENTIONS,
         'regional': regional_truth(m, seed=study.seed),
         'rv': m.rv_insertions(),
-        'arrays': {
-            'ed_masks': "bool (S, rows, cols): ED myocardium per slice, in 'slices' order",
-            'material_points': 'float64 (N, 3): ED positions, mm',
-            'trajectories': 'float32 (P, N, 3): positions at each phase, mm',
-            'levels': '(K,): fractions of the length from the apex',
-            **{k: '(P, K)' for k in _CURVES},
-            'base_descent_mm': '(P,): base-plane displacement toward the apex, mm',
-            'strain': 'float32 (P, N, 3): true Green-Lagrange E_rr, E_cc, E_ll of the material '
-            'points',
-            'segments': 'int8 (N,): AHA segment 1..17 of the material points (truth frame)',
-            'contraction': 'float32 (N,): prescribed share of normal motion (1 normal, 0 '
-            'akinetic, <0 dyskinetic)',
-        },
+        'arrays': dict(_ARRAYS),
     }
     for k, v in (extra or {}).items():
         if k in meta:
@@ -221,6 +199,40 @@ def write_groundtruth(
         **{k: curves[k] for k in _CURVES},
     )
     return jpath, npath
+
+
+def _frame_entry(f) -> dict:
+    """Describe the LV frame of the motion (points and axes in mm, LPS) for groundtruth.json."""
+    return {
+        'apex': f.apex.tolist(),
+        'base_centre': f.base_centre.tolist(),
+        'long_axis': f.long_axis.tolist(),
+        'septum': f.septum.tolist(),
+        'e2': f.e2.tolist(),
+        'length_mm': f.length,
+    }
+
+
+def _slice_entries(study) -> tuple[list[dict], list[np.ndarray]]:
+    """Describe each slice of the study for groundtruth.json, with its ED myocardium mask."""
+    slices = []
+    masks = []
+    for sl in study.slices:
+        key = (sl.view, sl.index)
+        mask = study.ed_masks[key]
+        masks.append(mask)
+        slices.append(
+            {
+                'view': VIEW_NAMES[sl.view],
+                'slice_index': sl.index,
+                'series_uid': study.series_uids[key],
+                'description': sl.description,
+                'rows': int(mask.shape[0]),
+                'columns': int(mask.shape[1]),
+                'geometry': sl.geometry.to_dicom(),
+            }
+        )
+    return slices, masks
 
 
 def load_groundtruth(path) -> GroundTruth:

@@ -201,6 +201,18 @@ def _clean_rows(rows: list[dict]) -> list[dict]:
     ]
 
 
+# The report's style sheet.
+_STYLE = """body { font-family: sans-serif; margin: 1.5em auto; max-width: 1500px; color: #222; }
+table { border-collapse: collapse; margin: 0.5em 0 1em; }
+td, th { border: 1px solid #bbb; padding: 3px 10px; text-align: right; }
+td:first-child { text-align: left; }
+figure { margin: 1em 0; } img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.9em; color: #555; }
+.missing { background: #fff6e0; padding: 0.3em 1em; border-left: 4px solid #e0a000; }
+.verdict { background: #fde8e8; padding: 0.3em 1em; border-left: 4px solid #c00000; }
+"""
+
+
 def _html(
     title: str,
     meta: dict,
@@ -208,16 +220,10 @@ def _html(
     figures: list[tuple[str, str]],
     skipped: list[str],
 ) -> str:
+    """Return the report's index.html: key numbers, findings, what is missing, figures."""
     e = html.escape
     head = ''.join(f'<th>{e(s["label"])}</th>' for s in summaries)
-    rows = ''.join(
-        f'<tr><td>{e(lab)}</td>'
-        + ''.join(
-            f'<td>{e(_fmt(s["key"].get(k), f))}{_extrapolated(s, k)}</td>' for s in summaries
-        )
-        + '</tr>'
-        for k, lab, f in _KEY_ROWS
-    )
+    rows = _key_rows(summaries)
     notes = [
         f'* {s["label"]}: {s["twist_extrapolated"]}'
         for s in summaries
@@ -227,11 +233,6 @@ def _html(
         '<div class="missing"><ul>' + ''.join(f'<li>{e(n)}</li>' for n in notes) + '</ul></div>'
         if notes
         else ''
-    )
-    rows += (
-        '<tr><td>phases present / expected</td>'
-        + ''.join(f'<td>{len(s["phases_present"])} / {s["num_phases"]}</td>' for s in summaries)
-        + '</tr>'
     )
     miss = [f'{s["label"]}: {m}' for s in summaries for m in s['missing']] + skipped
     miss_html = (
@@ -247,6 +248,49 @@ def _html(
         or '<p>No figures could be drawn.</p>'
     )
     meta_html = ''.join(f'<li><b>{e(str(k))}</b>: {e(str(v))}</li>' for k, v in meta.items())
+    banner = _verdict_banner(summaries)
+    conv = ''.join(f'<li>{e(c)}</li>' for c in CONVENTIONS)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{e(title)}</title>
+<style>
+{_STYLE}</style></head><body>
+<h1>{e(title)}</h1>
+{banner}
+<ul>{meta_html}</ul>
+<h2>Key numbers</h2>
+<table><tr><th></th>{head}</tr>{rows}</table>
+{twist_html}
+<h2>Regional findings (end-systole)</h2>{_findings_html(summaries)}
+<h2>Missing / not shown</h2><div class="missing">{miss_html}</div>
+<h2>Figures</h2>{figs}
+<h2>Conventions</h2><ul>{conv}</ul>
+<p><a href="summary.json">summary.json</a> holds every number of every phase.</p>
+</body></html>
+"""
+
+
+def _key_rows(summaries: list[dict]) -> str:
+    """Return the key-numbers table's rows: one per key number, one column per run."""
+    e = html.escape
+    rows = ''.join(
+        f'<tr><td>{e(lab)}</td>'
+        + ''.join(
+            f'<td>{e(_fmt(s["key"].get(k), f))}{_extrapolated(s, k)}</td>' for s in summaries
+        )
+        + '</tr>'
+        for k, lab, f in _KEY_ROWS
+    )
+    rows += (
+        '<tr><td>phases present / expected</td>'
+        + ''.join(f'<td>{len(s["phases_present"])} / {s["num_phases"]}</td>' for s in summaries)
+        + '</tr>'
+    )
+    return rows
+
+
+def _verdict_banner(summaries: list[dict]) -> str:
+    """Return the report's red banner listing every failed or degraded phase ('' if none)."""
+    e = html.escape
     flagged = [
         f'<li><b>{e(s["label"])} phase {p} {word}</b>: {e(why)}</li>'
         for s in summaries
@@ -265,33 +309,7 @@ def _html(
         if flagged
         else ''
     )
-
-    conv = ''.join(f'<li>{e(c)}</li>' for c in CONVENTIONS)
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{e(title)}</title>
-<style>
-body {{ font-family: sans-serif; margin: 1.5em auto; max-width: 1500px; color: #222; }}
-table {{ border-collapse: collapse; margin: 0.5em 0 1em; }}
-td, th {{ border: 1px solid #bbb; padding: 3px 10px; text-align: right; }}
-td:first-child {{ text-align: left; }}
-figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
-figcaption {{ font-size: 0.9em; color: #555; }}
-.missing {{ background: #fff6e0; padding: 0.3em 1em; border-left: 4px solid #e0a000; }}
-.verdict {{ background: #fde8e8; padding: 0.3em 1em; border-left: 4px solid #c00000; }}
-</style></head><body>
-<h1>{e(title)}</h1>
-{banner}
-<ul>{meta_html}</ul>
-<h2>Key numbers</h2>
-<table><tr><th></th>{head}</tr>{rows}</table>
-{twist_html}
-<h2>Regional findings (end-systole)</h2>{_findings_html(summaries)}
-<h2>Missing / not shown</h2><div class="missing">{miss_html}</div>
-<h2>Figures</h2>{figs}
-<h2>Conventions</h2><ul>{conv}</ul>
-<p><a href="summary.json">summary.json</a> holds every number of every phase.</p>
-</body></html>
-"""
+    return banner
 
 
 def _flagged_phases(run: RunData) -> dict:

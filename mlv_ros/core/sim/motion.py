@@ -199,6 +199,32 @@ class CardiacFrame:
         )
 
 
+def _cardiac_frame(o: dict, L: float) -> CardiacFrame:
+    """
+    Return the LV frame a preset's orientation ``o`` and ED length ``L`` (mm) place.
+
+    Raises
+    ------
+    ValueError
+        A zero long axis, or a septum hint parallel to it.
+
+    """
+    axis = np.asarray(o['long_axis'], dtype=np.float64)
+    if np.linalg.norm(axis) < 1e-9:
+        raise ValueError('orientation.long_axis must be a non-zero vector')
+    axis = axis / np.linalg.norm(axis)
+    hint = np.asarray(o['septum_hint'], dtype=np.float64)
+    hint = hint - (hint @ axis) * axis
+    if np.linalg.norm(hint) < 1e-6:
+        raise ValueError('orientation.septum_hint must not be parallel to long_axis')
+    e1 = hint / np.linalg.norm(hint)
+    e2 = np.cross(-axis, e1)
+    base = np.asarray(o['base_centre_mm'], dtype=np.float64)
+    return CardiacFrame(
+        apex=base - L * axis, base_centre=base, long_axis=axis, septum=e1, e2=e2, length=L
+    )
+
+
 class LVMotion:
     """
     Ground-truth LV geometry and motion of one preset (see the module docstring).
@@ -238,26 +264,43 @@ class LVMotion:
         self.relax_fraction = float(m['relaxation_fraction'])
         self.es_phase = self.es_fraction * self.num_phases
 
-        axis = np.asarray(o['long_axis'], dtype=np.float64)
-        if np.linalg.norm(axis) < 1e-9:
-            raise ValueError('orientation.long_axis must be a non-zero vector')
-        axis = axis / np.linalg.norm(axis)
-        hint = np.asarray(o['septum_hint'], dtype=np.float64)
-        hint = hint - (hint @ axis) * axis
-        if np.linalg.norm(hint) < 1e-6:
-            raise ValueError('orientation.septum_hint must not be parallel to long_axis')
-        e1 = hint / np.linalg.norm(hint)
-        e2 = np.cross(-axis, e1)
-        base = np.asarray(o['base_centre_mm'], dtype=np.float64)
-        self.frame = CardiacFrame(
-            apex=base - L * axis, base_centre=base, long_axis=axis, septum=e1, e2=e2, length=L
-        )
+        self.frame = _cardiac_frame(o, L)
 
+        self._init_shape(g)
+
+        self.eps = float(m['base_descent_mm']) / L
+        self.rho_es = float(m['endo_radius_ratio_es'])
+        u0 = float(m['twist_zero_level'])
+        self._twist = PchipInterpolator(
+            [0.0, u0, 1.0], np.radians([m['twist_apex_deg'], 0.0, m['twist_base_deg']])
+        )
+        self._dtwist = self._twist.derivative()
+
+        self._init_regions(m, g)
+        # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
+        self._q_soft = 0.02 * (self.endo_a**2 if self.kind == 'prolate' else self.r_in**2)
+        # Optional right ventricle (mlv_ros.core.sim.rv): seen in the images, not LV myocardium.
+        rv = check_rv(g.get('rv'))
+        self.rv = (
+            None
+            if rv is None
+            else RightVentricle(
+                rv,
+                self.length,
+                self.epi_radius,
+                self.epi_a if self.kind == 'prolate' else self.r_out,
+            )
+        )
+        #: Farthest any imaged tissue of the heart reaches from the long axis at ED, mm.
+        self.reach_radius = self.max_radius + (self.rv.extent_mm if self.rv is not None else 0.0)
+
+    def _init_shape(self, g: dict) -> None:
+        """Set the ED shape's sizes (mm) from the preset's geometry ``g``: prolate or cylinder."""
         if self.kind == 'prolate':
             self.endo_a = float(g['endo_radius_mm'])
             self.endo_c = float(g['endo_depth_mm'])
             self.epi_a = float(g['epi_radius_mm'])
-            self.epi_c = L
+            self.epi_c = self.length
             self.septal_extra = float(g.get('septal_extra_mm', 0.0))
             self.atrium_height = float(g.get('atrium_height_mm', 0.0))
             self.max_radius = self.epi_a + self.septal_extra
@@ -268,17 +311,15 @@ class LVMotion:
             self.atrium_height = 0.0
             self.max_radius = self.r_out
 
-        self.eps = float(m['base_descent_mm']) / L
-        self.rho_es = float(m['endo_radius_ratio_es'])
-        u0 = float(m['twist_zero_level'])
-        self._twist = PchipInterpolator(
-            [0.0, u0, 1.0], np.radians([m['twist_apex_deg'], 0.0, m['twist_base_deg']])
-        )
-        self._dtwist = self._twist.derivative()
+    def _init_regions(self, m: dict, g: dict) -> None:
+        """
+        Set the abnormal regions from the preset's motion ``m`` (geometry ``g`` checks them).
 
-        # Abnormal regions (mlv_ros.core.sim.regional): the preset's infarct first, then
-        # motion.regions. Each is (k, centre, half, blend_theta, blend_u, (u_lo, u_hi)) with
-        # k = 1 − contraction the lost share of the normal motion.
+        Abnormal regions (mlv_ros.core.sim.regional): the preset's infarct first, then
+        motion.regions. Each is (k, centre, half, blend_theta, blend_u, (u_lo, u_hi)) with
+        k = 1 − contraction the lost share of the normal motion.
+
+        """
         self._regions: list[tuple] = []
         self.regions: list[dict] = []
         self.infarct_segment = None
@@ -317,22 +358,6 @@ class LVMotion:
                 )
             )
             self.regions.append(r)
-        # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
-        self._q_soft = 0.02 * (self.endo_a**2 if self.kind == 'prolate' else self.r_in**2)
-        # Optional right ventricle (mlv_ros.core.sim.rv): seen in the images, not LV myocardium.
-        rv = check_rv(g.get('rv'))
-        self.rv = (
-            None
-            if rv is None
-            else RightVentricle(
-                rv,
-                self.length,
-                self.epi_radius,
-                self.epi_a if self.kind == 'prolate' else self.r_out,
-            )
-        )
-        #: Farthest any imaged tissue of the heart reaches from the long axis at ED, mm.
-        self.reach_radius = self.max_radius + (self.rv.extent_mm if self.rv is not None else 0.0)
 
     # ----------------------------------------------------------------- time course
     def activation(self, phase) -> np.ndarray:

@@ -904,34 +904,7 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     pick('size', draw_size)
     pick('slice_thickness_mm', lambda r: _uniform(r, 5.0, 10.0, 2))
 
-    # SA stack (see Notes): count and spacing drawn jointly, so that the stack fits the room.
-    base_min, room = _sa_room(p['shape'])
-
-    def draw_count(r):
-        if 'sa_spacing_mm' in fixed:  # fewer slices at a fixed spacing (at least 2)
-            fit = int(math.floor(room / fixed['sa_spacing_mm'] + 1e-9)) + 1
-            return int(r.integers(6, min(14, fit) + 1)) if fit >= 6 else max(2, fit)
-        fit = int(math.floor(room / 6.0 + 1e-9)) + 1
-        return int(r.integers(6, min(14, fit) + 1)) if fit >= 6 else 6
-
-    pick('sa_slices', draw_count)
-
-    def draw_spacing(r):
-        widest = room / (p['sa_slices'] - 1)  # the spacing that fills the room
-        if widest >= 6.0:
-            return _uniform(r, 6.0, min(12.0, widest), 2)
-        return max(math.floor(widest * 100.0) / 100.0, 1.0)  # a fixed count: tighter spacing
-
-    pick('sa_spacing_mm', draw_spacing)
-    slack = room - (p['sa_slices'] - 1) * p['sa_spacing_mm']
-    pick(
-        'sa_base_gap_mm',
-        lambda r: (
-            _uniform(r, base_min, base_min + slack, 2)
-            if slack >= 0
-            else round(max(base_min + 0.5 * slack, 0.0), 2)
-        ),
-    )
+    _pick_sa_stack(pick, p, fixed)
 
     pick('la_planes', lambda r: int(r.integers(2, 7)))
     if 'la_angles_deg' in fixed and 'la_planes' not in fixed:
@@ -984,6 +957,51 @@ def _septum_hint(hint, axis, angle_deg: float) -> list[float]:
     e2 = np.cross(-a, e1)  # θ = +90°, as in the motion's local frame
     t = math.radians(angle_deg)
     return [float(x) for x in math.cos(t) * e1 + math.sin(t) * e2]
+
+
+def _pick_sa_stack(pick, p: dict, fixed: dict) -> None:
+    """
+    Draw the SA stack's count, spacing and base gap jointly, so that it fits the LV.
+
+    See :func:`draw_protocol`'s Notes.
+
+    Parameters
+    ----------
+    pick : callable
+        ``pick(name, draw)``: takes the fixed item, else ``draw(rng)``, into ``p``.
+    p : dict
+        The protocol drawn so far (``shape`` set).
+    fixed : dict
+        The items taken as given.
+
+    """
+    base_min, room = _sa_room(p['shape'])
+
+    def draw_count(r):
+        if 'sa_spacing_mm' in fixed:  # fewer slices at a fixed spacing (at least 2)
+            fit = int(math.floor(room / fixed['sa_spacing_mm'] + 1e-9)) + 1
+            return int(r.integers(6, min(14, fit) + 1)) if fit >= 6 else max(2, fit)
+        fit = int(math.floor(room / 6.0 + 1e-9)) + 1
+        return int(r.integers(6, min(14, fit) + 1)) if fit >= 6 else 6
+
+    pick('sa_slices', draw_count)
+
+    def draw_spacing(r):
+        widest = room / (p['sa_slices'] - 1)  # the spacing that fills the room
+        if widest >= 6.0:
+            return _uniform(r, 6.0, min(12.0, widest), 2)
+        return max(math.floor(widest * 100.0) / 100.0, 1.0)  # a fixed count: tighter spacing
+
+    pick('sa_spacing_mm', draw_spacing)
+    slack = room - (p['sa_slices'] - 1) * p['sa_spacing_mm']
+    pick(
+        'sa_base_gap_mm',
+        lambda r: (
+            _uniform(r, base_min, base_min + slack, 2)
+            if slack >= 0
+            else round(max(base_min + 0.5 * slack, 0.0), 2)
+        ),
+    )
 
 
 def protocol_preset(protocol: dict) -> dict:

@@ -16,7 +16,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 import hashlib
 import json
@@ -142,22 +142,9 @@ def simulate_study(
     Study
 
     """
-    p = load_preset(preset)
-    if quick:
-        size = size or QUICK['size']
-        num_phases = num_phases or QUICK['num_phases']
-        subplanes = subplanes or QUICK['subplanes']
+    p = _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick)
     im = p['imaging']
-    n = int(size or im['size'])
-    if n < 16:
-        raise ValueError(f'size must be >= 16 pixels, got {n}')
-    if num_phases is not None:
-        p['motion']['num_phases'] = int(num_phases)
-    if subplanes is not None:
-        im['subplanes'] = int(subplanes)
-    if pixel_spacing is not None:
-        im['pixel_spacing_mm'] = float(pixel_spacing)
-    im['size'] = n
+    n = im['size']
     motion = LVMotion(p)
     slices = plan_slices(motion, im, n)
     rng = np.random.default_rng(seed)
@@ -175,22 +162,8 @@ def simulate_study(
         uids[key], geoms[key], desc[key] = uid, sl.geometry, sl.description
         myo, _ = syn.tissue_fractions(0)
         masks[key] = myo >= 0.5
-        for ph in range(motion.num_phases):
-            t = float(motion.times[ph])
-            img = syn.render(ph, t, snr, rng)
-            frames.append(
-                Frame(
-                    image=img,
-                    geometry=sl.geometry,
-                    view=sl.view,
-                    slice_index=sl.index,
-                    phase_index=ph,
-                    num_phases=motion.num_phases,
-                    trigger_time=t,
-                    cycle_duration=motion.cycle_duration,
-                    series_uid=uid,
-                )
-            )
+        for frame in _render_cine(syn, sl, motion, snr, rng, uid):
+            frames.append(frame)
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -208,3 +181,77 @@ def simulate_study(
         seed=seed,
         descriptions=desc,
     )
+
+
+def _render_cine(syn, sl, motion, snr, rng, uid: str) -> Iterator[Frame]:
+    """
+    Render one slice's cine, phase by phase, as it is consumed (noise drawn in that order).
+
+    Parameters
+    ----------
+    syn : ImageSynthesizer
+        The slice's synthesizer.
+    sl : PlannedSlice
+        The slice.
+    motion : LVMotion
+        The motion (phases, trigger times in s, cycle duration in s).
+    snr : float or None
+        Noise level (None: noiseless).
+    rng : numpy.random.Generator
+        The study's noise generator.
+    uid : str
+        The slice's SeriesInstanceUID.
+
+    Yields
+    ------
+    Frame
+
+    """
+    for ph in range(motion.num_phases):
+        t = float(motion.times[ph])
+        img = syn.render(ph, t, snr, rng)
+        yield Frame(
+            image=img,
+            geometry=sl.geometry,
+            view=sl.view,
+            slice_index=sl.index,
+            phase_index=ph,
+            num_phases=motion.num_phases,
+            trigger_time=t,
+            cycle_duration=motion.cycle_duration,
+            series_uid=uid,
+        )
+
+
+def _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick) -> dict:
+    """
+    Load a preset with simulate_study's overrides applied (its parameters of the same names).
+
+    Returns
+    -------
+    dict
+        The preset; ``imaging.size`` is the image size in pixels (int).
+
+    Raises
+    ------
+    ValueError
+        ``size`` below 16 pixels.
+
+    """
+    p = load_preset(preset)
+    if quick:
+        size = size or QUICK['size']
+        num_phases = num_phases or QUICK['num_phases']
+        subplanes = subplanes or QUICK['subplanes']
+    im = p['imaging']
+    n = int(size or im['size'])
+    if n < 16:
+        raise ValueError(f'size must be >= 16 pixels, got {n}')
+    if num_phases is not None:
+        p['motion']['num_phases'] = int(num_phases)
+    if subplanes is not None:
+        im['subplanes'] = int(subplanes)
+    if pixel_spacing is not None:
+        im['pixel_spacing_mm'] = float(pixel_spacing)
+    im['size'] = n
+    return p
