@@ -21,9 +21,10 @@ detects intersections near the prediction (the ED myocardium mask carried along 
 to the tracks), and matches prediction to detections with TPS-RPM. Matched tracks take the
 detected position (refined where their ED neighbourhood registers, ``register``); optionally, on
 short-axis views, a track the detector missed is still seen where its own ED neighbourhood
-registers as well as the slice's confirmed tracks do (``register_missed``). Unmatched ones are coasted on the RPM
-warp for at most ``max_gap`` phases and then dropped: a tag intersection that fades or leaves the slice (through-plane motion) is never
-invented, and material that enters the slice is not a continuation of an ED track. A dropped
+registers as well as the slice's confirmed tracks do (``register_missed``). Unmatched ones are
+coasted on the RPM warp for at most ``max_gap`` phases and then dropped: a tag intersection that
+fades or leaves the slice (through-plane motion) is never invented, and material that enters the
+slice is not a continuation of an ED track. A dropped
 track is taken up again only where the grid identifies it: near where the live tracks' warp puts
 it (``_revive``), or, once the slice has lost its tracks (fewer than ``MIN_LIVE_TRACKS``), where
 its ED grid is seen again as the cycle closes (``_reacquire``).
