@@ -38,6 +38,8 @@ Chui, H., Rangarajan, A. CVIU 89:114–141, 2003 (TPS-RPM).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.types import Frame, TagPointSet, VIEW_SA
@@ -112,6 +114,26 @@ def tag_period_range_px(pixel_mm: float) -> tuple[float, float]:
     return max(MIN_SPACING_PX, lo / pixel_mm), max(
         min(MAX_SPACING_PX, hi / pixel_mm), MIN_SPACING_PX + 1.0
     )
+
+
+@dataclass
+class _Matches:
+    """
+    One phase's matching of a slice's live tracks, shape (L,) per track (L live tracks).
+
+    ``res`` is the TPS-RPM result (its ``warped`` is where a track not kept is coasted),
+    ``final`` the detection revivals are drawn from; ``hit`` whether a track is kept,
+    ``unconfirmed`` a first-pass match the second pass did not confirm, ``new`` the tracks'
+    positions (px, row/column), ``conf`` / ``follow`` their plain / following confidences.
+    """
+
+    res: object
+    final: Detection
+    hit: np.ndarray
+    unconfirmed: np.ndarray
+    new: np.ndarray
+    conf: np.ndarray
+    follow: np.ndarray
 
 
 class SliceTracker:
@@ -344,40 +366,68 @@ class SliceTracker:
         self.last_phase = frame.phase_index
         live = np.nonzero(~self._dead)[0]
         if live.size < MIN_LIVE_TRACKS:
-            # Too few to check each other (see MIN_LIVE_TRACKS): end them rather than let them
-            # wander onto noise; the slice is taken up again where its ED grid returns.
-            self._dead[live] = True
-            back = self._reacquire(image)
-            if back is not None:
-                idx, pts, cf = back
-                return self._result(
-                    frame,
-                    pts,
-                    self.track_id[idx],
-                    cf,
-                    note + f'{len(idx)} of {len(self.track_id)} ED tracks found again at their '
-                    'ED configuration',
-                )
-            # Nothing left to track, but an unusable image is still worth naming.
-            try:
-                validate_image(image)
-            except TagInputError as exc:
-                note += f'phase {frame.phase_index}: {exc}; '
+            return self._too_few_live(frame, live, note)
+        pred = self._pos[live] + self._step[live]
+        sp = float(np.mean(self.params.spacing_px))
+        m = self._match(image, mask, live, pred, sp)
+        if m is None:
+            self._coast(live, pred, pred)
             return self._result(
                 frame,
                 None,
                 None,
                 None,
-                note
-                + (
-                    'all tracks lost'
-                    if live.size == 0
-                    else f'{live.size} of {len(self.track_id)} ED tracks left, fewer than '
-                    f'{MIN_LIVE_TRACKS}: too few to check each other'
-                ),
+                note + f'phase {frame.phase_index}: {self.last_detection.reason}',
             )
-        pred = self._pos[live] + self._step[live]
-        sp = float(np.mean(self.params.spacing_px))
+        self._register_matches(frame, image, live, pred, sp, m)
+        return self._report(frame, live, pred, sp, m, note)
+
+    def _too_few_live(self, frame: Frame, live, note: str) -> TagPointSet:
+        """
+        End a slice's last few tracks and look for its ED grid again (``MIN_LIVE_TRACKS``).
+
+        Too few tracks cannot check each other: they are ended rather than left to wander onto
+        noise, and the slice is taken up again where its ED grid returns (``_reacquire``).
+        """
+        image = frame.image
+        self._dead[live] = True
+        back = self._reacquire(image)
+        if back is not None:
+            idx, pts, cf = back
+            return self._result(
+                frame,
+                pts,
+                self.track_id[idx],
+                cf,
+                note + f'{len(idx)} of {len(self.track_id)} ED tracks found again at their '
+                'ED configuration',
+            )
+        # Nothing left to track, but an unusable image is still worth naming.
+        try:
+            validate_image(image)
+        except TagInputError as exc:
+            note += f'phase {frame.phase_index}: {exc}; '
+        return self._result(
+            frame,
+            None,
+            None,
+            None,
+            note
+            + (
+                'all tracks lost'
+                if live.size == 0
+                else f'{live.size} of {len(self.track_id)} ED tracks left, fewer than '
+                f'{MIN_LIVE_TRACKS}: too few to check each other'
+            ),
+        )
+
+    def _match(self, image, mask, live, pred, sp: float):
+        """
+        Detect near the predicted tracks and match them (TPS-RPM), in two passes when masks move.
+
+        Returns a :class:`_Matches` (``None`` when nothing was detected: the detection, with its
+        reason, is ``last_detection``).
+        """
         region = accept = None
         if mask is not None:
             region = np.asarray(mask, bool)
@@ -405,10 +455,7 @@ class SliceTracker:
         )
         self.last_detection = det
         if not det.ok or len(det) == 0:
-            self._coast(live, pred, pred)
-            return self._result(
-                frame, None, None, None, note + f'phase {frame.phase_index}: {det.reason}'
-            )
+            return None
         res = tps_rpm(
             pred,
             det.pixel_rc,
@@ -421,44 +468,73 @@ class SliceTracker:
             gate=self.gate * sp,
         )
         hit = res.match >= 0
-        unconfirmed = np.zeros(hit.shape, bool)
-        final = det
-        new = np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped)
-        conf = det.plain_confidence[np.maximum(res.match, 0)]
-        follow = det.confidence[np.maximum(res.match, 0)]
+        m = _Matches(
+            res=res,
+            final=det,
+            hit=hit,
+            unconfirmed=np.zeros(hit.shape, bool),
+            new=np.where(hit[:, None], det.pixel_rc[np.maximum(res.match, 0)], res.warped),
+            conf=det.plain_confidence[np.maximum(res.match, 0)],
+            follow=det.confidence[np.maximum(res.match, 0)],
+        )
         if two_pass and hit.sum() >= 4:
-            # Second pass: the mask warped through the matched detections (≈ 0.1 px) instead of
-            # the constant-velocity prediction (≈ 0.5 px off mid-systole) filters without
-            # leaking blood or static background tags into the phase near the wall's border.
-            region2, accept2 = self._propagated_mask(
-                new[hit], live[hit], np.shape(image), erode=self.mask_erosion_px, dilate=0
-            )
-            if region2 is not None:
-                det2 = final = detect_intersections(
-                    image,
-                    mask=region2,
-                    params=self.params,
-                    roi=roi,
-                    accept_mask=accept2,
-                    coverage_normalised=self.follow_coverage,
-                    **kwargs,
-                )
-                # A first-pass match the second pass confirms (within confirm_px) takes the second
-                # pass's point. One it does not may have come from tags just outside the
-                # predicted border: it is dropped, or on the views of ``register_missed_views``
-                # kept only where its own ED neighbourhood registers (RECOVER_NCC_PERCENTILE).
-                found = np.zeros(int(hit.sum()), bool)
-                j2 = np.zeros(int(hit.sum()), int)
-                if det2.ok and len(det2):
-                    d2, j2 = cKDTree(det2.pixel_rc).query(
-                        new[hit], distance_upper_bound=self.confirm_px
-                    )
-                    found = np.isfinite(d2)
-                idx = np.nonzero(hit)[0]
-                new[idx[found]] = det2.pixel_rc[j2[found]]
-                conf[idx[found]] = det2.plain_confidence[j2[found]]
-                follow[idx[found]] = det2.confidence[j2[found]]
-                unconfirmed[idx[~found]] = True
+            self._confirm(image, live, roi, kwargs, m)
+        return m
+
+    def _confirm(self, image, live, roi, kwargs: dict, m: '_Matches') -> None:
+        """
+        Detect again inside the mask warped through the matches and confirm each match there.
+
+        The mask warped through the matched detections (≈ 0.1 px) instead of the
+        constant-velocity prediction (≈ 0.5 px off mid-systole) filters without leaking blood or
+        static background tags into the phase near the wall's border. A first-pass match the
+        second pass confirms (within ``confirm_px``) takes the second pass's point. One it does
+        not may have come from tags just outside the predicted border: it is marked
+        ``unconfirmed`` (dropped, or on the views of ``register_missed_views`` kept only where
+        its own ED neighbourhood registers, ``RECOVER_NCC_PERCENTILE``).
+        """
+        hit, new = m.hit, m.new
+        region2, accept2 = self._propagated_mask(
+            new[hit], live[hit], np.shape(image), erode=self.mask_erosion_px, dilate=0
+        )
+        if region2 is None:
+            return
+        det2 = m.final = detect_intersections(
+            image,
+            mask=region2,
+            params=self.params,
+            roi=roi,
+            accept_mask=accept2,
+            coverage_normalised=self.follow_coverage,
+            **kwargs,
+        )
+        found = np.zeros(int(hit.sum()), bool)
+        j2 = np.zeros(int(hit.sum()), int)
+        if det2.ok and len(det2):
+            d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=self.confirm_px)
+            found = np.isfinite(d2)
+        idx = np.nonzero(hit)[0]
+        new[idx[found]] = det2.pixel_rc[j2[found]]
+        m.conf[idx[found]] = det2.plain_confidence[j2[found]]
+        m.follow[idx[found]] = det2.confidence[j2[found]]
+        m.unconfirmed[idx[~found]] = True
+
+    def _register_matches(self, frame: Frame, image, live, pred, sp: float, m: '_Matches'):
+        """
+        Keep a match only where its own ED neighbourhood registers there (``register``).
+
+        With ``register_missed`` (on its views) a live track the detector missed, or whose match
+        was not confirmed, is recovered where its ED neighbourhood registers as well as the
+        slice's confirmed tracks do. Updates ``m`` in place; a track not kept is coasted.
+        """
+        res, hit, unconfirmed, new, conf, follow = (
+            m.res,
+            m.hit,
+            m.unconfirmed,
+            m.new,
+            m.conf,
+            m.follow,
+        )
         recover = (
             self.register and self.register_missed and int(getattr(frame, 'view', VIEW_SA)) in
             self.register_missed_views
@@ -466,51 +542,55 @@ class SliceTracker:
         if not recover:
             new[unconfirmed] = res.warped[unconfirmed]
             hit[unconfirmed] = False
-        if self.register and hit.any():
-            # A match whose own ED neighbourhood does not register there is not its material.
-            idx = np.nonzero(hit & ~unconfirmed)[0]
-            new[idx], seen, ncc = self._registered(image, live[idx], new[idx], sp, held=recover)
-            new[idx[~seen]] = res.warped[idx[~seen]]
-            hit[idx[~seen]] = False
-            extra = np.nonzero(unconfirmed | ~hit)[0] if recover else np.zeros(0, int)
-            if extra.size and seen.sum() >= MIN_LIVE_TRACKS:
-                # A live track whose match the second pass did not confirm, or that no detection
-                # matched, is still seen where its own ED neighbourhood registers, from that
-                # match or else from its own prediction, as well as the slice's confirmed
-                # tracks register at this phase (the image's own noise and contrast set the
-                # bar). Its confidence is the lowest of theirs.
-                start = np.where(unconfirmed[extra, None], new[extra], pred[extra])
-                rc, ok, _ = self._registered(
-                    image,
-                    live[extra],
-                    start,
-                    sp,
-                    min_ncc=float(np.percentile(ncc[seen], RECOVER_NCC_PERCENTILE)),
-                    held=True,
-                )
-                low = np.min(conf[idx[seen]]), np.min(follow[idx[seen]])
-                got = extra[ok]
-                new[got] = rc[ok]
-                conf[got[~unconfirmed[got]]] = low[0]
-                follow[got[~unconfirmed[got]]] = low[1]
-                hit[got] = True
-                lost = extra[~ok]
-                new[lost] = res.warped[lost]
-                hit[lost] = False
-            elif extra.size:
-                new[unconfirmed] = res.warped[unconfirmed]
-                hit[unconfirmed] = False
-        else:
+        if not (self.register and hit.any()):
             new[unconfirmed] = res.warped[unconfirmed]
             hit[unconfirmed] = False
+            return
+        # A match whose own ED neighbourhood does not register there is not its material.
+        idx = np.nonzero(hit & ~unconfirmed)[0]
+        new[idx], seen, ncc = self._registered(image, live[idx], new[idx], sp, held=recover)
+        new[idx[~seen]] = res.warped[idx[~seen]]
+        hit[idx[~seen]] = False
+        extra = np.nonzero(unconfirmed | ~hit)[0] if recover else np.zeros(0, int)
+        if extra.size and seen.sum() >= MIN_LIVE_TRACKS:
+            # A live track whose match the second pass did not confirm, or that no detection
+            # matched, is still seen where its own ED neighbourhood registers, from that match or
+            # else from its own prediction, as well as the slice's confirmed tracks register at
+            # this phase (the image's own noise and contrast set the bar). Its confidence is the
+            # lowest of theirs.
+            start = np.where(unconfirmed[extra, None], new[extra], pred[extra])
+            rc, ok, _ = self._registered(
+                image,
+                live[extra],
+                start,
+                sp,
+                min_ncc=float(np.percentile(ncc[seen], RECOVER_NCC_PERCENTILE)),
+                held=True,
+            )
+            low = np.min(conf[idx[seen]]), np.min(follow[idx[seen]])
+            got = extra[ok]
+            new[got] = rc[ok]
+            conf[got[~unconfirmed[got]]] = low[0]
+            follow[got[~unconfirmed[got]]] = low[1]
+            hit[got] = True
+            lost = extra[~ok]
+            new[lost] = res.warped[lost]
+            hit[lost] = False
+        elif extra.size:
+            new[unconfirmed] = res.warped[unconfirmed]
+            hit[unconfirmed] = False
+
+    def _report(self, frame: Frame, live, pred, sp: float, m: '_Matches', note: str):
+        """Move the kept tracks, coast the rest, revive dropped ones and report the phase's set."""
+        hit, new = m.hit, m.new
         self._coast(live[~hit], pred[~hit], new[~hit])
         prev = self._pos[live[hit]]
         self._step[live[hit]] = new[hit] - prev
         self._pos[live[hit]] = new[hit]
         self._gap[live[hit]] = 0
         if hit.any():
-            self._follow_conf = float(np.median(follow[hit]))
-        back = self._revive(live[hit], new[hit], final, sp)
+            self._follow_conf = float(np.median(m.follow[hit]))
+        back = self._revive(live[hit], new[hit], m.final, sp)
         n_ed = len(self.track_id)
         n_out = int(hit.sum()) + len(back[0])
         status = note
@@ -523,7 +603,7 @@ class SliceTracker:
             status = note + 'no detection matched any track'
         ids = np.concatenate([self.track_id[live[hit]], self.track_id[back[0]]])
         pts = np.concatenate([new[hit], back[1]])
-        cf = np.concatenate([conf[hit], back[2]])
+        cf = np.concatenate([m.conf[hit], back[2]])
         return self._result(frame, pts, ids, cf, status)
 
     def _registered(
