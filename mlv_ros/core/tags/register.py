@@ -144,6 +144,36 @@ def register_points(
         ``smoothing`` is negative.
 
     """
+    ed, im, msk, x0, x, G = _checked_inputs(
+        ed_image, ed_mask, image, ed_rc, start_rc, start_map, period_px, radius, sigma,
+        smoothing, map_prior,
+    )
+    n = len(x0)
+    if n == 0:
+        return x, G, np.zeros(0, bool), np.zeros(0)
+    T, W, Y, w0 = _template(ed, msk, x0, period_px, radius, sigma)
+    ok = W.sum(axis=1) >= 0.2 * w0.sum()
+    x, G = _gauss_newton(im, T, W, Y, x, G, ok, iterations, map_prior)
+    q = x[:, None, :] + np.einsum('nij,npj->npi', G, Y)
+    val = _sample(im, q)
+    w = np.where(np.isfinite(val), W, 0.0)
+    ncc = _ncc(w, T, np.nan_to_num(val))
+    area = np.linalg.det(G)
+    ok &= (
+        (area >= MIN_AREA_RATIO)
+        & (area <= MAX_AREA_RATIO)
+        & np.all(np.isfinite(x), axis=1)
+        & (w.sum(axis=1) >= 0.2 * w0.sum())
+    )
+    x = np.where(ok[:, None], x, np.asarray(start_rc, float).reshape(-1, 2))
+    return x, G, ok, ncc
+
+
+def _checked_inputs(
+    ed_image, ed_mask, image, ed_rc, start_rc, start_map, period_px, radius, sigma, smoothing,
+    map_prior,
+):
+    """Check :func:`register_points`' inputs; return its images (smoothed), points and maps."""
     ed = np.asarray(ed_image, np.float32)
     im = np.asarray(image, np.float32)
     msk = np.asarray(ed_mask, bool)
@@ -170,11 +200,17 @@ def register_points(
         if start_map is None
         else np.array(start_map, float).reshape(n, 2, 2)
     )
-    if n == 0:
-        return x, G, np.zeros(0, bool), np.zeros(0)
-    G0 = G.copy()
-    gr, gc = np.gradient(im)
-    gr, gc = gr.astype(np.float32), gc.astype(np.float32)
+    return ed, im, msk, x0, x, G
+
+
+def _template(ed, msk, x0, period_px: float, radius: float, sigma: float):
+    """
+    Return each point's ED template: intensities, weights, offsets and the disc's weights.
+
+    ``T`` (N, P) the ED intensities at the integer pixels within ``radius`` periods, ``W`` (N, P)
+    their Gaussian weights where inside the image and the ED wall, ``Y`` (N, P, 2) the pixels'
+    offsets from the ED point itself, ``w0`` (P,) the full disc's weights.
+    """
     half = int(np.ceil(radius * period_px))
     o = np.arange(-half, half + 1, dtype=float)
     offs = np.stack(np.meshgrid(o, o, indexing='ij'), -1).reshape(-1, 2)
@@ -188,7 +224,21 @@ def register_points(
     T = ed[pr, pc].astype(np.float64)
     W = w0[None] * (inside & msk[pr, pc])
     Y = offs[None] - (x0 - base)[:, None, :]  # offsets from the ED point itself
-    ok = W.sum(axis=1) >= 0.2 * w0.sum()
+    return T, W, Y, w0
+
+
+def _gauss_newton(im, T, W, Y, x, G, ok, iterations: int, map_prior: float):
+    """
+    Run :func:`register_points`' damped Gauss–Newton steps; return the positions and maps.
+
+    Unknowns per point: position (2), local map (4) and intensity gain and offset (2); the map
+    is held toward its start by ``map_prior`` times its own curvature at the start; steps are
+    capped (``MAX_STEP_PX``, ``MAX_MAP_STEP``), and points not ``ok`` do not move.
+    """
+    G0 = G.copy()
+    gr, gc = np.gradient(im)
+    gr, gc = gr.astype(np.float32), gc.astype(np.float32)
+    n = len(x)
     a, b = np.ones(n), np.zeros(n)
     eye8 = np.eye(8)[None]
     for it in range(max(1, int(iterations))):
@@ -222,19 +272,7 @@ def register_points(
         x = x + d[:, :2]
         G = G + d[:, 2:6].reshape(-1, 2, 2)
         a, b = a + d[:, 6], b + d[:, 7]
-    q = x[:, None, :] + np.einsum('nij,npj->npi', G, Y)
-    val = _sample(im, q)
-    w = np.where(np.isfinite(val), W, 0.0)
-    ncc = _ncc(w, T, np.nan_to_num(val))
-    area = np.linalg.det(G)
-    ok &= (
-        (area >= MIN_AREA_RATIO)
-        & (area <= MAX_AREA_RATIO)
-        & np.all(np.isfinite(x), axis=1)
-        & (w.sum(axis=1) >= 0.2 * w0.sum())
-    )
-    x = np.where(ok[:, None], x, np.asarray(start_rc, float).reshape(-1, 2))
-    return x, G, ok, ncc
+    return x, G
 
 
 def _linear_fit(w, t, v):
