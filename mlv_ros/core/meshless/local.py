@@ -632,35 +632,8 @@ class CoarseSpace:
     ):
         self.ops = ops
         n = ops.n
-        pts = ops.operator.phyxels.points
-        agg = farthest_point_aggregates(pts, num_aggregates)
-        na = int(agg.max()) + 1
-        count = np.bincount(agg, minlength=na)
-        centre = (
-            np.stack([np.bincount(agg, weights=pts[:, a], minlength=na) for a in range(3)], axis=1)
-            / count[:, None]
-        )
-        rel = pts - centre[agg]
-        scale = max(float(np.sqrt(np.mean(np.sum(rel**2, axis=1)))), 1e-12)
-        b = np.concatenate([np.ones((n, 1)), rel / scale], axis=1)  # (N, 4)
-        gram = np.zeros((na, 4, 4))
-        for a in range(4):
-            for c in range(a, 4):
-                gram[:, a, c] = gram[:, c, a] = np.bincount(
-                    agg, weights=b[:, a] * b[:, c], minlength=na
-                )
-        val, vec = np.linalg.eigh(gram)
-        keep = val > 1e-8 * val[:, -1:]
-        wmat = (
-            vec / np.sqrt(np.where(keep, val, 1.0))[:, None, :]
-        )  # orthonormal over each aggregate
-        col = np.cumsum(keep.ravel()).reshape(na, 4) - 1
-        vals = np.einsum('na,nac->nc', b, wmat[agg])
-        k = keep[agg]
-        rows = np.broadcast_to(np.arange(n)[:, None], (n, 4))
-        q = int(keep.sum())
-        self.aggregate, self.num_basis = agg, q
-        self.basis = sp.csr_matrix((vals[k], (rows[k], col[agg][k])), shape=(n, q))
+        agg, self.basis = _aggregate_basis(ops.operator.phyxels.points, n, num_aggregates)
+        self.aggregate, self.num_basis = agg, self.basis.shape[1]
         self._basis_t = self.basis.T.tocsr()
         psi = (ops.operator.matrix @ self.basis).tocsr()  # rows 3i + b: Σ_j d_ij[b] Z_s[j, q]
         rows_b = [psi[b::3] for b in range(3)]
@@ -809,3 +782,39 @@ def pcg(
         r -= alpha * q
         rho_prev = rho
     return x, int(maxiter)
+
+
+def _aggregate_basis(pts: np.ndarray, n: int, num_aggregates: int):
+    """
+    Return the aggregates of the ``n`` points ``pts`` (N, 3) mm and their scalar coarse basis.
+
+    Per aggregate the functions 1, x, y, z (centred, scaled) made orthonormal over its points,
+    dropping dependent ones; returns ``(aggregate (N,) int, Z_s csr (N, Q))``.
+    """
+    agg = farthest_point_aggregates(pts, num_aggregates)
+    na = int(agg.max()) + 1
+    count = np.bincount(agg, minlength=na)
+    centre = (
+        np.stack([np.bincount(agg, weights=pts[:, a], minlength=na) for a in range(3)], axis=1)
+        / count[:, None]
+    )
+    rel = pts - centre[agg]
+    scale = max(float(np.sqrt(np.mean(np.sum(rel**2, axis=1)))), 1e-12)
+    b = np.concatenate([np.ones((n, 1)), rel / scale], axis=1)  # (N, 4)
+    gram = np.zeros((na, 4, 4))
+    for a in range(4):
+        for c in range(a, 4):
+            gram[:, a, c] = gram[:, c, a] = np.bincount(
+                agg, weights=b[:, a] * b[:, c], minlength=na
+            )
+    val, vec = np.linalg.eigh(gram)
+    keep = val > 1e-8 * val[:, -1:]
+    wmat = (
+        vec / np.sqrt(np.where(keep, val, 1.0))[:, None, :]
+    )  # orthonormal over each aggregate
+    col = np.cumsum(keep.ravel()).reshape(na, 4) - 1
+    vals = np.einsum('na,nac->nc', b, wmat[agg])
+    k = keep[agg]
+    rows = np.broadcast_to(np.arange(n)[:, None], (n, 4))
+    q = int(keep.sum())
+    return agg, sp.csr_matrix((vals[k], (rows[k], col[agg][k])), shape=(n, q))

@@ -220,50 +220,16 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
     wall = float(np.median((epi - endo)[good]))
     r_epi = float(np.median(epi[good]))
     sigma = max(1.0, 0.25 * wall)
-    mu, sd = _local_stats(img, sigma)
-    c = seg.centre_rc
     endo_f = np.where(good, endo, np.nanmedian(endo[good]))
     epi_f = np.where(np.isfinite(epi), epi, r_epi)
-    core = polar_mask(img.shape, c, seg.angles, np.zeros_like(endo_f), 0.6 * endo_f) & ~seg.mask
-    core &= polar_mask(
-        img.shape, c, seg.angles, np.zeros_like(endo_f), np.maximum(endo_f - 2 * sigma, 0.0)
-    )
-    wall_px = (
-        seg.mask
-        & ~polar_mask(img.shape, c, seg.angles, endo_f, endo_f + sigma)
-        & ~polar_mask(img.shape, c, seg.angles, np.maximum(epi_f - sigma, 0.0), epi_f)
-    )
-    if core.sum() < 9 or wall_px.sum() < 9:
-        return None, 'LV cavity or wall too small to take blood statistics from'
-    mu_c = float(np.median(mu[core]))
-    s_c = 1.4826 * float(np.median(np.abs(mu[core] - mu_c)))
-    sd_c = float(np.median(sd[core]))
-    sd_w = float(np.median(sd[wall_px]))
-    if not sd_w > sd_c:
-        return None, 'the wall shows no more texture than the blood (no tags to tell them apart)'
-    blood = (np.abs(mu - mu_c) <= max(3.0 * s_c, BLOOD_MEAN_TOLERANCE * abs(mu_c))) & (
-        sd <= sd_c + 0.5 * (sd_w - sd_c)
-    )
-    lv = polar_mask(img.shape, c, seg.angles, np.zeros_like(epi_f), epi_f + 2.0 * sigma)
-    blood &= ~lv
+    blood = _blood_outside_lv(img, seg, endo_f, epi_f, sigma)
+    if isinstance(blood, str):
+        return None, blood
     labels, n = ndimage.label(blood)
     if n == 0:
         return None, 'no blood-like region outside the LV'
     # Which region each ray meets first within the band beyond the epicardium.
-    band = 2.0 * sigma + 0.5 * r_epi
-    steps = np.arange(0.0, band + 1e-9, 0.5)
-    dirs = np.stack([np.sin(seg.angles), np.cos(seg.angles)], 1)
-    rr = c[0] + (epi_f[:, None] + steps[None, :]) * dirs[:, 0, None]
-    cc = c[1] + (epi_f[:, None] + steps[None, :]) * dirs[:, 1, None]
-    inside = (rr >= 0) & (rr <= img.shape[0] - 1) & (cc >= 0) & (cc <= img.shape[1] - 1)
-    lab = np.where(
-        inside,
-        labels[
-            np.clip(np.rint(rr).astype(int), 0, img.shape[0] - 1),
-            np.clip(np.rint(cc).astype(int), 0, img.shape[1] - 1),
-        ],
-        0,
-    )
+    lab = _labels_beyond(labels, seg, epi_f, 2.0 * sigma + 0.5 * r_epi)
     cavity_area = float(np.pi * np.median(endo[good]) ** 2)
     areas = ndimage.sum(np.ones_like(labels), labels, index=np.arange(1, n + 1))
     best, best_rays = 0, 0
@@ -283,6 +249,58 @@ def find_rv(image: np.ndarray, seg: SliceSegmentation) -> tuple[SliceRV | None, 
         lo, hi = ARC_RANGE_DEG
         return None, f'the blood next to the LV wraps {arc:.0f}° of it (an RV: {lo:g}–{hi:g}°)'
     return SliceRV(start, end, arc, int(areas[best - 1]), labels == best), ''
+
+
+def _blood_outside_lv(img, seg, endo_f, epi_f, sigma):
+    """
+    Pixels outside the LV that look like its cavity's blood, bool (rows, cols), or why not.
+
+    Blood: the local mean near the cavity's and the local texture (tags) below half-way from
+    the cavity's to the wall's, both measured on this slice (scale σ px).
+    """
+    mu, sd = _local_stats(img, sigma)
+    c = seg.centre_rc
+    core = polar_mask(img.shape, c, seg.angles, np.zeros_like(endo_f), 0.6 * endo_f) & ~seg.mask
+    core &= polar_mask(
+        img.shape, c, seg.angles, np.zeros_like(endo_f), np.maximum(endo_f - 2 * sigma, 0.0)
+    )
+    wall_px = (
+        seg.mask
+        & ~polar_mask(img.shape, c, seg.angles, endo_f, endo_f + sigma)
+        & ~polar_mask(img.shape, c, seg.angles, np.maximum(epi_f - sigma, 0.0), epi_f)
+    )
+    if core.sum() < 9 or wall_px.sum() < 9:
+        return 'LV cavity or wall too small to take blood statistics from'
+    mu_c = float(np.median(mu[core]))
+    s_c = 1.4826 * float(np.median(np.abs(mu[core] - mu_c)))
+    sd_c = float(np.median(sd[core]))
+    sd_w = float(np.median(sd[wall_px]))
+    if not sd_w > sd_c:
+        return 'the wall shows no more texture than the blood (no tags to tell them apart)'
+    blood = (np.abs(mu - mu_c) <= max(3.0 * s_c, BLOOD_MEAN_TOLERANCE * abs(mu_c))) & (
+        sd <= sd_c + 0.5 * (sd_w - sd_c)
+    )
+    lv = polar_mask(img.shape, c, seg.angles, np.zeros_like(epi_f), epi_f + 2.0 * sigma)
+    return blood & ~lv
+
+
+def _labels_beyond(labels, seg, epi_f, band):
+    """Region labels along each ray from the epicardium out to ``band`` px, (rays, samples)."""
+    c = seg.centre_rc
+    shape = labels.shape
+    steps = np.arange(0.0, band + 1e-9, 0.5)
+    dirs = np.stack([np.sin(seg.angles), np.cos(seg.angles)], 1)
+    rr = c[0] + (epi_f[:, None] + steps[None, :]) * dirs[:, 0, None]
+    cc = c[1] + (epi_f[:, None] + steps[None, :]) * dirs[:, 1, None]
+    inside = (rr >= 0) & (rr <= shape[0] - 1) & (cc >= 0) & (cc <= shape[1] - 1)
+    return np.where(
+        inside,
+        labels[
+            np.clip(np.rint(rr).astype(int), 0, shape[0] - 1),
+            np.clip(np.rint(cc).astype(int), 0, shape[1] - 1),
+        ],
+        0,
+    )
 
 
 def _ray_direction(geometry, centre_rc, angle, axis) -> np.ndarray:
@@ -319,6 +337,51 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
     p = p / np.linalg.norm(p)
     e2 = np.cross(p, axis)  # θ grows CCW seen from the apex (mlv_ros.core.analysis.frame)
 
+    found, reasons = _rv_insertions(slices, axis, p, e2)
+    total = len(slices)
+    est = SeptumEstimate(
+        SOURCE_PRIOR,
+        p,
+        slices_found=len(found),
+        slices_total=total,
+        per_slice=[
+            {'anterior_deg': math.degrees(f[0]), 'inferior_deg': math.degrees(f[1])} for f in found
+        ],
+    )
+    if not found:
+        common = max(set(reasons), key=reasons.count) if reasons else 'no segmented SA slice'
+        est.reason = f'no RV found on any SA slice ({common})'
+        return est
+    mids = np.array([f[2] for f in found])
+    mean, keep, agreement = _agreeing_mean(mids)
+    used = int(keep.sum())
+    est.slices_used = used
+    need = max(MIN_SLICES, math.ceil(MIN_SLICE_FRACTION * total))
+    if used < need or agreement < MIN_AGREEMENT:
+        est.reason = (
+            f'an RV was found on {len(found)} of {total} SA slices, {used} agreeing '
+            f'(agreement {agreement:.2f}; need {need} slices and {MIN_AGREEMENT:g})'
+        )
+        return est
+    half = 0.5 * float(np.median([f[3] for f, k in zip(found, keep) if k]))
+
+    def direction(t):
+        return math.cos(t) * p + math.sin(t) * e2
+
+    est.source = SOURCE_DETECTED
+    est.septum = direction(mean)
+    est.anterior, est.inferior = direction(mean - half), direction(mean + half)
+    est.span_deg = math.degrees(2.0 * half)
+    est.confidence = agreement * used / max(total, 1)
+    return est
+
+
+def _rv_insertions(slices, axis, p, e2):
+    """
+    Each slice's RV insertions, ``(anterior θ, inferior θ, bisector θ, span)`` rad, or why not.
+
+    θ is measured from ``p`` toward ``e2`` about ``axis``; returns ``(found, reasons)``.
+    """
     def theta(v):
         return math.atan2(float(v @ e2), float(v @ p))
 
@@ -343,21 +406,11 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
         # θ counter-clockwise from the anterior to the inferior insertion, bisector between them.
         span = (t_e - t_s) % (2 * math.pi)
         found.append((t_s, t_e, t_s + 0.5 * span, span))
-    total = len(slices)
-    est = SeptumEstimate(
-        SOURCE_PRIOR,
-        p,
-        slices_found=len(found),
-        slices_total=total,
-        per_slice=[
-            {'anterior_deg': math.degrees(f[0]), 'inferior_deg': math.degrees(f[1])} for f in found
-        ],
-    )
-    if not found:
-        common = max(set(reasons), key=reasons.count) if reasons else 'no segmented SA slice'
-        est.reason = f'no RV found on any SA slice ({common})'
-        return est
-    mids = np.array([f[2] for f in found])
+    return found, reasons
+
+
+def _agreeing_mean(mids: np.ndarray):
+    """Circular mean of the bisectors within OUTLIER_DEG of the first mean, (mean, keep, R)."""
     mean = math.atan2(np.sin(mids).mean(), np.cos(mids).mean())
     keep = np.abs(np.angle(np.exp(1j * (mids - mean)))) <= math.radians(OUTLIER_DEG)
     if keep.any():
@@ -367,23 +420,4 @@ def estimate_septum(slices, axis, prior) -> SeptumEstimate:
         if keep.any()
         else 0.0
     )
-    used = int(keep.sum())
-    est.slices_used = used
-    need = max(MIN_SLICES, math.ceil(MIN_SLICE_FRACTION * total))
-    if used < need or agreement < MIN_AGREEMENT:
-        est.reason = (
-            f'an RV was found on {len(found)} of {total} SA slices, {used} agreeing '
-            f'(agreement {agreement:.2f}; need {need} slices and {MIN_AGREEMENT:g})'
-        )
-        return est
-    half = 0.5 * float(np.median([f[3] for f, k in zip(found, keep) if k]))
-
-    def direction(t):
-        return math.cos(t) * p + math.sin(t) * e2
-
-    est.source = SOURCE_DETECTED
-    est.septum = direction(mean)
-    est.anterior, est.inferior = direction(mean - half), direction(mean + half)
-    est.span_deg = math.degrees(2.0 * half)
-    est.confidence = agreement * used / max(total, 1)
-    return est
+    return mean, keep, agreement

@@ -155,6 +155,34 @@ def masks_for_frames(path_or_img, frames, label: int = 2, max_distance_mm: float
 
     """
     data, aff, name = _load(path_or_img)
+    label = _checked_label(data, name, label)
+    if max_distance_mm is not None and not (np.isfinite(max_distance_mm) and max_distance_mm > 0):
+        raise ValueError(
+            f'max_distance_mm must be a positive number of mm, got {max_distance_mm!r}'
+        )
+    if frames is None:
+        raise ValueError('masks_for_frames needs a list of Frame records, got None')
+    volume = _Volume(data, aff, name)
+    masks: dict = {}
+    reasons: dict = {}
+    seen = set()
+    for f in frames:
+        if not isinstance(f, Frame):
+            raise ValueError(f'frames must be Frame records, got {type(f).__name__}')
+        key = (int(f.view), int(f.slice_index))
+        if key in seen:
+            continue
+        seen.add(key)
+        got = volume.plane_mask(f, label, max_distance_mm)
+        if isinstance(got, str):
+            reasons[key] = got
+        else:
+            masks[key] = got
+    return masks, reasons
+
+
+def _checked_label(data: np.ndarray, name: str, label) -> int:
+    """Return ``label`` as an int, refusing a non-integer or one absent from the volume."""
     if isinstance(label, (bool, np.bool_)) or not float(label).is_integer():
         raise ValueError(f'NIfTI mask {name}: label must be an integer, got {label!r}')
     label = int(label)
@@ -167,71 +195,62 @@ def masks_for_frames(path_or_img, frames, label: int = 2, max_distance_mm: float
             f'NIfTI mask {name}: myocardium label {label} does not occur in the volume '
             f'(labels present: {shown})'
         )
-    if max_distance_mm is not None and not (np.isfinite(max_distance_mm) and max_distance_mm > 0):
-        raise ValueError(
-            f'max_distance_mm must be a positive number of mm, got {max_distance_mm!r}'
-        )
-    if frames is None:
-        raise ValueError('masks_for_frames needs a list of Frame records, got None')
+    return label
 
-    inv = np.linalg.inv(aff)
-    spacing = np.linalg.norm(aff[:3, :3], axis=0)  # mm per voxel along i, j, k
-    k_ax = int(np.argmax(spacing))
-    inplane = float(np.max(np.delete(spacing, k_ax)))
-    dims = np.array(data.shape)
-    masks: dict = {}
-    reasons: dict = {}
-    seen = set()
-    for f in frames:
-        if not isinstance(f, Frame):
-            raise ValueError(f'frames must be Frame records, got {type(f).__name__}')
-        key = (int(f.view), int(f.slice_index))
-        if key in seen:
-            continue
-        seen.add(key)
+
+class _Volume:
+    """A label volume with its affine, sampled on image planes (:func:`masks_for_frames`)."""
+
+    def __init__(self, data: np.ndarray, aff: np.ndarray, name: str):
+        """Keep the volume and derive its inverse affine, voxel spacing and slice axis."""
+        self.data, self.aff, self.name = data, aff, name
+        self.inv = np.linalg.inv(aff)
+        self.spacing = np.linalg.norm(aff[:3, :3], axis=0)  # mm per voxel along i, j, k
+        self.k_ax = int(np.argmax(self.spacing))
+        self.inplane = float(np.max(np.delete(self.spacing, self.k_ax)))
+        self.dims = np.array(data.shape)
+
+    def plane_mask(self, f: Frame, label: int, max_distance_mm):
+        """Return the myocardium mask of frame ``f``'s plane, bool (rows, cols), or why not."""
+        data, name = self.data, self.name
         g = f.geometry
         rows, cols = np.asarray(f.image).shape[:2]
         rr, cc = np.meshgrid(
             np.arange(rows, dtype=np.float64), np.arange(cols, dtype=np.float64), indexing='ij'
         )
         xyz = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], 1)) * _LPS_TO_RAS
-        ijk = xyz @ inv[:3, :3].T + inv[:3, 3]  # fractional voxel indices
+        ijk = xyz @ self.inv[:3, :3].T + self.inv[:3, 3]  # fractional voxel indices
         idx = np.rint(ijk).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < dims), axis=1)
+        inside = np.all((idx >= 0) & (idx < self.dims), axis=1)
         if not inside.any():
-            reasons[key] = (
-                f'plane lies outside the NIfTI volume {name} (shape {tuple(data.shape)})'
-            )
-            continue
+            return f'plane lies outside the NIfTI volume {name} (shape {tuple(data.shape)})'
         lab = np.zeros(rows * cols, dtype=np.int64)
         ii = idx[inside]
         lab[inside] = data[ii[:, 0], ii[:, 1], ii[:, 2]]
         myo = lab == label
         if not myo.any():
-            reasons[key] = (
+            return (
                 f'no voxel with label {label} on this plane in {name} '
                 f'({int(inside.sum())} of {rows * cols} pixels inside the volume)'
             )
-            continue
         tol = (
             float(max_distance_mm)
             if max_distance_mm is not None
-            else max(0.5 * g.slice_thickness, 0.5 * inplane)
+            else max(0.5 * g.slice_thickness, 0.5 * self.inplane)
         )
+        k_ax, spacing = self.k_ax, self.spacing
         delta = np.abs(ijk[myo, k_ax] - idx[myo, k_ax]) * spacing[k_ax]
         far = float(np.mean(delta > tol + 1e-6))
         if far > MAX_FAR_FRACTION:
-            cosang = abs(float(g.normal @ (aff[:3, k_ax] * _LPS_TO_RAS)) / spacing[k_ax])
+            cosang = abs(float(g.normal @ (self.aff[:3, k_ax] * _LPS_TO_RAS)) / spacing[k_ax])
             how = (
                 'is parallel to'
                 if cosang > 0.985
                 else f'crosses (at {np.degrees(np.arccos(min(cosang, 1.0))):.0f} deg)'
             )
-            reasons[key] = (
+            return (
                 f'plane {how} the NIfTI slices ({spacing[k_ax]:.1f} mm apart) of {name}: '
                 f'{100 * far:.0f} % of its myocardium pixels lie > {tol:.1f} mm (median '
                 f'{float(np.median(delta)):.1f} mm) from a slice centre'
             )
-            continue
-        masks[key] = myo.reshape(rows, cols)
-    return masks, reasons
+        return myo.reshape(rows, cols)

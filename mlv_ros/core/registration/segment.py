@@ -552,48 +552,12 @@ def _wall_runs(
     radii, s, inside = _sample_rays(feat.energy, centre_rc, angles, max_radius_px)
     sig = ENERGY_EDGE_BLUR * max(float(feat.blur_px), RADIAL_STEP_PX)
     lam = float(feat.wavelength_px)
-    n_rays, n = s.shape
+    n_rays = s.shape[0]
     nan = np.full(n_rays, np.nan)
-    peaks = np.where(inside, s, -np.inf).max(axis=1)
-    if np.isfinite(peaks).sum() < n_rays // 2:
+    found = _detected_levels(s, radii, inside, sig, lam, min_wall_px, max_gap_px)
+    if found is None:
         return nan, nan, None
-    top = float(np.percentile(peaks[np.isfinite(peaks)], 70))
-    if not top > 0:
-        return nan, nan, None
-    idx = np.arange(n)
-    last = np.where(inside.any(axis=1), n - 1 - np.argmax(inside[:, ::-1], axis=1), 0)
-    span = max(int(round(lam / RADIAL_STEP_PX)), 4)
-    off = int(round(2.0 * sig / RADIAL_STEP_PX))
-    cavity = outside = 0.0
-    endo = epi = nan
-    ok = np.zeros(n_rays, bool)
-    cav = out = np.zeros_like(inside)
-    for _ in range(3):
-        endo, epi = _runs_at(s, radii, 0.5 * (top + max(cavity, outside)), min_wall_px, max_gap_px)
-        ok = np.isfinite(epi)
-        if ok.sum() < 5:
-            return nan, nan, None
-        # Clipped: on noise a run can start past a ray's last sample, which would leave its wall
-        # empty.
-        a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo)), n - 1)
-        b = np.minimum(np.searchsorted(radii, np.nan_to_num(epi)), last)
-        # A small cavity (apical slices) is sampled up to half its radius.
-        cav = ok[:, None] & (idx[None, :] < np.minimum(a - off, a // 2)[:, None]) & inside
-        lo_out = np.where(b + off + span <= last, b + off, last - span)
-        out = (
-            ok[:, None]
-            & (idx[None, :] >= lo_out[:, None])
-            & (idx[None, :] <= (lo_out + span)[:, None])
-            & inside
-        )
-        outside = float(np.median(s[out])) if out.sum() >= 20 else 0.0
-        has_cavity = cav.any(axis=1).sum() >= 0.25 * ok.sum() and cav.sum() >= 20
-        cavity = float(np.median(s[cav])) if has_cavity else outside
-        if not has_cavity:
-            cav = np.zeros_like(cav)
-        top = float(
-            np.median([s[i, a[i]:max(b[i], a[i] + 1)].max() for i in np.flatnonzero(ok)])
-        )
+    endo, epi, ok, (top, cavity, outside), (cav, out) = found
     levels = WallLevels(top, cavity, outside, sig)
     noise = float(feat.noise)
     if not (
@@ -602,28 +566,13 @@ def _wall_runs(
     ):
         return endo, epi, None
     rows = np.flatnonzero(ok)
-    a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo[rows])), n - 1)
-    b = np.searchsorted(radii, epi[rows])
     sub = s[rows]
-    core = np.array(
-        [ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)]
-    )
-    pk = sub[np.arange(rows.size), core]
-    l, r = _crossings(
-        sub, radii, core, cavity + 0.5 * (pk - cavity), outside + 0.5 * (pk - outside)
-    )
     sig0 = max(float(feat.blur_px), RADIAL_STEP_PX)
-    w_tab, half_tab = _half_width_table()
-    w = np.interp((r - l) / sig0, half_tab, w_tab) * sig0
-    rho = np.where(l <= 0.0, 0.5, _edge_fraction(w / sig0))  # from the ray origin: one edge only
-    e, q = _crossings(
-        sub, radii, core, cavity + rho * (pk - cavity), outside + rho * (pk - outside)
-    )
-    thin = (q - e) < np.maximum(min_wall_px, 0.5 * (r - l))
-    e, q = np.where(thin, l, e), np.where(thin, r, q)
+    e, q = _first_walls(sub, radii, endo[rows], epi[rows], (cavity, outside), sig0, min_wall_px)
     # Cavity samples again from these walls: a small cavity (apical slices) may sit above the
     # detection threshold, blurred by the wall around it, yet be a cavity.
     ei = (e / RADIAL_STEP_PX).astype(int)
+    idx = np.arange(s.shape[1])
     cav_rows = (
         idx[None, :] < np.minimum(ei - int(round(2.0 * sig0 / RADIAL_STEP_PX)), ei // 2)[:, None]
     ) & inside[rows]
@@ -650,6 +599,82 @@ def _wall_runs(
     endo[rows[good]] = e[good]
     epi[rows[good]] = q[good]
     return endo, epi, levels
+
+
+def _detected_levels(s, radii, inside, sig, lam, min_wall_px, max_gap_px):
+    """
+    Detect the wall runs and their levels in three rounds (steps 1-2 of :func:`_wall_runs`).
+
+    Returns ``(endo, epi, ok, (peak, cavity, outside), (cavity samples, outside samples))``, or
+    None when fewer than half the rays see anything or fewer than 5 rays hold a run.
+    """
+    n_rays, n = s.shape
+    peaks = np.where(inside, s, -np.inf).max(axis=1)
+    if np.isfinite(peaks).sum() < n_rays // 2:
+        return None
+    top = float(np.percentile(peaks[np.isfinite(peaks)], 70))
+    if not top > 0:
+        return None
+    idx = np.arange(n)
+    last = np.where(inside.any(axis=1), n - 1 - np.argmax(inside[:, ::-1], axis=1), 0)
+    span = max(int(round(lam / RADIAL_STEP_PX)), 4)
+    off = int(round(2.0 * sig / RADIAL_STEP_PX))
+    cavity = outside = 0.0
+    for _ in range(3):
+        endo, epi = _runs_at(s, radii, 0.5 * (top + max(cavity, outside)), min_wall_px, max_gap_px)
+        ok = np.isfinite(epi)
+        if ok.sum() < 5:
+            return None
+        # Clipped: on noise a run can start past a ray's last sample, which would leave its wall
+        # empty.
+        a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo)), n - 1)
+        b = np.minimum(np.searchsorted(radii, np.nan_to_num(epi)), last)
+        # A small cavity (apical slices) is sampled up to half its radius.
+        cav = ok[:, None] & (idx[None, :] < np.minimum(a - off, a // 2)[:, None]) & inside
+        lo_out = np.where(b + off + span <= last, b + off, last - span)
+        out = (
+            ok[:, None]
+            & (idx[None, :] >= lo_out[:, None])
+            & (idx[None, :] <= (lo_out + span)[:, None])
+            & inside
+        )
+        outside = float(np.median(s[out])) if out.sum() >= 20 else 0.0
+        has_cavity = cav.any(axis=1).sum() >= 0.25 * ok.sum() and cav.sum() >= 20
+        cavity = float(np.median(s[cav])) if has_cavity else outside
+        if not has_cavity:
+            cav = np.zeros_like(cav)
+        top = float(
+            np.median([s[i, a[i]:max(b[i], a[i] + 1)].max() for i in np.flatnonzero(ok)])
+        )
+    return endo, epi, ok, (top, cavity, outside), (cav, out)
+
+
+def _first_walls(sub, radii, endo, epi, levels, sig0, min_wall_px):
+    """
+    Place each ray's first wall edges from its half-excess width (step 3 of :func:`_wall_runs`).
+
+    ``sub`` holds the rays with a run, ``levels`` the (cavity, outside) energies and ``sig0`` the
+    blur, px; returns the (endo, epi) radii, px.
+    """
+    cavity, outside = levels
+    n = sub.shape[1]
+    a = np.minimum(np.searchsorted(radii, np.nan_to_num(endo)), n - 1)
+    b = np.searchsorted(radii, epi)
+    core = np.array(
+        [ai + int(np.argmax(si[ai:max(bi, ai + 1)])) for si, ai, bi in zip(sub, a, b)]
+    )
+    pk = sub[np.arange(len(sub)), core]
+    l, r = _crossings(
+        sub, radii, core, cavity + 0.5 * (pk - cavity), outside + 0.5 * (pk - outside)
+    )
+    w_tab, half_tab = _half_width_table()
+    w = np.interp((r - l) / sig0, half_tab, w_tab) * sig0
+    rho = np.where(l <= 0.0, 0.5, _edge_fraction(w / sig0))  # from the ray origin: one edge only
+    e, q = _crossings(
+        sub, radii, core, cavity + rho * (pk - cavity), outside + rho * (pk - outside)
+    )
+    thin = (q - e) < np.maximum(min_wall_px, 0.5 * (r - l))
+    return np.where(thin, l, e), np.where(thin, r, q)
 
 
 def _crossings(s, radii, core, t_in, t_out):
@@ -765,19 +790,10 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
     step = radii[1] - radii[0]
     nd = int(round(REFINE_REACH_PX / step))
     d = np.arange(-nd, nd + 1) * step
-    chans = []
-    for samples, sigma, curv, own_outside in channels:
-        o = float(np.median(samples[out])) if out.sum() >= 20 else float(np.median(samples[:, -1]))
-        c = float(np.median(samples[cav])) if cav.sum() >= 20 else o
-        if own_outside:
-            o = _outside_per_ray(samples, radii, b0, sigma, inside, o)
-        else:
-            o = np.full((k, 1), o)
-        chans.append({'s': samples, 'sig': float(sigma), 'curv': float(curv), 'c': c, 'o': o})
+    chans = _channel_levels(channels, radii, b0, cav, out, inside)
     a = np.where(a0 > 0, a0, -np.inf)
     b = np.asarray(b0, dtype=np.float64).copy()
     span = 3.0 * max(ch['sig'] for ch in chans) + REFINE_REACH_PX
-    rows = np.arange(k)
     for _ in range(REFINE_ITERATIONS):
         # Each ray's own window [a − span, b + span], gathered into a (K, L) block.
         start = np.clip(((np.maximum(a, 0.0) - span) / step).astype(int), 0, n - 1)
@@ -791,62 +807,96 @@ def _fit_walls(channels, radii, a0, b0, cav, out, min_wall_px, inside=None):
         r_ext = (start[:, None] + np.arange(-nd, length + nd)[None, :]) * step
         tot = 0.0
         for ch in chans:
-            sig, c, o = ch['sig'], ch['c'], ch['o']
-            y = np.take_along_axis(ch['s'], cols, axis=1)
-            fa = _phi((r_ext - _bent(a, ch['curv'])[:, None]) / sig)
-            fb = _phi((r_ext - _bent(b, ch['curv'])[:, None]) / sig)
-            pa, pb = fa[:, nd:nd + length], fb[:, nd:nd + length]
-            g = (pa - pb) * win
-            yy = (y - c * (1.0 - pa) - o * pb) * win
-            p = float(np.sum(g * yy) / max(float(np.sum(g * g)), 1e-300))
-            var = max(
-                float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
-                (1e-3 * max(abs(p - c), float(np.max(np.abs(p - o))), 1e-300)) ** 2,
-            )
-            # Window m of the extended grid holds the profile shifted by (nd − m) samples.
-            sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
-            sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
-            # In place, in the same order of operations: no (K, D, L) temporaries.
-            ya = (p - c) * sa
-            np.subtract(y[:, None, :] - c, ya, out=ya)
-            ya *= win[:, None, :]
-            bb = (o - p)[:, :, None] * sb
-            bb *= win[:, None, :]
-            # Batched matmul (BLAS) for the cross term: ~3x faster than einsum, the same to a
-            # few ulp (every mask and tag point of the default study unchanged).
-            ss = (
-                np.sum(ya * ya, axis=2)[:, :, None]
-                - 2.0 * np.matmul(ya, bb.transpose(0, 2, 1))
-                + np.sum(bb * bb, axis=2)[:, None, :]
-            )
-            tot = tot + ss / var
+            tot = tot + _shift_costs(ch, a, b, (cols, win, r_ext), nd, length)
         av = np.where(np.isfinite(a)[:, None], a[:, None] + d[None, :], -np.inf)
         bv = b[:, None] + d[None, :]
         tot = np.where(
             bv[:, None, :] - np.maximum(av, 0.0)[:, :, None] >= min_wall_px, tot, np.inf
         )
-        flat = tot.reshape(k, -1)
-        jm = np.argmin(flat, axis=1)
-        fin = np.isfinite(flat[rows, jm])
-        ia, ib = np.unravel_index(jm, tot.shape[1:])
-        # Sub-step: a parabola through the minimum and its neighbours along each edge (the
-        # walls then move continuously with the image).
-        m = tot.shape[1] - 1
-        fa_ = _parabola_offset(
-            tot[rows, np.maximum(ia - 1, 0), ib],
-            tot[rows, ia, ib],
-            tot[rows, np.minimum(ia + 1, m), ib],
-        )
-        fb_ = _parabola_offset(
-            tot[rows, ia, np.maximum(ib - 1, 0)],
-            tot[rows, ia, ib],
-            tot[rows, ia, np.minimum(ib + 1, m)],
-        )
-        fa_ = np.where((ia > 0) & (ia < m), fa_, 0.0)
-        fb_ = np.where((ib > 0) & (ib < m), fb_, 0.0)
-        a = np.where(fin, av[rows, ia] + fa_ * (d[1] - d[0]), a)
-        b = np.where(fin, bv[rows, ib] + fb_ * (d[1] - d[0]), b)
+        a, b = _best_shift(tot, av, bv, d[1] - d[0], a, b)
     return np.maximum(a, 0.0), b
+
+
+def _channel_levels(channels, radii, b0, cav, out, inside):
+    """Each channel's cavity and outside levels (:func:`_fit_walls`), as one dict per channel."""
+    k = channels[0][0].shape[0]
+    chans = []
+    for samples, sigma, curv, own_outside in channels:
+        o = float(np.median(samples[out])) if out.sum() >= 20 else float(np.median(samples[:, -1]))
+        c = float(np.median(samples[cav])) if cav.sum() >= 20 else o
+        if own_outside:
+            o = _outside_per_ray(samples, radii, b0, sigma, inside, o)
+        else:
+            o = np.full((k, 1), o)
+        chans.append({'s': samples, 'sig': float(sigma), 'curv': float(curv), 'c': c, 'o': o})
+    return chans
+
+
+def _shift_costs(ch, a, b, window, nd, length):
+    """
+    One channel's misfit for every pair of edge shifts, over its noise variance, (K, D, D).
+
+    ``window`` is ``(cols, win, r_ext)``: each ray's sample columns, its 1/0 window weights and
+    the radii of the window extended by ``nd`` steps on both sides, px.
+    """
+    cols, win, r_ext = window
+    sig, c, o = ch['sig'], ch['c'], ch['o']
+    y = np.take_along_axis(ch['s'], cols, axis=1)
+    fa = _phi((r_ext - _bent(a, ch['curv'])[:, None]) / sig)
+    fb = _phi((r_ext - _bent(b, ch['curv'])[:, None]) / sig)
+    pa, pb = fa[:, nd:nd + length], fb[:, nd:nd + length]
+    g = (pa - pb) * win
+    yy = (y - c * (1.0 - pa) - o * pb) * win
+    p = float(np.sum(g * yy) / max(float(np.sum(g * g)), 1e-300))
+    var = max(
+        float(np.sum((yy - p * g) ** 2)) / max(float(win.sum()), 1.0),
+        (1e-3 * max(abs(p - c), float(np.max(np.abs(p - o))), 1e-300)) ** 2,
+    )
+    # Window m of the extended grid holds the profile shifted by (nd − m) samples.
+    sa = np.lib.stride_tricks.sliding_window_view(fa, length, axis=1)[:, ::-1]
+    sb = np.lib.stride_tricks.sliding_window_view(fb, length, axis=1)[:, ::-1]
+    # In place, in the same order of operations: no (K, D, L) temporaries.
+    ya = (p - c) * sa
+    np.subtract(y[:, None, :] - c, ya, out=ya)
+    ya *= win[:, None, :]
+    bb = (o - p)[:, :, None] * sb
+    bb *= win[:, None, :]
+    # Batched matmul (BLAS) for the cross term: ~3x faster than einsum, the same to a
+    # few ulp (every mask and tag point of the default study unchanged).
+    ss = (
+        np.sum(ya * ya, axis=2)[:, :, None]
+        - 2.0 * np.matmul(ya, bb.transpose(0, 2, 1))
+        + np.sum(bb * bb, axis=2)[:, None, :]
+    )
+    return ss / var
+
+
+def _best_shift(tot, av, bv, dstep, a, b):
+    """Move each ray's edges to its least-cost shifts, to a sub-step by parabolas, (a, b) px."""
+    k = tot.shape[0]
+    rows = np.arange(k)
+    flat = tot.reshape(k, -1)
+    jm = np.argmin(flat, axis=1)
+    fin = np.isfinite(flat[rows, jm])
+    ia, ib = np.unravel_index(jm, tot.shape[1:])
+    # Sub-step: a parabola through the minimum and its neighbours along each edge (the
+    # walls then move continuously with the image).
+    m = tot.shape[1] - 1
+    fa_ = _parabola_offset(
+        tot[rows, np.maximum(ia - 1, 0), ib],
+        tot[rows, ia, ib],
+        tot[rows, np.minimum(ia + 1, m), ib],
+    )
+    fb_ = _parabola_offset(
+        tot[rows, ia, np.maximum(ib - 1, 0)],
+        tot[rows, ia, ib],
+        tot[rows, ia, np.minimum(ib + 1, m)],
+    )
+    fa_ = np.where((ia > 0) & (ia < m), fa_, 0.0)
+    fb_ = np.where((ib > 0) & (ib < m), fb_, 0.0)
+    a = np.where(fin, av[rows, ia] + fa_ * dstep, a)
+    b = np.where(fin, bv[rows, ib] + fb_ * dstep, b)
+    return a, b
 
 
 def _outside_per_ray(samples, radii, epi, sigma, inside, fallback):
@@ -1433,6 +1483,39 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg, strength=N
     valid = np.isfinite(epi) & (epi < rmax - 1)
     found = valid.copy()  # the rays whose own run met a wall (before any bridging)
     base_dir = np.arctan2(ax[0], ax[1])
+    valid, met, endo, epi = _bridged(valid, endo, epi, angles, base_dir)
+    # The horseshoe is the longest circular run of valid rays; it must not include the base
+    # direction (the atrium side is open).
+    if valid.all() or not valid.any():
+        return _fail(
+            shape,
+            'no horseshoe: the myocardium found is '
+            + ('closed around the axis point' if valid.any() else 'absent'),
+            'LA',
+        )
+    arc = _longest_circular_run(valid)
+    if np.cos(angles[arc[arc.size // 2]] - base_dir) < 0:
+        arc, endo, epi = _level_ends(arc, valid, endo, epi, angles, ax, base_dir)
+        arc = _thin_ends_cut(arc, found, endo, epi, angles, base_dir, strength)
+    # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
+    arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
+    if arc_deg < min_arc_deg:
+        return _fail(shape, f'horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})', 'LA')
+    mid_arc = angles[arc[arc.size // 2]]
+    if np.cos(mid_arc - base_dir) > 0:
+        return _fail(
+            shape, 'horseshoe opens toward the apex (long-axis orientation inconsistent)', 'LA'
+        )
+    return _horseshoe_mask(shape, c, ax, angles, arc, endo, epi)
+
+
+def _bridged(valid, endo, epi, angles, base_dir):
+    """
+    Bridge the gaps in the LA rays' runs that cannot be the atrium's opening.
+
+    Returns ``(valid, met, endo, epi)``: ``met`` counts only narrow gaps as wall (the wide
+    apical ones bridged in ``valid`` are not), bridged radii interpolated, px.
+    """
     # Bridge gaps of a few rays (noise, a wall locally thinner than the smallest run): the
     # atrium's opening is tens of degrees wide.
     gap = int(round(LA_MAX_GAP_DEG * NUM_RAYS / 360.0))
@@ -1453,34 +1536,22 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg, strength=N
             for r in (endo, epi):
                 r[fill] = np.interp(idx[fill], idx[valid], r[valid], period=NUM_RAYS)
             valid = closed
-    # The horseshoe is the longest circular run of valid rays; it must not include the base
-    # direction (the atrium side is open).
-    if valid.all() or not valid.any():
-        return _fail(
-            shape,
-            'no horseshoe: the myocardium found is '
-            + ('closed around the axis point' if valid.any() else 'absent'),
-            'LA',
-        )
+    return valid, met, endo, epi
+
+
+def _longest_circular_run(valid: np.ndarray) -> np.ndarray:
+    """Ray indices of the longest circular run of ``valid`` (not all True), in order."""
     start = int(np.flatnonzero(~valid)[0])
     rolled = np.roll(valid, -start)
     pad = np.concatenate([[False], rolled, [False]]).astype(np.int8)
     d = np.diff(pad)
     s_idx, e_idx = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
     j = int(np.argmax(e_idx - s_idx))
-    arc = (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
-    if np.cos(angles[arc[arc.size // 2]] - base_dir) < 0:
-        arc, endo, epi = _level_ends(arc, valid, endo, epi, angles, ax, base_dir)
-        arc = _thin_ends_cut(arc, found, endo, epi, angles, base_dir, strength)
-    # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
-    arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
-    if arc_deg < min_arc_deg:
-        return _fail(shape, f'horseshoe arc only {arc_deg:.0f} deg (< {min_arc_deg:g})', 'LA')
-    mid_arc = angles[arc[arc.size // 2]]
-    if np.cos(mid_arc - base_dir) > 0:
-        return _fail(
-            shape, 'horseshoe opens toward the apex (long-axis orientation inconsistent)', 'LA'
-        )
+    return (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
+
+
+def _horseshoe_mask(shape, c, ax, angles, arc, endo, epi) -> SliceSegmentation:
+    """Smooth the arc's walls, cut them at the base level and rasterise the LA mask."""
     e_arc = _circular_smooth(endo[arc], 1.5, median=5, closed=False)
     p_arc = _circular_smooth(epi[arc], 1.5, median=5, closed=False)
     # Base level: mid-wall axial coordinate of the two arc ends (each end ray stops at the

@@ -176,22 +176,7 @@ def estimate_tag_parameters(
     h, w = img.shape
     if min_peak_ratio is None:
         min_peak_ratio = MIN_WHITENED_PEAK_RATIO if whiten else MIN_PEAK_RATIO
-    if mask is not None:
-        m = np.asarray(mask, bool)
-        if m.shape != img.shape:
-            raise TagInputError(f'mask shape {m.shape} differs from image shape {img.shape}')
-        if m.sum() < 16:
-            raise TagInputError('mask has fewer than 16 pixels')
-        # Remove the local mean (the region's own shape would otherwise dominate the low
-        # frequencies) and taper the region's edge so it does not ring into the tag band.
-        sig = 0.5 * max_spacing_px
-        mf = m.astype(np.float32)
-        den = np.maximum(cv2.GaussianBlur(mf, (0, 0), sig), 1e-3)
-        local = cv2.GaussianBlur((img * mf).astype(np.float32), (0, 0), sig) / den
-        taper = cv2.GaussianBlur(mf, (0, 0), 0.25 * min_spacing_px + 1.0)
-        work = (img - local) * taper
-    else:
-        work = (img - img.mean()) * np.outer(np.hanning(h), np.hanning(w))
+    work = _spectral_input(img, mask, min_spacing_px, max_spacing_px)
     spec = np.abs(sfft.fft2(work))
     if not whiten:
         # Power averaged over neighbouring bins (σ = 1 bin): a tag peak is at least that wide (the
@@ -209,22 +194,7 @@ def estimate_tag_parameters(
     # order, so the first maximum is the one a whole-spectrum argmax finds.
     band = np.flatnonzero(annulus)
     spec_a, rad_a, ang_a = spec.ravel()[band], rad.ravel()[band], ang.ravel()[band]
-    if whiten:
-        # Rings one frequency bin wide (of the longer side); each frequency over its ring's median
-        # (as ndimage.median over the ring labels: sorted by ring, then value).
-        ring = np.rint(rad_a * max(h, w)).astype(np.int64)
-        order = np.lexsort((spec_a, ring))
-        sorted_spec = spec_a[order]
-        ids, start, count = np.unique(ring[order], return_index=True, return_counts=True)
-        med = (sorted_spec[start + (count - 1) // 2] + sorted_spec[start + count // 2]) / 2
-        if not np.all(med > 0):
-            raise TagInputError('image spectrum is empty in the tag frequency band')
-        score = spec_a / med[np.searchsorted(ids, ring)]
-    else:
-        med = float(np.median(spec_a))
-        if med <= 0:
-            raise TagInputError('image spectrum is empty in the tag frequency band')
-        score = spec_a / med
+    score = _peak_scores(spec_a, rad_a, (h, w), whiten)
     peaks = []
     for _ in range(2):
         best = int(np.argmax(score))
@@ -242,19 +212,7 @@ def estimate_tag_parameters(
         if mask is not None:
             f = _refine_peak(work, f)
         peaks.append((f, ratio))
-        # Suppress everything within 30° of this direction (its harmonics too), and periods far
-        # from this one: a SPAMM grid's two directions share (nearly) one period, while a second
-        # peak at another period is anatomy (e.g. a thin wall's own edges).
-        theta = np.arctan2(f[0], f[1])
-        diff = np.abs(np.angle(np.exp(1j * 2 * (ang_a - theta)))) / 2  # axial distance, [0, π/2]
-        f_abs = np.hypot(*f)
-        score = np.where(
-            (diff < MIN_DIRECTION_SEPARATION)
-            | (rad_a < f_abs / MAX_PERIOD_RATIO)
-            | (rad_a > f_abs * MAX_PERIOD_RATIO),
-            0.0,
-            score,
-        )
+        score = _suppressed(score, f, rad_a, ang_a)
     spacing = np.array([1.0 / np.hypot(*p[0]) for p in peaks])
     angles = _fold_angle(np.array([np.arctan2(p[0][0], p[0][1]) for p in peaks]))
     order = np.argsort(angles)
@@ -263,6 +221,65 @@ def estimate_tag_parameters(
         angles=angles[order],
         peak_ratio=np.array([p[1] for p in peaks])[order],
         source='spectrum',
+    )
+
+
+def _spectral_input(img, mask, min_spacing_px, max_spacing_px):
+    """Return the image made ready for its spectrum: tapered region or Hann-windowed frame."""
+    h, w = img.shape
+    if mask is None:
+        return (img - img.mean()) * np.outer(np.hanning(h), np.hanning(w))
+    m = np.asarray(mask, bool)
+    if m.shape != img.shape:
+        raise TagInputError(f'mask shape {m.shape} differs from image shape {img.shape}')
+    if m.sum() < 16:
+        raise TagInputError('mask has fewer than 16 pixels')
+    # Remove the local mean (the region's own shape would otherwise dominate the low
+    # frequencies) and taper the region's edge so it does not ring into the tag band.
+    sig = 0.5 * max_spacing_px
+    mf = m.astype(np.float32)
+    den = np.maximum(cv2.GaussianBlur(mf, (0, 0), sig), 1e-3)
+    local = cv2.GaussianBlur((img * mf).astype(np.float32), (0, 0), sig) / den
+    taper = cv2.GaussianBlur(mf, (0, 0), 0.25 * min_spacing_px + 1.0)
+    return (img - local) * taper
+
+
+def _peak_scores(spec_a, rad_a, shape, whiten):
+    """Score each band frequency against the band's median, or whitened its ring's."""
+    if whiten:
+        # Rings one frequency bin wide (of the longer side); each frequency over its ring's median
+        # (as ndimage.median over the ring labels: sorted by ring, then value).
+        ring = np.rint(rad_a * max(shape)).astype(np.int64)
+        order = np.lexsort((spec_a, ring))
+        sorted_spec = spec_a[order]
+        ids, start, count = np.unique(ring[order], return_index=True, return_counts=True)
+        med = (sorted_spec[start + (count - 1) // 2] + sorted_spec[start + count // 2]) / 2
+        if not np.all(med > 0):
+            raise TagInputError('image spectrum is empty in the tag frequency band')
+        return spec_a / med[np.searchsorted(ids, ring)]
+    med = float(np.median(spec_a))
+    if med <= 0:
+        raise TagInputError('image spectrum is empty in the tag frequency band')
+    return spec_a / med
+
+
+def _suppressed(score, f, rad_a, ang_a):
+    """
+    Zero the scores a second tag direction cannot have, given the first peak ``f`` (cycles/px).
+
+    Everything within 30° of this direction (its harmonics too), and periods far from this one:
+    a SPAMM grid's two directions share (nearly) one period, while a second peak at another
+    period is anatomy (e.g. a thin wall's own edges).
+    """
+    theta = np.arctan2(f[0], f[1])
+    diff = np.abs(np.angle(np.exp(1j * 2 * (ang_a - theta)))) / 2  # axial distance, [0, π/2]
+    f_abs = np.hypot(*f)
+    return np.where(
+        (diff < MIN_DIRECTION_SEPARATION)
+        | (rad_a < f_abs / MAX_PERIOD_RATIO)
+        | (rad_a > f_abs * MAX_PERIOD_RATIO),
+        0.0,
+        score,
     )
 
 

@@ -482,53 +482,10 @@ def refine_tuned(
     win_img = np.lib.stride_tricks.sliding_window_view(pad_img, (n, n))
     win_in = np.lib.stride_tricks.sliding_window_view(pad_in, (n, n))
     for _ in range(max(1, iterations)):
-        kn = np.linalg.norm(k, axis=2)
-        safe_kn = np.where(kn > 0, kn, 1.0)
-        u = k / safe_kn[..., None]  # unit wave vectors (N, 2, 2)
-        v = np.stack([-u[..., 1], u[..., 0]], -1)
-        lam = 2 * np.pi / safe_kn
-        su = (sigma_u * lam)[..., None]
-        sv = (sigma_v * lam)[..., None]
-        q = np.clip(np.rint(x).astype(int), -half - 1, np.array([h, w]) + half)
-        corner = q - half + n  # the patch's first pixel in the padded image
-        vals = win_img[corner[:, 0], corner[:, 1]]  # (N, n, n)
-        inside = win_in[corner[:, 0], corner[:, 1]]
-        # Single precision for the (N, 2, n, n) work arrays (positions stay float64; the sums
-        # are over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level). Every term is
-        # separable in the patch offsets: δ = p − y = (q − y) + (a, b), so the projections
-        # δ·u, δ·v and the carrier e^{−ik·δ} are built from per-row and per-column factors.
-        d0 = (q - x).astype(np.float32)  # (N, 2)
-        u32, v32, k32 = (z.astype(np.float32) for z in (u, v, k))
-
-        def along(e):  # e·δ for each direction, (N, 2, n, n)
-            base = np.einsum('nda,na->nd', e, d0)[..., None, None]
-            return base + e[..., 0, None, None] * o[:, None] + e[..., 1, None, None] * o
-
-        du, dv = along(u32), along(v32)
-        g = np.exp(
-            -0.5 * (du / su[..., None].astype(np.float32)) ** 2
-            - 0.5 * (dv / sv[..., None].astype(np.float32)) ** 2
+        r, dr, gsum = _tuned_response(
+            (win_img, win_in), (h, w), (o, half), x, k, (sigma_u, sigma_v)
         )
-        g *= inside[:, None]
-        e_row = np.exp(-1j * (k32[..., 0, None] * o)).astype(np.complex64)  # (N, 2, n)
-        e_col = np.exp(-1j * (k32[..., 1, None] * o)).astype(np.complex64)
-        e_row *= np.exp(-1j * np.einsum('nda,na->nd', k32, d0)).astype(np.complex64)[..., None]
-        carrier = e_row[..., :, None] * e_col[..., None, :]  # e^{−ik·δ}, (N, 2, n, n)
-        # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
-        gsum = np.sum(g, axis=(2, 3))
-        c = np.sum(g * carrier, axis=(2, 3)) / np.maximum(gsum, 1e-12)
-        gv = g * vals[:, None]
-        gvc = gv * carrier
-        wgt = gvc - c[..., None, None] * gv
-        r = np.sum(wgt, axis=(2, 3)).astype(np.complex128)  # (N, 2)
-        # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
-        dr = (
-            np.sum(wgt * du, axis=(2, 3))[..., None] / su**2 * u
-            + np.sum(wgt * dv, axis=(2, 3))[..., None] / sv**2 * v
-            + 1j * k * np.sum(gvc, axis=(2, 3))[..., None]
-        )  # (N, 2, 2)
         # Local wave vector measured by the tuned kernel: ∇ψ = Im(conj(R) ∇R) / |R|².
-        dr = dr.astype(np.complex128)
         kk = np.imag(np.conj(r)[..., None] * dr) / np.maximum(np.abs(r) ** 2, 1e-30)[..., None]
         good = _sane_wavevectors(kk) & np.all(
             np.abs(np.log(np.linalg.norm(kk, axis=2) / np.linalg.norm(k0, axis=2))) < 0.5, axis=1
@@ -541,6 +498,66 @@ def refine_tuned(
         x = np.where(ok[:, None], x + np.clip(step, -1.0, 1.0), x)
         mag = np.abs(r) / np.maximum(gsum, 1e-12)
     return x, mag, ok
+
+
+def _tuned_response(windows, shape, patch, x, k, sigmas):
+    """
+    Tuned responses at ``x`` by direct summation over each point's patch, (R, ∇R, Σg).
+
+    ``windows`` are the padded image's and its inside mask's patch views, ``patch`` the patch
+    offsets (px) and half width; ``k`` the (N, 2, 2) wave vectors, rad/px. R is (N, 2) complex,
+    ∇R (N, 2, 2) per px and Σg the envelopes' sums (N, 2).
+    """
+    win_img, win_in = windows
+    o, half = patch
+    n = 2 * half + 1
+    sigma_u, sigma_v = sigmas
+    kn = np.linalg.norm(k, axis=2)
+    safe_kn = np.where(kn > 0, kn, 1.0)
+    u = k / safe_kn[..., None]  # unit wave vectors (N, 2, 2)
+    v = np.stack([-u[..., 1], u[..., 0]], -1)
+    lam = 2 * np.pi / safe_kn
+    su = (sigma_u * lam)[..., None]
+    sv = (sigma_v * lam)[..., None]
+    q = np.clip(np.rint(x).astype(int), -half - 1, np.array(shape) + half)
+    corner = q - half + n  # the patch's first pixel in the padded image
+    vals = win_img[corner[:, 0], corner[:, 1]]  # (N, n, n)
+    inside = win_in[corner[:, 0], corner[:, 1]]
+    # Single precision for the (N, 2, n, n) work arrays (positions stay float64; the sums
+    # are over ≤ 10³ terms, far from float32 round-off at the 10⁻³ px level). Every term is
+    # separable in the patch offsets: δ = p − y = (q − y) + (a, b), so the projections
+    # δ·u, δ·v and the carrier e^{−ik·δ} are built from per-row and per-column factors.
+    d0 = (q - x).astype(np.float32)  # (N, 2)
+    u32, v32, k32 = (z.astype(np.float32) for z in (u, v, k))
+
+    def along(e):  # e·δ for each direction, (N, 2, n, n)
+        base = np.einsum('nda,na->nd', e, d0)[..., None, None]
+        return base + e[..., 0, None, None] * o[:, None] + e[..., 1, None, None] * o
+
+    du, dv = along(u32), along(v32)
+    g = np.exp(
+        -0.5 * (du / su[..., None].astype(np.float32)) ** 2
+        - 0.5 * (dv / sv[..., None].astype(np.float32)) ** 2
+    )
+    g *= inside[:, None]
+    e_row = np.exp(-1j * (k32[..., 0, None] * o)).astype(np.complex64)  # (N, 2, n)
+    e_col = np.exp(-1j * (k32[..., 1, None] * o)).astype(np.complex64)
+    e_row *= np.exp(-1j * np.einsum('nda,na->nd', k32, d0)).astype(np.complex64)[..., None]
+    carrier = e_row[..., :, None] * e_col[..., None, :]  # e^{−ik·δ}, (N, 2, n, n)
+    # Convolution R(y) = Σ_p h(y − p) I(p), h(x) = g(x)(e^{ik·x} − c): same sign as the bank.
+    gsum = np.sum(g, axis=(2, 3))
+    c = np.sum(g * carrier, axis=(2, 3)) / np.maximum(gsum, 1e-12)
+    gv = g * vals[:, None]
+    gvc = gv * carrier
+    wgt = gvc - c[..., None, None] * gv
+    r = np.sum(wgt, axis=(2, 3)).astype(np.complex128)  # (N, 2)
+    # ∇_y h(y − p) = g (u du/su² + v dv/sv²)(e^{−ik·δ} − c) + i k g e^{−ik·δ}
+    dr = (
+        np.sum(wgt * du, axis=(2, 3))[..., None] / su**2 * u
+        + np.sum(wgt * dv, axis=(2, 3))[..., None] / sv**2 * v
+        + 1j * k * np.sum(gvc, axis=(2, 3))[..., None]
+    )  # (N, 2, 2)
+    return r, dr.astype(np.complex128), gsum
 
 
 def _sane_wavevectors(k: np.ndarray) -> np.ndarray:
@@ -640,6 +657,69 @@ def detect_intersections(
     Cost: one FFT plus one inverse FFT per kernel (18 by default) and O(H·W) vector operations.
 
     """
+    checked = _checked_inputs(image, mask, params, spacing_px, angles, spacing_range_px)
+    if isinstance(checked, Detection):
+        return checked
+    img, m, params = checked
+    reason = _unusable_grid(params, img.shape, spacing_factors)
+    if reason:
+        return Detection(params=params, reason=reason)
+    window = _filter_window(img.shape, roi, m, params, sigma_u, sigma_v, spacing_factors)
+    if isinstance(window, str):
+        return Detection(params=params, reason=window)
+    cropped = _cropped(img, m, accept_mask, roi, window)
+    if isinstance(cropped, str):
+        return Detection(params=params, reason=cropped)
+    full_shape = img.shape
+    img, m, acc = cropped
+    bank = (orientations_deg, spacing_factors, sigma_u, sigma_v)
+    img, maps, conf, plain = _filtered(img, m, params, bank, normalise, coverage_normalised)
+    kept_maps = maps if keep_maps else None
+    # ψ_d = wrap(φ_d − π): multiply by −1 so that tag centres have phase 0.
+    field_ = PhaseField.from_complex(-maps.response)
+    valid, det = _valid_pixels(field_, conf, min_confidence, acc, m)
+    if mask is None:
+        energy = maps.magnitude[0] * maps.magnitude[1]
+        valid &= energy >= min_energy_fraction * np.percentile(energy, 99)
+    if not valid.any():
+        return Detection(
+            params=params,
+            reason=f'no pixel with tag confidence ≥ {min_confidence:g}'
+            + (' inside the mask' if m is not None else '')
+            + ': no tags or tags faded',
+            maps=kept_maps,
+        )
+    start = _newton_starts(field_, valid, det)
+    if start.shape[0] == 0:
+        return Detection(
+            params=params,
+            reason='no tag intersection found (phases never both ≡ π)',
+            maps=kept_maps,
+        )
+    x, res, q = _refined(field_, start, valid, max_residual)
+    if tuned is None:
+        tuned = mask is not None
+    if tuned and len(x):
+        limit = (
+            TUNED_MAX_MOVE_PX
+            if max_tuned_move_periods is None
+            else float(max_tuned_move_periods) * float(np.mean(params.spacing_px))
+        )
+        x, res, q = _tuned_pass(img, field_, valid, (x, res, q), (sigma_u, sigma_v), limit)
+    if x.shape[0] == 0:
+        return Detection(
+            params=params,
+            reason='no tag intersection passed refinement '
+            f'(residual ≤ {max_residual:g} rad, confidence ≥ {min_confidence:g})',
+            maps=kept_maps,
+        )
+    pts = _distinct_roots(x, res, conf[q[:, 0], q[:, 1]], plain[q[:, 0], q[:, 1]])
+    offset = np.array([window[0], window[2]], float)
+    return _labelled_detection(pts, offset, full_shape, params, kept_maps)
+
+
+def _checked_inputs(image, mask, params, spacing_px, angles, spacing_range_px):
+    """Validate the image and mask, resolve the grid: (img, mask, params) or a Detection."""
     try:
         img = validate_image(image)
         m = None
@@ -671,24 +751,32 @@ def detect_intersections(
             )
     except TagInputError as exc:
         return Detection(reason=str(exc))
+    return img, m, params
+
+
+def _unusable_grid(params: TagParameters, shape, spacing_factors) -> str:
+    """Say why the bank cannot resolve this grid (spacing or directions), '' when it can."""
     if np.any(params.spacing_px < 4.0 / max(spacing_factors)) or np.any(
-        params.spacing_px > min(img.shape) / 2
+        params.spacing_px > min(shape) / 2
     ):
-        return Detection(
-            params=params,
-            reason=f'tag spacing {params.spacing_px} px outside the usable range '
-            f'[{4.0 / max(spacing_factors):.1f}, {min(img.shape) / 2:.0f}] px',
+        return (
+            f'tag spacing {params.spacing_px} px outside the usable range '
+            f'[{4.0 / max(spacing_factors):.1f}, {min(shape) / 2:.0f}] px'
         )
     sep = abs(np.angle(np.exp(2j * (params.angles[0] - params.angles[1])))) / 2
     if sep < np.deg2rad(30):
-        return Detection(
-            params=params, reason=f'tag directions only {np.rad2deg(sep):.1f}° apart (need ≥ 30°)'
-        )
+        return f'tag directions only {np.rad2deg(sep):.1f}° apart (need ≥ 30°)'
+    return ''
 
-    h, w = img.shape
+
+def _filter_window(shape, roi, m, params, sigma_u, sigma_v, spacing_factors):
+    """Filter only the region of interest plus a margin, (r0, r1, c0, c1) px or why not."""
+    h, w = shape
     if roi is None and m is not None:
         rows, cols = np.nonzero(m)
         roi = (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+    if roi is None:
+        return 0, h, 0, w
     # Margin: three envelope standard deviations of the widest kernel keep the circular
     # convolution of the cropped FFT from wrapping into the region of interest.
     margin = (
@@ -699,27 +787,24 @@ def detect_intersections(
         )
         + 2
     )
-    if roi is not None:
-        r0, r1, c0, c1 = (int(v) for v in roi)
-        r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
-        r1, c1 = min(h, r1 + margin), min(w, c1 + margin)
-        if r1 - r0 < 16 or c1 - c0 < 16:
-            return Detection(
-                params=params, reason=f'region of interest {roi} too small or outside the image'
-            )
-    else:
-        r0, r1, c0, c1 = 0, h, 0, w
-    offset = np.array([r0, c0], float)
+    r0, r1, c0, c1 = (int(v) for v in roi)
+    r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
+    r1, c1 = min(h, r1 + margin), min(w, c1 + margin)
+    if r1 - r0 < 16 or c1 - c0 < 16:
+        return f'region of interest {roi} too small or outside the image'
+    return r0, r1, c0, c1
+
+
+def _cropped(img, m, accept_mask, roi, window):
+    """Crop image, mask and accept mask to the filter window, (img, m, acc) or why not."""
+    r0, r1, c0, c1 = window
     full_shape = img.shape
     img = img[r0:r1, c0:c1]
     acc = None
     if accept_mask is not None:
         acc = np.asarray(accept_mask, bool)
         if acc.shape != full_shape:
-            return Detection(
-                params=params,
-                reason=f'accept_mask shape {acc.shape} differs from image shape {full_shape}',
-            )
+            return f'accept_mask shape {acc.shape} differs from image shape {full_shape}'
         acc = acc[r0:r1, c0:c1]
     if m is not None:
         m = m[r0:r1, c0:c1]
@@ -727,6 +812,12 @@ def detect_intersections(
         # Points only inside the requested window (not in its filtering margin).
         m = np.zeros(img.shape, bool)
         m[int(roi[0]) - r0:int(roi[1]) - r0, int(roi[2]) - c0:int(roi[3]) - c0] = True
+    return img, m, acc
+
+
+def _filtered(img, m, params, bank, normalise, coverage_normalised):
+    """Run the bank on the window (normalised with a mask), (img filtered, maps, conf, plain)."""
+    orientations_deg, spacing_factors, sigma_u, sigma_v = bank
     std = None
     if m is not None and normalise:
         img, std = masked_normalise(img, m, float(np.mean(params.spacing_px)))
@@ -738,8 +829,11 @@ def detect_intersections(
             m.astype(np.float32), (0, 0), 0.4 * lam, borderType=cv2.BORDER_CONSTANT
         )
         conf = np.minimum(plain / np.sqrt(np.maximum(cov, COVERAGE_FLOOR)), 1.0).astype(np.float32)
-    # ψ_d = wrap(φ_d − π): multiply by −1 so that tag centres have phase 0.
-    field_ = PhaseField.from_complex(-maps.response)
+    return img, maps, conf, plain
+
+
+def _valid_pixels(field_: PhaseField, conf, min_confidence, acc, m):
+    """Pixels whose phase Jacobian is well conditioned and confidence high enough, (valid, det)."""
     j = field_.jac
     det = j[0, 0] * j[1, 1] - j[0, 1] * j[1, 0]
     scale = np.hypot(j[0, 0], j[0, 1]) * np.hypot(j[1, 0], j[1, 1])
@@ -748,20 +842,14 @@ def detect_intersections(
         valid &= acc
     elif m is not None:
         valid &= m
-    if mask is None:
-        energy = maps.magnitude[0] * maps.magnitude[1]
-        valid &= energy >= min_energy_fraction * np.percentile(energy, 99)
+    return valid, det
+
+
+def _newton_starts(field_: PhaseField, valid, det) -> np.ndarray:
+    """Roots predicted by one Newton step that fall in their own pixel's cell, (N, 2) px."""
     rr, cc = np.nonzero(valid)
-    if rr.size == 0:
-        return Detection(
-            params=params,
-            reason=f'no pixel with tag confidence ≥ {min_confidence:g}'
-            + (' inside the mask' if m is not None else '')
-            + ': no tags or tags faded',
-            maps=maps if keep_maps else None,
-        )
     psi = field_.psi[:, rr, cc].T
-    jj = np.moveaxis(j[:, :, rr, cc], -1, 0)
+    jj = np.moveaxis(field_.jac[:, :, rr, cc], -1, 0)
     dd = det[rr, cc]
     # One Newton step from each pixel: δ = −J⁻¹ψ; keep pixels whose predicted root is in its cell.
     step = (
@@ -775,52 +863,47 @@ def detect_intersections(
         / dd[:, None]
     )
     cand = np.all(np.abs(step) <= 0.55, axis=1)
-    start = np.stack([rr, cc], -1)[cand] + step[cand]
-    if start.shape[0] == 0:
-        return Detection(
-            params=params,
-            reason='no tag intersection found (phases never both ≡ π)',
-            maps=maps if keep_maps else None,
-        )
+    return np.stack([rr, cc], -1)[cand] + step[cand]
+
+
+def _refined(field_: PhaseField, start, valid, max_residual):
+    """Newton-refine the starts on the bank's phases, keep converged valid ones, (x, res, q)."""
     x, res, ok = solve_phase(field_, start, iterations=3, max_step=1.0)
     q, inside = field_.nearest(x)
     keep = ok & inside & (res <= max_residual)
     keep &= valid[q[:, 0], q[:, 1]]
-    x, res, q = x[keep], res[keep], q[keep]
-    if tuned is None:
-        tuned = mask is not None
-    if tuned and len(x):
-        kloc = np.moveaxis(
-            field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0
-        )  # (N, 2, 2) local wave vectors
-        xt, _, okt = refine_tuned(img, x, kloc, sigma_u, sigma_v)
-        # A refinement that moves a point far means the two filters disagree (clutter, wrong
-        # tuning): drop the point rather than guess.
-        moved = np.linalg.norm(xt - x, axis=1)
-        qt, inside_t = field_.nearest(xt)
-        limit = (
-            TUNED_MAX_MOVE_PX
-            if max_tuned_move_periods is None
-            else float(max_tuned_move_periods) * float(np.mean(params.spacing_px))
-        )
-        keep = okt & (moved <= limit) & inside_t & valid[qt[:, 0], qt[:, 1]]
-        x, res, q = xt[keep], res[keep], qt[keep]
-    c, cp = conf[q[:, 0], q[:, 1]], plain[q[:, 0], q[:, 1]]
-    if x.shape[0] == 0:
-        return Detection(
-            params=params,
-            reason='no tag intersection passed refinement '
-            f'(residual ≤ {max_residual:g} rad, confidence ≥ {min_confidence:g})',
-            maps=maps if keep_maps else None,
-        )
-    # Neighbouring pixels may converge to the same root: keep the most confident within 1 px.
+    return x[keep], res[keep], q[keep]
+
+
+def _tuned_pass(img, field_: PhaseField, valid, points, sigmas, limit):
+    """Re-locate points with tuned kernels, dropping those moved beyond ``limit`` px."""
+    x, res, q = points
+    kloc = np.moveaxis(
+        field_.jac[:, :, q[:, 0], q[:, 1]], -1, 0
+    )  # (N, 2, 2) local wave vectors
+    xt, _, okt = refine_tuned(img, x, kloc, *sigmas)
+    # A refinement that moves a point far means the two filters disagree (clutter, wrong
+    # tuning): drop the point rather than guess.
+    moved = np.linalg.norm(xt - x, axis=1)
+    qt, inside_t = field_.nearest(xt)
+    keep = okt & (moved <= limit) & inside_t & valid[qt[:, 0], qt[:, 1]]
+    return xt[keep], res[keep], qt[keep]
+
+
+def _distinct_roots(x, res, c, cp):
+    """Keep the most confident of points within 1 px (neighbours converge to one root)."""
     order = np.argsort(-c, kind='stable')
     x, res, c, cp = x[order], res[order], c[order], cp[order]
     drop = np.zeros(len(x), bool)
     for a, b in sorted(cKDTree(x).query_pairs(1.0)):
         if not drop[a]:
             drop[b] = True
-    x, res, c, cp = x[~drop], res[~drop], c[~drop], cp[~drop]
+    return x[~drop], res[~drop], c[~drop], cp[~drop]
+
+
+def _labelled_detection(points, offset, full_shape, params, maps) -> Detection:
+    """Label window points on the grid, back in full-image px, in a deterministic order."""
+    x, res, c, cp = points
     x = x + offset
     labels = grid_labels(x, params, full_shape, weights=c)
     # Deterministic order: by label, then position.
@@ -833,5 +916,5 @@ def detect_intersections(
         plain_confidence=cp[order].astype(np.float32),
         params=params,
         reason='',
-        maps=maps if keep_maps else None,
+        maps=maps,
     )

@@ -318,23 +318,13 @@ def tps_rpm(
     xn = (x - mu) / s
     vn = (v - mu) / s
     yn = (f0(v) - mu) / s
-    if t_init is None:
-        t_init = float(cdist(yn, xn, 'sqeuclidean').max()) * s * s
-    if t_final is None:
-        if n > 1:
-            d2 = cdist(xn, xn, 'sqeuclidean')
-            np.fill_diagonal(d2, np.inf)
-            t_final = float(np.mean(d2.min(1))) * s * s / 16
-        else:
-            t_final = t_init / 100
-    t_init = max(float(t_init), float(t_final))
+    t_init, t_final = _temperature_range(xn, yn, s, t_init, t_final)
     if outlier_distance is None:
         outlier_distance = 3.0 * np.sqrt(t_final)
     if gate is None:
         gate = outlier_distance
     tn, tfn = t_init / s**2, t_final / s**2
     od2 = (outlier_distance / s) ** 2
-    f = None
     kv = _tps_kernel(vn, vn)
     basis = ThinPlateSpline.basis(vn, kv) if k >= 4 else None
     # ≥ 4 points not on one line (fit's own test, taken once for the fixed source points): each
@@ -343,36 +333,10 @@ def tps_rpm(
     m = np.zeros((k + 1, n + 1))
     steps = 0
     t = tn
+    lams = (lam_init, lam_final, lam_affine_init, tn)
     while True:
         for _ in range(iterations_per_t):
-            d2 = cdist(yn, xn, 'sqeuclidean')
-            # Work relative to the outlier level: the outlier entry is exp(−od²/2T)·(T/T) so that
-            # at every temperature a point at distance od is as likely a match as an outlier.
-            m[:-1, :-1] = np.exp(-(d2 - od2) / (2 * t))
-            m[-1, :] = 1.0
-            m[:, -1] = 1.0
-            np.minimum(m, 1e200, out=m)
-            _sinkhorn(m, sinkhorn_iterations)
-            w = m[:-1, :-1].sum(1)
-            tgt = np.where(
-                w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn
-            )
-            lam = k * max(lam_init * t / tn, lam_final)
-            lam_aff = k * lam_affine_init * t / tn
-            f = (
-                ThinPlateSpline._fit_spread(vn, tgt, lam, np.maximum(w, 1e-3), lam_aff, basis)
-                if spread
-                else ThinPlateSpline.fit(
-                    vn,
-                    tgt,
-                    lam=lam,
-                    weights=np.maximum(w, 1e-3),
-                    lam_affine=lam_aff,
-                    kernel=kv,
-                    basis=basis,
-                )
-            )
-            yn = f.affine[0] + vn @ f.affine[1:] + (kv @ f.coef if len(f.centres) else 0.0)
+            yn = _rpm_step(m, (vn, kv, basis, spread), yn, xn, (t, od2), lams, sinkhorn_iterations)
         steps += 1
         if t <= tfn * (1 + 1e-9):
             break
@@ -381,12 +345,78 @@ def tps_rpm(
     # spline through the final warped points instead of rescaling coefficients.
     warped = yn * s + mu
     transform = ThinPlateSpline.fit(v, warped, lam=0.0)
+    return RPMResult(_hard_matches(m, warped, x, gate), transform, warped, m.copy(), steps)
+
+
+def _temperature_range(xn, yn, s, t_init, t_final):
+    """
+    Fill in the annealing's first and last temperatures, input units².
+
+    Default start: the largest squared distance between warped sources and targets; default
+    end: 1/16 of the targets' mean squared nearest-neighbour distance.
+    """
+    if t_init is None:
+        t_init = float(cdist(yn, xn, 'sqeuclidean').max()) * s * s
+    if t_final is None:
+        if len(xn) > 1:
+            d2 = cdist(xn, xn, 'sqeuclidean')
+            np.fill_diagonal(d2, np.inf)
+            t_final = float(np.mean(d2.min(1))) * s * s / 16
+        else:
+            t_final = t_init / 100
+    return max(float(t_init), float(t_final)), t_final
+
+
+def _rpm_step(m, source, yn, xn, temperature, lams, sinkhorn_iterations):
+    """
+    One softassign (into ``m``, in place) and spline fit at temperature ``t``, normalised units.
+
+    ``source`` is ``(vn, kv, basis, spread)``: the source points, their kernel, the spline basis
+    and whether they span the plane; ``lams`` is ``(lam_init, lam_final, lam_affine_init,
+    t_init)`` (:func:`tps_rpm`; both weights shrink with t). Returns the warped sources.
+    """
+    vn, kv, basis, spread = source
+    t, od2 = temperature
+    k = len(vn)
+    d2 = cdist(yn, xn, 'sqeuclidean')
+    # Work relative to the outlier level: the outlier entry is exp(−od²/2T)·(T/T) so that
+    # at every temperature a point at distance od is as likely a match as an outlier.
+    m[:-1, :-1] = np.exp(-(d2 - od2) / (2 * t))
+    m[-1, :] = 1.0
+    m[:, -1] = 1.0
+    np.minimum(m, 1e200, out=m)
+    _sinkhorn(m, sinkhorn_iterations)
+    w = m[:-1, :-1].sum(1)
+    tgt = np.where(
+        w[:, None] > 1e-9, (m[:-1, :-1] @ xn) / np.maximum(w, 1e-12)[:, None], yn
+    )
+    lam_init, lam_final, lam_affine_init, tn = lams
+    lam = k * max(lam_init * t / tn, lam_final)
+    lam_aff = k * lam_affine_init * t / tn
+    f = (
+        ThinPlateSpline._fit_spread(vn, tgt, lam, np.maximum(w, 1e-3), lam_aff, basis)
+        if spread
+        else ThinPlateSpline.fit(
+            vn,
+            tgt,
+            lam=lam,
+            weights=np.maximum(w, 1e-3),
+            lam_affine=lam_aff,
+            kernel=kv,
+            basis=basis,
+        )
+    )
+    return f.affine[0] + vn @ f.affine[1:] + (kv @ f.coef if len(f.centres) else 0.0)
+
+
+def _hard_matches(m, warped, x, gate):
+    """Index into ``x`` of each source's mutual-maximum match beating its outlier entry, or −1."""
     inl = m[:-1, :-1]
     best_i = inl.argmax(1)
     best_a = inl.argmax(0)
-    ar = np.arange(k)
+    ar = np.arange(len(warped))
     mutual = best_a[best_i] == ar
     beats = inl[ar, best_i] > m[ar, -1]
     dist = np.linalg.norm(warped - x[best_i], axis=1)
     ok = mutual & beats & (dist <= gate)
-    return RPMResult(np.where(ok, best_i, -1), transform, warped, m.copy(), steps)
+    return np.where(ok, best_i, -1)
