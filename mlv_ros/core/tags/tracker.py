@@ -439,20 +439,7 @@ class SliceTracker:
         hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
         two_pass = mask is None and region is not None
-        kwargs = {
-            'max_tuned_move_periods': FOLLOW_TUNED_MOVE,
-            **self.detect_kwargs,
-            'min_confidence': self.follow_threshold(),
-        }
-        det = detect_intersections(
-            image,
-            mask=region,
-            params=self.params,
-            roi=roi,
-            accept_mask=accept,
-            coverage_normalised=self.follow_coverage,
-            **{**kwargs, **({'tuned': False} if two_pass else {})},
-        )
+        det = self._detect_following(image, region, accept, roi, tuned=not two_pass)
         self.last_detection = det
         if not det.ok or len(det) == 0:
             return None
@@ -478,10 +465,29 @@ class SliceTracker:
             follow=det.confidence[np.maximum(res.match, 0)],
         )
         if two_pass and hit.sum() >= 4:
-            self._confirm(image, live, roi, kwargs, m)
+            self._confirm(image, live, roi, m)
         return m
 
-    def _confirm(self, image, live, roi, kwargs: dict, m: '_Matches') -> None:
+    def _detect_following(self, image, region, accept, roi, tuned: bool = True) -> Detection:
+        """Detect a later phase's intersections as live tracks follow them (``follow_threshold``)."""
+        kwargs = {
+            'max_tuned_move_periods': FOLLOW_TUNED_MOVE,
+            **self.detect_kwargs,
+            'min_confidence': self.follow_threshold(),
+        }
+        if not tuned:  # the first of two passes only matches: its points are replaced
+            kwargs['tuned'] = False
+        return detect_intersections(
+            image,
+            mask=region,
+            params=self.params,
+            roi=roi,
+            accept_mask=accept,
+            coverage_normalised=self.follow_coverage,
+            **kwargs,
+        )
+
+    def _confirm(self, image, live, roi, m: '_Matches') -> None:
         """
         Detect again inside the mask warped through the matches and confirm each match there.
 
@@ -499,15 +505,7 @@ class SliceTracker:
         )
         if region2 is None:
             return
-        det2 = m.final = detect_intersections(
-            image,
-            mask=region2,
-            params=self.params,
-            roi=roi,
-            accept_mask=accept2,
-            coverage_normalised=self.follow_coverage,
-            **kwargs,
-        )
+        det2 = m.final = self._detect_following(image, region2, accept2, roi)
         found = np.zeros(int(hit.sum()), bool)
         j2 = np.zeros(int(hit.sum()), int)
         if det2.ok and len(det2):
