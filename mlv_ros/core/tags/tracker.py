@@ -469,7 +469,7 @@ class SliceTracker:
         return m
 
     def _detect_following(self, image, region, accept, roi, tuned: bool = True) -> Detection:
-        """Detect a later phase's intersections as live tracks follow them (``follow_threshold``)."""
+        """Detect a later phase's intersections at the live tracks' ``follow_threshold``."""
         kwargs = {
             'max_tuned_move_periods': FOLLOW_TUNED_MOVE,
             **self.detect_kwargs,
