@@ -325,6 +325,9 @@ class LocalSystem:
             block = block + kappa * (phi.multiply(phi).T @ metric.reshape(-1, 9)).reshape(n, 3, 3)
         self.block_diagonal = block
         self._block_inv = symmetric_inverse_3x3(block)
+        # Entry-major (3, 3, N) for precondition: nine vector products over the particles, 0.026
+        # against 0.095 ms for the batched (N, 3, 3) matmul at 3000 particles.
+        self._block_inv_cols = np.ascontiguousarray(np.moveaxis(self._block_inv, 0, -1))
         self.coarse_correction = None  # r ↦ Z A_c⁻¹ Zᵀ r for residuals (N, 3), or None
         if coarse is not None:
             if coarse.ops is not ops:
@@ -433,8 +436,11 @@ class LocalSystem:
         Block-Jacobi, plus the coarse correction ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse
         space (additive two-level).
         """
-        n = self.n
-        z = np.matmul(self._block_inv, r.reshape(n, 3, 1)).ravel()
+        n, inv = self.n, self._block_inv_cols
+        r0, r1, r2 = r[0::3], r[1::3], r[2::3]
+        z = np.empty(3 * n)
+        for a in range(3):
+            z[a::3] = inv[a, 0] * r0 + inv[a, 1] * r1 + inv[a, 2] * r2
         if self.coarse_correction is not None:
             z += self.coarse_correction(r.reshape(n, 3)).ravel()
         return z
