@@ -29,6 +29,7 @@ from mlv_ros.core.meshless.local import (
     CoarseSpace,
     cofactors_3x3,
     farthest_point_aggregates,
+    sandwich_3x3,
     symmetric_inverse_3x3,
 )
 from mlv_ros.core.sim import simulate_study
@@ -160,6 +161,10 @@ def test_cofactors_and_block_inverses_equal_numpys():
     np.testing.assert_allclose(inv[ok], np.linalg.inv(s[ok]), rtol=1e-9, atol=1e-9)
     np.testing.assert_array_equal(inv[3], np.zeros((3, 3)))
     np.testing.assert_allclose(inv[7], np.diag([0.5, 1.0, 0.0]))
+    q = rng.normal(size=(50, 3, 3))
+    want = m @ q @ np.swapaxes(m, 1, 2)
+    got = sandwich_3x3(m, q)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-13 * np.abs(want).max())
 
 
 def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monkeypatch):

@@ -586,6 +586,7 @@ class MotionTracker:
         self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
         self._hats = None  # _knot_hats of _height, built at the first twist fit
         self.positions = self.rest.copy()
+        self._gradient = None  # (positions, their H): see _positions_gradient
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
@@ -1039,7 +1040,7 @@ class MotionTracker:
 
         """
         x = self.positions
-        H = self.model.operator.gradient(x - self.rest)  # H[i, a, b] = ∂u_a/∂X_b
+        H = self._positions_gradient()  # H[i, a, b] = ∂u_a/∂X_b
         F = np.eye(3) + H
         E = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
         P = plane_projectors(normals[inside], int(inside.sum()))
@@ -1452,45 +1453,45 @@ class MotionTracker:
         sigma = 1.4826 * float(np.median(np.abs(r - med)))
         return r > max(self.outlier_mm, med + self.outlier_sigmas * sigma)
 
-    def _model_at(self, points) -> np.ndarray:
+    def _positions_gradient(self) -> np.ndarray:
         """
-        Return the current model positions of rest points (M, 3).
+        Return the displacement gradient of :attr:`positions`, shape (N, 3, 3).
 
-        NaN for those farther than ``max_attach_mm`` from every particle.
+        ``H[i, a, b] = ∂u_a/∂X_b``, computed once per positions array (a phase's last slice
+        following and its solution share it).
         """
-        out = np.full(points.shape, np.nan)
-        dist, idx = self.model.nearest(points)
-        ok = dist[:, 0] <= self.max_attach_mm
-        if ok.any():
-            out[ok] = self.model.attach(points[ok], (dist[ok], idx[ok])).weights @ self.positions
-        return out
+        if self._gradient is None or self._gradient[0] is not self.positions:
+            H = self.model.operator.gradient(self.positions - self.rest)
+            self._gradient = (self.positions, H)
+        return self._gradient[1]
 
-    def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl=None):
+    def _follow_slices(self, offsets, rest, normals, targets, inside, ctrl):
         """
         Take a Newton step on s per control point.
 
         Bring the model position of the material line ``p0 + s n`` back onto the image plane (the
         plane through the measured target).
 
-        ``ctrl``: the pass's attachment of ``p0 + s n`` for the points ``inside`` (in their order),
-        reused for the base positions (an attachment is per point, so it equals attaching them
-        again); only the probes 1 mm along the normals are attached here.
+        ``ctrl``: the pass's attachment of ``p0 + s n`` for the points ``inside`` (in their
+        order). The step's derivative ``n · F n`` at ``p0 + s n`` takes the particles' deformation
+        gradients ``F = I + H`` (:meth:`_positions_gradient`) interpolated with the attachment's
+        weights: exact for an affine motion, and no second attachment. It replaced the secant
+        through a probe attached 1 mm along the normal (5 ms a pass at 3000 particles); a point
+        whose probe lies beyond ``max_attach_mm`` of the model still takes no step (stepping
+        them too moved the infarct preset's ES p95 and radius errors by 0.055 mm).
         """
         new = offsets.copy()
         idx = np.flatnonzero(inside)
         if idx.size == 0:
             return new
         n = normals[idx]
-        base = rest[idx] + offsets[idx, None] * n
-        probe = base + n  # +1 mm along the normal
-        if ctrl is not None and len(ctrl) == idx.size:
-            x0, x1 = ctrl.weights @ self.positions, self._model_at(probe)  # base points: inside
-        else:
-            out = self._model_at(np.concatenate([base, probe]))  # each point is independent
-            x0, x1 = out[:idx.size], out[idx.size:]
+        x0 = ctrl.weights @ self.positions
+        Hk = (ctrl.weights @ self._positions_gradient().reshape(-1, 9)).reshape(-1, 3, 3)
         f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
-        df = np.einsum('ij,ij->i', x1 - x0, n)
+        df = 1.0 + np.einsum('ka,kab,kb->k', n, Hk, n)
+        probe_in = self._tree.query(rest[idx] + (offsets[idx, None] + 1.0) * n)[0]
         good = np.isfinite(f0) & np.isfinite(df) & (np.abs(df) > 0.2)
+        good &= probe_in <= self.max_attach_mm
         step = np.zeros(idx.size)
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -self.follow_step_mm, self.follow_step_mm)

@@ -55,6 +55,7 @@ from __future__ import annotations
 from mlv_ros.core.meshless.mls import MLSOperator
 import numpy as np
 import scipy.linalg as sla
+from scipy.linalg import lapack
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
@@ -289,7 +290,7 @@ class LocalSystem:
             kv, C = float(volume[0]), np.asarray(volume[1], dtype=np.float64)
             c = np.swapaxes(C, 1, 2).reshape(n, 9)  # vec in the layout: [3b + a] = C[a, b]
             rank_one.append((kv * vol, c))
-            block = block + kv * np.matmul(np.matmul(C, q), np.swapaxes(C, 1, 2))
+            block = block + kv * sandwich_3x3(C, q)
             if volume[2] is not None:  # stress k_v v_i g_i C_i, kept in the layout (as c)
                 self._offset = (kv * vol * np.asarray(volume[2], dtype=np.float64))[:, None] * c
         if axial is not None and axial[0]:
@@ -300,7 +301,7 @@ class LocalSystem:
                 block = block + (kl * np.einsum('a,nab,b->n', a, q, a))[:, None, None] * m
             else:  # per particle: ½ k_l Σ_i v_i (M_i : H_i)²
                 rank_one.append((kl * vol, np.swapaxes(a, 1, 2).reshape(n, 9)))
-                block = block + kl * np.matmul(np.matmul(a, q), np.swapaxes(a, 1, 2))
+                block = block + kl * sandwich_3x3(a, q)
         tangent = fixed_tangent  # read-only; a new array once a term of this solve is added
         if rank_one:
             # Σ_t w_t c_t c_tᵀ per particle as one batched (9 × r)(r × 9) product: a third of the
@@ -324,6 +325,9 @@ class LocalSystem:
             block = block + kappa * (phi.multiply(phi).T @ metric.reshape(-1, 9)).reshape(n, 3, 3)
         self.block_diagonal = block
         self._block_inv = symmetric_inverse_3x3(block)
+        # Entry-major (3, 3, N) for precondition: nine vector products over the particles, 0.026
+        # against 0.095 ms for the batched (N, 3, 3) matmul at 3000 particles.
+        self._block_inv_cols = np.ascontiguousarray(np.moveaxis(self._block_inv, 0, -1))
         self.coarse_correction = None  # r ↦ Z A_c⁻¹ Zᵀ r for residuals (N, 3), or None
         if coarse is not None:
             if coarse.ops is not ops:
@@ -432,8 +436,11 @@ class LocalSystem:
         Block-Jacobi, plus the coarse correction ``Z A_c⁻¹ Zᵀ r`` when the system has a coarse
         space (additive two-level).
         """
-        n = self.n
-        z = np.matmul(self._block_inv, r.reshape(n, 3, 1)).ravel()
+        n, inv = self.n, self._block_inv_cols
+        r0, r1, r2 = r[0::3], r[1::3], r[2::3]
+        z = np.empty(3 * n)
+        for a in range(3):
+            z[a::3] = inv[a, 0] * r0 + inv[a, 1] * r1 + inv[a, 2] * r2
         if self.coarse_correction is not None:
             z += self.coarse_correction(r.reshape(n, 3)).ravel()
         return z
@@ -480,6 +487,32 @@ class LocalSystem:
             r0=None if residual is None else np.ravel(residual),
         )
         return x.reshape(n, 3), its
+
+
+def sandwich_3x3(m: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """
+    Return ``M_n Q_n M_nᵀ`` for batches of 3 × 3 matrices, shape (N, 3, 3).
+
+    Written out entry by entry over (N,) columns: 0.14 against 0.58 ms for two batched
+    ``np.matmul`` at N = 3000 (the sums in another order: within 2e-14 relative).
+
+    Parameters
+    ----------
+    m : ndarray, shape (N, 3, 3)
+        Outer matrices.
+    q : ndarray, shape (N, 3, 3)
+        Inner matrices.
+
+    """
+    mt = np.ascontiguousarray(np.moveaxis(m, 0, -1))  # (3, 3, N)
+    qt = np.ascontiguousarray(np.moveaxis(q, 0, -1))
+    mq = [[mt[a, 0] * qt[0, d] + mt[a, 1] * qt[1, d] + mt[a, 2] * qt[2, d] for d in range(3)]
+          for a in range(3)]
+    out = np.empty((3, 3, m.shape[0]))
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = mq[a][0] * mt[b, 0] + mq[a][1] * mt[b, 1] + mq[a][2] * mt[b, 2]
+    return np.moveaxis(out, -1, 0)
 
 
 def cofactors_3x3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -693,8 +726,10 @@ class CoarseSpace:
                 if f != e:
                     ac[f * q:(f + 1) * q, e * q:(e + 1) * q] += blk.T
         try:
-            cho = sla.cho_factor(ac, lower=True, check_finite=False)
-            solve = lambda y: sla.cho_solve(cho, y, check_finite=False)  # noqa: E731
+            # LAPACK's potrs on the factor directly: what cho_solve calls, bit for bit, without
+            # its wrapper (0.067 against 0.12 ms a solve at 372 unknowns, once per CG iteration).
+            factor = sla.cho_factor(ac, lower=True, check_finite=False)[0]
+            solve = lambda y: lapack.dpotrs(factor, y, lower=1)[0]  # noqa: E731
         except np.linalg.LinAlgError:  # not positive definite (ε = 0 and no data): pseudo-inverse
             val, vec = np.linalg.eigh(ac)
             good = val > 1e-12 * max(float(val[-1]), 1e-300)
