@@ -244,6 +244,10 @@ def _gauss_newton(im, T, W, Y, x, G, ok, iterations: int, map_prior: float):
     a, b = np.ones(n), np.zeros(n)
     y0, y1 = Y[..., 0], Y[..., 1]
     diag = np.arange(8)
+    # Jacobian of the residual by (x, G, a, b), (N, P, 8); the intensity columns are fixed
+    jac = np.empty(T.shape + (8,))
+    jac[..., 6] = -T
+    jac[..., 7] = -1.0
     for it in range(max(1, int(iterations))):
         s = _sample(stack, _warped(x, G, Y))
         w = np.where(np.isfinite(s[..., 0]), W, 0.0)
@@ -252,10 +256,16 @@ def _gauss_newton(im, T, W, Y, x, G, ok, iterations: int, map_prior: float):
         if it == 0:  # the intensity change from a weighted linear fit at the start
             a, b = _linear_fit(w, T, val)
         res = val - (a[:, None] * T + b[:, None])
-        jac = np.stack([dr, dc, dr * y0, dr * y1, dc * y0, dc * y1, -T, -np.ones_like(T)], -1)
-        # Σ_p w Jᵀ J as one batched matmul: ~10× faster than the three-operand einsum
-        H = np.matmul((jac * w[..., None]).transpose(0, 2, 1), jac)
-        g = np.einsum('np,npi,np->ni', w, jac, res)
+        jac[..., 0], jac[..., 1] = dr, dc
+        np.multiply(dr, y0, out=jac[..., 2])
+        np.multiply(dr, y1, out=jac[..., 3])
+        np.multiply(dc, y0, out=jac[..., 4])
+        np.multiply(dc, y1, out=jac[..., 5])
+        # Σ_p w Jᵀ J and Σ_p w Jᵀ r as batched matmuls: ~5–10× faster than three-operand
+        # einsums (the same sums in another order: points within 1e-13 px)
+        jwt = (jac * w[..., None]).transpose(0, 2, 1)
+        H = np.matmul(jwt, jac)
+        g = np.matmul(jwt, res[..., None])[..., 0]
         if it == 0:  # the prior's weight: the map block's own curvature at the start
             prior = map_prior * np.diagonal(H, axis1=1, axis2=2)[:, 2:6].mean(axis=1)
         H[:, 2:6, 2:6] += prior[:, None, None] * np.eye(4)
