@@ -27,6 +27,38 @@ Calibration (24 randomized-protocol studies of ``mlv-ros bench robustness``, see
 of the 691 within 1 mm, 11 are flagged (degraded: 1.6 %, 10 of them by a lost end slice of the
 stack). The physiological bounds are a second line: in the earlier
 calibration they fired on 4 phases only, all failed by the data already (10–129 mm off).
+
+The sector check (:func:`weakest_sector`) was added for a regional error the whole-phase checks
+pass as ok: an akinetic sector loses its SA tracks and the solver carries it with its neighbours
+(1012: 0 of 22 phases flagged while its akinetic segment is 1.6–3.0 mm off at phases 6–12). It
+was calibrated with ``bench/retrack.py``'s re-track and re-solve of the same 24 studies (686
+solved phases; each phase's verdict against its median 3D error and its worst AHA segment's
+median error, the truth's segments), and checked on 8 held-out ones (3000–3007, 231 phases):
+
+====================================  =========  ==============  ==============
+phases (median 3D error)              count      flagged before  flagged after
+====================================  =========  ==============  ==============
+24 studies, phase within 1 mm         670        22              32 (6: 1012)
+24 studies, 1–2 mm / over 2 mm        15 / 1     15 / 1          15 / 1
+24 studies, worst segment over 2 mm   25         15              20
+held out, phase within 1 mm           231        10              15
+held out, worst segment within 1 mm   179        1               4
+====================================  =========  ==============  ==============
+
+Newly flagged within 1 mm, beside 1012's: 4 of 670 (0.6 %) and 5 of 231 (2.2 %) held out (four of
+these nine with a segment 1.4–1.8 mm off). 1012's phases 7–12 are flagged (phase 6, 2.2 mm off,
+keeps 0.31 of the share). Not seen: 2006's akinetic segment (1.7–2.4 mm off at phases 6–9) keeps
+1–4 of its 9 SA tracks, and its weakest sector 0.55–0.73 of the heart's share: a sector that keeps
+some tracks is not told from one that moves like its neighbours by the tracks alone. The outward
+residuals of its last tracks (0.2–0.6 mm, robust z 3–7 against the phase's own residuals) do not
+tell it either: on 8 studies, 3 % of the phases within 1 mm had a sector beyond z 4.6–5.9 (by
+window). The window (90°, 3 slices) is about one AHA segment; without the motion gate, over the 24
+studies, 120° windows miss all of 1012 (they dilute its 60–90° gap), and smaller ones hold too few
+points to tell a gap from chance: phases within 1 mm with every segment within 1.5 mm newly flagged
+by 3 slices × 90°: 19, 2 slices × 90°: 57, 3 slices × 60°: 86. The motion gate
+(:data:`SECTOR_MOTION_SHARE`) leaves ok 16 of the 26 phases the sector check alone would newly flag
+(20 of 25 held out), all late in the cycle and within 1 mm; the worst of them has a segment 1.6 mm
+off (1014, phase 18).
 """
 
 from __future__ import annotations
@@ -166,7 +198,8 @@ class Sector:
     heart_share : float
         The share of all SA slices' ED tag points still used.
     labels : tuple of str
-        Names of the regions its lost points lie in, most points first (empty if not given).
+        Names of the (at most 3) regions most of its lost points lie in, most first (empty if
+        not given).
 
     """
 
@@ -281,7 +314,7 @@ def weakest_sector(
     lost = inside & ~u
     span = offset[lost] if lost.any() else offset[inside]
     names, counts = np.unique(lab[lost], return_counts=True)
-    order = [str(names[i]) for i in np.argsort(-counts, kind='stable') if names[i]]
+    order = [str(names[i]) for i in np.argsort(-counts, kind='stable') if names[i]][:3]
     return Sector(
         tuple(int(k) for k in run),
         float(np.mod(a0 + span.min(), 360.0)),
