@@ -59,6 +59,12 @@ by 3 slices × 90°: 19, 2 slices × 90°: 57, 3 slices × 60°: 86. The motion 
 (:data:`SECTOR_MOTION_SHARE`) leaves ok 16 of the 26 phases the sector check alone would newly flag
 (20 of 25 held out), all late in the cycle and within 1 mm; the worst of them has a segment 1.6 mm
 off (1014, phase 18).
+
+A flagged phase has every segment's uncertainty inflated in the findings
+(:data:`mlv_ros.core.analysis.findings.VERDICT_INFLATION`), not only the sector's:
+``bench/retrack.py --strain`` at 1014's ES (flagged, every segment within 1 mm) reads all 17
+segments indeterminate (5 before), at 1012's ES segments 13–17 (1 before), while 1012's akinetic
+segment 7 still reads normal; both studies' found / missed / false counts are unchanged.
 """
 
 from __future__ import annotations
