@@ -48,6 +48,10 @@ particles: with ``--ideal`` it tells a strain error of the tracker (ideal points
 of the solver (ideal points wrong) and from one of the analysis and its frame (truth motion
 wrong).
 
+``--phases`` adds, per phase, the median 3D error, the worst AHA segment (the truth's) and its
+median error, and the solver's verdict with its reasons (:func:`phase_errors`): what the
+verdicts in ``mlv_ros/core/verdict.py`` were calibrated on.
+
 ``--twist`` adds the ES twist per analysis level (:func:`twist_levels`): the solved and the
 true twist, their difference, the levels the SA stack spans and each extrapolated level's
 distance beyond it (its lever), and the same difference with the twist function alone (the
@@ -290,6 +294,43 @@ def segment_errors(case: Path, rest, positions, motion) -> dict:
             )
         },
     }
+
+
+def phase_errors(rest, positions, verdicts, motion) -> list:
+    """
+    Return each phase's error against the truth beside its verdict.
+
+    Parameters
+    ----------
+    rest : ndarray, shape (N, 3)
+        ED particle positions, mm.
+    positions : dict
+        Phase → solved positions, mm.
+    verdicts : dict
+        Phase → (verdict level, reasons, RMS residual mm), as :func:`solve` returns them.
+    motion : LVMotion
+        The study's true motion.
+
+    Returns
+    -------
+    list
+        Per phase ``[phase, median 3D error, worst AHA segment, its median error, verdict,
+        reasons]`` (mm; the truth's segments; errors None where the phase was not solved).
+
+    """
+    from mlv_ros.core.sim.regional import truth_segments
+
+    seg = truth_segments(motion, rest)
+    out = []
+    for p, (level, reasons, _) in sorted(verdicts.items()):
+        row = [int(p), None, None, None, int(level), reasons]
+        if p in positions:
+            err = np.linalg.norm(positions[p] - motion.position(rest, p), axis=1)
+            med = {int(k): float(np.median(err[seg == k])) for k in np.unique(seg)}
+            worst = max(med, key=med.get)
+            row[1:4] = [round(float(np.median(err)), 3), worst, round(med[worst], 3)]
+        out.append(row)
+    return out
 
 
 def segment_tracks(case: Path, sets: dict, motion) -> dict:
@@ -589,6 +630,7 @@ def replay_case(
     solve_phases: bool = True,
     strain: bool = False,
     twist: bool = False,
+    phases: bool = False,
 ) -> dict:
     t0 = time.monotonic()
     frames, cloud, state = recorded(case / 'run' / 'run.mcap')
@@ -647,6 +689,7 @@ def replay_case(
             else {}
         ),
         **report,
+        **({'phases': phase_errors(tr.rest, positions, verdicts, truth)} if phases else {}),
         'track_s': round(t1 - t0, 1),
         'solve_s': round(time.monotonic() - t1, 1),
     }
@@ -707,6 +750,12 @@ def main():
         help='report the ES twist per level against the truth, its lever beyond the SA stack, '
         'and the same without the local stage (twist_levels)',
     )
+    ap.add_argument(
+        '--phases',
+        action='store_true',
+        help='report per phase the median 3D error, the worst AHA segment and its error, and the '
+        "solver's verdict with its reasons (phase_errors)",
+    )
     args = ap.parse_args()
     if args.ideal_segments and args.ideal == 'every-track':
         ap.error('--ideal-segments moves the tracked points only: use it with --ideal tracks')
@@ -727,6 +776,7 @@ def main():
                     ideal_segments=args.ideal_segments,
                     strain=args.strain,
                     twist=args.twist,
+                    phases=args.phases,
                 )
                 | ({'tracker': kw[0]} if kw[0] else {})
                 | ({'solver': kw[1]} if kw[1] else {})

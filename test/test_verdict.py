@@ -20,10 +20,20 @@ and left alone by one that should pass — through the real solver and analyzer.
 """
 
 from mlv_ros.core.analysis import LVAnalyzer
+from mlv_ros.core.analysis.strain import AHA_SEGMENT_NAMES
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.sim.analytic_lv import cylinder_shell, cylindrical_motion, oblique_frame
 from mlv_ros.core.types import VIEW_SA
-from mlv_ros.core.verdict import DEGRADED, FAILED, metrics_verdict, OK, phase_verdict, Verdict
+from mlv_ros.core.verdict import (
+    DEGRADED,
+    FAILED,
+    metrics_verdict,
+    OK,
+    phase_verdict,
+    SECTOR_SHARE_DEGRADED,
+    Verdict,
+    weakest_sector,
+)
 import numpy as np
 import pytest
 from test_tracking import observed, referenced_tracker, slip
@@ -44,16 +54,20 @@ def solve(study, phase, edit=None, **tracker_options):
     return tr.solve(phase, sets, m.num_phases).state
 
 
+def subset(s, k):
+    """Keep only the points ``k`` (mask or indices) of tag point set ``s``, in place."""
+    s.position, s.pixel_rc, s.track_id, s.confidence = (
+        s.position[k],
+        s.pixel_rc[k],
+        s.track_id[k],
+        s.confidence[k],
+    )
+
+
 def keep(sets, fraction, seed=0):
     rng = np.random.default_rng(seed)
     for s in sets.values():
-        k = rng.random(len(s.track_id)) < fraction
-        s.position, s.pixel_rc, s.track_id, s.confidence = (
-            s.position[k],
-            s.pixel_rc[k],
-            s.track_id[k],
-            s.confidence[k],
-        )
+        subset(s, rng.random(len(s.track_id)) < fraction)
     return sets
 
 
@@ -129,6 +143,76 @@ def test_many_outliers_degrade(study):
         state = tr.solve(phase, sets, m.num_phases).state
         assert (state.verdict == OK) == (phase < 3), (phase, state.verdict_reasons)
     assert 'rejected as outliers' in state.verdict_reasons
+
+
+def drop_sector(study, refs, lo_deg, hi_deg):
+    """Return ``edit(sets)`` losing the SA tracks whose ED point lies in [lo, hi) degrees."""
+
+    def edit(sets):
+        for key, s in sets.items():
+            if key[0] != VIEW_SA:
+                continue
+            _, th, _ = study.motion.frame.to_local(refs[key][s.track_id])
+            th = np.mod(np.degrees(th), 360.0)
+            subset(s, (th < lo_deg) | (th >= hi_deg))
+        return sets
+
+    return edit
+
+
+def test_a_sector_whose_sa_tracks_are_lost_is_degraded_and_named(study):
+    # A 100° sector loses its SA tracks on every slice (as an akinetic region's do): the solver
+    # fills it with its neighbours' motion, and the phase must say so, naming where.
+    m = study.motion
+    es = int(round(m.es_phase))
+    _, tr, refs = referenced_tracker(study, n=1000)
+    sets = drop_sector(study, refs, 40.0, 140.0)(observed(study, refs, es))
+    state = tr.solve(es, sets, m.num_phases).state
+    assert state.verdict == DEGRADED and 'ED tag points lost' in state.verdict_reasons, (
+        state.verdict_reasons
+    )
+    assert 'SA slices' in state.verdict_reasons
+    assert any(name in state.verdict_reasons for name in AHA_SEGMENT_NAMES)
+    # The same share of tracks lost evenly over the heart is no regional gap.
+    even = solve(study, es, lambda s: keep(s, 0.7, seed=3))
+    assert 'ED tag points lost' not in even.verdict_reasons, even.verdict_reasons
+
+
+def test_weakest_sector_finds_one_lost_sector_and_not_uniform_loss():
+    theta = {k: np.arange(0.0, 360.0, 10.0) for k in range(8)}  # 8 SA rings, a point every 10°
+    slices = {k: 18 for k in theta}
+    # Slices 3–5 lose every point from 60° to 140°; everywhere one point in three is lost.
+    lost = {
+        k: (k in (3, 4, 5)) & (th >= 60.0) & (th < 150.0) | (np.arange(th.size) % 3 == 0)
+        for k, th in theta.items()
+    }
+    tracks = {k: (th, ~lost[k], np.where(th < 180.0, 'a', 'b')) for k, th in theta.items()}
+    sector = weakest_sector(tracks)
+    assert sector.slices == (3, 4, 5) and sector.used == 0 and sector.share == 0.0
+    assert sector.start_deg == 60.0 and sector.end_deg == 140.0 and sector.labels == ('a',)
+    v = phase_verdict(100, 200, slices, 0.1, 1.0, sa_tracks=tracks)
+    assert v.level == DEGRADED, v.text
+    assert v.text.startswith('SA slices 3–5, θ 60–140° (a): 27 of 27 ED tag points lost'), v.text
+    # Near ED (a small share of the largest displacement) a gap moves nothing: not judged.
+    late = phase_verdict(100, 200, slices, 0.1, 1.0, sa_tracks=tracks, motion_share=0.2)
+    assert late.level == OK, late.text
+    # Half the points lost evenly (alternately, or at random): as well supported everywhere.
+    alternate = {k: (th, np.arange(th.size) % 2 == k % 2) for k, th in theta.items()}
+    rng = np.random.default_rng(0)
+    scattered = {k: (th, rng.random(th.size) < 0.5) for k, th in theta.items()}
+    for tracks in (alternate, scattered):
+        assert weakest_sector(tracks).share > SECTOR_SHARE_DEGRADED
+        assert phase_verdict(100, 200, slices, 0.1, 1.0, sa_tracks=tracks).level == OK
+    # A sector wraps through 0°; one too sparse to judge is not judged.
+    wrap = {k: (th, (th >= 40.0) & (th < 320.0)) for k, th in theta.items()}
+    sector = weakest_sector(wrap, slices=2)
+    assert sector.used == 2 and sector.start_deg == 320.0 and sector.end_deg == 390.0
+    assert weakest_sector(wrap, min_points=40) is None
+    assert weakest_sector({0: (theta[0], np.zeros(36, bool))}) is None  # nothing used at all
+    with pytest.raises(ValueError, match='SA slice 0: 36 angles, 35 used flags'):
+        weakest_sector({0: (theta[0], np.ones(35, bool))})
+    with pytest.raises(ValueError, match='width_deg'):
+        weakest_sector(wrap, width_deg=0.0)
 
 
 FR = oblique_frame()

@@ -39,6 +39,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from itertools import chain
 
+from mlv_ros.core.analysis.frame import lv_frame_axes, LVFrame
+from mlv_ros.core.analysis.strain import AHA_SEGMENT_NAMES, aha_segments
 from mlv_ros.core.meshless import (
     ControlPoints,
     GlobalParameters,
@@ -587,6 +589,7 @@ class MotionTracker:
         self._hats = None  # _knot_hats of _height, built at the first twist fit
         self.positions = self.rest.copy()
         self._gradient = None  # (positions, their H): see _positions_gradient
+        self.largest_motion_mm = 0.0  # median displacement from ED, largest phase so far
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
@@ -1069,6 +1072,8 @@ class MotionTracker:
         sa_found = {
             k: len(sets[(VIEW_SA, k)].track_id) if (VIEW_SA, k) in sets else 0 for k in sa_points
         }
+        motion = float(np.median(np.linalg.norm(self.positions - self.rest, axis=1)))
+        self.largest_motion_mm = max(self.largest_motion_mm, motion)
         spacing = [
             min(p.geometry.row_spacing, p.geometry.column_spacing)
             for p in sets.values()
@@ -1083,7 +1088,44 @@ class MotionTracker:
             rejected=int(rejected),
             candidates=int(attached),
             sa_found=sa_found,
+            sa_tracks=self._sector_tracks({k for k, ok in zip(keys, inside) if ok}),
+            motion_share=motion / self.largest_motion_mm if self.largest_motion_mm > 0 else 1.0,
         )
+
+    def _sector_tracks(self, used: set) -> dict:
+        """
+        Return per SA slice its ED tag points' angle (degrees), use and AHA segment name.
+
+        The angle and segment are the analysis frame's (:func:`lv_frame_axes` of the model at
+        rest), so that a sector the verdict names is the one the findings report.
+
+        Parameters
+        ----------
+        used : set of tuple
+            (view, slice, track_id) of the points this phase uses.
+
+        Returns
+        -------
+        dict
+            SA slice index → (theta_deg, used, segment names), for
+            :func:`mlv_ros.core.verdict.weakest_sector`.
+
+        """
+        frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
+        out = {}
+        for (view, index), ref in self.reference.items():
+            if view != VIEW_SA or not ref:
+                continue
+            X = np.asarray(list(ref.values()))
+            ie = frame.inplane(X)
+            theta = np.arctan2(ie[:, 1], ie[:, 0])
+            seg = aha_segments(frame.level(X), theta, frame.aha_origin_deg)
+            out[index] = (
+                np.degrees(theta),
+                [(view, index, t) in used for t in ref],
+                [AHA_SEGMENT_NAMES[k - 1] for k in seg],
+            )
+        return out
 
     def _multipliers(self) -> tuple[float, float]:
         """

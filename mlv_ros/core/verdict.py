@@ -27,6 +27,44 @@ Calibration (24 randomized-protocol studies of ``mlv-ros bench robustness``, see
 of the 691 within 1 mm, 11 are flagged (degraded: 1.6 %, 10 of them by a lost end slice of the
 stack). The physiological bounds are a second line: in the earlier
 calibration they fired on 4 phases only, all failed by the data already (10–129 mm off).
+
+The sector check (:func:`weakest_sector`) was added for a regional error the whole-phase checks
+pass as ok: an akinetic sector loses its SA tracks and the solver carries it with its neighbours
+(1012: 0 of 22 phases flagged while its akinetic segment is 1.6–3.0 mm off at phases 6–12). It
+was calibrated with ``bench/retrack.py``'s re-track and re-solve of the same 24 studies (686
+solved phases; each phase's verdict against its median 3D error and its worst AHA segment's
+median error, the truth's segments), and checked on 8 held-out ones (3000–3007, 231 phases):
+
+====================================  =========  ==============  ==============
+phases (median 3D error)              count      flagged before  flagged after
+====================================  =========  ==============  ==============
+24 studies, phase within 1 mm         670        22              32 (6: 1012)
+24 studies, 1–2 mm / over 2 mm        15 / 1     15 / 1          15 / 1
+24 studies, worst segment over 2 mm   25         15              20
+held out, phase within 1 mm           231        10              15
+held out, worst segment within 1 mm   179        1               4
+====================================  =========  ==============  ==============
+
+Newly flagged within 1 mm, beside 1012's: 4 of 670 (0.6 %) and 5 of 231 (2.2 %) held out (four of
+these nine with a segment 1.4–1.8 mm off). 1012's phases 7–12 are flagged (phase 6, 2.2 mm off,
+keeps 0.31 of the share). Not seen: 2006's akinetic segment (1.7–2.4 mm off at phases 6–9) keeps
+1–4 of its 9 SA tracks, and its weakest sector 0.55–0.73 of the heart's share: a sector that keeps
+some tracks is not told from one that moves like its neighbours by the tracks alone. The outward
+residuals of its last tracks (0.2–0.6 mm, robust z 3–7 against the phase's own residuals) do not
+tell it either: on 8 studies, 3 % of the phases within 1 mm had a sector beyond z 4.6–5.9 (by
+window). The window (90°, 3 slices) is about one AHA segment; without the motion gate, over the 24
+studies, 120° windows miss all of 1012 (they dilute its 60–90° gap), and smaller ones hold too few
+points to tell a gap from chance: phases within 1 mm with every segment within 1.5 mm newly flagged
+by 3 slices × 90°: 19, 2 slices × 90°: 57, 3 slices × 60°: 86. The motion gate
+(:data:`SECTOR_MOTION_SHARE`) leaves ok 16 of the 26 phases the sector check alone would newly flag
+(20 of 25 held out), all late in the cycle and within 1 mm; the worst of them has a segment 1.6 mm
+off (1014, phase 18).
+
+A flagged phase has every segment's uncertainty inflated in the findings
+(:data:`mlv_ros.core.analysis.findings.VERDICT_INFLATION`), not only the sector's:
+``bench/retrack.py --strain`` at 1014's ES (flagged, every segment within 1 mm) reads all 17
+segments indeterminate (5 before), at 1012's ES segments 13–17 (1 before), while 1012's akinetic
+segment 7 still reads normal; both studies' found / missed / false counts are unchanged.
 """
 
 from __future__ import annotations
@@ -54,6 +92,22 @@ RESIDUAL_DEGRADED_PX = 0.5
 #: More than this fraction of the tag points inside the model rejected as outliers (slipped or
 #: swapped tracks): degraded, the identities of the rest being in doubt.
 REJECTED_DEGRADED = 0.2
+#: Regional data support. A sector is SECTOR_SLICES consecutive SA slices (those with ED tag
+#: points, in stack order) × SECTOR_DEG of circumferential angle about the model's long axis,
+#: at any start angle. A sector holding SECTOR_MIN_POINTS or more ED tag points of which the
+#: share still used at this phase is below SECTOR_SHARE_DEGRADED × the share over all SA slices:
+#: degraded. The solver carries such a sector with its neighbours' motion (the elastic model
+#: smooths across it), which is wrong by millimetres exactly where the wall moves unlike its
+#: neighbours (an akinetic or dyskinetic region, whose tracks the tracker loses first), and
+#: nothing else in the phase shows it: the residual is at the points that are there.
+SECTOR_SLICES = 3
+SECTOR_DEG = 90.0
+SECTOR_MIN_POINTS = 10
+SECTOR_SHARE_DEGRADED = 0.3
+#: ... checked only while the heart is at least this fraction of its largest displacement so far
+#: from ED (median over the model): a sector carried by its neighbours is off by about how
+#: differently it moves, which vanishes as every sector returns to its ED place (late diastole).
+SECTOR_MOTION_SHARE = 0.5
 
 # Physiological bounds (analyzer).
 #: Ejection fraction outside these bounds: degraded / failed (the cavity grew by more than 10 %
@@ -130,6 +184,155 @@ def checked_level(level) -> int:
     return int(level)
 
 
+@dataclass
+class Sector:
+    """
+    The SA sector a phase's data support least (:func:`weakest_sector`).
+
+    Attributes
+    ----------
+    slices : tuple of int
+        Its SA slice indices, in stack order.
+    start_deg, end_deg : float
+        Circumferential extent of its lost ED tag points, degrees (counter-clockwise from
+        ``start_deg`` in [0, 360) to ``end_deg``, which may exceed 360).
+    used, points : int
+        Its ED tag points still used at this phase, and all of them.
+    share : float
+        ``used / points`` relative to the same share over all SA slices (1: as well supported
+        as the heart, 0: no point left).
+    heart_share : float
+        The share of all SA slices' ED tag points still used.
+    labels : tuple of str
+        Names of the (at most 3) regions most of its lost points lie in, most first (empty if
+        not given).
+
+    """
+
+    slices: tuple
+    start_deg: float
+    end_deg: float
+    used: int
+    points: int
+    share: float
+    heart_share: float
+    labels: tuple = ()
+
+    @property
+    def reason(self) -> str:
+        """Return the verdict's reason: the sector, its lost points and the heart's."""
+        where = (
+            f'SA slice {self.slices[0]}'
+            if len(self.slices) == 1
+            else f'SA slices {self.slices[0]}–{self.slices[-1]}'
+        )
+        names = f' ({", ".join(self.labels)})' if self.labels else ''
+        return (
+            f'{where}, θ {self.start_deg:.0f}–{self.end_deg % 360:.0f}°{names}: '
+            f'{self.points - self.used} of {self.points} ED tag points lost '
+            f'({1.0 - self.heart_share:.0%} over all SA slices): the model carries it with its '
+            'neighbours'
+        )
+
+
+def weakest_sector(
+    sa_tracks: dict,
+    slices: int = SECTOR_SLICES,
+    width_deg: float = SECTOR_DEG,
+    min_points: int = SECTOR_MIN_POINTS,
+) -> Sector | None:
+    """
+    Return the SA sector whose ED tag points are least used at this phase.
+
+    Sectors are ``slices`` consecutive SA slices (all of them if fewer) × ``width_deg`` of
+    circumferential angle, starting at every point's angle; only those holding ``min_points``
+    or more ED tag points count. Of these, the one whose share of points still used, relative
+    to the share over all SA slices, is smallest (the larger one on a tie).
+
+    Parameters
+    ----------
+    sa_tracks : dict
+        SA slice index → ``(theta_deg, used)`` or ``(theta_deg, used, labels)``, one entry per
+        ED tag point of the slice: its circumferential angle about the model's long axis
+        (degrees), whether this phase still uses it (bool), and the name of the region it lies
+        in (e.g. its AHA segment; for the reason). Indices run in stack order.
+    slices : int
+        Consecutive SA slices per sector, >= 1.
+    width_deg : float
+        Circumferential width of a sector, degrees, in (0, 360].
+    min_points : int
+        Fewest ED tag points a sector must hold to count, >= 1.
+
+    Returns
+    -------
+    Sector or None
+        None if no sector holds ``min_points`` points or no SA point is used at all (the
+        whole-phase checks cover that).
+
+    Raises
+    ------
+    ValueError
+        ``slices``, ``width_deg`` or ``min_points`` out of range; a slice's arrays of unequal
+        length.
+
+    """
+    if int(slices) < 1 or int(min_points) < 1 or not 0.0 < float(width_deg) <= 360.0:
+        raise ValueError(
+            f'slices and min_points must be >= 1 and width_deg in (0, 360], got {slices}, '
+            f'{min_points}, {width_deg}'
+        )
+    keys = sorted(sa_tracks)
+    theta, used, labels = {}, {}, {}
+    for k in keys:
+        entry = sa_tracks[k]
+        theta[k] = np.mod(np.asarray(entry[0], dtype=np.float64).ravel(), 360.0)
+        used[k] = np.asarray(entry[1], dtype=bool).ravel()
+        labels[k] = np.asarray(entry[2] if len(entry) > 2 else [''] * len(used[k]), dtype=str)
+        if not theta[k].shape == used[k].shape == labels[k].shape:
+            raise ValueError(
+                f'SA slice {k}: {theta[k].size} angles, {used[k].size} used flags and '
+                f'{labels[k].size} labels'
+            )
+    total = sum(u.size for u in used.values())
+    heart = sum(int(u.sum()) for u in used.values()) / total if total else 0.0
+    if heart <= 0.0:
+        return None
+    m = min(int(slices), len(keys))
+    best = None
+    for j in range(len(keys) - m + 1):
+        run = keys[j:j + m]
+        th = np.concatenate([theta[k] for k in run])
+        u = np.concatenate([used[k] for k in run])
+        for a0 in np.unique(th):
+            offset = np.mod(th - a0, 360.0)
+            inside = offset < width_deg
+            n = int(inside.sum())
+            if n < min_points:
+                continue
+            share = float(u[inside].mean()) / heart
+            if best is None or (share, -n) < (best[0], -best[3]):
+                best = (share, run, a0, n, inside, offset)
+    if best is None:
+        return None
+    share, run, a0, n, inside, offset = best
+    u = np.concatenate([used[k] for k in run])
+    lab = np.concatenate([labels[k] for k in run])
+    lost = inside & ~u
+    span = offset[lost] if lost.any() else offset[inside]
+    names, counts = np.unique(lab[lost], return_counts=True)
+    order = [str(names[i]) for i in np.argsort(-counts, kind='stable') if names[i]][:3]
+    return Sector(
+        tuple(int(k) for k in run),
+        float(np.mod(a0 + span.min(), 360.0)),
+        float(np.mod(a0 + span.min(), 360.0) + np.ptp(span)),
+        int(u[inside].sum()),
+        n,
+        share,
+        heart,
+        tuple(order),
+    )
+
+
 def phase_verdict(
     tracked: int,
     tracked_at_ed: int,
@@ -139,6 +342,8 @@ def phase_verdict(
     rejected: int = 0,
     candidates: int = 0,
     sa_found: dict | None = None,
+    sa_tracks: dict | None = None,
+    motion_share: float | None = None,
 ) -> Verdict:
     """
     How far one phase's tag data supports its solution.
@@ -165,6 +370,14 @@ def phase_verdict(
         SA slice index → tag points the tag detector found on it at this phase, inside the
         model or not (default: ``sa_points``). An end slice is lost when it has fewer than
         ``MIN_SLICE_POINTS`` of these: a basal slice the base moves out of keeps its tags.
+    sa_tracks : dict, optional
+        SA slice index → per ED tag point its angle (degrees), whether it is used at this
+        phase, and optionally its region's name (:func:`weakest_sector`): a sector whose share
+        of points used is below ``SECTOR_SHARE_DEGRADED`` × the heart's is degraded. None: not
+        checked.
+    motion_share : float, optional
+        The model's median displacement from ED at this phase over the largest of the phases
+        solved so far; the sector check only runs from ``SECTOR_MOTION_SHARE`` on (None: always).
 
     Returns
     -------
@@ -223,6 +436,10 @@ def phase_verdict(
             f'fit residual {residual_mm:.2f} mm = {residual_mm / pixel_mm:.2f} px '
             f'(> {RESIDUAL_DEGRADED_PX:g} px): tracks and model disagree',
         )
+    moving = motion_share is None or motion_share >= SECTOR_MOTION_SHARE
+    sector = weakest_sector(sa_tracks) if sa_tracks and moving else None
+    if sector is not None and sector.share < SECTOR_SHARE_DEGRADED:
+        v.flag(DEGRADED, sector.reason)
     if candidates > 0 and rejected / candidates > REJECTED_DEGRADED:
         v.flag(
             DEGRADED,
