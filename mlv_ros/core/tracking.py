@@ -526,7 +526,9 @@ class MotionTracker:
         the incompressible thick-walled cylinder per level): the wall thickens as the fitted
         shape contracts, with no new parameter. False: the paper's affine shape, whose volume
         changes by ``a0³ a1 a2 a3`` (J − 1 ≈ −0.43 at ES), which the local stage's volume term
-        must then restore.
+        must then restore. Off: the global stage alone is closer to the truth with it, the whole
+        solve is not (the local stage over-thickens on exact points and moves the wall toward the
+        base between the LA planes on tracked ones; README, Global stage).
 
     """
 
