@@ -16,10 +16,10 @@
 
 from mlv_ros.core.meshless.globals import (
     control_jacobian,
-    KAPPA_MAX,
     cylindrical_frame,
     global_shape,
     GlobalParameters,
+    KAPPA_MAX,
     matrix_to_quat,
     model_jacobian,
     ModelCoordinates,

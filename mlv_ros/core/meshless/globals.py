@@ -333,7 +333,8 @@ def wall_scale(coords: ModelCoordinates, a, derivative: bool = False):
     # ∂J_a/∂a as products (no division by a parameter that a trial step may take to 0)
     a03 = a[0] ** 3
     grad = np.array(
-        [3 * a[0] ** 2 * a[1] * a[2] * a[3], a03 * a[2] * a[3], a03 * a[1] * a[3], a03 * a[1] * a[2]]
+        [3 * a[0] ** 2 * a[1] * a[2] * a[3], a03 * a[2] * a[3], a03 * a[1] * a[3],
+         a03 * a[1] * a[2]]
     ) / coords.rest_volume
     ja = a[0] * grad[0] / 3.0
     floored = ja < JA_MIN
