@@ -26,7 +26,10 @@ per level (degrees, solved − true, level 0 at the apex) of the global stage wi
 function, of the default and of each variant, and the mean ``J − 1`` per level of the truth, the
 global stage and the default solution.
 
-    python bench/local_twist.py CASE_DIR [CASE_DIR ...] [--ideal]
+    python bench/local_twist.py CASE_DIR [CASE_DIR ...] [--ideal] [--solver KEY=VALUE ...]
+
+``--solver`` sets a :class:`MotionTracker` keyword, as ``bench/retrack.py``'s does (e.g.
+``global_thickening=true``).
 
 Measured on 3001 / 1001 / 1012 (``--ideal``): see :meth:`MotionTracker._twist_function`.
 """
@@ -55,7 +58,7 @@ def _levels_j(tr, x, level):
     return [round(float(np.mean(j[level == k])), 4) for k in range(10)]
 
 
-def replay(case: Path, ideal: bool) -> dict:
+def replay(case: Path, ideal: bool, solver: dict | None = None) -> dict:
     """
     Return the ES twist error per level for the default local stage and each variant.
 
@@ -65,6 +68,8 @@ def replay(case: Path, ideal: bool) -> dict:
         A robustness case (``run/run.mcap`` and ``study/``).
     ideal : bool
         Replace the tracked points by where the truth puts them.
+    solver : dict, optional
+        :class:`MotionTracker` keywords.
 
     """
     frames, cloud, state = retrack.recorded(case / 'run' / 'run.mcap')
@@ -82,7 +87,9 @@ def replay(case: Path, ideal: bool) -> dict:
 
     MotionTracker._local_solve = spy
     try:
-        tr, positions, _ = retrack.solve({p: sets[p] for p in sets if p <= es}, cloud, state)
+        tr, positions, _ = retrack.solve(
+            {p: sets[p] for p in sets if p <= es}, cloud, state, **(solver or {})
+        )
     finally:
         MotionTracker._local_solve = original
     if es not in positions or 'call' not in captured:
@@ -152,9 +159,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('cases', nargs='+', type=Path)
     ap.add_argument('--ideal', action='store_true', help='truth-placed tag points')
+    retrack.keyword_option(ap, '--solver', 'MotionTracker')
     args = ap.parse_args()
+    solver = retrack.keywords(args.solver)
     for case in args.cases:
-        print(json.dumps(replay(case, args.ideal)), flush=True)
+        print(json.dumps(replay(case, args.ideal, solver) | {'solver': solver}), flush=True)
 
 
 if __name__ == '__main__':

@@ -695,23 +695,39 @@ def replay_case(
     }
 
 
+def keyword_option(ap, flag: str, what: str) -> None:
+    """
+    Add a repeatable ``flag KEY=VALUE`` option of ``what``'s keyword arguments to ``ap``.
+
+    Parameters
+    ----------
+    ap : argparse.ArgumentParser
+        The parser.
+    flag : str
+        The option, e.g. ``--solver``.
+    what : str
+        The class whose keywords it sets, for the help text.
+
+    """
+    ap.add_argument(
+        flag,
+        action='append',
+        default=[],
+        metavar='KEY=VALUE',
+        help=f'{what} keyword (a number or true/false), repeatable',
+    )
+
+
+def keywords(opts) -> dict:
+    """Return ``KEY=VALUE`` strings as a dict, each value read as YAML (numbers, booleans)."""
+    return {k: yaml.safe_load(v) for k, v in (a.split('=', 1) for a in opts)}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('cases', nargs='+', type=Path)
-    ap.add_argument(
-        '--tracker',
-        action='append',
-        default=[],
-        metavar='KEY=VALUE',
-        help='SliceTracker keyword (a number or true/false), repeatable',
-    )
-    ap.add_argument(
-        '--solver',
-        action='append',
-        default=[],
-        metavar='KEY=VALUE',
-        help='MotionTracker keyword (a number or true/false), repeatable',
-    )
+    keyword_option(ap, '--tracker', 'SliceTracker')
+    keyword_option(ap, '--solver', 'MotionTracker')
     ap.add_argument(
         '--ideal',
         nargs='?',
@@ -760,10 +776,7 @@ def main():
     if args.ideal_segments and args.ideal == 'every-track':
         ap.error('--ideal-segments moves the tracked points only: use it with --ideal tracks')
     ideal = 'tracks' if args.ideal_segments and not args.ideal else args.ideal
-    kw = [
-        {k: yaml.safe_load(v) for k, v in (a.split('=', 1) for a in opts)}
-        for opts in (args.tracker, args.solver)
-    ]
+    kw = [keywords(opts) for opts in (args.tracker, args.solver)]
     for case in args.cases:
         print(
             json.dumps(

@@ -676,3 +676,21 @@ def test_slice_following_step_is_exact_for_an_affine_motion(study):
     before = np.einsum('ka,ka->k', ctrl.weights @ tr.positions - targets, normals)
     assert np.abs(before).max() > 0.5  # the points start off their planes
     assert np.abs(off_plane).max() < 1e-6, np.abs(off_plane).max()
+
+
+def test_thick_walled_global_stage_keeps_the_wall_volume(study):
+    # The global stage alone (no local stage) at ES from exact in-plane tags. The truth keeps the
+    # myocardium's volume (det F = 1). The paper's affine shape scales the wall with the cavity
+    # and loses ~40 % of it (measured J 0.61, median error 1.30 mm); the thick-walled shape
+    # thickens the wall instead (J 0.98, 0.44 mm).
+    m = study.motion
+    es = int(round(m.es_phase))
+    out = {}
+    for thick in (False, True):
+        X, tr, refs = referenced_tracker(study, local=False, global_thickening=thick)
+        tr.solve(es, observed(study, refs, es), m.num_phases)
+        x = tr.model.positions()
+        j = np.linalg.det(np.eye(3) + tr.model.operator.gradient(x - X))
+        out[thick] = np.median(j), np.median(np.linalg.norm(x - m.position(X, es), axis=1))
+    assert out[False][0] < 0.8 and abs(out[True][0] - 1.0) < 0.03, out
+    assert out[True][1] < 0.6 * out[False][1], out

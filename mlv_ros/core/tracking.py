@@ -50,6 +50,7 @@ from mlv_ros.core.meshless import (
     plane_projectors,
     polar_frame,
     quat_to_matrix,
+    thick_wall_frame,
 )
 from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
@@ -522,6 +523,14 @@ class MotionTracker:
         (:class:`~mlv_ros.core.meshless.local.CoarseSpace`, built once with the model; 0 =
         block-Jacobi alone). Default: one per ``COARSE_PARTICLES`` particles, at most
         ``COARSE_MAX_AGGREGATES``. It changes only how fast CG converges, not what it converges to.
+    global_thickening : bool
+        Global shape that keeps the wall's volume (:func:`~mlv_ros.core.meshless.thick_wall_frame`,
+        the incompressible thick-walled cylinder per level): the wall thickens as the fitted
+        shape contracts, with no new parameter. False: the paper's affine shape, whose volume
+        changes by ``a0³ a1 a2 a3`` (J − 1 ≈ −0.43 at ES), which the local stage's volume term
+        must then restore. Off: the global stage alone is closer to the truth with it, the whole
+        solve is not (the local stage over-thickens on exact points and moves the wall toward the
+        base between the LA planes on tracked ones; README, Global stage).
 
     """
 
@@ -557,13 +566,18 @@ class MotionTracker:
         longitudinal_coupling: float = 1.0,
         regional_coupling: bool = True,
         tag_noise_mm: float = 0.15,
+        global_thickening: bool = False,
     ):
         # The node's ranges (one table for both), before the model is built: a mistake costs
         # nothing. locals() holds the arguments alone here.
         check_keywords(SOLVER_MODEL, locals())
         pts = np.asarray(particles, dtype=np.float64)
         R = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
-        self.model = MeshlessModel(pts, _model_frame(pts, centre, rotation, R, a0, polar, shape))
+        frame = _model_frame(pts, centre, rotation, R, a0, polar, shape)
+        self.global_thickening = bool(global_thickening)
+        if self.global_thickening:
+            frame = thick_wall_frame(frame)
+        self.model = MeshlessModel(pts, frame)
         self.rest = self.model.rest_points
         self._tree = cKDTree(self.rest)
         self.data_weight = float(data_weight)

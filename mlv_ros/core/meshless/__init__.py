@@ -50,6 +50,7 @@ from mlv_ros.core.meshless.globals import (  # noqa: F401
     quat_to_matrix,
     rotation_jacobian,
     shape_jacobian,
+    thick_wall_frame,
 )
 from mlv_ros.core.meshless.kernel import build_phyxels, Phyxels, poly6  # noqa: F401
 from mlv_ros.core.meshless.mls import MLSOperator  # noqa: F401

@@ -31,6 +31,22 @@ with height, which is what a twisted cylinder does.
 
 The generalised coordinates used by the solver are ``q_g = (c [3], θ = q [4], a0..a3, τ)``, 12
 numbers; ``L = [I, B, R J]`` (eq. 8) is their Jacobian.
+
+Thick-walled variant (optional, :func:`thick_wall_frame`; not the paper's): the affine
+``e`` changes the wall's volume by ``J_a = a0³ a1 a2 a3 / (a0³ a1 a2 a3)_rest``, so a
+contracting shape thins its wall as it shrinks the cavity, where myocardium keeps its volume and
+thickens. With a cavity fraction ``κ = ρ_c² / ρ²`` per particle (``ρ`` its rest distance from the
+long axis, ``ρ_c(z, θ)`` the rest endocardial radius at its level and angle) the in-plane part of
+``e`` is scaled by ``k = √(κ + (1 − κ) / J_a)`` before the twist. Per level this is the
+inflation and extension of an incompressible thick-walled cylinder (textbook kinematics, e.g.
+Humphrey, *Cardiovascular Solid Mechanics*, Springer 2002; a derivation, not the paper's):
+``r'² − r_c'² = (r² − r_c²) / λ_z`` with ``r_c' = λ r_c`` the endocardium scaled by the fit's
+in-plane scale λ and ``λ_z`` its axial scale. In the volume coordinates ``(ρ²/2, θ, z)`` the map
+``ρ → kρ`` has Jacobian ``1 / J_a`` whatever ``ρ_c(z, θ)`` is, so the global map keeps every
+volume exactly (``det = 1``) for any ``a``; the twist ``R_z(π τ g)`` keeps it too where ``a1 = a2``
+and ``ρ_c`` does not vary with θ (otherwise its volume change is of order τ times the in-plane
+anisotropy). No new parameter: the thickening follows from ``a0..a3``. The endocardium (κ = 1)
+moves as in the paper's form.
 """
 
 from __future__ import annotations
@@ -40,6 +56,7 @@ from dataclasses import dataclass, field
 from mlv_ros.core.meshless.kernel import validate_points
 from mlv_ros.core.types import ModelState
 import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates
 
 #: Layout of the 12-vector of global parameters.
 NUM_GLOBAL = 12
@@ -49,6 +66,20 @@ SLICE_S = slice(7, 12)
 GLOBAL_NAMES = ('cx', 'cy', 'cz', 'qw', 'qx', 'qy', 'qz', 'a0', 'a1', 'a2', 'a3', 'tau')
 #: Tangent space used for updates: (Δc [3], body rotation vector ω [3], Δa0..Δa3, Δτ).
 NUM_TANGENT = 11
+#: Thick-walled variant: the wall-volume ratio ``J_a`` of the affine part is floored here (a trial
+#: step of the global fit toward a collapsed shape; a real heart's is 0.5–1.3), and ``k²`` at
+#: ``K2_MIN``, so the map stays finite; the derivative is that of the floored value.
+JA_MIN = 0.05
+K2_MIN = 1e-4
+#: Angular bins of the endocardial radius ``ρ_c(z, θ)`` (:func:`thick_wall_coordinates`), 15° each,
+#: and the particle spacings per level bin; the binned minimum is smoothed over ``CAVITY_SMOOTH``
+#: bins (Gaussian σ).
+CAVITY_ANGLES = 24
+CAVITY_LEVEL_SPACINGS = 2.0
+CAVITY_SMOOTH = 1.0
+#: Largest cavity fraction kept: a particle a little inside the smoothed endocardium (κ > 1) moves
+#: inward of it as it contracts, with the volume kept, while ``J_a > 1 − 1 / KAPPA_MAX``.
+KAPPA_MAX = 1.5
 
 
 # --------------------------------------------------------------------------- quaternions
@@ -184,16 +215,34 @@ class ModelCoordinates:
         ``b`` (see module docstring), dimensionless.
     twist : ndarray, shape (N,)
         ``g``: twist angle is ``φ = π τ g``.
+    cavity : ndarray, shape (N,), optional
+        Thick-walled variant (module docstring): ``κ = ρ_c² / ρ²``, dimensionless (1 on the
+        endocardium, smaller outward). None: the paper's affine shape.
+    rest_volume : float
+        ``(a0 a1)(a0 a2)(a0 a3)`` of the rest parameters, mm³ (the thick-walled variant's
+        reference of ``J_a``).
 
     """
 
     kind: str
     basis: np.ndarray
     twist: np.ndarray
+    cavity: np.ndarray | None = None
+    rest_volume: float = 1.0
 
     def __post_init__(self):
         self.basis = np.asarray(self.basis, dtype=np.float64)
         self.twist = np.asarray(self.twist, dtype=np.float64)
+        if self.cavity is not None:
+            self.cavity = np.asarray(self.cavity, dtype=np.float64)
+            if self.cavity.shape != self.twist.shape or not np.all(
+                np.isfinite(self.cavity) & (self.cavity >= 0)
+            ):
+                raise ValueError(
+                    'cavity fraction must be finite and >= 0 with one value per particle'
+                )
+            if not (np.isfinite(self.rest_volume) and self.rest_volume > 0):
+                raise ValueError(f'rest_volume must be finite and > 0, got {self.rest_volume}')
         if self.kind not in ('polar', 'cylindrical'):
             raise ValueError(
                 f"coordinate kind must be 'polar' or 'cylindrical', got {self.kind!r}"
@@ -225,7 +274,10 @@ class ModelCoordinates:
         return cls('cylindrical', basis, zeta)
 
     def subset(self, idx) -> 'ModelCoordinates':
-        return ModelCoordinates(self.kind, self.basis[idx], self.twist[idx])
+        cavity = None if self.cavity is None else self.cavity[idx]
+        return ModelCoordinates(
+            self.kind, self.basis[idx], self.twist[idx], cavity, self.rest_volume
+        )
 
 
 def twist_cos_sin(coords: ModelCoordinates, tau: float) -> tuple[np.ndarray, np.ndarray]:
@@ -250,9 +302,58 @@ def twist_cos_sin(coords: ModelCoordinates, tau: float) -> tuple[np.ndarray, np.
     return np.cos(phi), np.sin(phi)
 
 
+def wall_scale(coords: ModelCoordinates, a, derivative: bool = False):
+    """
+    Return the thick-walled variant's in-plane scale ``k = √(κ + (1 − κ) / J_a)`` per particle.
+
+    ``J_a = a0³ a1 a2 a3 / rest_volume`` is the wall-volume ratio of the affine part (module
+    docstring), floored at ``JA_MIN``; ``k²`` is floored at ``K2_MIN``.
+
+    Parameters
+    ----------
+    coords : ModelCoordinates
+        Material coordinates with their cavity fraction ``κ``.
+    a : array_like, shape (4,)
+        ``a0`` (mm) and ``a1, a2, a3`` (dimensionless).
+    derivative : bool
+        Also return ``∂k/∂(a0, a1, a2, a3)``.
+
+    Returns
+    -------
+    k : ndarray, shape (N,) or None
+        Dimensionless; None without a cavity fraction (the paper's shape, ``k = 1``).
+    dk : ndarray, shape (N, 4)
+        With ``derivative``: ``∂k/∂a``, per mm for ``a0``, dimensionless for the others.
+
+    """
+    if coords.cavity is None:
+        return (None, None) if derivative else None
+    a = np.asarray(a, dtype=np.float64)
+    kappa = coords.cavity
+    # ∂J_a/∂a as products (no division by a parameter that a trial step may take to 0)
+    a03 = a[0] ** 3
+    grad = np.array(
+        [3 * a[0] ** 2 * a[1] * a[2] * a[3], a03 * a[2] * a[3], a03 * a[1] * a[3],
+         a03 * a[1] * a[2]]
+    ) / coords.rest_volume
+    ja = a[0] * grad[0] / 3.0
+    floored = ja < JA_MIN
+    ja = max(ja, JA_MIN)
+    k2 = kappa + (1.0 - kappa) / ja
+    low = k2 < K2_MIN
+    k = np.sqrt(np.maximum(k2, K2_MIN))
+    if not derivative:
+        return k
+    dk_dj = np.where(low, 0.0, -(1.0 - kappa) / (2.0 * k * ja * ja))
+    return k, (0.0 if floored else 1.0) * dk_dj[:, None] * grad[None, :]
+
+
 def global_shape(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.ndarray:
     """
     ``s = T(e(b; a0..a3))`` with twist ``φ = π τ g`` (eq. 1–3).
+
+    With a cavity fraction in ``coords`` the in-plane part of ``e`` is scaled by
+    :func:`wall_scale` first (the thick-walled variant, module docstring).
 
     Parameters
     ----------
@@ -274,6 +375,9 @@ def global_shape(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.nd
     """
     a = np.asarray(a, dtype=np.float64)
     e = a[0] * coords.basis * a[1:]
+    k = wall_scale(coords, a)
+    if k is not None:
+        e[:, :2] *= k[:, None]
     c, s = twist_cos_sin(coords, tau) if cos_sin is None else cos_sin
     out = np.empty_like(e)  # R_z(φ) e, component by component
     np.subtract(c * e[:, 0], s * e[:, 1], out=out[:, 0])
@@ -297,8 +401,19 @@ def shape_jacobian(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.
     cos_sin : tuple of ndarray, optional
         :func:`twist_cos_sin` of ``coords`` at ``tau``, when the caller has it.
 
+    Notes
+    -----
+    Thick-walled variant: ``s = K ⊙ s₀`` with ``K = (k, k, 1)`` (the twist about z commutes with
+    the in-plane scale), so ``∂s/∂a_j = K ⊙ ∂s₀/∂a_j + (∂k/∂a_j) (s₀x, s₀y, 0)`` and
+    ``∂s/∂τ = K ⊙ ∂s₀/∂τ``, ``s₀`` the paper's shape.
+
     """
     a = np.asarray(a, dtype=np.float64)
+    k, dk = wall_scale(coords, a, derivative=True)
+    if k is not None:
+        b = coords.basis.copy()
+        b[:, :2] *= k[:, None]
+        coords = ModelCoordinates(coords.kind, b, coords.twist)
     b = coords.basis
     c, s_ = twist_cos_sin(coords, tau) if cos_sin is None else cos_sin
     # Entry by entry (the rotated axes R_z(φ) e_x = (c, s, 0), e_y = (−s, c, 0), e_z): the
@@ -318,6 +433,9 @@ def shape_jacobian(coords: ModelCoordinates, a, tau: float, cos_sin=None) -> np.
     pg = np.pi * coords.twist
     np.multiply(pg, -(a[0] * jac[:, 1, 0]), out=jac[:, 0, 4])
     np.multiply(pg, a[0] * jac[:, 0, 0], out=jac[:, 1, 4])
+    if k is not None:  # + (∂k/∂a_j) s₀: s₀'s in-plane part is a0 jac[:, :2, 0] / k
+        s0 = (a[0] / k)[:, None] * jac[:, :2, 0]
+        jac[:, :2, :4] += s0[:, :, None] * dk[:, None, :]
     return jac
 
 
@@ -635,4 +753,74 @@ def cylindrical_frame(
     )
     return ModelFrame(
         GlobalParameters(c, matrix_to_quat(rot), [radius, 1, 1, half_height / radius], 0.0), coords
+    )
+
+
+def thick_wall_frame(frame: ModelFrame) -> ModelFrame:
+    """
+    Return ``frame`` with the thick-walled variant's cavity fraction (module docstring).
+
+    ``ρ_c(z, θ)`` is the smallest rest distance from the long axis of the particles in each bin
+    of ``CAVITY_ANGLES`` angles × levels ``CAVITY_LEVEL_SPACINGS`` median particle spacings tall
+    (an empty bin takes its angle's nearest level, or the level's smallest), Gaussian-smoothed
+    over ``CAVITY_SMOOTH`` bins in θ (periodic; not in z, where the cavity ends at the apex
+    within a bin or two) and interpolated bilinearly: a continuous function of ``(z, θ)``, so the
+    map keeps volume exactly. A particle a little inside the smoothed surface has ``κ > 1``
+    (cut at ``KAPPA_MAX``). In the apical cap below the cavity ``ρ_c`` is the innermost
+    particles' small radius, and the cap keeps its volume by widening in-plane as it shortens
+    (``k → J_a^(−1/2)``), as a solid incompressible cylinder does.
+
+    Parameters
+    ----------
+    frame : ModelFrame
+        Rest parameters and material coordinates (without a cavity fraction).
+
+    Returns
+    -------
+    ModelFrame
+        The same rest parameters; coordinates with ``cavity`` and ``rest_volume`` set. The rest
+        shape is unchanged (``J_a = 1`` there, so ``k = 1``).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 5 particles, or all at one level.
+
+    """
+    from scipy.spatial import cKDTree
+
+    coords, params = frame.coords, frame.params
+    p = global_shape(coords, params.a, params.tau)
+    if len(p) < 5:
+        raise ValueError(f'the thick-walled shape needs at least 5 particles, got {len(p)}')
+    rho, theta, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
+    height = float(np.ptp(z))
+    spacing = float(np.median(cKDTree(p).query(p, k=2)[0][:, 1]))
+    if not (height > 0 and spacing > 0):
+        raise ValueError('the thick-walled shape needs particles at more than one level')
+    nz = int(np.clip(round(height / (CAVITY_LEVEL_SPACINGS * spacing)), 1, 200))
+    nt = CAVITY_ANGLES
+    u = (z - z.min()) / height * nz  # bin units
+    v = (theta + np.pi) / (2 * np.pi) * nt
+    grid = np.full((nz, nt), np.inf)
+    np.minimum.at(grid, (np.minimum(u.astype(int), nz - 1), v.astype(int) % nt), rho)
+    filled = np.isfinite(grid)
+    levels = np.arange(nz)
+    for j in range(nt):  # an empty bin: its angle's nearest filled level, else the level's min
+        if filled[:, j].any() and not filled[:, j].all():
+            known = np.flatnonzero(filled[:, j])
+            near = known[np.abs(levels[:, None] - known[None, :]).argmin(axis=1)]
+            grid[:, j] = grid[near, j]
+    row = np.where(np.isfinite(grid), grid, np.inf).min(axis=1, keepdims=True)
+    grid = np.where(np.isfinite(grid), grid, row)
+    grid = np.where(np.isfinite(grid), grid, float(rho.min()))
+    # smoothed in θ only: along z the cavity ends at the apex within a bin or two, and a
+    # smoothing across that edge would put the surface outside the cap's particles
+    grid = gaussian_filter(grid, (0.0, CAVITY_SMOOTH), mode=('nearest', 'wrap'))
+    padded = np.hstack([grid[:, -1:], grid, grid[:, :1]])  # wrap in θ, nearest in z
+    rho_c = map_coordinates(padded, [u - 0.5, v + 0.5], order=1, mode='nearest')
+    kappa = np.clip((rho_c / np.maximum(rho, 1e-9 * max(spacing, 1.0))) ** 2, 0.0, KAPPA_MAX)
+    rest_volume = float(np.prod(params.a[0] * params.a[1:]))
+    return ModelFrame(
+        params, ModelCoordinates(coords.kind, coords.basis, coords.twist, kappa, rest_volume)
     )
