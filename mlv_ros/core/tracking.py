@@ -592,6 +592,8 @@ class MotionTracker:
         self.outlier_mm, self.outlier_sigmas = float(outlier_mm), float(outlier_sigmas)
         self.follow_step_mm = float(follow_step_mm)
         self.prescreen = True
+        self.screen_global = True
+        self.screened: list = []  # (view, slice, track_id) the last phase's last pass rejected
         self.rejected = 0
         self._init_local_stage(hourglass_weight, volume_weight)
         self._init_coupling(longitudinal_weight, longitudinal_coupling, regional_coupling)
@@ -910,6 +912,7 @@ class MotionTracker:
                 raise ValueError(
                     f'phase {phase_index}: only {attached} tag points lie inside the model'
                 )
+            attached_before = inside
             inside, ctrl, result = self._robust_global_fit(
                 pos, inside, targets, normals, weights * scale, near
             )
@@ -920,6 +923,7 @@ class MotionTracker:
             worst = _larger_rejected_share(worst, self.rejected - rejected_before, attached)
         for k, s in zip(keys, offsets):
             self.offsets[k] = float(s)
+        self.screened = [keys[i] for i in np.flatnonzero(attached_before & ~inside)]
         return self._phase_solution(
             phase_index, num_phases, sets, keys, inside, ctrl, targets, normals, result, worst
         )
@@ -962,8 +966,13 @@ class MotionTracker:
             if pre.any() and (~pre).sum() >= max(4, pre.size // 2):
                 inside, ctrl = self._drop(inside, ctrl, pre)
         result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
+        if not self.screen_global:
+            return inside, ctrl, result
         # Robustness: a track that swapped identity or drifted leaves a residual far beyond
-        # what the global fit leaves elsewhere; drop such points and refit.
+        # what the global fit leaves elsewhere; drop such points and refit. The 12 global
+        # parameters cannot follow a sector that does not contract: its consistent tracks
+        # leave 3-5 mm here and are dropped too (``screen_global`` False: the prescreen alone,
+        # against the previous phase's motion and, in later passes, the previous pass's).
         outlier = self._outliers(
             ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
         )
