@@ -592,7 +592,7 @@ class MotionTracker:
         self.outlier_mm, self.outlier_sigmas = float(outlier_mm), float(outlier_sigmas)
         self.follow_step_mm = float(follow_step_mm)
         self.prescreen = True
-        self.screen_global = True
+        self.screen_global = False  # see _robust_global_fit and README (Which motion screens)
         self.screened: list = []  # (view, slice, track_id) the last phase's last pass rejected
         self.rejected = 0
         self._init_local_stage(hourglass_weight, volume_weight)
