@@ -139,12 +139,13 @@ def test_writer_refuses_to_overwrite_and_unknown_topics(tmp_path):
         list(bagio.read_bag(tmp_path / 'metadata.yaml'))
 
 
-def recorder_process_and_source(ros_context, executor, out, num_phases):
+def recorder_process_and_source(ros_context, executor, out, num_phases, *extra):
     """
     Start the recorder's console script recording to ``out`` and a pattern frame source.
 
     The recorder's console script recording frames to ``out`` (a process of its own, as under
-    ``ros2 launch``) and a pattern frame source in this process, on ``executor``.
+    ``ros2 launch``) and a pattern frame source in this process, on ``executor``, with the
+    parameter overrides ``extra``.
     """
     rec = subprocess.Popen(
         [
@@ -159,7 +160,7 @@ def recorder_process_and_source(ros_context, executor, out, num_phases):
         stderr=subprocess.STDOUT,
         text=True,
     )
-    src = pattern_source(ros_context, num_phases)
+    src = pattern_source(ros_context, num_phases, *extra)
     executor.add_node(src)
     return rec, src
 
@@ -318,7 +319,10 @@ def test_recorder_process_signalled_mid_stream_keeps_what_the_graph_still_sends(
     then closes the file with metadata.yaml: every published frame is in it, in order.
     """
     out = tmp_path / 'run.mcap'
-    rec, src = recorder_process_and_source(ros_context, executor, out, num_phases=60)
+    # A steady stream (the pattern's 40 ms phases × 0.1: a frame every 4 ms); as fast as possible
+    # the source would send all 120 in one burst, before the signal.
+    pace = Parameter('rate_factor', value=10.0)
+    rec, src = recorder_process_and_source(ros_context, executor, out, 60, pace)
     try:
         assert spin_until(executor, lambda: src.published >= 20, timeout=60), (
             'recorder never subscribed'

@@ -20,7 +20,10 @@ pattern.
 
 Order is slice-major (as scanners acquire: each slice's whole cine in one breath-hold) or
 phase-major; rate is real time × ``rate_factor``, or as fast as possible (``rate_factor: 0``),
-which RELIABLE QoS with a deep queue absorbs without loss.
+which RELIABLE QoS with a deep queue absorbs without loss. Paced, one frame goes out per timer
+tick when due; as fast as possible, :data:`BURST_FRAMES` (half the topic's depth) go out in one
+tick, and a burst waits until every subscriber has acknowledged the previous one, so no frame is
+ever pushed out of the writer's history unacknowledged.
 
 A DICOM directory loads its tagged study (the one with the most tagged cines, or the
 StudyInstanceUID in ``study``); each skipped file, each series not used (and each cine missing
@@ -53,6 +56,14 @@ from rclpy.duration import Duration
 
 SOURCES = ('phantom', 'dicom', 'bag', 'pattern')
 ORDERS = ('slice_major', 'phase_major')
+# Most frames published in one timer tick. The source shares its executor with the run's other
+# nodes (registration, solver, recorder), whose callbacks held a one-frame-per-tick source back by
+# seconds. Half the topic's depth: a burst starts only once the previous one is acknowledged, so
+# the KEEP_LAST writer history never holds more than this unacknowledged, and a subscriber's queue
+# (as deep) holds two whole bursts it has not taken yet; the default study (275 frames) goes out
+# in one tick, and the other nodes get the executor at least every 500 frames (~1-2 s).
+BURST_FRAMES = qos.STREAM_DEPTH // 2
+ACK_POLL_NS = 10_000_000  # once every frame is out: how often to look whether all are acknowledged
 
 
 def order_frames(frames: list[Frame], order: str) -> list[Frame]:
@@ -174,6 +185,8 @@ class FrameSource(GraphNode):
             self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
         )
         self._started = None
+        self._burst_at: float | None = None  # when the last burst of frames went out
+        self._all_out_at: float | None = None  # when the last frame went out
         self.timer = self.create_timer(0.001, self._tick)
         extra = (
             {'input_complete': self.input_complete, 'left_out': len(self.left_out)}
@@ -384,6 +397,40 @@ class FrameSource(GraphNode):
         cycle = frame.cycle_duration or 1.0
         return cycle / frame.num_phases / self.rate_factor
 
+    def _publish_next(self) -> None:
+        """Publish the next frame, stamped now, and schedule the one after it."""
+        frame = self.frames[self.published]
+        self.pub.publish(conversions.frame_to_msg(frame, stamp=self.get_clock().now().to_msg()))
+        self.published += 1
+        self._next_at += self._frame_interval(frame)
+
+    def _publish_due(self) -> None:
+        """
+        Publish the frame that is due (``rate_factor`` > 0), or the next :data:`BURST_FRAMES`.
+
+        A burst starts only once every frame of the previous one is acknowledged by every
+        subscriber (or ``wait_timeout_s`` after it went out), so at most ``BURST_FRAMES`` frames
+        are ever unacknowledged in the KEEP_LAST(``STREAM_DEPTH``) writer history and none is
+        dropped before each reader holds it, whatever the study's size.
+        """
+        now = time.monotonic()
+        if self.rate_factor > 0:  # a paced stream, as a scanner sends it: one frame when due
+            if now >= self._next_at:
+                self._publish_next()
+            return
+        if self._burst_at is not None and not self.pub.wait_for_all_acked(Duration()):
+            if now - self._burst_at < self.wait_timeout_s:
+                return
+            self.report(
+                WARN,
+                'frames not acknowledged by every subscriber; publishing on',
+                timeout_s=self.wait_timeout_s,
+                frames_published=self.published,
+            )
+        self._burst_at = now
+        for _ in range(min(BURST_FRAMES, len(self.frames) - self.published)):
+            self._publish_next()
+
     def _tick(self):
         if self._started is None:
             matched = self.pub.get_subscription_count()
@@ -418,18 +465,18 @@ class FrameSource(GraphNode):
             self.report(WARN, message, **values)
             return
         if self.published < len(self.frames):
-            if time.monotonic() < self._next_at:
-                return
-            frame = self.frames[self.published]
-            self.pub.publish(
-                conversions.frame_to_msg(frame, stamp=self.get_clock().now().to_msg())
-            )
-            self.published += 1
-            self._next_at += self._frame_interval(frame)
+            self._publish_due()
+            return
+        # RELIABLE: make sure every subscriber holds every frame before we may exit. Polled, not
+        # waited for: a blocking wait would hold the executor the other nodes share for seconds.
+        now = time.monotonic()
+        if self._all_out_at is None:
+            self._all_out_at = now
+            self.timer.timer_period_ns = ACK_POLL_NS
+        acked = self.pub.wait_for_all_acked(Duration())
+        if not acked and now - self._all_out_at < self.wait_timeout_s:
             return
         self.timer.cancel()
-        # RELIABLE: make sure every subscriber holds every frame before we may exit.
-        acked = self.pub.wait_for_all_acked(Duration(seconds=self.wait_timeout_s))
         if not acked:
             self.report(
                 WARN,
@@ -441,6 +488,7 @@ class FrameSource(GraphNode):
             'all frames published',
             frames=self.published,
             seconds=round(time.monotonic() - self._started, 3),
+            publish_s=round(self._all_out_at - self._started, 3),
         )
         if self.exit_when_done:
             self.stop()
