@@ -221,6 +221,14 @@ class SliceTracker:
         studies it lowers the ES median in 23 and the presets' ES error by 0.14–0.18 mm; it
         lengthens the extrapolated apical twist on some and loses an akinetic sector's tracks on
         one (README, 'Tag tracking against the truth').
+    confirm_still : bool
+        On short-axis views, a first-pass match the second pass does not confirm, lying within
+        ``gate`` periods of its own ED position and nearer it than where the smooth warp through
+        the confirmed matches (ED → now) puts it, is detected again in the ED mask itself and
+        confirmed there within ``confirm_px``: an akinetic sector stays where the ED mask has
+        it while the warped mask follows its contracting neighbours. Off by default (README,
+        'Tag tracking against the truth': it keeps more of an akinetic sector's tracks but the
+        solved sector barely moves).
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -252,6 +260,7 @@ class SliceTracker:
         follow_floor: float = 0.25,
         ed_coverage: bool = True,
         register: bool = True,
+        confirm_still: bool = False,
         **detect_kwargs,
     ):
         self.geometry = geometry
@@ -272,6 +281,7 @@ class SliceTracker:
         self.follow_floor = float(follow_floor)
         self.ed_coverage = bool(ed_coverage)
         self.register = bool(register)
+        self.confirm_still = bool(confirm_still)
         if not (0.0 <= self.follow_relative <= 1.0 and 0.0 < self.follow_floor <= 1.0):
             raise ValueError(
                 f'follow_relative must be in [0, 1] and follow_floor in (0, 1]; '
@@ -369,7 +379,7 @@ class SliceTracker:
             return self._too_few_live(frame, live, note)
         pred = self._pos[live] + self._step[live]
         sp = float(np.mean(self.params.spacing_px))
-        m = self._match(image, mask, live, pred, sp)
+        m = self._match(image, mask, live, pred, sp, int(getattr(frame, 'view', VIEW_SA)))
         if m is None:
             self._coast(live, pred, pred)
             return self._result(
@@ -421,7 +431,7 @@ class SliceTracker:
             ),
         )
 
-    def _match(self, image, mask, live, pred, sp: float):
+    def _match(self, image, mask, live, pred, sp: float, view: int = VIEW_SA):
         """
         Detect near the predicted tracks and match them (TPS-RPM), in two passes when masks move.
 
@@ -465,7 +475,7 @@ class SliceTracker:
             follow=det.confidence[np.maximum(res.match, 0)],
         )
         if two_pass and hit.sum() >= 4:
-            self._confirm(image, live, roi, m)
+            self._confirm(image, live, roi, m, still=self.confirm_still and view == VIEW_SA)
         return m
 
     def _detect_following(self, image, region, accept, roi, tuned: bool = True) -> Detection:
@@ -487,7 +497,7 @@ class SliceTracker:
             **kwargs,
         )
 
-    def _confirm(self, image, live, roi, m: '_Matches') -> None:
+    def _confirm(self, image, live, roi, m: '_Matches', still: bool = False) -> None:
         """
         Detect again inside the mask warped through the matches and confirm each match there.
 
@@ -515,7 +525,46 @@ class SliceTracker:
         new[idx[found]] = det2.pixel_rc[j2[found]]
         m.conf[idx[found]] = det2.plain_confidence[j2[found]]
         m.follow[idx[found]] = det2.confidence[j2[found]]
+        if still:
+            found[~found] = self._confirm_still(image, live, new, idx[~found], m)
         m.unconfirmed[idx[~found]] = True
+
+    def _confirm_still(self, image, live, new, idx, m: '_Matches') -> np.ndarray:
+        """
+        Confirm, in the ED mask itself, the unconfirmed matches still where they were at ED.
+
+        A sector that does not contract while its neighbours do (akinetic) is not followed by a
+        smooth warp through the matches: its wall stays where the ED mask has it, off the
+        warped mask. A match within ``gate`` tag periods of its own ED position is detected
+        again in the ED mask (a check independent of the match, as the warped mask is) and
+        confirmed within ``confirm_px``. Updates ``new``, ``m.conf`` and ``m.follow`` at the
+        confirmed ones; returns which of ``idx`` are confirmed, bool (len(idx),).
+        """
+        ok = np.zeros(len(idx), bool)
+        sp = float(np.mean(self.params.spacing_px))
+        conf = np.setdiff1d(np.nonzero(m.hit)[0], idx)
+        if len(conf) < 4 or not len(idx):
+            return ok
+        ed = self.ed_rc[live[idx]]
+        moved = ThinPlateSpline.fit(self.ed_rc[live[conf]], new[conf], lam=300.0)(ed)
+        d_ed = np.linalg.norm(new[idx] - ed, axis=1)
+        still = (d_ed <= self.gate * sp) & (d_ed < np.linalg.norm(new[idx] - moved, axis=1))
+        if not still.any():
+            return ok
+        at = new[idx[still]]
+        lo = np.floor(at.min(0) - 2 * sp)
+        hi = np.ceil(at.max(0) + 2 * sp) + 1
+        det = self._detect_following(image, self.ed_mask, None, (lo[0], hi[0], lo[1], hi[1]))
+        if not det.ok or not len(det):
+            return ok
+        d, j = cKDTree(det.pixel_rc).query(at, distance_upper_bound=self.confirm_px)
+        got = np.isfinite(d)
+        k = idx[still][got]
+        new[k] = det.pixel_rc[j[got]]
+        m.conf[k] = det.plain_confidence[j[got]]
+        m.follow[k] = det.confidence[j[got]]
+        ok[np.nonzero(still)[0][got]] = True
+        return ok
 
     def _register_matches(self, frame: Frame, image, live, pred, sp: float, m: '_Matches'):
         """
