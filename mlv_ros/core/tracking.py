@@ -739,11 +739,15 @@ class MotionTracker:
         """
         Collect ED positions, targets, normals, keys and data weights of every track at this phase.
 
+        ``normals`` are the image-plane normals (K, 3), or, when some point lies on a single
+        family of tag lines, (ν, n) pairs (K, 2, 3) with n its tag-line normal (NaN: grid;
+        :func:`~mlv_ros.core.meshless.plane_projectors`).
+
         Slice by slice in (view, slice) order: the solution must not depend on the order the slices
         arrived in (float sums in another order, then an extra CG iteration, moved a phase by 0.015
         mm when the same sets were taken in another order). Within a slice, the set's order.
         """
-        keys, rest, targets, normals, conf = [], [], [], [], []
+        keys, rest, targets, normals, conf, lines = [], [], [], [], [], []
         for key, pts in sorted(sets.items(), key=lambda item: item[0]):
             ref = self._reference_rows.get(key)
             if ref is None or len(pts) == 0:
@@ -756,6 +760,7 @@ class MotionTracker:
             rest.append(p0[hit])
             targets.append(np.asarray(pts.position)[hit])
             normals.append(np.repeat(np.asarray(pts.geometry.normal)[None], int(hit.sum()), 0))
+            lines.append(_line_rows(pts, hit))
             c = pts.confidence if len(pts.confidence) == len(pts) else np.ones(len(pts))
             conf.append(np.asarray(c)[hit])
         if not keys:
@@ -763,6 +768,8 @@ class MotionTracker:
         conf = np.concatenate(conf)
         weights = data_weights(conf) if self.confidence_weights else np.ones(len(keys))
         rest, targets, normals = (np.concatenate(a) for a in (rest, targets, normals))
+        if any(np.isfinite(n).any() for n in lines):  # 1-D points: (ν, n) pairs
+            normals = np.stack([normals, np.concatenate(lines)], axis=1)
         return keys, rest, targets, normals, weights
 
     def _record_noise(self, phase_index, keys, targets, groups=None):
@@ -850,7 +857,7 @@ class MotionTracker:
 
         The nearest particles (:meth:`MeshlessModel.nearest`) are what the attachment queries.
         """
-        pos = rest + offsets[:, None] * normals
+        pos = rest + offsets[:, None] * _plane_normals(normals)
         near = self.model.nearest(pos)
         inside = near[0][:, 0] <= self.max_attach_mm
         return pos, inside, near
@@ -1549,7 +1556,7 @@ class MotionTracker:
         idx = np.flatnonzero(inside)
         if idx.size == 0:
             return new
-        n = normals[idx]
+        n = _plane_normals(normals)[idx]
         x0 = ctrl.weights @ self.positions
         Hk = (ctrl.weights @ self._positions_gradient().reshape(-1, 9)).reshape(-1, 3, 3)
         f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
@@ -1561,6 +1568,19 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -self.follow_step_mm, self.follow_step_mm)
         return new
+
+
+def _line_rows(pts: TagPointSet, hit) -> np.ndarray:
+    """Return the tag-line normals of ``pts``' rows ``hit``, NaN rows for grid points, (H, 3)."""
+    line = np.asarray(pts.line_normal, dtype=np.float64)
+    if line.shape != (len(pts), 3):
+        return np.full((int(np.count_nonzero(hit)), 3), np.nan)
+    return line[hit]
+
+
+def _plane_normals(normals) -> np.ndarray:
+    """Return the image-plane normals (K, 3) of (K, 3) normals or (K, 2, 3) (ν, n) pairs."""
+    return normals[:, 0] if normals.ndim == 3 else normals
 
 
 def _model_frame(pts, centre, rotation, R, a0, polar, shape) -> ModelFrame:
