@@ -116,6 +116,7 @@ def test_two_line_families_recover_the_motion_as_a_grid_does(study):
         np.percentile(err, 95),
     )
     assert sol.state.residual < 0.5
+    assert 'single-line' not in sol.state.verdict_reasons  # two families: a grid's data
 
 
 def test_one_family_per_slice_at_alternating_angles_recovers_the_motion(study):
@@ -143,6 +144,10 @@ def test_one_family_alone_recovers_the_motion_along_its_normal(study):
         np.median(along_n),
         np.percentile(along_n, 95),
         np.median(moved),
+    )
+    # ... and the phase says its data are 1-D (an "ok" would be 1.7 mm median off unseen).
+    assert sol.state.verdict >= 1 and 'single-line tags on 11 of 11 slices (1-D data)' in (
+        sol.state.verdict_reasons
     )
 
 

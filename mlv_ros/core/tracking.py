@@ -54,8 +54,9 @@ from mlv_ros.core.meshless import (
 )
 from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
+from mlv_ros.core.tags.gabor import MIN_DIRECTION_SEPARATION
 from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
-from mlv_ros.core.verdict import phase_verdict
+from mlv_ros.core.verdict import DEGRADED, MIN_SLICE_POINTS, phase_verdict
 from mlv_ros.settings import check_keywords, SOLVER_MODEL
 import numpy as np
 from scipy.spatial import cKDTree
@@ -609,6 +610,7 @@ class MotionTracker:
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self._one_family: dict = {}  # (view, slice) → its ED points lie on one tag-line family
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self._coarse = self._phase_coarse = None
         self._init_coarse_space(coarse_aggregates)
@@ -733,6 +735,8 @@ class MotionTracker:
             np.asarray(list(self.reference[key].values())).reshape(-1, 3),
         )
         self.normals[key] = (points.geometry.normal, points.geometry.image_position)
+        # At ED the lines are straight: one family's normals agree there.
+        self._one_family[key] = _one_line_family(points)
         return int(keep.sum())
 
     def _constraints(self, sets: dict):
@@ -1109,7 +1113,7 @@ class MotionTracker:
             for p in sets.values()
             if getattr(p, 'geometry', None) is not None
         ]
-        return phase_verdict(
+        verdict = phase_verdict(
             int(inside.sum()),
             sum(len(r) for r in self.reference.values()),
             sa_points,
@@ -1121,6 +1125,15 @@ class MotionTracker:
             sa_tracks=self._sector_tracks({k for k, ok in zip(keys, inside) if ok}),
             motion_share=motion / self.largest_motion_mm if self.largest_motion_mm > 0 else 1.0,
         )
+        one_d = [key for key in sets if self._one_family.get(key)]
+        if one_d:
+            verdict.flag(
+                DEGRADED,
+                f'single-line tags on {len(one_d)} of {len(sets)} slices (1-D data): motion '
+                "measured only across the tag lines; along them (and the heart's translation "
+                'along them) it is not',
+            )
+        return verdict
 
     def _sector_tracks(self, used: set) -> dict:
         """
@@ -1576,6 +1589,27 @@ def _line_rows(pts: TagPointSet, hit) -> np.ndarray:
     if line.shape != (len(pts), 3):
         return np.full((int(np.count_nonzero(hit)), 3), np.nan)
     return line[hit]
+
+
+def _one_line_family(pts: TagPointSet) -> bool:
+    """
+    Return whether a slice's points lie on one family of tag lines only (1-D data).
+
+    Its line normals' in-plane angles (mod 180°) are compared with their dominant one (the
+    doubled-angle mean): fewer than ``MIN_SLICE_POINTS`` at least ``MIN_DIRECTION_SEPARATION``
+    (30°, the tag estimate's least angle between two families) away from it is one family. A
+    grid slice (no line normals) is not. Meant for the ED points (straight lines): deformed
+    lines turn by more than that where the wall shears.
+    """
+    line = np.asarray(pts.line_normal, dtype=np.float64).reshape(-1, 3)
+    line = line[np.isfinite(line).all(axis=1)]
+    if line.shape[0] == 0 or pts.geometry is None:
+        return False
+    g = pts.geometry
+    angle = np.arctan2(line @ g.column_direction, line @ g.row_direction)
+    dominant = 0.5 * np.angle(np.mean(np.exp(2j * angle)))
+    off = np.abs(np.angle(np.exp(2j * (angle - dominant)))) / 2  # 0..π/2
+    return int(np.count_nonzero(off >= MIN_DIRECTION_SEPARATION)) < MIN_SLICE_POINTS
 
 
 def _plane_normals(normals) -> np.ndarray:
