@@ -838,9 +838,13 @@ _APPENDED_FIELDS = {
         *((n, 'sequence', ()) for n in FINDING_ARRAY_FIELDS),
         ('segment_class', 'sequence', ()),
     ),
-    # study_id (string ""); then run_id (string "")
+    # study_id (string ""); then run_id (string ""); TagPoints then line_normal (empty: grid)
     'mlv_msgs/msg/TaggedFrame': (('study_id', 'string', ''), ('run_id', 'string', '')),
-    'mlv_msgs/msg/TagPoints': (('study_id', 'string', ''), ('run_id', 'string', '')),
+    'mlv_msgs/msg/TagPoints': (
+        ('study_id', 'string', ''),
+        ('run_id', 'string', ''),
+        ('line_normal', 'sequence', ()),
+    ),
 }
 
 
@@ -850,7 +854,7 @@ _APPENDED_GROUPS = {
     'mlv_msgs/msg/ModelState': (2, 1, 1, 2),
     'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21),
     'mlv_msgs/msg/TaggedFrame': (1, 1),
-    'mlv_msgs/msg/TagPoints': (1, 1),
+    'mlv_msgs/msg/TagPoints': (1, 1, 1),
 }
 
 

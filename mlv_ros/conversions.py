@@ -607,6 +607,7 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
     _require_finite('tag pixel_rc', rc)
     _require_finite('tag position', pos)
     _require_finite('tag confidence', conf)
+    line = _checked_line_normals(points.line_normal, n)
     _check_view(points.view)
     _check_phase(points.phase_index, points.num_phases)
     _check_slice(points.view, points.slice_index, points.num_sa_slices, points.num_la_slices)
@@ -626,7 +627,30 @@ def tagpoints_to_msg(points: TagPointSet, stamp: float | Time | None = None) -> 
         status=points.status,
         study_id=_check_study_id(points.study_id),
         run_id=_check_study_id(points.run_id, 'run_id'),
+        line_normal=_fast_array('f', line, np.float32),
     )
+
+
+def _checked_line_normals(line_normal, n: int) -> np.ndarray:
+    """
+    Return tag-line normals as (N, 3) or (0, 3) float64, or raise ValueError.
+
+    Empty (grid intersections) or one per point: a unit vector (within 1e-3: the message carries
+    float32), or a row of NaN (that point is an intersection).
+    """
+    line = np.asarray(line_normal, dtype=np.float64)
+    if line.size == 0:
+        return np.zeros((0, 3))
+    if line.size != 3 * n:
+        raise ValueError(
+            f'tag line_normal has {line.size} values, want 0 or {3 * n} (3 per point)'
+        )
+    line = line.reshape(n, 3)
+    grid = np.isnan(line).all(axis=1)
+    rows = line[~grid]
+    if not np.all(np.isfinite(rows)) or np.any(np.abs(np.linalg.norm(rows, axis=1) - 1) > 1e-3):
+        raise ValueError('tag line_normal rows must be unit vectors or all NaN (an intersection)')
+    return line
 
 
 def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
@@ -635,7 +659,8 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
 
     Array lengths must agree (2N, 3N, N, N), values be finite, confidences lie in [0, 1], and each
     position be its ``pixel_rc`` placed by ``geometry`` (within ``TAG_POSITION_TOL_MM``): a point
-    off its own slice plane is garbage, not a measurement.
+    off its own slice plane is garbage, not a measurement. ``line_normal`` is empty (grid
+    intersections; recordings made before the field) or 3N unit vectors / NaN rows.
     """
     n = len(msg.track_id)
     if len(msg.pixel_rc) != 2 * n or len(msg.position) != 3 * n or len(msg.confidence) != n:
@@ -681,6 +706,9 @@ def msg_to_tagpoints(msg: TagPoints) -> TagPointSet:
         num_la_slices=msg.num_la_slices,
         study_id=_check_study_id(msg.study_id),
         run_id=_check_study_id(msg.run_id, 'run_id'),
+        line_normal=_checked_line_normals(
+            np.frombuffer(msg.line_normal, dtype=np.float32), n
+        ),
     )
 
 

@@ -392,6 +392,10 @@ def test_recordings_made_before_the_verdict_still_read():
                 {'phase_index': 1, 'num_phases': 9, 'study_id': sid, 'cavity_volume_ml': 90.5},
             ),
         ]
+    for sid in ('s', 'abcd', 'abcdefg'):  # recorded before TagPoints carried line normals
+        cases.append(
+            (TagPoints, '# Points on a single family', {'phase_index': 1, 'study_id': sid})
+        )
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
         name = f'mlv_msgs/msg/{cls.__name__}'
@@ -406,6 +410,8 @@ def test_recordings_made_before_the_verdict_still_read():
                 assert got.verdict == 0 and got.verdict_reasons == ''
             for k, v in values.items():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
+            if hasattr(got, 'line_normal'):  # tag-grid intersections
+                assert len(got.line_normal) == 0
             if hasattr(got, 'segment_origin'):  # unknown origin, no findings (ES phase −1)
                 assert got.segment_origin == 0 and got.segment_origin_confidence == 0.0
                 assert (

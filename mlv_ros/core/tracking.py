@@ -54,8 +54,9 @@ from mlv_ros.core.meshless import (
 )
 from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
+from mlv_ros.core.tags.gabor import MIN_DIRECTION_SEPARATION
 from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
-from mlv_ros.core.verdict import phase_verdict
+from mlv_ros.core.verdict import DEGRADED, MIN_SLICE_POINTS, phase_verdict
 from mlv_ros.settings import check_keywords, SOLVER_MODEL
 import numpy as np
 from scipy.spatial import cKDTree
@@ -609,6 +610,7 @@ class MotionTracker:
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self._one_family: dict = {}  # (view, slice) → its ED points lie on one tag-line family
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self._coarse = self._phase_coarse = None
         self._init_coarse_space(coarse_aggregates)
@@ -733,17 +735,23 @@ class MotionTracker:
             np.asarray(list(self.reference[key].values())).reshape(-1, 3),
         )
         self.normals[key] = (points.geometry.normal, points.geometry.image_position)
+        # At ED the lines are straight: one family's normals agree there.
+        self._one_family[key] = _one_line_family(points)
         return int(keep.sum())
 
     def _constraints(self, sets: dict):
         """
         Collect ED positions, targets, normals, keys and data weights of every track at this phase.
 
+        ``normals`` are the image-plane normals (K, 3), or, when some point lies on a single
+        family of tag lines, (ν, n) pairs (K, 2, 3) with n its tag-line normal (NaN: grid;
+        :func:`~mlv_ros.core.meshless.plane_projectors`).
+
         Slice by slice in (view, slice) order: the solution must not depend on the order the slices
         arrived in (float sums in another order, then an extra CG iteration, moved a phase by 0.015
         mm when the same sets were taken in another order). Within a slice, the set's order.
         """
-        keys, rest, targets, normals, conf = [], [], [], [], []
+        keys, rest, targets, normals, conf, lines = [], [], [], [], [], []
         for key, pts in sorted(sets.items(), key=lambda item: item[0]):
             ref = self._reference_rows.get(key)
             if ref is None or len(pts) == 0:
@@ -756,6 +764,7 @@ class MotionTracker:
             rest.append(p0[hit])
             targets.append(np.asarray(pts.position)[hit])
             normals.append(np.repeat(np.asarray(pts.geometry.normal)[None], int(hit.sum()), 0))
+            lines.append(_line_rows(pts, hit))
             c = pts.confidence if len(pts.confidence) == len(pts) else np.ones(len(pts))
             conf.append(np.asarray(c)[hit])
         if not keys:
@@ -763,6 +772,8 @@ class MotionTracker:
         conf = np.concatenate(conf)
         weights = data_weights(conf) if self.confidence_weights else np.ones(len(keys))
         rest, targets, normals = (np.concatenate(a) for a in (rest, targets, normals))
+        if any(np.isfinite(n).any() for n in lines):  # 1-D points: (ν, n) pairs
+            normals = np.stack([normals, np.concatenate(lines)], axis=1)
         return keys, rest, targets, normals, weights
 
     def _record_noise(self, phase_index, keys, targets, groups=None):
@@ -850,7 +861,7 @@ class MotionTracker:
 
         The nearest particles (:meth:`MeshlessModel.nearest`) are what the attachment queries.
         """
-        pos = rest + offsets[:, None] * normals
+        pos = rest + offsets[:, None] * _plane_normals(normals)
         near = self.model.nearest(pos)
         inside = near[0][:, 0] <= self.max_attach_mm
         return pos, inside, near
@@ -1102,7 +1113,7 @@ class MotionTracker:
             for p in sets.values()
             if getattr(p, 'geometry', None) is not None
         ]
-        return phase_verdict(
+        verdict = phase_verdict(
             int(inside.sum()),
             sum(len(r) for r in self.reference.values()),
             sa_points,
@@ -1114,6 +1125,15 @@ class MotionTracker:
             sa_tracks=self._sector_tracks({k for k, ok in zip(keys, inside) if ok}),
             motion_share=motion / self.largest_motion_mm if self.largest_motion_mm > 0 else 1.0,
         )
+        one_d = [key for key in sets if self._one_family.get(key)]
+        if one_d:
+            verdict.flag(
+                DEGRADED,
+                f'single-line tags on {len(one_d)} of {len(sets)} slices (1-D data): motion '
+                "measured only across the tag lines; along them (and the heart's translation "
+                'along them) it is not',
+            )
+        return verdict
 
     def _sector_tracks(self, used: set) -> dict:
         """
@@ -1549,7 +1569,7 @@ class MotionTracker:
         idx = np.flatnonzero(inside)
         if idx.size == 0:
             return new
-        n = normals[idx]
+        n = _plane_normals(normals)[idx]
         x0 = ctrl.weights @ self.positions
         Hk = (ctrl.weights @ self._positions_gradient().reshape(-1, 9)).reshape(-1, 3, 3)
         f0 = np.einsum('ij,ij->i', x0 - targets[idx], n)
@@ -1561,6 +1581,40 @@ class MotionTracker:
         step[good] = -f0[good] / df[good]
         new[idx] = offsets[idx] + np.clip(step, -self.follow_step_mm, self.follow_step_mm)
         return new
+
+
+def _line_rows(pts: TagPointSet, hit) -> np.ndarray:
+    """Return the tag-line normals of ``pts``' rows ``hit``, NaN rows for grid points, (H, 3)."""
+    line = np.asarray(pts.line_normal, dtype=np.float64)
+    if line.shape != (len(pts), 3):
+        return np.full((int(np.count_nonzero(hit)), 3), np.nan)
+    return line[hit]
+
+
+def _one_line_family(pts: TagPointSet) -> bool:
+    """
+    Return whether a slice's points lie on one family of tag lines only (1-D data).
+
+    Its line normals' in-plane angles (mod 180°) are compared with their dominant one (the
+    doubled-angle mean): fewer than ``MIN_SLICE_POINTS`` at least ``MIN_DIRECTION_SEPARATION``
+    (30°, the tag estimate's least angle between two families) away from it is one family. A
+    grid slice (no line normals) is not. Meant for the ED points (straight lines): deformed
+    lines turn by more than that where the wall shears.
+    """
+    line = np.asarray(pts.line_normal, dtype=np.float64).reshape(-1, 3)
+    line = line[np.isfinite(line).all(axis=1)]
+    if line.shape[0] == 0 or pts.geometry is None:
+        return False
+    g = pts.geometry
+    angle = np.arctan2(line @ g.column_direction, line @ g.row_direction)
+    dominant = 0.5 * np.angle(np.mean(np.exp(2j * angle)))
+    off = np.abs(np.angle(np.exp(2j * (angle - dominant)))) / 2  # 0..π/2
+    return int(np.count_nonzero(off >= MIN_DIRECTION_SEPARATION)) < MIN_SLICE_POINTS
+
+
+def _plane_normals(normals) -> np.ndarray:
+    """Return the image-plane normals (K, 3) of (K, 3) normals or (K, 2, 3) (ν, n) pairs."""
+    return normals[:, 0] if normals.ndim == 3 else normals
 
 
 def _model_frame(pts, centre, rotation, R, a0, polar, shape) -> ModelFrame:

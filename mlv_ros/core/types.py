@@ -99,6 +99,11 @@ class TagPointSet:
         Empty when fine; otherwise why the set is empty or partial.
     study_id, run_id : str
         As in the source :class:`Frame`.
+    line_normal : ndarray, shape (N, 3) or (0, 3)
+        Points on a single family of tag lines (no intersections): each point's tag-line
+        normal, a unit vector in the image plane (patient coordinates), along which alone the
+        point measures motion (a row of NaN: that point is an intersection). Empty (the
+        default): every point is a grid intersection and measures its in-plane motion.
 
     """
 
@@ -117,6 +122,7 @@ class TagPointSet:
     num_la_slices: int = 0
     study_id: str = ''  # as in Frame
     run_id: str = ''  # as in Frame
+    line_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])

@@ -623,6 +623,17 @@ def _tag_point_cases(valid: list[TaggedFrame]) -> list[MessageCase]:
         'disagree with pixel_rc',
         set_array('position', lambda a: a.reshape(n, 3)[::-1].reshape(-1).copy()),
     )
+    for what, values, expect in (
+        ('one value short', np.ones(3 * n - 1), '3 per point'),
+        ('not unit vectors', np.full(3 * n, 2.0), 'unit vectors or all'),
+        ('a row partly NaN', np.r_[np.nan, 0.0, 1.0, np.tile([0.0, 1.0, 0.0], n - 1)], 'unit'),
+    ):
+        case(
+            'tag_points/values',
+            f'line_normal {what}',
+            expect,
+            set_array('line_normal', lambda a, v=values: v),
+        )
 
     set_msg = _set_fields
     for what, fields, expect in (

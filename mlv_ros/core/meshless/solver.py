@@ -298,26 +298,41 @@ def _mls_shape_functions(points, y, h, pj, counts):
 
 def plane_projectors(normals, m: int) -> np.ndarray:
     """
-    Return in-plane projectors ``P_k = I − n_k n_kᵀ``, shape (M, 3, 3).
+    Return the data springs' projectors, shape (M, 3, 3): in-plane ``I − ν νᵀ`` or 1-D ``n nᵀ``.
 
-    Identity if ``normals`` is None.
+    A tag intersection (grid) measures the in-plane motion, ``P = I − ν νᵀ`` with ν the image
+    plane's normal. A point on a single family of tag lines measures only the motion along the
+    lines' normal n (in the image plane): ``P = n nᵀ``, the 1-D analogue (the paper's external
+    force, §2.4, with a line instead of an intersection). Identity if ``normals`` is None.
 
     Parameters
     ----------
-    normals : array_like, shape (M, 3) or (3,), or None
-        Plane normals (any length > 0; normalised here). A row of NaN is not allowed; to
-        constrain a point fully pass ``normals=None`` or use separate calls.
+    normals : array_like, shape (M, 3), (3,) or (M, 2, 3), or None
+        Plane normals ν (any length > 0; normalised here), or per point the pair (ν, n): the
+        image plane's normal and the tag lines' normal, n a row of NaN for a grid point. n is
+        made orthogonal to ν and normalised here. A NaN ν is not allowed; to constrain a point
+        fully pass ``normals=None`` or use separate calls.
     m : int
         Number of control points M.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, NaN/inf plane normals, a zero-length plane normal, a line normal that is
+        partly NaN or has no component in the image plane.
 
     """
     if normals is None:
         return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
     nrm = np.asarray(normals, dtype=np.float64)
+    if nrm.shape == (m, 2, 3):
+        return _line_projectors(nrm)
     if nrm.shape == (3,):
         nrm = np.broadcast_to(nrm, (m, 3))
     if nrm.shape != (m, 3):
-        raise ValueError(f'plane_normals must have shape ({m}, 3) or (3,), got {nrm.shape}')
+        raise ValueError(
+            f'plane_normals must have shape ({m}, 3), (3,) or ({m}, 2, 3), got {nrm.shape}'
+        )
     if not np.all(np.isfinite(nrm)):
         raise ValueError('plane_normals contain NaN/inf')
     ln = np.linalg.norm(nrm, axis=1)
@@ -325,6 +340,27 @@ def plane_projectors(normals, m: int) -> np.ndarray:
         raise ValueError(f'plane normal {int(np.argmin(ln))} has zero length')
     nrm = nrm / ln[:, None]
     return np.eye(3) - nrm[:, :, None] * nrm[:, None, :]
+
+
+def _line_projectors(pairs) -> np.ndarray:
+    """Return ``I − ν νᵀ`` (grid) or ``n nᵀ`` (tag line) per (ν, n) pair of shape (M, 2, 3)."""
+    proj = plane_projectors(pairs[:, 0], len(pairs))
+    line = pairs[:, 1]
+    is_line = np.isfinite(line).all(axis=1)
+    if np.any(~is_line & ~np.isnan(line).all(axis=1)):
+        raise ValueError('a tag-line normal must be finite or all NaN (grid point)')
+    if is_line.any():
+        # n in the image plane: (I − ν νᵀ) n, normalised
+        n = np.einsum('kab,kb->ka', proj[is_line], line[is_line])
+        ln = np.linalg.norm(n, axis=1)
+        if np.any(ln < 1e-6):
+            raise ValueError(
+                f'tag-line normal {int(np.flatnonzero(is_line)[np.argmin(ln)])} has no '
+                'component in its image plane'
+            )
+        n /= ln[:, None]
+        proj[is_line] = n[:, :, None] * n[:, None, :]
+    return proj
 
 
 def control_weights(weights, m: int) -> np.ndarray:
@@ -806,9 +842,10 @@ class MeshlessModel:
             From :meth:`attach`, or integer particle indices (M,), or rest positions (M, 3), mm.
         targets : array_like, shape (M, 3)
             Target world positions of the control points, mm.
-        plane_normals : array_like, shape (M, 3) or (3,), optional
-            If given, only the in-plane part ``(I − n nᵀ)(t − x)`` of each residual acts (a 2D
-            image measures in-plane motion only).
+        plane_normals : array_like, shape (M, 3), (3,) or (M, 2, 3), optional
+            If given, only the in-plane part ``(I − ν νᵀ)(t − x)`` of each residual acts (a 2D
+            image measures in-plane motion only); given as (ν, n) pairs, a point with a tag-line
+            normal n (not NaN) acts along n only, ``n nᵀ (t − x)`` (:func:`plane_projectors`).
         max_iterations : int
             Upper bound on iterations (global step + local step).
         tol : float

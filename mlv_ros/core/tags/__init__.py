@@ -42,6 +42,12 @@ Public API
     patient coordinates (mm) from the slice geometry. Never raises: problems come back as an empty
     (or partial) set with ``status`` set.
 
+``LineTracker(geometry=None, *, spacing_px, angle, ...)`` and ``detect_line_points(...)``
+    Single-line SPAMM (one family of parallel lines, no intersections): points about one
+    period apart along each line, tracked by the family's Gabor phase along the line normal
+    only (:mod:`mlv_ros.core.tags.lines`); the TagPointSet carries each point's line normal
+    (``line_normal``), the one direction it measures.
+
 ``harp_track(images, start_rc, params) -> HarpTrack``
     HARP baseline (Osman et al. 1999): band-pass one spectral peak per direction, harmonic
     phase, phase-constancy Newton tracking; for comparison in ``bench/tags.py``.
@@ -92,6 +98,7 @@ from .intersections import (
     grid_coherence,
     grid_labels,
 )
+from .lines import detect_line_points, line_parameters, LinePoints, LineTracker
 from .rpm import RPMResult, ThinPlateSpline, tps_rpm
 from .tracker import SliceTracker
 
@@ -99,12 +106,15 @@ __all__ = [
     'Detection',
     'GaborMaps',
     'HarpTrack',
+    'LinePoints',
+    'LineTracker',
     'RPMResult',
     'SliceTracker',
     'TagInputError',
     'TagParameters',
     'ThinPlateSpline',
     'detect_intersections',
+    'detect_line_points',
     'estimate_grid',
     'estimate_tag_parameters',
     'grid_coherence',
@@ -113,5 +123,6 @@ __all__ = [
     'harmonic_phase',
     'harp_track',
     'kernel_bank',
+    'line_parameters',
     'tps_rpm',
 ]
