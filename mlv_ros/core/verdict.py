@@ -577,4 +577,12 @@ def registration_verdict(slice_reports, wall_thickness_mm=None) -> Verdict:
             f'none of the {len(la)} LA views segmented at ED: base and apex from the SA stack '
             'alone',
         )
+    elif la and not any(r.ok and getattr(r, 'base_shown', True) for r in la):
+        # Every segmented LA horseshoe closed over the atrium: the base is not seen, and the
+        # model stops above the most basal SA slice (register._reconstruct).
+        v.flag(
+            DEGRADED,
+            'no LA view shows the base (each horseshoe closes over the atrium): the model ends '
+            'half a slice above the most basal SA slice and leaves out the wall above it',
+        )
     return v

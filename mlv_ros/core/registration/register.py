@@ -70,7 +70,8 @@ class SliceReport:
 
     ``ok`` and, if not, ``reason``; ``source`` is ``"auto"`` or ``"mask"``; ``landmarks`` used in
     the registration; ``residual_mm`` RMS in-plane landmark distance after registration (NaN if
-    none).
+    none); ``base_shown`` (LA) False when the view's horseshoe closed over the atrium, so that
+    it could not say where the base is.
     """
 
     view: int
@@ -80,6 +81,7 @@ class SliceReport:
     source: str = 'auto'
     landmarks: int = 0
     residual_mm: float = float('nan')
+    base_shown: bool = True
 
 
 @dataclass
@@ -360,7 +362,7 @@ def register_ed(
 
     # ---- 3-D reconstruction (§2.1)
     ts = time.perf_counter()
-    shape = _reconstruct(by_key, segs, usable_sa, frame3, warnings)
+    shape = _reconstruct(by_key, segs, usable_sa, frame3, warnings, reports)
     particles0 = sample_particles(shape, int(num_particles), seed)
     mframe, polar = model_frame(shape, particles0)
     timings['initialisation'] = time.perf_counter() - ts
@@ -535,31 +537,83 @@ def _reference(by_key, segs, usable_sa, axis_dir, reference_direction):
     return default_reference(axis_dir), septum
 
 
-def _reconstruct(by_key, segs, usable_sa, frame3: AxisFrame, warnings: list) -> LVShape:
-    """Reconstruct the 3-D myocardium from every slice's contour points (§2.1)."""
+def _reconstruct(
+    by_key, segs, usable_sa, frame3: AxisFrame, warnings: list, reports=()
+) -> LVShape:
+    """
+    Reconstruct the 3-D myocardium from every slice's contour points (§2.1).
+
+    An LA view whose horseshoe closed over the atrium has no base cut of its own
+    (``base_level`` NaN): it is cut where the other views put the base, and its report's
+    ``base_shown`` is set False.
+    """
     axis_pt, axis_dir = frame3.origin, frame3.axis  # the long axis the slices were cut along
     endo_pts, epi_pts, we, wn = [], [], [], []
-    z_bases = []
+    z_bases, z_cut, closed = [], [], []
     for k, s in segs.items():
         g = by_key[k].geometry
         pe, _ = _ray_points(s, g, 'epi')
         pn, _ = _ray_points(s, g, 'endo')
+        zb = np.inf
         if k[0] == VIEW_LA:
-            base_pt = g.pixel_to_patient(s.centre_rc + s.base_level * s.axis_rc)
-            zb = float((base_pt - axis_pt) @ axis_dir)
-            z_bases.append(zb)
-            # Ray ends at the base cut are not wall points.
-            pe = pe[(pe - axis_pt) @ axis_dir < zb - 3.0]
-            pn = pn[(pn - axis_pt) @ axis_dir < zb - 3.0]
+            if np.isfinite(s.base_level):
+                base_pt = g.pixel_to_patient(s.centre_rc + s.base_level * s.axis_rc)
+                zb = float((base_pt - axis_pt) @ axis_dir)
+                z_bases.append(zb)
+            else:
+                closed.append(k)
             w = 2.0  # LA rays are sparser per unit surface than the SA stack's
         else:
             w = 1.0
         epi_pts.append(pe)
         endo_pts.append(pn)
+        z_cut.append(zb)
         we.append(np.full(len(pe), w))
         wn.append(np.full(len(pn), w))
+    if closed:
+        warnings.append(
+            f'{_names(closed)}: the horseshoe closes over the atrium (the edges of its blood '
+            'read as wall), so '
+            + (
+                'the base is taken from the other LA views'
+                if z_bases
+                else 'no LA view shows the base: the model ends half a slice above the most '
+                'basal SA slice and leaves out the wall above it'
+            )
+        )
     z_base = _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases, warnings)
+    for i, k in enumerate(segs):
+        if k[0] != VIEW_LA:
+            continue
+        # Ray ends at the base cut are not wall points; a view closed over the atrium is cut
+        # where the base is taken.
+        keep = (z_cut[i] if np.isfinite(z_cut[i]) else z_base) - 3.0
+        e_in = (epi_pts[i] - axis_pt) @ axis_dir < keep
+        n_in = (endo_pts[i] - axis_pt) @ axis_dir < keep
+        epi_pts[i], we[i] = epi_pts[i][e_in], we[i][e_in]
+        endo_pts[i], wn[i] = endo_pts[i][n_in], wn[i][n_in]
+    for k in closed:
+        _cut_at_base(segs[k], by_key[k].geometry, axis_pt, axis_dir, z_base)
+    for r in reports:
+        if (r.view, r.slice_index) in closed:
+            r.base_shown = False
     return reconstruct_shape(frame3, endo_pts, epi_pts, z_base, wn, we)
+
+
+def _names(keys) -> str:
+    """Return slices' names for a message, e.g. ``LA 0, LA 2``."""
+    return ', '.join(f'{_VIEW[k[0]]} {k[1]}' for k in keys)
+
+
+def _cut_at_base(s: seg.SliceSegmentation, g, axis_pt, axis_dir, z_base: float) -> None:
+    """Set an LA view's base level to ``z_base`` (mm on the long axis) and cut its mask there."""
+    z_centre, z_step = (
+        (g.pixel_to_patient(np.stack([s.centre_rc, s.centre_rc + s.axis_rc])) - axis_pt) @ axis_dir
+    )
+    s.base_level = float((z_base - z_centre) / (z_step - z_centre))
+    rr, cc = np.mgrid[0:s.mask.shape[0], 0:s.mask.shape[1]]
+    along = (rr - s.centre_rc[0]) * s.axis_rc[0] + (cc - s.centre_rc[1]) * s.axis_rc[1]
+    s.mask &= along <= s.base_level
 
 
 def _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases: list, warnings: list) -> float:

@@ -163,7 +163,8 @@ class SliceSegmentation:
     view : str
         ``"SA"`` or ``"LA"``.
     base_level : float
-        LA only: base-plane cut as a coordinate along ``axis_rc`` from ``centre_rc``, px.
+        LA only: base-plane cut as a coordinate along ``axis_rc`` from ``centre_rc``, px; NaN
+        when the view does not show it (a horseshoe closed over the atrium).
     axis_rc : ndarray, shape (2,)
         LA only: unit in-plane long-axis direction (apex → base), (row, col).
     source : str
@@ -1497,6 +1498,11 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg, strength=N
     if np.cos(angles[arc[arc.size // 2]] - base_dir) < 0:
         arc, endo, epi = _level_ends(arc, valid, endo, epi, angles, ax, base_dir)
         arc = _thin_ends_cut(arc, found, endo, epi, angles, base_dir, strength)
+    # The long axis runs through the mitral opening, so the LV's horseshoe never holds the ray
+    # toward the base: one that does has closed over the atrium (the edges of its blood taken
+    # for wall), and its ends say nothing of where the base is.
+    toward_base = np.abs((angles[arc] - base_dir + np.pi) % (2.0 * np.pi) - np.pi)
+    base_found = not bool(np.any(toward_base <= 0.5 * (angles[1] - angles[0])))
     # Only rays that met the wall count toward the arc (not the wide gaps bridged above).
     arc_deg = np.count_nonzero(met[arc]) * 360.0 / NUM_RAYS
     if arc_deg < min_arc_deg:
@@ -1506,7 +1512,7 @@ def _la_from_runs(shape, c, ax, angles, endo, epi, rmax, min_arc_deg, strength=N
         return _fail(
             shape, 'horseshoe opens toward the apex (long-axis orientation inconsistent)', 'LA'
         )
-    return _horseshoe_mask(shape, c, ax, angles, arc, endo, epi)
+    return _horseshoe_mask(shape, c, ax, angles, arc, endo, epi, base_found)
 
 
 def _bridged(valid, endo, epi, angles, base_dir):
@@ -1550,8 +1556,13 @@ def _longest_circular_run(valid: np.ndarray) -> np.ndarray:
     return (np.arange(s_idx[j], e_idx[j]) + start) % NUM_RAYS
 
 
-def _horseshoe_mask(shape, c, ax, angles, arc, endo, epi) -> SliceSegmentation:
-    """Smooth the arc's walls, cut them at the base level and rasterise the LA mask."""
+def _horseshoe_mask(shape, c, ax, angles, arc, endo, epi, base_found=True) -> SliceSegmentation:
+    """
+    Smooth the arc's walls, cut them at the base level and rasterise the LA mask.
+
+    Without ``base_found`` (a horseshoe closed over the atrium) the base level is NaN and the
+    mask is not cut: the caller cuts it where the other views put the base.
+    """
     e_arc = _circular_smooth(endo[arc], 1.5, median=5, closed=False)
     p_arc = _circular_smooth(epi[arc], 1.5, median=5, closed=False)
     # Base level: mid-wall axial coordinate of the two arc ends (each end ray stops at the
@@ -1563,7 +1574,7 @@ def _horseshoe_mask(shape, c, ax, angles, arc, endo, epi) -> SliceSegmentation:
         th = angles[arc[k]] + side * half_step
         rmid = 0.5 * (e_arc[k] + p_arc[k])
         ends.append(rmid * (np.sin(th) * ax[0] + np.cos(th) * ax[1]))
-    base_level = float(np.mean(ends))
+    base_level = float(np.mean(ends)) if base_found else float('nan')
     endo_full = np.full(NUM_RAYS, np.nan)
     epi_full = np.full(NUM_RAYS, np.nan)
     endo_full[arc] = np.clip(e_arc, 0.0, None)
