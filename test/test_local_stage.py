@@ -91,13 +91,18 @@ def test_block_diagonal_is_the_exact_diagonal_block_of_every_term(study):
     M = rng.normal(size=(3, 3))
     ctrl = tr.model.attach(tr.rest[rng.choice(n, 40, replace=False)])
     P = plane_projectors(rng.normal(size=(40, 3)), 40)
-    for axial in ((7.0, np.array([0.0, 0.6, 0.8])), (7.0, np.broadcast_to(M, (n, 3, 3)))):
+    S = np.broadcast_to(rng.normal(size=(3, 3)), (n, 3, 3))
+    for axial, shear in (
+        ((7.0, np.array([0.0, 0.6, 0.8])), None),
+        ((7.0, np.broadcast_to(M, (n, 3, 3))), (5.0, S)),
+    ):
         system = tr._local.system(
             fit_error=3.0,
             volume=(50.0, C, None),
             axial=axial,
             data=(2.0, ctrl.weights, P),
             eps=0.1,
+            shear=shear,
         )
         scale = np.abs(system.block_diagonal).max()
         for i in rng.choice(n, 6, replace=False):
@@ -114,6 +119,46 @@ def test_block_diagonal_is_the_exact_diagonal_block_of_every_term(study):
         )
     with pytest.raises(ValueError, match='coarse or coarse_correction'):
         tr._local.system(coarse=tr._coarse, coarse_correction=lambda r: r)
+
+
+def test_shear_term_is_its_strain_measure_squared_for_affine_fields(study):
+    """
+    Check the ``shear`` term's energy against ``½ k_s Σ_i v_i (M_i : G)²`` for ``u = G X``.
+
+    The MLS gradient reproduces an affine field's gradient ``G`` exactly, so the term's energy
+    ``½ uᵀ A_s u`` (the system with it less the one without) is that sum to rounding, for any
+    measures ``M_i``; the tracker's own measures (``a r_iᵀ``) read ``∂u_a/∂r``: a transmural
+    axial shear ``u = γ (r · X) a`` costs ``½ k_s γ² Σ v_i`` and an axial stretch nothing.
+    """
+    _, tr, _ = referenced_tracker(study, n=800, global_thickening=True)
+    n, rng = tr.num_particles, np.random.default_rng(3)
+    vol = tr.model.phyxels.volume
+    base = tr._local.system(fit_error=3.0, eps=0.1)
+
+    def energy(u, shear):
+        extra = tr._local.system(fit_error=3.0, eps=0.1, shear=shear).matvec(u) - base.matvec(u)
+        return 0.5 * float(np.sum(u * extra))
+
+    M = rng.normal(size=(n, 3, 3))
+    G = rng.normal(size=(3, 3))
+    u = tr.rest @ G.T
+    expect = 0.5 * 5.0 * float(np.sum(vol * np.einsum('nab,ab->n', M, G) ** 2))
+    assert energy(u, (5.0, M)) == pytest.approx(expect, rel=1e-8)
+    # a transmural shear along the rest long axis: u_a = γ (r_i · X) about the rest frame
+    rot = tracking.quat_to_matrix(tr.model.rest_params.rotation)
+    axis = rot[:, 2]
+    k, measures = tr._axial_shear(axis)
+    assert k == pytest.approx(tr.longitudinal_weight * tr.model.mu)
+    x_dir = rot[:, 0]  # an affine shear along x: ∂u_a/∂r = 0.1 (r · x) per particle
+    u = 0.1 * np.outer(tr.rest @ x_dir, axis)
+    r_x = tr._radial @ x_dir
+    expect = 0.5 * k * float(np.sum(vol * (0.1 * r_x) ** 2))
+    assert energy(u, (k, measures)) == pytest.approx(expect, rel=1e-8)
+    assert energy(np.outer(tr.rest @ axis, axis), (k, measures)) == pytest.approx(0.0, abs=1e-9)
+    plain = tracking.MotionTracker(
+        tr.rest, tr.model.rest_params.translation, tr.model.rest_params.rotation
+    )
+    assert plain._axial_shear(axis) is None  # the paper's affine shape: no such term
 
 
 def test_start_residual_from_stacked_products_equals_the_separate_ones(study):

@@ -231,6 +231,7 @@ class LocalOperators:
         eps: float = 0.0,
         coarse: 'CoarseSpace | None' = None,
         coarse_correction=None,
+        shear: tuple | None = None,
     ) -> 'LocalSystem':
         """
         Build the local-stage system of one solve (elasticity always included, weight 1).
@@ -257,11 +258,15 @@ class LocalOperators:
             converging to this system's solution; a correction factored for nearby data springs
             (the pass before, in the same phase) costs next to no iterations (default study: 492
             → 495 over 48 solves) and saves its projection and Cholesky factor (3.5 ms).
+        shear : (k_s, M) or None
+            A second strain-measure term ``½ k_s Σ_i v_i (M_i : H_i)²``, as ``axial``'s per
+            particle form: ``k_s`` (P), ``M`` shape (N, 3, 3) (the thick-walled global shape's
+            transmural axial shear, ``MotionTracker._axial_shear``).
 
         """
         if coarse is not None and coarse_correction is not None:
             raise ValueError('give coarse or coarse_correction, not both')
-        system = LocalSystem(self, fit_error, volume, axial, data, eps, coarse)
+        system = LocalSystem(self, fit_error, volume, axial, data, eps, coarse, shear)
         if coarse_correction is not None:
             system.coarse_correction = coarse_correction
         return system
@@ -270,7 +275,17 @@ class LocalOperators:
 class LocalSystem:
     """One local-stage system ``A u = b`` (see :meth:`LocalOperators.system`)."""
 
-    def __init__(self, ops: LocalOperators, fit_error, volume, axial, data, eps, coarse=None):
+    def __init__(
+        self,
+        ops: LocalOperators,
+        fit_error,
+        volume,
+        axial,
+        data,
+        eps,
+        coarse=None,
+        shear=None,
+    ):
         n = ops.n
         self.ops, self.n = ops, n
         self.fit_error, self.eps = float(fit_error), float(eps)
@@ -302,6 +317,10 @@ class LocalSystem:
             else:  # per particle: ½ k_l Σ_i v_i (M_i : H_i)²
                 rank_one.append((kl * vol, np.swapaxes(a, 1, 2).reshape(n, 9)))
                 block = block + kl * sandwich_3x3(a, q)
+        if shear is not None and shear[0]:
+            ks, m = float(shear[0]), np.asarray(shear[1], dtype=np.float64)
+            rank_one.append((ks * vol, np.swapaxes(m, 1, 2).reshape(n, 9)))
+            block = block + ks * sandwich_3x3(m, q)
         tangent = fixed_tangent  # read-only; a new array once a term of this solve is added
         if rank_one:
             # Σ_t w_t c_t c_tᵀ per particle as one batched (9 × r)(r × 9) product: a third of the
