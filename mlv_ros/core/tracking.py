@@ -115,10 +115,12 @@ def second_difference_noise(x, d2) -> np.ndarray | None:
     if n < NOISE_MIN_TRACKS:
         return None
     A = np.column_stack([np.ones(n), x - x.mean(axis=0)])
-    keep = np.ones(n, dtype=bool)
+    keep, fitted = np.ones(n, dtype=bool), None
     for _ in range(2):
-        coef = np.linalg.lstsq(A[keep], d2[keep], rcond=None)[0]
-        r = np.sum((d2 - A @ coef) ** 2, axis=1)
+        if fitted is None or not np.array_equal(keep, fitted):  # else the same fit again
+            coef = np.linalg.lstsq(A[keep], d2[keep], rcond=None)[0]
+            r = np.sum((d2 - A @ coef) ** 2, axis=1)
+            fitted = keep
         keep = r <= NOISE_SLIP**2 * np.median(r)
     m, rank = int(keep.sum()), int(np.linalg.matrix_rank(A[keep]))
     if m <= rank + 2:
@@ -609,6 +611,8 @@ class MotionTracker:
         self.reference: dict = {}  # (view, slice) → {track_id: ED position (3,)}
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
+        self._sectors = None  # SA slice → (θ°, track ids, segments) of its ED points: see
+        # _sector_tracks; set_reference clears it
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
         self._coarse = self._phase_coarse = None
         self._init_coarse_space(coarse_aggregates)
@@ -719,6 +723,7 @@ class MotionTracker:
     def set_reference(self, points: TagPointSet) -> int:
         """Record a slice's ED tag points (phase 0); returns how many lie inside the model."""
         key = (int(points.view), int(points.slice_index))
+        self._sectors = None
         if len(points) == 0:
             self.reference[key] = {}
             self._reference_rows.pop(key, None)
@@ -917,7 +922,14 @@ class MotionTracker:
                 pos, inside, targets, normals, weights * scale, near
             )
             self._pass_motion(
-                keys, inside, ctrl, targets, normals, (weights, scale), pass_index == passes - 1
+                keys,
+                inside,
+                ctrl,
+                targets,
+                normals,
+                (weights, scale),
+                pass_index == passes - 1,
+                result.positions,
             )
             offsets = self._follow_slices(offsets, rest, normals, targets, inside, ctrl)
             worst = _larger_rejected_share(worst, self.rejected - rejected_before, attached)
@@ -974,14 +986,14 @@ class MotionTracker:
         # leave 3-5 mm here and are dropped too (``screen_global`` False: the prescreen alone,
         # against the previous phase's motion and, in later passes, the previous pass's).
         outlier = self._outliers(
-            ctrl.weights @ self.model.positions(), targets[inside], normals[inside]
+            ctrl.weights @ result.positions, targets[inside], normals[inside]
         )
         if outlier.any() and (~outlier).sum() >= 4:
             inside, ctrl = self._drop(inside, ctrl, outlier)
             result = self._fit_global(ctrl, targets[inside], normals[inside], weights[inside])
         return inside, ctrl, result
 
-    def _pass_motion(self, keys, inside, ctrl, targets, normals, weights, last):
+    def _pass_motion(self, keys, inside, ctrl, targets, normals, weights, last, x_global=None):
         """
         Set ``positions`` to the global fit plus the twist function and the local deformation δ.
 
@@ -1002,10 +1014,14 @@ class MotionTracker:
         last : bool
             Whether this is the phase's last pass (the full CG tolerance; no coupling to flag
             for a next pass).
+        x_global : ndarray, shape (N, 3), optional
+            The global fit's particle positions (mm) when the caller has them (its
+            ``FitResult.positions``): the model's :meth:`~MeshlessModel.positions`, not taken
+            again.
 
         """
         weights, scale = weights
-        x_global = self.model.positions()
+        x_global = self.model.positions() if x_global is None else x_global
         if self.twist_knots:
             sa_slice = np.array([k[1] if k[0] == VIEW_SA else -1 for k in keys])[inside]
             x_global = self._twist_function(
@@ -1134,21 +1150,23 @@ class MotionTracker:
             :func:`mlv_ros.core.verdict.weakest_sector`.
 
         """
-        frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
-        out = {}
-        for (view, index), ref in self.reference.items():
-            if view != VIEW_SA or not ref:
-                continue
-            X = np.asarray(list(ref.values()))
-            ie = frame.inplane(X)
-            theta = np.arctan2(ie[:, 1], ie[:, 0])
-            seg = aha_segments(frame.level(X), theta, frame.aha_origin_deg)
-            out[index] = (
-                np.degrees(theta),
-                [(view, index, t) in used for t in ref],
-                [AHA_SEGMENT_NAMES[k - 1] for k in seg],
-            )
-        return out
+        if self._sectors is None:  # the ED points' angles and segments: once per reference
+            frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
+            self._sectors = {}
+            for (view, index), ref in self.reference.items():
+                if view != VIEW_SA or not ref:
+                    continue
+                X = np.asarray(list(ref.values()))
+                ie = frame.inplane(X)
+                theta = np.arctan2(ie[:, 1], ie[:, 0])
+                seg = aha_segments(frame.level(X), theta, frame.aha_origin_deg)
+                deg = np.degrees(theta)
+                deg.flags.writeable = False
+                self._sectors[index] = (deg, tuple(ref), [AHA_SEGMENT_NAMES[k - 1] for k in seg])
+        return {
+            index: (deg, [(VIEW_SA, index, t) in used for t in tids], list(names))
+            for index, (deg, tids, names) in self._sectors.items()
+        }
 
     def _multipliers(self) -> tuple[float, float]:
         """

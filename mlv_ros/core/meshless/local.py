@@ -717,7 +717,9 @@ class CoarseSpace:
             pz = (sp.csr_matrix(phi) @ self.basis).toarray()
             q = self.num_basis
             upper = [(e, f) for e in range(3) for f in range(e, 3)]
-            weighted = np.concatenate([pz * metric[:, e, f][:, None] for e, f in upper], axis=1)
+            weighted = np.empty((pz.shape[0], len(upper) * q))  # the products, not concatenated
+            for b, (e, f) in enumerate(upper):
+                np.multiply(pz, metric[:, e, f][:, None], out=weighted[:, b * q:(b + 1) * q])
             blocks = float(kappa) * (pz.T @ weighted)
             ac = ac.copy()
             for b, (e, f) in enumerate(upper):
