@@ -108,6 +108,8 @@ SECTOR_SHARE_DEGRADED = 0.3
 #: from ED (median over the model): a sector carried by its neighbours is off by about how
 #: differently it moves, which vanishes as every sector returns to its ED place (late diastole).
 SECTOR_MOTION_SHARE = 0.5
+# weakest_sector compares this many (start angle, point) pairs at once, at most (memory only).
+_SECTOR_BLOCK = 1 << 20
 
 # Physiological bounds (analyzer).
 #: Ejection fraction outside these bounds: degraded / failed (the cavity grew by more than 10 %
@@ -298,23 +300,39 @@ def weakest_sector(
     if heart <= 0.0:
         return None
     m = min(int(slices), len(keys))
-    best = None
+    best = None  # (share, n, run, a0)
     for j in range(len(keys) - m + 1):
         run = keys[j:j + m]
         th = np.concatenate([theta[k] for k in run])
         u = np.concatenate([used[k] for k in run])
-        for a0 in np.unique(th):
-            offset = np.mod(th - a0, 360.0)
+        starts = np.unique(th)
+        # Every start angle at once, in blocks of at most _SECTOR_BLOCK (start, point) pairs, with
+        # the numbers of one start at a time: the offset th − a0 lies in (−360, 360), where
+        # np.mod(·, 360) is it, or it + 360 below 0, bit for bit; a share is the used count over
+        # n, as the mean of the used flags divides it. The first start of the smallest
+        # (share, −n) wins, as in stack and angle order one start at a time.
+        step = max(1, _SECTOR_BLOCK // max(th.size, 1))
+        for b in range(0, starts.size, step):
+            a0 = starts[b:b + step]
+            offset = th[None, :] - a0[:, None]
+            np.add(offset, 360.0, out=offset, where=offset < 0.0)
             inside = offset < width_deg
-            n = int(inside.sum())
-            if n < min_points:
+            n = inside.sum(axis=1)
+            ok = np.flatnonzero(n >= min_points)
+            if ok.size == 0:
                 continue
-            share = float(u[inside].mean()) / heart
-            if best is None or (share, -n) < (best[0], -best[3]):
-                best = (share, run, a0, n, inside, offset)
+            share = np.count_nonzero(inside[ok] & u, axis=1) / n[ok] / heart
+            least = ok[share == share.min()]
+            i = int(least[np.argmax(n[least])])  # the first of the largest n among them
+            cand = (float(share.min()), int(n[i]), run, float(a0[i]))
+            if best is None or (cand[0], -cand[1]) < (best[0], -best[1]):
+                best = cand
     if best is None:
         return None
-    share, run, a0, n, inside, offset = best
+    share, n, run, a0 = best
+    th = np.concatenate([theta[k] for k in run])
+    offset = np.mod(th - a0, 360.0)
+    inside = offset < width_deg
     u = np.concatenate([used[k] for k in run])
     lab = np.concatenate([labels[k] for k in run])
     lost = inside & ~u

@@ -348,6 +348,8 @@ class LocalSystem:
         # against 0.095 ms for the batched (N, 3, 3) matmul at 3000 particles.
         self._block_inv_cols = np.ascontiguousarray(np.moveaxis(self._block_inv, 0, -1))
         self.coarse_correction = None  # r ↦ Z A_c⁻¹ Zᵀ r for residuals (N, 3), or None
+        self._last_gradient = None  # D u of the last internal(u)
+        self.solution_gradient = None  # D u of the last solve's solution (see solve)
         if coarse is not None:
             if coarse.ops is not ops:
                 raise ValueError('coarse space was built on other local operators')
@@ -359,6 +361,7 @@ class LocalSystem:
         """Return ``A u`` without the data springs, shape (N, 3)."""
         ops, n = self.ops, self.n
         g = (ops.operator.matrix_csc @ u).reshape(n, 9, -1)
+        self._last_gradient = g  # D u, for solve's gradient of its iterate
         if self.fit_error:
             # Dᵀ S + α L u as one product of [Dᵀ | α L] with the stacked (S; u): one pass of
             # scipy's kernel instead of two (1.5 against 2.0 ms at 3000 particles, load 10).
@@ -473,6 +476,7 @@ class LocalSystem:
         atol: float = 0.0,
         maxiter: int = 400,
         residual: np.ndarray | None = None,
+        gradient_x0: np.ndarray | None = None,
     ) -> tuple[np.ndarray, int]:
         """
         Preconditioned CG on ``A u = rhs`` (:func:`pcg`, :meth:`precondition`).
@@ -487,6 +491,11 @@ class LocalSystem:
             Stop when ``‖r‖ ≤ max(rtol ‖rhs‖, atol)`` or after ``maxiter`` iterations.
         residual : ndarray, shape (N, 3), optional
             ``rhs − A x0`` (:meth:`right_hand_side`), instead of a product here.
+        gradient_x0 : ndarray, shape (3N, 3), optional
+            ``D x0`` in the operator's layout (zeros for no start): then
+            :attr:`solution_gradient` is ``D u`` of the solution, updated with each step from
+            the product ``D p`` the step's ``A p`` takes (no product of its own; the same as
+            ``D u`` to rounding).
 
         Returns
         -------
@@ -495,6 +504,17 @@ class LocalSystem:
 
         """
         n = self.n
+        self.solution_gradient = on_step = None
+        if gradient_x0 is not None and not np.any(rhs):  # pcg's zero solution
+            self.solution_gradient = np.zeros((n, 9))
+        elif gradient_x0 is not None:
+            self.solution_gradient = grad = np.array(gradient_x0, dtype=np.float64).reshape(n, 9)
+
+            def step_gradient(alpha):  # x += α p: D x += α D p
+                np.add(grad, alpha * self._last_gradient[:, :, 0], out=grad)
+
+            on_step = step_gradient
+
         x, its = pcg(
             lambda v: self.matvec(v.reshape(n, 3)).ravel(),
             self.precondition,
@@ -504,7 +524,10 @@ class LocalSystem:
             atol=atol,
             maxiter=maxiter,
             r0=None if residual is None else np.ravel(residual),
+            on_step=on_step,
         )
+        if self.solution_gradient is not None:
+            self.solution_gradient = self.solution_gradient.reshape(3 * n, 3)
         return x.reshape(n, 3), its
 
 
@@ -736,7 +759,9 @@ class CoarseSpace:
             pz = (sp.csr_matrix(phi) @ self.basis).toarray()
             q = self.num_basis
             upper = [(e, f) for e in range(3) for f in range(e, 3)]
-            weighted = np.concatenate([pz * metric[:, e, f][:, None] for e, f in upper], axis=1)
+            weighted = np.empty((pz.shape[0], len(upper) * q))  # the products, not concatenated
+            for b, (e, f) in enumerate(upper):
+                np.multiply(pz, metric[:, e, f][:, None], out=weighted[:, b * q:(b + 1) * q])
             blocks = float(kappa) * (pz.T @ weighted)
             ac = ac.copy()
             for b, (e, f) in enumerate(upper):
@@ -777,6 +802,7 @@ def pcg(
     atol: float = 0.0,
     maxiter: int = 400,
     r0: np.ndarray | None = None,
+    on_step=None,
 ) -> tuple[np.ndarray, int]:
     """
     Solve ``A x = b`` by preconditioned conjugate gradients without BLAS inner products.
@@ -802,6 +828,9 @@ def pcg(
         Most iterations.
     r0 : ndarray, shape (n,), optional
         ``b − A x0`` when the caller has it (used only with a non-zero ``x0``).
+    on_step : callable, optional
+        ``on_step(alpha)`` after each update ``x += alpha p`` (``p`` the direction the last
+        ``matvec`` took).
 
     Returns
     -------
@@ -833,6 +862,8 @@ def pcg(
         q = matvec(p)
         alpha = rho / _dot(p, q)
         x += alpha * p
+        if on_step is not None:
+            on_step(alpha)
         r -= alpha * q
         rho_prev = rho
     return x, int(maxiter)

@@ -257,23 +257,26 @@ def _mls_shape_functions(points, y, h, pj, counts):
     m = y.shape[0]
     # Per-control values spread to their pairs with np.repeat (the pairs are grouped), and the
     # particles gathered with np.take: the same numbers as indexing with the pairs' control
-    # index, in a third of the time (the distance is the same sum as np.linalg.norm's).
-    rel = np.take(points, pj, axis=0)
-    rel -= np.repeat(y, counts, axis=0)
+    # index, in a third of the time (the distance is the same sum as np.linalg.norm's). Pairs
+    # run along the rows' contiguous axis (component-major (3, P) and (4, P)): the same
+    # element-wise numbers as pair-major rows, 1.45 against 1.8 ms a call (253 control points,
+    # 69 pairs each).
+    rel = np.take(points.T, pj, axis=1)
+    rel -= np.repeat(y.T, counts, axis=1)
     hk = np.repeat(h, counts)
     sq = rel * rel
     # the kernel's normalisation once per control point, not per pair
-    wk = poly6(np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2]), hk, np.repeat(poly6_norm(h), counts))
-    basis = np.empty((pj.size, 4))
-    basis[:, 0] = 1.0
-    np.divide(rel, hk[:, None], out=basis[:, 1:])
-    wb = wk[:, None] * basis
+    wk = poly6(np.sqrt(sq[0] + sq[1] + sq[2]), hk, np.repeat(poly6_norm(h), counts))
+    basis = np.empty((4, pj.size))
+    basis[0] = 1.0
+    np.divide(rel, hk, out=basis[1:])
+    wb = wk * basis
     # Σ w p pᵀ per control point, its 10 distinct entries as one product with the (M, P) matrix
     # of ones that groups the pairs: each row sums its pairs in order, as a bincount per entry
     # did, in 0.55 against 0.94 ms (330 control points, 68 pairs each).
     prod = np.empty((pj.size, len(_MOMENT_ENTRIES)))
     for e, (a, b) in enumerate(_MOMENT_ENTRIES):
-        np.multiply(wb[:, a], basis[:, b], out=prod[:, e])
+        np.multiply(wb[a], basis[b], out=prod[:, e])
     ptr = np.concatenate([[0], np.cumsum(counts)])
     sums = sp.csr_matrix((np.ones(pj.size), np.arange(pj.size), ptr), shape=(m, pj.size)) @ prod
     ea, eb = _MOMENT_ENTRIES.T
@@ -288,7 +291,9 @@ def _mls_shape_functions(points, y, h, pj, counts):
     ok = ~shepard
     if ok.any():
         coef[ok] = np.linalg.solve(mom[ok], rhs[ok])[:, :, 0]
-    phi = wk * np.einsum('pa,pa->p', basis, np.repeat(coef, counts, axis=0))
+    # einsum on pair-major rows, as before: its sum over the 4 terms in its own order
+    pair_major = np.ascontiguousarray(basis.T)
+    phi = wk * np.einsum('pa,pa->p', pair_major, np.repeat(coef, counts, axis=0))
     if shepard.any():
         pk = np.repeat(np.arange(m), counts)
         wsum = np.bincount(pk, weights=wk, minlength=m)
