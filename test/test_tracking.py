@@ -497,6 +497,9 @@ def test_still_sector_keeps_its_tracks_while_slipped_tracks_are_dropped(study, s
         {'global_prior': float('inf')},
         {'tag_noise_mm': -0.1},
         {'tag_noise_mm': float('nan')},
+        {'coupling_plateau': 1.0},
+        {'coupling_plateau': -0.1},
+        {'coupling_plateau': float('nan')},
     ],
 )
 def test_bad_solver_weights_are_clear_errors(study, option):
@@ -629,6 +632,10 @@ def test_longitudinal_coupling_follows_an_akinetic_sector():
     longitudinal strain follows the circumferential one: from exact tags the ES median error of
     the sector and the basal wall above it (AHA 7, 1) falls from 1.38 to 1.23 mm, the p95 from
     1.86 to 1.75 mm, the whole heart's median stays 0.39 mm (measured).
+
+    With ``coupling_plateau`` 0.5 a flagged point gives its whole weight within half the reach:
+    the sector's mean weight rises from 0.51 to 0.80 and its median error falls to 1.15 mm, the
+    whole heart's median 0.385 → 0.389 mm (measured).
     """
     from mlv_ros.core.sim.regional import truth_segments
 
@@ -636,25 +643,36 @@ def test_longitudinal_coupling_follows_an_akinetic_sector():
     m = study.motion
     refs = grid_tags(study)
     es = int(round(m.es_phase))
-    err, weight = {}, None
-    for coupling in (0.0, 1.0):
-        X, tr = make_tracker(study, n=2000, longitudinal_coupling=coupling)
+    err, weight = {}, {}
+    for name, coupling, plateau in (('off', 0.0, 0.0), ('hat', 1.0, 0.0), ('plateau', 1.0, 0.5)):
+        X, tr = make_tracker(
+            study, n=2000, longitudinal_coupling=coupling, coupling_plateau=plateau
+        )
         for key, g in study.geometries.items():
             tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
         for phase in range(1, es + 1):
             sol = tr.solve(phase, observed(study, refs, phase), m.num_phases)
-        err[coupling] = np.linalg.norm(sol.positions - m.position(X, es), axis=1)
-        if coupling:
-            weight = tr.coupling_weight
+        err[name] = np.linalg.norm(sol.positions - m.position(X, es), axis=1)
+        weight[name] = tr.coupling_weight
     seg = truth_segments(m, X)
     sector = np.isin(seg, (1, 7))
-    assert np.mean(weight[seg == 7]) > 5.0 * np.mean(weight[~np.isin(seg, (1, 7, 8, 12, 13))])
-    assert np.median(err[1.0][sector]) < 0.95 * np.median(err[0.0][sector]), (
-        np.median(err[0.0][sector]),
-        np.median(err[1.0][sector]),
+    away = ~np.isin(seg, (1, 7, 8, 12, 13))
+    for key in ('hat', 'plateau'):
+        assert np.mean(weight[key][seg == 7]) > 5.0 * np.mean(weight[key][away])
+    # the plateau: more of the sector's weight, a smaller sector error, the rest unchanged
+    assert np.mean(weight['plateau'][seg == 7]) > 1.3 * np.mean(weight['hat'][seg == 7])
+    assert np.median(err['plateau'][sector]) < 0.97 * np.median(err['hat'][sector]), (
+        np.median(err['hat'][sector]),
+        np.median(err['plateau'][sector]),
     )
-    assert np.percentile(err[1.0], 95) < np.percentile(err[0.0], 95)
-    assert np.median(err[1.0]) < np.median(err[0.0]) + 0.05
+    assert np.median(err['plateau']) < np.median(err['hat']) + 0.02
+    assert np.percentile(err['plateau'], 95) < np.percentile(err['hat'], 95) + 0.02
+    assert np.median(err['hat'][sector]) < 0.95 * np.median(err['off'][sector]), (
+        np.median(err['off'][sector]),
+        np.median(err['hat'][sector]),
+    )
+    assert np.percentile(err['hat'], 95) < np.percentile(err['off'], 95)
+    assert np.median(err['hat']) < np.median(err['off']) + 0.05
 
 
 def test_track_rows_and_slice_groups_act_as_the_dicts_they_replace():

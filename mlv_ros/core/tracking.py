@@ -502,6 +502,13 @@ class MotionTracker:
         2006 0.418 / 2.543 → 0.428 / 2.262; healthy 1001 0.474 / 1.042 → 0.475 / 1.041, 1004
         0.610 / 1.325 → 0.602 / 1.308, 1007 0.707 / 1.530 → 0.711 / 1.548, 1014 0.516 / 1.005 →
         0.521 / 1.005, 2004 0.419 / 1.014 → 0.420 / 1.011.
+    coupling_plateau : float
+        In [0, 1): the share of the coupling's reach ℓ within which a flagged tag point gives the
+        particles its whole weight, tapering linearly to 0 at ℓ (0: the hat ``1 − d / ℓ`` from the
+        point itself). With the hat, a sector whose every tag point is flagged still averages
+        about half its points' weight (study 4006's akinetic AHA 7 at ES: median 0.43), so the
+        coupling there asks for half the longitudinal deviation the circumferential one implies.
+        Off: measured on the kept studies (README, Longitudinal coupling's reach).
     global_prior : float
         Weight of the prior that holds the global parameters at the previous phase
         (:meth:`MeshlessModel.fit`'s ``global_prior``): with few or one-sided tag points a weakly
@@ -584,6 +591,7 @@ class MotionTracker:
         coarse_aggregates: int | None = None,
         longitudinal_coupling: float = 1.0,
         regional_coupling: bool = True,
+        coupling_plateau: float = 0.0,
         tag_noise_mm: float = 0.15,
         global_thickening: bool = False,
     ):
@@ -617,6 +625,7 @@ class MotionTracker:
         self.rejected = 0
         self._init_local_stage(hourglass_weight, volume_weight)
         self._init_coupling(longitudinal_weight, longitudinal_coupling, regional_coupling)
+        self.coupling_plateau = _coupling_plateau(coupling_plateau)
         self.global_prior = float(global_prior)
         self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
@@ -1386,10 +1395,11 @@ class MotionTracker:
         """
         Return each particle's share of the coupling: near tag points the motion left inward.
 
-        ``max(COUPLING_MEMORY × the previous weight, max_k w_k (1 − d_ik / ℓ))`` over the points k
-        the previous pass flagged (:meth:`_outward_points`, their weights ``w_k`` and reach ℓ) at
-        ED distance ``d_ik < ℓ``; the memory carries a region found at one phase into the next,
-        where its points may fall short of the threshold.
+        ``max(COUPLING_MEMORY × the previous weight, max_k w_k t(d_ik))`` over the points k the
+        previous pass flagged (:meth:`_outward_points`, their weights ``w_k`` and reach ℓ) at ED
+        distance ``d_ik < ℓ``, with the taper ``t(d) = min(1, (1 − d / ℓ) / (1 − p))``, p =
+        ``coupling_plateau`` (0: the hat ``1 − d / ℓ``); the memory carries a region found at one
+        phase into the next, where its points may fall short of the threshold.
 
         Returns
         -------
@@ -1409,7 +1419,10 @@ class MotionTracker:
         idx = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
         k = np.repeat(np.arange(len(lists)), counts)
         d = np.linalg.norm(self.rest[idx] - pts[k], axis=1)
-        np.maximum.at(w, idx, wk[k] * (1.0 - d / ell))
+        taper = 1.0 - d / ell
+        if self.coupling_plateau:
+            taper = np.minimum(1.0, taper / (1.0 - self.coupling_plateau))
+        np.maximum.at(w, idx, wk[k] * taper)
         self._coupling_map = w
         return w
 
@@ -1817,6 +1830,24 @@ def _slice_groups(keys) -> list:
         idx = np.flatnonzero(inverse == g)
         out.append(((int(arr[idx[0], 0]), int(arr[idx[0], 1])), idx, arr[idx, 2]))
     return out
+
+
+def _coupling_plateau(value) -> float:
+    """
+    Return ``coupling_plateau`` checked: a number in [0, 1).
+
+    Raises
+    ------
+    ValueError
+        The value is not a finite number in [0, 1).
+
+    """
+    value = float(value)
+    if not 0.0 <= value < 1.0:
+        raise ValueError(
+            f'coupling_plateau must be in [0, 1) (0 = the hat from each flagged point), got {value}'
+        )
+    return value
 
 
 def _larger_rejected_share(worst, rejected, attached):
