@@ -1845,7 +1845,8 @@ def _coupling_plateau(value) -> float:
     value = float(value)
     if not 0.0 <= value < 1.0:
         raise ValueError(
-            f'coupling_plateau must be in [0, 1) (0 = the hat from each flagged point), got {value}'
+            f'coupling_plateau must be in [0, 1) (0 = the hat from each flagged point), '
+            f'got {value}'
         )
     return value
 
