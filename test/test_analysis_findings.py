@@ -179,7 +179,8 @@ def test_a_phase_degraded_for_a_sector_inflates_and_marks_only_its_segments(
     named = np.array([0, 3, 12])
     rest = np.setdiff1d(np.arange(17), named)
     for c in ('err', 'ecc', 'ell'):
-        np.testing.assert_allclose(sector.es_unc[c][named], VERDICT_INFLATION * ok.es_unc[c][named])
+        inflated = VERDICT_INFLATION * ok.es_unc[c][named]
+        np.testing.assert_allclose(sector.es_unc[c][named], inflated)
         np.testing.assert_array_equal(sector.es_unc[c][rest], ok.es_unc[c][rest])
         np.testing.assert_allclose(whole.es_unc[c], VERDICT_INFLATION * ok.es_unc[c])
     assert sector.unsupported == [1, 4, 13] and whole.unsupported == ok.unsupported == []

@@ -388,10 +388,9 @@ def _figures(out: Path, runs: list, summaries: list) -> tuple[list, list]:
         attempt(
             'segment_findings.png',
             'Wall motion by AHA segment at end-systole: normal / hypokinetic / akinetic / '
-            'dyskinetic, '
-            "indeterminate (hatched) where the data cannot tell, unsupported (cross-hatched, red "
-            "edge) where the ES tag data lost the segment's sector; f = share of the heart's own "
-            'function ± σ.',
+            'dyskinetic, indeterminate (hatched) where the data cannot tell, unsupported '
+            "(cross-hatched, red edge) where the ES tag data lost the segment's sector; f = share "
+            "of the heart's own function ± σ.",
             lambda: plot_segment_findings(with_phases, out / 'segment_findings.png'),
         )
     else:
