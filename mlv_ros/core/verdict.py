@@ -67,7 +67,8 @@ unclassed (:mod:`mlv_ros.core.analysis.findings`); a whole-heart reason beside i
 whole phase less sure. ``bench/retrack.py --strain`` on main bec0921: at 1014's ES (phase 10,
 flagged for segments 2–4, every segment within 1 mm) 8 segments read indeterminate (2–4
 unsupported, 13–17 as in an ok phase), where inflating every segment read all 17; 1012's ES
-(phase 8) is not flagged on this main (its sector is at phases 9–12, named segments 11, 12, 16)
+(phase 8) is not flagged on this main (its sector is at phases 9–12, named segments 11, 12, 16
+of a run whose segments come from the anatomical prior: the truth's akinetic 7 lies in them)
 and reads as before. Found / missed / false counts are unchanged on both.
 """
 
