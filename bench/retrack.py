@@ -130,7 +130,8 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
     Solve every phase as the solver node does.
 
     Keywords MotionTracker does not take are set as its attributes (``prescreen``, ...). Returns
-    the tracker, phase → positions and phase → (verdict level, reasons, RMS residual mm).
+    the tracker, phase → positions and phase → (verdict level, reasons, RMS residual mm, degraded
+    segments: ``ModelState.degraded_segments``; a phase not solved has no fourth entry).
     """
     import inspect
 
@@ -159,7 +160,12 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
             verdicts[p] = (FAILED, f'not solved: {exc}', 0.0)
             continue
         positions[p] = sol.positions
-        verdicts[p] = (sol.state.verdict, sol.state.verdict_reasons, sol.state.residual)
+        verdicts[p] = (
+            sol.state.verdict,
+            sol.state.verdict_reasons,
+            sol.state.residual,
+            sol.state.degraded_segments,
+        )
     return tr, positions, verdicts
 
 
@@ -307,7 +313,8 @@ def phase_errors(rest, positions, verdicts, motion) -> list:
     positions : dict
         Phase → solved positions, mm.
     verdicts : dict
-        Phase → (verdict level, reasons, RMS residual mm), as :func:`solve` returns them.
+        Phase → (verdict level, reasons, RMS residual mm[, degraded segments]), as :func:`solve`
+        returns them.
     motion : LVMotion
         The study's true motion.
 
@@ -322,7 +329,7 @@ def phase_errors(rest, positions, verdicts, motion) -> list:
 
     seg = truth_segments(motion, rest)
     out = []
-    for p, (level, reasons, _) in sorted(verdicts.items()):
+    for p, (level, reasons, *_) in sorted(verdicts.items()):
         row = [int(p), None, None, None, int(level), reasons]
         if p in positions:
             err = np.linalg.norm(positions[p] - motion.position(rest, p), axis=1)

@@ -136,7 +136,8 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> 
     es : int
         The phase compared (the truth's ES).
     states : dict, optional
-        phase → (verdict level, verdict text, RMS residual mm) of the solver; default ok and 0.
+        phase → (verdict level, verdict text, RMS residual mm[, degraded segments]) of the
+        solver (``ModelState``'s fields); default ok and 0.
 
     Returns
     -------
@@ -159,10 +160,12 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> 
     n = max(positions) + 1
     phases = []
     for p in sorted(positions):
-        level, text, residual = (states or {}).get(p, (0, '', 0.0))
+        level, text, residual, *segments = (states or {}).get(p, (0, '', 0.0))
         m = an.phase(positions[p], phase_index=p, num_phases=n, residual_mm=residual)
-        v = Verdict.from_parts(level, text).merge(Verdict.from_parts(m.verdict, m.verdict_reasons))
-        m.verdict, m.verdict_reasons = v.level, v.text
+        v = Verdict.from_parts(level, text, *segments[:1]).merge(
+            Verdict.from_parts(m.verdict, m.verdict_reasons)
+        )
+        m.verdict, m.verdict_reasons, m.degraded_segments = v.level, v.text, v.confined_to
         phases.append(m)
     at = next(m for m in phases if m.phase_index == es)
     st = an.strain(positions[es])

@@ -817,7 +817,8 @@ def _root_name(recorded: str, wanted, namespaces: dict, path) -> str | None:
 _APPENDED_FIELDS = {
     # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
     # ...; then segment_origin (uint8 0 = unknown) and its confidence; MotionMetrics
-    # then the segment uncertainties and findings (empty, ES phase −1: none).
+    # then the segment uncertainties and findings (empty, ES phase −1: none); then both the
+    # degraded segments (empty: none or the whole phase).
     'mlv_msgs/msg/ModelState': (
         ('verdict', 'uint8', 0),
         ('verdict_reasons', 'string', ''),
@@ -825,6 +826,7 @@ _APPENDED_FIELDS = {
         ('run_id', 'string', ''),
         ('segment_origin', 'uint8', 0),
         ('segment_origin_confidence', 'float64', 0.0),
+        ('degraded_segments', 'sequence', ()),
     ),
     'mlv_msgs/msg/MotionMetrics': (
         ('verdict', 'uint8', 0),
@@ -837,6 +839,7 @@ _APPENDED_FIELDS = {
         ('findings_es_phase', 'int32', -1),
         *((n, 'sequence', ()) for n in FINDING_ARRAY_FIELDS),
         ('segment_class', 'sequence', ()),
+        ('degraded_segments', 'sequence', ()),
     ),
     # study_id (string ""); then run_id (string ""); TagPoints then line_normal (empty: grid)
     'mlv_msgs/msg/TaggedFrame': (('study_id', 'string', ''), ('run_id', 'string', '')),
@@ -851,8 +854,8 @@ _APPENDED_FIELDS = {
 # Fields appended together (one change of the definition), oldest first: an older recording
 # lacks whole groups only, so only these are tried when the schema is not known.
 _APPENDED_GROUPS = {
-    'mlv_msgs/msg/ModelState': (2, 1, 1, 2),
-    'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21),
+    'mlv_msgs/msg/ModelState': (2, 1, 1, 2, 1),
+    'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21, 1),
     'mlv_msgs/msg/TaggedFrame': (1, 1),
     'mlv_msgs/msg/TagPoints': (1, 1, 1),
 }

@@ -754,6 +754,9 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         segment_origin_confidence=_check_confidence(
             getattr(state, 'segment_origin_confidence', 0.0)
         ),
+        degraded_segments=_fast_array(
+            'B', _check_segments(getattr(state, 'degraded_segments', ())), np.uint8
+        ),
     )
 
 
@@ -765,6 +768,26 @@ def _check_origin(v) -> int:
             f'({", ".join(f"{c} {n}" for n, c in SEGMENT_ORIGIN_CODES.items())}), got {v!r}'
         )
     return int(v)
+
+
+def _check_segments(v, name: str = 'degraded_segments') -> tuple:
+    """
+    Check a list of AHA segment numbers: distinct integers 1…17; return them ascending.
+
+    Raises
+    ------
+    ValueError
+        A value that is not an integer in 1…17, or one given twice.
+
+    """
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.size and (
+        not np.all(np.isfinite(a)) or np.any(a != np.round(a)) or np.any((a < 1) | (a > 17))
+    ):
+        raise ValueError(f'{name} must hold AHA segment numbers 1..17, got {a.tolist()}')
+    if np.unique(a).size != a.size:
+        raise ValueError(f'{name} names a segment twice: {a.astype(int).tolist()}')
+    return tuple(sorted(int(x) for x in a))
 
 
 def _check_confidence(v) -> float:
@@ -797,6 +820,7 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         run_id=_check_study_id(msg.run_id, 'run_id'),
         segment_origin=_check_origin(msg.segment_origin),
         segment_origin_confidence=_check_confidence(msg.segment_origin_confidence),
+        degraded_segments=_check_segments(np.frombuffer(msg.degraded_segments, dtype=np.uint8)),
     )
     _require_finite(
         'model state',
@@ -894,6 +918,11 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         except (KeyError, AttributeError):
             value = default
         setattr(msg, name, check(value))
+    try:
+        segments = _metrics_value(metrics, 'degraded_segments')
+    except (KeyError, AttributeError):
+        segments = ()
+    msg.degraded_segments = _fast_array('B', _check_segments(segments), np.uint8)
     return msg
 
 
@@ -960,6 +989,7 @@ def msg_to_metrics(msg: MotionMetricsMsg) -> dict:
     out['findings_es_phase'] = _check_es_phase(msg.findings_es_phase)
     out['verdict'] = checked_level(msg.verdict)
     out['verdict_reasons'] = msg.verdict_reasons
+    out['degraded_segments'] = _check_segments(np.frombuffer(msg.degraded_segments, np.uint8))
     out['study_id'] = _check_study_id(msg.study_id)
     out['run_id'] = _check_study_id(msg.run_id, 'run_id')
     return out

@@ -23,7 +23,12 @@ normal; missing support gives 'indeterminate', never a class; the report draws t
 import json
 
 from mlv_ros.core.analysis import LVAnalyzer, PhaseMetrics, segment_findings, SegmentFindings
-from mlv_ros.core.analysis.findings import classify, MIN_SEGMENT_PARTICLES, UNCERTAINTY_FLOOR
+from mlv_ros.core.analysis.findings import (
+    classify,
+    MIN_SEGMENT_PARTICLES,
+    UNCERTAINTY_FLOOR,
+    VERDICT_INFLATION,
+)
 from mlv_ros.core.sim import load_preset, make_motion
 from mlv_ros.core.sim.regional import regional_truth, truth_frame
 import numpy as np
@@ -140,3 +145,59 @@ def test_report_draws_the_classes(heart, tmp_path, monkeypatch):
     )
     page = index.read_text()
     assert 'Regional findings' in page and 'akinetic' in page
+
+
+def test_a_phase_degraded_for_a_sector_inflates_and_marks_only_its_segments(
+    heart, tmp_path, monkeypatch
+):
+    """
+    Inflate only the named segments of a phase degraded for a sector, every one for the heart.
+
+    The solver's sector check names the segments the ES tag data no longer support: only those
+    are less sure and, at ES, unsupported (indeterminate, out of the references); a phase
+    degraded for a whole-heart reason inflates every segment as before.
+    """
+    _, phases, _ = heart
+    es = segment_findings(phases).es_phase
+    ok = segment_findings(phases)
+
+    def degraded(segments):
+        return [
+            PhaseMetrics.from_dict(
+                p.to_dict()
+                | (
+                    {'verdict': 1, 'verdict_reasons': 'x', 'degraded_segments': segments}
+                    if p.phase_index == es
+                    else {}
+                )
+            )
+            for p in phases
+        ]
+
+    sector = segment_findings(degraded((1, 4, 13)))
+    whole = segment_findings(degraded(()))
+    named = np.array([0, 3, 12])
+    rest = np.setdiff1d(np.arange(17), named)
+    for c in ('err', 'ecc', 'ell'):
+        inflated = VERDICT_INFLATION * ok.es_unc[c][named]
+        np.testing.assert_allclose(sector.es_unc[c][named], inflated)
+        np.testing.assert_array_equal(sector.es_unc[c][rest], ok.es_unc[c][rest])
+        np.testing.assert_allclose(whole.es_unc[c], VERDICT_INFLATION * ok.es_unc[c])
+    assert sector.unsupported == [1, 4, 13] and whole.unsupported == ok.unsupported == []
+    assert [sector.classes[k] for k in named] == ['indeterminate'] * 3
+    # The others keep the class of the ok phase (1, 4 and 13 read normal there).
+    assert [ok.classes[k] for k in named] == ['normal'] * 3
+    assert [sector.classes[k] for k in rest] == [ok.classes[k] for k in rest], sector.classes
+    assert sector.to_dict()['unsupported'] == [1, 4, 13]
+    # An ok phase naming segments (never sent so) changes nothing.
+    stray = [PhaseMetrics.from_dict(p.to_dict() | {'degraded_segments': (1,)}) for p in phases]
+    assert segment_findings(stray).classes == ok.classes
+    # The report says which segments are unsupported, in summary.json and on the page.
+    from mlv_ros.core.report import build_report, figures
+
+    monkeypatch.setattr(figures, 'DPI', 30)
+    index = build_report(tmp_path, degraded((1, 4, 13)), meta={'label': 'sector'})
+    found = json.loads((tmp_path / 'summary.json').read_text())['runs'][0]['segment_findings']
+    assert found['unsupported'] == [1, 4, 13]
+    page = index.read_text()
+    assert page.count('(unsupported)') == 3 and 'unsupported at ES' in page

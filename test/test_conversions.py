@@ -616,3 +616,29 @@ def test_segment_origin_and_findings_round_trip():
     ):
         with pytest.raises(ValueError, match=match):
             cv.metrics_to_msg({**m, **bad})
+
+
+def test_degraded_segments_survive_cdr_and_bad_ones_are_refused():
+    """
+    Carry the segments a degraded verdict is confined to through ModelState and MotionMetrics.
+
+    Ascending on the way back whatever the order given, empty by default; a number outside 1…17
+    or one named twice is refused by name, both ways.
+    """
+    s = ModelState(num_phases=20, phase_index=8, verdict=1, verdict_reasons='x')
+    assert cv.msg_to_model_state(cdr(cv.model_state_to_msg(s))).degraded_segments == ()
+    s.degraded_segments = (13, 7, 1)
+    msg = cdr(cv.model_state_to_msg(s))
+    assert cv.msg_to_model_state(msg).degraded_segments == (1, 7, 13)
+    m = make_metrics()
+    assert cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))['degraded_segments'] == ()
+    back = cv.msg_to_metrics(cdr(cv.metrics_to_msg({**m, 'degraded_segments': [17, 2]})))
+    assert back['degraded_segments'] == (2, 17)
+    for bad, match in (((0,), '1..17'), ((18,), '1..17'), ((7.5,), '1..17'), ((7, 7), 'twice')):
+        with pytest.raises(ValueError, match=f'degraded_segments .*{match}'):
+            cv.model_state_to_msg(ModelState(num_phases=2, degraded_segments=bad))
+        with pytest.raises(ValueError, match=f'degraded_segments .*{match}'):
+            cv.metrics_to_msg({**m, 'degraded_segments': bad})
+    msg.degraded_segments = array.array('B', [7, 99])  # as a foreign publisher might send it
+    with pytest.raises(ValueError, match='1..17'):
+        cv.msg_to_model_state(msg)

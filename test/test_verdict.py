@@ -173,9 +173,17 @@ def test_a_sector_whose_sa_tracks_are_lost_is_degraded_and_named(study):
     )
     assert 'SA slices' in state.verdict_reasons
     assert any(name in state.verdict_reasons for name in AHA_SEGMENT_NAMES)
+    # Degraded for the sector alone: the state names the segments its reason names, no other.
+    named = {k + 1 for k, n in enumerate(AHA_SEGMENT_NAMES) if n in state.verdict_reasons}
+    assert state.degraded_segments and set(state.degraded_segments) == named, (
+        state.degraded_segments,
+        state.verdict_reasons,
+    )
+    assert list(state.degraded_segments) == sorted(state.degraded_segments)
     # The same share of tracks lost evenly over the heart is no regional gap.
     even = solve(study, es, lambda s: keep(s, 0.7, seed=3))
     assert 'ED tag points lost' not in even.verdict_reasons, even.verdict_reasons
+    assert even.degraded_segments == ()
 
 
 def test_weakest_sector_finds_one_lost_sector_and_not_uniform_loss():
@@ -258,6 +266,24 @@ def test_verdict_arithmetic_and_bad_levels():
     assert w.level == FAILED and w.reasons[:2] == ['a', 'b'] and 'ejection fraction' in w.text
     with pytest.raises(ValueError, match='verdict must be'):
         Verdict.from_parts(3, '')
+
+
+def test_a_verdict_is_confined_to_a_region_only_while_every_reason_is_regional():
+    v = Verdict()
+    v.flag(DEGRADED, 'sector', region=('mid anterior', 'basal anterior'))
+    assert v.level == DEGRADED and v.confined_to == ('mid anterior', 'basal anterior')
+    v.flag(DEGRADED, 'fit residual')  # a whole-heart reason beside it: the whole phase
+    assert v.confined_to == ()
+    # Through a message: the solver's segments, then the analyzer's own verdict merged in.
+    sent = Verdict.from_parts(DEGRADED, 'sector; another sector', (13, 7))
+    assert sent.merge(Verdict()).confined_to == (13, 7)
+    assert sent.merge(metrics_verdict(0.9, 1.0, 80.0)).confined_to == ()  # EF 90 %: degraded
+    assert Verdict.from_parts(DEGRADED, 'x').confined_to == ()
+    for level in (OK, FAILED):
+        assert Verdict.from_parts(level, 'x' if level else '', (7,)).confined_to == ()
+    failed = Verdict()
+    failed.flag(FAILED, 'sector', region=(7,))
+    assert failed.confined_to == ()
 
 
 def _old_cdr(cls, cut: str, values: dict) -> bytes:
@@ -396,6 +422,15 @@ def test_recordings_made_before_the_verdict_still_read():
         cases.append(
             (TagPoints, '# Points on a single family', {'phase_index': 1, 'study_id': sid})
         )
+    for sid in ('s', 'abcd'):  # recorded before the degraded segments
+        cases += [
+            (
+                cls,
+                '# AHA segments (1-17, ascending)',
+                {'phase_index': 1, 'num_phases': 9, 'study_id': sid, 'segment_origin': 2},
+            )
+            for cls in (ModelState, MotionMetrics)
+        ]
     for cls, cut, values in cases:
         data = _old_cdr(cls, cut, values)
         name = f'mlv_msgs/msg/{cls.__name__}'
@@ -412,6 +447,9 @@ def test_recordings_made_before_the_verdict_still_read():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
             if hasattr(got, 'line_normal'):  # tag-grid intersections
                 assert len(got.line_normal) == 0
+            assert len(getattr(got, 'degraded_segments', ())) == 0  # none named: the whole phase
+            if 'segment_origin' in values:
+                continue
             if hasattr(got, 'segment_origin'):  # unknown origin, no findings (ES phase −1)
                 assert got.segment_origin == 0 and got.segment_origin_confidence == 0.0
                 assert (

@@ -1140,6 +1140,11 @@ class MotionTracker:
         state.num_control_points = int(inside.sum())
         verdict = self._verdict(sets, inside, state.residual, keys, *worst)
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
+        # The sector check names AHA segments (:meth:`_sector_tracks`); a phase degraded by it
+        # alone is less sure there only.
+        state.degraded_segments = tuple(
+            sorted(AHA_SEGMENT_NAMES.index(n) + 1 for n in verdict.confined_to)
+        )
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
 
     def _verdict(self, sets, inside, residual_mm, keys, rejected, attached):

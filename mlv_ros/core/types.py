@@ -140,7 +140,10 @@ class ModelState:
     (:mod:`mlv_ros.core.verdict`). ``study_id`` and ``run_id`` name the study and run the state
     was computed from (as in :class:`Frame`). ``segment_origin`` (:data:`SEGMENT_ORIGIN_CODES`)
     and ``segment_origin_confidence`` (0…1) say where the registered model's circumferential
-    reference came from (0 / 0.0 on per-phase states).
+    reference came from (0 / 0.0 on per-phase states). ``degraded_segments``: the AHA segments
+    (1–17, ascending) a degraded verdict is confined to (:attr:`Verdict.confined_to
+    <mlv_ros.core.verdict.Verdict.confined_to>`: a sector the tag data no longer support); empty
+    when the verdict is ok, failed or degraded for a whole-heart reason.
     """
 
     phase_index: int = 0
@@ -163,6 +166,7 @@ class ModelState:
     run_id: str = ''
     segment_origin: int = 0
     segment_origin_confidence: float = 0.0
+    degraded_segments: tuple = ()
 
 
 @dataclass

@@ -60,11 +60,16 @@ by 3 slices × 90°: 19, 2 slices × 90°: 57, 3 slices × 60°: 86. The motion 
 (20 of 25 held out), all late in the cycle and within 1 mm; the worst of them has a segment 1.6 mm
 off (1014, phase 18).
 
-A flagged phase has every segment's uncertainty inflated in the findings
-(:data:`mlv_ros.core.analysis.findings.VERDICT_INFLATION`), not only the sector's:
-``bench/retrack.py --strain`` at 1014's ES (flagged, every segment within 1 mm) reads all 17
-segments indeterminate (5 before), at 1012's ES segments 13–17 (1 before), while 1012's akinetic
-segment 7 still reads normal; both studies' found / missed / false counts are unchanged.
+A phase flagged by the sector check alone is confined to the segments its reason names
+(:attr:`Verdict.confined_to`, ``ModelState.degraded_segments``): the findings inflate only
+those (:data:`mlv_ros.core.analysis.findings.VERDICT_INFLATION`) and, at ES, leave them
+unclassed (:mod:`mlv_ros.core.analysis.findings`); a whole-heart reason beside it keeps the
+whole phase less sure. ``bench/retrack.py --strain`` on main bec0921: at 1014's ES (phase 10,
+flagged for segments 2–4, every segment within 1 mm) 8 segments read indeterminate (2–4
+unsupported, 13–17 as in an ok phase), where inflating every segment read all 17; 1012's ES
+(phase 8) is not flagged on this main (its sector is at phases 9–12, named segments 11, 12, 16
+of a run whose segments come from the anatomical prior: the truth's akinetic 7 lies in them)
+and reads as before. Found / missed / false counts are unchanged on both.
 """
 
 from __future__ import annotations
@@ -145,30 +150,103 @@ WALL_THIN_DEGRADED_MM = 1.5
 
 @dataclass
 class Verdict:
-    """``level`` (OK / DEGRADED / FAILED) and the reasons for anything but OK."""
+    """
+    ``level`` (OK / DEGRADED / FAILED) and the reasons for anything but OK.
+
+    Attributes
+    ----------
+    level : int
+        OK, DEGRADED or FAILED.
+    reasons : list of str
+        Why, one sentence each (empty when OK).
+    regions : dict
+        Reason → the regions (e.g. AHA segments) it is confined to, for a regional reason (a
+        sector of the heart the data no longer support, :func:`weakest_sector`); a reason not
+        in it concerns the whole heart. Read it through :attr:`confined_to`.
+
+    """
 
     level: int = OK
     reasons: list[str] = field(default_factory=list)
+    regions: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
         return LEVEL_NAMES[self.level]
 
-    def flag(self, level: int, reason: str) -> None:
+    def flag(self, level: int, reason: str, region=()) -> None:
+        """
+        Raise the level to ``level`` for ``reason``.
+
+        Parameters
+        ----------
+        level : int
+            DEGRADED or FAILED (the level never drops).
+        reason : str
+            Why, one sentence.
+        region : sequence, optional
+            The regions a regional reason is confined to (e.g. the AHA segments of a sector,
+            :attr:`Sector.labels`); empty: the reason concerns the whole heart.
+
+        """
         self.level = max(self.level, int(level))
         self.reasons.append(reason)
+        if len(region):
+            self.regions[reason] = tuple(region)
 
     def merge(self, other: 'Verdict') -> 'Verdict':
-        """Return the worse of both levels, with both sets of reasons."""
-        return Verdict(max(self.level, other.level), [*self.reasons, *other.reasons])
+        """Return the worse of both levels, with both sets of reasons and regions."""
+        return Verdict(
+            max(self.level, other.level),
+            [*self.reasons, *other.reasons],
+            {**self.regions, **other.regions},
+        )
 
     @property
     def text(self) -> str:
         return '; '.join(self.reasons)
 
+    @property
+    def confined_to(self) -> tuple:
+        """
+        Return the regions a degraded verdict is confined to, in the order first named.
+
+        Empty unless the level is DEGRADED and every reason is regional: a phase degraded for
+        a whole-heart reason (or failed) is less sure everywhere.
+        """
+        if self.level != DEGRADED or not self.reasons:
+            return ()
+        if any(r not in self.regions for r in self.reasons):
+            return ()
+        return tuple(dict.fromkeys(x for r in self.reasons for x in self.regions[r]))
+
     @classmethod
-    def from_parts(cls, level: int, text: str) -> 'Verdict':
-        return cls(checked_level(level), [r for r in str(text).split('; ') if r])
+    def from_parts(cls, level: int, text: str, confined_to=()) -> 'Verdict':
+        """
+        Return the verdict of a message's ``verdict`` / ``verdict_reasons`` fields.
+
+        Parameters
+        ----------
+        level : int
+            OK, DEGRADED or FAILED.
+        text : str
+            ``"; "``-separated reasons.
+        confined_to : sequence, optional
+            The regions the verdict is confined to (:attr:`confined_to` of the verdict sent,
+            e.g. ModelState.degraded_segments); every reason is then regional, confined to
+            them. Ignored unless ``level`` is DEGRADED.
+
+        Raises
+        ------
+        ValueError
+            ``level`` is none of OK, DEGRADED, FAILED.
+
+        """
+        v = cls(checked_level(level), [r for r in str(text).split('; ') if r])
+        region = tuple(confined_to)
+        if v.level == DEGRADED and region:
+            v.regions = {r: region for r in v.reasons}
+        return v
 
 
 def checked_level(level) -> int:
@@ -457,7 +535,8 @@ def phase_verdict(
     moving = motion_share is None or motion_share >= SECTOR_MOTION_SHARE
     sector = weakest_sector(sa_tracks) if sa_tracks and moving else None
     if sector is not None and sector.share < SECTOR_SHARE_DEGRADED:
-        v.flag(DEGRADED, sector.reason)
+        # Regional: the findings mark the sector's segments, not the whole heart's.
+        v.flag(DEGRADED, sector.reason, region=sector.labels)
     if candidates > 0 and rejected / candidates > REJECTED_DEGRADED:
         v.flag(
             DEGRADED,

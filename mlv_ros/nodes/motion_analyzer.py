@@ -168,11 +168,15 @@ class MotionAnalyzer(GraphNode):
                     num_phases=state.num_phases,
                     residual_mm=state.residual,
                 )
-                # The solver's data support first, then this phase's physiological bounds.
-                verdict = Verdict.from_parts(state.verdict, state.verdict_reasons).merge(
-                    Verdict.from_parts(metrics.verdict, metrics.verdict_reasons)
-                )
+                # The solver's data support first (confined to the segments of a sector it
+                # names, if that is all), then this phase's physiological bounds (whole heart).
+                verdict = Verdict.from_parts(
+                    state.verdict,
+                    state.verdict_reasons,
+                    conversions.msg_to_model_state(state).degraded_segments,
+                ).merge(Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
+                metrics.degraded_segments = verdict.confined_to
                 metrics.study_id = state.study_id or self.study.study_id
                 metrics.run_id = state.run_id or self.study.run_id
                 # Where the segments' origin came from (the registered model's), and the findings

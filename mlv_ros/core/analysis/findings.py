@@ -41,9 +41,26 @@ computes it::
   certain mean. ``n_eff = count / mls_k``: particles of one MLS neighbourhood share their data,
   so they are not independent samples.
 * Support: a segment with fewer than :data:`MIN_SEGMENT_PARTICLES` particles with strain has no
-  uncertainty (NaN: not measured). A phase whose verdict is *degraded* has its uncertainties
-  multiplied by :data:`VERDICT_INFLATION`; a *failed* phase is not a measurement and is never
-  used.
+  uncertainty (NaN: not measured). A *failed* phase is not a measurement and is never used. A
+  phase whose verdict is *degraded* (rule below) has uncertainties multiplied by
+  :data:`VERDICT_INFLATION`.
+
+Degraded phases: the whole heart or the named segments
+------------------------------------------------------
+A verdict is degraded for the whole heart (too few tag points or SA slices tracked, an end slice
+of the stack lost, a large fit residual, many outliers, a physiological bound) or for a region
+only: the solver's sector check (:func:`mlv_ros.core.verdict.weakest_sector`) finds a sector
+whose ED tag points are nearly all lost and names its AHA segments; the model carries that
+sector with its neighbours, so its strain there is theirs, not a measurement, while the rest of
+the heart is as well supported as in an ok phase. The metrics carry the segments a degraded
+verdict is confined to (``PhaseMetrics.degraded_segments``, from ``ModelState.degraded_segments``;
+empty when any reason, the analyzer's own included, concerns the whole heart):
+
+* degraded, no segments named (whole heart): every segment's uncertainty × VERDICT_INFLATION;
+* degraded, segments named (sector only): only those segments' uncertainties × VERDICT_INFLATION,
+  and when the phase is the findings' ES they are *unsupported* (:attr:`Findings.unsupported`):
+  left out of the heart's references and classed ``indeterminate`` whatever their strain (the
+  model carried them; no class is claimed for them), the others keep their class.
 
 What it captures: how much model surface covers the segment, how well the model fitted the tags
 at that phase and how uniform the segment's motion is. What it does not: the tag-point density
@@ -67,11 +84,12 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   ``f ≥ 0.6``, hypokinetic ``0.35 ≤ f < 0.6``, akinetic ``−0.2 ≤ f < 0.35``, dyskinetic
   ``f < −0.2``; and dyskinetic whenever the wall stretches beyond its uncertainty at ES:
   ``Err < −Z σ_rr`` (thinning) or, segments 1–16, ``Ecc > Z σ_cc`` (Z = :data:`STRETCH_Z`).
-* ``indeterminate`` when the segment has no support, no systolic phase has been seen yet, or
-  ``σ_f > MAX_SIGMA_F`` (0.33: beyond it a normal segment could be read akinetic within 2σ).
-  Never a confident wrong class for lack of data. With the floors above the apex cap (its normal
-  Err is ~0.2 of the heart's) is indeterminate unless it thins beyond 2σ, and so are the segments
-  of a heart whose median Ecc is near ``REF_MIN`` (too little motion to compare against).
+* ``indeterminate`` when the segment has no support or is unsupported at ES (above), no
+  systolic phase has been seen yet, or ``σ_f > MAX_SIGMA_F`` (0.33: beyond it a normal segment
+  could be read akinetic within 2σ). Never a confident wrong class for lack of data. With the
+  floors above the apex cap (its normal Err is ~0.2 of the heart's) is indeterminate unless it
+  thins beyond 2σ, and so are the segments of a heart whose median Ecc is near ``REF_MIN`` (too
+  little motion to compare against).
 """
 
 from __future__ import annotations
@@ -89,7 +107,8 @@ COMPONENTS = ('err', 'ecc', 'ell')
 UNCERTAINTY_FLOOR = {'err': 0.05, 'ecc': 0.02, 'ell': 0.02}
 #: Fewer particles with strain than this in a segment: not measured (two MLS neighbourhoods).
 MIN_SEGMENT_PARTICLES = 24
-#: A degraded phase (the solver's data support or physiological bounds) counts as half as sure.
+#: A degraded phase (the solver's data support or physiological bounds) counts as half as sure:
+#: everywhere, or in the segments its verdict is confined to (a sector the data do not support).
 VERDICT_INFLATION = 2.0
 #: Smallest magnitude of the heart's reference Ecc / Err: below it the heart barely contracts
 #: anywhere and "relative to the rest of the heart" would divide by noise.
@@ -212,7 +231,9 @@ def _signed_peak_update(peak, peak_unc, v, unc):
     return np.where(better, v, peak), np.where(better, unc, peak_unc)
 
 
-def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def classify(
+    es: dict, unc: dict, unsupported=()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """
     Classes of the 17 segments from their ES strain and its uncertainty (module docstring).
 
@@ -222,6 +243,9 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
         ``err``, ``ecc``: ES segment means, shape (17,) each (NaN = not measured).
     unc : dict
         ``err``, ``ecc``: their uncertainties, shape (17,) (NaN = no support).
+    unsupported : sequence of int, optional
+        AHA segments (1–17) the ES phase's tag data do not support (the solver's sector): left
+        out of the references and classed ``indeterminate``.
 
     Returns
     -------
@@ -236,10 +260,12 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
     classes = np.full(17, 'indeterminate', dtype=object)
     f = np.full(17, np.nan)
     f_unc = np.full(17, np.nan)
+    carried = np.zeros(17, dtype=bool)
+    carried[np.asarray(unsupported, dtype=np.int64).reshape(-1) - 1] = True
     sup = {c: np.isfinite(es[c]) & np.isfinite(unc[c]) for c in ('err', 'ecc')}
     ref = {}
     for c, sign in (('ecc', -1.0), ('err', 1.0)):
-        remote = es[c][:16][sup[c][:16]]
+        remote = es[c][:16][(sup[c] & ~carried)[:16]]
         ref[c] = (
             None if remote.size < 3 else sign * max(sign * float(np.median(remote)), REF_MIN[c])
         )
@@ -269,6 +295,7 @@ def classify(es: dict, unc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, d
         stretch[:16] |= (sup['ecc'] & (es['ecc'] > STRETCH_Z * unc['ecc']))[:16]
     classes[have & (f_unc > MAX_SIGMA_F)] = 'indeterminate'
     classes[stretch] = 'dyskinetic'  # beyond its own uncertainty: a confident call
+    classes[carried] = 'indeterminate'  # the model carried them: no class is claimed
     return classes, f, f_unc, ref
 
 
@@ -295,6 +322,9 @@ class Findings:
         :data:`CLASSES` names.
     reference : dict
         The heart's ``ecc`` / ``err`` references at ES (None when not available).
+    unsupported : list of int
+        AHA segments (1–17) the ``es_phase``'s tag data do not support (its verdict degraded for
+        their sector only): ``indeterminate``, whatever their strain.
 
     """
 
@@ -308,6 +338,7 @@ class Findings:
     function_unc: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
     classes: list = field(default_factory=lambda: ['indeterminate'] * 17)
     reference: dict = field(default_factory=dict)
+    unsupported: list = field(default_factory=list)
 
     def abnormal(self, kinds=('akinetic', 'dyskinetic')) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
@@ -363,6 +394,7 @@ class Findings:
             'reference': dict(self.reference),
             'segments': rows,
             'counts': {c: self.classes.count(c) for c in CLASSES},
+            'unsupported': list(self.unsupported),
             'thresholds': {
                 'class_bounds': {
                     n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS
@@ -405,14 +437,22 @@ class SegmentFindings:
         ``metrics`` is a :class:`~mlv_ros.core.analysis.metrics.PhaseMetrics`. A failed phase or
         one without strain changes nothing; without the uncertainty arrays (e.g. metrics recorded
         before they existed) each segment gets the support-only uncertainty: the floor, NaN below
-        :data:`MIN_SEGMENT_PARTICLES` particles (unknown count: supported), inflated when the phase
-        is degraded.
+        :data:`MIN_SEGMENT_PARTICLES` particles (unknown count: supported). A degraded phase
+        inflates the uncertainty of its ``degraded_segments``, or of every segment when it names
+        none (module docstring).
         """
         level = int(getattr(metrics, 'verdict', 0))
         if level >= FAILED or not metrics.has_strain:
             return self.findings
         count = np.asarray(metrics.segment_count)
         supported = count >= MIN_SEGMENT_PARTICLES if count.size == 17 else np.ones(17, dtype=bool)
+        carried = sorted(int(k) for k in getattr(metrics, 'degraded_segments', ()))
+        if level < DEGRADED:
+            carried = []
+        less_sure = np.full(17, level >= DEGRADED)
+        if carried:
+            less_sure[:] = False
+            less_sure[np.array(carried) - 1] = True
         vals, unc = {}, {}
         for c in COMPONENTS:
             v = np.asarray(getattr(metrics, f'segment_{c}'), dtype=np.float64)
@@ -420,8 +460,7 @@ class SegmentFindings:
             if u.size != 17:
                 u = np.full(17, UNCERTAINTY_FLOOR[c])
             u = np.where(supported, u, np.nan)
-            if level >= DEGRADED:
-                u = u * VERDICT_INFLATION
+            u = np.where(less_sure, u * VERDICT_INFLATION, u)
             vals[c] = np.where(np.isfinite(u), v, np.nan)
             unc[c] = u
             self._peak[c], self._peak_unc[c] = _signed_peak_update(
@@ -431,15 +470,18 @@ class SegmentFindings:
         self._used.append(idx)
         vol = float(metrics.cavity_volume_ml)
         if idx != 0 and (self._es is None or vol < self._es[0]):
-            self._es = (vol, idx, vals, unc)
+            self._es = (vol, idx, vals, unc, carried)
         f = Findings(
             phases_used=sorted(set(self._used)),
             peak={c: v.copy() for c, v in self._peak.items()},
             peak_unc={c: v.copy() for c, v in self._peak_unc.items()},
         )
         if self._es is not None:
-            _, f.es_phase, f.es, f.es_unc = self._es
-            cls, f.function_index, f.function_unc, f.reference = classify(f.es, f.es_unc)
+            _, f.es_phase, f.es, f.es_unc, f.unsupported = self._es
+            f.unsupported = list(f.unsupported)
+            cls, f.function_index, f.function_unc, f.reference = classify(
+                f.es, f.es_unc, f.unsupported
+            )
             f.classes = [str(c) for c in cls]
         self.findings = f
         return f

@@ -149,6 +149,11 @@ class PhaseMetrics:
         solver's data-support verdict.
     verdict_reasons : str
         "; "-separated reasons, empty when ok.
+    degraded_segments : tuple of int
+        AHA segments (1–17) the verdict is confined to (:attr:`Verdict.confined_to
+        <mlv_ros.core.verdict.Verdict.confined_to>`): the solver's sector the tag data no longer
+        support, when nothing else degrades the phase; empty: ok, failed or degraded as a whole
+        (the findings then inflate every segment, :mod:`mlv_ros.core.analysis.findings`).
     study_id, run_id : str
         The study and run the phase was computed from (the model state's; empty = unknown).
 
@@ -195,6 +200,7 @@ class PhaseMetrics:
     segment_class: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     verdict: int = 0
     verdict_reasons: str = ''
+    degraded_segments: tuple = ()
     study_id: str = ''
     run_id: str = ''
 

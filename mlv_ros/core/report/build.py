@@ -162,8 +162,11 @@ def _findings_html(summaries: list[dict]) -> str:
         if not f:
             parts.append(f'<p>{e(s["label"])}: no strain, no regional findings.</p>')
             continue
+        carried = set(f.get('unsupported') or ())
         rows = ''.join(
-            f'<tr><td>{r["segment"]} {e(r["name"])}</td><td>{e(r["class"])}</td>'
+            f'<tr><td>{r["segment"]} {e(r["name"])}</td><td>{e(r["class"])}'
+            + (' (unsupported)' if r['segment'] in carried else '')
+            + '</td>'
             f'<td>{e(_pm(r["function_index"], r["function_unc"]))}</td>'
             + ''.join(
                 f'<td>{e(_pm(r[f"es_{c}"], r[f"es_{c}_unc"]))}</td>' for c in ('ecc', 'err', 'ell')
@@ -179,6 +182,12 @@ def _findings_html(summaries: list[dict]) -> str:
         parts.append(
             f'<p><b>{e(s["label"])}</b>: ES phase {f["es_phase"]}; classes '
             + e(', '.join(f'{k} {n}' for k, n in f['counts'].items() if n))
+            + (
+                f'; unsupported at ES (the tag data lost their sector, the model carried them '
+                f'with their neighbours): {e(", ".join(map(str, sorted(carried))))}'
+                if carried
+                else ''
+            )
             + (f'. Segments: {e(origin["note"])}.' if origin.get('note') else '')
             + '</p>'
             '<table><tr><th>segment</th><th>class</th><th>f ± σ</th><th>ES Ecc</th><th>ES Err</th>'
@@ -379,9 +388,9 @@ def _figures(out: Path, runs: list, summaries: list) -> tuple[list, list]:
         attempt(
             'segment_findings.png',
             'Wall motion by AHA segment at end-systole: normal / hypokinetic / akinetic / '
-            'dyskinetic, '
-            "indeterminate (hatched) where the data cannot tell; f = share of the heart's own "
-            'function ± σ.',
+            'dyskinetic, indeterminate (hatched) where the data cannot tell, unsupported '
+            "(cross-hatched, red edge) where the ES tag data lost the segment's sector; f = share "
+            "of the heart's own function ± σ.",
             lambda: plot_segment_findings(with_phases, out / 'segment_findings.png'),
         )
     else:

@@ -343,9 +343,11 @@ CLASS_COLOURS = {
     'dyskinetic': '#c00000',
     'indeterminate': '#d0d0d0',
 }
+#: Edge colour of a segment the ES phase's tag data do not support (cross-hatched, "unsupported").
+UNSUPPORTED_EDGE = '#c00000'
 
 
-def draw_class_bullseye(ax, classes, labels=None, *, title: str = ''):
+def draw_class_bullseye(ax, classes, labels=None, *, title: str = '', unsupported=()):
     """
     Draw the 17 segments' wall-motion classes on a polar Axes (layout of :func:`draw_bullseye`).
 
@@ -359,11 +361,16 @@ def draw_class_bullseye(ax, classes, labels=None, *, title: str = ''):
         Text under each segment's number (default the class's first four letters).
     title : str
         Panel title (none when empty).
+    unsupported : sequence of int, optional
+        AHA segments (1–17) the ES phase's tag data do not support
+        (:attr:`~mlv_ros.core.analysis.findings.Findings.unsupported`): cross-hatched with a
+        red edge.
 
     """
     if len(classes) != 17:
         raise ValueError(f"bull's-eye needs 17 classes, got {len(classes)}")
     labels = list(labels) if labels is not None else [c[:4] for c in classes]
+    carried = {int(k) for k in unsupported}
 
     def paint(seg, theta, width, bottom):
         c = classes[seg - 1]
@@ -375,8 +382,13 @@ def draw_class_bullseye(ax, classes, labels=None, *, title: str = ''):
             color=CLASS_COLOURS.get(c, '#d0d0d0'),
             edgecolor='k',
             lw=0.8,
-            hatch='//' if c == 'indeterminate' else None,
+            hatch='xx' if seg in carried else '//' if c == 'indeterminate' else None,
         )
+        if seg in carried:
+            ax.bar(
+                theta, 1.0, width=width, bottom=bottom, fill=False, edgecolor=UNSUPPORTED_EDGE,
+                lw=1.6,
+            )
 
     for seg, ring, psi0, width in _aha_wedges():
         ang0 = np.radians(90.0 + psi0 - 330.0)
@@ -414,11 +426,18 @@ def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
     for j, (lab, f) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), j + 1, projection='polar')
         labels = [
-            f'{c[:4]}' + (f'\n{fi:+.2f}±{si:.2f}' if np.isfinite(fi) and np.isfinite(si) else '')
-            for c, fi, si in zip(f.classes, f.function_index, f.function_unc)
+            ('unsup.' if k + 1 in f.unsupported else f'{c[:4]}')
+            + (f'\n{fi:+.2f}±{si:.2f}' if np.isfinite(fi) and np.isfinite(si) else '')
+            for k, (c, fi, si) in enumerate(zip(f.classes, f.function_index, f.function_unc))
         ]
         es = 'no systolic phase yet' if f.es_phase is None else f'ES phase {f.es_phase}'
-        draw_class_bullseye(ax, f.classes, labels, title=f'{lab}: wall motion at ES ({es})')
+        draw_class_bullseye(
+            ax,
+            f.classes,
+            labels,
+            title=f'{lab}: wall motion at ES ({es})',
+            unsupported=f.unsupported,
+        )
     from matplotlib.patches import Patch
 
     fig.legend(
@@ -427,6 +446,14 @@ def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
                 facecolor=c, edgecolor='k', hatch='//' if n == 'indeterminate' else None, label=n
             )
             for n, c in CLASS_COLOURS.items()
+        ]
+        + [
+            Patch(
+                facecolor=CLASS_COLOURS['indeterminate'],
+                edgecolor=UNSUPPORTED_EDGE,
+                hatch='xx',
+                label='unsupported: the\nES tag data lost\nthis sector',
+            )
         ],
         loc='outside right center',
         fontsize=8,
