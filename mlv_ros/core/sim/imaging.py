@@ -313,6 +313,26 @@ def tag_pattern(
     return (np.sin(np.pi * a / spacing) * np.sin(np.pi * b / spacing)) ** 2
 
 
+def draw_noise(rng: np.random.Generator, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Draw one image's noise as :meth:`ImageSynthesizer.render` does: two standard normal fields.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Drawn from, in this order: the real channel's field, then the imaginary one's.
+    shape : tuple of int
+        (rows, cols).
+
+    Returns
+    -------
+    n1, n2 : ndarray of float64, shape ``shape``
+        Unit-variance fields (scaled by σ where used).
+
+    """
+    return rng.standard_normal(shape), rng.standard_normal(shape)
+
+
 class ImageSynthesizer:
     """
     Renders the tagged images of one planned slice at any phase.
@@ -432,7 +452,6 @@ class ImageSynthesizer:
             if rng is None:
                 raise ValueError('render needs an rng when snr is finite')
             sigma = m_myo / snr
-            n1 = rng.standard_normal(img.shape)
-            n2 = rng.standard_normal(img.shape)
+            n1, n2 = draw_noise(rng, img.shape)
             img = np.hypot(img + sigma * n1, sigma * n2)
         return img.astype(np.float32)
