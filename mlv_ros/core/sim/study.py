@@ -106,10 +106,10 @@ class SliceMajorNoise:
 
     :func:`simulate_study` draws every image's noise from one ``default_rng(seed)``, slice by
     slice and within a slice phase by phase. This keeps a copy of the generator where each slice's
-    draws begin (found by drawing, and dropping, the noise of the slices before it the first time
-    a later slice is asked for), so a frame rendered alone, or phase-major, gets the very noise
-    it gets in the whole study. Within a slice, phases asked for in order cost nothing extra; a
-    phase behind the slice's position starts again from the slice's first draw.
+    draws begin (where the slice before it ends: drawn to its end already in slice-major order,
+    else drawn, and dropped, once), so a frame rendered alone, or phase-major, gets the very
+    noise it gets in the whole study. Within a slice, phases asked for in order cost nothing
+    extra; a phase behind the slice's position starts again from the slice's first draw.
 
     Parameters
     ----------
@@ -123,10 +123,9 @@ class SliceMajorNoise:
     """
 
     def __init__(self, seed: int, num_phases: int, shape: tuple[int, int]):
-        self._rng = np.random.default_rng(seed)
-        self._passed = 0  # slices whose draws self._rng is past
         self._num_phases, self._shape = int(num_phases), tuple(shape)
-        self._starts: list[dict] = []  # per slice position: the generator's state at its start
+        # per slice position: the generator's state at its first draw
+        self._starts: list[dict] = [np.random.default_rng(seed).bit_generator.state]
         self._at: dict[int, tuple[np.random.Generator, int]] = {}  # slice → (generator, phase)
 
     def _skip(self, rng: np.random.Generator, phases: int) -> None:
@@ -151,16 +150,23 @@ class SliceMajorNoise:
             following phase continues from where that draw ends.
 
         """
-        while self._passed <= position:
-            self._starts.append(self._rng.bit_generator.state)
-            self._skip(self._rng, self._num_phases)
-            self._passed += 1
+        while len(self._starts) <= position:  # the next slice starts where the last one ends
+            last = len(self._starts) - 1
+            rng, at = self._at.get(last, (None, 0))
+            if at < self._num_phases:  # not drawn to its end (phase-major): draw it again
+                rng = self._from_start(last)
+                self._skip(rng, self._num_phases)
+            self._starts.append(rng.bit_generator.state)
         rng, at = self._at.get(position, (None, 0))
         if rng is None or phase < at:
-            rng, at = np.random.default_rng(), 0
-            rng.bit_generator.state = self._starts[position]
+            rng, at = self._from_start(position), 0
         self._skip(rng, phase - at)
         self._at[position] = (rng, phase + 1)
+        return rng
+
+    def _from_start(self, position: int) -> np.random.Generator:
+        rng = np.random.default_rng()
+        rng.bit_generator.state = self._starts[position]
         return rng
 
 
