@@ -121,9 +121,10 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
         np.testing.assert_array_equal(f.image, e.image)
     # Published pixels are not kept by the node (the writer's history holds them).
     assert all(f.image is None for f in src.frames)
-    # A failed render process is said once, and the frames are simulated here instead.
+    # A failed render process is said on /diagnostics (the node's status: diagnostic_updater
+    # repeats it once a period), and the frames are simulated here instead.
     fallback = [
         st for d in diags for st in d.status if 'simulated in this process' in st.message
     ]
-    assert len(fallback) == (layout == 'render_process_fails')
+    assert bool(fallback) == (layout == 'render_process_fails')
     src.destroy_node()
