@@ -16,11 +16,12 @@
 Benchmark: the whole graph on the default study as ``mlv-ros run`` runs it.
 
 The default study: normal phantom, 8 SA + 3 LA, 256², 25 phases, SNR 20; the tag detector in a
-child process (MLV_ROS_ONE_PROCESS=1: all in one). Prints one JSON document: total time, per-stage
-latency per phase (from the recording's receive times), peak RSS, messages published vs recorded,
-accuracy; then ``local_stage``: the run's recorded tag points replayed through a tracker built as
-the solver node builds it, every local solve timed with the new stage and with the old one
-(``bench/reference_local.py``) on identical inputs (``--no-replay`` skips it).
+child process and the phantom simulated in another (MLV_ROS_ONE_PROCESS=1: all in one). Prints
+one JSON document: total time, per-stage latency per phase (from the recording's receive times),
+peak RSS, messages published vs recorded, accuracy; then ``local_stage``: the run's recorded tag
+points replayed through a tracker built as the solver node builds it, every local solve timed
+with the new stage and with the old one (``bench/reference_local.py``) on identical inputs
+(``--no-replay`` skips it).
 
     mlv-ros bench pipeline [-- --phases 25 --size 256 --out DIR]
 """
@@ -308,8 +309,8 @@ def main():
         'total_s': round(wall, 2),
         'graph_s': s['seconds'],
         'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        # the largest of the run's child processes (the tag detector's:
-        # mlv_ros.graph_process)
+        # the largest of the run's child processes (the tag detector's: mlv_ros.graph_process;
+        # the phantom's mlv_ros.render_process peaks at ~105 MB)
         'peak_rss_mb_child_process': round(
             resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1
         ),

@@ -95,6 +95,18 @@ class _Study:
         self._child._adopt(study_id, run_id)
 
 
+def child_env() -> dict:
+    """Return this process's environment with the directory holding ``mlv_ros`` on the path."""
+    import mlv_ros
+
+    env = dict(os.environ)
+    root = str(Path(mlv_ros.__file__).resolve().parents[1])
+    env['PYTHONPATH'] = os.pathsep.join(
+        [root, *([env['PYTHONPATH']] if env.get('PYTHONPATH') else [])]
+    )
+    return env
+
+
 class ChildNode:
     """A graph node running in a child process (see the module's docstring)."""
 
@@ -125,19 +137,13 @@ class ChildNode:
         The child runs this interpreter, this environment, with the directory holding ``mlv_ros``
         on its path.
         """
-        import mlv_ros
         from rclpy.logging import get_logger_effective_level
 
-        env = dict(os.environ)
-        root = str(Path(mlv_ros.__file__).resolve().parents[1])
-        env['PYTHONPATH'] = os.pathsep.join(
-            [root, *([env['PYTHONPATH']] if env.get('PYTHONPATH') else [])]
-        )
         proc = subprocess.Popen(
             [sys.executable, '-m', 'mlv_ros.graph_process'],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            env=env,
+            env=child_env(),
             text=True,
             start_new_session=True,
         )

@@ -366,12 +366,9 @@ def child_nodes() -> tuple[str, ...]:
 
     :data:`CHILD_NODES`; none on one core or with ``MLV_ROS_ONE_PROCESS=1``.
     """
-    if (
-        os.environ.get('MLV_ROS_ONE_PROCESS', '').strip() not in ('', '0')
-        or (os.cpu_count() or 1) < 2
-    ):
-        return ()
-    return CHILD_NODES
+    from mlv_ros.render_process import processes_allowed
+
+    return CHILD_NODES if processes_allowed() else ()
 
 
 def _stuck(nodes: dict) -> str | None:

@@ -164,7 +164,7 @@ def test_through_plane_motion_is_real(study):
     m = study.motion
     sl = study.slices[0]
     syn = ImageSynthesizer(m, sl, 128, study.preset['imaging'], subplanes=1)
-    pts = syn.pix[syn.cand]
+    pts = syn.base
     X = m.inverse(pts, m.es_phase)
     dz = (X - pts) @ m.frame.long_axis
     z_plane = (pts[0] - m.frame.apex) @ m.frame.long_axis

@@ -25,6 +25,13 @@ tick when due; as fast as possible, :data:`BURST_FRAMES` (half the topic's depth
 tick, and a burst waits until every subscriber has acknowledged the previous one, so no frame is
 ever pushed out of the writer's history unacknowledged.
 
+A phantom is simulated as it is published (the frames' plan when the node starts, each image
+when it is due, see :class:`~mlv_ros.core.sim.study.StudyRenderer`), in a process of its own
+(:mod:`mlv_ros.render_process`) where the run may use several (two cores or more, no
+``MLV_ROS_ONE_PROCESS``), else in the node between its other work, while it waits for
+subscribers too; so the first frames go out while the rest are simulated, with the very images
+of the whole study simulated at once. Published images are not kept by the node.
+
 A DICOM directory loads its tagged study (the one with the most tagged cines, or the
 StudyInstanceUID in ``study``); each skipped file, each series not used (and each cine missing
 phases) gets its own /diagnostics entry naming it, published before the frames, one per timer
@@ -52,6 +59,7 @@ from mlv_msgs.msg import TaggedFrame
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.types import Frame
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, SubscriberWait, WARN
+from rclpy._rclpy_pybind11 import InvalidHandle
 from rclpy.duration import Duration
 
 SOURCES = ('phantom', 'dicom', 'bag', 'pattern')
@@ -172,6 +180,12 @@ class FrameSource(GraphNode):
         self._reports: list[tuple[str, dict]] = []  # load problems, published once someone listens
         self.pub = self.publisher(qos.FRAMES, TaggedFrame)
         self.study_uids: dict = {}  # dicom: StudyInstanceUID → images
+        # phantom: renders the frames, which stay without pixels (``image`` None) until due and
+        # drop them once published (the writer's history keeps what late joiners get)
+        self._renderer = None
+        self._rendered = 0  # frames[:_rendered] have been rendered (phantom)
+        self._render_process = None  # phantom: the child simulating the frames, if any
+        self._render_failure: str | None = None
         self.frames = order_frames(count_slices(self._load()), self.order)
         self.study_id = self._study_id()
         # This run: every frame carries it (a recording's frames are published anew by this run).
@@ -180,6 +194,9 @@ class FrameSource(GraphNode):
             f.run_id = self.run_id
         self.study.adopt(self.study_id, self.run_id)
         self.published = 0
+        self._wake = self.create_guard_condition(self._tick)  # a frame came from the renderer
+        if self._renderer is not None:
+            self._start_render_process()
         self.halted: str | None = None  # why publishing was stopped early (see halt)
         self.subscriber_wait = SubscriberWait(
             self.wait_for_subscribers, self.wait_timeout_s, since=time.monotonic()
@@ -187,7 +204,9 @@ class FrameSource(GraphNode):
         self._started = None
         self._burst_at: float | None = None  # when the last burst of frames went out
         self._all_out_at: float | None = None  # when the last frame went out
-        self.timer = self.create_timer(0.001, self._tick)
+        # Frames simulated in a child wake the node as they come (_wake): no need to poll often.
+        fast = self._render_process is None or self.rate_factor > 0
+        self.timer = self.create_timer(0.001 if fast else ACK_POLL_NS / 1e9, self._tick)
         extra = (
             {'input_complete': self.input_complete, 'left_out': len(self.left_out)}
             if self.source == 'dicom'
@@ -320,16 +339,24 @@ class FrameSource(GraphNode):
 
             return pattern_frames(num_phases=self.num_phases)
         if self.source == 'phantom':
-            from mlv_ros.core.sim import load_preset, simulate_study
+            from mlv_ros.core.sim.study import StudyRenderer
 
-            study = simulate_study(
-                load_preset(self.preset),
-                snr=self.snr or None,
-                size=self.size,
-                num_phases=self.num_phases,
-                seed=self.seed,
-            )
-            return list(study.frames)
+            # Only the plan now: frames are simulated as they are published, in a process of
+            # their own where the run may use several (_start_render_process), else here
+            # (_render_ahead); the first go out while the rest are still to come.
+            self._study_args = {
+                'preset': self.preset,
+                'snr': self.snr or None,
+                'size': self.size,
+                'num_phases': self.num_phases,
+                'seed': self.seed,
+            }
+            self._renderer = StudyRenderer(**self._study_args)
+            return [
+                self._renderer.frame(view, index, ph, image=False)
+                for view, index in self._renderer.keys
+                for ph in range(self._renderer.motion.num_phases)
+            ]
         if self.source == 'dicom':
             from mlv_ros.core.io.dicom import read_dicom_dir
 
@@ -381,6 +408,8 @@ class FrameSource(GraphNode):
         if self.done:
             return
         self.timer.cancel()
+        if self._render_process is not None:
+            self._render_process.close()
         self.halted = reason
         self.report(
             OK,
@@ -397,10 +426,88 @@ class FrameSource(GraphNode):
         cycle = frame.cycle_duration or 1.0
         return cycle / frame.num_phases / self.rate_factor
 
+    def _start_render_process(self) -> None:
+        """Simulate the phantom's frames in a child process, in publication order (if allowed)."""
+        from mlv_ros.render_process import processes_allowed, RenderProcess
+
+        if not processes_allowed():
+            return
+        keys = [(f.view, f.slice_index, f.phase_index) for f in self.frames]
+        self._render_process = RenderProcess(
+            self._study_args, keys, self._frame_rendered, self._render_failed
+        )
+
+    def _frame_rendered(self, index: int, image) -> None:
+        """Take frame ``index``'s image from the render process (its reader thread)."""
+        self.frames[index].image = image
+        self._rendered = index + 1
+        self._wake_up()
+
+    def _render_failed(self, reason: str) -> None:
+        """Note that the render process failed (its reader thread): the rest is rendered here."""
+        self._render_failure = reason
+        self._wake_up()
+
+    def _wake_up(self) -> None:
+        """Have the executor run :meth:`_tick` (from the render process's reader thread)."""
+        try:
+            self._wake.trigger()
+        except InvalidHandle:
+            pass  # the node is being destroyed: nothing is published any more
+
+    def _ready(self) -> int:
+        """
+        Return how many frames (from the first) can be published now.
+
+        A failed render process is reported here (once) and ended: from then on frames are
+        simulated in this process as they are published.
+        """
+        if self._render_process is None:
+            return len(self.frames)  # rendered here as they are published
+        if self._render_failure is not None:
+            self.report(
+                OK,
+                'frames are simulated in this process from here on',
+                reason=self._render_failure,
+                frames_simulated=self._rendered,
+            )
+            self._render_process.close()
+            self._render_process = self._render_failure = None
+            return len(self.frames)
+        return self._rendered
+
+    def destroy_node(self):
+        """End the render process, if any, with the node."""
+        if self._render_process is not None:
+            self._render_process.close()
+        return super().destroy_node()
+
+    def _render_ahead(self) -> bool:
+        """
+        Render the next frame not yet rendered (phantom); return whether there was one.
+
+        Called for the next frame due, and while the source waits (for subscribers, for a burst
+        to be acknowledged) so that waiting time simulates frames to come.
+        """
+        if (
+            self._renderer is None
+            or self._render_process is not None
+            or self._rendered >= len(self.frames)
+        ):
+            return False
+        f = self.frames[self._rendered]
+        f.image = self._renderer.frame(f.view, f.slice_index, f.phase_index).image
+        self._rendered += 1
+        return True
+
     def _publish_next(self) -> None:
         """Publish the next frame, stamped now, and schedule the one after it."""
         frame = self.frames[self.published]
+        if self._rendered == self.published:
+            self._render_ahead()
         self.pub.publish(conversions.frame_to_msg(frame, stamp=self.get_clock().now().to_msg()))
+        if self._renderer is not None:
+            frame.image = None
         self.published += 1
         self._next_at += self._frame_interval(frame)
 
@@ -414,12 +521,16 @@ class FrameSource(GraphNode):
         dropped before each reader holds it, whatever the study's size.
         """
         now = time.monotonic()
+        ready = self._ready()
         if self.rate_factor > 0:  # a paced stream, as a scanner sends it: one frame when due
-            if now >= self._next_at:
+            if now >= self._next_at and ready > self.published:
                 self._publish_next()
+            else:
+                self._render_ahead()
             return
         if self._burst_at is not None and not self.pub.wait_for_all_acked(Duration()):
             if now - self._burst_at < self.wait_timeout_s:
+                self._render_ahead()
                 return
             self.report(
                 WARN,
@@ -427,11 +538,15 @@ class FrameSource(GraphNode):
                 timeout_s=self.wait_timeout_s,
                 frames_published=self.published,
             )
+        if ready == self.published:
+            return  # the next frame is still being simulated: its arrival wakes the node
         self._burst_at = now
-        for _ in range(min(BURST_FRAMES, len(self.frames) - self.published)):
+        for _ in range(min(BURST_FRAMES, ready - self.published)):
             self._publish_next()
 
     def _tick(self):
+        if self.timer.is_canceled():
+            return  # woken by the render process after the node's job ended
         if self._started is None:
             matched = self.pub.get_subscription_count()
             # Reports made before anyone listens on /diagnostics (VOLATILE) would be lost: with
@@ -443,6 +558,7 @@ class FrameSource(GraphNode):
             )
             wait = self.subscriber_wait.poll(matched, ready=heard)
             if wait == SubscriberWait.WAIT:
+                self._render_ahead()
                 return
             if wait == SubscriberWait.LATE and matched == 0:
                 self.report(

@@ -313,6 +313,26 @@ def tag_pattern(
     return (np.sin(np.pi * a / spacing) * np.sin(np.pi * b / spacing)) ** 2
 
 
+def draw_noise(rng: np.random.Generator, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Draw one image's noise as :meth:`ImageSynthesizer.render` does: two standard normal fields.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Drawn from, in this order: the real channel's field, then the imaginary one's.
+    shape : tuple of int
+        (rows, cols).
+
+    Returns
+    -------
+    n1, n2 : ndarray of float64, shape ``shape``
+        Unit-variance fields (scaled by σ where used).
+
+    """
+    return rng.standard_normal(shape), rng.standard_normal(shape)
+
+
 class ImageSynthesizer:
     """
     Renders the tagged images of one planned slice at any phase.
@@ -352,17 +372,17 @@ class ImageSynthesizer:
             g.slice_thickness, int(subplanes or imaging['subplanes'])
         )
         rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing='ij')
-        self.pix = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], axis=1))  # (n², 3)
+        pix = g.pixel_to_patient(np.stack([rr.ravel(), cc.ravel()], axis=1))  # (n², 3)
         # Static background: tags at the pixel itself; the same on every sub-plane.
         f = motion.frame
         heart_c = f.apex + 0.5 * motion.length * f.long_axis
-        body = np.linalg.norm(self.pix - heart_c, axis=1) < float(imaging['body_radius_mm'])
+        body = np.linalg.norm(pix - heart_c, axis=1) < float(imaging['body_radius_mm'])
         self.bg_m0 = np.where(body, float(imaging['background_m0']), 0.0)
         self.bg_tagged = bool(imaging.get('background_tagged', True))
-        self.bg_tags = self._tags(self.pix) if self.bg_tagged else None
+        self.bg_tags = self._tags(pix) if self.bg_tagged else None
         # Pixels whose slab can meet the LV at any phase: the LV stays inside the cylinder of
         # radius ~1.15 max ED radius (the apical cap widens by 1/sqrt(λ)) up to the atrium top.
-        r, _, z = f.to_local(self.pix)
+        r, _, z = f.to_local(pix)
         reach = np.abs(self.offsets).max()
         zmax = motion.length + motion.atrium_height
         self.cand = np.flatnonzero(
@@ -370,6 +390,9 @@ class ImageSynthesizer:
             & (z > -3.0 - reach)
             & (z < zmax + 3.0 + reach)
         )
+        # Their centres (patient mm, (len(cand), 3)): the whole grid's are not kept (a render
+        # process holds every slice's synthesizer at once).
+        self.base = pix[self.cand]
         self.normal = g.normal
 
     def _tags(self, pts):
@@ -386,7 +409,7 @@ class ImageSynthesizer:
         """Return slab-weighted myocardium and blood fractions at ``phase``, (rows, cols), 0..1."""
         myo = np.zeros(self.size * self.size)
         blood = np.zeros_like(myo)
-        base = self.pix[self.cand]
+        base = self.base
         for off, w in zip(self.offsets, self.weights):
             X = self.motion.inverse(base + off * self.normal, phase)
             myo[self.cand] += w * self.motion.inside_myocardium(X)
@@ -405,7 +428,7 @@ class ImageSynthesizer:
             sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
         else:
             sig = self.bg_m0.copy()
-        base = self.pix[self.cand]
+        base = self.base
         acc = np.zeros(base.shape[0])
         m_myo, m_blood = float(im['myocardium_m0']), float(im['blood_m0'])
         bg = sig[self.cand]
@@ -432,7 +455,6 @@ class ImageSynthesizer:
             if rng is None:
                 raise ValueError('render needs an rng when snr is finite')
             sigma = m_myo / snr
-            n1 = rng.standard_normal(img.shape)
-            n2 = rng.standard_normal(img.shape)
+            n1, n2 = draw_noise(rng, img.shape)
             img = np.hypot(img + sigma * n1, sigma * n2)
         return img.astype(np.float32)

@@ -16,13 +16,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 import hashlib
 import json
 
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.sim.imaging import ImageSynthesizer, plan_slices, PlannedSlice
+from mlv_ros.core.sim.imaging import draw_noise, ImageSynthesizer, plan_slices, PlannedSlice
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.types import Frame
@@ -100,6 +100,184 @@ class Study:
         return sorted(fr, key=lambda f: f.phase_index)
 
 
+class SliceMajorNoise:
+    """
+    The study's one noise generator, drawn slice-major, handed to frames in any order.
+
+    :func:`simulate_study` draws every image's noise from one ``default_rng(seed)``, slice by
+    slice and within a slice phase by phase. This keeps a copy of the generator where each slice's
+    draws begin (where the slice before it ends: drawn to its end already in slice-major order,
+    else drawn, and dropped, once), so a frame rendered alone, or phase-major, gets the very
+    noise it gets in the whole study. Within a slice, phases asked for in order cost nothing
+    extra; a phase behind the slice's position starts again from the slice's first draw.
+
+    Parameters
+    ----------
+    seed : int
+        The study's seed.
+    num_phases : int
+        Phases per slice.
+    shape : tuple of int
+        Image (rows, cols).
+
+    """
+
+    def __init__(self, seed: int, num_phases: int, shape: tuple[int, int]):
+        self._num_phases, self._shape = int(num_phases), tuple(shape)
+        # per slice position: the generator's state at its first draw
+        self._starts: list[dict] = [np.random.default_rng(seed).bit_generator.state]
+        self._at: dict[int, tuple[np.random.Generator, int]] = {}  # slice → (generator, phase)
+
+    def _skip(self, rng: np.random.Generator, phases: int) -> None:
+        for _ in range(phases):
+            draw_noise(rng, self._shape)
+
+    def generator(self, position: int, phase: int) -> np.random.Generator:
+        """
+        Return the generator positioned at one frame's first draw (render that frame with it).
+
+        Parameters
+        ----------
+        position : int
+            The slice's position in frame order (0-based).
+        phase : int
+            The phase, ``0 .. num_phases - 1``.
+
+        Returns
+        -------
+        numpy.random.Generator
+            Ready for that frame's :func:`draw_noise`; the next call for the same slice and the
+            following phase continues from where that draw ends.
+
+        """
+        while len(self._starts) <= position:  # the next slice starts where the last one ends
+            last = len(self._starts) - 1
+            rng, at = self._at.get(last, (None, 0))
+            if at < self._num_phases:  # not drawn to its end (phase-major): draw it again
+                rng = self._from_start(last)
+                self._skip(rng, self._num_phases)
+            self._starts.append(rng.bit_generator.state)
+        rng, at = self._at.get(position, (None, 0))
+        if rng is None or phase < at:
+            rng, at = self._from_start(position), 0
+        self._skip(rng, phase - at)
+        self._at[position] = (rng, phase + 1)
+        return rng
+
+    def _from_start(self, position: int) -> np.random.Generator:
+        rng = np.random.default_rng()
+        rng.bit_generator.state = self._starts[position]
+        return rng
+
+
+class StudyRenderer:
+    """
+    A simulated study's plan, rendering any frame on demand (lazily, in any order).
+
+    Noise comes from the study's one generator positioned at the frame's draws
+    (:class:`SliceMajorNoise`), so a frame rendered alone, or the study rendered phase-major,
+    equals the same frame of :func:`simulate_study`'s whole study, bit for bit; each slice's
+    :class:`ImageSynthesizer` is built the first time one of its frames is rendered and kept.
+
+    Parameters
+    ----------
+    preset, snr, seed
+        As :func:`simulate_study`'s.
+    **overrides
+        ``size``, ``num_phases``, ``subplanes``, ``pixel_spacing``, ``quick``: as
+        :func:`simulate_study`'s.
+
+    Attributes
+    ----------
+    preset : dict
+        The preset with the overrides applied.
+    motion : LVMotion
+        The ground truth.
+    slices : list of PlannedSlice
+        Planned planes in frame order (SA in index order, then LA).
+    study_uid, frame_of_reference_uid : str
+    series_uids : dict
+        ``(view, slice_index) -> str``.
+    snr : float or None
+    seed : int
+
+    """
+
+    def __init__(self, preset='normal', snr: float | None = 20.0, seed: int = 0, **overrides):
+        self.preset = p = _preset_with(preset, **overrides)
+        self.size = p['imaging']['size']
+        self.motion = LVMotion(p)
+        self.slices = plan_slices(self.motion, p['imaging'], self.size)
+        self.snr, self.seed = snr, int(seed)
+        # A drawn protocol (sim.protocol) joins the UID's parts, so two protocols never share one.
+        extra = (json.dumps(p['protocol'], sort_keys=True),) if p.get('protocol') else ()
+        self.study_uid = _uid('study', p['name'], seed, self.size, self.motion.num_phases, *extra)
+        self.frame_of_reference_uid = _uid('for', p['name'], seed)
+        self.series_uids = {
+            (sl.view, sl.index): _uid('series', self.study_uid, sl.view, sl.index)
+            for sl in self.slices
+        }
+        self._planes = {(sl.view, sl.index): sl for sl in self.slices}
+        self._position = {(sl.view, sl.index): i for i, sl in enumerate(self.slices)}
+        self._noise = SliceMajorNoise(seed, self.motion.num_phases, (self.size, self.size))
+        self._synths: dict[Key, ImageSynthesizer] = {}
+
+    @property
+    def keys(self) -> list[Key]:
+        """``(view, slice_index)`` of every slice, in frame order."""
+        return [(s.view, s.index) for s in self.slices]
+
+    def synthesizer(self, view: int, slice_index: int) -> ImageSynthesizer:
+        """Return one slice's ImageSynthesizer, built the first time it is asked for."""
+        key = (int(view), int(slice_index))
+        if key not in self._planes:
+            raise ValueError(f'no slice (view={view}, slice_index={slice_index}) in this study')
+        if key not in self._synths:
+            self._synths[key] = ImageSynthesizer(
+                self.motion, self._planes[key], self.size, self.preset['imaging']
+            )
+        return self._synths[key]
+
+    def frame(self, view: int, slice_index: int, phase: int, image: bool = True) -> Frame:
+        """
+        Return one frame, rendered now (``image=False``: its metadata only, ``image`` None).
+
+        Raises
+        ------
+        ValueError
+            No such slice, or ``phase`` outside ``0 .. num_phases - 1``.
+
+        """
+        key, n = (int(view), int(slice_index)), self.motion.num_phases
+        if key not in self._planes:
+            raise ValueError(f'no slice (view={view}, slice_index={slice_index}) in this study')
+        if not 0 <= int(phase) < n:
+            raise ValueError(f'phase must be in 0..{n - 1}, got {phase}')
+        t = float(self.motion.times[int(phase)])
+        img = None
+        if image:
+            rng = None
+            if self.snr is not None and np.isfinite(self.snr):
+                rng = self._noise.generator(self._position[key], int(phase))
+            img = self.synthesizer(*key).render(int(phase), t, self.snr, rng)
+        return Frame(
+            image=img,
+            geometry=self._planes[key].geometry,
+            view=key[0],
+            slice_index=key[1],
+            phase_index=int(phase),
+            num_phases=n,
+            trigger_time=t,
+            cycle_duration=self.motion.cycle_duration,
+            series_uid=self.series_uids[key],
+        )
+
+    def ed_mask(self, view: int, slice_index: int) -> np.ndarray:
+        """Return one slice's ED myocardium (slab-weighted fraction >= 0.5), bool (rows, cols)."""
+        myo, _ = self.synthesizer(view, slice_index).tissue_fractions(0)
+        return myo >= 0.5
+
+
 def simulate_study(
     preset='normal',
     snr: float | None = 20.0,
@@ -127,7 +305,8 @@ def simulate_study(
     num_phases : int, optional
         Phases per cycle (default from the preset, 25).
     seed : int
-        Seeds the noise (one ``default_rng(seed)`` drawn in frame order) and the UIDs.
+        Seeds the noise (one ``default_rng(seed)`` drawn slice-major, in frame order) and the
+        UIDs.
     subplanes : int, optional
         Through-slice sub-planes (default from the preset, 5).
     pixel_spacing : float, optional
@@ -142,88 +321,45 @@ def simulate_study(
     Study
 
     """
-    p = _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick)
-    im = p['imaging']
-    n = im['size']
-    motion = LVMotion(p)
-    slices = plan_slices(motion, im, n)
-    rng = np.random.default_rng(seed)
-    # A drawn protocol (sim.protocol) joins the UID's parts, so two protocols never share one.
-    extra = (json.dumps(p['protocol'], sort_keys=True),) if p.get('protocol') else ()
-    study_uid = _uid('study', p['name'], seed, n, motion.num_phases, *extra)
-    for_uid = _uid('for', p['name'], seed)
-    total = len(slices) * motion.num_phases
-    frames, masks, uids, geoms, desc = [], {}, {}, {}, {}
-    done = 0
-    for sl in slices:
+    r = StudyRenderer(
+        preset,
+        snr,
+        seed,
+        size=size,
+        num_phases=num_phases,
+        subplanes=subplanes,
+        pixel_spacing=pixel_spacing,
+        quick=quick,
+    )
+    total = len(r.slices) * r.motion.num_phases
+    frames, masks, geoms, desc = [], {}, {}, {}
+    for sl in r.slices:
         key = (sl.view, sl.index)
-        syn = ImageSynthesizer(motion, sl, n, im)
-        uid = _uid('series', study_uid, sl.view, sl.index)
-        uids[key], geoms[key], desc[key] = uid, sl.geometry, sl.description
-        myo, _ = syn.tissue_fractions(0)
-        masks[key] = myo >= 0.5
-        for frame in _render_cine(syn, sl, motion, snr, rng, uid):
-            frames.append(frame)
-            done += 1
+        geoms[key], desc[key] = sl.geometry, sl.description
+        masks[key] = r.ed_mask(*key)
+        for ph in range(r.motion.num_phases):
+            frames.append(r.frame(sl.view, sl.index, ph))
             if progress is not None:
-                progress(done, total)
+                progress(len(frames), total)
     return Study(
         frames=frames,
-        motion=motion,
-        preset=p,
-        slices=slices,
+        motion=r.motion,
+        preset=r.preset,
+        slices=r.slices,
         geometries=geoms,
         ed_masks=masks,
-        series_uids=uids,
-        study_uid=study_uid,
-        frame_of_reference_uid=for_uid,
+        series_uids=dict(r.series_uids),
+        study_uid=r.study_uid,
+        frame_of_reference_uid=r.frame_of_reference_uid,
         snr=snr,
         seed=seed,
         descriptions=desc,
     )
 
 
-def _render_cine(syn, sl, motion, snr, rng, uid: str) -> Iterator[Frame]:
-    """
-    Render one slice's cine, phase by phase, as it is consumed (noise drawn in that order).
-
-    Parameters
-    ----------
-    syn : ImageSynthesizer
-        The slice's synthesizer.
-    sl : PlannedSlice
-        The slice.
-    motion : LVMotion
-        The motion (phases, trigger times in s, cycle duration in s).
-    snr : float or None
-        Noise level (None: noiseless).
-    rng : numpy.random.Generator
-        The study's noise generator.
-    uid : str
-        The slice's SeriesInstanceUID.
-
-    Yields
-    ------
-    Frame
-
-    """
-    for ph in range(motion.num_phases):
-        t = float(motion.times[ph])
-        img = syn.render(ph, t, snr, rng)
-        yield Frame(
-            image=img,
-            geometry=sl.geometry,
-            view=sl.view,
-            slice_index=sl.index,
-            phase_index=ph,
-            num_phases=motion.num_phases,
-            trigger_time=t,
-            cycle_duration=motion.cycle_duration,
-            series_uid=uid,
-        )
-
-
-def _preset_with(preset, size, num_phases, subplanes, pixel_spacing, quick) -> dict:
+def _preset_with(
+    preset, size=None, num_phases=None, subplanes=None, pixel_spacing=None, quick=False
+) -> dict:
     """
     Load a preset with simulate_study's overrides applied (its parameters of the same names).
 
