@@ -714,6 +714,7 @@ class MotionTracker:
         # standard errors of the apical and basal gradient the twist continues with beyond the SA
         # slices, radians per LV height, last phase solved (None: not known)
         self.twist_gradient_se = None
+        self.twist_mean_gradient = 0.0  # the SA slices' mean twist gradient then, rad per height
         t = (self.rest - self.rest.mean(axis=0)) @ R[:, 2]
         self._height = (t - t.min()) / max(float(np.ptp(t)), 1e-9)  # material, 0 apex → 1 base
         self._hats = None  # _knot_hats of _height, built at the first twist fit
@@ -1610,6 +1611,9 @@ class MotionTracker:
             height, psi, hat, self.twist_coefficients, float(h_sa.min()), float(h_sa.max()),
             slices,
         )
+        if self.twist_gradient_se is not None:
+            every = np.ones(len(slices[0]), bool)
+            self.twist_mean_gradient = float(_slope_rows(slices[0], slices[2], every) @ slices[1])
         return _rotate_about_axis(x, centre, axis, angle)
 
     @staticmethod

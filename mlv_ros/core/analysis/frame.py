@@ -448,8 +448,9 @@ def twist_extrapolation_note(span, levels: int = 10, gradient_se=None) -> str:
     levels : int
         Level bins of the analysis on [0, 1] (the motion analyzer's ``levels``).
     gradient_se : (float, float), optional
-        Standard errors of the apical and the basal end gradient the solver measured (the
-        largest over the phases), radians per LV length; None = not known (the rate alone).
+        Standard errors of the apical and the basal end gradient the solver measured at the
+        phase of its steepest twist (where the peak twist is), radians per LV length; None =
+        not known (the rate alone).
 
     Returns
     -------
