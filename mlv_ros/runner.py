@@ -1141,7 +1141,9 @@ def twist_summary(solver, analyzer) -> dict:
     span = solver.twist_span
     return {
         'twist_measured_levels': None if span is None else [round(span[0], 3), round(span[1], 3)],
-        'twist_extrapolated': twist_extrapolation_note(span, analyzer.levels),
+        'twist_extrapolated': twist_extrapolation_note(
+            span, analyzer.levels, getattr(solver, 'twist_gradient_se', None)
+        ),
     }
 
 

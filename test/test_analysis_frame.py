@@ -158,6 +158,10 @@ def test_plane_levels_and_what_twist_is_extrapolated():
     assert f'about ±{rate["apical"] * 3.5:.1f}°' in note, note
     assert 'basal levels (up to 0.10 of the length above them' in note, note
     assert f'about ±{rate["basal"] * 1.0:.1f}°' in note, note
+    # The solver's end gradients known to ±5°, ±1° per length (1 σ): two σ per 0.1 more.
+    noisy = twist_extrapolation_note((lo, hi), 10, (np.radians(5.0), np.radians(1.0)))
+    assert f'about ±{(rate["apical"] + 1.0) * 3.5:.1f}°' in noisy, noisy
+    assert f'about ±{(rate["basal"] + 0.2) * 1.0:.1f}°' in noisy, noisy
     assert 'apical' in twist_extrapolation_note(
         (0.3, 0.97)
     ) and 'basal' not in twist_extrapolation_note((0.3, 0.97))

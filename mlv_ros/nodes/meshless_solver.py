@@ -69,6 +69,10 @@ class MeshlessSolver(GraphNode):
         self.tracker = None
         self.frame = None  # ED long-axis frame (LVFrame) of the registered model
         self.twist_span = None  # levels (0 apex, 1 base) the SA planes with ED tag points cross
+        # the standard errors of the apical and basal twist gradients continued beyond the SA
+        # slices at the phase of the steepest twist (where its peak is), radians per LV length
+        # (twist_extrapolation_note), and that gradient
+        self.twist_gradient_se, self.twist_peak_gradient = None, 0.0
         self.silence = Silence(
             TIMER_PERIOD_S
         )  # on the tag points, counted while this node is spun
@@ -225,6 +229,10 @@ class MeshlessSolver(GraphNode):
                 self.report(ERROR, 'phase not solved', phase=phase, reason=str(exc))
                 return
             x, E, state = sol.positions, sol.strain, sol.state
+            if tr.twist_gradient_se is not None:
+                if abs(tr.twist_mean_gradient) >= self.twist_peak_gradient:
+                    self.twist_peak_gradient = abs(tr.twist_mean_gradient)
+                    self.twist_gradient_se = tr.twist_gradient_se
         state.study_id, state.run_id = self.study.study_id, self.study.run_id
         strain = cardiac_strain(E, self.cardiac.e_r, self.cardiac.e_c, self.cardiac.e_l)
         stamp = self.get_clock().now().to_msg()

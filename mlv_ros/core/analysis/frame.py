@@ -423,7 +423,7 @@ def levels_outside(level_position, span, levels: int | None = None) -> np.ndarra
     return (pos < span[0] - half) | (pos > span[1] + half)
 
 
-def twist_extrapolation_note(span, levels: int = 10) -> str:
+def twist_extrapolation_note(span, levels: int = 10, gradient_se=None) -> str:
     """
     Say what of the reported twist is extrapolated, how far and how uncertain, in one sentence.
 
@@ -435,7 +435,10 @@ def twist_extrapolation_note(span, levels: int = 10) -> str:
     studies (``TWIST_EXTRAPOLATION_DEG_PER_TENTH`` per 0.1 of the length, the largest measured
     at that end; their truth's twist steepens toward the apex, and the bound also holds for
     linear profiles and ones that flatten there: ``test_tracking.py``,
-    ``test_extrapolated_twist_stays_within_its_stated_uncertainty``).
+    ``test_extrapolated_twist_stays_within_its_stated_uncertainty``). That rate is the truth's
+    bend beyond the slices; the gradient's own noise in this study (``gradient_se``, from its SA
+    slices' scatter: :func:`mlv_ros.core.tracking._end_intervals`) adds two standard errors times
+    the lever.
 
     Parameters
     ----------
@@ -444,6 +447,10 @@ def twist_extrapolation_note(span, levels: int = 10) -> str:
         data (the twist function then stays at the global twist factor).
     levels : int
         Level bins of the analysis on [0, 1] (the motion analyzer's ``levels``).
+    gradient_se : (float, float), optional
+        Standard errors of the apical and the basal end gradient the solver measured at the
+        phase of its steepest twist (where the peak twist is), radians per LV length; None =
+        not known (the rate alone).
 
     Returns
     -------
@@ -459,16 +466,17 @@ def twist_extrapolation_note(span, levels: int = 10) -> str:
     centres = (np.arange(int(levels)) + 0.5) / int(levels)
     out = levels_outside(centres, span, levels)
     ends = []
-    for name, side, lever, where in (
-        ('apical', centres < span[0], span[0] - centres, 'below'),
-        ('basal', centres > span[1], centres - span[1], 'above'),
+    for name, side, lever, where, se in (
+        ('apical', centres < span[0], span[0] - centres, 'below', gradient_se and gradient_se[0]),
+        ('basal', centres > span[1], centres - span[1], 'above', gradient_se and gradient_se[1]),
     ):
         if np.any(out & side):
             d = float(np.max(lever[out & side]))
             rate = TWIST_EXTRAPOLATION_DEG_PER_TENTH[name]
+            noise = 0.0 if se is None else 0.2 * float(np.degrees(se))  # 2 σ, per 0.1
             ends.append(
                 f'the {name} levels (up to {d:.2f} of the length {where} them, uncertain by '
-                f'about ±{rate * d / 0.1:.1f}°, {rate:.1f}° per 0.1)'
+                f'about ±{(rate + noise) * d / 0.1:.1f}°, {rate + noise:.1f}° per 0.1)'
             )
     if not ends:
         return ''
