@@ -27,12 +27,14 @@ from mlv_ros.core.types import VIEW_SA
 from mlv_ros.core.verdict import (
     DEGRADED,
     FAILED,
+    FIT_SECTOR_RATIO,
     metrics_verdict,
     OK,
     phase_verdict,
     SECTOR_SHARE_DEGRADED,
     Verdict,
     weakest_sector,
+    worst_fit_sector,
 )
 import numpy as np
 import pytest
@@ -221,6 +223,60 @@ def test_weakest_sector_finds_one_lost_sector_and_not_uniform_loss():
         weakest_sector({0: (theta[0], np.ones(35, bool))})
     with pytest.raises(ValueError, match='width_deg'):
         weakest_sector(wrap, width_deg=0.0)
+
+
+def test_worst_fit_sector_finds_a_sector_whose_tracks_left_disagree_with_the_model():
+    theta = {k: np.arange(0.0, 360.0, 10.0) for k in range(8)}  # 8 SA rings, a point every 10°
+    slices = {k: 36 for k in theta}
+    rng = np.random.default_rng(1)
+    # One point in five lost everywhere, and the model leaves the rest ~0.1 mm off (localisation
+    # noise, Rayleigh). On slices 3–4 from 60° to 110° the wall moves unlike its neighbours:
+    # 8 of its 12 tracks lost, and the model, carrying it with them, leaves the 4 left 0.6 mm off.
+    residual = {k: 0.1 * np.hypot(*rng.normal(size=(2, 36))) for k in theta}
+    used = {k: np.arange(36) % 5 != 2 for k in theta}
+    for k in (3, 4):
+        sector = (theta[k] >= 60.0) & (theta[k] < 120.0)
+        used[k][sector] = np.arange(36)[sector] % 3 == 0
+        residual[k][sector] = 0.6
+    names = {k: np.where(th < 180.0, 'a', 'b') for k, th in theta.items()}
+
+    def tracks(residual, used=used):
+        return {
+            k: (theta[k], used[k], names[k], np.where(used[k], residual[k], np.nan))
+            for k in theta
+        }
+
+    sector = worst_fit_sector(tracks(residual))
+    assert sector.slices == (3, 4) and (sector.used, sector.points) == (4, 12), sector
+    assert sector.start_deg == 60.0 and sector.end_deg == 110.0 and sector.labels == ('a',)
+    assert sector.residual_mm == 0.6 and sector.ratio > FIT_SECTOR_RATIO
+    v = phase_verdict(200, 288, slices, 0.1, 1.0, sa_tracks=tracks(residual))
+    assert v.level == DEGRADED and len(v.reasons) == 1, v.text
+    assert v.text.startswith(
+        'SA slices 3–4, θ 60–110° (a): 8 of 12 ED tag points lost, the 4 left 0.60 mm'
+    ), v.text
+    # The lost-points check alone does not see it (a third of the sector's tracks are left).
+    assert weakest_sector(tracks(residual)).share > SECTOR_SHARE_DEGRADED
+    # Near ED a misfit moves nothing far: not judged; no residuals given: not judged.
+    late = phase_verdict(200, 288, slices, 0.1, 1.0, sa_tracks=tracks(residual), motion_share=0.2)
+    assert late.level == OK, late.text
+    plain = {k: t[:3] for k, t in tracks(residual).items()}
+    assert worst_fit_sector(plain) is None
+    assert phase_verdict(200, 288, slices, 0.1, 1.0, sa_tracks=plain).level == OK
+    # The tracks left followed as well as elsewhere (consistent with the solved motion): ok,
+    # whatever the scale of the residuals (the rule is relative to the phase's own).
+    for scale in (0.1, 1.0):
+        even = {k: scale * np.hypot(*rng.normal(size=(2, 36))) for k in theta}
+        assert worst_fit_sector(tracks(even)).ratio < FIT_SECTOR_RATIO
+        assert phase_verdict(200, 288, slices, 0.1, 1.0, sa_tracks=tracks(even)).level == OK
+    # The same misfit where no track was lost (a sector the model merely fits worse): not judged.
+    kept = {k: np.arange(36) % 5 != 2 for k in theta}
+    assert phase_verdict(200, 288, slices, 0.1, 1.0, sa_tracks=tracks(residual, kept)).level == OK
+    assert worst_fit_sector(tracks(residual), min_used=5).ratio < FIT_SECTOR_RATIO
+    with pytest.raises(ValueError, match='36 labels and 35 residuals'):
+        worst_fit_sector({0: (theta[0], used[0], names[0], residual[0][:35])})
+    with pytest.raises(ValueError, match='min_points'):
+        worst_fit_sector(tracks(residual), min_used=0)
 
 
 FR = oblique_frame()

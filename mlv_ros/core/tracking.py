@@ -1253,7 +1253,11 @@ class MotionTracker:
         state.residual = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
         state.phase_index, state.num_phases = int(phase_index), int(num_phases)
         state.num_control_points = int(inside.sum())
-        verdict = self._verdict(sets, inside, state.residual, keys, *worst)
+        used = [k for k, ok in zip(keys, inside) if ok]
+        verdict = self._verdict(
+            sets, inside, state.residual, keys, *worst,
+            residuals=dict(zip(used, np.linalg.norm(res, axis=1))),
+        )
         state.verdict, state.verdict_reasons = verdict.level, verdict.text
         # The sector check names AHA segments (:meth:`_sector_tracks`); a phase degraded by it
         # alone is less sure there only.
@@ -1262,8 +1266,13 @@ class MotionTracker:
         )
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
 
-    def _verdict(self, sets, inside, residual_mm, keys, rejected, attached):
-        """Return the phase's data support (:func:`mlv_ros.core.verdict.phase_verdict`)."""
+    def _verdict(self, sets, inside, residual_mm, keys, rejected, attached, residuals=None):
+        """
+        Return the phase's data support (:func:`mlv_ros.core.verdict.phase_verdict`).
+
+        ``residuals``: (view, slice, track_id) → in-plane residual (mm) of each point used, for
+        the regional fit check (None: not checked).
+        """
         used_per_slice: dict = {}
         for k, ok in zip(keys, inside):
             if ok:
@@ -1294,7 +1303,7 @@ class MotionTracker:
             rejected=int(rejected),
             candidates=int(attached),
             sa_found=sa_found,
-            sa_tracks=self._sector_tracks({k for k, ok in zip(keys, inside) if ok}),
+            sa_tracks=self._sector_tracks({k for k, ok in zip(keys, inside) if ok}, residuals),
             motion_share=motion / self.largest_motion_mm if self.largest_motion_mm > 0 else 1.0,
         )
         one_d = [key for key in sets if self._one_family.get(key)]
@@ -1307,9 +1316,9 @@ class MotionTracker:
             )
         return verdict
 
-    def _sector_tracks(self, used: set) -> dict:
+    def _sector_tracks(self, used: set, residuals: dict | None = None) -> dict:
         """
-        Return per SA slice its ED tag points' angle (degrees), use and AHA segment name.
+        Return per SA slice its ED tag points' angle (degrees), use, AHA segment and residual.
 
         The angle and segment are the analysis frame's (:func:`lv_frame_axes` of the model at
         rest), so that a sector the verdict names is the one the findings report.
@@ -1318,12 +1327,16 @@ class MotionTracker:
         ----------
         used : set of tuple
             (view, slice, track_id) of the points this phase uses.
+        residuals : dict, optional
+            (view, slice, track_id) → in-plane residual of a used point, mm; without it the
+            entries have no residuals.
 
         Returns
         -------
         dict
-            SA slice index → (theta_deg, used, segment names), for
-            :func:`mlv_ros.core.verdict.weakest_sector`.
+            SA slice index → (theta_deg, used, segment names[, residual_mm: NaN where not
+            used]), for :func:`mlv_ros.core.verdict.weakest_sector` and
+            :func:`~mlv_ros.core.verdict.worst_fit_sector`.
 
         """
         if self._sectors is None:  # the ED points' angles and segments: once per reference
@@ -1339,10 +1352,14 @@ class MotionTracker:
                 deg = np.degrees(theta)
                 deg.flags.writeable = False
                 self._sectors[index] = (deg, tuple(ref), [AHA_SEGMENT_NAMES[k - 1] for k in seg])
-        return {
+        out = {
             index: (deg, [(VIEW_SA, index, t) in used for t in tids], list(names))
             for index, (deg, tids, names) in self._sectors.items()
         }
+        if residuals is not None:
+            for index, (_, tids, _) in self._sectors.items():
+                out[index] += ([residuals.get((VIEW_SA, index, t), np.nan) for t in tids],)
+        return out
 
     def _multipliers(self) -> tuple[float, float]:
         """
