@@ -105,10 +105,10 @@ def test_core_imports_no_ros():
     assert ros == []
 
 
-# Who may import synthetic truth: the phantom frame source, the tools, reading a run (accuracy
-# against a phantom) and core/io's ground-truth files.
+# Who may import synthetic truth: the phantom frame source and the process that renders its
+# frames, the tools, reading a run (accuracy against a phantom) and core/io's ground-truth files.
 SIM_USERS = ('mlv_ros.core.sim', 'mlv_ros.core.io.', 'mlv_ros.nodes.frame_source',
-             'mlv_ros.tools.', 'mlv_ros.recording')
+             'mlv_ros.render_process', 'mlv_ros.tools.', 'mlv_ros.recording')
 
 
 def test_only_the_sources_of_truth_import_the_simulators():
