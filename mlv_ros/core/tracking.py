@@ -276,21 +276,19 @@ def _pspline(J: np.ndarray, r: np.ndarray, lam: float, free: int = 0) -> np.ndar
     )[0]
 
 
-def _slice_shifts(P: np.ndarray, axis: np.ndarray, sa_slice: np.ndarray) -> np.ndarray:
+def _slice_shifts(shift: np.ndarray, sa_slice: np.ndarray) -> np.ndarray:
     """
     Return the in-plane residual per unit shift of each SA slice, shape (3K, 2 S).
 
     Two columns per SA slice with at least ``TWIST_SHIFT_MIN_POINTS`` points (``sa_slice`` ≥ 0;
-    S such slices), a shift along each of two directions ⟂ ``axis``, non-zero only on that
-    slice's rows; ``P`` (K, 3, 3) are the rows' weighted in-plane projectors.
+    S such slices), a shift along each of two directions ⟂ the axis, non-zero only on that
+    slice's rows; ``shift`` (K, 3, 2) is each row's weighted in-plane motion per mm of those
+    shifts (:meth:`MotionTracker._twist_rows`).
     """
-    e1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
-    e1 /= np.linalg.norm(e1)
-    shift = np.einsum('kab,eb->kae', P, np.stack([e1, np.cross(axis, e1)]))  # (K, 3, 2)
     slices, count = np.unique(sa_slice[sa_slice >= 0], return_counts=True)
     slices = slices[count >= TWIST_SHIFT_MIN_POINTS]
     on = (sa_slice[:, None] == slices[None, :]).astype(np.float64)  # (K, S)
-    return (shift[:, :, None, :] * on[:, None, :, None]).reshape(len(P) * 3, 2 * len(slices))
+    return (shift[:, :, None, :] * on[:, None, :, None]).reshape(len(shift) * 3, 2 * len(slices))
 
 
 def _line_fit(x, y) -> tuple[float, float]:
@@ -1742,15 +1740,21 @@ class MotionTracker:
             self._hats = _knot_hats(height, m)  # (N, m)
             self._hats.flags.writeable = False
         hat = self._hats
+        # Each tag point's weighted projector, in-plane residual and shift basis: the knots'
+        # fit and the slices' own twists share them.
+        P, residual, shift = self._twist_rows(phi, targets, normals, x, weights, axis)
+        tang = np.cross(axis, x - centre)  # ∂x/∂φ, each particle's motion per radian, mm/rad
         self.twist_coefficients = self._fit_twist_knots(
-            phi, targets, normals, x, weights, hat, sa_slice, (axis, centre)
+            phi, tang, P, residual, shift, hat, sa_slice
         )
         # The global stage's own twist of each particle since ED (φ = π τ g, eq. 2–3), radians.
         psi = (
             np.pi * (self.model.params.tau - self.model.rest_params.tau) * self.model.coords.twist
         )
         slices = _slice_twists(
-            *self._twist_rows(phi, targets, normals, x, weights, (axis, centre)),
+            np.einsum('kab,kb->ka', P, phi @ tang),
+            residual,
+            shift,
             sa_slice,
             np.asarray(phi @ height).ravel(),
             np.asarray(phi @ psi).ravel(),
@@ -1765,55 +1769,54 @@ class MotionTracker:
         return _rotate_about_axis(x, centre, axis, angle)
 
     @staticmethod
-    def _twist_rows(phi, targets, normals, x, weights, line):
+    def _twist_rows(phi, targets, normals, x, weights, axis):
         """
-        Return each tag point's weighted in-plane motion per radian, residual and shifts.
+        Return each tag point's weighted in-plane projector, residual and shifts.
 
         Parameters
         ----------
         phi, targets, normals, x, weights
             As in :meth:`_twist_function`.
-        line : tuple of ndarray, shape (3,) each
-            The long axis (unit) and a point on it (mm).
+        axis : ndarray, shape (3,)
+            The long axis, unit.
 
         Returns
         -------
-        moved : ndarray, shape (K, 3)
-            In-plane motion per radian of rotation about ``line``, mm/rad.
+        P : ndarray, shape (K, 3, 3)
+            In-plane projectors, each scaled by the square root of its point's data weight.
         residual : ndarray, shape (K, 3)
             In-plane residual ``P (target − Φ x)``, mm.
         shift : ndarray, shape (K, 3, 2)
             In-plane motion per mm of shift along two directions ⟂ the axis.
 
         """
-        axis, centre = line
         P = (
             plane_projectors(normals, len(normals))
             * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
         )
         e1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
         e1 /= np.linalg.norm(e1)
-        moved = np.einsum('kab,kb->ka', P, phi @ np.cross(axis, x - centre))
         residual = np.einsum('kab,kb->ka', P, targets - phi @ x)
         shift = np.einsum('kab,eb->kae', P, np.stack([e1, np.cross(axis, e1)]))
-        return moved, residual, shift
+        return P, residual, shift
 
-    def _fit_twist_knots(self, phi, targets, normals, x, weights, hat, sa_slice, line):
+    def _fit_twist_knots(self, phi, tang, P, residual, shift, hat, sa_slice):
         """
         Return the twist's knot values fitted to the in-plane tag residuals (P-spline), radians.
 
         Parameters
         ----------
-        phi, targets, normals, x, weights
-            The control-point weights (K, N), measured positions and image-plane normals (K, 3),
-            global-model particle positions (N, 3) and data weights (K,) or None, as in
-            :meth:`_twist_function`.
+        phi : sparse matrix, shape (K, N)
+            The control points' weights.
+        tang : ndarray, shape (N, 3)
+            Each particle's motion per radian of twist about the long axis, mm/rad.
+        P, residual, shift
+            Each control point's weighted in-plane projector (K, 3, 3), residual (K, 3) and
+            shift basis (K, 3, 2) (:meth:`_twist_rows`).
         hat : ndarray, shape (N, m)
             The knots' hat functions at each particle's height (:func:`_knot_hats`).
         sa_slice : ndarray of int, shape (K,)
             The SA slice of each control point, -1 on LA views.
-        line : tuple of ndarray, shape (3,) each
-            The long axis (unit) and a point on it (mm), about which the twist turns.
 
         Returns
         -------
@@ -1821,21 +1824,15 @@ class MotionTracker:
             Knot values, radians.
 
         """
-        m, (axis, centre) = hat.shape[1], line
-        tang = np.cross(axis, x - centre)  # ∂x/∂φ, each particle's motion per radian, mm/rad
-        P = (
-            plane_projectors(normals, len(normals))
-            * np.sqrt(control_weights(weights, len(targets)))[:, None, None]
-        )
+        m = hat.shape[1]
         # ∂(P Φ x)/∂(knot j) for all knots from one sparse product with 3m columns
         moved = (phi @ (tang[:, :, None] * hat[:, None, :]).reshape(len(tang), 3 * m)).reshape(
             -1, 3, m
         )
         J = np.matmul(P, moved).reshape(-1, m)
-        r = np.einsum('kab,kb->ka', P, targets - phi @ x).ravel()
         lam = self.twist_smoothing * float(np.sum(J * J)) / m  # relative to the data term's scale
-        shifts = _slice_shifts(P, axis, sa_slice)
-        return _pspline(np.hstack([J, shifts]), r, lam, free=shifts.shape[1])[:m]
+        shifts = _slice_shifts(shift, sa_slice)
+        return _pspline(np.hstack([J, shifts]), residual.ravel(), lam, free=shifts.shape[1])[:m]
 
     def _outliers(self, x, targets, normals) -> np.ndarray:
         """Return which in-plane residuals exceed ``max(outlier_mm, med + outlier_sigmas σ)``."""
