@@ -611,9 +611,7 @@ def _cut_at_base(s: seg.SliceSegmentation, g, axis_pt, axis_dir, z_base: float) 
         (g.pixel_to_patient(np.stack([s.centre_rc, s.centre_rc + s.axis_rc])) - axis_pt) @ axis_dir
     )
     s.base_level = float((z_base - z_centre) / (z_step - z_centre))
-    rr, cc = np.mgrid[0:s.mask.shape[0], 0:s.mask.shape[1]]
-    along = (rr - s.centre_rc[0]) * s.axis_rc[0] + (cc - s.centre_rc[1]) * s.axis_rc[1]
-    s.mask &= along <= s.base_level
+    s.mask &= seg.below_base(s.mask.shape, s.centre_rc, s.axis_rc, s.base_level)
 
 
 def _base_level(by_key, usable_sa, axis_pt, axis_dir, z_bases: list, warnings: list) -> float:

@@ -1035,8 +1035,19 @@ def polar_mask(
     with np.errstate(invalid='ignore'):
         m = (rho >= lo) & (rho <= hi)
     if axis_rc is not None and np.isfinite(base_level):
-        m &= dr * axis_rc[0] + dc * axis_rc[1] <= base_level
+        m &= below_base(shape, centre_rc, axis_rc, base_level)
     return m
+
+
+def below_base(shape: tuple[int, int], centre_rc, axis_rc, base_level: float) -> np.ndarray:
+    """
+    Return the pixels on the apical side of an LA base cut, shape ``shape``.
+
+    Those whose centre ``x`` has ``(x − centre_rc)·axis_rc ≤ base_level`` (px along the unit
+    in-plane axis ``axis_rc``, apex → base, from ``centre_rc``, (row, col)).
+    """
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
+    return (rr - centre_rc[0]) * axis_rc[0] + (cc - centre_rc[1]) * axis_rc[1] <= base_level
 
 
 # --------------------------------------------------------------------------- slices
