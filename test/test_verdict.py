@@ -562,6 +562,13 @@ def test_registration_and_ed_volume_verdicts():
     assert (
         v.level == DEGRADED and '2 of 6 SA slices' in v.text and 'none of the 1 LA views' in v.text
     )
+    # LA views segmented but every horseshoe closed over the atrium: the base is not seen.
+    sa = ok[:6]
+    closed = [R(view=1, slice_index=i, ok=True, reason='', base_shown=False) for i in range(3)]
+    v = registration_verdict(sa + closed)
+    assert v.level == DEGRADED and 'no LA view shows the base' in v.text
+    one_shows = closed[:2] + [R(view=1, slice_index=2, ok=True, reason='', base_shown=True)]
+    assert registration_verdict(sa + one_shows).level == OK
     # Wall thickness: any adult heart passes, hypertrophic (20 mm, a 30 mm septum) and thinned
     # by a scar (3 mm over a tenth of the wall) included; a wall no heart has does not.
     rng = np.random.default_rng(0)
