@@ -20,9 +20,13 @@ For each deformation (scaling, rotation, twisting, combination, bulge) and contr
 final dense RMS / max error, iterations to convergence, wall time (a separate run without the
 per-iteration error callback), time to 0.1 mm and 0.01 mm (cold runs capped at those iteration
 counts). Then a scaling table: seconds per iteration of the global stage and of the local stage
-for N = 2k … 100k particles. One JSON document to stdout; a Fig. 5-style PNG in ``--out``.
+for N = 2k … 100k particles, the local stage's CG iteration also in CPU time per particle and per
+particle–neighbour pair, and optionally (``--neighbours K``) the same sizes again with the support
+radius scaled so every size has about K neighbours (the paper's ``h = 3 r̄`` gives more
+neighbours at more particles: at 2k the wall holds ~3 spacings and truncates the support). One
+JSON document to stdout; a Fig. 5-style PNG in ``--out``.
 
-Usage: ``mlv-ros bench phantom [--n 5000] [--sizes 2000,5000,...] [--out DIR]``.
+Usage: ``mlv-ros bench phantom [--n 5000] [--sizes 2000,5000,...] [--neighbours K] [--out DIR]``.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import sys
 import time
 
 from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
+from mlv_ros.core.meshless.kernel import mean_neighbour_distance, SUPPORT_FACTOR
 from mlv_ros.core.sim.paper_cylinder import (
     control_subset,
     deform,
@@ -54,13 +59,63 @@ FRACTIONS = (1.0, 0.5, 0.25, 0.1, 0.05)
 SIZES = (2000, 5000, 10000, 20000, 50000, 100000)
 
 
-def build(n: int, seed: int):
+ORDERS = ('sampled', 'morton', 'random')
+
+
+def particle_order(x, order: str, seed: int = 0) -> np.ndarray:
+    """
+    Return a permutation of the particles ``x`` (N, 3): ``order`` one of :data:`ORDERS`.
+
+    'sampled' keeps the sampler's lattice order (already spatially coherent), 'morton' sorts by
+    the Z-order curve of a 1024³ grid over the bounding box, 'random' shuffles (the worst case
+    for the sparse products' memory access).
+    """
+    if order == 'sampled':
+        return np.arange(len(x))
+    if order == 'random':
+        return np.random.default_rng(seed).permutation(len(x))
+    if order != 'morton':
+        raise ValueError(f'order must be one of {ORDERS}, got {order!r}')
+    lo = x.min(axis=0)
+    q = ((x - lo) / max(float(np.ptp(x, axis=0).max()), 1e-12) * 1023).astype(np.uint64)
+    code = np.zeros(len(x), dtype=np.uint64)
+    for bit in range(10):
+        for a in range(3):
+            code |= ((q[:, a] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + a)
+    return np.argsort(code, kind='stable')
+
+
+def build(n: int, seed: int, support_factor: float = SUPPORT_FACTOR, order: str = 'sampled'):
     x = sample_cylinder_shell(n, seed=seed)
+    x = x[particle_order(x, order, seed)]
     t0 = time.perf_counter()
     model = MeshlessModel(
-        x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2)
+        x,
+        cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2),
+        support_factor=support_factor,
     )
     return x, model, time.perf_counter() - t0
+
+
+def support_factor_for(x, neighbours: float, sample: int = 10000, seed: int = 0) -> float:
+    """
+    Return the support factor ``f`` (``h_i = f r̄_i``) giving ``neighbours`` neighbours on average.
+
+    Bisection on the mean count of particles within ``f r̄_i`` of up to ``sample`` centres (self
+    excluded); regrouping of ill-shaped phyxels may add a few more in the model.
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(x)
+    rbar, _ = mean_neighbour_distance(x, tree=tree)
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(x), size=min(sample, len(x)), replace=False)
+    lo, hi = 1.0, 8.0
+    for _ in range(30):
+        f = 0.5 * (lo + hi)
+        count = tree.query_ball_point(x[idx], r=f * rbar[idx], return_length=True).mean() - 1
+        lo, hi = (f, hi) if count < neighbours else (lo, f)
+    return 0.5 * (lo + hi)
 
 
 def first_below(errs, thr):
@@ -110,9 +165,11 @@ def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
     """
     Time the local stage's CG iterations and system set-up (10 % control points).
 
-    Returns (seconds per CG iteration, seconds to set the system up), medians of ``repeats`` solves
-    of ``iterations`` CG iterations each.
+    Returns (seconds per CG iteration, seconds to set the system up, CPU seconds per CG
+    iteration), medians of ``repeats`` solves of ``iterations`` CG iterations each (wall clock;
+    the CPU time, this process's, is the one to compare on a loaded machine).
     """
+    model.local_operators  # noqa: B018 (built on first use, with the stiffness scale _kdiag)
     n = model.num_particles
     idx = control_subset(n, 0.1, seed=0)
     phi = model.attach(idx).weights
@@ -123,10 +180,13 @@ def cg_iteration_seconds(model, system_factory, iterations=10, repeats=3):
     for _ in range(repeats):
         t0 = time.perf_counter()
         system = system_factory((kappa, phi, pq))
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         _, its = system.solve(rhs, rtol=0.0, atol=0.0, maxiter=iterations)
-        times.append(((time.perf_counter() - t1) / max(its, 1), t1 - t0))
-    return float(np.median([t[0] for t in times])), float(np.median([t[1] for t in times]))
+        its = max(its, 1)
+        times.append(
+            ((time.perf_counter() - t1) / its, t1 - t0, (time.process_time() - c1) / its)
+        )
+    return tuple(float(np.median([t[k] for t in times])) for k in range(3))
 
 
 def local_stage_comparison(model):
@@ -136,8 +196,10 @@ def local_stage_comparison(model):
     Old: bench/reference_local.py. Also returns the ratio old / new.
     """
     model.local_operators  # noqa: B018 (built once per model; timed in build_local_s)
-    new_it, new_setup = cg_iteration_seconds(model, model._local_system)
-    old_it, old_setup = cg_iteration_seconds(model, lambda d: PhantomSystemReference(model, d))
+    new_it, new_setup, _ = cg_iteration_seconds(model, model._local_system)
+    old_it, old_setup, _ = cg_iteration_seconds(
+        model, lambda d: PhantomSystemReference(model, d)
+    )
     return {
         'old_s_per_cg_iteration': old_it,
         'new_s_per_cg_iteration': new_it,
@@ -147,11 +209,35 @@ def local_stage_comparison(model):
     }
 
 
-def scaling_row(n, seed, compare_old=False):
-    x, model, t_build = build(n, seed)
+def scaling_row(
+    n, seed, compare_old=False, support_factor=SUPPORT_FACTOR, fits=True, order='sampled'
+):
+    """
+    Time one size: model build, the local stage's CG iteration and (``fits``) the two stages.
+
+    The CG iteration also in CPU time per particle (µs) and per particle–neighbour pair (ns);
+    ``order``: the particles' order (:func:`particle_order`).
+    """
+    x, model, t_build = build(n, seed, support_factor, order)
     t0 = time.perf_counter()
     model.local_operators  # noqa: B018
     t_local = time.perf_counter() - t0
+    new_it, _, cpu_it = cg_iteration_seconds(model, model._local_system)
+    row = {
+        'particles': int(len(x)),
+        'order': order,
+        'support_factor': float(support_factor),
+        'pairs': model.phyxels.num_pairs,
+        'mean_neighbours': float(model.phyxels.neighbour_counts().mean()),
+        'build_s': t_build,
+        'build_local_s': t_local,
+        's_per_cg_iteration': new_it,
+        'cpu_s_per_cg_iteration': cpu_it,
+        'cpu_us_per_particle_cg_iteration': 1e6 * cpu_it / len(x),
+        'cpu_ns_per_pair_cg_iteration': 1e9 * cpu_it / model.phyxels.num_pairs,
+    }
+    if not fits:
+        return row
     idx = control_subset(len(x), 0.1, seed=seed)
     y = deform(x, 'combination')
     g = model.fit(idx, y[idx], warm_start=False, local=False, max_iterations=6, tol=0.0)
@@ -159,14 +245,8 @@ def scaling_row(n, seed, compare_old=False):
     yb = deform(x, 'bulge')
     loc = model.fit(idx, yb[idx], warm_start=False, max_iterations=12, tol=0.0)
     lh = [h for h in loc.history if h['local']]
-    new_it, _ = cg_iteration_seconds(model, model._local_system)
     return {
-        'particles': int(len(x)),
-        'pairs': model.phyxels.num_pairs,
-        'mean_neighbours': float(model.phyxels.neighbour_counts().mean()),
-        'build_s': t_build,
-        'build_local_s': t_local,
-        's_per_cg_iteration': new_it,
+        **row,
         **({'old_vs_new': local_stage_comparison(model)} if compare_old else {}),
         'global_s_per_iteration': float(np.median(glob)),
         'local_s_per_iteration': float(np.median([h['seconds'] for h in lh])) if lh else None,
@@ -178,6 +258,29 @@ def scaling_row(n, seed, compare_old=False):
         )
         if lh
         else None,
+    }
+
+
+def linearity(rows):
+    """
+    Return how far a scaling series is from linear: the largest over the smallest cost per unit.
+
+    Per particle and per particle–neighbour pair, of the CG iteration's CPU time; also the mean
+    neighbour counts' range (a cost per particle grows with it at any constant cost per pair).
+    """
+    if len(rows) < 2:
+        return None
+
+    def spread(key):
+        v = [r[key] for r in rows]
+        return max(v) / min(v)
+
+    return {
+        'particles': [rows[0]['particles'], rows[-1]['particles']],
+        'per_particle_max_over_min': spread('cpu_us_per_particle_cg_iteration'),
+        'per_pair_max_over_min': spread('cpu_ns_per_pair_cg_iteration'),
+        'mean_neighbours': [min(r['mean_neighbours'] for r in rows),
+                            max(r['mean_neighbours'] for r in rows)],
     }
 
 
@@ -219,6 +322,18 @@ def main(argv=None) -> int:
     ap.add_argument('--fractions', default=','.join(str(f) for f in FRACTIONS))
     ap.add_argument(
         '--sizes', default=','.join(str(s) for s in SIZES), help="scaling table sizes ('' = skip)"
+    )
+    ap.add_argument(
+        '--neighbours',
+        type=float,
+        default=0.0,
+        help='also time the sizes with the support scaled to this mean neighbour count (0 = no)',
+    )
+    ap.add_argument(
+        '--order',
+        choices=ORDERS,
+        default='sampled',
+        help="the scaling rows' particle order (sampled: the sampler's lattice order)",
     )
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--max-iterations', type=int, default=200)
@@ -270,10 +385,18 @@ def main(argv=None) -> int:
         for o, nw in zip(local_stage['old_bulge'], local_stage['new_bulge'])
     ]
     print(f'local stage old vs new: {local_stage}', file=sys.stderr)
-    scaling = []
+    scaling, fixed = [], []
     for n in [int(s) for s in args.sizes.split(',') if s]:
-        scaling.append(scaling_row(n, args.seed, compare_old=n <= args.old_up_to))
+        scaling.append(
+            scaling_row(n, args.seed, compare_old=n <= args.old_up_to, order=args.order)
+        )
         print(f'scaling {n}: {scaling[-1]}', file=sys.stderr)
+        if args.neighbours > 0:
+            f = support_factor_for(sample_cylinder_shell(n, seed=args.seed), args.neighbours)
+            fixed.append(
+                scaling_row(n, args.seed, support_factor=f, fits=False, order=args.order)
+            )
+            print(f'scaling {n}, ~{args.neighbours:g} neighbours: {fixed[-1]}', file=sys.stderr)
     png = plot(cases, Path(args.out)) if cases else None
 
     fig4 = [c for c in cases if c['deformation'] != 'bulge']
@@ -303,6 +426,9 @@ def main(argv=None) -> int:
         'cases': cases,
         'local_stage_old_vs_new': local_stage,
         'scaling': scaling,
+        'scaling_linearity': linearity(scaling),
+        'scaling_fixed_neighbours': fixed,
+        'scaling_fixed_neighbours_linearity': linearity(fixed),
         'targets': {
             'fig4_below_0.1mm_within_5s': all(
                 c['dense_rms_mm'] < 0.1 and c['wall_time_s'] < 5 for c in fig4
