@@ -597,15 +597,17 @@ def protocol_period_mm(case: Path) -> float | None:
     return float(value) if value else None
 
 
-def strain_errors(case: Path, rest, rotation, positions, verdicts, motion) -> dict:
+def strain_errors(case: Path, rest, rotation, positions, verdicts, motion, origin=0) -> dict:
     """
     Return the ES strain errors and the findings of the re-solve, and of the truth's motion.
 
     ``strain``: ``bench/strain.py``'s comparison (:func:`strain.brief`) of the solved motion,
     analysed as the analysis node does (:func:`strain.ours_from_positions`); ``strain_truth``:
     the same for the truth's motion of the same ED particles in the same frame (no motion error:
-    what the analysis, its frame and its segments make of perfect motion). Empty when the study
-    has no regional truth or its ES phase was not solved.
+    what the analysis, its frame and its segments make of perfect motion); ``strain``'s
+    ``missed_why`` names each missed abnormal segment's cause (:func:`strain.explain_abnormal`;
+    ``origin``: the recorded state's ``segment_origin``, 1 when the septum is the prior's).
+    Empty when the study has no regional truth or its ES phase was not solved.
     """
     import strain as bench_strain
 
@@ -614,17 +616,17 @@ def strain_errors(case: Path, rest, rotation, positions, verdicts, motion) -> di
         return {}
     es = int(gt['phase'])
     exact = {p: motion.position(rest, p) for p in positions}
-    return {
-        name: bench_strain.brief(
-            bench_strain.compare(
-                gt, bench_strain.ours_from_positions(rest, rotation, pos, es, states)
+    out = {}
+    for name, pos, states in (('strain', positions, verdicts), ('strain_truth', exact, None)):
+        ours = bench_strain.ours_from_positions(rest, rotation, pos, es, states)
+        ours['segment_origin'] = int(origin)
+        result = bench_strain.compare(gt, ours)
+        if name == 'strain':
+            result['explained'] = bench_strain.explain_abnormal(
+                gt, ours, motion, rest, rotation, positions
             )
-        )
-        for name, pos, states in (
-            ('strain', positions, verdicts),
-            ('strain_truth', exact, None),
-        )
-    }
+        out[name] = bench_strain.brief(result)
+    return out
 
 
 def replay_case(
@@ -691,7 +693,9 @@ def replay_case(
         **segment_errors(case, tr.rest, positions, truth),
         **segment_tracks(case, sets, truth),
         **(
-            strain_errors(case, tr.rest, state.rotation, positions, verdicts, truth)
+            strain_errors(
+                case, tr.rest, state.rotation, positions, verdicts, truth, state.segment_origin
+            )
             if strain
             else {}
         ),

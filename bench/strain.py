@@ -34,9 +34,15 @@ the right sign: fraction and the wrong ones), ``abnormal`` (truth class per abno
 with truth and ours), ``classification`` (sensitivity / specificity of akinetic + dyskinetic
 segments, from the findings :mod:`mlv_ros.core.analysis.findings` makes of the recorded
 metrics as ``mlv-ros report`` does; an indeterminate segment is no finding: a missed abnormal
-one, counted apart too) and ``must`` (the issue's criteria:
-global Ecc, Ell within 0.02 and Err within 0.05; Ecc error ≤ 0.05 in ≥ 95 % of segments; every
-sign right). The summary pools the segments of all cases.
+one, counted apart too), ``segment_origin`` (1: the septum is the anatomical prior's, the
+segment names are not tied to the anatomy), ``explained`` (per abnormal segment of the truth:
+found, or why not, :func:`explain_abnormal`: the truth's own motion of our particles analysed
+in our frame and in the truth's tells the motion from the frame, the names and the rule) and
+``must`` (the issue's criteria: global Ecc, Ell within 0.02 and Err within 0.05; Ecc error
+≤ 0.05 in ≥ 95 % of segments; every sign right). The summary pools the segments of all cases:
+sensitivity and specificity with their counts (``found`` tp/(tp+fn), ``normal_not_flagged``
+tn/(tn+fp)), the same where the RV was found and where the septum is the prior's, and the
+causes of the misses (``missed_why``).
 
     mlv-ros bench strain [-- --cases 3 --seed 2000 --abnormal-only --phases 16 --out DIR]
 
@@ -76,7 +82,9 @@ def ours_at_es(mcap: Path, es: int) -> dict:
     dict
         ``segments`` {component: (17,) array}, ``count`` (17,) (None when not published),
         ``global`` {component: float}, ``reanalysis`` {component: (17,)}, ``classes``
-        (17 names, or None when the run does not classify segments).
+        (17 names, or None when the run does not classify segments), ``findings``,
+        ``segment_origin`` (the ES metrics' :data:`~mlv_ros.core.types.SEGMENT_ORIGIN_CODES`
+        code) and ``run`` (:func:`mlv_ros.recording.read_run` of the recording).
 
     """
     from mlv_ros.core.analysis import LVAnalyzer, LVFrame
@@ -114,10 +122,12 @@ def ours_at_es(mcap: Path, es: int) -> dict:
         'reanalysis': reanalysis,
         'classes': found.classes if phases else None,
         'findings': found,
+        'segment_origin': int(met.get('segment_origin', 0)),
+        'run': run,
     }
 
 
-def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> dict:
+def ours_from_positions(ed, rotation, positions: dict, es: int, states=None, frame=None) -> dict:
     """
     Return :func:`compare`'s ``ours`` for motion not published by a run (an offline re-solve).
 
@@ -138,6 +148,9 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> 
     states : dict, optional
         phase → (verdict level, verdict text, RMS residual mm[, degraded segments]) of the
         solver (``ModelState``'s fields); default ok and 0.
+    frame : LVFrame, optional
+        Analyse in this frame instead of the registered model's (e.g. the truth's,
+        :func:`mlv_ros.core.sim.regional.truth_frame`).
 
     Returns
     -------
@@ -156,7 +169,7 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> 
 
     if es not in positions:
         raise ValueError(f'no motion at the ES phase {es}')
-    an = LVAnalyzer(ed, LVFrame(*lv_frame_axes(ed, rotation)))
+    an = LVAnalyzer(ed, frame or LVFrame(*lv_frame_axes(ed, rotation)))
     n = max(positions) + 1
     phases = []
     for p in sorted(positions):
@@ -182,13 +195,117 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None) -> 
     }
 
 
+#: Why an abnormal segment of the truth was not found (:func:`explain_abnormal`), in the order
+#: the causes are tested.
+MISS_REASONS = {
+    'unsupported': "the ES verdict names the segment's sector as carried by the model",
+    'rule': "the truth's own motion, in the truth's frame, is not read abnormal either",
+    'names': "the septum is the prior's, and the segment named so is mostly not the truth's",
+    'frame': "the truth's motion in our frame (levels, sectors) is not read abnormal",
+    'indeterminate': "σ_f beyond its bound; the truth's motion in our frame is read abnormal",
+    'motion': "our motion is read normal or hypokinetic where the truth's motion is not",
+}
+
+
+def explain_abnormal(truth: dict, ours: dict, motion, ed, rotation, phases) -> list[dict]:
+    """
+    Return, per abnormal segment of the truth, our class and why it was missed (if it was).
+
+    The truth's motion of our ED particles is analysed as ours is (:func:`ours_from_positions`),
+    once in our frame and once in the truth's (:func:`mlv_ros.core.sim.regional.truth_frame`):
+    what the frame, the segment names and the rule cost is then told apart from the motion.
+
+    Parameters
+    ----------
+    truth : dict
+        ``groundtruth.json``'s ``regional``.
+    ours : dict
+        :func:`ours_at_es` / :func:`ours_from_positions` of the run (``findings``,
+        ``classes``; ``segment_origin`` 1 = the septum from the prior, absent: detected).
+    motion : LVMotion
+        The study's ground-truth motion
+        (:func:`mlv_ros.core.io.groundtruth.motion_from_groundtruth`).
+    ed : ndarray, shape (N, 3)
+        The run's ED particles, mm.
+    rotation : array_like, shape (4,)
+        The registered model's rotation quaternion (w, x, y, z).
+    phases : iterable of int
+        The phases the run solved (the truth's motion is analysed at the same ones).
+
+    Returns
+    -------
+    list of dict
+        Per truth-abnormal segment (akinetic or dyskinetic): ``segment``, ``truth``, ``ours``,
+        ``f`` / ``f_unc`` (ours), ``truth_motion_our_frame`` and ``truth_motion_truth_frame``
+        (the class each gives), ``named_share`` (share of the particles we name so that lie in
+        the truth's segment of that number), ``held_by`` (our segment holding most of the
+        truth's, and our class of it: under a prior septum a region found under another name)
+        and ``why``: ``found`` or a :data:`MISS_REASONS` key.
+
+    """
+    from mlv_ros.core.analysis import LVFrame
+    from mlv_ros.core.analysis.frame import cardiac_coordinates, lv_frame_axes
+    from mlv_ros.core.analysis.strain import aha_segments
+    from mlv_ros.core.sim.regional import truth_frame, truth_segments
+
+    es = int(truth['phase'])
+    exact = {int(p): motion.position(ed, int(p)) for p in phases}
+    tf = truth_frame(motion)
+    in_ours = ours_from_positions(ed, rotation, exact, es)['findings']
+    in_truth = ours_from_positions(ed, rotation, exact, es, frame=tf)['findings']
+    fr = LVFrame(*lv_frame_axes(ed, rotation))
+    c = cardiac_coordinates(ed, fr)
+    named = aha_segments(c.h, c.theta, fr.aha_origin_deg)
+    true_seg = truth_segments(motion, ed, tf)
+    found = ours['findings']
+    classes = ours['classes'] or ['indeterminate'] * 17
+    out = []
+    for s in truth['segments']:
+        if s['class'] not in ABNORMAL:
+            continue
+        k = s['segment'] - 1
+        mine = named == k + 1
+        share = float(np.mean(true_seg[mine] == k + 1)) if mine.any() else 0.0
+        # Where our names put the truth's segment: the segment of ours holding most of it.
+        held = np.bincount(named[true_seg == k + 1], minlength=18)
+        main = int(np.argmax(held))
+        cls = classes[k]
+        if cls in ABNORMAL:
+            why = 'found'
+        elif k + 1 in found.unsupported:
+            why = 'unsupported'
+        elif in_truth.classes[k] not in ABNORMAL:
+            why = 'rule'
+        elif in_ours.classes[k] not in ABNORMAL:
+            why = 'names' if ours.get('segment_origin') == 1 and share < 0.5 else 'frame'
+        else:
+            why = 'indeterminate' if cls == 'indeterminate' else 'motion'
+        out.append(
+            {
+                'segment': k + 1,
+                'truth': s['class'],
+                'ours': cls,
+                'f': round(float(found.function_index[k]), 3),
+                'f_unc': round(float(found.function_unc[k]), 3),
+                'truth_motion_our_frame': in_ours.classes[k],
+                'truth_motion_truth_frame': in_truth.classes[k],
+                'named_share': round(share, 3),
+                'held_by': {'segment': main, 'class': classes[main - 1]} if held.any() else None,
+                'why': why,
+            }
+        )
+    return out
+
+
 def brief(result: dict) -> dict:
     """
     Return the headline of a :func:`compare` result (one JSON line).
 
     ``global_error`` per component, ``ecc_within_0.05``, ``signs`` right / checked, the
     akinetic + dyskinetic segments found (``tp``, ``fn``, ``fp``, indeterminate abnormal),
-    ``classes``: truth -> our class of every segment that is abnormal in either, and ``must``.
+    ``classes``: truth -> our class of every segment that is abnormal in either,
+    ``missed_why`` (:func:`explain_abnormal`'s cause per missed segment, when explained) and
+    ``must``.
     """
     cls = result['classification'] or {}
     return {
@@ -206,6 +323,9 @@ def brief(result: dict) -> dict:
         },
         'classes': {
             s['segment']: f'{s["truth"]} -> {s["ours"]}' for s in cls.get('per_segment', ())
+        },
+        'missed_why': {
+            e['segment']: e['why'] for e in result.get('explained', ()) if e['why'] != 'found'
         },
         'must': result['must'],
     }
@@ -333,6 +453,13 @@ def run_case(seed: int, out: Path, timeout: float, phases: int | None) -> dict:
         return case | {'error': str(exc)}
     case['es_phase'] = int(truth['phase'])
     case['published'] = ours['published']
+    case['segment_origin'] = ours['segment_origin']
+    from mlv_ros.core.io.groundtruth import motion_from_groundtruth
+
+    run = ours['run']
+    case['explained'] = explain_abnormal(
+        truth, ours, motion_from_groundtruth(study), run['ed'], run['rotation'], run['positions']
+    )
     return case | compare(truth, ours)
 
 
@@ -366,11 +493,34 @@ def summarise(cases: list[dict]) -> dict:
         tn, fp = sum(c['true_negative'] for c in cls), sum(c['false_positive'] for c in cls)
         out['sensitivity'] = round(tp / (tp + fn), 4) if tp + fn else None
         out['specificity'] = round(tn / (tn + fp), 4) if tn + fp else None
+        out['found'] = f'{tp}/{tp + fn}'
+        out['normal_not_flagged'] = f'{tn}/{tn + fp}'
+        # The same counts where the septum came from the RV in the images (segment names tied to
+        # the anatomy) and where it is the prior's (names not tied to it: said in the report).
+        for name, keep in (('rv_found', lambda c: c.get('segment_origin') != 1),
+                           ('septum_prior', lambda c: c.get('segment_origin') == 1)):
+            sub = [c['classification'] for c in good if c['classification'] and keep(c)]
+            out[f'found_{name}'] = (
+                f'{sum(c["true_positive"] for c in sub)}/'
+                f'{sum(c["true_positive"] + c["false_negative"] for c in sub)}'
+            )
+            out[f'normal_not_flagged_{name}'] = (
+                f'{sum(c["true_negative"] for c in sub)}/'
+                f'{sum(c["true_negative"] + c["false_positive"] for c in sub)}'
+            )
         out['indeterminate'] = {
             k: sum(c[f'indeterminate_{k}'] for c in cls) for k in ('abnormal', 'other')
         }
     else:
         out['sensitivity'] = out['specificity'] = None  # no run had metrics to classify
+    why = [e['why'] for c in good for e in c.get('explained', ()) if e['why'] != 'found']
+    out['missed_why'] = {k: why.count(k) for k in MISS_REASONS if k in why}
+    # Under a prior septum a region can be found under another segment's name.
+    out['names_missed_but_region_found'] = sum(
+        e['why'] == 'names' and (e['held_by'] or {}).get('class') in ABNORMAL
+        for c in good
+        for e in c.get('explained', ())
+    )
     return out
 
 

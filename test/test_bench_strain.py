@@ -18,13 +18,14 @@
 The truth's own motion of a heart with an akinetic and a dyskinetic region, given as solved
 positions to :func:`strain.ours_from_positions` with the rotation a registration would give,
 compares with the truth's regional strain within the analysis' own error and finds the
-abnormal segments; a phase marked failed is left out as the analysis node leaves it out.
+abnormal segments; a phase marked failed is left out as the analysis node leaves it out. A miss
+is told apart from its cause: motion read wrong, or segment names turned by a prior septum.
 """
 
 from pathlib import Path
 import sys
 
-from mlv_ros.core.meshless.globals import matrix_to_quat
+from mlv_ros.core.meshless.globals import matrix_to_quat, quat_to_matrix
 from mlv_ros.core.sim.regional import regional_truth, truth_frame
 from mlv_ros.core.verdict import FAILED
 import numpy as np
@@ -32,7 +33,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
-from strain import brief, compare, ours_from_positions  # noqa: E402
+from strain import brief, compare, explain_abnormal, ours_from_positions  # noqa: E402, I100
 # the normal preset with an akinetic and a dyskinetic region, 16 phases
 from test_analysis_findings import heart as findings_heart  # noqa: E402, F401
 
@@ -88,3 +89,33 @@ def test_a_failed_phase_is_left_out_and_es_must_be_solved(heart):
     assert es not in ours['findings'].phases_used
     with pytest.raises(ValueError, match='ES phase'):
         ours_from_positions(X, rotation, {k: v for k, v in positions.items() if k != es}, es)
+
+
+def _turned(rotation, deg):
+    """Return ``rotation`` turned by ``deg`` about its own z axis (the long axis)."""
+    a = np.radians(deg)
+    rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return matrix_to_quat(quat_to_matrix(np.asarray(rotation)) @ rz)
+
+
+def test_a_miss_is_told_apart_from_its_cause(heart, findings_heart):  # noqa: F811
+    X, rotation, positions, truth, es = heart
+    motion = findings_heart[0]
+    want = sorted(
+        s['segment'] for s in truth['segments'] if s['class'] in ('akinetic', 'dyskinetic')
+    )
+    ours = ours_from_positions(X, rotation, positions, es)
+    got = explain_abnormal(truth, ours, motion, X, rotation, positions)
+    assert [e['segment'] for e in got] == want
+    assert all(e['why'] == 'found' and e['named_share'] > 0.8 for e in got), got
+    # The same frame, every segment read normal: the truth's motion finds them, ours did not.
+    normal = dict(ours, classes=['normal'] * 17)
+    got = explain_abnormal(truth, normal, motion, X, rotation, positions)
+    assert all(e['why'] == 'motion' for e in got), got
+    # The septum from the prior, 120° off (two basal sectors): the truth's motion in that frame
+    # does not find the segments under their names, and the named segments are not the truth's.
+    turned = _turned(rotation, 120.0)
+    prior = ours_from_positions(X, turned, positions, es) | {'segment_origin': 1}
+    got = explain_abnormal(truth, prior, motion, X, turned, positions)
+    missed = [e for e in got if e['why'] != 'found']
+    assert missed and all(e['why'] == 'names' and e['named_share'] < 0.5 for e in missed), got

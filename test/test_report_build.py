@@ -21,6 +21,7 @@ from mlv_ros.core.report import build_report, RunData, summarize, write_summary_
 from mlv_ros.core.report.figures import _aha_wedges
 from mlv_ros.core.report.summary import signed_peak
 from mlv_ros.core.sim.analytic_lv import cylinder_shell, oblique_frame, synthetic_cycle
+from mlv_ros.core.types import SEGMENT_ORIGIN_CODES
 import numpy as np
 import pytest
 
@@ -274,3 +275,30 @@ def test_twist_beyond_the_sa_slices_is_marked_extrapolated(tmp_path, normal, low
     assert 'extrapolated*' not in (tmp_path / 'b' / 'index.html').read_text()
     build_report(tmp_path / 'c', phases, X, pos, frame=FR)
     assert 'twist_extrapolated' not in read_summary(tmp_path / 'c')['runs'][0]
+
+
+def test_segment_names_from_the_prior_are_marked_uncertain(tmp_path, normal, low_dpi, monkeypatch):
+    import dataclasses
+
+    import mlv_ros.core.report.build as build
+    import mlv_ros.core.report.figures as figures
+
+    for name in ('plot_displacement_3d', 'plot_level_curves', 'plot_global_curves'):
+        monkeypatch.setattr(build, name, lambda *a, **k: None)  # not what is checked
+    titles = []
+    draw = figures.draw_class_bullseye
+    monkeypatch.setattr(
+        figures,
+        'draw_class_bullseye',
+        lambda ax, *a, title='', **k: titles.append(title) or draw(ax, *a, title=title, **k),
+    )
+    phases, pos = normal
+    for origin, unsure in (('prior', True), ('detected', False)):
+        code = SEGMENT_ORIGIN_CODES[origin]
+        ph = [dataclasses.replace(p, segment_origin=code) for p in phases]
+        build_report(tmp_path / origin, ph, X, pos, frame=FR)
+        s = read_summary(tmp_path / origin)['runs'][0]['segment_findings']['segment_origin']
+        assert s['source'] == origin and s['names_uncertain'] is unsure
+        page = (tmp_path / origin / 'index.html').read_text()
+        assert ('Segment names uncertain' in page) is unsure
+        assert (figures.PRIOR_NAMES_NOTE in titles[-1]) is unsure, titles

@@ -188,7 +188,12 @@ def _findings_html(summaries: list[dict]) -> str:
                 if carried
                 else ''
             )
-            + (f'. Segments: {e(origin["note"])}.' if origin.get('note') else '')
+            + (
+                f'. {"<b>Segment names uncertain</b>: " if origin.get("names_uncertain") else ""}'
+                f'Segments: {e(origin["note"])}.'
+                if origin.get('note')
+                else ''
+            )
             + '</p>'
             '<table><tr><th>segment</th><th>class</th><th>f ± σ</th><th>ES Ecc</th><th>ES Err</th>'
             '<th>ES Ell</th><th>peak Ecc</th><th>peak Err</th><th>peak '

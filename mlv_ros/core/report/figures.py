@@ -32,6 +32,7 @@ from mlv_ros.core.analysis.findings import segment_findings
 from mlv_ros.core.analysis.frame import LVFrame
 from mlv_ros.core.analysis.motion import decompose_displacement
 from mlv_ros.core.report.summary import level_table, peak_segment_strain, RunData, sorted_phases
+from mlv_ros.core.types import SEGMENT_ORIGIN_CODES
 import numpy as np
 
 DPI = 110
@@ -345,6 +346,8 @@ CLASS_COLOURS = {
 }
 #: Edge colour of a segment the ES phase's tag data do not support (cross-hatched, "unsupported").
 UNSUPPORTED_EDGE = '#c00000'
+#: Added to a wall-motion panel's title when the segments are placed by the anatomical prior.
+PRIOR_NAMES_NOTE = '\nsegment names uncertain: no RV found, septum from the anatomical prior'
 
 
 def draw_class_bullseye(ax, classes, labels=None, *, title: str = '', unsupported=()):
@@ -412,18 +415,21 @@ def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
     Draw the bull's-eye of the wall-motion class per AHA segment, one panel per run.
 
     Each segment is labelled with its class and function index ``f ± σ_f`` (share of the heart's
-    own function, :mod:`mlv_ros.core.analysis.findings`). None (nothing written) when no run
-    carries strain.
+    own function, :mod:`mlv_ros.core.analysis.findings`). A run whose segments are placed by the
+    anatomical prior (no RV found: ``segment_origin`` 1) says in its panel title that the names
+    are uncertain: the classes are the heart's, the ring's rotation is not tied to its septum.
+    None (nothing written) when no run carries strain.
     """
     panels = []
     for run in runs:
         ph = [p for p in sorted_phases(run.phases)[0] if p.has_strain]
         if ph:
-            panels.append((run.label, segment_findings(ph)))
+            origin = int(getattr(ph[-1], 'segment_origin', 0))
+            panels.append((run.label, segment_findings(ph), origin))
     if not panels:
         return None
     fig = Figure(figsize=(5.2 * len(panels) + 2.2, 5.6), layout='constrained')
-    for j, (lab, f) in enumerate(panels):
+    for j, (lab, f, origin) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), j + 1, projection='polar')
         labels = [
             ('unsup.' if k + 1 in f.unsupported else f'{c[:4]}')
@@ -435,7 +441,8 @@ def plot_segment_findings(runs: Sequence[RunData], path) -> Path | None:
             ax,
             f.classes,
             labels,
-            title=f'{lab}: wall motion at ES ({es})',
+            title=f'{lab}: wall motion at ES ({es})'
+            + (PRIOR_NAMES_NOTE if origin == SEGMENT_ORIGIN_CODES['prior'] else ''),
             unsupported=f.unsupported,
         )
     from matplotlib.patches import Patch

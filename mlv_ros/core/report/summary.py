@@ -171,7 +171,8 @@ def segment_origin_note(phases: Sequence[PhaseMetrics]) -> dict:
     Return where the AHA segments' circumferential origin came from.
 
     The phases' ``segment_origin``, the last phase's: ``source`` unknown / prior / detected /
-    given, ``confidence`` and a sentence ``note`` for the reader.
+    given, ``confidence``, a sentence ``note`` for the reader and ``names_uncertain`` (True when
+    the source is the prior: the classes are this heart's, which segment each names is not).
     """
     last = phases[-1] if phases else None
     code = int(getattr(last, 'segment_origin', 0)) if last is not None else 0
@@ -179,7 +180,12 @@ def segment_origin_note(phases: Sequence[PhaseMetrics]) -> dict:
     conf = float(getattr(last, 'segment_origin_confidence', 0.0)) if last is not None else 0.0
     if code == 2:
         note += f' (confidence {conf:.2f})'
-    return {'source': source, 'confidence': _f(conf), 'note': note}
+    return {
+        'source': source,
+        'confidence': _f(conf),
+        'note': note,
+        'names_uncertain': source == 'prior',
+    }
 
 
 def summarize(phases: Sequence[PhaseMetrics], label: str = 'run', twist_span=False) -> dict:
