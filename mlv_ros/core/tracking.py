@@ -1728,7 +1728,8 @@ class MotionTracker:
 
         """
         sa_slice = np.asarray(sa_slice)
-        h_sa = np.asarray(phi[np.flatnonzero(sa_slice >= 0)] @ self._height).ravel()
+        h_points = np.asarray(phi @ self._height).ravel()  # each point's material height
+        h_sa = h_points[sa_slice >= 0]
         num_sa_slices = len(np.unique(sa_slice[sa_slice >= 0]))
         if num_sa_slices < TWIST_MIN_SA or np.ptp(h_sa) < TWIST_MIN_SPAN:
             self.twist_coefficients, self.twist_gradient_se = np.zeros(0), None
@@ -1756,7 +1757,7 @@ class MotionTracker:
             residual,
             shift,
             sa_slice,
-            np.asarray(phi @ height).ravel(),
+            h_points,
             np.asarray(phi @ psi).ravel(),
         )
         angle, self.twist_gradient_se = _twist_angle(
