@@ -351,16 +351,20 @@ def _slice_twists(moved, residual, shift, sa_slice, height, psi):
         global stage's plus its own rotation, radians) and that twist's variance (rad²).
 
     """
-    rows = []
+    fits = []  # (mask, A) of each slice with two points or more
     for s in np.unique(sa_slice[sa_slice >= 0]):
         k = sa_slice == s
-        if k.sum() < 2:
-            continue
-        A = np.concatenate([moved[k][:, :, None], shift[k]], axis=2).reshape(-1, 3)
-        N = A.T @ A
-        if np.linalg.cond(N) > 1e12:
-            continue
-        inv = np.linalg.inv(N)
+        if k.sum() >= 2:
+            A = np.concatenate([moved[k][:, :, None], shift[k]], axis=2).reshape(-1, 3)
+            fits.append((k, A))
+    if fits:
+        # the slices' 3 × 3 normal matrices' conditions and inverses each in one LAPACK loop
+        # (per matrix the same calls as one slice at a time)
+        normal = np.stack([A.T @ A for _, A in fits])
+        good = np.flatnonzero(~(np.linalg.cond(normal) > 1e12))
+        fits = [(*fits[i], inv) for i, inv in zip(good, np.linalg.inv(normal[good]))]
+    rows = []
+    for k, A, inv in fits:
         b = residual[k].ravel()
         z = inv @ (A.T @ b)
         rss = float(np.sum((A @ z - b) ** 2))
