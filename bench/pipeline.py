@@ -175,14 +175,19 @@ def split_tracker(tr: MotionTracker) -> CpuSplit:
     return split
 
 
-def local_stage_replay(mcap: Path) -> dict:
+def recorded_solver_input(mcap: Path) -> tuple:
     """
-    Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
+    Return what a run's solver took: the registered cloud, the registration and the tag points.
 
-    The tracker is built from the recorded registration with the solver node's default
-    parameters; each phase is solved as the node solves it, and every call of the local stage
-    also runs the reference copy of the old one from the same warm start (its time is left out of
-    the new solver's per-phase time). The old stage's first call includes its fit-error matrix.
+    Returns
+    -------
+    cloud : ndarray
+        The registered particle cloud (:func:`mlv_ros.conversions.msg_to_cloud`).
+    state : ModelState
+        The registration's global state, or None if the run has none.
+    sets : dict
+        Phase → (view, slice) → TagPointSet.
+
     """
     cloud = state = None
     sets: dict = {}
@@ -196,6 +201,19 @@ def local_stage_replay(mcap: Path) -> dict:
         else:
             p = conversions.msg_to_tagpoints(deserialize_message(m.data, TagPoints))
             sets.setdefault(int(p.phase_index), {})[(int(p.view), int(p.slice_index))] = p
+    return cloud, state, sets
+
+
+def local_stage_replay(mcap: Path) -> dict:
+    """
+    Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
+
+    The tracker is built from the recorded registration with the solver node's default
+    parameters; each phase is solved as the node solves it, and every call of the local stage
+    also runs the reference copy of the old one from the same warm start (its time is left out of
+    the new solver's per-phase time). The old stage's first call includes its fit-error matrix.
+    """
+    cloud, state, sets = recorded_solver_input(mcap)
     t0 = time.perf_counter()
     tr = MotionTracker(
         conversions.xyz(cloud),

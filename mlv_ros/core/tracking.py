@@ -351,16 +351,20 @@ def _slice_twists(moved, residual, shift, sa_slice, height, psi):
         global stage's plus its own rotation, radians) and that twist's variance (rad²).
 
     """
-    rows = []
+    fits = []  # (mask, A) of each slice with two points or more
     for s in np.unique(sa_slice[sa_slice >= 0]):
         k = sa_slice == s
-        if k.sum() < 2:
-            continue
-        A = np.concatenate([moved[k][:, :, None], shift[k]], axis=2).reshape(-1, 3)
-        N = A.T @ A
-        if np.linalg.cond(N) > 1e12:
-            continue
-        inv = np.linalg.inv(N)
+        if k.sum() >= 2:
+            A = np.concatenate([moved[k][:, :, None], shift[k]], axis=2).reshape(-1, 3)
+            fits.append((k, A))
+    if fits:
+        # the slices' 3 × 3 normal matrices' conditions and inverses each in one LAPACK loop
+        # (per matrix the same calls as one slice at a time)
+        normal = np.stack([A.T @ A for _, A in fits])
+        good = np.flatnonzero(~(np.linalg.cond(normal) > 1e12))
+        fits = [(*fits[i], inv) for i, inv in zip(good, np.linalg.inv(normal[good]))]
+    rows = []
+    for k, A, inv in fits:
         b = residual[k].ravel()
         z = inv @ (A.T @ b)
         rss = float(np.sum((A @ z - b) ** 2))
@@ -788,6 +792,11 @@ class MotionTracker:
         self._local = LocalOperators(self.model.operator, ph.volume, lam, mu, 1.0 / ph.wij.max())
         self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (
             mu + (mu + lam) / 3.0
+        )
+        # the medians :meth:`_multipliers` scales against, once per model (0.2 ms a solve)
+        self._diagonal_medians = (
+            float(np.median(self._kdiag)),
+            max(float(np.median(self._local.fit_error_diagonal)), 1e-300),
         )
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
@@ -1365,13 +1374,8 @@ class MotionTracker:
 
         Both are scaled against the median elastic diagonal.
         """
-        kscale = float(np.median(self._kdiag))
-        return (
-            self.data_weight * kscale,
-            self.hourglass_weight
-            * kscale
-            / max(float(np.median(self._local.fit_error_diagonal)), 1e-300),
-        )
+        kscale, fit_scale = self._diagonal_medians
+        return self.data_weight * kscale, self.hourglass_weight * kscale / fit_scale
 
     def _local_solve(self, phi, targets, normals, x_global, weights=None, rtol=None, scale=None):
         """
@@ -1728,7 +1732,8 @@ class MotionTracker:
 
         """
         sa_slice = np.asarray(sa_slice)
-        h_sa = np.asarray(phi[np.flatnonzero(sa_slice >= 0)] @ self._height).ravel()
+        h_points = np.asarray(phi @ self._height).ravel()  # each point's material height
+        h_sa = h_points[sa_slice >= 0]
         num_sa_slices = len(np.unique(sa_slice[sa_slice >= 0]))
         if num_sa_slices < TWIST_MIN_SA or np.ptp(h_sa) < TWIST_MIN_SPAN:
             self.twist_coefficients, self.twist_gradient_se = np.zeros(0), None
@@ -1756,7 +1761,7 @@ class MotionTracker:
             residual,
             shift,
             sa_slice,
-            np.asarray(phi @ height).ravel(),
+            h_points,
             np.asarray(phi @ psi).ravel(),
         )
         angle, self.twist_gradient_se = _twist_angle(

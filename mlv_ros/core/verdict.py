@@ -423,9 +423,14 @@ def _check_window(slices, width_deg, min_points) -> None:
         )
 
 
-def _windows(keys: list, theta: dict, slices: int, width_deg: float):
+def _windows(keys: list, theta: dict, slices: int, width_deg: float, *per_slice: dict):
     """
-    Yield every sector: ``slices`` consecutive slices × ``width_deg`` from each point's angle.
+    Yield every sector, a block of start angles at a time, with its run's per-point arrays.
+
+    A sector is ``slices`` consecutive slices × ``width_deg`` from one of their points' angles.
+    Every start angle of a run at once, in blocks of at most ``_SECTOR_BLOCK`` (start, point)
+    pairs: the offset ``θ − a0`` lies in (−360, 360), where ``np.mod(·, 360)`` is it, or it + 360
+    below 0, bit for bit.
 
     Parameters
     ----------
@@ -437,26 +442,35 @@ def _windows(keys: list, theta: dict, slices: int, width_deg: float):
         Consecutive slices per sector (all of them if fewer).
     width_deg : float
         Circumferential width, degrees.
+    *per_slice : dict
+        Further slice index → per-point arrays, concatenated over each run as ``theta`` is.
 
     Yields
     ------
     run : list
-        The sector's slices.
-    a0 : float
-        Its start angle, degrees.
-    inside : ndarray of bool
-        Over the run's points (concatenated in slice order), those in the sector.
-    offset : ndarray
-        Their angles from ``a0`` in [0, 360), degrees.
+        The sectors' slices.
+    a0 : ndarray, shape (S,)
+        The block's start angles, ascending, degrees.
+    inside : ndarray of bool, shape (S, P)
+        Per start, over the run's points (concatenated in slice order), those in the sector.
+    offset : ndarray, shape (S, P)
+        Their angles from each start in [0, 360), degrees.
+    *arrays : ndarray, shape (P,)
+        ``per_slice`` concatenated over the run.
 
     """
     m = min(int(slices), len(keys))
     for j in range(len(keys) - m + 1):
         run = keys[j:j + m]
         th = np.concatenate([theta[k] for k in run])
-        for a0 in np.unique(th):
-            offset = np.mod(th - a0, 360.0)
-            yield run, a0, offset < width_deg, offset
+        arrays = [np.concatenate([d[k] for k in run]) for d in per_slice]
+        starts = np.unique(th)
+        step = max(1, _SECTOR_BLOCK // max(th.size, 1))
+        for b in range(0, starts.size, step):
+            a0 = starts[b:b + step]
+            offset = th[None, :] - a0[:, None]
+            np.add(offset, 360.0, out=offset, where=offset < 0.0)
+            yield (run, a0, offset < width_deg, offset, *arrays)
 
 
 def _main_labels(labels: np.ndarray) -> tuple:
@@ -514,34 +528,20 @@ def weakest_sector(
     heart = sum(int(u.sum()) for u in used.values()) / total if total else 0.0
     if heart <= 0.0:
         return None
-    m = min(int(slices), len(keys))
     best = None  # (share, n, run, a0)
-    for j in range(len(keys) - m + 1):
-        run = keys[j:j + m]
-        th = np.concatenate([theta[k] for k in run])
-        u = np.concatenate([used[k] for k in run])
-        starts = np.unique(th)
-        # Every start angle at once, in blocks of at most _SECTOR_BLOCK (start, point) pairs, with
-        # the numbers of one start at a time: the offset th − a0 lies in (−360, 360), where
-        # np.mod(·, 360) is it, or it + 360 below 0, bit for bit; a share is the used count over
-        # n, as the mean of the used flags divides it. The first start of the smallest
-        # (share, −n) wins, as in stack and angle order one start at a time.
-        step = max(1, _SECTOR_BLOCK // max(th.size, 1))
-        for b in range(0, starts.size, step):
-            a0 = starts[b:b + step]
-            offset = th[None, :] - a0[:, None]
-            np.add(offset, 360.0, out=offset, where=offset < 0.0)
-            inside = offset < width_deg
-            n = inside.sum(axis=1)
-            ok = np.flatnonzero(n >= min_points)
-            if ok.size == 0:
-                continue
-            share = np.count_nonzero(inside[ok] & u, axis=1) / n[ok] / heart
-            least = ok[share == share.min()]
-            i = int(least[np.argmax(n[least])])  # the first of the largest n among them
-            cand = (float(share.min()), int(n[i]), run, float(a0[i]))
-            if best is None or (cand[0], -cand[1]) < (best[0], -best[1]):
-                best = cand
+    # The first start of the smallest (share, −n) wins, as in stack and angle order one start
+    # at a time; a share is the used count over n, as the mean of the used flags divides it.
+    for run, a0, inside, _, u in _windows(keys, theta, slices, width_deg, used):
+        n = inside.sum(axis=1)
+        ok = np.flatnonzero(n >= min_points)
+        if ok.size == 0:
+            continue
+        share = np.count_nonzero(inside[ok] & u, axis=1) / n[ok] / heart
+        least = ok[share == share.min()]
+        i = int(least[np.argmax(n[least])])  # the first of the largest n among them
+        cand = (float(share.min()), int(n[i]), run, float(a0[i]))
+        if best is None or (cand[0], -cand[1]) < (best[0], -best[1]):
+            best = cand
     if best is None:
         return None
     share, n, run, a0 = best
@@ -652,16 +652,21 @@ def worst_fit_sector(
     if not heart_mm > 0.0:
         return None
     best = None
-    for run, a0, inside, offset in _windows(keys, theta, slices, width_deg):
-        n = int(inside.sum())
-        w = inside & np.concatenate([judged[k] for k in run])
-        u = int(w.sum())
-        if n < min_points or u < min_used or u / n >= max_share * heart:
-            continue
-        r = np.concatenate([residual[k] for k in run])[w]
-        score = (float(np.median(r)), float(r.mean()), u)
-        if best is None or score > best[0]:
-            best = (score, run, a0, n, inside, offset)
+    # Every start of a run at once; the median and mean only of the sectors that count, in
+    # stack and angle order (the first of equal scores wins).
+    for run, a0, inside, offset, judged_run, res_run in _windows(
+        keys, theta, slices, width_deg, judged, residual
+    ):
+        n = inside.sum(axis=1)
+        w = inside & judged_run
+        u = w.sum(axis=1)
+        ok = np.flatnonzero((n >= min_points) & (u >= min_used))
+        ok = ok[u[ok] / n[ok] < max_share * heart]
+        for i in ok:
+            r = res_run[w[i]]
+            score = (float(np.median(r)), float(r.mean()), int(u[i]))
+            if best is None or score > best[0]:
+                best = (score, run, float(a0[i]), int(n[i]), inside[i], offset[i])
     if best is None:
         return None
     (med, _, u), run, a0, n, inside, offset = best

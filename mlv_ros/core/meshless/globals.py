@@ -563,8 +563,32 @@ def model_jacobian(
     return lmat
 
 
+def shape_terms(coords: ModelCoordinates, params: GlobalParameters) -> tuple:
+    """
+    Return the per-particle terms of the global shape at ``params``: ``(cos_sin, s, jac)``.
+
+    :func:`twist_cos_sin`, :func:`global_shape` (mm) and :func:`shape_jacobian` (shape (N, 3,
+    5)). Each particle's row depends on its own coordinates only, so the rows of a subset of
+    particles are the same numbers as the terms of ``coords.subset``.
+
+    Parameters
+    ----------
+    coords : ModelCoordinates
+        Material coordinates of the particles.
+    params : GlobalParameters
+        Where the terms are taken (its ``a`` and ``tau``).
+
+    """
+    cs = twist_cos_sin(coords, params.tau)
+    return (
+        cs,
+        global_shape(coords, params.a, params.tau, cs),
+        shape_jacobian(coords, params.a, params.tau, cs),
+    )
+
+
 def control_jacobian(
-    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray, phi
+    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray, phi, shape=None
 ) -> np.ndarray:
     """
     Return ``L_k = Σ_j φ_kj L_j`` (eq. 14) of control points, shape (M, 3, 12).
@@ -583,20 +607,24 @@ def control_jacobian(
         Their local deformation in the model-centred frame, mm.
     phi : scipy.sparse matrix, shape (M, N)
         The control points' kernel weights.
+    shape : (cos_sin, s, jac), optional
+        :func:`twist_cos_sin`, :func:`global_shape` and :func:`shape_jacobian` of ``coords`` at
+        ``params``, when the caller has them (:func:`shape_terms`).
 
     """
-    cs = twist_cos_sin(coords, params.tau)
-    s = global_shape(coords, params.a, params.tau, cs)
+    cs, s, jac = shape_terms(coords, params) if shape is None else shape
     n, m = s.shape[0], phi.shape[0]
     lk = np.empty((m, 3, NUM_GLOBAL))
     lk[:, :, SLICE_C] = (phi @ np.ones(n))[:, None, None] * np.eye(3)
     lk[:, :, SLICE_Q] = rotation_jacobian(params.rotation, phi @ (s + d))
-    jac = (phi @ shape_jacobian(coords, params.a, params.tau, cs).reshape(n, 15)).reshape(m, 3, 5)
+    jac = (phi @ jac.reshape(n, 15)).reshape(m, 3, 5)
     lk[:, :, SLICE_S] = np.matmul(params.matrix, jac)
     return lk
 
 
-def tangent_gram(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray) -> np.ndarray:
+def tangent_gram(
+    params: GlobalParameters, coords: ModelCoordinates, d: np.ndarray, shape=None
+) -> np.ndarray:
     """
     Return ``Σ_n L_nᵀ L_n`` of the particles' Jacobians in the tangent space, shape (11, 11).
 
@@ -612,11 +640,12 @@ def tangent_gram(params: GlobalParameters, coords: ModelCoordinates, d: np.ndarr
         The particles' material coordinates.
     d : ndarray, shape (N, 3)
         Their local deformation in the model-centred frame, mm.
+    shape : (cos_sin, s, jac), optional
+        :func:`shape_terms` of ``coords`` at ``params``, when the caller has them.
 
     """
-    cs = twist_cos_sin(coords, params.tau)
-    p = global_shape(coords, params.a, params.tau, cs) + d
-    jac = shape_jacobian(coords, params.a, params.tau, cs)  # (N, 3, 5)
+    _, s, jac = shape_terms(coords, params) if shape is None else shape  # jac (N, 3, 5)
+    p = s + d
     r = params.matrix
     gram = np.empty((NUM_TANGENT, NUM_TANGENT))
     gram[0:3, 0:3] = p.shape[0] * np.eye(3)

@@ -66,7 +66,10 @@ from mlv_ros.core.meshless.globals import (
     ModelCoordinates,
     ModelFrame,
     reduce_rotation,
+    shape_jacobian,
+    shape_terms,
     tangent_gram,
+    twist_cos_sin,
 )
 from mlv_ros.core.meshless.kernel import (
     build_phyxels,
@@ -481,6 +484,33 @@ class _FitData:
             (phi.data, column[phi.indices], phi.indptr), shape=(phi.shape[0], self.support.size)
         )
         self.coords_s = model.coords.subset(self.support)
+        self._shape = None  # [key, cos_sin, s, jac or None] on the support, at one (a, τ)
+
+    def shape(self, params, jacobian: bool = False) -> tuple:
+        """
+        Return ``(cos_sin, s, jac)`` of the supported particles at ``params`` (``jac`` if asked).
+
+        :func:`~mlv_ros.core.meshless.globals.shape_terms` on the support, kept for the last
+        ``(a, τ)`` asked: a Gauss–Newton step's Jacobian is taken where the step before took its
+        accepted residual, and the prior's terms over all particles (:meth:`seed`) serve the first
+        residual and Jacobian. Only ``a`` and ``τ`` enter the shape.
+        """
+        key = (np.asarray(params.a, dtype=np.float64).tobytes(), float(params.tau))
+        c = self._shape
+        if c is None or c[0] != key:
+            cs = twist_cos_sin(self.coords_s, params.tau)
+            s = global_shape(self.coords_s, params.a, params.tau, cs)
+            c = self._shape = [key, cs, s, None]
+        if jacobian and c[3] is None:
+            c[3] = shape_jacobian(self.coords_s, params.a, params.tau, c[1])
+        return c[1], c[2], c[3]
+
+    def seed(self, params, terms) -> None:
+        """Keep :func:`shape_terms` of all particles at ``params`` for :meth:`shape` (its rows)."""
+        (c, s_), s, jac = terms
+        sup = self.support
+        key = (np.asarray(params.a, dtype=np.float64).tobytes(), float(params.tau))
+        self._shape = [key, (c[sup], s_[sup]), s[sup], jac[sup]]
 
     @cached_property
     def phi_t(self):
@@ -493,7 +523,7 @@ class _FitData:
 
     def positions(self, params, d_s):
         """Return the control points' world positions under ``params`` and ``d_s``, mm."""
-        p = global_shape(self.coords_s, params.a, params.tau) + d_s
+        p = self.shape(params)[1] + d_s
         return self.phi_s @ (params.translation + p @ params.matrix.T)
 
     def residual(self, params, d_s):
@@ -525,7 +555,10 @@ class _GlobalStage:
         self.residual = None
         m = data.m
         lk = reduce_rotation(  # L_k = Σ_j φ_kj L_j (eq. 14)
-            control_jacobian(model.params, data.coords_s, d_s, data.phi_s), model.params.rotation
+            control_jacobian(
+                model.params, data.coords_s, d_s, data.phi_s, data.shape(model.params, True)
+            ),
+            model.params.rotation,
         )
         # (batched and plain matrix products: einsum's loops were a third of the fit's time)
         plk = np.matmul(data.proj, lk).reshape(3 * m, -1)
@@ -917,7 +950,7 @@ class MeshlessModel:
         if local and self.local_operators is not None:  # built on first use, with its diagonal
             kappa = data_weight * float(np.median(self._kdiag))
         stage = _GlobalStage(
-            global_update, dt, self._global_prior_matrix(global_prior, global_update)
+            global_update, dt, self._global_prior_matrix(global_prior, global_update, data)
         )
         history = []
         converged = False
@@ -970,16 +1003,20 @@ class MeshlessModel:
             self.positions(), state, it, rms, converged, history, time.perf_counter() - t0
         )
 
-    def _global_prior_matrix(self, global_prior, global_update):
+    def _global_prior_matrix(self, global_prior, global_update, data=None):
         """
         Return the Gauss–Newton prior ``(G, s)`` holding the global parameters, or None.
 
         ``G`` is ``global_prior`` times the mean ``L_nᵀ L_n`` over all particles (the mean
         squared particle motion a parameter change causes); ``s`` the steps taken so far.
+        ``data`` (the fit's :class:`_FitData`) keeps the shape terms taken here for its support.
         """
         if not (global_prior > 0.0 and global_update == 'gauss-newton'):
             return None
-        gram = tangent_gram(self.params, self.coords, self.local_deformation)  # Σ_n L_nᵀ L_n
+        terms = shape_terms(self.coords, self.params)
+        if data is not None:
+            data.seed(self.params, terms)
+        gram = tangent_gram(self.params, self.coords, self.local_deformation, terms)  # Σ L_nᵀL_n
         gmat = float(global_prior) * gram / self.num_particles
         return gmat, np.zeros(gmat.shape[0])
 
