@@ -792,7 +792,7 @@ def test_single_line_tags_are_found_and_read(single_line, heart_only, tmp_path):
     shutil.copytree(heart_only.root / 'untagged', tmp_path / '0_untagged')
     res = read_dicom_dir(tmp_path)
     assert res.study_uid == single_line.study.study_uid, res.choice
-    assert 'single-line tags' in res.choice and '0 of 8 slice(s)' in res.choice, res.choice
+    assert 'single-line tags' in res.choice and '0 of 8 slice(s) paired' in res.choice, res.choice
     assert len(res.frames) == len(single_line.study.frames)
     assert {(f.tag_lines, f.line_image is None) for f in res.frames} == {(TAGS_LINES, True)}
 
@@ -809,7 +809,7 @@ def test_two_single_line_series_of_a_slice_are_paired(single_line, tmp_path):
     shutil.copytree(single_line.root / 'single', tmp_path / 'pair' / 'a')
     shutil.copytree(single_line.root / 'second', tmp_path / 'pair' / 'b')
     res = read_dicom_dir(tmp_path / 'pair')
-    assert 'single-line tags' in res.choice and '8 of 8 slice(s)' in res.choice, res.choice
+    assert 'single-line tags' in res.choice and '8 of 8 slice(s) paired' in res.choice, res.choice
     first = read_dicom_dir(single_line.root / 'single')
     other = {_key(f)[1:]: f for f in read_dicom_dir(single_line.root / 'second').frames}
     assert sorted(map(_key, res.frames)) == sorted(map(_key, first.frames))
@@ -821,7 +821,7 @@ def test_two_single_line_series_of_a_slice_are_paired(single_line, tmp_path):
     shutil.copytree(single_line.root / 'single', tmp_path / 'repeat' / 'a')
     shutil.copytree(single_line.root / 'repeat', tmp_path / 'repeat' / 'b')
     res = read_dicom_dir(tmp_path / 'repeat')
-    assert '0 of 8 slice(s)' in res.choice, res.choice
+    assert '0 of 8 slice(s) paired' in res.choice, res.choice
     assert {f.tag_lines for f in res.frames} == {TAGS_LINES} and len(res.series) == 8
     assert sum('slice acquired more than once' in w for _, w in res.warnings) == 8
 

@@ -1632,6 +1632,8 @@ _TAG_LINES = 16.0
 #: the grid score: a grid's two families carry the same power (its line score over its grid score
 #: 1.2–3.8 measured), one family's partner is noise (5.4 and more).
 _SINGLE_LINE_RATIO = 4.5
+#: Two single-line series of one slice are a pair when their lines lie this far apart, deg.
+_PAIR_MIN_DEG = 30.0
 _TAG_STUDY_MIN_CINES = 3
 #: A cine of the chosen study that fails the tag test is still used when it was acquired like one
 #: of its tagged cines: the same matrix and pixel spacing within this fraction.
@@ -1800,14 +1802,30 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
         Some 20–80 ms for two 256² images.
 
     """
+    line, grid = np.zeros(len(_PERIOD_BINS_MM)), np.zeros(len(_PERIOD_BINS_MM))
+    found = _window_ratios(images, pixel_mm)
+    if found is None:
+        return line, grid
+    ratio, wb, near, log_bins = found
+    for k in range(len(ratio)):
+        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
+    return line, _window_grid(ratio, wb, log_bins)
+
+
+def _window_ratios(images: list[np.ndarray], pixel_mm: float):
+    """
+    Return the windows' noise-relative spectra of :func:`_window_profiles`, or None.
+
+    ``(ratio (windows, bins), _WindowBins, near (bins, periods): each bin's period bins,
+    log of the period bins in pixels)``; None where no window or period is looked at.
+    """
     a = np.asarray(images[0], np.float64)
     h, w = a.shape
-    line, grid = np.zeros(len(_PERIOD_BINS_MM)), np.zeros(len(_PERIOD_BINS_MM))
     win = int(min(max(_LOCAL_MIN_PX, round(_LOCAL_WINDOW_MM / pixel_mm)), h, w))
     lo = max(_TAG_PERIOD_MM[0] / pixel_mm, _VOTE_MIN_PX)
     hi = min(_TAG_PERIOD_MM[1] / pixel_mm, win / _VOTE_MIN_BINS)
     if win < 16 or lo >= hi:
-        return line, grid
+        return None
     step = win // 2
     corners = [(r, c) for r in range(0, h - win + 1, step) for c in range(0, w - win + 1, step)]
     stacks = [
@@ -1816,18 +1834,15 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
     ]
     keep = np.ptp(stacks[0], axis=(1, 2)) > 0
     stacks = [s[keep] for s in stacks]
-    n = int(keep.sum())
-    if not n:
-        return line, grid
+    if not keep.any():
+        return None
     wb = _WindowBins(win, lo, hi)
     ratio = _window_ratio(stacks, wb)
     fa = wb.rad[wb.bins]
     log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
     tol = 0.5 / (win * fa) + 0.04
     near = np.abs(log_bins[None, :] + np.log(fa)[:, None]) <= tol[:, None]  # (bins, periods)
-    for k in range(n):
-        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
-    return line, _window_grid(ratio, wb, log_bins)
+    return ratio, wb, near, log_bins
 
 
 class _WindowBins:
@@ -2379,9 +2394,9 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     if single_line:
         pairs = sum(c.partner is not None for c in used)
         choice += (
-            f'; single-line tags (one family of parallel lines a cine, {vote.period_mm:.1f} mm '
-            f'apart): {pairs} of {len(used)} slice(s) have a second single-line series with '
-            'lines crossing the first, paired with it'
+            f'; single-line tags (one family of lines a cine): {pairs} of {len(used)} slice(s) '
+            'paired with a second single-line series whose lines cross theirs (both directions '
+            'measured), the others measure motion across their lines only'
         )
     tag_lines = TAGS_LINES if single_line else TAGS_GRID
     return _Selection(
@@ -2425,26 +2440,38 @@ def _pair_line_series(used: list[_Cine], period_mm: float) -> list[_Cine]:
 
 def _crossing_lines(a: _Cine, b: _Cine, period_mm: float) -> bool:
     """
-    Check whether two single-line cines of one slice show different families of lines.
+    Check whether two single-line cines of one slice show families of lines 30° or more apart.
 
-    The study vote's line measure (:func:`_window_profiles`, noise-relative) at the study's
-    period: the ED images, each scaled to unit standard deviation, are summed. The same lines
-    add coherently (their peak's power ×4 over the noise's ×2: the sum's line ≈ 2× either's),
-    two families keep their own peaks over twice the noise (≈ ½× either's); the sum's line
-    under the weaker of the two alone (the midpoint of the two, in ratio) tells them apart.
+    Each cine's line direction is that of its strongest spectral bin at the study's period in
+    the study vote's windows (:func:`_line_direction`); 30° is the separation the tag grid's
+    spectral estimate asks of two directions (``mlv_ros.core.tags.gabor``).
     """
-    ea, eb = (np.asarray(c.first.pixels, np.float64) for c in (a, b))
-    sa, sb = float(np.std(ea)), float(np.std(eb))
-    if not (sa > 0 and sb > 0):
+    da, db = _line_direction(a, period_mm), _line_direction(b, period_mm)
+    if da is None or db is None:
         return False
-    px = _pixel_mm(a)
-    k = int(np.argmin(np.abs(np.log(_PERIOD_BINS_MM / period_mm))))
+    return _axial_deg(da, db) >= _PAIR_MIN_DEG
 
-    def line(image):  # the period's bin and its neighbours (3 % apart each)
-        return float(_window_profiles([image], px)[0][max(k - 2, 0):k + 3].max())
 
-    alone = min(line(ea), line(eb))
-    return alone >= _TAG_LINES and line(ea / sa + eb / sb) < alone
+def _line_direction(c: _Cine, period_mm: float) -> float | None:
+    """
+    Return the wave-vector angle (rad) of a cine's strongest line at ``period_mm``, or None.
+
+    The strongest noise-relative bin (:func:`_window_ratios` of its vote images) whose period
+    bin is within 3 % of ``period_mm``; None unless it passes :data:`_TAG_LINES`.
+    """
+    found = _window_ratios(_vote_images(c.imgs), _pixel_mm(c))
+    if found is None:
+        return None
+    ratio, wb, near, log_bins = found
+    k = int(np.argmin(np.abs(log_bins - np.log(period_mm / _pixel_mm(c)))))
+    cols = near[:, max(k - 1, 0):k + 2].any(axis=1)  # the period's bin and its neighbours
+    if not cols.any():
+        return None
+    r = np.where(cols[None, :], ratio, 0.0)
+    w, j = np.unravel_index(int(np.argmax(r)), r.shape)
+    if r[w, j] < _TAG_LINES:
+        return None
+    return float(wb.ang[wb.bins[j]])
 
 
 def _study_name(uid: str) -> str:
@@ -2685,9 +2712,10 @@ def _choice_text(which_study, also, n_tagged, n_cines, period, vote) -> str:
 
     """
     if n_tagged and vote is not None:
+        what = f'{period:.1f} mm tag lines' if vote.single_line else f'a {period:.1f} mm grid'
         return (
             f'{which_study}: {n_tagged} tagged cine(s), tags on the heart alone '
-            f'(its cines share a {period:.1f} mm grid in windows of their first images: '
+            f'(its cines share {what} in windows of their first images: '
             f'{vote.score:.1f}x the threshold){also}'
         )
     if n_tagged:
