@@ -63,7 +63,7 @@ def stage_latencies(mcap: Path) -> dict:
         mcap, topics=[qos.FRAMES, qos.TAG_POINTS, qos.MODEL_STATE, qos.METRICS]
     ):
         if m.topic == qos.FRAMES:
-            f = deserialize_message(m.data, TaggedFrame)
+            f = bagio.deserialize(m.data, TaggedFrame, m.missing)
             frame_t[(f.view, f.slice_index, f.phase_index)] = m.log_time_ns
         elif m.topic == qos.TAG_POINTS:
             p = deserialize_message(m.data, TagPoints)

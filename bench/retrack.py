@@ -92,7 +92,7 @@ def recorded(mcap: Path):
         if m.topic == qos.FRAMES:
             frames.append(
                 conversions.msg_to_frame(
-                    deserialize_message(m.data, TaggedFrame), allow_nonfinite=True
+                    bagio.deserialize(m.data, TaggedFrame, m.missing), allow_nonfinite=True
                 )
             )
         elif m.topic == qos.REGISTERED_CLOUD:

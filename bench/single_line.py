@@ -21,7 +21,8 @@ acquire two single-line series of one slice; ``--mode grid``: the grid at ``--an
 comparison), tracks every slice with :class:`~mlv_ros.core.tags.LineTracker` (the grid with
 :class:`~mlv_ros.core.tags.SliceTracker`) from the true ED myocardium and solves every phase
 with :class:`~mlv_ros.core.tracking.MotionTracker` placed on the truth's LV frame (registration
-is not part of it). Not the graph: single-line DICOM studies are still refused by the reader.
+is not part of it). Not the graph (``mlv-ros simulate --protocol`` with ``tag_lines: single`` or
+``pair`` and ``mlv-ros run --dicom`` are: ``test/test_single_line_graph.py``).
 
     python bench/single_line.py [--preset normal] [--mode single|pair|grid] [--angle 105]
         [--snr 12] [--phases 20]
@@ -40,17 +41,9 @@ from mlv_ros.core.meshless import matrix_to_quat
 from mlv_ros.core.sim import simulate_study
 from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.tags import LineTracker, SliceTracker
+from mlv_ros.core.tags.lines import merge_line_sets
 from mlv_ros.core.tracking import MotionTracker
 import numpy as np
-
-
-def merged(into, pts):
-    """Append the points of ``pts`` (the second family: ids + 100000) to ``into``."""
-    into.position = np.concatenate([into.position, pts.position])
-    into.pixel_rc = np.concatenate([into.pixel_rc, pts.pixel_rc])
-    into.track_id = np.concatenate([into.track_id, pts.track_id + 100000]).astype(np.int32)
-    into.confidence = np.concatenate([into.confidence, pts.confidence])
-    into.line_normal = np.concatenate([into.line_normal, pts.line_normal])
 
 
 def tracked(args):
@@ -73,10 +66,7 @@ def tracked(args):
             for f in st.cine(*key):
                 pts = tr.update(f, st.ed_masks[key] if f.phase_index == 0 else None)
                 have = sets.setdefault(f.phase_index, {})
-                if key in have:
-                    merged(have[key], pts)
-                else:
-                    have[key] = pts
+                have[key] = merge_line_sets(have[key], pts) if key in have else pts
     return st, sets
 
 

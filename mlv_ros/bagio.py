@@ -841,8 +841,13 @@ _APPENDED_FIELDS = {
         ('segment_class', 'sequence', ()),
         ('degraded_segments', 'sequence', ()),
     ),
-    # study_id (string ""); then run_id (string ""); TagPoints then line_normal (empty: grid)
-    'mlv_msgs/msg/TaggedFrame': (('study_id', 'string', ''), ('run_id', 'string', '')),
+    # study_id (string ""); then run_id (string ""); TagPoints then line_normal (empty: grid),
+    # TaggedFrame then tag_lines (0: a grid)
+    'mlv_msgs/msg/TaggedFrame': (
+        ('study_id', 'string', ''),
+        ('run_id', 'string', ''),
+        ('tag_lines', 'uint8', 0),
+    ),
     'mlv_msgs/msg/TagPoints': (
         ('study_id', 'string', ''),
         ('run_id', 'string', ''),
@@ -856,7 +861,7 @@ _APPENDED_FIELDS = {
 _APPENDED_GROUPS = {
     'mlv_msgs/msg/ModelState': (2, 1, 1, 2, 1),
     'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21, 1),
-    'mlv_msgs/msg/TaggedFrame': (1, 1),
+    'mlv_msgs/msg/TaggedFrame': (1, 1, 1),
     'mlv_msgs/msg/TagPoints': (1, 1, 1),
 }
 

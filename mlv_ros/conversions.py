@@ -42,6 +42,9 @@ from mlv_ros.core.types import (
     RegisteredModel,
     SEGMENT_ORIGIN_CODES,
     TagPointSet,
+    TAGS_GRID,
+    TAGS_LINE_PAIR,
+    TAGS_LINES,
     VIEW_LA,
     VIEW_SA,
 )
@@ -555,7 +558,7 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
     header = make_header(stamp)
     return TaggedFrame(
         header=header,
-        image=image_to_msg(frame.image, header=header),
+        image=_frame_image_to_msg(frame, header),
         geometry=geometry_to_msg(frame.geometry),
         view=frame.view,
         slice_index=frame.slice_index,
@@ -568,7 +571,60 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
         num_la_slices=frame.num_la_slices,
         study_id=_check_study_id(frame.study_id),
         run_id=_check_study_id(frame.run_id, 'run_id'),
+        tag_lines=_check_tag_lines(frame.tag_lines),
     )
+
+
+# Two single-line series of one slice (TAGS_LINE_PAIR) travel as one two-channel image.
+_PAIR_ENCODINGS = {'8UC2': 'mono8', '16UC2': 'mono16', '32FC2': '32FC1'}
+
+
+def _check_tag_lines(tag_lines) -> int:
+    """Return ``tag_lines`` as an int, or raise ValueError when it is not a TAGS_* value."""
+    if tag_lines not in (TAGS_GRID, TAGS_LINES, TAGS_LINE_PAIR):
+        raise ValueError(
+            f'tag_lines must be {TAGS_GRID} (grid), {TAGS_LINES} (one family of tag lines) or '
+            f'{TAGS_LINE_PAIR} (two single-line series), got {tag_lines!r}'
+        )
+    return int(tag_lines)
+
+
+def _frame_image_to_msg(frame: Frame, header: Header) -> Image:
+    """Return the frame's image message: two channels (image, line_image) for a line pair."""
+    if _check_tag_lines(frame.tag_lines) != TAGS_LINE_PAIR:
+        return image_to_msg(frame.image, header=header)
+    a, b = np.asarray(frame.image), np.asarray(frame.line_image)
+    if frame.line_image is None or a.shape != b.shape or a.dtype != b.dtype:
+        raise ValueError(
+            'a line-pair frame needs line_image of the shape and dtype of image, got '
+            f'{None if frame.line_image is None else (b.shape, b.dtype)} for {(a.shape, a.dtype)}'
+        )
+    msg = image_to_msg(np.concatenate([a, b], axis=1), header=header)  # validates a and b
+    msg.width //= 2
+    msg.encoding = {v: k for k, v in _PAIR_ENCODINGS.items()}[msg.encoding]
+    msg.data = np.ascontiguousarray(np.stack([a, b], axis=-1)).tobytes()
+    return msg
+
+
+def _msg_to_frame_images(msg: TaggedFrame, allow_nonfinite: bool):
+    """Return ``(image, line_image)`` of a frame message (``line_image`` None unless a pair)."""
+    pair = _check_tag_lines(msg.tag_lines) == TAGS_LINE_PAIR
+    im = msg.image
+    if (im.encoding in _PAIR_ENCODINGS) != pair:
+        raise ValueError(
+            f'image encoding {im.encoding!r} does not fit tag_lines {msg.tag_lines} (a line '
+            f'pair has two channels, {"/".join(_PAIR_ENCODINGS)}; every other frame one)'
+        )
+    if not pair:
+        return msg_to_image(im, allow_nonfinite=allow_nonfinite), None
+    # The two interleaved channels read as one image twice as wide, then split.
+    wide = Image(
+        height=im.height, width=2 * im.width, step=im.step, is_bigendian=im.is_bigendian,
+        encoding=_PAIR_ENCODINGS[im.encoding],
+    )
+    wide.data = im.data
+    both = msg_to_image(wide, allow_nonfinite=allow_nonfinite).reshape(im.height, im.width, 2)
+    return np.ascontiguousarray(both[..., 0]), np.ascontiguousarray(both[..., 1])
 
 
 def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
@@ -576,8 +632,9 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
     _check_view(msg.view)
     _check_phase(msg.phase_index, msg.num_phases)
     _check_slice(msg.view, msg.slice_index, msg.num_sa_slices, msg.num_la_slices)
+    image, line_image = _msg_to_frame_images(msg, allow_nonfinite)
     return Frame(
-        image=msg_to_image(msg.image, allow_nonfinite=allow_nonfinite),
+        image=image,
         geometry=msg_to_geometry(msg.geometry),
         view=msg.view,
         slice_index=msg.slice_index,
@@ -590,6 +647,8 @@ def msg_to_frame(msg: TaggedFrame, allow_nonfinite: bool = False) -> Frame:
         num_la_slices=msg.num_la_slices,
         study_id=_check_study_id(msg.study_id),
         run_id=_check_study_id(msg.run_id, 'run_id'),
+        tag_lines=int(msg.tag_lines),
+        line_image=line_image,
     )
 
 

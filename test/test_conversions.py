@@ -282,6 +282,43 @@ def test_frame_round_trip():
         assert getattr(back, name) == getattr(f, name), name
 
 
+@pytest.mark.parametrize('dtype', [np.uint8, np.uint16, np.float32])
+def test_line_pair_frames_travel_as_two_channels(dtype):
+    """
+    Check a line pair's two images: one two-channel image out, both bit-exact back.
+
+    Over CDR (an independent reader, rosbags, sees the ``8UC2`` / ``16UC2`` / ``32FC2`` image
+    of the frame's shape); a single-line frame keeps one channel; a mismatched second image, a
+    tag_lines value outside the TAGS_* set and an encoding that contradicts tag_lines are refused.
+    """
+    from dataclasses import replace
+
+    from mlv_ros.core.types import TAGS_LINE_PAIR, TAGS_LINES
+
+    a = RNG.integers(0, 200, size=(6, 5)).astype(dtype)
+    b = RNG.integers(0, 200, size=(6, 5)).astype(dtype)
+    f = Frame(
+        image=a, geometry=oblique_geometry(), view=VIEW_LA, slice_index=0, phase_index=1,
+        num_phases=3, tag_lines=TAGS_LINE_PAIR, line_image=b,
+    )
+    msg = cdr(cv.frame_to_msg(f))
+    assert msg.tag_lines == TaggedFrame.TAGS_LINE_PAIR == TAGS_LINE_PAIR
+    assert (msg.image.height, msg.image.width, msg.image.encoding[-2:]) == (6, 5, 'C2')
+    back = cv.msg_to_frame(msg)
+    assert back.tag_lines == TAGS_LINE_PAIR and back.image.dtype == a.dtype
+    assert np.array_equal(back.image, a) and np.array_equal(back.line_image, b)
+    one = cv.msg_to_frame(cdr(cv.frame_to_msg(replace(f, tag_lines=TAGS_LINES))))
+    assert one.tag_lines == TAGS_LINES and one.line_image is None and np.array_equal(one.image, a)
+    with pytest.raises(ValueError, match='line_image'):
+        cv.frame_to_msg(replace(f, line_image=b[:5]))
+    with pytest.raises(ValueError, match='tag_lines'):
+        cv.frame_to_msg(replace(f, tag_lines=3))
+    bad = cdr(cv.frame_to_msg(f))
+    bad.tag_lines = TAGS_LINES
+    with pytest.raises(ValueError, match='does not fit tag_lines'):
+        cv.msg_to_frame(bad)
+
+
 def test_frame_bad_indices():
     f = Frame(
         image=np.zeros((4, 4), np.uint16),

@@ -30,7 +30,7 @@ from corpus.dicom_cases import frames_by_path
 from mlv_ros.core.io import dicom as dicom_io
 from mlv_ros.core.io import DicomReadError, read_dicom_dir, write_study_dicom
 from mlv_ros.core.sim import load_preset, simulate_study
-from mlv_ros.core.types import VIEW_SA
+from mlv_ros.core.types import TAGS_LINE_PAIR, TAGS_LINES, VIEW_SA
 import numpy as np
 import pydicom
 from pydicom.data import get_testdata_file
@@ -754,25 +754,34 @@ def single_line(tmp_path_factory, heart_only):
     """
     Write a heart-only study tagged with one family of tag lines (``tag_lines: single``).
 
-    The heart-only fixture's protocol with 6 phases (the vote then reads ED and the next image).
+    The heart-only fixture's protocol with 6 phases (the vote then reads ED and the next image);
+    beside it (``second``) the second single-line series of every slice, the lines turned by 90°
+    (``tag_lines: pair``), and (``repeat``) a repeat of the first family in series of its own.
     """
     from mlv_ros.core.sim.protocol import protocol_preset
+    from mlv_ros.core.sim.study import line_pair_study
 
     root = tmp_path_factory.mktemp('single_line')
     protocol = {**HEART_ONLY, 'tag_lines': 'single', 'num_phases': 6}
-    kw = {'snr': 20.0, 'size': 128, 'num_phases': 6, 'subplanes': 1, 'pixel_spacing': 1.8}
-    study = simulate_study(protocol_preset(protocol), seed=23, **kw)
+    kw = {'size': 128, 'num_phases': 6, 'subplanes': 1, 'pixel_spacing': 1.8}
+    preset = protocol_preset(protocol)
+    study = simulate_study(preset, snr=20.0, seed=23, **kw)
     write_study_dicom(study, root / 'single')
-    return SimpleNamespace(root=root, study=study)
+    offset = len(study.series_uids) + 1
+    second = line_pair_study(preset, study, 90.0, **kw)
+    write_study_dicom(second, root / 'second', series_offset=offset)
+    repeat = line_pair_study(preset, study, 0.0, **kw)
+    write_study_dicom(repeat, root / 'repeat', series_offset=offset)
+    return SimpleNamespace(root=root, study=study, second=second)
 
 
-def test_single_line_tags_are_found_then_refused_with_a_reason(single_line, heart_only, tmp_path):
+def test_single_line_tags_are_found_and_read(single_line, heart_only, tmp_path):
     """
-    Check that one family of tag lines wins over an untagged study, and is refused in one line.
+    Check that one family of tag lines wins over an untagged study and is read as such.
 
     Its cines share tag lines in windows (no grid), so it out-votes the untagged bright-blood study
-    with more cines; the tracker follows tag-line crossings, so the read stops with "single-line
-    tags: intersections needed", naming the study.
+    with more cines; every frame says it shows one family of lines (``TAGS_LINES``, no second
+    image), its pixels those of the study read alone, and the choice says so.
     """
     ed = [f.image for f in single_line.study.frames if f.phase_index == 0]
     nxt = [f.image for f in single_line.study.frames if f.phase_index == 1]
@@ -781,10 +790,40 @@ def test_single_line_tags_are_found_then_refused_with_a_reason(single_line, hear
     assert abs(vote.period_mm / 7.0 - 1.0) <= 0.06
     shutil.copytree(single_line.root / 'single', tmp_path / '9_single')
     shutil.copytree(heart_only.root / 'untagged', tmp_path / '0_untagged')
-    with pytest.raises(DicomReadError, match='single-line tags: intersections needed') as err:
-        read_dicom_dir(tmp_path)
-    assert single_line.study.study_uid in str(err.value) and '\n' not in str(err.value)
-    assert heart_only.untagged.study_uid in str(err.value)
+    res = read_dicom_dir(tmp_path)
+    assert res.study_uid == single_line.study.study_uid, res.choice
+    assert 'single-line tags' in res.choice and '0 of 8 slice(s) paired' in res.choice, res.choice
+    assert len(res.frames) == len(single_line.study.frames)
+    assert {(f.tag_lines, f.line_image is None) for f in res.frames} == {(TAGS_LINES, True)}
+
+
+def test_two_single_line_series_of_a_slice_are_paired(single_line, tmp_path):
+    """
+    Check that the second single-line series of each slice, its lines turned, joins the first.
+
+    Both series of every slice (separate series, numbered after the first): the slices stay 6 SA
+    + 2 LA, every frame a line pair whose second image is the second series' pixels of the same
+    phase; the series list names the partner. A repeat of the first family instead (the same
+    lines in series of their own) is a repeated acquisition: the later kept, not paired.
+    """
+    shutil.copytree(single_line.root / 'single', tmp_path / 'pair' / 'a')
+    shutil.copytree(single_line.root / 'second', tmp_path / 'pair' / 'b')
+    res = read_dicom_dir(tmp_path / 'pair')
+    assert 'single-line tags' in res.choice and '8 of 8 slice(s) paired' in res.choice, res.choice
+    first = read_dicom_dir(single_line.root / 'single')
+    other = {_key(f)[1:]: f for f in read_dicom_dir(single_line.root / 'second').frames}
+    assert sorted(map(_key, res.frames)) == sorted(map(_key, first.frames))
+    for fr in res.frames:
+        assert fr.tag_lines == TAGS_LINE_PAIR
+        assert np.array_equal(fr.line_image, other[_key(fr)[1:]].image)
+    assert len(res.series) == 8 and all(s.line_series_uid for s in res.series)
+    assert {s.line_series_uid for s in res.series} == set(single_line.second.series_uids.values())
+    shutil.copytree(single_line.root / 'single', tmp_path / 'repeat' / 'a')
+    shutil.copytree(single_line.root / 'repeat', tmp_path / 'repeat' / 'b')
+    res = read_dicom_dir(tmp_path / 'repeat')
+    assert '0 of 8 slice(s) paired' in res.choice, res.choice
+    assert {f.tag_lines for f in res.frames} == {TAGS_LINES} and len(res.series) == 8
+    assert sum('slice acquired more than once' in w for _, w in res.warnings) == 8
 
 
 def test_a_tag_grid_wins_over_single_line_tags(single_line, heart_only, tmp_path):

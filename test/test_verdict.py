@@ -478,6 +478,10 @@ def test_recordings_made_before_the_verdict_still_read():
         cases.append(
             (TagPoints, '# Points on a single family', {'phase_index': 1, 'study_id': sid})
         )
+    for sid in ('s', 'abcd', 'abcdefg'):  # recorded before TaggedFrame said single-line tags
+        cases.append(
+            (TaggedFrame, '# Single-line tags', {'phase_index': 1, 'study_id': sid})
+        )
     for sid in ('s', 'abcd'):  # recorded before the degraded segments
         cases += [
             (
@@ -503,6 +507,7 @@ def test_recordings_made_before_the_verdict_still_read():
                 assert getattr(got, k) == v, (cls.__name__, cut, k)
             if hasattr(got, 'line_normal'):  # tag-grid intersections
                 assert len(got.line_normal) == 0
+            assert getattr(got, 'tag_lines', 0) == 0  # a tag grid
             assert len(getattr(got, 'degraded_segments', ())) == 0  # none named: the whole phase
             if 'segment_origin' in values:
                 continue

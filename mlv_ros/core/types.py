@@ -27,6 +27,11 @@ import numpy as np
 
 VIEW_SA = 0
 VIEW_LA = 1
+#: ``Frame.tag_lines``: a tag grid (or not known); one family of parallel tag lines in ``image``;
+#: two single-line series of the slice, one family in ``image`` and the other in ``line_image``.
+TAGS_GRID = 0
+TAGS_LINES = 1
+TAGS_LINE_PAIR = 2
 VIEW_NAMES = {VIEW_SA: 'SA', VIEW_LA: 'LA'}
 
 
@@ -62,6 +67,14 @@ class Frame:
     run_id : str
         The run that published it (a nonce drawn once by the frame source; empty = unknown):
         two runs of one study differ in it, and a consumer keeps to one run too.
+    tag_lines : int
+        ``TAGS_GRID`` (a tag grid, or not known), ``TAGS_LINES`` (``image`` shows one family of
+        parallel tag lines, single-line SPAMM) or ``TAGS_LINE_PAIR`` (two single-line series
+        of this slice, acquired apart at the same position, orientation and phases: one family
+        in ``image``, the other in ``line_image``).
+    line_image : ndarray or None
+        ``TAGS_LINE_PAIR``: the second series' image at this phase, same shape and dtype as
+        ``image``; None otherwise.
 
     """
 
@@ -78,6 +91,8 @@ class Frame:
     num_la_slices: int = 0
     study_id: str = ''
     run_id: str = ''
+    tag_lines: int = TAGS_GRID
+    line_image: np.ndarray | None = None
 
 
 @dataclass

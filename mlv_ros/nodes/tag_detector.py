@@ -48,9 +48,9 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.registration.streaming import StreamingMasker
 from mlv_ros.core.streaming import InOrderBuffer
-from mlv_ros.core.tags import SliceTracker
+from mlv_ros.core.tags import LineSliceTracker, SliceTracker
 from mlv_ros.core.tags.gabor import TagInputError, validate_image
-from mlv_ros.core.types import TagPointSet
+from mlv_ros.core.types import TagPointSet, TAGS_GRID
 from mlv_ros.nodes.common import ERROR, GraphNode, OK, run_node, WARN
 
 VIEW_NAME = {TaggedFrame.VIEW_SA: 'SA', TaggedFrame.VIEW_LA: 'LA'}
@@ -207,9 +207,7 @@ class TagDetector(GraphNode):
         mask = None
         started = tracker is None or frame.phase_index == 0
         if started:
-            tracker = self.trackers[key] = SliceTracker(
-                frame.geometry, spacing_px=self.spacing_px or None, register=self.register
-            )
+            tracker = self.trackers[key] = self._tracker(frame)
             self.no_tags.pop(key, None)
             mask, why = self.masker.ed_mask(frame)
         points = tracker.update(frame, mask=mask)
@@ -229,6 +227,20 @@ class TagDetector(GraphNode):
         self._judge(key, frame, points, started, conversions.stamp_text(stamp))
         self.pub.publish(conversions.tagpoints_to_msg(points, stamp=stamp))
         self.published += 1
+
+    def _tracker(self, frame):
+        """
+        Return a new tracker for the slice of ``frame`` (its first frame or its ED frame).
+
+        A tag grid's intersections (:class:`SliceTracker`), or the points on single tag lines
+        of a single-line study (``tag_lines``: one family or a line pair,
+        :class:`LineSliceTracker`; it reads tags only inside the ED myocardium mask).
+        """
+        if frame.tag_lines != TAGS_GRID:
+            return LineSliceTracker(frame.geometry, spacing_px=self.spacing_px or None)
+        return SliceTracker(
+            frame.geometry, spacing_px=self.spacing_px or None, register=self.register
+        )
 
     def _judge(self, key, frame, points: TagPointSet, started: bool, stamp: str) -> None:
         """Say what a user must act on at WARN; count and DEBUG-log what tags do anyway."""

@@ -162,14 +162,24 @@ def run(args) -> int:
 
         options = dicom_options(protocol, study, names_seed=seed)
         extra = {'protocol': protocol, 'dicom': options}
-    wbar = tqdm(total=len(study.frames), unit='file', desc='write DICOM', disable=args.no_progress)
+    series = [(study, out / 'dicom', options)]
+    if protocol is not None and protocol['tag_lines'] == 'pair':
+        try:
+            series = _line_pair(args, preset, study, options)
+        except ValueError as exc:
+            return _fail(exc)
+    total = sum(len(s[0].frames) for s in series)
+    wbar = tqdm(total=total, unit='file', desc='write DICOM', disable=args.no_progress)
     try:
-        files = write_study_dicom(
-            study,
-            out / 'dicom',
-            progress=lambda done, total: wbar.update(done - wbar.n),
-            **options,
-        )
+        files = []
+        for st, where, opts in series:
+            done0 = len(files)
+            files += write_study_dicom(
+                st,
+                where,
+                progress=lambda done, total, d0=done0: wbar.update(d0 + done - wbar.n),
+                **opts,
+            )
         jpath, npath = write_groundtruth(study, out, n_points=args.points, extra=extra)
     except OSError as exc:  # e.g. the disk filled up while writing
         wbar.close()
@@ -234,6 +244,25 @@ def _simulate(args, preset: dict, protocol: dict | None, snr, seed: int):
         )
     finally:
         bar.close()
+
+
+def _line_pair(args, preset: dict, study, options: dict) -> list:
+    """
+    Simulate the second single-line series of every slice (``tag_lines: pair``).
+
+    Returns ``[(study, folder, write options)]`` for both: ``OUT/dicom/lines_1`` and
+    ``OUT/dicom/lines_2`` (the second numbered after the first, its own file names).
+    """
+    from mlv_ros.core.sim.study import line_pair_study
+
+    second = line_pair_study(preset, study, subplanes=args.subplanes)
+    out = Path(args.out) / 'dicom'
+    later = {
+        **options,
+        'series_offset': len(study.series_uids) + 1,
+        'names_seed': int(options.get('names_seed', 0)) + 1,
+    }
+    return [(study, out / 'lines_1', options), (second, out / 'lines_2', later)]
 
 
 def _protocol_header(args, seed: int) -> str:

@@ -67,7 +67,15 @@ from pathlib import Path
 import warnings
 
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import Frame, VIEW_LA, VIEW_NAMES, VIEW_SA
+from mlv_ros.core.types import (
+    Frame,
+    TAGS_GRID,
+    TAGS_LINE_PAIR,
+    TAGS_LINES,
+    VIEW_LA,
+    VIEW_NAMES,
+    VIEW_SA,
+)
 import numpy as np
 import pydicom
 from pydicom.dataset import Dataset, FileMetaDataset
@@ -214,6 +222,7 @@ def write_study_dicom(
     instance_numbers: str = 'per_slice',
     file_names: str = 'ordered',
     names_seed: int = 0,
+    series_offset: int = 0,
 ) -> list[Path]:
     """
     Write every frame of a simulated study as one DICOM file.
@@ -252,6 +261,9 @@ def write_study_dicom(
         The default layout, or random hex names 1–3 random folders deep (``names_seed``).
     names_seed : int
         Seeds the random names.
+    series_offset : int
+        Added to every SeriesNumber (a second series of the same slices, e.g. the second
+        single-line series of a line pair, numbered after the first).
 
     Returns
     -------
@@ -271,7 +283,9 @@ def write_study_dicom(
     )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    series_number, series_uid, descriptions, position = _series_layout(study, sa_series)
+    series_number, series_uid, descriptions, position = _series_layout(
+        study, sa_series, int(series_offset)
+    )
     total = len(study.frames)
     names = _random_paths(out, total, names_seed) if file_names == 'random' else None
     paths = []
@@ -285,7 +299,7 @@ def write_study_dicom(
             pixel_scale=pixel_scale,
             study_uid=study.study_uid,
             frame_of_reference_uid=study.frame_of_reference_uid,
-            series_number=series_number[key],
+            series_number=series_number[key] + int(series_offset),
             description=descriptions[key],
             patient_name=f'MLV^{study.preset["name"]}',
             bits_stored=bits_stored,
@@ -331,9 +345,12 @@ def _check_write_options(
         )
 
 
-def _series_layout(study, sa_series: str) -> tuple[dict, dict, dict, dict]:
+def _series_layout(study, sa_series: str, offset: int = 0) -> tuple[dict, dict, dict, dict]:
     """
     Give each series its number, UID and description, and each slice its place in its series.
+
+    ``offset``: :func:`write_study_dicom`'s ``series_offset`` (a second series of the same
+    slices: its SA stack gets a UID of its own).
 
     Returns
     -------
@@ -351,7 +368,8 @@ def _series_layout(study, sa_series: str) -> tuple[dict, dict, dict, dict]:
     position = {key: i for i, key in enumerate(keys)}  # slice's place in its series' numbering
     if sa_series == 'single':
         sa_keys = [k for k in keys if k[0] == VIEW_SA]
-        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, 'SA stack'])
+        extra = [f'series offset {offset}'] if offset else []
+        stack_uid = pydicom.uid.generate_uid(entropy_srcs=[study.study_uid, 'SA stack', *extra])
         others = [k for k in keys if k[0] != VIEW_SA]
         series_number = {k: 1 for k in sa_keys} | {k: i + 2 for i, k in enumerate(others)}
         series_uid = {k: stack_uid for k in sa_keys}
@@ -535,6 +553,8 @@ class SeriesInfo:
     series_number: int
     geometry: SliceGeometry
     files: list[str]  # one per image, in phase order (a multi-frame file once per frame of it)
+    # The second single-line series paired with this one (its files follow in ``files``), or "".
+    line_series_uid: str = ''
 
 
 @dataclass
@@ -1612,6 +1632,8 @@ _TAG_LINES = 16.0
 #: the grid score: a grid's two families carry the same power (its line score over its grid score
 #: 1.2–3.8 measured), one family's partner is noise (5.4 and more).
 _SINGLE_LINE_RATIO = 4.5
+#: Two single-line series of one slice are a pair when their lines lie this far apart, deg.
+_PAIR_MIN_DEG = 30.0
 _TAG_STUDY_MIN_CINES = 3
 #: A cine of the chosen study that fails the tag test is still used when it was acquired like one
 #: of its tagged cines: the same matrix and pixel spacing within this fraction.
@@ -1780,14 +1802,30 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
         Some 20–80 ms for two 256² images.
 
     """
+    line, grid = np.zeros(len(_PERIOD_BINS_MM)), np.zeros(len(_PERIOD_BINS_MM))
+    found = _window_ratios(images, pixel_mm)
+    if found is None:
+        return line, grid
+    ratio, wb, near, log_bins = found
+    for k in range(len(ratio)):
+        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
+    return line, _window_grid(ratio, wb, log_bins)
+
+
+def _window_ratios(images: list[np.ndarray], pixel_mm: float):
+    """
+    Return the windows' noise-relative spectra of :func:`_window_profiles`, or None.
+
+    ``(ratio (windows, bins), _WindowBins, near (bins, periods): each bin's period bins,
+    log of the period bins in pixels)``; None where no window or period is looked at.
+    """
     a = np.asarray(images[0], np.float64)
     h, w = a.shape
-    line, grid = np.zeros(len(_PERIOD_BINS_MM)), np.zeros(len(_PERIOD_BINS_MM))
     win = int(min(max(_LOCAL_MIN_PX, round(_LOCAL_WINDOW_MM / pixel_mm)), h, w))
     lo = max(_TAG_PERIOD_MM[0] / pixel_mm, _VOTE_MIN_PX)
     hi = min(_TAG_PERIOD_MM[1] / pixel_mm, win / _VOTE_MIN_BINS)
     if win < 16 or lo >= hi:
-        return line, grid
+        return None
     step = win // 2
     corners = [(r, c) for r in range(0, h - win + 1, step) for c in range(0, w - win + 1, step)]
     stacks = [
@@ -1796,18 +1834,15 @@ def _window_profiles(images: list[np.ndarray], pixel_mm: float) -> tuple[np.ndar
     ]
     keep = np.ptp(stacks[0], axis=(1, 2)) > 0
     stacks = [s[keep] for s in stacks]
-    n = int(keep.sum())
-    if not n:
-        return line, grid
+    if not keep.any():
+        return None
     wb = _WindowBins(win, lo, hi)
     ratio = _window_ratio(stacks, wb)
     fa = wb.rad[wb.bins]
     log_bins = np.log(_PERIOD_BINS_MM / pixel_mm)
     tol = 0.5 / (win * fa) + 0.04
     near = np.abs(log_bins[None, :] + np.log(fa)[:, None]) <= tol[:, None]  # (bins, periods)
-    for k in range(n):
-        line = np.maximum(line, np.max(np.where(near, ratio[k][:, None], 0.0), axis=0))
-    return line, _window_grid(ratio, wb, log_bins)
+    return ratio, wb, near, log_bins
 
 
 class _WindowBins:
@@ -2016,6 +2051,8 @@ class _Cine:
     use: list[_Image] = field(default_factory=list)
     phases: list[int] = field(default_factory=list)
     num_phases: int = 0
+    # The second single-line series of this slice, its lines crossing this one's (or None).
+    partner: '_Cine | None' = None
 
     @property
     def first(self) -> _Image:
@@ -2130,6 +2167,7 @@ class _Selection:
     problems: list[tuple[str, str]]
     warnings: list[tuple[str, str]]
     left_out: list[tuple[str, str]]
+    tag_lines: int = TAGS_GRID  # TAGS_LINES: a single-line study (pairs are the cines' partner)
 
 
 def _plan_phases(c: _Cine, warned: list, left_out: list | None) -> None:
@@ -2332,30 +2370,108 @@ def _select_study(cines: list[_Cine], study: str | None, root, problems: list) -
     )
     vote = heart.get(best)
     on_heart = vote is not None and n_tagged > 0  # tagged on the heart alone: the votes decided
-    if on_heart and vote.single_line:
-        raise DicomReadError(
-            f'study {_study_name(best[0])}{how}: single-line tags: intersections needed: its '
-            f'cines show one family of parallel tag lines ({vote.period_mm:.1f} mm apart; in '
-            f'windows {vote.line / _TAG_LINES:.1f}x the line threshold, a second family only '
-            f'{vote.grid / _TAG_STUDY:.2f}x the grid one), and the tracker follows the crossings '
-            f'of a tag grid: give a study tagged in both directions'
-            f'{", or choose another with --study UID" if others else ""}{also}',
-            problems,
-        )
+    single_line = on_heart and vote.single_line
     warned: list[tuple[str, str]] = []
     left_out: list[tuple[str, str]] = []
     used = _mark_unused(cines, best, n_tagged, period, on_heart, left_out)
     if n_tagged:
         _judge_untagged(used, warned)
         used = [c for c in used if not c.why]
+    partners = _pair_line_series(used, vote.period_mm) if single_line else []
+    used = [c for c in used if c not in partners]
     _keep_latest(used, warned)
     used = [c for c in used if not c.why]
-    _match_study_phases(used, warned, left_out)
+    _match_study_phases(used + partners, warned, left_out)
+    for c in used:
+        if c.partner is not None and c.partner.why:  # the second series' phases did not fit
+            warned.append((c.partner.first.path, f'{c.partner.describe()} not paired: '
+                           f'{c.partner.why}'))
+            c.partner = None
     used = [c for c in used if not c.why]
     choice = _choice_text(
         f'study {_study_name(best[0])}{how}', also, n_tagged, n_cines, period, vote
     )
-    return _Selection(used, best[0], studies, choice, _series_problems(cines), warned, left_out)
+    if single_line:
+        pairs = sum(c.partner is not None for c in used)
+        choice += (
+            f'; single-line tags (one family of lines a cine): {pairs} of {len(used)} slice(s) '
+            'paired with a second single-line series whose lines cross theirs (both directions '
+            'measured), the others measure motion across their lines only'
+        )
+    tag_lines = TAGS_LINES if single_line else TAGS_GRID
+    return _Selection(
+        used, best[0], studies, choice, _series_problems(cines), warned, left_out, tag_lines
+    )
+
+
+def _pair_line_series(used: list[_Cine], period_mm: float) -> list[_Cine]:
+    """
+    Pair the two single-line series of a slice whose lines cross; return the second of each pair.
+
+    Vendors acquire single-line tags of one slice twice, in separate breath-holds, with the lines
+    turned between them. Two cines of different series at one slice location (:func:`_same_place`,
+    same matrix) are a pair when their ED images show different families of lines
+    (:func:`_crossing_lines`). The earlier series (:func:`_later`, else the smaller
+    SeriesInstanceUID) keeps the slice and takes the other as ``partner``. Two series of one
+    family are a repeated acquisition (:func:`_keep_latest`).
+    """
+    partners: list[_Cine] = []
+    for i, a in enumerate(used):
+        if a.partner is not None or a in partners:
+            continue
+        for b in used[i + 1:]:
+            if (
+                b in partners
+                or b.partner is not None
+                or b.first.series_uid == a.first.series_uid
+                or b.first.pixels.shape != a.first.pixels.shape
+                or not _same_place(a, b)
+            ):
+                continue
+            if _crossing_lines(a, b, period_mm):
+                first, second = (b, a) if _later(a, b) or (
+                    _later(a, b) is None and b.first.series_uid < a.first.series_uid
+                ) else (a, b)
+                first.partner = second
+                partners.append(second)
+                break
+    return partners
+
+
+def _crossing_lines(a: _Cine, b: _Cine, period_mm: float) -> bool:
+    """
+    Check whether two single-line cines of one slice show families of lines 30° or more apart.
+
+    Each cine's line direction is that of its strongest spectral bin at the study's period in
+    the study vote's windows (:func:`_line_direction`); 30° is the separation the tag grid's
+    spectral estimate asks of two directions (``mlv_ros.core.tags.gabor``).
+    """
+    da, db = _line_direction(a, period_mm), _line_direction(b, period_mm)
+    if da is None or db is None:
+        return False
+    return _axial_deg(da, db) >= _PAIR_MIN_DEG
+
+
+def _line_direction(c: _Cine, period_mm: float) -> float | None:
+    """
+    Return the wave-vector angle (rad) of a cine's strongest line at ``period_mm``, or None.
+
+    The strongest noise-relative bin (:func:`_window_ratios` of its vote images) whose period
+    bin is within 3 % of ``period_mm``; None unless it passes :data:`_TAG_LINES`.
+    """
+    found = _window_ratios(_vote_images(c.imgs), _pixel_mm(c))
+    if found is None:
+        return None
+    ratio, wb, near, log_bins = found
+    k = int(np.argmin(np.abs(log_bins - np.log(period_mm / _pixel_mm(c)))))
+    cols = near[:, max(k - 1, 0):k + 2].any(axis=1)  # the period's bin and its neighbours
+    if not cols.any():
+        return None
+    r = np.where(cols[None, :], ratio, 0.0)
+    w, j = np.unravel_index(int(np.argmax(r)), r.shape)
+    if r[w, j] < _TAG_LINES:
+        return None
+    return float(wb.ang[wb.bins[j]])
 
 
 def _study_name(uid: str) -> str:
@@ -2596,9 +2712,10 @@ def _choice_text(which_study, also, n_tagged, n_cines, period, vote) -> str:
 
     """
     if n_tagged and vote is not None:
+        what = f'{period:.1f} mm tag lines' if vote.single_line else f'a {period:.1f} mm grid'
         return (
             f'{which_study}: {n_tagged} tagged cine(s), tags on the heart alone '
-            f'(its cines share a {period:.1f} mm grid in windows of their first images: '
+            f'(its cines share {what} in windows of their first images: '
             f'{vote.score:.1f}x the threshold){also}'
         )
     if n_tagged:
@@ -2781,9 +2898,10 @@ def read_dicom_dir(
     next image). The group with the most clearly tagged cines is taken (whatever the file order),
     else one whose grid vote passes, else the one with the largest vote (ties go to more MR
     cines, more images, then the smaller UID), or the one ``study`` names. A taken study whose
-    cines share one family of tag lines and no grid (:data:`_SINGLE_LINE_RATIO`) raises
-    DicomReadError ("single-line tags: intersections needed"): the tracker follows tag-line
-    crossings. A vote below the
+    cines share one family of tag lines and no grid (:data:`_SINGLE_LINE_RATIO`) is a
+    single-line study: its frames say so (``Frame.tag_lines``), and two single-line series of
+    one slice whose lines cross are paired into one slice (:func:`_pair_line_series`: the
+    second series' image of each phase is the frame's ``line_image``). A vote below the
     threshold takes all the group's MR cines, as does a group of the most MR cines when nothing
     votes; without any MR cine, every image as it is (Siemens MOSAIC images never). The tag test
     chooses, it does not thin the study: a cine of the taken group that fails it is not used at
@@ -2838,7 +2956,7 @@ def read_dicom_dir(
             if _unread_image_of(f, sel.study_uid)
         ]
     sa_planes, la_planes, axis = _order_planes(planes)
-    frames, series = _frames_and_series(sa_planes, la_planes)
+    frames, series = _frames_and_series(sa_planes, la_planes, sel.tag_lines)
     studies = Counter(i.study_uid for p in planes for i in p.use if i.study_uid)
     return DicomReadResult(
         frames=frames,
@@ -3012,19 +3130,32 @@ def _order_planes(
 
 
 def _frames_and_series(
-    sa_planes: list[_Cine], la_planes: list[_Cine]
+    sa_planes: list[_Cine], la_planes: list[_Cine], tag_lines: int = TAGS_GRID
 ) -> tuple[list[Frame], list[SeriesInfo]]:
-    """Turn the ordered cines into frames (one per image) and a SeriesInfo per cine."""
+    """
+    Turn the ordered cines into frames (one per image) and a SeriesInfo per cine.
+
+    A single-line study's frames say so (``tag_lines``); a cine paired with a second single-line
+    series (``partner``) carries that series' image of the same phase as ``line_image``
+    (``TAGS_LINE_PAIR``; a phase the partner lacks stays ``TAGS_LINES``).
+    """
     frames: list[Frame] = []
     series: list[SeriesInfo] = []
     for view, group in ((VIEW_SA, sa_planes), (VIEW_LA, la_planes)):
         for idx, cine in enumerate(group):
             imgs, first = cine.use, cine.first
             trig, nominal = _timing(imgs, cine.phases, cine.num_phases)
+            other = {}
+            if cine.partner is not None:
+                other = dict(zip(cine.partner.phases, cine.partner.use))
             for img, ph, t in zip(imgs, cine.phases, trig):
+                line = other.get(ph)
+                a, b = img.pixels, None if line is None else line.pixels
+                if b is not None and b.dtype != a.dtype:
+                    a, b = a.astype(np.float32), b.astype(np.float32)
                 frames.append(
                     Frame(
-                        image=img.pixels,
+                        image=a,
                         geometry=img.geometry,
                         view=view,
                         slice_index=idx,
@@ -3033,8 +3164,13 @@ def _frames_and_series(
                         trigger_time=float(t),
                         cycle_duration=nominal,
                         series_uid=first.series_uid,
+                        tag_lines=tag_lines if b is None else TAGS_LINE_PAIR,
+                        line_image=b,
                     )
                 )
+            files = [i.path for i in imgs]
+            if cine.partner is not None:
+                files += [i.path for i in cine.partner.use]
             series.append(
                 SeriesInfo(
                     series_uid=first.series_uid,
@@ -3043,7 +3179,10 @@ def _frames_and_series(
                     description=first.description,
                     series_number=first.series_number,
                     geometry=first.geometry,
-                    files=[i.path for i in imgs],
+                    files=files,
+                    line_series_uid=(
+                        '' if cine.partner is None else cine.partner.first.series_uid
+                    ),
                 )
             )
     return frames, series

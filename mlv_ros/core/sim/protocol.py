@@ -278,10 +278,12 @@ _ITEMS = [
     Item(
         'tag_lines',
         'tag line families: grid (both) | single (one family of parallel lines, ⟂ the grid '
-        "angle's row direction; the tracker needs intersections and refuses it)",
-        'grid (always: single only when given)',
-        'grid | single',
-        _choice(('grid', 'single')),
+        "angle's row direction: only motion across the lines is measured) | pair (two "
+        'single-line series of every slice, the second with its lines turned by 90°, as vendors '
+        'acquire them in two breath-holds)',
+        'grid (always: single and pair only when given)',
+        'grid | single | pair',
+        _choice(('grid', 'single', 'pair')),
     ),
     Item(
         'tag_spacing_mm',
@@ -1060,7 +1062,7 @@ def protocol_preset(protocol: dict) -> dict:
             'la_flip': list(p['la_flip']),
             'tag_spacing_mm': p['tag_spacing_mm'],
             'tag_angle_deg': p['tag_angle_deg'],
-            'tag_lines': p['tag_lines'],
+            'tag_lines': 'grid' if p['tag_lines'] == 'grid' else 'single',  # pair: twice
             't1_s': p['t1_s'],
             'background_m0': p['background_m0'],
             'background_tagged': p['background'] == 'tagged',

@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import hashlib
 import json
 
@@ -25,7 +25,7 @@ from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.sim.imaging import draw_noise, ImageSynthesizer, plan_slices, PlannedSlice
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
-from mlv_ros.core.types import Frame
+from mlv_ros.core.types import Frame, VIEW_NAMES
 import numpy as np
 
 Key = tuple[int, int]  # (view, slice_index)
@@ -391,3 +391,60 @@ def _preset_with(
         im['pixel_spacing_mm'] = float(pixel_spacing)
     im['size'] = n
     return p
+
+
+def line_pair_study(
+    preset, first: Study, turn_deg: float = 90.0, seed: int | None = None, **kwargs
+) -> Study:
+    """
+    Simulate the second single-line series of every slice of ``first``: its lines turned.
+
+    Vendors acquire single-line tags of one slice twice, in separate breath-holds, the lines
+    turned between them (``tag_lines: pair`` of :mod:`mlv_ros.core.sim.protocol`). The second
+    study is the same heart and planes with ``imaging.tag_angle_deg`` + ``turn_deg`` and its own
+    noise; it joins ``first``'s study and frame of reference with series of its own (UIDs and
+    descriptions ``… lines 2``).
+
+    Parameters
+    ----------
+    preset : dict
+        ``first``'s preset (``imaging.tag_lines: single``).
+    first : Study
+        The first series of every slice.
+    turn_deg : float
+        Angle between the two families, degrees.
+    seed : int, optional
+        Noise seed (default ``first.seed + 1``: noise independent of the first's).
+    **kwargs
+        :func:`simulate_study`'s other arguments, as given for ``first``.
+
+    Returns
+    -------
+    Study
+        The second series; its truth is ``first``'s.
+
+    Raises
+    ------
+    ValueError
+        ``preset`` is not a single-line preset.
+
+    """
+    p = load_preset(preset)
+    im = p['imaging']
+    if im.get('tag_lines', 'grid') != 'single':
+        raise ValueError(
+            f"a line pair needs imaging.tag_lines 'single', got {im.get('tag_lines')!r}"
+        )
+    im['tag_angle_deg'] = (float(im.get('tag_angle_deg', 0.0)) + float(turn_deg)) % 180.0
+    second = simulate_study(
+        p, snr=first.snr, seed=first.seed + 1 if seed is None else int(seed), **kwargs
+    )
+    uids = {k: _uid('series', first.study_uid, 'lines 2', *k) for k in second.series_uids}
+    return replace(
+        second,
+        frames=[replace(f, series_uid=uids[(f.view, f.slice_index)]) for f in second.frames],
+        series_uids=uids,
+        study_uid=first.study_uid,
+        frame_of_reference_uid=first.frame_of_reference_uid,
+        descriptions={k: f'tagged {VIEW_NAMES[k[0]]} {k[1]} lines 2' for k in uids},
+    )

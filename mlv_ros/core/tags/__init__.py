@@ -46,7 +46,9 @@ Public API
     Single-line SPAMM (one family of parallel lines, no intersections): points about one
     period apart along each line, tracked by the family's Gabor phase along the line normal
     only (:mod:`mlv_ros.core.tags.lines`); the TagPointSet carries each point's line normal
-    (``line_normal``), the one direction it measures.
+    (``line_normal``), the one direction it measures. ``LineSliceTracker(geometry)`` tracks a
+    slice of a single-line study (``Frame.tag_lines``): each family's period and angle
+    estimated at ED inside the myocardium, a line pair's two families in one set.
 
 ``harp_track(images, start_rc, params) -> HarpTrack``
     HARP baseline (Osman et al. 1999): band-pass one spectral peak per direction, harmonic
@@ -98,7 +100,14 @@ from .intersections import (
     grid_coherence,
     grid_labels,
 )
-from .lines import detect_line_points, line_parameters, LinePoints, LineTracker
+from .lines import (
+    detect_line_points,
+    estimate_line_family,
+    line_parameters,
+    LinePoints,
+    LineSliceTracker,
+    LineTracker,
+)
 from .rpm import RPMResult, ThinPlateSpline, tps_rpm
 from .tracker import SliceTracker
 
@@ -107,6 +116,7 @@ __all__ = [
     'GaborMaps',
     'HarpTrack',
     'LinePoints',
+    'LineSliceTracker',
     'LineTracker',
     'RPMResult',
     'SliceTracker',
@@ -115,6 +125,7 @@ __all__ = [
     'ThinPlateSpline',
     'detect_intersections',
     'detect_line_points',
+    'estimate_line_family',
     'estimate_grid',
     'estimate_tag_parameters',
     'grid_coherence',

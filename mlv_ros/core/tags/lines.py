@@ -36,15 +36,24 @@ Pixel coordinates (row, col) and angles as in :mod:`mlv_ros.core.tags` (the wave
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from .gabor import gabor_filter_bank, TagInputError, TagParameters, validate_image
+from .gabor import (
+    estimate_tag_parameters,
+    gabor_filter_bank,
+    MIN_PEAK_RATIO,
+    MIN_WHITENED_PEAK_RATIO,
+    TagInputError,
+    TagParameters,
+    validate_image,
+)
 from .intersections import masked_normalise
 from .phase import PhaseField
-from ..types import Frame, TagPointSet
+from .tracker import tag_period_range_px
+from ..types import Frame, TagPointSet, TAGS_LINE_PAIR
 
 # |R| / σ_local of an ideal single family ``sin²(π a / λ)``: a cosine of amplitude 1/2 (|R| =
 # 1/4) with standard deviation (1/2)/√2, so the ratio is 1/√2 (the grid's is 1/√5).
@@ -415,3 +424,196 @@ def line_normal_patient(geometry, normal_rc) -> np.ndarray:
         g[:, 1] / geometry.column_spacing, geometry.row_direction
     )
     return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+# Track ids of the second family of a line pair start here (the first family's count from 0).
+SECOND_FAMILY_IDS = 100000
+
+
+def estimate_line_family(image, region=None, pixel_mm: float = 1.0) -> tuple[float, float]:
+    """
+    Estimate the period and wave-vector angle of one family of tag lines from the spectrum.
+
+    The strongest peak of :func:`~mlv_ros.core.tags.gabor.estimate_tag_parameters` in
+    ``region`` (its second, a grid's other direction, is not asked for), measured against the
+    band's median (at least :data:`~mlv_ros.core.tags.gabor.MIN_PEAK_RATIO`), else whitened
+    against its ring's (at least :data:`~mlv_ros.core.tags.gabor.MIN_WHITENED_PEAK_RATIO`): a
+    thin tagged wall spreads its peak over the ring, as :func:`~mlv_ros.core.tags.estimate_grid`
+    also tries both.
+
+    Parameters
+    ----------
+    image : array_like, shape (H, W)
+        The ED image.
+    region : array_like of bool, shape (H, W), optional
+        Where the spectrum is taken (the myocardium); default the whole image.
+    pixel_mm : float
+        Pixel size, mm (sets the periods searched, ``tag_period_range_px``).
+
+    Returns
+    -------
+    spacing_px : float
+        Tag period, px.
+    angle : float
+        Wave-vector angle, rad (module conventions).
+
+    Raises
+    ------
+    TagInputError
+        No peak stands out either way (no tags, faded tags, noise), or an unusable image or
+        region.
+
+    """
+    lo, hi = tag_period_range_px(pixel_mm)
+    said = []
+    for whiten, need in ((False, MIN_PEAK_RATIO), (True, MIN_WHITENED_PEAK_RATIO)):
+        est = estimate_tag_parameters(image, region, lo, hi, min_peak_ratio=0.0, whiten=whiten)
+        k = int(np.argmax(est.peak_ratio))
+        if est.peak_ratio[k] >= need:
+            return float(est.spacing_px[k]), float(est.angles[k])
+        said.append(f'{est.peak_ratio[k]:.1f}x (need ≥ {need:g})')
+    raise TagInputError(
+        f'no tag lines: the strongest spectral peak stands {said[0]} over the band and '
+        f'{said[1]} over its ring; no tags, faded tags or noise only'
+    )
+
+
+def merge_line_sets(first: TagPointSet, second: TagPointSet) -> TagPointSet:
+    """
+    Return the points of two families of one frame as one set (the second's ids + 100000).
+
+    Parameters
+    ----------
+    first, second : TagPointSet
+        :meth:`LineTracker.update` of the two families of one slice at one phase.
+
+    Returns
+    -------
+    TagPointSet
+        ``first`` with ``second``'s points appended (ids offset by :data:`SECOND_FAMILY_IDS`)
+        and both statuses joined.
+
+    """
+    out = first
+    if len(second):
+        if not len(out):
+            out.pixel_rc, out.position = np.zeros((0, 2)), np.zeros((0, 3))
+            out.track_id, out.confidence = np.zeros(0, np.int32), np.zeros(0, np.float32)
+            out.line_normal = np.zeros((0, 3))
+        out.pixel_rc = np.concatenate([out.pixel_rc, second.pixel_rc])
+        out.position = np.concatenate([out.position, second.position])
+        ids = np.asarray(second.track_id) + SECOND_FAMILY_IDS
+        out.track_id = np.concatenate([out.track_id, ids]).astype(np.int32)
+        out.confidence = np.concatenate([out.confidence, second.confidence]).astype(np.float32)
+        normals = np.reshape(out.line_normal, (-1, 3))
+        out.line_normal = np.concatenate([normals, second.line_normal])
+    out.status = '; '.join(x for x in (first.status, second.status) if x)
+    return out
+
+
+class LineSliceTracker:
+    """
+    Track one slice's single-line tags: one family, or the two families of a line pair.
+
+    At ED each family's period and angle are estimated from its image inside the myocardium
+    (:func:`estimate_line_family`) and a :class:`LineTracker` follows it; a line pair's
+    second family comes from ``Frame.line_image``. The two families' points go out as one set
+    (:func:`merge_line_sets`). The attributes the tag detector reports are those of
+    :class:`~mlv_ros.core.tags.SliceTracker`: ``params`` (None when no family was read at ED),
+    ``track_id`` (every ED track) and ``alive`` (the tracks at the last phase).
+
+    Parameters
+    ----------
+    geometry : SliceGeometry
+        The slice's plane.
+    spacing_px : float, optional
+        Tag period override, px (both families); estimated when None.
+
+    """
+
+    def __init__(self, geometry, spacing_px: float | None = None):
+        self.geometry = geometry
+        self.spacing_px = spacing_px
+        self.families: list[LineTracker | None] = []
+        self.params = None
+        self.track_id = np.zeros(0, np.int32)
+        self.alive = np.zeros(0, np.int32)
+
+    def _start(self, images, mask) -> str:
+        """Estimate each family at ED and start its tracker; return why none started, or ''."""
+        if mask is None or not np.asarray(mask, bool).any():
+            return 'no ED myocardium mask: single-line tags are read only inside it'
+        m = np.asarray(mask, bool)
+        px = float(self.geometry.row_spacing)
+        why = []
+        self.families = []
+        for image in images:
+            try:
+                lam, angle = estimate_line_family(image, m, px)
+                if self.spacing_px:
+                    lam = float(self.spacing_px)
+                self.families.append(LineTracker(self.geometry, spacing_px=lam, angle=angle))
+            except TagInputError as exc:
+                self.families.append(None)
+                why.append(str(exc))
+        live = [f for f in self.families if f is not None]
+        if live:
+            self.params = [f.params for f in live]
+        return '' if live else '; '.join(why)
+
+    def update(self, frame: Frame, mask=None) -> TagPointSet:
+        """
+        Return the frame's line points, both families of a pair in one set.
+
+        Parameters
+        ----------
+        frame : Frame
+            One phase of the slice, in phase order (phase 0 starts the cine).
+        mask : array_like of bool, optional
+            The ED myocardium; required at phase 0.
+
+        Returns
+        -------
+        TagPointSet
+            With ``line_normal`` set; empty with ``status`` set when nothing is found. Never
+            raises for image content.
+
+        """
+        images = [frame.image]
+        if frame.tag_lines == TAGS_LINE_PAIR and frame.line_image is not None:
+            images.append(frame.line_image)
+        if int(frame.phase_index) == 0:
+            self.params = None
+            why = self._start(images, mask)
+            if why:
+                self.families = []
+                return LineTracker(self.geometry, spacing_px=2.0, angle=0.0)._result(
+                    frame, None, None, None, why
+                )
+        sets = []
+        for k, tracker in enumerate(self.families):
+            if tracker is None:
+                continue
+            if k >= len(images):  # the second series lacks this phase
+                continue
+            one = tracker.update(replace(frame, image=images[k]), mask)
+            sets.append((k, one))
+        if not sets:
+            return LineTracker(self.geometry, spacing_px=2.0, angle=0.0)._result(
+                frame, None, None, None, 'no tag-line family tracked'
+            )
+        out = sets[0][1] if sets[0][0] == 0 else _offset(sets[0][1])
+        for _, one in sets[1:]:
+            out = merge_line_sets(out, one)
+        ids = np.asarray(out.track_id, np.int32)
+        self.alive = ids
+        if int(frame.phase_index) == 0:
+            self.track_id = ids
+        return out
+
+
+def _offset(points: TagPointSet) -> TagPointSet:
+    """Return a second family's set alone, its ids offset by :data:`SECOND_FAMILY_IDS`."""
+    if len(points):
+        points.track_id = (np.asarray(points.track_id) + SECOND_FAMILY_IDS).astype(np.int32)
+    return points
