@@ -18,12 +18,16 @@ A node of ``mlv-ros run``'s graph in a process of its own.
 So that it computes on another core than the rest of the graph (the tag detector beside the
 registration and the solver).
 
-The run starts the child with :meth:`ChildNode.start` (the same interpreter and environment) and
-talks to it over the child's stdin and stdout, one JSON object a line:
+The run spawns the child (:meth:`ChildNode.spawn`: the same interpreter and environment) before it
+imports its own nodes, so that the child imports the node classes meanwhile, on the other core;
+:meth:`ChildNode.start` then hands it its node. The run talks to it over the child's stdin and
+stdout, one JSON object a line:
 
 - run → child: the node's configuration (name, ROS domain, namespace, parameters file,
   overrides, logging threshold), then ``{"study": ID, "run": RUN_ID}`` (the study every node keeps
-  to; the node spins only after it), then ``{"stop": true}`` (or end of file: the run is gone).
+  to; the node spins only after it), then ``{"stop": true, "drain": true}`` (or end of file: the
+  run is gone); ``"drain": false`` ends it without taking what is still queued (the run has
+  every result already).
 - child → run: ``{"event": "started"}`` or ``{"event": "start_failed", "reason": ...}``,
   ``{"event": "ready"}``, then the node's counters whenever they change (at most every 0.1 s;
   :data:`STATE_FIELDS`), and last ``{"event": "stopped", ...}`` with the final counters, or
@@ -127,19 +131,23 @@ class ChildNode:
         self._reader = threading.Thread(target=self._read, name=f'{name}-child', daemon=True)
         self._reader.start()
 
-    @classmethod
-    def start(
-        cls, name: str, domain_id: int, namespace: str, params_file: Path, overrides: dict
-    ) -> 'ChildNode':
+    @staticmethod
+    def spawn() -> subprocess.Popen:
         """
-        Start node ``name`` in a child process.
+        Start a child process that imports the graph's node classes and waits for its node.
 
         The child runs this interpreter, this environment, with the directory holding ``mlv_ros``
-        on its path.
-        """
-        from rclpy.logging import get_logger_effective_level
+        on its path. It imports first and reads its configuration after, so a run spawns it
+        before importing its own nodes and both import at once (:meth:`start` hands it the
+        node). End one that was never handed a node with :func:`end_spawned`.
 
-        proc = subprocess.Popen(
+        Returns
+        -------
+        subprocess.Popen
+            The process, its stdin and stdout pipes open, in text mode.
+
+        """
+        return subprocess.Popen(
             [sys.executable, '-m', 'mlv_ros.graph_process'],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -147,7 +155,44 @@ class ChildNode:
             text=True,
             start_new_session=True,
         )
-        child = cls(name, proc)
+
+    @classmethod
+    def start(
+        cls,
+        name: str,
+        domain_id: int,
+        namespace: str,
+        params_file: Path,
+        overrides: dict,
+        proc: subprocess.Popen | None = None,
+    ) -> 'ChildNode':
+        """
+        Start node ``name`` in a child process: ``proc`` from :meth:`spawn`, or a new one.
+
+        Parameters
+        ----------
+        name : str
+            The node (:func:`_node_classes`).
+        domain_id : int
+            The ROS domain it talks on.
+        namespace : str
+            Its namespace.
+        params_file : Path
+            The graph's parameters file.
+        overrides : dict
+            Its parameters over the file's.
+        proc : subprocess.Popen, optional
+            A process :meth:`spawn` started that has no node yet (default: spawn one now).
+
+        Returns
+        -------
+        ChildNode
+            The node's stand-in; :meth:`wait_started` says whether it started.
+
+        """
+        from rclpy.logging import get_logger_effective_level
+
+        child = cls(name, proc if proc is not None else cls.spawn())
         child._send(
             {
                 'node': name,
@@ -234,14 +279,28 @@ class ChildNode:
     def done(self) -> bool:
         return self._events['eof'].is_set()
 
-    def stop(self, timeout: float = 10.0) -> None:
-        """Let the node take what is queued, then end the process (killed after ``timeout``)."""
-        if self.proc.poll() is None:
-            self._send({'stop': True})
+    def request_stop(self, drain: bool = True) -> None:
+        """
+        Ask the node to end, without waiting (:meth:`stop` waits).
+
+        Parameters
+        ----------
+        drain : bool
+            Take and publish what is queued first (until nothing came for
+            :data:`DRAIN_QUIET_S`); False when the run knows every result is in.
+
+        """
+        if self.proc.poll() is None and not self.proc.stdin.closed:
+            self._send({'stop': True, 'drain': bool(drain)})
             try:
                 self.proc.stdin.close()
             except OSError:
                 pass
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Let the node take what is queued, then end the process (killed after ``timeout``)."""
+        if self.proc.poll() is None:
+            self.request_stop()
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -251,6 +310,18 @@ class ChildNode:
 
     def destroy_node(self) -> None:
         self.stop()
+
+
+def end_spawned(proc: subprocess.Popen) -> None:
+    """End a process from :meth:`ChildNode.spawn` that was never handed a node."""
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+    for pipe in (proc.stdin, proc.stdout):
+        try:
+            pipe.close()
+        except OSError:
+            pass
 
 
 # ---------------------------------------------------------------------- child side
@@ -316,9 +387,13 @@ def main() -> int:
         node.study.adopt(study.get('study', ''), study.get('run', ''))
         _emit(out, {'event': 'ready'})
 
+        drain = [True]  # what the stop line says (end of file: the run is gone, drain)
+
         def watch_stdin():
             for text in sys.stdin:
-                if json.loads(text or '{}').get('stop'):
+                line = json.loads(text or '{}')
+                if line.get('stop'):
+                    drain[0] = bool(line.get('drain', True))
                     break
             stop.set()
 
@@ -326,7 +401,7 @@ def main() -> int:
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         crashed = _spin(ex, node, stop, out)
-        if crashed is None and not node.done:
+        if crashed is None and not node.done and drain[0]:
             crashed = _drain(ex, node)
         if crashed is not None:
             _emit(out, {'event': 'crashed', 'reason': crashed, **_state(node)})

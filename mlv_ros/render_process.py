@@ -141,9 +141,11 @@ def main() -> int:
     out = sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing but frames goes to the parent's pipe
     try:
-        job = json.loads(sys.stdin.buffer.read())
+        # Imported before the job is read: the parent writes it at once, the imports take longer.
         from mlv_ros.core.sim.study import StudyRenderer
         from mlv_ros.threads import compute_threads
+
+        job = json.loads(sys.stdin.buffer.read())
 
         with compute_threads():
             renderer = StudyRenderer(**job['study'])

@@ -530,9 +530,15 @@ def run_graph(
     signals = _Signals()
     if handle_signals:
         signals.install()
+    # The nodes of processes of their own start importing now, while this process imports its.
+    spawned = _spawn_children()
     try:
-        # OpenCV loaded first, so that its pool is held too
-        import mlv_ros.nodes.tag_detector  # noqa: F401
+        # OpenCV loaded first, so that its pools are held too (the registration's segmentation
+        # runs here; so does the tag detector when it has no process of its own)
+        import cv2  # noqa: F401
+
+        if 'tag_detector' not in spawned:
+            import mlv_ros.nodes.tag_detector  # noqa: F401
         from mlv_ros.threads import compute_threads
 
         with (
@@ -551,9 +557,39 @@ def run_graph(
                 namespace,
                 live,
                 on_phase or (lambda done, total: None),
+                spawned,
             )
     finally:
+        _end_spawned(spawned)
         signals.restore()
+
+
+def _spawn_children() -> dict:
+    """
+    Return {node: process} for the nodes that run in processes of their own (:func:`child_nodes`).
+
+    Each process imports its node's class at once and waits for its configuration
+    (:meth:`~mlv_ros.graph_process.ChildNode.spawn`), so that its imports (rclpy, OpenCV, scipy:
+    about 1 s of CPU) run beside this process's instead of after them. None on a failed spawn:
+    the node is then started as before, when its turn comes.
+    """
+    from mlv_ros.graph_process import ChildNode
+
+    spawned = {}
+    for name in child_nodes():
+        try:
+            spawned[name] = ChildNode.spawn()
+        except OSError:
+            pass  # started in its turn (_start_nodes), which reports why it cannot
+    return spawned
+
+
+def _end_spawned(spawned: dict) -> None:
+    """End the spawned processes no node took (the run failed to start before it could)."""
+    from mlv_ros.graph_process import end_spawned
+
+    while spawned:
+        end_spawned(spawned.popitem()[1])
 
 
 @dataclass
@@ -690,7 +726,8 @@ def _start_nodes(ex, ctx, nodes: dict, names, classes, start: dict, source: dict
         Node name → its class (:func:`node_class`).
     start : dict
         ``domain_id``, ``namespace``, ``params_path``, ``params`` and ``overrides``
-        (:func:`_graph_parameters`).
+        (:func:`_graph_parameters`), and ``spawned``: {node: process} of
+        :func:`_spawn_children` (each taken by its node).
     source : dict
         As :func:`run_graph`'s.
 
@@ -704,7 +741,7 @@ def _start_nodes(ex, ctx, nodes: dict, names, classes, start: dict, source: dict
 
     separate = child_nodes()
     for name in names:
-        if name in separate:  # started now, so it starts while the others do
+        if name in separate:  # its process was spawned at the start: it is handed its node now
             try:
                 nodes[name] = ChildNode.start(
                     name,
@@ -712,6 +749,7 @@ def _start_nodes(ex, ctx, nodes: dict, names, classes, start: dict, source: dict
                     start['namespace'],
                     start['params_path'],
                     start['overrides'].get(name, {}),
+                    proc=start['spawned'].pop(name, None),
                 )
             except OSError as exc:
                 raise RunStartError(f'{name} could not start: {exc.strerror or exc}') from exc
@@ -866,24 +904,73 @@ def _wind_down(run: _Running, interrupted, failed, grace: float) -> None:
         )
     elif failed:
         src.halt('the run failed')
-    else:  # ended by itself: let the last results reach their subscribers
+    else:  # ended by itself: let the last results reach their subscribers (the recorder)
         _settle(
-            run.ex, run.nodes, lambda: bool(run.signals.received), quiet_s=QUIET_S, max_s=grace
+            run.ex,
+            run.nodes,
+            lambda: bool(run.signals.received) or _all_recorded(run.nodes),
+            quiet_s=QUIET_S,
+            max_s=grace,
         )
     # Only the recorder from here: it takes what was sent, nothing new is computed (a node in
     # a child process first publishes what it has taken, then ends with its final counts).
-    for name, node in run.nodes.items():
-        if isinstance(node, ChildNode):
+    children = [n for n in run.nodes.values() if isinstance(n, ChildNode)]
+    # With everything recorded the children end while the recorder drains; else one by one first.
+    overlap = not (interrupted or failed) and _all_recorded(run.nodes)
+    for node in children:
+        if overlap:
+            node.request_stop(drain=False)
+        else:
             node.stop()
-        elif name != 'recorder':
+    for name, node in run.nodes.items():
+        if name != 'recorder' and node not in children:
             run.ex.remove_node(node)
-    _settle(
-        run.ex,
-        {'recorder': rec},
-        lambda: False,
-        quiet_s=DRAIN_QUIET_S,
-        max_s=DRAIN_MAX_S,
-        count=lambda: rec.messages_handled,
+
+    def drain():
+        _settle(
+            run.ex,
+            {'recorder': rec},
+            lambda: False,
+            quiet_s=DRAIN_QUIET_S,
+            max_s=DRAIN_MAX_S,
+            count=lambda: rec.messages_handled,
+        )
+
+    drain()
+    if overlap:
+        for node in children:
+            node.stop()
+        if not _all_recorded(run.nodes):  # a child published on its way out
+            drain()
+
+
+def _all_recorded(nodes: dict) -> bool:
+    """
+    Check whether the recorder has taken every result the graph's nodes published.
+
+    Frames, tag point sets (as many as the detector published and the solver took), the
+    registered model, each phase's motion and state, and the metrics; topics it does not record
+    are left out. Once they are, a run that ended by itself has nothing in flight to wait for.
+    """
+    from mlv_ros import qos
+
+    rec, solver = nodes['recorder'], nodes['meshless_solver']
+    registered = int(getattr(nodes['registration'], 'result', None) is not None)
+    published = {
+        qos.FRAMES: nodes['frame_source'].published,
+        qos.TAG_POINTS: max(
+            nodes['tag_detector'].published, _taken(solver, solver.topic_name(qos.TAG_POINTS))
+        ),
+        qos.REGISTERED_CLOUD: registered,
+        qos.REGISTERED_STATE: registered,
+        qos.MOTION: solver.published,
+        qos.MODEL_STATE: solver.published,
+        qos.METRICS: nodes['motion_analyzer'].published,
+    }
+    return all(
+        _taken(rec, rec.topic_name(topic)) >= count
+        for topic, count in published.items()
+        if topic in rec.recorded
     )
 
 
@@ -1032,6 +1119,7 @@ def _run_graph(
     namespace,
     live=None,
     on_phase=lambda done, total: None,
+    spawned=None,
 ) -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -1041,7 +1129,8 @@ def _run_graph(
     names, namespace, params_path, params, overrides = _graph_parameters(
         source, mcap, params_file, overrides, namespace, live
     )
-    classes = {name: node_class(name) for name in names}
+    separate = child_nodes()
+    classes = {name: node_class(name) for name in names if name not in separate}
     domain_id = _claimed_domain(domain_id, namespace)
     created = _prepare_out(out_dir)
     ctx = rclpy.Context()
@@ -1054,6 +1143,7 @@ def _run_graph(
         'params_path': params_path,
         'params': params,
         'overrides': overrides,
+        'spawned': {} if spawned is None else spawned,
     }
     try:
         ex = SingleThreadedExecutor(context=ctx)

@@ -28,6 +28,8 @@ phantom's truth beside its images) import it.
 
 import ast
 from pathlib import Path
+import subprocess
+import sys
 
 import pytest
 
@@ -121,3 +123,19 @@ def test_only_the_sources_of_truth_import_the_simulators():
     )
     assert found == []
     assert 'mlv_ros.core.sim.evaluation' in graph()['mlv_ros.recording']  # the walk sees them
+
+
+def test_the_tag_detector_imports_no_registration_or_dicom_reader():
+    # Its process imports only what it runs (its start is on the study's critical path): the
+    # registration package's names come from their submodules on first use.
+    code = (
+        'import sys, mlv_ros.nodes.tag_detector; '
+        'print([m for m in ("mlv_ros.core.registration.register", "pydicom") if m in sys.modules])'
+    )
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
+    assert out.stdout.split('\n')[-2] == '[]', out.stdout
+    from mlv_ros.core import registration
+
+    assert registration.register_ed.__module__ == 'mlv_ros.core.registration.register'
+    with pytest.raises(AttributeError, match='no attribute'):
+        registration.no_such_name

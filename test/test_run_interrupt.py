@@ -483,3 +483,34 @@ def test_cli_mistakes_are_one_line_without_traceback(tmp_path):
         assert p.returncode == 2, (args, p.stderr)
         assert_one_line_reason(lines, words)
         assert not (tmp_path / 'r1').exists() and not (tmp_path / 'r3').exists()
+
+
+def test_a_start_that_fails_ends_the_tag_detector_process_spawned_for_it(tmp_path, monkeypatch):
+    """
+    Check that the process spawned for the tag detector ends when the run cannot start.
+
+    The run spawns the tag detector's process before it imports its own nodes (both import at
+    once); a start refused after that (here: ``--out`` already holds a run) hands it no node,
+    and must not leave it behind.
+    """
+    from mlv_ros import graph_process
+    from mlv_ros.runner import run_graph
+
+    monkeypatch.delenv('MLV_ROS_ONE_PROCESS', raising=False)
+    spawned, spawn = [], graph_process.ChildNode.spawn
+
+    def kept_spawn():
+        spawned.append(spawn())  # the real process, kept to look at after the run
+        return spawned[-1]
+
+    monkeypatch.setattr(graph_process.ChildNode, 'spawn', staticmethod(kept_spawn))
+    (tmp_path / 'run.mcap').write_bytes(b'')
+    with pytest.raises(FileExistsError, match='already holds a run'):
+        run_graph(
+            {'source': 'phantom', 'size': 96, 'num_phases': 2},
+            tmp_path,
+            progress=lambda *_: None,
+            handle_signals=False,
+        )
+    assert len(spawned) == 1  # two cores or more: the tag detector has a process of its own
+    assert spawned[0].returncode is not None  # ended and reaped, not merely asked to
