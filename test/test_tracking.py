@@ -838,8 +838,9 @@ def test_contraction_prior_lets_an_akinetic_sector_without_la_tags_keep_its_leng
     and the base above it descends with theirs; with it (``contraction_prior`` 1) its local
     longitudinal strain follows its own circumferential deviation from its level, at the heart's
     own Ell / Ecc ratio read near the LA tag points. The ES longitudinal error of AHA 1 and 7
-    (median |error along the axis|, against the analytic truth) falls; the whole heart's median
-    3D error does not grow by more than 0.02 mm.
+    (median |error along the axis|, against the analytic truth) falls (measured 2.02 → 1.13 mm;
+    whole heart p95 2.18 → 1.57 mm); the whole heart's median 3D error does not grow by more
+    than 0.02 mm (measured 0.369 → 0.379 mm).
     """
     from mlv_ros.core.sim.regional import truth_segments
 
