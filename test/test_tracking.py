@@ -826,3 +826,45 @@ def test_thick_walled_whole_solve_reads_radial_thickening(study):
     ours = radial(np.eye(3) + tr.model.operator.gradient(tr.positions - X))
     assert truth > 0.3 and abs(ours - truth) < 0.05, (ours, truth)
     assert abs(np.median((tr.positions - m.position(X, es)) @ axis)) < 0.1
+
+
+def test_contraction_prior_lets_an_akinetic_sector_without_la_tags_keep_its_length():
+    """
+    Check that the contraction prior gives an unseen akinetic sector its own long-axis motion.
+
+    The infarct phantom's akinetic sector (AHA 7, and the basal wall 1 above it) with every LA
+    tag point in it removed, as in a study whose LA planes miss it: only SA tags see the sector,
+    and they see it not contracting. Without the prior the sector shortens like its neighbours
+    and the base above it descends with theirs; with it (``contraction_prior`` 1) its local
+    longitudinal strain follows its own circumferential deviation from its level, at the heart's
+    own Ell / Ecc ratio read near the LA tag points. The ES longitudinal error of AHA 1 and 7
+    (median |error along the axis|, against the analytic truth) falls (measured 2.02 → 1.13 mm;
+    whole heart p95 2.18 → 1.57 mm); the whole heart's median 3D error does not grow by more
+    than 0.02 mm (measured 0.369 → 0.379 mm).
+    """
+    from mlv_ros.core.sim.regional import truth_segments
+
+    study = simulate_study('infarct', snr=20, quick=True)
+    m = study.motion
+    refs = grid_tags(study)
+    for key in refs:
+        if key[0] != 0:  # LA views: none of their tag points in the sector
+            refs[key] = refs[key][~np.isin(truth_segments(m, refs[key]), (1, 7))]
+    es = int(round(m.es_phase))
+    axis = m.frame.long_axis
+    err, axial = {}, {}
+    for prior in (0.0, 1.0):
+        X, tr = make_tracker(study, n=2000)
+        tr.contraction_prior = prior
+        for key, g in study.geometries.items():
+            tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
+        for phase in range(1, es + 1):
+            sol = tr.solve(phase, observed(study, refs, phase), m.num_phases)
+        d = sol.positions - m.position(X, es)
+        err[prior], axial[prior] = np.linalg.norm(d, axis=1), np.abs(d @ axis)
+    sector = np.isin(truth_segments(m, X), (1, 7))
+    before, after = np.median(axial[0.0][sector]), np.median(axial[1.0][sector])
+    assert after < 0.8 * before, (before, after)
+    assert np.median(err[1.0]) < np.median(err[0.0]) + 0.02, (
+        np.median(err[0.0]), np.median(err[1.0])
+    )

@@ -59,6 +59,7 @@ from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
 from mlv_ros.core.verdict import DEGRADED, MIN_SLICE_POINTS, phase_verdict
 from mlv_ros.settings import check_keywords, SOLVER_MODEL
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 # The twist function of height (MotionTracker._twist_function): fitted only from this many SA
@@ -739,6 +740,10 @@ class MotionTracker:
         self._init_local_stage(hourglass_weight, volume_weight)
         self._init_coupling(longitudinal_weight, longitudinal_coupling, regional_coupling)
         self.coupling_plateau = _coupling_plateau(coupling_plateau)
+        self.contraction_prior = 0.0  # see _contraction_prior
+        self._la_rest = None  # ED positions of the LA tag points of the pass (_contraction_prior)
+        self._columns = None  # the transmural averaging matrix (_contraction_prior)
+        self._far = None  # per particle, the last local solve's share of the prior (diagnostics)
         self.global_prior = float(global_prior)
         self.twist_knots, self.twist_smoothing = int(twist_knots), float(twist_smoothing)
         self.twist_coefficients = np.zeros(0)  # radians at the knots, last phase solved
@@ -1197,6 +1202,8 @@ class MotionTracker:
         self.positions = x_global
         if not self.local:
             return
+        la = np.array([k[0] != VIEW_SA for k in keys])[inside]
+        self._la_rest = ctrl.rest_positions[la]
         # The passes before the last only place the material lines for the next one.
         rtol = self.cg_rtol if last else max(self.cg_rtol, self.cg_rtol_following)
         self.delta = self._local_solve(
@@ -1427,6 +1434,10 @@ class MotionTracker:
         # longitudinal_weight.
         ax = quat_to_matrix(self.model.params.rotation)[:, 2]
         shear = self._axial_shear(ax)
+        target = None
+        if self.contraction_prior:
+            hd = grads[1].reshape(-1, 3, 3).transpose(0, 2, 1) if start else None
+            target = self._contraction_prior(ax, Fg, hd, x_global)
         if self.longitudinal_coupling:
             ax = self._coupled_axial(ax, Fg, x_global)
         w = control_weights(weights, len(targets))
@@ -1438,7 +1449,7 @@ class MotionTracker:
         system = self._local.system(
             fit_error=alpha,
             volume=(self.volume_weight * mu, C, Jg - 1.0),
-            axial=(self.longitudinal_weight * mu, ax),
+            axial=(self.longitudinal_weight * mu, ax, target),
             data=(kappa, phi, P),
             eps=1e-6 * kappa,
             coarse=self._coarse if reuse is None else None,
@@ -1525,10 +1536,175 @@ class MotionTracker:
             else 0.0
         )
         w = self._coupling_weight() if rho and self.regional_coupling else 1.0
+        if self._far is not None and self.contraction_prior:
+            w = w * (1.0 - self._far)  # where the contraction prior holds the axial strain
         self.coupling_weight = np.broadcast_to(np.asarray(w, np.float64), (len(circ),))
         return np.outer(ax, ax)[None] - (rho * self.coupling_weight)[
             :, None, None
         ] * circ[:, :, None] * circ[:, None, :]
+
+    def _contraction_prior(self, ax, Fg, hd, x_global):
+        """
+        Return the axial term's targets: far from LA tag points, Ell follows the column's Ecc.
+
+        Only LA planes measure the long-axis motion. Far from their tag points (between the SA
+        planes) a region's local longitudinal strain is held to ``κ (Ēcc_i − m_i)`` (``m_i`` the
+        median of ``Ēcc`` over the particle's level; :meth:`_long_axis_support`: ``Ēcc`` the
+        transmural mean of the local circumferential
+        linear strain of the start δ, κ the heart's own Ell / Ecc near LA tag points) instead of
+        0 (the global fit's): an akinetic sector that no LA plane crosses is not given its
+        neighbours' shortening. A deviation from the level (:meth:`_level_median`), since the
+        base-to-apex gradient of Ecc is no sector's (apical Ecc is larger, Ell is not). Weight
+        ``contraction_prior`` (0: off).
+
+        Parameters
+        ----------
+        ax : ndarray, shape (3,)
+            The fitted long axis (unit).
+        Fg : ndarray, shape (N, 3, 3)
+            The global fit's deformation gradients.
+        hd : ndarray, shape (N, 3, 3) or None
+            The displacement gradients of the start δ (None: no start, no prior).
+        x_global : ndarray, shape (N, 3)
+            The global fit's positions, mm.
+
+        Returns
+        -------
+        ndarray, shape (N,) or None
+            The targets of ``aᵀ H_i a`` (local, strain); None where there is no prior.
+
+        """
+        self._far = None
+        if hd is None:
+            return None
+        support = self._long_axis_support(ax, Fg - np.eye(3) + hd, x_global)
+        if support is None:
+            return None
+        far, kappa, columns, circ = support
+        dev = columns @ np.einsum('na,nab,nb->n', circ, hd, circ)
+        dev = dev - self._level_median(dev)
+        self._far = self.contraction_prior * far
+        return self._far * kappa * dev
+
+    def _long_axis_support(self, ax, h, x):
+        """
+        Return where no LA tag point sees the long-axis motion, and what the SA tags say there.
+
+        Parameters
+        ----------
+        ax : ndarray, shape (3,)
+            The fitted long axis (unit).
+        h : ndarray, shape (N, 3, 3)
+            Displacement gradients of the motion.
+        x : ndarray, shape (N, 3)
+            Particle positions, mm (the circumferential directions about the fitted axis).
+
+        Returns
+        -------
+        tuple or None
+            ``far`` (N,): 0 within half an SA spacing of the nearest LA tag point (ED), rising to
+            1 at one spacing, 0 outside the SA planes' span (the apical cap's Ecc is
+            ill-defined); κ: ``Σ Ēll Ēcc / Σ Ēcc²`` over the particles near LA points, in [0, 2]
+            (``Ēcc``, ``Ēll`` the linear strains' transmural means, :meth:`_column_matrix`);
+            the column matrix; the circumferential directions (N, 3). None
+            without LA points, SA spacing or contraction (median Ecc > −0.02), or with fewer
+            than 10 particles near LA points or none far.
+
+        """
+        spacing = self._sa_spacing()
+        if self._la_rest is None or len(self._la_rest) < 4 or spacing is None:
+            return None
+        circ = np.cross(ax, x - self.model.params.translation)
+        circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
+        ecc = np.einsum('na,nab,nb->n', circ, h, circ)
+        if float(np.median(ecc)) > -0.02:
+            return None
+        columns = self._column_matrix(spacing)
+        mean_ecc = columns @ ecc
+        mean_ell = columns @ np.einsum('a,nab,b->n', ax, h, ax)
+        d, _ = cKDTree(self._la_rest).query(self.rest)
+        far = np.clip(2.0 * d / spacing - 1.0, 0.0, 1.0)
+        axis = quat_to_matrix(self.model.rest_params.rotation)[:, 2]
+        levels = [
+            float(np.dot(pt, axis)) for (v, _), (_, pt) in self.normals.items() if v == VIEW_SA
+        ]
+        z = self.rest @ axis
+        far[(z < min(levels)) | (z > max(levels))] = 0.0
+        near = far == 0.0
+        den = float(mean_ecc[near] @ mean_ecc[near])
+        if not far.any() or near.sum() < 10 or den <= 0.0:
+            return None
+        kappa = float(np.clip(mean_ell[near] @ mean_ecc[near] / den, 0.0, 2.0))
+        return far, kappa, columns, circ
+
+    def _particle_segments(self):
+        """Return each particle's AHA segment (N,) and ED axial coordinate (N,), mm (cached)."""
+        if getattr(self, '_segments', None) is None:
+            frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
+            ie = frame.inplane(self.rest)
+            theta = np.arctan2(ie[:, 1], ie[:, 0])
+            seg = aha_segments(
+                np.clip(frame.level(self.rest), 0.0, 1.0), theta, frame.aha_origin_deg
+            )
+            self._segments = (seg, frame.axial(self.rest))
+        return self._segments
+
+    def _level_median(self, values) -> np.ndarray:
+        """
+        Return per particle the median of ``values`` over its level, shape (N,).
+
+        Levels: bins of half an SA spacing along the ED axis, so that a deviation from it is
+        the sector's, not the wall's base-to-apex gradient (the apex's Ecc is larger).
+        """
+        _, z = self._particle_segments()
+        spacing = self._sa_spacing() or 1.0
+        bins = np.floor((z - z.min()) / (0.5 * spacing)).astype(np.int64)
+        out = np.empty(len(values))
+        for b in np.unique(bins):
+            m = bins == b
+            out[m] = np.median(values[m])
+        return out
+
+    def _sa_spacing(self) -> float | None:
+        """Return the median spacing of the SA planes along the fitted axis, mm (None: < 2)."""
+        axis = quat_to_matrix(self.model.params.rotation)[:, 2]
+        levels = sorted(
+            float(np.dot(pt, axis))
+            for (view, _), (_, pt) in self.normals.items()
+            if view == VIEW_SA
+        )
+        gaps = np.diff(levels)
+        gaps = np.abs(gaps[np.abs(gaps) > 1e-3])
+        return float(np.median(gaps)) if gaps.size else None
+
+    def _column_matrix(self, spacing):
+        """
+        Return the sparse (N, N) mean over each particle's wall column (built once).
+
+        The particles whose ED positions, moved radially onto the median radius about the ED
+        axis, lie within a quarter SA spacing of the particle's: the wall through it, not its
+        endo–epicardial gradient.
+        """
+        if self._columns is None:
+            rest = self.model.rest_params
+            axis = quat_to_matrix(rest.rotation)[:, 2]
+            v = self.rest - rest.translation
+            z = v @ axis
+            r = v - np.outer(z, axis)
+            rad = np.linalg.norm(r, axis=1)
+            q = np.outer(z, axis) + float(np.median(rad)) * r / np.maximum(rad, 1e-9)[:, None]
+            tree = cKDTree(q)
+            pairs = tree.sparse_distance_matrix(tree, 0.25 * spacing, output_type='ndarray')
+            n = len(q)
+            m = sp.csr_matrix(
+                (np.ones(len(pairs) + n), (np.r_[pairs['i'], np.arange(n)],
+                                           np.r_[pairs['j'], np.arange(n)])),
+                shape=(n, n),
+            )
+            m.sum_duplicates()
+            m.data[:] = 1.0
+            self._columns = sp.diags(1.0 / np.asarray(m.sum(axis=1)).ravel()) @ m
+        return self._columns
 
     def _coupling_weight(self) -> np.ndarray:
         """
@@ -1599,17 +1775,11 @@ class MotionTracker:
         sigma = max(1.4826 * float(np.median(np.abs(out - med))), 1e-6)
         z0, z1 = COUPLING_Z
         wk = np.clip(((out - med) / sigma - z0) / (z1 - z0), 0.0, 1.0)
-        levels = sorted(
-            float(np.dot(pt, axis))
-            for (view, _), (_, pt) in self.normals.items()
-            if view == VIEW_SA
-        )
-        gaps = np.diff(levels)
-        gaps = np.abs(gaps[np.abs(gaps) > 1e-3])
-        if not wk.any() or gaps.size == 0:
+        spacing = self._sa_spacing()
+        if not wk.any() or spacing is None:
             return None
         keep = wk > 0
-        return ctrl.rest_positions[keep], wk[keep], COUPLING_REACH * float(np.median(gaps))
+        return ctrl.rest_positions[keep], wk[keep], COUPLING_REACH * spacing
 
     def _twist_function(self, phi, targets, normals, x, sa_slice, weights=None):
         """

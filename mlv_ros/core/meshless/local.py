@@ -242,9 +242,10 @@ class LocalOperators:
             Multiplier of the fit-error penalty (its per-phyxel weights were given at build).
         volume : (k_v, C, g) or None
             ``k_v`` (P), cofactors ``C`` shape (N, 3, 3), offsets ``g`` shape (N,) or None.
-        axial : (k_l, a) or None
+        axial : (k_l, a) or (k_l, a, e) or None
             ``k_l`` (P) and the unit axis ``a`` shape (3,), or per particle a strain measure
-            ``M`` shape (N, 3, 3): the term is then ``½ k_l Σ_i v_i (M_i : H_i)²``.
+            ``M`` shape (N, 3, 3): the term is then ``½ k_l Σ_i v_i (M_i : H_i)²``; with targets
+            ``e`` shape (N,) (strain, or None) ``½ k_l Σ_i v_i (M_i : H_i − e_i)²``.
         data : (κ, Φ, P) or None
             ``κ`` (P·mm), weights ``Φ`` sparse (M, N), metrics ``P`` shape (M, 3, 3).
         eps : float
@@ -317,6 +318,10 @@ class LocalSystem:
             else:  # per particle: ½ k_l Σ_i v_i (M_i : H_i)²
                 rank_one.append((kl * vol, np.swapaxes(a, 1, 2).reshape(n, 9)))
                 block = block + kl * sandwich_3x3(a, q)
+            if len(axial) > 2 and axial[2] is not None:  # targets: stress −k_l v_i e_i M_i
+                target = (-kl * vol * np.asarray(axial[2], dtype=np.float64))[:, None]
+                target = target * rank_one[-1][1]
+                self._offset = target if self._offset is None else self._offset + target
         if shear is not None and shear[0]:
             ks, m = float(shear[0]), np.asarray(shear[1], dtype=np.float64)
             rank_one.append((ks * vol, np.swapaxes(m, 1, 2).reshape(n, 9)))
