@@ -576,7 +576,7 @@ def frame_to_msg(frame: Frame, stamp: float | Time = 0.0) -> TaggedFrame:
 
 
 # Two single-line series of one slice (TAGS_LINE_PAIR) travel as one two-channel image.
-_PAIR_ENCODINGS = {'8UC2': 'mono8', '16UC2': 'mono16', '32FC2': '32FC1'}
+LINE_PAIR_ENCODINGS = {'8UC2': 'mono8', '16UC2': 'mono16', '32FC2': '32FC1'}
 
 
 def _check_tag_lines(tag_lines) -> int:
@@ -601,7 +601,7 @@ def _frame_image_to_msg(frame: Frame, header: Header) -> Image:
         )
     msg = image_to_msg(np.concatenate([a, b], axis=1), header=header)  # validates a and b
     msg.width //= 2
-    msg.encoding = {v: k for k, v in _PAIR_ENCODINGS.items()}[msg.encoding]
+    msg.encoding = {v: k for k, v in LINE_PAIR_ENCODINGS.items()}[msg.encoding]
     msg.data = np.ascontiguousarray(np.stack([a, b], axis=-1)).tobytes()
     return msg
 
@@ -610,17 +610,17 @@ def _msg_to_frame_images(msg: TaggedFrame, allow_nonfinite: bool):
     """Return ``(image, line_image)`` of a frame message (``line_image`` None unless a pair)."""
     pair = _check_tag_lines(msg.tag_lines) == TAGS_LINE_PAIR
     im = msg.image
-    if (im.encoding in _PAIR_ENCODINGS) != pair:
+    if (im.encoding in LINE_PAIR_ENCODINGS) != pair:
         raise ValueError(
             f'image encoding {im.encoding!r} does not fit tag_lines {msg.tag_lines} (a line '
-            f'pair has two channels, {"/".join(_PAIR_ENCODINGS)}; every other frame one)'
+            f'pair has two channels, {"/".join(LINE_PAIR_ENCODINGS)}; every other frame one)'
         )
     if not pair:
         return msg_to_image(im, allow_nonfinite=allow_nonfinite), None
     # The two interleaved channels read as one image twice as wide, then split.
     wide = Image(
         height=im.height, width=2 * im.width, step=im.step, is_bigendian=im.is_bigendian,
-        encoding=_PAIR_ENCODINGS[im.encoding],
+        encoding=LINE_PAIR_ENCODINGS[im.encoding],
     )
     wide.data = im.data
     both = msg_to_image(wide, allow_nonfinite=allow_nonfinite).reshape(im.height, im.width, 2)

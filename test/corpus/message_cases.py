@@ -306,8 +306,13 @@ def _frame_cases(valid: list[TaggedFrame], max_pixels: int) -> list[MessageCase]
         *[e for e in SENSOR_MSGS_ENCODINGS if e not in conversions.IMAGE_ENCODINGS],
         *MADE_UP_ENCODINGS,
     ):
+        # a two-channel encoding is a line pair's (tag_lines 2), refused on a grid frame
+        pair = enc in conversions.LINE_PAIR_ENCODINGS
         derived(
-            'frame/encoding', repr(enc)[:24], 'unsupported image encoding', set_image(encoding=enc)
+            'frame/encoding',
+            repr(enc)[:24],
+            'does not fit tag_lines' if pair else 'unsupported image encoding',
+            set_image(encoding=enc),
         )
 
     # --- layout: step and data length against height, width and pixel size
