@@ -1354,15 +1354,11 @@ class MotionTracker:
 
         """
         if self._sectors is None:  # the ED points' angles and segments: once per reference
-            frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
             self._sectors = {}
             for (view, index), ref in self.reference.items():
                 if view != VIEW_SA or not ref:
                     continue
-                X = np.asarray(list(ref.values()))
-                ie = frame.inplane(X)
-                theta = np.arctan2(ie[:, 1], ie[:, 0])
-                seg = aha_segments(frame.level(X), theta, frame.aha_origin_deg)
+                theta, seg, _ = self._rest_sectors(np.asarray(list(ref.values())))
                 deg = np.degrees(theta)
                 deg.flags.writeable = False
                 self._sectors[index] = (deg, tuple(ref), [AHA_SEGMENT_NAMES[k - 1] for k in seg])
@@ -1640,14 +1636,24 @@ class MotionTracker:
     def _particle_segments(self):
         """Return each particle's AHA segment (N,) and ED axial coordinate (N,), mm (cached)."""
         if getattr(self, '_segments', None) is None:
-            frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
-            ie = frame.inplane(self.rest)
-            theta = np.arctan2(ie[:, 1], ie[:, 0])
-            seg = aha_segments(
-                np.clip(frame.level(self.rest), 0.0, 1.0), theta, frame.aha_origin_deg
-            )
+            _, seg, frame = self._rest_sectors(self.rest, clip_levels=True)
             self._segments = (seg, frame.axial(self.rest))
         return self._segments
+
+    def _rest_sectors(self, X, clip_levels: bool = False):
+        """
+        Return ED points' angle about the axis (rad), AHA segment and the LV frame they are in.
+
+        The frame is the registered model's at rest (:func:`lv_frame_axes`); ``clip_levels``
+        puts points beyond the apex or the base into the end rings.
+        """
+        frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
+        ie = frame.inplane(X)
+        theta = np.arctan2(ie[:, 1], ie[:, 0])
+        level = frame.level(X)
+        if clip_levels:
+            level = np.clip(level, 0.0, 1.0)
+        return theta, aha_segments(level, theta, frame.aha_origin_deg), frame
 
     def _level_median(self, values) -> np.ndarray:
         """
