@@ -120,11 +120,14 @@ def second_difference_noise(x, d2) -> np.ndarray | None:
     keep, fitted = np.ones(n, dtype=bool), None
     for _ in range(2):
         if fitted is None or not np.array_equal(keep, fitted):  # else the same fit again
-            coef = np.linalg.lstsq(A[keep], d2[keep], rcond=None)[0]
+            coef, _, rank, _ = np.linalg.lstsq(A[keep], d2[keep], rcond=None)
             r = np.sum((d2 - A @ coef) ** 2, axis=1)
             fitted = keep
         keep = r <= NOISE_SLIP**2 * np.median(r)
-    m, rank = int(keep.sum()), int(np.linalg.matrix_rank(A[keep]))
+    m = int(keep.sum())
+    if not np.array_equal(keep, fitted):  # else lstsq's rank (matrix_rank's SVD threshold)
+        rank = np.linalg.matrix_rank(A[keep])
+    rank = int(rank)
     if m <= rank + 2:
         return None
     return r[keep] * (m / (m - rank))
