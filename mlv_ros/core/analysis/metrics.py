@@ -299,7 +299,8 @@ class LVAnalyzer:
         # The apex cap's strain in the wall-normal frame (findings: its wall is across the axis).
         cap = self.segments == 17
         e_n, _, e_m = wall_normal_frame(self.coords, frame.length)
-        self.segment_frame = tuple(v.copy() for v in (self.coords.e_r, self.coords.e_c, self.coords.e_l))
+        c = self.coords
+        self.segment_frame = tuple(v.copy() for v in (c.e_r, c.e_c, c.e_l))
         self.segment_frame[0][cap] = e_n[cap]
         self.segment_frame[2][cap] = e_m[cap]
 
