@@ -38,11 +38,15 @@ one, counted apart too), ``segment_origin`` (1: the septum is the anatomical pri
 segment names are not tied to the anatomy), ``explained`` (per abnormal segment of the truth:
 found, or why not, :func:`explain_abnormal`: the truth's own motion of our particles analysed
 in our frame and in the truth's tells the motion from the frame, the names and the rule) and
+``cap`` (the apex cap's truth and ours in the wall-normal frame our findings use there, the
+truth's cylindrical values beside: :func:`truth_in_our_cap_frame`; the segment comparisons use
+the wall-frame truth for 17) and
 ``must`` (the issue's criteria: global Ecc, Ell within 0.02 and Err within 0.05; Ecc error
 ≤ 0.05 in ≥ 95 % of segments; every sign right). The summary pools the segments of all cases:
 sensitivity and specificity with their counts (``found`` tp/(tp+fn), ``normal_not_flagged``
 tn/(tn+fp)), the same where the RV was found and where the septum is the prior's, and the
-causes of the misses (``missed_why``).
+causes of the misses (``missed_why``) and the cap's error (``cap_error``: median and worst per
+component).
 
     mlv-ros bench strain [-- --cases 3 --seed 2000 --abnormal-only --phases 16 --out DIR]
 
