@@ -186,7 +186,7 @@ def test_apex_cap_strain_is_taken_across_its_wall():
     R, k = 40.0, 0.3
     length = 1.7 * R
     rng = np.random.default_rng(3)
-    d = rng.normal(size=(60000, 3))
+    d = rng.normal(size=(20000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     r = R * np.cbrt(rng.uniform(0.75**3, 1.0, size=len(d)))
     centre = np.array([0.0, 0.0, R])  # apex at the origin, axis +z
