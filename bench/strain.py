@@ -38,11 +38,15 @@ one, counted apart too), ``segment_origin`` (1: the septum is the anatomical pri
 segment names are not tied to the anatomy), ``explained`` (per abnormal segment of the truth:
 found, or why not, :func:`explain_abnormal`: the truth's own motion of our particles analysed
 in our frame and in the truth's tells the motion from the frame, the names and the rule) and
+``cap`` (the apex cap's truth and ours in the wall-normal frame our findings use there, the
+truth's cylindrical values beside: :func:`truth_in_our_cap_frame`; the segment comparisons use
+the wall-frame truth for 17) and
 ``must`` (the issue's criteria: global Ecc, Ell within 0.02 and Err within 0.05; Ecc error
 ≤ 0.05 in ≥ 95 % of segments; every sign right). The summary pools the segments of all cases:
 sensitivity and specificity with their counts (``found`` tp/(tp+fn), ``normal_not_flagged``
 tn/(tn+fp)), the same where the RV was found and where the septum is the prior's, and the
-causes of the misses (``missed_why``).
+causes of the misses (``missed_why``) and the cap's error (``cap_error``: median and worst per
+component).
 
     mlv-ros bench strain [-- --cases 3 --seed 2000 --abnormal-only --phases 16 --out DIR]
 
@@ -297,6 +301,53 @@ def explain_abnormal(truth: dict, ours: dict, motion, ed, rotation, phases) -> l
     return out
 
 
+def truth_in_our_cap_frame(truth: dict, motion, ed, rotation) -> dict:
+    """
+    Return ``truth`` with the apex cap's (17) strain in the frame our findings use there.
+
+    Our cap's Err / Ecc / Ell are taken in the wall-normal frame
+    (:func:`mlv_ros.core.analysis.frame.wall_normal_frame`), the truth's in the cylindrical one;
+    the cap is compared like with like: the truth's deformation gradient at ES
+    (``motion.deformation_gradient``) of our cap's particles, in our frame. The cylindrical
+    values are kept as ``cylindrical`` in the cap's entry.
+
+    Parameters
+    ----------
+    truth : dict
+        ``groundtruth.json``'s ``regional``.
+    motion : LVMotion
+        The study's ground-truth motion.
+    ed : ndarray, shape (N, 3)
+        The run's ED particles, mm.
+    rotation : array_like, shape (4,)
+        The registered model's rotation quaternion (w, x, y, z).
+
+    Returns
+    -------
+    dict
+        A copy of ``truth`` whose segment 17 holds the wall-frame means.
+
+    """
+    from mlv_ros.core.analysis import LVAnalyzer, LVFrame
+    from mlv_ros.core.analysis.frame import lv_frame_axes
+
+    es = int(truth['phase'])
+    an = LVAnalyzer(ed, LVFrame(*lv_frame_axes(ed, rotation)))
+    cap = an.segments == 17
+    out = dict(truth)
+    out['segments'] = [dict(s) for s in truth['segments']]
+    if not cap.any():
+        return out
+    st = an.strain(
+        motion.position(ed, es), motion.deformation_gradient(ed, es), segment_frame=True
+    )
+    s17 = out['segments'][16]
+    s17['cylindrical'] = {c: s17[c] for c in COMPONENTS}
+    for c in COMPONENTS:
+        s17[c] = round(float(np.nanmean(st[c[1:]][cap])), 5)
+    return out
+
+
 def brief(result: dict) -> dict:
     """
     Return the headline of a :func:`compare` result (one JSON line).
@@ -457,9 +508,16 @@ def run_case(seed: int, out: Path, timeout: float, phases: int | None) -> dict:
     from mlv_ros.core.io.groundtruth import motion_from_groundtruth
 
     run = ours['run']
+    motion = motion_from_groundtruth(study)
     case['explained'] = explain_abnormal(
-        truth, ours, motion_from_groundtruth(study), run['ed'], run['rotation'], run['positions']
+        truth, ours, motion, run['ed'], run['rotation'], run['positions']
     )
+    truth = truth_in_our_cap_frame(truth, motion, run['ed'], run['rotation'])
+    case['cap'] = {
+        'truth': {c: truth['segments'][16][c] for c in COMPONENTS},
+        'truth_cylindrical': truth['segments'][16].get('cylindrical'),
+        'ours': {c: round(float(ours['segments'][c][16]), 4) for c in COMPONENTS},
+    }
     return case | compare(truth, ours)
 
 
@@ -513,6 +571,13 @@ def summarise(cases: list[dict]) -> dict:
         }
     else:
         out['sensitivity'] = out['specificity'] = None  # no run had metrics to classify
+    cap = [c['cap'] for c in good if c.get('cap')]
+    if cap:
+        err = {comp: [abs(x['ours'][comp] - x['truth'][comp]) for x in cap] for comp in COMPONENTS}
+        out['cap_error'] = {
+            comp: {'median': round(statistics.median(e), 4), 'worst': round(max(e), 4)}
+            for comp, e in err.items()
+        }
     why = [e['why'] for c in good for e in c.get('explained', ()) if e['why'] != 'found']
     out['missed_why'] = {k: why.count(k) for k in MISS_REASONS if k in why}
     # Under a prior septum a region can be found under another segment's name.

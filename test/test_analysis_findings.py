@@ -145,6 +145,8 @@ def test_report_draws_the_classes(heart, tmp_path, monkeypatch):
     )
     page = index.read_text()
     assert 'Regional findings' in page and 'akinetic' in page
+    # why the cap has no class is said on the findings line
+    assert found['notes'][0].startswith('apex cap (17)') and 'apex cap (17)' in page
 
 
 def test_a_phase_degraded_for_a_sector_inflates_and_marks_only_its_segments(
@@ -201,3 +203,43 @@ def test_a_phase_degraded_for_a_sector_inflates_and_marks_only_its_segments(
     assert found['unsupported'] == [1, 4, 13]
     page = index.read_text()
     assert page.count('(unsupported)') == 3 and 'unsupported at ES' in page
+
+
+def test_a_weak_heart_is_said_and_its_still_segments_are_akinetic_on_absolute_bounds():
+    """
+    Say a globally hypokinetic heart and find its still segments on the absolute bounds.
+
+    A heart whose median ES Ecc / Err are −0.04 / 0.10 is within about three reader spreads of
+    no motion: against its own function every segment is indeterminate (σ_f > 0.33). Segments
+    that barely move (|Ecc| 0.005, Err 0.01) are still akinetic on the absolute bounds (2σ
+    inside |Ecc| 0.05, Err 0.10); the others stay indeterminate and the findings say why. In a
+    normal heart the same segments are akinetic on the relative rule, and no note says weak.
+    """
+    from mlv_ros.core.analysis.findings import (
+        absolute_akinetic,
+        findings_notes,
+        Findings,
+        global_function,
+    )
+
+    unc = {'ecc': np.full(17, 0.02), 'err': np.full(17, 0.05)}
+    es = {'ecc': np.full(17, -0.04), 'err': np.full(17, 0.10)}
+    es['ecc'][[8, 9]], es['err'][[8, 9]] = -0.005, 0.01
+    cls, f_idx, f_unc, ref = classify(es, unc)
+    assert global_function(ref) == 'globally hypokinetic'
+    assert [k + 1 for k, c in enumerate(cls) if c == 'akinetic'] == [9, 10]
+    assert set(cls[:8]) == {'indeterminate'} and np.all(f_unc[:16] > 0.33)
+    assert list(np.flatnonzero(absolute_akinetic(es, unc)) + 1) == [9, 10]
+    # a moving segment of a weak heart is not akinetic: 2σ above it reaches the bounds
+    assert not absolute_akinetic({'ecc': np.full(17, -0.03), 'err': np.full(17, 0.06)}, unc).any()
+    f = Findings(es=es, es_unc=unc, classes=[str(c) for c in cls], function_index=f_idx,
+                 function_unc=f_unc, reference=ref, global_function=global_function(ref))
+    notes = findings_notes(f)
+    assert any(n.startswith('globally hypokinetic') for n in notes)
+    assert any('absolute bounds' in n and n.endswith('9, 10') for n in notes)
+    assert any(n.startswith('apex cap (17)') for n in notes)
+    normal = {'ecc': np.full(17, -0.15), 'err': np.full(17, 0.40)}
+    normal['ecc'][[8, 9]], normal['err'][[8, 9]] = -0.005, 0.01
+    cls, _, _, ref = classify(normal, unc)
+    assert global_function(ref) == 'measured' and list(cls).count('akinetic') == 2
+    assert cls[16] == 'indeterminate'  # the cap: no class claimed

@@ -169,3 +169,47 @@ def test_plane_levels_and_what_twist_is_extrapolated():
     assert 'not measured at any level' in twist_extrapolation_note(None)
     with pytest.raises(ValueError, match='plane normal'):
         plane_level_span(fr, [(fr.apex, [0, np.nan, 1])])
+
+
+def test_apex_cap_strain_is_taken_across_its_wall():
+    """
+    Read an analytic thickening apical cap's strain in the wall-normal frame.
+
+    A spherical shell (radius R, wall 0.25 R), cut at the base 1.7 R above the apex, thickens
+    along its normal with the epicardium fixed: r' = R − (1 + k)(R − r). Across the wall the
+    Green–Lagrange strain is ½((1 + k)² − 1) everywhere; in the wall ½((r'/r)² − 1) < 0. The
+    cap's (17) Err must be the first, its Ecc and Ell the second; in the cylindrical frame its
+    "radial" would be mostly in-wall shortening.
+    """
+    from mlv_ros.core.analysis import LVAnalyzer
+
+    R, k = 40.0, 0.3
+    length = 1.7 * R
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(20000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = R * np.cbrt(rng.uniform(0.75**3, 1.0, size=len(d)))
+    centre = np.array([0.0, 0.0, R])  # apex at the origin, axis +z
+    X = centre + r[:, None] * d
+    keep = X[:, 2] <= length
+    X, d, r = X[keep], d[keep], r[keep]
+    r_new = R - (1.0 + k) * (R - r)
+    x = centre + r_new[:, None] * d
+    lam_t = r_new / r
+    nn = d[:, :, None] * d[:, None, :]
+    F = (1.0 + k) * nn + lam_t[:, None, None] * (np.eye(3) - nn)
+    an = LVAnalyzer(X, LVFrame([0, 0, 0], [0, 0, length], [1, 0, 0]))
+    m = an.phase(x, F, phase_index=1, num_phases=2)
+    cap = an.segments == 17
+    e_n = 0.5 * ((1.0 + k) ** 2 - 1.0)
+    e_t = float(np.mean(0.5 * (lam_t[cap] ** 2 - 1.0)))
+    assert e_t < -0.01
+    assert m.segment_err[16] == pytest.approx(e_n, abs=0.01)
+    assert m.segment_ecc[16] == pytest.approx(e_t, abs=0.01)
+    assert m.segment_ell[16] == pytest.approx(e_t, abs=0.01)
+    # the cylindrical frame mixes them: its cap "radial" is far from the thickening
+    cyl = an.strain(x, F)['rr'][cap].mean()
+    assert cyl < e_n - 0.1
+    # elsewhere the frame is the cylindrical one, as the truth's
+    mid = an.segments == 9
+    np.testing.assert_allclose(m.segment_err[8], an.strain(x, F)['rr'][mid].mean(), atol=1e-12)

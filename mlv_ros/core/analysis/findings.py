@@ -75,9 +75,12 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   ``−REF_MIN['ecc']``), ``Err_ref`` = their median ES Err (at least ``REF_MIN['err']``): a heart
   with several abnormal segments still has a normal median while fewer than half are abnormal.
 * Expected share of the reference per segment, :data:`NORMAL_PATTERN`: the apical ring's wall
-  tapers and shortens less, and the apex cap's cylindrical "radial" is not transmural, so a
-  normal cap thickens little. The circumferential direction is undefined at the apex tip: the
-  cap's Ecc is not used.
+  tapers and shortens less. The apex cap (17) is not classified (always ``indeterminate``, said
+  in :attr:`Findings.notes`): its strain is taken in the wall-normal frame
+  (:func:`mlv_ros.core.analysis.frame.wall_normal_frame`: Err = thickening across the cap, Ecc
+  and Ell in the wall), but no truth validates a class there yet: in that frame the
+  simulator's normal caps stretch in the wall at ES (Ecc +0.02…+0.07) and several thin, which a
+  physiological rule reads dyskinetic.
 * Function index ``f`` = inverse-variance weighted mean of ``Ecc / (P_cc Ecc_ref)`` and
   ``Err / (P_rr Err_ref)`` (1 = as the rest of the heart, 0 = no motion, < 0 = moves the wrong
   way), with its uncertainty ``σ_f``. Classes on ``f`` (:data:`CLASS_BOUNDS`): normal
@@ -86,10 +89,16 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   ``Err < −Z σ_rr`` (thinning) or, segments 1–16, ``Ecc > Z σ_cc`` (Z = :data:`STRETCH_Z`).
 * ``indeterminate`` when the segment has no support or is unsupported at ES (above), no
   systolic phase has been seen yet, or ``σ_f > MAX_SIGMA_F`` (0.33: beyond it a normal segment
-  could be read akinetic within 2σ). Never a confident wrong class for lack of data. With the
-  floors above the apex cap (its normal Err is ~0.2 of the heart's) is indeterminate unless it
-  thins beyond 2σ, and so are the segments of a heart whose median Ecc is near ``REF_MIN`` (too
-  little motion to compare against).
+  could be read akinetic within 2σ). Never a confident wrong class for lack of data.
+* Absolute akinesis (:func:`absolute_akinetic`): a segment 1–16 left indeterminate by σ_f is
+  still ``akinetic`` when even 2σ above its reading it moves less than the absolute bounds
+  :data:`AKINETIC_ABS` (Err 0.10: < 10 % thickening, the echo criterion; |Ecc| 0.05: 2.5
+  reader spreads): e.g. the still segments of a weak heart.
+* Heart-level finding (:func:`global_function`): ``globally hypokinetic`` when the heart's
+  references are within about three reader spreads of no motion (``Σ (ref_k / FLOOR_k)² <
+  1 / MAX_SIGMA_F²``): its segments cannot be told apart relative to it, so they are
+  indeterminate unless the absolute bounds or the stretch rule decide, and the findings say so
+  (:attr:`Findings.notes`).
 """
 
 from __future__ import annotations
@@ -118,9 +127,14 @@ REF_MIN = {'ecc': 0.03, 'err': 0.05}
 #: hypertrophic hearts' truth (apical ring 0.6–0.85 of the median in Err, 0.15–0.8 in Ecc; cap Err
 #: 0.17–0.24 of the median, cap Ecc of either sign: the cylindrical frame degenerates at the tip).
 NORMAL_PATTERN = {
-    'err': (1.0,) * 12 + (0.75,) * 4 + (0.2,),
+    'err': (1.0,) * 12 + (0.75,) * 4 + (None,),
     'ecc': (1.0,) * 12 + (0.6,) * 4 + (None,),
 }
+#: Why the apex cap (17) has no class (:attr:`Findings.notes`).
+CAP_NOTE = (
+    'apex cap (17): strain in the wall-normal frame (Err = thickening across the cap); no class '
+    "is claimed there (not validated against a truth whose cap moves as a heart's does)"
+)
 #: Classes on the function index f (share of the heart's normal function the segment keeps), the
 #: first whose lower bound f reaches. Looser than the truth's contraction bounds (0.75 / 0.2 /
 #: −0.2, :data:`mlv_ros.core.sim.regional.CLASS_THRESHOLDS`): normal segments vary 0.55–1.45
@@ -146,6 +160,13 @@ CLASS_CODES = {name: k for k, name in enumerate(CLASSES)}
 #: Largest σ_f a class is given with: a normal segment (f ≈ 1) is then called akinetic (f < 0.35)
 #: only when read 2σ low.
 MAX_SIGMA_F = 0.33
+#: Absolute akinetic bounds (globally hypokinetic hearts): ES Err below 0.10 is the echo
+#: criterion of akinesis, wall thickening below 10 % (ASE/EACVI chamber quantification, Lang et
+#: al. 2015; ½(1.1² − 1) = 0.105 in Green–Lagrange); |Ecc| below 0.05 is within 2.5 reader
+#: spreads (:data:`UNCERTAINTY_FLOOR`) of no shortening. Not fitted to any study.
+AKINETIC_ABS = {'err': 0.10, 'ecc': 0.05}
+#: Heart-level findings (:attr:`Findings.global_function`).
+GLOBAL_FUNCTIONS = ('measured', 'globally hypokinetic')
 
 
 def segment_uncertainty(
@@ -209,6 +230,10 @@ def segment_lengths(rho, axial, segments) -> dict:
         angle: 60° basal/mid, 90° apical, 360° cap), ``ell``: long-axis extent (5–95 % span of
         the axial position); each shape (17,), mm (NaN for an empty segment).
 
+        The apex cap's (17) ``err`` and ``ell`` lengths are swapped: its strain is taken in the
+        wall-normal frame (:func:`~mlv_ros.core.analysis.frame.wall_normal_frame`), where the
+        wall across the axis is as thick as its axial span and its meridian runs outward.
+
     """
     rho = np.asarray(rho, dtype=np.float64)
     axial = np.asarray(axial, dtype=np.float64)
@@ -222,6 +247,7 @@ def segment_lengths(rho, axial, segments) -> dict:
         out['err'][k] = float(np.subtract(*np.percentile(rho[m], [95, 5])))
         out['ecc'][k] = float(np.mean(rho[m]) * angle[k])
         out['ell'][k] = float(np.subtract(*np.percentile(axial[m], [95, 5])))
+    out['err'][16], out['ell'][16] = out['ell'][16], out['err'][16]
     return out
 
 
@@ -229,6 +255,65 @@ def _signed_peak_update(peak, peak_unc, v, unc):
     """Keep the value of largest magnitude (sign kept) and its uncertainty, elementwise."""
     better = np.isfinite(v) & (~np.isfinite(peak) | (np.abs(v) > np.abs(peak)))
     return np.where(better, v, peak), np.where(better, unc, peak_unc)
+
+
+def global_function(ref: dict) -> str | None:
+    """
+    Return the heart-level finding from the heart's references (module docstring).
+
+    Parameters
+    ----------
+    ref : dict
+        ``ecc``, ``err``: the heart's ES references (:func:`classify`; None = not available).
+
+    Returns
+    -------
+    str or None
+        ``'globally hypokinetic'`` when the references, in reader spreads
+        (:data:`UNCERTAINTY_FLOOR`), are too small for a normal segment's f to be told from 0
+        within :data:`MAX_SIGMA_F` (``Σ (ref_k / floor_k)² < 1 / MAX_SIGMA_F²``: the heart's own
+        motion is within about three reader spreads of none); ``'measured'`` otherwise; None
+        without references.
+
+    """
+    have = {c: v for c, v in ref.items() if c in UNCERTAINTY_FLOOR and v is not None}
+    if not have:
+        return None
+    snr2 = sum((v / UNCERTAINTY_FLOOR[c]) ** 2 for c, v in have.items())
+    return GLOBAL_FUNCTIONS[1] if snr2 < 1.0 / MAX_SIGMA_F**2 else GLOBAL_FUNCTIONS[0]
+
+
+def absolute_akinetic(es: dict, unc: dict) -> np.ndarray:
+    """
+    Return which segments 1–16 are akinetic against absolute bounds, beyond their uncertainty.
+
+    The share of each bound a segment reaches, ``r_k = |E_k| / AKINETIC_ABS[k]`` for Ecc and
+    Err, is combined inverse-variance weighted (as ``f``) into ``r ± σ_r``; akinetic when
+    ``r + STRETCH_Z σ_r ≤ 1``: even 2σ above its reading the segment moves less than the
+    bounds. The cap (17) is never (no class claimed there).
+
+    Parameters
+    ----------
+    es, unc : dict
+        ``err``, ``ecc``: ES segment means and their uncertainties, shape (17,) (NaN = none).
+
+    Returns
+    -------
+    ndarray of bool, shape (17,)
+
+    """
+    num, wsum = np.zeros(17), np.zeros(17)
+    for c in ('ecc', 'err'):
+        ok = np.isfinite(es[c]) & np.isfinite(unc[c]) & (unc[c] > 0)
+        r = np.where(ok, np.abs(es[c]) / AKINETIC_ABS[c], 0.0)
+        w = np.where(ok, (AKINETIC_ABS[c] / np.where(ok, unc[c], 1.0)) ** 2, 0.0)
+        num += w * r
+        wsum += w
+    out = np.zeros(17, dtype=bool)
+    have = wsum > 0
+    out[have] = num[have] / wsum[have] + STRETCH_Z / np.sqrt(wsum[have]) <= 1.0
+    out[16] = False
+    return out
 
 
 def classify(
@@ -294,6 +379,9 @@ def classify(
         stretch |= sup['err'] & (es['err'] < -STRETCH_Z * unc['err'])
         stretch[:16] |= (sup['ecc'] & (es['ecc'] > STRETCH_Z * unc['ecc']))[:16]
     classes[have & (f_unc > MAX_SIGMA_F)] = 'indeterminate'
+    # Too uncertain against the heart's own function (e.g. a globally hypokinetic heart): the
+    # absolute bounds still decide akinesis.
+    classes[have & (classes == 'indeterminate') & absolute_akinetic(es, unc)] = 'akinetic'
     classes[stretch] = 'dyskinetic'  # beyond its own uncertainty: a confident call
     classes[carried] = 'indeterminate'  # the model carried them: no class is claimed
     return classes, f, f_unc, ref
@@ -325,6 +413,11 @@ class Findings:
     unsupported : list of int
         AHA segments (1–17) the ``es_phase``'s tag data do not support (its verdict degraded for
         their sector only): ``indeterminate``, whatever their strain.
+    global_function : str or None
+        The heart-level finding (:func:`global_function`): ``'globally hypokinetic'``,
+        ``'measured'`` or None (no ES yet).
+    notes : list of str
+        Sentences for the reader: why segments are indeterminate or classed on absolute bounds.
 
     """
 
@@ -339,6 +432,8 @@ class Findings:
     classes: list = field(default_factory=lambda: ['indeterminate'] * 17)
     reference: dict = field(default_factory=dict)
     unsupported: list = field(default_factory=list)
+    global_function: str | None = None
+    notes: list = field(default_factory=list)
 
     def abnormal(self, kinds=('akinetic', 'dyskinetic')) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
@@ -395,12 +490,15 @@ class Findings:
             'segments': rows,
             'counts': {c: self.classes.count(c) for c in CLASSES},
             'unsupported': list(self.unsupported),
+            'global_function': self.global_function,
+            'notes': list(self.notes),
             'thresholds': {
                 'class_bounds': {
                     n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS
                 },
                 'stretch_z': STRETCH_Z,
                 'max_sigma_f': MAX_SIGMA_F,
+                'akinetic_absolute': dict(AKINETIC_ABS),
                 'uncertainty_floor': dict(UNCERTAINTY_FLOOR),
                 'min_segment_particles': MIN_SEGMENT_PARTICLES,
                 'verdict_inflation': VERDICT_INFLATION,
@@ -483,8 +581,51 @@ class SegmentFindings:
                 f.es, f.es_unc, f.unsupported
             )
             f.classes = [str(c) for c in cls]
+            f.global_function = global_function(f.reference)
+            f.notes = findings_notes(f)
         self.findings = f
         return f
+
+
+def findings_notes(f: Findings) -> list[str]:
+    """
+    Return the sentences that say why segments are indeterminate or classed absolutely.
+
+    Parameters
+    ----------
+    f : Findings
+        Findings with their ES values, classes, references and heart-level finding.
+
+    Returns
+    -------
+    list of str
+        The apex cap's :data:`CAP_NOTE`; for a globally hypokinetic heart, its references and
+        what that means for its segments; the segments classed akinetic on the absolute bounds.
+
+    """
+    notes = [CAP_NOTE]
+    ref = f.reference
+    if f.global_function == GLOBAL_FUNCTIONS[1]:
+        said = ', '.join(f'{c.capitalize()} {v:+.3f}' for c, v in ref.items() if v is not None)
+        notes.append(
+            f'globally hypokinetic: the median ES strain of segments 1-16 ({said}) is within '
+            'about three reader spreads of no motion, so segments are not compared with the '
+            "heart's own function; akinesis is judged on absolute bounds (|Ecc| < "
+            f"{AKINETIC_ABS['ecc']}, Err < {AKINETIC_ABS['err']}, 2σ inside)"
+        )
+    with np.errstate(invalid='ignore'):
+        absolute = [
+            k + 1
+            for k in range(16)
+            if f.classes[k] == 'akinetic'
+            and not (f.function_unc[k] <= MAX_SIGMA_F and f.function_index[k] < CLASS_BOUNDS[1][1])
+        ]
+    if absolute:
+        notes.append(
+            "akinetic on the absolute bounds (too uncertain against the heart's own function): "
+            + ', '.join(map(str, absolute))
+        )
+    return notes
 
 
 def segment_findings(phases) -> Findings:

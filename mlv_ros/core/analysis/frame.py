@@ -43,6 +43,7 @@ Conventions (all in DICOM patient coordinates, mm)
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 
 from mlv_ros.core.meshless.globals import quat_to_matrix
 import numpy as np
@@ -288,6 +289,71 @@ def cardiac_coordinates(
         e_l=e_l,
         transmural=transmural,
     )
+
+
+#: Level bins of the apical half (0 … 0.5 of the length) the epicardial profile is read in.
+PROFILE_BINS = 20
+
+
+def wall_normal_frame(coords: CardiacCoordinates, length: float) -> tuple:
+    """
+    Wall-normal frame of ED particles from the LV's epicardial profile.
+
+    Near the apex the wall turns until it is perpendicular to the long axis, so the cylindrical
+    radial direction is no longer transmural: there it measures in-wall stretch, and the
+    longitudinal one measures thickening. This frame follows the wall instead. The epicardium's
+    profile is read from the particles of the apical half: in each of :data:`PROFILE_BINS` level
+    bins (at least 10 particles) the mean axial position and mean ρ² of the particles at or
+    beyond the bin's 90th percentile of ρ. A quadratic ``P(z) = a + b z + c z²`` is fitted to
+    ρ² (exact for a spheroid, a sphere, a cylinder). The wall's surfaces are taken as the level
+    sets of ``ρ² − P(z)``; their normal ``e_n ∝ 2ρ e_r − P'(z) e_l`` is e_r where the wall is
+    parallel to the axis (a cylinder everywhere) and −e_l at the apex tip. With fewer than 3
+    profile bins the frame is the cylindrical one.
+
+    Parameters
+    ----------
+    coords : CardiacCoordinates
+        ED cardiac coordinates of the particles (:func:`cardiac_coordinates`).
+    length : float
+        ED apex–base length, mm (``LVFrame.length``).
+
+    Returns
+    -------
+    e_n, e_c, e_m : ndarray, shape (N, 3)
+        Unit wall normal (outward), circumferential (``coords.e_c``, in the wall) and meridional
+        in-wall direction ``e_m = e_c × e_n`` (e_l where the wall is parallel to the axis).
+
+    Raises
+    ------
+    ValueError
+        ``length`` not positive and finite.
+
+    """
+    length = float(length)
+    if not (math.isfinite(length) and length > 0.0):
+        raise ValueError(f'length must be positive and finite, got {length}')
+    z, rho = coords.axial, coords.rho
+    zs, r2s = [], []
+    edges = np.linspace(0.0, 0.5 * length, PROFILE_BINS + 1)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (z >= lo) & (z < hi)
+        if np.count_nonzero(m) < 10:
+            continue
+        outer = m & (rho >= np.percentile(rho[m], 90))
+        zs.append(float(np.mean(z[outer])))
+        r2s.append(float(np.mean(rho[outer] ** 2)))
+    if len(zs) < 3:
+        return coords.e_r.copy(), coords.e_c, coords.e_l.copy()
+    c2, c1, _ = np.polyfit(np.asarray(zs) / length, np.asarray(r2s) / length**2, 2)
+    nr = 2.0 * rho / length
+    nl = -(c1 + 2.0 * c2 * z / length)
+    norm = np.hypot(nr, nl)
+    flat = norm < 1e-12
+    nr = np.where(flat, 1.0, nr / np.where(flat, 1.0, norm))
+    nl = np.where(flat, 0.0, nl / np.where(flat, 1.0, norm))
+    e_n = nr[:, None] * coords.e_r + nl[:, None] * coords.e_l
+    e_m = np.cross(coords.e_c, e_n)
+    return e_n, coords.e_c, e_m
 
 
 _BIN_EPS = 1e-9  # in bin units: a point this close below a boundary goes to the upper bin

@@ -38,7 +38,12 @@ from mlv_ros.core.analysis.findings import (
     segment_uncertainty,
     UNCERTAINTY_FLOOR,
 )
-from mlv_ros.core.analysis.frame import as_points, cardiac_coordinates, LVFrame
+from mlv_ros.core.analysis.frame import (
+    as_points,
+    cardiac_coordinates,
+    LVFrame,
+    wall_normal_frame,
+)
 from mlv_ros.core.analysis.motion import (
     _level_dict,
     CavityModel,
@@ -126,7 +131,9 @@ class PhaseMetrics:
         (EDV − V)/EDV at this phase (0 at ED; 0 if EDV is not positive).
     segment_err, segment_ecc, segment_ell : ndarray, shape (17,) or (0,)
         Mean Green–Lagrange E_rr, E_cc, E_ll per AHA segment; a segment without particles
-        (``segment_count == 0``) holds 0.0.
+        (``segment_count == 0``) holds 0.0. The apex cap (17) is taken in the wall-normal frame
+        (:func:`~mlv_ros.core.analysis.frame.wall_normal_frame`): E_rr across its wall, E_cc and
+        E_ll (meridional) in it.
     level_count : ndarray of int, shape (L',)
         Particles per level. Not in MotionMetrics.msg (optional; empty when unknown).
     segment_count : ndarray of int, shape (17,) or (0,)
@@ -289,6 +296,13 @@ class LVAnalyzer:
         self._mls: MLSNeighbourhood | None = None
         self.edv_ml = self.cavity.volume_ml(self.X) if edv_ml is None else float(edv_ml)
         self.segment_lengths = segment_lengths(self.coords.rho, self.coords.axial, self.segments)
+        # The apex cap's strain in the wall-normal frame (findings: its wall is across the axis).
+        cap = self.segments == 17
+        e_n, _, e_m = wall_normal_frame(self.coords, frame.length)
+        c = self.coords
+        self.segment_frame = tuple(v.copy() for v in (c.e_r, c.e_c, c.e_l))
+        self.segment_frame[0][cap] = e_n[cap]
+        self.segment_frame[2][cap] = e_m[cap]
 
     @property
     def mls(self) -> MLSNeighbourhood:
@@ -297,11 +311,27 @@ class LVAnalyzer:
             self._mls = MLSNeighbourhood(self.X, self.mls_k)
         return self._mls
 
-    def strain(self, x: np.ndarray, F=None) -> dict | None:
+    def strain(self, x: np.ndarray, F=None, *, segment_frame: bool = False) -> dict | None:
         """
         Return the cardiac strain components per particle (dict of (N,) arrays).
 
-        None when no F is given and estimation is off.
+        Parameters
+        ----------
+        x : array_like, shape (N, 3)
+            Current positions, mm.
+        F : array_like, shape (N, 3, 3), optional
+            Deformation gradients; default the MLS estimate from ``x``.
+        segment_frame : bool
+            False (default): the cylindrical radial / circumferential / longitudinal frame
+            everywhere. True: the frame the segment means use, the same except in the apex cap
+            (segment 17), where ``rr`` is the wall-normal strain (thickening) and ``ll`` the
+            meridional in-wall strain (:func:`~mlv_ros.core.analysis.frame.wall_normal_frame`).
+
+        Returns
+        -------
+        dict or None
+            Keys ``rr, cc, ll, rc, rl, cl``; None when no F is given and estimation is off.
+
         """
         if F is None:
             if not self.estimate_strain:
@@ -312,7 +342,8 @@ class LVAnalyzer:
             if F.shape != (self.X.shape[0], 3, 3):
                 raise ValueError(f'F must have shape ({self.X.shape[0]}, 3, 3), got {F.shape}')
         c = self.coords
-        return cardiac_strain(green_lagrange(F), c.e_r, c.e_c, c.e_l)
+        e = self.segment_frame if segment_frame else (c.e_r, c.e_c, c.e_l)
+        return cardiac_strain(green_lagrange(F), *e)
 
     def phase(
         self,
@@ -361,7 +392,7 @@ class LVAnalyzer:
             time_fraction = phase_index / num_phases if num_phases > 0 else 0.0
         ap = self.frame.apex if apex is None else np.asarray(apex, dtype=np.float64).reshape(3)
         seg = {}
-        st = self.strain(x, F)
+        st = self.strain(x, F, segment_frame=True)
         if st is not None:
             for key, comp in (('segment_err', 'rr'), ('segment_ecc', 'cc'), ('segment_ell', 'll')):
                 seg[key], seg['segment_count'] = segment_means(st[comp], self.segments)

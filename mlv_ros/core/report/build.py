@@ -194,6 +194,12 @@ def _findings_html(summaries: list[dict]) -> str:
                 if origin.get('note')
                 else ''
             )
+            + (
+                f'. <b>{e(f["global_function"].capitalize())}</b>'
+                if f.get('global_function') == 'globally hypokinetic'
+                else ''
+            )
+            + ''.join(f'. {e(n)}' for n in f.get('notes', ()))
             + '</p>'
             '<table><tr><th>segment</th><th>class</th><th>f ± σ</th><th>ES Ecc</th><th>ES Err</th>'
             '<th>ES Ell</th><th>peak Ecc</th><th>peak Err</th><th>peak '
