@@ -119,7 +119,9 @@ def main():
         study = tmp / 'study.pkl'
         frames = simulate_study(load_preset('normal'), snr=20.0, size=256, num_phases=25, seed=0)
         study.write_bytes(pickle.dumps(list(frames.frames)))
-        trees = {'current': ''} if not args.baseline else {'baseline': args.baseline, 'current': ''}
+        trees = {'current': ''}
+        if args.baseline:
+            trees = {'baseline': args.baseline, 'current': ''}
         runs = {name: [] for name in trees}
         for i in range(args.repeat):
             for name, tree in trees.items():  # alternated: the machine's load falls on both alike
