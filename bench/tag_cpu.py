@@ -40,6 +40,7 @@ import json
 import os
 from pathlib import Path
 import pickle
+import shutil
 import statistics
 import subprocess
 import sys
@@ -114,49 +115,54 @@ def main():
     from mlv_ros.core.sim import load_preset, simulate_study
 
     tmp = Path(tempfile.mkdtemp(prefix='mlv-bench-tag-cpu-'))
-    study = tmp / 'study.pkl'
-    frames = simulate_study(load_preset('normal'), snr=20.0, size=256, num_phases=25, seed=0)
-    study.write_bytes(pickle.dumps(list(frames.frames)))
-    trees = {'current': ''} if not args.baseline else {'baseline': args.baseline, 'current': ''}
-    runs = {name: [] for name in trees}
-    for i in range(args.repeat):
-        for name, tree in trees.items():  # alternated: the machine's load falls on both alike
-            env = dict(os.environ)
-            if tree:  # ahead of the editable install (a .pth entry): via sys.path in the child
-                code = (
-                    f'import sys; sys.path.insert(0, {tree!r}); sys.argv[0] = {__file__!r}; '
-                    f'exec(open({__file__!r}).read())'
+    try:  # the study and the tag points (~70 MB) go with the run
+        study = tmp / 'study.pkl'
+        frames = simulate_study(load_preset('normal'), snr=20.0, size=256, num_phases=25, seed=0)
+        study.write_bytes(pickle.dumps(list(frames.frames)))
+        trees = {'current': ''}
+        if args.baseline:
+            trees = {'baseline': args.baseline, 'current': ''}
+        runs = {name: [] for name in trees}
+        for i in range(args.repeat):
+            for name, tree in trees.items():  # alternated: the machine's load falls on both alike
+                env = dict(os.environ)
+                if tree:  # ahead of the editable install (a .pth entry): via sys.path in the child
+                    code = (
+                        f'import sys; sys.path.insert(0, {tree!r}); sys.argv[0] = {__file__!r}; '
+                        f'exec(open({__file__!r}).read())'
+                    )
+                    cmd = [sys.executable, '-c', code]
+                else:
+                    cmd = [sys.executable, __file__]
+                out = tmp / f'{name}{i}.pkl'
+                res = subprocess.run(
+                    cmd + ['--once', str(study), str(out)],
+                    env=env,
+                    check=True,
+                    capture_output=True,
+                    text=True,
                 )
-                cmd = [sys.executable, '-c', code]
-            else:
-                cmd = [sys.executable, __file__]
-            out = tmp / f'{name}{i}.pkl'
-            res = subprocess.run(
-                cmd + ['--once', str(study), str(out)],
-                env=env,
-                check=True,
-                capture_output=True,
-                text=True,
-            )
-            runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
-    result = {
-        'benchmark': 'tag_cpu',
-        'study': 'normal, 256², 25 phases, SNR 20, 11 slices, 275 frames',
-        'load_average': os.getloadavg(),
-    }
-    for name, rs in runs.items():
-        result[name] = {
-            k: round(statistics.median(r[k] for r in rs), 3)
-            for k in ('masks_s', 'tracker_s', 'total_s')
+                runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+        result = {
+            'benchmark': 'tag_cpu',
+            'study': 'normal, 256², 25 phases, SNR 20, 11 slices, 275 frames',
+            'load_average': os.getloadavg(),
         }
-        result[name]['runs_total_s'] = [round(r['total_s'], 3) for r in rs]
-    if args.baseline:
-        a = pickle.loads((tmp / 'baseline0.pkl').read_bytes())
-        b = pickle.loads((tmp / 'current0.pkl').read_bytes())
-        result['points'] = compare(a, b)
-        result['ratio_total'] = round(
-            result['current']['total_s'] / result['baseline']['total_s'], 3
-        )
+        for name, rs in runs.items():
+            result[name] = {
+                k: round(statistics.median(r[k] for r in rs), 3)
+                for k in ('masks_s', 'tracker_s', 'total_s')
+            }
+            result[name]['runs_total_s'] = [round(r['total_s'], 3) for r in rs]
+        if args.baseline:
+            a = pickle.loads((tmp / 'baseline0.pkl').read_bytes())
+            b = pickle.loads((tmp / 'current0.pkl').read_bytes())
+            result['points'] = compare(a, b)
+            result['ratio_total'] = round(
+                result['current']['total_s'] / result['baseline']['total_s'], 3
+            )
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     print(json.dumps(result, indent=2))
 
 

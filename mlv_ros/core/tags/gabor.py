@@ -112,10 +112,13 @@ def validate_image(image) -> np.ndarray:
         raise TagInputError(
             f'image too small for tag analysis: {img.shape[0]}x{img.shape[1]} px (need ≥ 16x16)'
         )
-    bad = int(np.count_nonzero(~np.isfinite(img)))
-    if bad:
+    # The extremes say at once whether any pixel is NaN or ±Inf (both propagate into them): the
+    # pixels are counted only then. max |img| is the larger of |min| and |max|.
+    lo, hi = float(img.min()), float(img.max())
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        bad = int(np.count_nonzero(~np.isfinite(img)))
         raise TagInputError(f'image has {bad} non-finite pixel(s) (NaN/Inf)')
-    if float(img.max() - img.min()) <= 1e-12 * max(1.0, float(np.abs(img).max())):
+    if hi - lo <= 1e-12 * max(1.0, abs(lo), abs(hi)):
         raise TagInputError('image is constant')
     return img
 
@@ -461,16 +464,33 @@ def kernel_bank(
         Read-only, FFT-ordered (``scipy.fft.fftfreq``) frequency responses.
 
     """
-    lam0 = float(params.spacing_px[direction])
-    th0 = float(params.angles[direction])
+    return _kernel_bank_cached(
+        tuple(int(v) for v in shape),
+        *_bank_tuning(
+            float(params.spacing_px[direction]),
+            float(params.angles[direction]),
+            tuple(float(o) for o in orientations_deg),
+            tuple(float(f) for f in spacing_factors),
+        ),
+        float(sigma_u),
+        float(sigma_v),
+    )
+
+
+@lru_cache(maxsize=256)
+def _bank_tuning(lam0: float, th0: float, orientations_deg: tuple, spacing_factors: tuple):
+    """
+    Return the bank's kernel spacings (px) and wave-vector angles (rad), rounded for the cache.
+
+    Orientation-major, each a tuple (the key of ``_kernel_bank_cached``); remembered, since
+    every frame of a slice asks for the same bank.
+    """
     sp, an = [], []
     for o in orientations_deg:
         for s in spacing_factors:
             sp.append(round(lam0 * s, 6))
             an.append(round(th0 + np.deg2rad(o), 6))
-    return _kernel_bank_cached(
-        tuple(int(v) for v in shape), tuple(sp), tuple(an), float(sigma_u), float(sigma_v)
-    )
+    return tuple(sp), tuple(an)
 
 
 @dataclass
@@ -540,11 +560,27 @@ def gabor_filter_bank(
             (fh, fw), params, d, orientations_deg, spacing_factors, sigma_u, sigma_v
         )
         # The inverse FFTs in place on the products, the winners gathered along the kernel axis
-        # (bit-identical to a fresh output and fancy indexing, ~10 % less time)
-        r = sfft.ifft2(bank * spec, axes=(-2, -1), workers=1, overwrite_x=True)[:, :h, :w]
-        a = np.abs(r)
-        k = np.argmax(a, axis=0)[None]
-        resp[d] = np.take_along_axis(r, k, axis=0)[0]
-        mag[d] = np.take_along_axis(a, k, axis=0)[0]
-        kidx[d] = k[0]
+        # by flat indices (the same values as np.take_along_axis, a third of its time)
+        full = sfft.ifft2(bank * spec, axes=(-2, -1), workers=1, overwrite_x=True)
+        a = np.abs(full[:, :h, :w])
+        k = np.argmax(a, axis=0)
+        at_full, at_window = _pixel_offsets(h, w, fw)
+        resp[d] = full.ravel().take(k * (fh * fw) + at_full)
+        mag[d] = a.ravel().take(k * (h * w) + at_window)
+        kidx[d] = k
     return GaborMaps(response=resp, magnitude=mag, kernel_index=kidx)
+
+
+@lru_cache(maxsize=64)
+def _pixel_offsets(h: int, w: int, fw: int):
+    """
+    Return the flat offsets of an (h, w) window's pixels in a row of ``fw`` and in its own rows.
+
+    Both (h, w) ``intp``, read-only: pixel (r, c) of plane k of a C-ordered (K, fh, fw) array is
+    at ``k·fh·fw + r·fw + c``, of a (K, h, w) array at ``k·h·w + r·w + c``.
+    """
+    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
+    out = ((rows * fw + cols).astype(np.intp), (rows * w + cols).astype(np.intp))
+    for a in out:
+        a.setflags(write=False)
+    return out

@@ -215,19 +215,32 @@ def grid_coherence(
     float
 
     """
+    work, origin, norm = _coherence_input(
+        image, region, smoothing_px or float(np.mean(params.spacing_px))
+    )
+    return _coherence(work, origin, params.wavevectors) / norm
+
+
+def _coherence_input(image, region, smoothing_px: float):
+    """
+    Return what :func:`grid_coherence` scores every grid on: ``(work, origin, normaliser)``.
+
+    ``work`` the region's locally zero-meaned image cropped to its bounding box (the whole image
+    less its mean without a region), ``origin`` the box's first (row, col), px, and the
+    normaliser ``sqrt(Σ work² · area)``. The same for every candidate grid of one image, region
+    and ``smoothing_px`` (:func:`estimate_grid` computes it once).
+    """
     img = np.asarray(image, np.float64)
     if region is not None and np.any(region):
         rows, cols = np.nonzero(region)
         r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
         reg = np.asarray(region, bool)
-        work, _ = masked_normalise(img, reg, smoothing_px or float(np.mean(params.spacing_px)))
+        work, _ = masked_normalise(img, reg, smoothing_px)
         work, n = work[r0:r1, c0:c1].astype(np.float64), float(reg.sum())
     else:
         r0 = c0 = 0
         work, n = img - img.mean(), float(img.size)
-    return _coherence(work, (r0, c0), params.wavevectors) / max(
-        np.sqrt(float(np.sum(work**2)) * n), 1e-300
-    )
+    return work, (r0, c0), max(np.sqrt(float(np.sum(work**2)) * n), 1e-300)
 
 
 def _coherence(work, origin, wavevectors) -> float:
@@ -367,7 +380,8 @@ def estimate_grid(
         return cands[0]
     # One local-mean window for all (the score's normalisation depends on it).
     smooth = float(np.median([np.mean(c.spacing_px) for c in cands]))
-    scores = [grid_coherence(img, p, region, smooth) for p in cands]
+    work, origin, norm = _coherence_input(img, region, smooth)  # grid_coherence's, once
+    scores = [_coherence(work, origin, p.wavevectors) / norm for p in cands]
     best = int(np.argmax(scores))
     if region is not None and scores[best] < MIN_GRID_COHERENCE:
         raise TagInputError(

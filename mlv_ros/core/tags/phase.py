@@ -91,7 +91,9 @@ class PhaseField:
 
         """
         h, w = self.shape
-        q = np.rint(np.nan_to_num(pts, nan=-1.0)).astype(np.int64)
+        # Non-finite points land on the clipped corner pixel (``inside`` says they are not in the
+        # image); np.where, not np.nan_to_num: the same pixels at a fraction of its cost.
+        q = np.rint(np.where(np.isfinite(pts), pts, -1.0)).astype(np.int64)
         inside = (q[:, 0] >= 1) & (q[:, 0] <= h - 2) & (q[:, 1] >= 1) & (q[:, 1] <= w - 2)
         q[:, 0] = np.clip(q[:, 0], 1, h - 2)
         q[:, 1] = np.clip(q[:, 1], 1, w - 2)

@@ -32,15 +32,28 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 
-_AFFINE_IDENTITY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # [t; A] of f(x) = x
+def _spans_plane(pts: np.ndarray) -> bool:
+    """
+    Return whether points (K, 2) do not lie on one line: their centred rank is 2.
+
+    ``np.linalg.matrix_rank``'s own test (singular values above the largest times
+    ``max(K, 2)·eps``) without its generic wrapper, which cost more than the SVD of so small a
+    matrix.
+    """
+    centred = pts - pts.mean(0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    return bool(np.count_nonzero(sv > sv.max() * max(centred.shape) * np.finfo(sv.dtype).eps) == 2)
 
 
 def _tps_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """2-D TPS radial basis ``U(r) = r² log r`` between rows of ``a`` (N, 2) and ``b`` (M, 2)."""
     r2 = cdist(a, b, 'sqeuclidean')
-    with np.errstate(divide='ignore', invalid='ignore'):
-        u = 0.5 * r2 * np.log(r2)
-    return np.nan_to_num(u, nan=0.0, posinf=0.0, neginf=0.0)
+    # U(0) = 0: log(1) at coincident points (the same values as r² log r with its 0·(−∞) set to
+    # 0, at a fraction of np.nan_to_num's cost); non-finite input gives 0 as before.
+    u = 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
+    if not np.isfinite(u).all():
+        u[~np.isfinite(u)] = 0.0
+    return u
 
 
 @dataclass
@@ -121,7 +134,7 @@ class ThinPlateSpline:
         if k < 3:
             t = np.average(dst - src, axis=0, weights=w)
             return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.array([t, [1.0, 0.0], [0.0, 1.0]]))
-        if k < 4 or np.linalg.matrix_rank(p[:, 1:] - p[:, 1:].mean(0)) < 2:
+        if k < 4 or not _spans_plane(src):
             a = p.T @ (w[:, None] * p) + s_aff
             b = p.T @ (w[:, None] * dst) + s_aff @ d_id
             return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.linalg.lstsq(a, b, rcond=None)[0])
@@ -158,18 +171,24 @@ class ThinPlateSpline:
         p = np.empty((k, 3))
         p[:, 0] = 1.0
         p[:, 1:] = src
-        s_aff = np.diag([0.0, 1.0, 1.0]) * lam_affine
         wkq = w[:, None] * kq
         wp = w[:, None] * p
-        # The (K − 3 + 3)² system [[a11, a12], [a12ᵀ, a22]], filled in place.
+        # The (K − 3 + 3)² system [[a11, a12], [a12ᵀ, a22]], filled in place; the pull of the
+        # linear part toward the identity, diag(0, 1, 1)·lam_affine on both sides, added to
+        # the entries it changes.
         lhs = np.empty((k, k))
         lhs[:k - 3, :k - 3] = kq.T @ wkq + lam * q2kq
         lhs[:k - 3, k - 3:] = a12 = wkq.T @ p
         lhs[k - 3:, :k - 3] = a12.T
-        lhs[k - 3:, k - 3:] = p.T @ wp + s_aff
+        lhs[k - 3:, k - 3:] = p.T @ wp
         rhs = np.empty((k, 2))
         rhs[:k - 3] = wkq.T @ dst
-        rhs[k - 3:] = p.T @ (w[:, None] * dst) + s_aff @ _AFFINE_IDENTITY
+        rhs[k - 3:] = p.T @ (w[:, None] * dst)
+        if lam_affine:
+            lhs[k - 2, k - 2] += lam_affine
+            lhs[k - 1, k - 1] += lam_affine
+            rhs[k - 2, 0] += lam_affine
+            rhs[k - 1, 1] += lam_affine
         try:
             sol = np.linalg.solve(lhs, rhs)
         except np.linalg.LinAlgError:
@@ -329,7 +348,7 @@ def tps_rpm(
     basis = ThinPlateSpline.basis(vn, kv) if k >= 4 else None
     # ≥ 4 points not on one line (fit's own test, taken once for the fixed source points): each
     # step solves the spline's normal equations directly.
-    spread = basis is not None and np.linalg.matrix_rank(vn - vn.mean(0)) == 2
+    spread = basis is not None and _spans_plane(vn)
     m = np.zeros((k + 1, n + 1))
     steps = 0
     t = tn

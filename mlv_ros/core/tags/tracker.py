@@ -39,6 +39,7 @@ Chui, H., Rangarajan, A. CVIU 89:114–141, 2003 (TPS-RPM).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 from mlv_ros.core.geometry import SliceGeometry
@@ -873,19 +874,13 @@ class SliceTracker:
         # The warp is smooth on the scale of a tag spacing: evaluate it every 4 px and
         # interpolate bilinearly (the TPS kernel on every pixel would dominate the frame time).
         step = 4
-        rr, cc = np.meshgrid(
-            np.arange(lo[0], hi[0] + step, step, dtype=float),
-            np.arange(lo[1], hi[1] + step, step, dtype=float),
-            indexing='ij',
-        )
-        src = (
-            inv(np.stack([rr.ravel(), cc.ravel()], -1)).reshape(rr.shape + (2,)).astype(np.float32)
-        )
-        fr, fc = np.meshgrid(
-            np.arange(hi[0] - lo[0], dtype=np.float32) / step,
-            np.arange(hi[1] - lo[1], dtype=np.float32) / step,
-            indexing='ij',
-        )
+        rows = np.arange(lo[0], hi[0] + step, step, dtype=float)
+        cols = np.arange(lo[1], hi[1] + step, step, dtype=float)
+        grid = np.empty((len(rows), len(cols), 2))
+        grid[..., 0] = rows[:, None]
+        grid[..., 1] = cols[None, :]
+        src = inv(grid.reshape(-1, 2)).reshape(grid.shape).astype(np.float32)
+        fr, fc = _coarse_index(int(hi[0] - lo[0]), int(hi[1] - lo[1]), step)
         map_r = cv2.remap(src[..., 0], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         map_c = cv2.remap(src[..., 1], fc, fr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         warped = cv2.remap(
@@ -919,6 +914,24 @@ class SliceTracker:
         filt = np.zeros(shape, bool)
         filt[lo[0]:hi[0], lo[1]:hi[1]] = filt_w > 0
         return filt, accept
+
+
+@lru_cache(maxsize=64)
+def _coarse_index(h: int, w: int, step: int):
+    """
+    Return each pixel of an (h, w) window's place on a grid of every ``step``-th pixel.
+
+    ``(rows, cols)``, float32 (h, w) each, read-only (``cv2.remap`` maps): remembered, since
+    a slice's windows keep their sizes from phase to phase.
+    """
+    fr, fc = np.meshgrid(
+        np.arange(h, dtype=np.float32) / step,
+        np.arange(w, dtype=np.float32) / step,
+        indexing='ij',
+    )
+    for a in (fr, fc):
+        a.setflags(write=False)
+    return fr, fc
 
 
 def _nearest_unique(pred: np.ndarray, rc: np.ndarray, gate: float):
