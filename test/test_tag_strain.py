@@ -150,3 +150,35 @@ def test_tags_overrule_a_model_that_smooths_a_still_segment_into_line():
     assert out[6] == 'normal' and 7 not in from_tags
     out, from_tags, _ = tag_override(classes, np.zeros(0), np.zeros(0))
     assert list(out) == classes and from_tags == []
+
+
+def test_streamed_findings_take_the_es_phase_tag_evidence():
+    """The findings read the tag evidence the metrics of their ES phase carry, and say so."""
+    from mlv_ros.core.analysis import PhaseMetrics, segment_findings
+
+    def phase(index, volume, tag7):
+        tag = np.full(17, -0.15)
+        tag[16], tag[6] = np.nan, tag7
+        return PhaseMetrics(
+            phase_index=index,
+            num_phases=10,
+            cavity_volume_ml=volume,
+            segment_err=np.full(17, 0.3),
+            segment_ecc=np.full(17, -0.15),  # the model: segment 7 as its neighbours
+            segment_ell=np.full(17, -0.1),
+            segment_count=np.full(17, 500),
+            segment_err_unc=np.full(17, 0.05),
+            segment_ecc_unc=np.full(17, 0.02),
+            segment_ell_unc=np.full(17, 0.02),
+            segment_tag_ecc=tag,
+            segment_tag_ecc_unc=np.full(17, 0.025),
+        )
+
+    f = segment_findings([phase(1, 100.0, -0.14), phase(4, 60.0, -0.005), phase(7, 80.0, -0.14)])
+    assert f.es_phase == 4 and f.classes[6] == 'akinetic' and f.from_tags == [7]
+    assert f.tag_function_index[6] == pytest.approx(0.005 / 0.15, abs=1e-9)
+    assert f.to_dict()['segments'][6]['class_from_tags'] and f.to_dict()['from_tags'] == [7]
+    # Without tag evidence (older recordings), the model's class stands.
+    old = {**phase(4, 60.0, -0.005).to_dict(), 'segment_tag_ecc': [], 'segment_tag_ecc_unc': []}
+    plain = segment_findings([PhaseMetrics.from_dict(old)])
+    assert plain.classes[6] == 'normal' and plain.from_tags == []
