@@ -818,7 +818,7 @@ _APPENDED_FIELDS = {
     # verdict (uint8 0 = ok), verdict_reasons (string ""); then study_id (string ""); then run_id
     # ...; then segment_origin (uint8 0 = unknown) and its confidence; MotionMetrics
     # then the segment uncertainties and findings (empty, ES phase −1: none); then both the
-    # degraded segments (empty: none or the whole phase).
+    # degraded segments (empty: none or the whole phase); then both the tag evidence (empty).
     'mlv_msgs/msg/ModelState': (
         ('verdict', 'uint8', 0),
         ('verdict_reasons', 'string', ''),
@@ -827,6 +827,8 @@ _APPENDED_FIELDS = {
         ('segment_origin', 'uint8', 0),
         ('segment_origin_confidence', 'float64', 0.0),
         ('degraded_segments', 'sequence', ()),
+        ('tag_ecc', 'sequence', ()),
+        ('tag_ecc_unc', 'sequence', ()),
     ),
     'mlv_msgs/msg/MotionMetrics': (
         ('verdict', 'uint8', 0),
@@ -840,6 +842,8 @@ _APPENDED_FIELDS = {
         *((n, 'sequence', ()) for n in FINDING_ARRAY_FIELDS),
         ('segment_class', 'sequence', ()),
         ('degraded_segments', 'sequence', ()),
+        ('segment_tag_ecc', 'sequence', ()),
+        ('segment_tag_ecc_unc', 'sequence', ()),
     ),
     # study_id (string ""); then run_id (string ""); TagPoints then line_normal (empty: grid),
     # TaggedFrame then tag_lines (0: a grid)
@@ -859,8 +863,8 @@ _APPENDED_FIELDS = {
 # Fields appended together (one change of the definition), oldest first: an older recording
 # lacks whole groups only, so only these are tried when the schema is not known.
 _APPENDED_GROUPS = {
-    'mlv_msgs/msg/ModelState': (2, 1, 1, 2, 1),
-    'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21, 1),
+    'mlv_msgs/msg/ModelState': (2, 1, 1, 2, 1, 2),
+    'mlv_msgs/msg/MotionMetrics': (2, 1, 1, 21, 1, 2),
     'mlv_msgs/msg/TaggedFrame': (1, 1, 1),
     'mlv_msgs/msg/TagPoints': (1, 1, 1),
 }

@@ -816,7 +816,32 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
         degraded_segments=_fast_array(
             'B', _check_segments(getattr(state, 'degraded_segments', ())), np.uint8
         ),
+        **{
+            name: _fast_array('d', _check_tag_evidence(state, name), np.float64)
+            for name in TAG_EVIDENCE_FIELDS
+        },
     )
+
+
+#: ModelState's per-segment tag evidence (17 or empty, NaN allowed; uncertainties ≥ 0).
+TAG_EVIDENCE_FIELDS = ('tag_ecc', 'tag_ecc_unc')
+
+
+def _check_tag_evidence(source, name: str) -> np.ndarray:
+    """
+    Return ``source.name`` (a ModelState or its message) as a checked float array.
+
+    Raises
+    ------
+    ValueError
+        Not 0 or 17 entries, an infinite value, or a negative uncertainty.
+
+    """
+    v = np.asarray(getattr(source, name, ()), dtype=np.float64).reshape(-1)
+    _check_segment_extra(name, v)
+    if name.endswith('_unc') and np.any(v < 0):
+        raise ValueError(f'{name} must hold non-negative uncertainties, got {v.tolist()}')
+    return v
 
 
 def _check_origin(v) -> int:
@@ -880,6 +905,7 @@ def msg_to_model_state(msg: ModelStateMsg) -> ModelState:
         segment_origin=_check_origin(msg.segment_origin),
         segment_origin_confidence=_check_confidence(msg.segment_origin_confidence),
         degraded_segments=_check_segments(np.frombuffer(msg.degraded_segments, dtype=np.uint8)),
+        **{n: _check_tag_evidence(msg, n).copy() for n in TAG_EVIDENCE_FIELDS},
     )
     _require_finite(
         'model state',

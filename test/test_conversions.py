@@ -679,3 +679,35 @@ def test_degraded_segments_survive_cdr_and_bad_ones_are_refused():
     msg.degraded_segments = array.array('B', [7, 99])  # as a foreign publisher might send it
     with pytest.raises(ValueError, match='1..17'):
         cv.msg_to_model_state(msg)
+
+
+def test_tag_evidence_survives_cdr_and_bad_arrays_are_refused():
+    """
+    Carry the tag tracks' segment Ecc and its uncertainty through ModelState and MotionMetrics.
+
+    NaN (no evidence) survives; empty by default; a length other than 0 / 17, an infinite value
+    or a negative uncertainty is refused by name, both ways.
+    """
+    s = ModelState(num_phases=20, phase_index=8)
+    back = cv.msg_to_model_state(cdr(cv.model_state_to_msg(s)))
+    assert back.tag_ecc.size == 0 and back.tag_ecc_unc.size == 0
+    s.tag_ecc = np.linspace(-0.2, 0.05, 17)
+    s.tag_ecc[16] = np.nan
+    s.tag_ecc_unc = np.full(17, 0.03)
+    msg = cdr(cv.model_state_to_msg(s))
+    back = cv.msg_to_model_state(msg)
+    np.testing.assert_array_equal(back.tag_ecc, s.tag_ecc)
+    np.testing.assert_array_equal(back.tag_ecc_unc, s.tag_ecc_unc)
+    m = {**make_metrics(), 'segment_tag_ecc': s.tag_ecc, 'segment_tag_ecc_unc': s.tag_ecc_unc}
+    out = cv.msg_to_metrics(cdr(cv.metrics_to_msg(m)))
+    np.testing.assert_array_equal(out['segment_tag_ecc'], s.tag_ecc)
+    for name, bad, match in (
+        ('tag_ecc', np.zeros(5), '0 or 17'),
+        ('tag_ecc', np.full(17, np.inf), 'infinite'),
+        ('tag_ecc_unc', np.full(17, -0.1), 'non-negative'),
+    ):
+        with pytest.raises(ValueError, match=f'{name} .*{match}|{name} holds an {match}'):
+            cv.model_state_to_msg(ModelState(num_phases=2, **{name: bad}))
+    msg.tag_ecc = array.array('d', [0.1] * 3)  # as a foreign publisher might send it
+    with pytest.raises(ValueError, match='tag_ecc must have 0 or 17'):
+        cv.msg_to_model_state(msg)

@@ -41,6 +41,7 @@ from itertools import chain
 
 from mlv_ros.core.analysis.frame import lv_frame_axes, LVFrame
 from mlv_ros.core.analysis.strain import AHA_SEGMENT_NAMES, aha_segments
+from mlv_ros.core.analysis.tag_strain import TagEdges
 from mlv_ros.core.meshless import (
     ControlPoints,
     GlobalParameters,
@@ -764,6 +765,7 @@ class MotionTracker:
         self._reference_rows: dict = {}  # (view, slice) → its reference as _track_rows
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
         self._one_family: dict = {}  # (view, slice) → its ED points lie on one tag-line family
+        self._tag_edges = None  # the SA tracks' ED edges (:meth:`_tag_evidence`)
         self._sectors = None  # SA slice → (θ°, track ids, segments) of its ED points: see
         # _sector_tracks; set_reference clears it
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
@@ -884,7 +886,7 @@ class MotionTracker:
     def set_reference(self, points: TagPointSet) -> int:
         """Record a slice's ED tag points (phase 0); returns how many lie inside the model."""
         key = (int(points.view), int(points.slice_index))
-        self._sectors = None
+        self._sectors = self._tag_edges = None
         if len(points) == 0:
             self.reference[key] = {}
             self._reference_rows.pop(key, None)
@@ -1281,6 +1283,7 @@ class MotionTracker:
         state.degraded_segments = tuple(
             sorted(AHA_SEGMENT_NAMES.index(n) + 1 for n in verdict.confined_to)
         )
+        state.tag_ecc, state.tag_ecc_unc = self._tag_evidence(sets)
         return PhaseSolution(int(phase_index), x, x - self.rest, E, state, int(inside.sum()))
 
     def _verdict(self, sets, inside, residual_mm, keys, rejected, attached, residuals=None):
@@ -1332,6 +1335,53 @@ class MotionTracker:
                 'along them) it is not',
             )
         return verdict
+
+    def _tag_evidence(self, sets: dict) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the SA tag tracks' own circumferential strain per AHA segment and its uncertainty.
+
+        Every SA slice's tracks with an ED reference, ED → this phase, in the analysis frame
+        (:meth:`_rest_sectors`' frame), with each slice's measured localisation noise
+        (``noise_mm``, else the default; :mod:`mlv_ros.core.analysis.tag_strain`). The model
+        plays no part: what the data say where its smoothing may not.
+
+        Parameters
+        ----------
+        sets : dict
+            (view, slice) → TagPointSet of the phase.
+
+        Returns
+        -------
+        tuple of ndarray
+            ``tag_ecc``, ``tag_ecc_unc``, shape (17,) each (NaN: too few tracked edges).
+
+        """
+        if self._tag_edges is None:  # the ED edges: once per reference
+            frame = LVFrame(*lv_frame_axes(self.rest, self.model.rest_params.rotation))
+            keys = [k for k, ref in sorted(self.reference.items()) if k[0] == VIEW_SA and ref]
+            self._tag_edges = (
+                keys,
+                [np.fromiter(self.reference[k], dtype=np.int64) for k in keys],
+                TagEdges(
+                    [(np.asarray(list(self.reference[k].values())), self.normals[k][0])
+                     for k in keys],
+                    frame,
+                ),
+            )
+        keys, tids, edges = self._tag_edges
+        noise = getattr(self, 'noise_mm', None) or {}
+        now = np.full((edges.num_tracks, 3), np.nan)
+        row = 0
+        for key, tid in zip(keys, tids):
+            pts = sets.get(key)
+            if pts is not None and len(pts):
+                hit, x = _track_rows(np.asarray(pts.track_id, dtype=np.int64),
+                                     np.asarray(pts.position)).lookup(tid)
+                now[row:row + len(tid)][hit] = x[hit]
+            row += len(tid)
+        sigma = [np.nan if noise.get(k) is None else noise[k] for k in keys]
+        ev = edges.segment_strain(now, sigma)
+        return ev['ecc'], ev['ecc_unc']
 
     def _sector_tracks(self, used: set, residuals: dict | None = None) -> dict:
         """

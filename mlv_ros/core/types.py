@@ -158,7 +158,10 @@ class ModelState:
     reference came from (0 / 0.0 on per-phase states). ``degraded_segments``: the AHA segments
     (1–17, ascending) a degraded verdict is confined to (:attr:`Verdict.confined_to
     <mlv_ros.core.verdict.Verdict.confined_to>`: a sector the tag data no longer support); empty
-    when the verdict is ok, failed or degraded for a whole-heart reason.
+    when the verdict is ok, failed or degraded for a whole-heart reason. ``tag_ecc`` /
+    ``tag_ecc_unc``: the tag tracks' own circumferential strain per AHA segment at this phase and
+    its uncertainty (:func:`mlv_ros.core.analysis.tag_strain.segment_tag_strain`), shape (17,) or
+    empty (not computed); NaN where a segment has too few tracked edges.
     """
 
     phase_index: int = 0
@@ -182,6 +185,8 @@ class ModelState:
     segment_origin: int = 0
     segment_origin_confidence: float = 0.0
     degraded_segments: tuple = ()
+    tag_ecc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tag_ecc_unc: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass

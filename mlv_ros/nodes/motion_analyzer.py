@@ -170,11 +170,13 @@ class MotionAnalyzer(GraphNode):
                 )
                 # The solver's data support first (confined to the segments of a sector it
                 # names, if that is all), then this phase's physiological bounds (whole heart).
+                solved = conversions.msg_to_model_state(state)
                 verdict = Verdict.from_parts(
-                    state.verdict,
-                    state.verdict_reasons,
-                    conversions.msg_to_model_state(state).degraded_segments,
+                    state.verdict, state.verdict_reasons, solved.degraded_segments
                 ).merge(Verdict.from_parts(metrics.verdict, metrics.verdict_reasons))
+                # The tag tracks' own regional reading (the solver's), for the findings.
+                metrics.segment_tag_ecc = solved.tag_ecc
+                metrics.segment_tag_ecc_unc = solved.tag_ecc_unc
                 metrics.verdict, metrics.verdict_reasons = verdict.level, verdict.text
                 metrics.degraded_segments = verdict.confined_to
                 metrics.study_id = state.study_id or self.study.study_id

@@ -64,8 +64,33 @@ empty when any reason, the analyzer's own included, concerns the whole heart):
 
 What it captures: how much model surface covers the segment, how well the model fitted the tags
 at that phase and how uniform the segment's motion is. What it does not: the tag-point density
-in the segment itself (not available to the analyzer) and bias of the motion field (a region
-smoothed into line with its neighbours by the solver's penalties looks certain and normal).
+in the segment itself and bias of the motion field (a region smoothed into line with its
+neighbours by the solver's penalties looks certain and normal); the tag evidence below (its σ
+from the segment's own tracks: their number and localisation noise) is what answers that.
+
+Tag evidence (at ES)
+--------------------
+The solver reads each segment's own SA tag tracks, with no model
+(:mod:`mlv_ros.core.analysis.tag_strain`: ``Ecc_tag`` and ``σ_tag`` per segment, carried by
+``ModelState.tag_ecc`` and ``PhaseMetrics.segment_tag_ecc``). The model's penalties carry a narrow
+region along with its neighbours (a 60° akinetic sector: the model's f 0.35–0.6, its tags' Ecc
+near 0), so where the two disagree the data win:
+
+* the tags' reference ``Ecc_ref_tag`` = median ``Ecc_tag`` of the segments 1–16 with tag
+  evidence (at least 3, the unsupported left out; at most ``−REF_MIN['ecc']``) — the tags' own
+  2-D strain against the tags' own median, so the tags' bias against the model's 3-D strain
+  cancels;
+* ``f_tag = Ecc_tag / (P_cc Ecc_ref_tag)`` and ``σ_f_tag = σ_tag / |P_cc Ecc_ref_tag|`` (the
+  apex cap has no tag Ecc);
+* a segment the model classes ``normal`` or ``hypokinetic`` whose tags read ``f_tag`` below the
+  akinetic bound (0.35) takes the tags' class: ``akinetic`` / ``dyskinetic`` by the same bounds
+  (dyskinetic also when ``Ecc_tag > Z σ_tag``, stretching), or ``indeterminate`` when
+  ``σ_f_tag > MAX_SIGMA_F`` (the data disagree with the model but cannot say how much). Never
+  ``normal``: listed in :attr:`Findings.from_tags`.
+* Nothing else changes: a segment the model finds abnormal keeps its class (the tags are not used
+  to clear a finding: where tracks are few the tags see less than the model), and segments
+  without tag evidence (too few tracked edges: an apex cap, a sector whose tracks are lost) keep
+  the model's.
 
 Classification (at ES)
 ----------------------
@@ -316,6 +341,101 @@ def absolute_akinetic(es: dict, unc: dict) -> np.ndarray:
     return out
 
 
+def tag_function(tag_ecc, tag_unc, unsupported=()) -> tuple[np.ndarray, np.ndarray, float]:
+    """
+    Return the tags' function index per segment, its uncertainty and the tags' reference.
+
+    Module docstring, "Tag evidence".
+
+    Parameters
+    ----------
+    tag_ecc, tag_unc : array_like, shape (17,)
+        The segments' tag Ecc and its uncertainty (NaN: no evidence).
+    unsupported : sequence of int, optional
+        AHA segments (1–17) left out of the reference.
+
+    Returns
+    -------
+    f_tag, f_tag_unc : ndarray, shape (17,)
+        NaN where the segment has no tag evidence, for the apex cap, or for every segment when
+        fewer than 3 of segments 1–16 have evidence.
+    ref : float
+        The tags' reference Ecc (NaN when not available).
+
+    """
+    e = np.asarray(tag_ecc, dtype=np.float64).reshape(-1)
+    u = np.asarray(tag_unc, dtype=np.float64).reshape(-1)
+    nan = np.full(17, np.nan)
+    if e.size != 17 or u.size != 17:
+        return nan, nan.copy(), math.nan
+    have = np.isfinite(e) & np.isfinite(u)
+    carried = np.zeros(17, dtype=bool)
+    carried[np.asarray(unsupported, dtype=np.int64).reshape(-1) - 1] = True
+    remote = e[:16][(have & ~carried)[:16]]
+    if remote.size < 3:
+        return nan, nan.copy(), math.nan
+    ref = -max(-float(np.median(remote)), REF_MIN['ecc'])
+    p = np.array([np.nan if x is None else x for x in NORMAL_PATTERN['ecc']])
+    scale = p * ref
+    ok = have & np.isfinite(scale)
+    f = np.where(ok, e / np.where(ok, scale, 1.0), np.nan)
+    fu = np.where(ok, u / np.abs(np.where(ok, scale, 1.0)), np.nan)
+    return f, fu, ref
+
+
+def _class_of(f: float) -> str:
+    """Return the :data:`CLASS_BOUNDS` class of a function index."""
+    return next(name for name, bound in CLASS_BOUNDS if f >= bound)
+
+
+def tag_override(classes, tag_ecc, tag_unc, unsupported=()) -> tuple[np.ndarray, list, tuple]:
+    """
+    Return the classes after the tag evidence (module docstring, "Tag evidence").
+
+    Parameters
+    ----------
+    classes : array_like of str, shape (17,)
+        The model's classes (:func:`classify`).
+    tag_ecc, tag_unc : array_like, shape (17,) or (0,)
+        The segments' tag Ecc and its uncertainty at ES (NaN or empty: no evidence).
+    unsupported : sequence of int, optional
+        AHA segments (1–17) the ES verdict names as carried (left as they are).
+
+    Returns
+    -------
+    classes : ndarray of str, shape (17,)
+        The classes, with the disagreeing segments' changed.
+    from_tags : list of int
+        The segments (1–17) whose class came from the tags.
+    tag : tuple
+        ``(f_tag, f_tag_unc, ref)`` of :func:`tag_function`.
+
+    """
+    out = np.array(classes, dtype=object)
+    f, fu, ref = tag_function(tag_ecc, tag_unc, unsupported)
+    if not math.isfinite(ref):
+        return out, [], (f, fu, ref)
+    e = np.asarray(tag_ecc, dtype=np.float64)
+    u = np.asarray(tag_unc, dtype=np.float64)
+    akinetic_bound = dict(CLASS_BOUNDS)['hypokinetic']
+    carried = {int(k) for k in np.asarray(unsupported).reshape(-1)}
+    from_tags = []
+    for k in range(17):
+        if k + 1 in carried or out[k] not in ('normal', 'hypokinetic'):
+            continue
+        if not (np.isfinite(f[k]) and f[k] < akinetic_bound):
+            continue
+        if e[k] > STRETCH_Z * u[k]:
+            cls = 'dyskinetic'  # stretching beyond its own uncertainty
+        elif fu[k] > MAX_SIGMA_F:
+            cls = 'indeterminate'
+        else:
+            cls = _class_of(f[k])
+        out[k] = cls
+        from_tags.append(k + 1)
+    return out, from_tags, (f, fu, ref)
+
+
 def classify(
     es: dict, unc: dict, unsupported=()
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -418,6 +538,12 @@ class Findings:
         ``'measured'`` or None (no ES yet).
     notes : list of str
         Sentences for the reader: why segments are indeterminate or classed on absolute bounds.
+    tag_ecc, tag_ecc_unc : ndarray, shape (17,) or (0,)
+        The tag tracks' own Ecc per segment at ``es_phase`` and its uncertainty (empty: none).
+    tag_function_index, tag_function_unc : ndarray, shape (17,)
+        ``f_tag`` and ``σ_f_tag`` (NaN where not computable).
+    from_tags : list of int
+        Segments (1–17) whose class is the tags' (module docstring, "Tag evidence").
 
     """
 
@@ -434,6 +560,11 @@ class Findings:
     unsupported: list = field(default_factory=list)
     global_function: str | None = None
     notes: list = field(default_factory=list)
+    tag_ecc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tag_ecc_unc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tag_function_index: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
+    tag_function_unc: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
+    from_tags: list = field(default_factory=list)
 
     def abnormal(self, kinds=('akinetic', 'dyskinetic')) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
@@ -482,6 +613,12 @@ class Findings:
                     row[key] = float(d[c][k]) if c in d else math.nan
             row['function_index'] = float(self.function_index[k])
             row['function_unc'] = float(self.function_unc[k])
+            tag = self.tag_ecc.size == 17
+            row['tag_ecc'] = float(self.tag_ecc[k]) if tag else math.nan
+            row['tag_ecc_unc'] = float(self.tag_ecc_unc[k]) if tag else math.nan
+            row['tag_function_index'] = float(self.tag_function_index[k])
+            row['tag_function_unc'] = float(self.tag_function_unc[k])
+            row['class_from_tags'] = k + 1 in self.from_tags
             rows.append(row)
         return {
             'es_phase': self.es_phase,
@@ -492,6 +629,7 @@ class Findings:
             'unsupported': list(self.unsupported),
             'global_function': self.global_function,
             'notes': list(self.notes),
+            'from_tags': list(self.from_tags),
             'thresholds': {
                 'class_bounds': {
                     n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS
@@ -568,17 +706,24 @@ class SegmentFindings:
         self._used.append(idx)
         vol = float(metrics.cavity_volume_ml)
         if idx != 0 and (self._es is None or vol < self._es[0]):
-            self._es = (vol, idx, vals, unc, carried)
+            tag = tuple(
+                np.asarray(getattr(metrics, n, np.zeros(0)), dtype=np.float64).reshape(-1)
+                for n in ('segment_tag_ecc', 'segment_tag_ecc_unc')
+            )
+            self._es = (vol, idx, vals, unc, carried, tag)
         f = Findings(
             phases_used=sorted(set(self._used)),
             peak={c: v.copy() for c, v in self._peak.items()},
             peak_unc={c: v.copy() for c, v in self._peak_unc.items()},
         )
         if self._es is not None:
-            _, f.es_phase, f.es, f.es_unc, f.unsupported = self._es
+            _, f.es_phase, f.es, f.es_unc, f.unsupported, (f.tag_ecc, f.tag_ecc_unc) = self._es
             f.unsupported = list(f.unsupported)
             cls, f.function_index, f.function_unc, f.reference = classify(
                 f.es, f.es_unc, f.unsupported
+            )
+            cls, f.from_tags, (f.tag_function_index, f.tag_function_unc, _) = tag_override(
+                cls, f.tag_ecc, f.tag_ecc_unc, f.unsupported
             )
             f.classes = [str(c) for c in cls]
             f.global_function = global_function(f.reference)
@@ -618,6 +763,7 @@ def findings_notes(f: Findings) -> list[str]:
             k + 1
             for k in range(16)
             if f.classes[k] == 'akinetic'
+            and k + 1 not in f.from_tags  # the tags' class, said by from_tags
             and not (f.function_unc[k] <= MAX_SIGMA_F and f.function_index[k] < CLASS_BOUNDS[1][1])
         ]
     if absolute:

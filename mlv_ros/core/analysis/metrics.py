@@ -85,7 +85,7 @@ NAN_SEGMENT_FIELDS = (
     'segment_err_unc',
     'segment_ecc_unc',
     'segment_ell_unc',
-) + FINDING_ARRAY_FIELDS
+) + FINDING_ARRAY_FIELDS + ('segment_tag_ecc', 'segment_tag_ecc_unc')
 _ARRAY_FIELDS = (
     LEVEL_FIELDS + SEGMENT_FIELDS + COUNT_FIELDS + NAN_SEGMENT_FIELDS + ('segment_class',)
 )
@@ -163,6 +163,10 @@ class PhaseMetrics:
         (the findings then inflate every segment, :mod:`mlv_ros.core.analysis.findings`).
     study_id, run_id : str
         The study and run the phase was computed from (the model state's; empty = unknown).
+    segment_tag_ecc, segment_tag_ecc_unc : ndarray, shape (17,) or (0,)
+        The tag tracks' own circumferential strain per segment at this phase and its uncertainty
+        (``ModelState.tag_ecc``; :mod:`mlv_ros.core.analysis.tag_strain`); empty when the
+        solver gave none; NaN where a segment has too few tracked edges.
 
     """
 
@@ -210,6 +214,8 @@ class PhaseMetrics:
     degraded_segments: tuple = ()
     study_id: str = ''
     run_id: str = ''
+    segment_tag_ecc: np.ndarray = field(default_factory=_empty)
+    segment_tag_ecc_unc: np.ndarray = field(default_factory=_empty)
 
     def __post_init__(self):
         for name in _ARRAY_FIELDS:

@@ -163,9 +163,11 @@ def _findings_html(summaries: list[dict]) -> str:
             parts.append(f'<p>{e(s["label"])}: no strain, no regional findings.</p>')
             continue
         carried = set(f.get('unsupported') or ())
+        tagged = set(f.get('from_tags') or ())
         rows = ''.join(
             f'<tr><td>{r["segment"]} {e(r["name"])}</td><td>{e(r["class"])}'
             + (' (unsupported)' if r['segment'] in carried else '')
+            + (' (from its tags)' if r['segment'] in tagged else '')
             + '</td>'
             f'<td>{e(_pm(r["function_index"], r["function_unc"]))}</td>'
             + ''.join(
@@ -186,6 +188,13 @@ def _findings_html(summaries: list[dict]) -> str:
                 f'; unsupported at ES (the tag data lost their sector, the model carried them '
                 f'with their neighbours): {e(", ".join(map(str, sorted(carried))))}'
                 if carried
+                else ''
+            )
+            + (
+                '; classed from their own tag tracks (the model carried them with their '
+                'neighbours; the tags show less shortening): '
+                + e(', '.join(map(str, sorted(tagged))))
+                if tagged
                 else ''
             )
             + (
