@@ -640,3 +640,24 @@ def test_line_pair_second_series_is_turned_and_shifted(tmp_path):
     )
     assert min(abs(turn % 180.0 - 60.0), abs(turn % 180.0 - 120.0)) < 2.0, turn
     assert not np.array_equal(a.image, b.image)
+
+
+def test_cli_tag_lines_any_draws_a_pair_and_needs_random(tmp_path, capsys):
+    """
+    Check ``mlv-ros simulate --random 0 --tag-lines any``: a drawn pair written as two series.
+
+    Seed 0 draws a pair under ``any`` (a grid without it); its protocol.yaml says how it was
+    drawn, and ``--tag-lines any`` without ``--random`` is one line, exit 2.
+    """
+    assert draw_protocol(0)['tag_lines'] == 'grid'
+    out = tmp_path / 's'
+    argv = ['simulate', '--random', '0', '--tag-lines', 'any', '--size', '64', '--phases', '2']
+    assert main([*argv, '--subplanes', '1', '--out', str(out), '--no-progress']) == 0
+    p = load_protocol(out / 'protocol.yaml')
+    assert p['tag_lines'] == 'pair'
+    assert p == draw_protocol(0, {'size': 64, 'num_phases': 2}, 'any')
+    assert '--tag-lines any' in (out / 'protocol.yaml').read_text()
+    assert {d.name for d in (out / 'dicom').iterdir()} == {'lines_1', 'lines_2'}
+    assert main(['simulate', '--tag-lines', 'any', '--out', str(tmp_path / 'x')]) == 2
+    err = capsys.readouterr().err
+    assert '--random' in err and err.count('\n') == 1
