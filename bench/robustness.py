@@ -38,7 +38,11 @@ passing.
 The drawn abnormal regions and right ventricle are left out unless ``--abnormal``: the cases
 stay the normal hearts these seeds draw without them, comparable with kept results. ``--rv
 drawn|on|off`` sets the right ventricle alone (e.g. ``--rv on``: every study with an RV beside the
-LV, as real studies have).
+LV, as real studies have). ``--tag-lines any`` draws single-line studies too (``mlv-ros simulate
+--tag-lines any``: grid 50 %, a single-line pair 30 % with its angle and breath-hold shift drawn,
+one family 20 %, every other item as the grid draw's); the default, grid, keeps the cases the
+seeds always drew. A one-family study cannot meet the must (motion along its lines is not
+measured, every phase after ED says so): the case carries ``tag_lines`` for the reader.
 
 About 1–3 minutes per case on 2 cores (the drawn study's size and phase count set it).
 """
@@ -82,13 +86,19 @@ def tag_points_per_slice(mcap: Path) -> dict:
 
 
 def run_case(
-    seed: int, out: Path, timeout: float, abnormal: bool = False, rv: str | None = None
+    seed: int,
+    out: Path,
+    timeout: float,
+    abnormal: bool = False,
+    rv: str | None = None,
+    tag_lines: str = 'grid',
 ) -> dict:
     """
     Run one case.
 
     ``rv``: ``"on"`` / ``"off"`` forces the right ventricle, ``"drawn"`` keeps the draw (75 % of
     studies); None: drawn with ``abnormal``, off without (the seeds' normal hearts).
+    ``tag_lines``: ``"grid"`` or ``"any"`` (``mlv-ros simulate --tag-lines``).
     """
     study, run_dir = out / 'study', out / 'run'
     case = {'seed': seed}
@@ -105,11 +115,14 @@ def run_case(
         out.mkdir(parents=True, exist_ok=True)
         (out / 'fixed.yaml').write_text(fixed)
         extra = ['--protocol', str(out / 'fixed.yaml')]
+    if tag_lines != 'grid':
+        extra += ['--tag-lines', tag_lines]
     error = simulate(seed, study, *extra)
     case['simulate_seconds'] = round(time.monotonic() - t0, 1)
     if error:
         return case | {'error': error, 'pass': False}
     case['protocol'] = yaml.safe_load((study / 'protocol.yaml').read_text())
+    case['tag_lines'] = case['protocol'].get('tag_lines', 'grid')
     t0 = time.monotonic()
     run_exit, error = run_dicom(study, run_dir, timeout)
     case['run_seconds'] = round(time.monotonic() - t0, 1)
@@ -229,18 +242,28 @@ def main():
         help='right ventricle: as drawn (75 %% of studies), always, never (default: drawn with '
         '--abnormal, else off)',
     )
+    ap.add_argument(
+        '--tag-lines',
+        choices=('grid', 'any'),
+        default='grid',
+        help='grid (default: the grid studies the seeds always drew) or any (single-line pairs '
+        'and one-family studies drawn too)',
+    )
     args = ap.parse_args()
     if args.cases < 1:
         ap.error('--cases must be >= 1')
 
     def one(seed):
-        case = run_case(seed, root / f'case-{seed}', args.timeout, args.abnormal, args.rv)
+        case = run_case(
+            seed, root / f'case-{seed}', args.timeout, args.abnormal, args.rv, args.tag_lines
+        )
         print(
             json.dumps(
                 {
                     k: case.get(k)
                     for k in (
                         'seed',
+                        'tag_lines',
                         'pass',
                         'es',
                         'phases_solved',

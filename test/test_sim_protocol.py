@@ -123,10 +123,10 @@ def test_draws_stay_in_documented_ranges(draws):
 
 
 def test_every_item_varies_across_seeds(draws):
-    # single tag lines are given, never drawn: the tracker needs a grid's intersections
+    # single tag lines are drawn only when asked (tag_lines='any'), a pair's items with them
     assert {p['tag_lines'] for p in draws} == {'grid'}
     for name in ITEMS:
-        if name == 'tag_lines':
+        if name == 'tag_lines' or name.startswith('line_pair_'):
             continue
         values = {json.dumps(p[name]) for p in draws}
         assert len(values) >= 2, f'{name} took one value over 50 seeds: {values}'
@@ -569,3 +569,95 @@ def test_single_tag_lines_item_draws_one_family():
     preset['imaging']['tag_lines'] = 'dots'
     with pytest.raises(ValueError, match='tag_lines'):
         load_preset(preset)
+
+
+def test_tag_lines_any_draws_single_line_studies_from_their_own_stream():
+    """
+    Check ``draw_protocol(seed, tag_lines='any')``: grid, pair and single, nothing else moved.
+
+    Every other item is the grid draw's (the kept studies and tests draw the same studies as
+    before); a pair's angle (45–135°) and breath-hold shift (≤ 4 mm in-plane, ≤ 3 mm along the
+    axis) are drawn, other studies keep 90° and no shift, and a fixed protocol gives the pair
+    items to pairs only.
+    """
+    from mlv_ros.core.sim.protocol import PAIR_DEFAULTS, protocol_identity
+
+    kinds = set()
+    for seed in range(40):
+        p, q = draw_protocol(seed, tag_lines='any'), draw_protocol(seed)
+        kinds.add(p['tag_lines'])
+        rest = [k for k in ITEMS if k != 'tag_lines' and k not in PAIR_DEFAULTS]
+        assert {k: p[k] for k in rest} == {k: q[k] for k in rest}, seed
+        assert {k: q[k] for k in PAIR_DEFAULTS} == PAIR_DEFAULTS
+        if p['tag_lines'] == 'pair':
+            assert 45.0 <= p['line_pair_angle_deg'] <= 135.0
+            assert np.hypot(*p['line_pair_shift_mm']) <= 4.0 + 0.01
+            assert abs(p['line_pair_through_mm']) <= 3.0
+        else:
+            assert {k: p[k] for k in PAIR_DEFAULTS} == PAIR_DEFAULTS
+        # a grid study's UIDs do not see the pair items (studies drawn before them keep theirs)
+        assert protocol_identity(q) == {k: q[k] for k in rest + ['tag_lines']}
+    assert kinds == {'grid', 'pair', 'single'}
+    drawn = [draw_protocol(s, tag_lines='any') for s in range(40)]
+    pairs = [p for p in drawn if p['tag_lines'] == 'pair']
+    assert len({p['line_pair_angle_deg'] for p in pairs}) == len(pairs) >= 5
+    assert draw_protocol(3, {'tag_lines': 'pair'})['line_pair_shift_mm'] != [0.0, 0.0]
+    assert complete_protocol({'tag_lines': 'pair'})['line_pair_shift_mm'] == [0.0, 0.0]
+    with pytest.raises(ValueError, match='line_pair_angle_deg.*tag_lines = grid'):
+        complete_protocol({'line_pair_angle_deg': 60.0})
+    with pytest.raises(ValueError, match='line_pair_angle_deg'):
+        complete_protocol({'tag_lines': 'pair', 'line_pair_angle_deg': 20.0})
+    with pytest.raises(ValueError, match='tag_lines'):
+        draw_protocol(1, tag_lines='pair')
+
+
+def test_line_pair_second_series_is_turned_and_shifted(tmp_path):
+    """
+    Check ``mlv-ros simulate`` of a 60° pair 3 mm apart: the protocol and the second series.
+
+    The second series' tag family lies 60° from the first's (spectral estimate within 2°), the
+    DICOM geometry of the two the same (where its heart sits: ``test_tags_line_pair``).
+    """
+    from mlv_ros.core.tags import estimate_line_family
+
+    (tmp_path / 'p.yaml').write_text(
+        'tag_lines: pair\nline_pair_angle_deg: 60\nline_pair_shift_mm: [3.0, 0.0]\n'
+        'size: 96\nnum_phases: 2\nsa_slices: 3\nla_planes: 0\n'
+    )
+    out = str(tmp_path / 's')
+    argv = ['simulate', '--protocol', str(tmp_path / 'p.yaml'), '--out', out, '--no-progress']
+    assert main([*argv, '--subplanes', '1']) == 0
+    p = load_protocol(tmp_path / 's' / 'protocol.yaml')
+    assert p['line_pair_angle_deg'] == 60.0 and p['line_pair_shift_mm'] == [3.0, 0.0]
+    first = read_dicom_dir(tmp_path / 's' / 'dicom' / 'lines_1').frames
+    second = read_dicom_dir(tmp_path / 's' / 'dicom' / 'lines_2').frames
+    a, b = first[0], [f for f in second if f.slice_index == first[0].slice_index][0]
+    assert a.phase_index == b.phase_index == 0
+    np.testing.assert_allclose(a.geometry.image_position, b.geometry.image_position)
+    px = a.geometry.row_spacing
+    turn = np.degrees(
+        estimate_line_family(b.image, None, px)[1] - estimate_line_family(a.image, None, px)[1]
+    )
+    assert min(abs(turn % 180.0 - 60.0), abs(turn % 180.0 - 120.0)) < 2.0, turn
+    assert not np.array_equal(a.image, b.image)
+
+
+def test_cli_tag_lines_any_draws_a_pair_and_needs_random(tmp_path, capsys):
+    """
+    Check ``mlv-ros simulate --random 0 --tag-lines any``: a drawn pair written as two series.
+
+    Seed 0 draws a pair under ``any`` (a grid without it); its protocol.yaml says how it was
+    drawn, and ``--tag-lines any`` without ``--random`` is one line, exit 2.
+    """
+    assert draw_protocol(0)['tag_lines'] == 'grid'
+    out = tmp_path / 's'
+    argv = ['simulate', '--random', '0', '--tag-lines', 'any', '--size', '64', '--phases', '2']
+    assert main([*argv, '--subplanes', '1', '--out', str(out), '--no-progress']) == 0
+    p = load_protocol(out / 'protocol.yaml')
+    assert p['tag_lines'] == 'pair'
+    assert p == draw_protocol(0, {'size': 64, 'num_phases': 2}, 'any')
+    assert '--tag-lines any' in (out / 'protocol.yaml').read_text()
+    assert {d.name for d in (out / 'dicom').iterdir()} == {'lines_1', 'lines_2'}
+    assert main(['simulate', '--tag-lines', 'any', '--out', str(tmp_path / 'x')]) == 2
+    err = capsys.readouterr().err
+    assert '--random' in err and err.count('\n') == 1

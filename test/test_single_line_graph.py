@@ -16,7 +16,9 @@
 Single-line tag studies through the real DICOM path and the whole graph, against the truth.
 
 ``mlv-ros simulate --protocol`` with ``tag_lines: pair`` writes two single-line series of every
-slice (the second with its lines turned by 90°, as vendors acquire them in two breath-holds);
+slice (the second with its lines turned by 90°, as vendors acquire them in two breath-holds,
+here in one place: the angle and shift fixed, not drawn; other angles and shifts:
+``test_tags_line_pair``, ``test_tracking_lines``);
 ``mlv-ros run --dicom`` pairs them into one slice with both families, and the tag detector
 tracks points on each family's lines along their normals. The same study's first series alone
 is a one-family study: only motion across its lines is measured, and every phase says so
@@ -39,6 +41,9 @@ pytestmark = pytest.mark.slow  # graph runs: scheduled first (conftest)
 BIN = Path(sys.executable).parent
 PROTOCOL = """\
 tag_lines: pair
+line_pair_angle_deg: 90.0
+line_pair_shift_mm: [0.0, 0.0]
+line_pair_through_mm: 0.0
 abnormal_regions: []
 right_ventricle: false
 shape: normal

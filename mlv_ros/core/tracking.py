@@ -56,7 +56,7 @@ from mlv_ros.core.meshless import (
 from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
 from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.tags.gabor import MIN_DIRECTION_SEPARATION
-from mlv_ros.core.types import ModelState, TagPointSet, VIEW_SA
+from mlv_ros.core.types import ModelState, PAIR_MISREGISTERED, TagPointSet, VIEW_NAMES, VIEW_SA
 from mlv_ros.core.verdict import DEGRADED, MIN_SLICE_POINTS, phase_verdict
 from mlv_ros.settings import check_keywords, SOLVER_MODEL
 import numpy as np
@@ -766,6 +766,7 @@ class MotionTracker:
         self.normals: dict = {}  # (view, slice) → (normal (3,), point on plane (3,))
         self._one_family: dict = {}  # (view, slice) → its ED points lie on one tag-line family
         self._tag_edges = None  # the SA tracks' ED edges (:meth:`_tag_evidence`)
+        self._pair_notes: dict = {}  # (view, slice) → why its line pair's two series disagree
         self._sectors = None  # SA slice → (θ°, track ids, segments) of its ED points: see
         # _sector_tracks; set_reference clears it
         self.offsets: dict = {}  # (view, slice, track_id) → s, mm along the normal
@@ -903,6 +904,8 @@ class MotionTracker:
         self.normals[key] = (points.geometry.normal, points.geometry.image_position)
         # At ED the lines are straight: one family's normals agree there.
         self._one_family[key] = _one_line_family(points)
+        notes = [x for x in points.status.split('; ') if x.startswith(PAIR_MISREGISTERED)]
+        self._pair_notes[key] = notes[0][len(PAIR_MISREGISTERED) + 2:] if notes else ''
         return int(keep.sum())
 
     def _constraints(self, sets: dict):
@@ -1333,6 +1336,14 @@ class MotionTracker:
                 f'single-line tags on {len(one_d)} of {len(sets)} slices (1-D data): motion '
                 "measured only across the tag lines; along them (and the heart's translation "
                 'along them) it is not',
+            )
+        pairs = sorted(key for key in sets if self._pair_notes.get(key))
+        if pairs:
+            first = pairs[0]
+            verdict.flag(
+                DEGRADED,
+                f'{PAIR_MISREGISTERED} on {len(pairs)} of {len(sets)} slices (two breath-holds, '
+                f'{VIEW_NAMES[first[0]]} {first[1]}: {self._pair_notes[first]})',
             )
         return verdict
 
@@ -2134,10 +2145,12 @@ def _one_line_family(pts: TagPointSet) -> bool:
     Return whether a slice's points lie on one family of tag lines only (1-D data).
 
     Its line normals' in-plane angles (mod 180°) are compared with their dominant one (the
-    doubled-angle mean): fewer than ``MIN_SLICE_POINTS`` at least ``MIN_DIRECTION_SEPARATION``
-    (30°, the tag estimate's least angle between two families) away from it is one family. A
-    grid slice (no line normals) is not. Meant for the ED points (straight lines): deformed
-    lines turn by more than that where the wall shears.
+    angle with the most normals within half of ``MIN_DIRECTION_SEPARATION`` of it): fewer than
+    ``MIN_SLICE_POINTS`` at least ``MIN_DIRECTION_SEPARATION`` (30°, the tag estimate's least
+    angle between two families) away from it is one family. (The doubled-angle mean lies
+    midway between two families as large as each other, under 30° from both when they are
+    under 60° apart.) A grid slice (no line normals) is not. Meant for the ED points (straight
+    lines): deformed lines turn by more than that where the wall shears.
     """
     line = np.asarray(pts.line_normal, dtype=np.float64).reshape(-1, 3)
     line = line[np.isfinite(line).all(axis=1)]
@@ -2145,7 +2158,8 @@ def _one_line_family(pts: TagPointSet) -> bool:
         return False
     g = pts.geometry
     angle = np.arctan2(line @ g.column_direction, line @ g.row_direction)
-    dominant = 0.5 * np.angle(np.mean(np.exp(2j * angle)))
+    apart = np.abs(np.angle(np.exp(2j * (angle[:, None] - angle[None, :])))) / 2  # 0..π/2
+    dominant = angle[int(np.argmax((apart < 0.5 * MIN_DIRECTION_SEPARATION).sum(axis=1)))]
     off = np.abs(np.angle(np.exp(2j * (angle - dominant)))) / 2  # 0..π/2
     return int(np.count_nonzero(off >= MIN_DIRECTION_SEPARATION)) < MIN_SLICE_POINTS
 

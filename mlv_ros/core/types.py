@@ -32,6 +32,9 @@ VIEW_LA = 1
 TAGS_GRID = 0
 TAGS_LINES = 1
 TAGS_LINE_PAIR = 2
+#: Begins the part of a line pair's ED ``TagPointSet.status`` that says its two series (two
+#: breath-holds) disagree beyond what was corrected; the solver degrades every phase for it.
+PAIR_MISREGISTERED = 'line pair misregistered'
 VIEW_NAMES = {VIEW_SA: 'SA', VIEW_LA: 'LA'}
 
 

@@ -224,9 +224,27 @@ class TagDetector(GraphNode):
                 slice=key[1],
                 reason=why,
             )
+        if started:
+            self._pair_shift(key, tracker)
         self._judge(key, frame, points, started, conversions.stamp_text(stamp))
         self.pub.publish(conversions.tagpoints_to_msg(points, stamp=stamp))
         self.published += 1
+
+    def _pair_shift(self, key, tracker) -> None:
+        """Count a line pair's breath-hold shift (DEBUG); WARN once when it degrades the slice."""
+        shift = getattr(tracker, 'pair_shift', None)
+        if shift is None:
+            return
+        if shift.sure:
+            self.counts['line_pairs_shift_corrected'] += 1
+            self.get_logger().debug(
+                f'line pair view={key[0]} slice={key[1]}: second series shifted '
+                f'{shift.shift_mm:.2f} mm in-plane (rows, cols {shift.shift_rc[0]:+.2f}, '
+                f'{shift.shift_rc[1]:+.2f} px, correlation {shift.score:.3f}); corrected'
+            )
+        if tracker.pair_note:
+            self.counts['line_pairs_misregistered'] += 1
+            self.report(WARN, 'line pair', view=key[0], slice=key[1], status=tracker.pair_note)
 
     def _tracker(self, frame):
         """
@@ -321,6 +339,7 @@ class TagDetector(GraphNode):
             ('conflicting_frames', 'different frame(s) for a taken slot'),
             ('late_frames_dropped', 'frame(s) too late for their slot'),
             ('slices_without_mask', 'slice(s) without an ED myocardium mask'),
+            ('line_pairs_misregistered', 'line pair(s) misregistered (degraded)'),
         ):
             if c[name]:
                 problems.append(f'{c[name]} {what}')

@@ -50,6 +50,13 @@ def add_arguments(parser):
         "'Random protocols'); writes OUT/protocol.yaml",
     )
     parser.add_argument(
+        '--tag-lines',
+        choices=('grid', 'any'),
+        default='grid',
+        help='with --random: grid (default; the grid study the seed always drew) or any (tag '
+        'lines drawn too: grid, a single-line pair or one family, from a stream of their own)',
+    )
+    parser.add_argument(
         '--protocol',
         type=Path,
         default=None,
@@ -122,7 +129,9 @@ def _protocol(args):
         fixed['snr'] = None if args.snr == 0 else args.snr
     fixed = check_items(fixed)
     protocol = (
-        draw_protocol(args.random, fixed) if args.random is not None else complete_protocol(fixed)
+        draw_protocol(args.random, fixed, tag_lines=args.tag_lines)
+        if args.random is not None
+        else complete_protocol(fixed)
     )
     return protocol, protocol_preset(protocol)
 
@@ -135,6 +144,8 @@ def run(args) -> int:
     randomised = args.random is not None or args.protocol is not None
     seed = args.seed if args.seed is not None else (args.random if args.random is not None else 0)
     protocol = None
+    if args.tag_lines != 'grid' and args.random is None:
+        return _fail(f'--tag-lines {args.tag_lines} draws tag lines: give --random SEED too')
     try:
         if randomised:
             protocol, preset = _protocol(args)
@@ -165,7 +176,7 @@ def run(args) -> int:
     series = [(study, out / 'dicom', options)]
     if protocol is not None and protocol['tag_lines'] == 'pair':
         try:
-            series = _line_pair(args, preset, study, options)
+            series = _line_pair(args, preset, study, options, protocol)
         except ValueError as exc:
             return _fail(exc)
     total = sum(len(s[0].frames) for s in series)
@@ -246,16 +257,25 @@ def _simulate(args, preset: dict, protocol: dict | None, snr, seed: int):
         bar.close()
 
 
-def _line_pair(args, preset: dict, study, options: dict) -> list:
+def _line_pair(args, preset: dict, study, options: dict, protocol: dict) -> list:
     """
     Simulate the second single-line series of every slice (``tag_lines: pair``).
 
-    Returns ``[(study, folder, write options)]`` for both: ``OUT/dicom/lines_1`` and
-    ``OUT/dicom/lines_2`` (the second numbered after the first, its own file names).
+    Its lines turned by ``line_pair_angle_deg``, the heart shifted by ``line_pair_shift_mm`` and
+    ``line_pair_through_mm`` (another breath-hold). Returns ``[(study, folder, write options)]``
+    for both: ``OUT/dicom/lines_1`` and ``OUT/dicom/lines_2`` (the second numbered after the
+    first, its own file names).
     """
     from mlv_ros.core.sim.study import line_pair_study
 
-    second = line_pair_study(preset, study, subplanes=args.subplanes)
+    second = line_pair_study(
+        preset,
+        study,
+        protocol['line_pair_angle_deg'],
+        shift_mm=protocol['line_pair_shift_mm'],
+        through_mm=protocol['line_pair_through_mm'],
+        subplanes=args.subplanes,
+    )
     out = Path(args.out) / 'dicom'
     later = {
         **options,
@@ -268,6 +288,8 @@ def _line_pair(args, preset: dict, study, options: dict) -> list:
 def _protocol_header(args, seed: int) -> str:
     """Say in protocol.yaml where the protocol came from and how to simulate it again."""
     how = f'--random {args.random}' if args.random is not None else f'--protocol {args.protocol}'
+    if args.random is not None and args.tag_lines != 'grid':
+        how += f' --tag-lines {args.tag_lines}'
     sub = f' --subplanes {args.subplanes}' if args.subplanes is not None else ''
     return (
         f'Acquisition protocol of this study (mlv-ros simulate {how}; noise seed '

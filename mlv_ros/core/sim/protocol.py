@@ -80,6 +80,22 @@ FOV_RANGE_MM = (200.0, 380.0)
 MAX_DRAWN_SIZE = 256
 #: Stored units per intensity unit when ``dicom_range_fill`` is null (the writer's default).
 LEGACY_PIXEL_SCALE = 1000.0
+#: A line pair's second family: drawn this far (deg) from the first, accepted within the other.
+PAIR_ANGLE_DRAWN = (45.0, 135.0)
+PAIR_ANGLE_ACCEPTED = (30.0, 150.0)
+#: Breath-hold shift of a line pair's second series (drawn): in-plane length up to this, mm, and
+#: through-plane within ± the other. End-expiratory breath-holds put the heart 1–5 mm apart
+#: (McLeish et al., IEEE TMI 21(9) 2002, 1142–1150; Holland et al., Radiology 209 1998, 483–489).
+PAIR_SHIFT_DRAWN_MM = 4.0
+PAIR_THROUGH_DRAWN_MM = 3.0
+#: The line-pair items' values in every study that is not a pair (and in fixed protocols).
+PAIR_DEFAULTS = {
+    'line_pair_angle_deg': 90.0,
+    'line_pair_shift_mm': [0.0, 0.0],
+    'line_pair_through_mm': 0.0,
+}
+#: What ``tag_lines`` is drawn from with ``tag_lines='any'``: grid, pair, single.
+TAG_LINES_ANY = (('grid', 'pair', 'single'), (0.5, 0.3, 0.2))
 
 
 @dataclass(frozen=True)
@@ -281,9 +297,36 @@ _ITEMS = [
         "angle's row direction: only motion across the lines is measured) | pair (two "
         'single-line series of every slice, the second with its lines turned by 90°, as vendors '
         'acquire them in two breath-holds)',
-        'grid (always: single and pair only when given)',
+        'grid; with tag_lines any (mlv-ros simulate --tag-lines any): grid 50 %, pair 30 %, '
+        'single 20 %',
         'grid | single | pair',
         _choice(('grid', 'single', 'pair')),
+    ),
+    Item(
+        'line_pair_angle_deg',
+        "pair: angle from the first series' tag lines to the second's, deg (each family "
+        'measures along its own normal: motion along a direction between them comes from both, '
+        'its error growing as 1/sin(angle))',
+        f'pair: {PAIR_ANGLE_DRAWN[0]:g} … {PAIR_ANGLE_DRAWN[1]:g}; else 90',
+        f'{PAIR_ANGLE_ACCEPTED[0]:g} … {PAIR_ANGLE_ACCEPTED[1]:g} (the reader pairs two '
+        'families at least 30° apart)',
+        _float(*PAIR_ANGLE_ACCEPTED),
+    ),
+    Item(
+        'line_pair_shift_mm',
+        "pair: where the heart sits in the second series' breath-hold relative to the first, "
+        "along the SA images' row and column directions (ImageOrientationPatient's order), mm "
+        '(the DICOM geometry does not say so)',
+        f'pair: a random direction, length 0 … {PAIR_SHIFT_DRAWN_MM:g}; else 0, 0',
+        '2 numbers, each −20 … 20',
+        _vector(2, -20.0, 20.0),
+    ),
+    Item(
+        'line_pair_through_mm',
+        'pair: the same shift along the long axis (apex → base), mm: through the SA planes',
+        f'pair: −{PAIR_THROUGH_DRAWN_MM:g} … {PAIR_THROUGH_DRAWN_MM:g}; else 0',
+        '−20 … 20',
+        _float(-20.0, 20.0),
     ),
     Item(
         'tag_spacing_mm',
@@ -588,6 +631,7 @@ def default_protocol(shape: str = 'normal') -> dict:
         'right_ventricle': bool(p['geometry'].get('rv')),
         'tag_angle_deg': float(im.get('tag_angle_deg', 0.0)),
         'tag_lines': str(im.get('tag_lines', 'grid')),
+        **{k: list(v) if isinstance(v, list) else v for k, v in PAIR_DEFAULTS.items()},
         'tag_spacing_mm': float(im['tag_spacing_mm']),
         'pixel_spacing_mm': float(im['pixel_spacing_mm']),
         'size': int(im['size']),
@@ -652,7 +696,8 @@ def validate_protocol(protocol: dict) -> dict:
         A missing, unknown or out-of-range item, or items that contradict each other (the tag
         period below 2 pixels, an SA stack reaching outside the LV, LA angles closer than 20° or
         not one per plane, a background kind and intensity that disagree, an intercept without
-        a rescale, a null range fill with fewer than 16 bits).
+        a rescale, a null range fill with fewer than 16 bits, a line pair's angle or shift in a
+        study that is not a pair).
 
     """
     p = check_items(protocol)
@@ -695,6 +740,10 @@ def validate_protocol(protocol: dict) -> dict:
     sep = _la_separation(p['la_angles_deg'])
     if sep < LA_MIN_SEPARATION_DEG - 1e-9:
         raise _bad('la_angles_deg', p['la_angles_deg'], f'two planes {sep:.2f}° apart')
+    if p['tag_lines'] != 'pair':
+        for name, default in PAIR_DEFAULTS.items():
+            if p[name] != default:
+                raise _bad(name, p[name], f'tag_lines = {p["tag_lines"]}: a line pair\'s item')
     if (p['background'] == 'none') != (p['background_m0'] == 0.0):
         raise _bad('background_m0', p['background_m0'], f'background = {p["background"]}')
     if not p['dicom_rescale'] and p['dicom_rescale_intercept'] != 0.0:
@@ -839,7 +888,14 @@ def _draw_regions(r: np.random.Generator, shape: str) -> list[dict]:
     return out
 
 
-def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
+def _draw_shift(r: np.random.Generator) -> list[float]:
+    """In-plane breath-hold shift: uniform direction, length uniform in the drawn range, mm."""
+    length = float(r.uniform(0.0, PAIR_SHIFT_DRAWN_MM))
+    turn = float(r.uniform(0.0, 2.0 * math.pi))
+    return [round(length * math.cos(turn), 2) + 0.0, round(length * math.sin(turn), 2) + 0.0]
+
+
+def draw_protocol(seed: int, fixed: dict | None = None, tag_lines: str = 'grid') -> dict:
     """
     Draw a complete acquisition protocol.
 
@@ -852,6 +908,11 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     fixed : dict, optional
         Items to take as given instead of drawing them (checked against the accepted ranges;
         the draws of dependent items adapt to them).
+    tag_lines : str
+        ``'grid'`` (default: every seed draws the grid study it drew before single-line studies
+        existed) or ``'any'``: ``tag_lines`` drawn from its own stream (:data:`TAG_LINES_ANY`),
+        every other item as with ``'grid'``. A pair's angle and breath-hold shift are drawn
+        from their own streams too (90°, no shift when not a pair).
 
     Returns
     -------
@@ -879,6 +940,8 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f'protocol seed must be an integer >= 0, got {seed!r}')
+    if tag_lines not in ('grid', 'any'):
+        raise ValueError(f"tag_lines must be 'grid' or 'any', got {tag_lines!r}")
     fixed = check_items(fixed or {})
     p: dict = {}
 
@@ -892,7 +955,13 @@ def draw_protocol(seed: int, fixed: dict | None = None) -> dict:
     pick('abnormal_regions', lambda r: _draw_regions(r, p['shape']))
     pick('right_ventricle', lambda r: bool(r.random() < 0.75))
     pick('tag_angle_deg', lambda r: _uniform(r, 0.0, 180.0, 2) % 180.0)
-    pick('tag_lines', lambda r: 'grid')
+    kinds, odds = TAG_LINES_ANY
+    pick('tag_lines', lambda r: 'grid' if tag_lines == 'grid' else kinds[int(r.choice(3, p=odds))])
+    pair = p['tag_lines'] == 'pair'
+    pick('line_pair_angle_deg', lambda r: _uniform(r, *PAIR_ANGLE_DRAWN, 2) if pair else 90.0)
+    pick('line_pair_shift_mm', lambda r: _draw_shift(r) if pair else [0.0, 0.0])
+    t = PAIR_THROUGH_DRAWN_MM
+    pick('line_pair_through_mm', lambda r: _uniform(r, -t, t, 2) + 0.0 if pair else 0.0)
     pick('pixel_spacing_mm', lambda r: _uniform(r, 1.0, 2.0, 3))
     dx = p['pixel_spacing_mm']
     tag_lo = MIN_TAG_PX_DRAWN * dx
@@ -1125,6 +1194,27 @@ def dicom_options(protocol: dict, study=None, names_seed: int = 0) -> dict:
         'file_names': p['dicom_file_names'],
         'names_seed': int(names_seed),
     }
+
+
+def protocol_identity(protocol: dict) -> dict:
+    """
+    Return the items that name a study (its UIDs): the protocol less line-pair items at default.
+
+    A study drawn before the line-pair items existed keeps its UIDs (and so its files, bit for
+    bit): an item at its :data:`PAIR_DEFAULTS` value is left out.
+
+    Parameters
+    ----------
+    protocol : dict
+        A complete protocol.
+
+    Returns
+    -------
+    dict
+        The items, in :data:`ITEMS` order.
+
+    """
+    return {k: v for k, v in protocol.items() if k not in PAIR_DEFAULTS or v != PAIR_DEFAULTS[k]}
 
 
 # --------------------------------------------------------------------------- files

@@ -25,7 +25,8 @@ from mlv_ros.core.geometry import SliceGeometry
 from mlv_ros.core.sim.imaging import draw_noise, ImageSynthesizer, plan_slices, PlannedSlice
 from mlv_ros.core.sim.motion import LVMotion
 from mlv_ros.core.sim.presets import load_preset
-from mlv_ros.core.types import Frame, VIEW_NAMES
+from mlv_ros.core.sim.protocol import protocol_identity
+from mlv_ros.core.types import Frame, VIEW_NAMES, VIEW_SA
 import numpy as np
 
 Key = tuple[int, int]  # (view, slice_index)
@@ -183,6 +184,11 @@ class StudyRenderer:
     ----------
     preset, snr, seed
         As :func:`simulate_study`'s.
+    heart_shift_mm : array_like, shape (3,), optional
+        Where the heart (and everything round it) sits relative to the planned planes, patient
+        mm: a breath-hold that differs from the one the planes were planned in. The images show
+        the shifted heart; the frames keep the planned geometry (the scanner does not know).
+        The truth stays the unshifted heart's. Default: none.
     **overrides
         ``size``, ``num_phases``, ``subplanes``, ``pixel_spacing``, ``quick``: as
         :func:`simulate_study`'s.
@@ -203,14 +209,25 @@ class StudyRenderer:
 
     """
 
-    def __init__(self, preset='normal', snr: float | None = 20.0, seed: int = 0, **overrides):
+    def __init__(
+        self,
+        preset='normal',
+        snr: float | None = 20.0,
+        seed: int = 0,
+        heart_shift_mm=None,
+        **overrides,
+    ):
         self.preset = p = _preset_with(preset, **overrides)
         self.size = p['imaging']['size']
         self.motion = LVMotion(p)
         self.slices = plan_slices(self.motion, p['imaging'], self.size)
         self.snr, self.seed = snr, int(seed)
         # A drawn protocol (sim.protocol) joins the UID's parts, so two protocols never share one.
-        extra = (json.dumps(p['protocol'], sort_keys=True),) if p.get('protocol') else ()
+        extra = (
+            (json.dumps(protocol_identity(p['protocol']), sort_keys=True),)
+            if p.get('protocol')
+            else ()
+        )
         self.study_uid = _uid('study', p['name'], seed, self.size, self.motion.num_phases, *extra)
         self.frame_of_reference_uid = _uid('for', p['name'], seed)
         self.series_uids = {
@@ -218,6 +235,16 @@ class StudyRenderer:
             for sl in self.slices
         }
         self._planes = {(sl.view, sl.index): sl for sl in self.slices}
+        # Rendered through planes moved by −shift: the heart sits at +shift relative to them.
+        shift = np.zeros(3) if heart_shift_mm is None else np.asarray(heart_shift_mm, float)
+        if shift.shape != (3,) or not np.isfinite(shift).all():
+            raise ValueError(
+                f'heart_shift_mm must be 3 finite numbers (mm), got {heart_shift_mm!r}'
+            )
+        self._render_planes = {
+            key: sl if not shift.any() else replace(sl, geometry=_moved(sl.geometry, -shift))
+            for key, sl in self._planes.items()
+        }
         self._position = {(sl.view, sl.index): i for i, sl in enumerate(self.slices)}
         self._noise = SliceMajorNoise(seed, self.motion.num_phases, (self.size, self.size))
         self._synths: dict[Key, ImageSynthesizer] = {}
@@ -234,7 +261,7 @@ class StudyRenderer:
             raise ValueError(f'no slice (view={view}, slice_index={slice_index}) in this study')
         if key not in self._synths:
             self._synths[key] = ImageSynthesizer(
-                self.motion, self._planes[key], self.size, self.preset['imaging']
+                self.motion, self._render_planes[key], self.size, self.preset['imaging']
             )
         return self._synths[key]
 
@@ -278,6 +305,11 @@ class StudyRenderer:
         return myo >= 0.5
 
 
+def _moved(geometry: SliceGeometry, offset) -> SliceGeometry:
+    """Return ``geometry`` translated by ``offset`` (patient mm), its axes and grid unchanged."""
+    return replace(geometry, image_position=np.asarray(geometry.image_position, float) + offset)
+
+
 def simulate_study(
     preset='normal',
     snr: float | None = 20.0,
@@ -288,6 +320,7 @@ def simulate_study(
     pixel_spacing: float | None = None,
     quick: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    heart_shift_mm=None,
 ) -> Study:
     """
     Simulate a tagged cine study (SA stack + LA planes) of a phantom preset.
@@ -315,6 +348,8 @@ def simulate_study(
         Use :data:`QUICK` (128², 10 phases, 3 sub-planes) for anything not given explicitly.
     progress : callable, optional
         ``progress(done, total)`` after each image.
+    heart_shift_mm : array_like, shape (3,), optional
+        The heart's shift from the planned planes, patient mm (:class:`StudyRenderer`).
 
     Returns
     -------
@@ -325,6 +360,7 @@ def simulate_study(
         preset,
         snr,
         seed,
+        heart_shift_mm,
         size=size,
         num_phases=num_phases,
         subplanes=subplanes,
@@ -394,7 +430,13 @@ def _preset_with(
 
 
 def line_pair_study(
-    preset, first: Study, turn_deg: float = 90.0, seed: int | None = None, **kwargs
+    preset,
+    first: Study,
+    turn_deg: float = 90.0,
+    seed: int | None = None,
+    shift_mm=(0.0, 0.0),
+    through_mm: float = 0.0,
+    **kwargs,
 ) -> Study:
     """
     Simulate the second single-line series of every slice of ``first``: its lines turned.
@@ -403,7 +445,10 @@ def line_pair_study(
     turned between them (``tag_lines: pair`` of :mod:`mlv_ros.core.sim.protocol`). The second
     study is the same heart and planes with ``imaging.tag_angle_deg`` + ``turn_deg`` and its own
     noise; it joins ``first``'s study and frame of reference with series of its own (UIDs and
-    descriptions ``… lines 2``).
+    descriptions ``… lines 2``). Its breath-hold may put the heart elsewhere: ``shift_mm`` along
+    the SA images' rows and columns and ``through_mm`` along the long axis (apex → base), one
+    rigid shift for the whole second acquisition (every slice, SA and LA, sees the same 3-D
+    shift, in its plane or through it); the DICOM geometry is the planned one either way.
 
     Parameters
     ----------
@@ -415,6 +460,10 @@ def line_pair_study(
         Angle between the two families, degrees.
     seed : int, optional
         Noise seed (default ``first.seed + 1``: noise independent of the first's).
+    shift_mm : sequence of 2 float
+        The heart's in-plane shift in the second breath-hold, along the SA rows and columns, mm.
+    through_mm : float
+        Its shift along the long axis (apex → base), mm.
     **kwargs
         :func:`simulate_study`'s other arguments, as given for ``first``.
 
@@ -426,7 +475,8 @@ def line_pair_study(
     Raises
     ------
     ValueError
-        ``preset`` is not a single-line preset.
+        ``preset`` is not a single-line preset, or ``first`` has no SA slice to take the shift's
+        directions from while one is asked for.
 
     """
     p = load_preset(preset)
@@ -436,8 +486,22 @@ def line_pair_study(
             f"a line pair needs imaging.tag_lines 'single', got {im.get('tag_lines')!r}"
         )
     im['tag_angle_deg'] = (float(im.get('tag_angle_deg', 0.0)) + float(turn_deg)) % 180.0
+    shift = np.zeros(3)
+    if any(shift_mm) or through_mm:
+        sa = [g for (view, _), g in sorted(first.geometries.items()) if view == VIEW_SA]
+        if not sa:
+            raise ValueError('a breath-hold shift of a line pair needs an SA slice (its axes)')
+        shift = (
+            float(shift_mm[0]) * np.asarray(sa[0].row_direction)
+            + float(shift_mm[1]) * np.asarray(sa[0].column_direction)
+            + float(through_mm) * first.motion.frame.long_axis
+        )
     second = simulate_study(
-        p, snr=first.snr, seed=first.seed + 1 if seed is None else int(seed), **kwargs
+        p,
+        snr=first.snr,
+        seed=first.seed + 1 if seed is None else int(seed),
+        heart_shift_mm=shift,
+        **kwargs,
     )
     uids = {k: _uid('series', first.study_uid, 'lines 2', *k) for k in second.series_uids}
     return replace(

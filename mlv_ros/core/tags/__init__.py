@@ -48,7 +48,9 @@ Public API
     only (:mod:`mlv_ros.core.tags.lines`); the TagPointSet carries each point's line normal
     (``line_normal``), the one direction it measures. ``LineSliceTracker(geometry)`` tracks a
     slice of a single-line study (``Frame.tag_lines``): each family's period and angle
-    estimated at ED inside the myocardium, a line pair's two families in one set.
+    estimated at ED inside the myocardium, a line pair's two families in one set, the second
+    series' breath-hold shift from the first estimated on the shared anatomy and corrected
+    (``estimate_pair_shift``, :mod:`mlv_ros.core.tags.line_pair`).
 
 ``harp_track(images, start_rc, params) -> HarpTrack``
     HARP baseline (Osman et al. 1999): band-pass one spectral peak per direction, harmonic
@@ -100,6 +102,7 @@ from .intersections import (
     grid_coherence,
     grid_labels,
 )
+from .line_pair import estimate_pair_shift, PairShift
 from .lines import (
     detect_line_points,
     estimate_line_family,
@@ -118,6 +121,7 @@ __all__ = [
     'LinePoints',
     'LineSliceTracker',
     'LineTracker',
+    'PairShift',
     'RPMResult',
     'SliceTracker',
     'TagInputError',
@@ -126,6 +130,7 @@ __all__ = [
     'detect_intersections',
     'detect_line_points',
     'estimate_line_family',
+    'estimate_pair_shift',
     'estimate_grid',
     'estimate_tag_parameters',
     'grid_coherence',

@@ -51,9 +51,10 @@ from .gabor import (
     validate_image,
 )
 from .intersections import masked_normalise
+from .line_pair import estimate_pair_shift, LARGE_SHIFT_MM, PairShift
 from .phase import PhaseField
 from .tracker import tag_period_range_px
-from ..types import Frame, TagPointSet, TAGS_LINE_PAIR
+from ..types import Frame, PAIR_MISREGISTERED, TagPointSet, TAGS_LINE_PAIR
 
 # |R| / σ_local of an ideal single family ``sin²(π a / λ)``: a cosine of amplitude 1/2 (|R| =
 # 1/4) with standard deviation (1/2)/√2, so the ratio is 1/√2 (the grid's is 1/√5).
@@ -297,6 +298,13 @@ class LineTracker:
         ``follow_floor``: tags fade with T1 over the cycle (the rule and defaults of
         :class:`~mlv_ros.core.tags.SliceTracker`).
 
+    Attributes
+    ----------
+    offset_rc : ndarray, shape (2,)
+        Subtracted from the tracked pixel positions on output, px: where this family's series
+        shows the anatomy off the slice's first series (a line pair's second breath-hold,
+        :func:`~mlv_ros.core.tags.line_pair.estimate_pair_shift`); zeros by default.
+
     """
 
     def __init__(
@@ -319,6 +327,7 @@ class LineTracker:
         self.velocity = np.zeros((0, 2))
         self.follow = (float(follow_relative), float(follow_floor))
         self._follow_conf = np.nan  # median confidence of the points at the previous phase
+        self.offset_rc = np.zeros(2)
 
     def follow_threshold(self) -> float:
         """Return the confidence a point needs to stay tracked at the next phase (0..1)."""
@@ -393,7 +402,7 @@ class LineTracker:
         )
         if rc is None or not len(rc):
             return out
-        out.pixel_rc = np.asarray(rc, float)
+        out.pixel_rc = np.asarray(rc, float) - self.offset_rc
         out.position = geom.pixel_to_patient(out.pixel_rc)
         out.track_id = self.ids.astype(np.int32)
         out.confidence = np.asarray(conf, np.float32)
@@ -522,6 +531,16 @@ class LineSliceTracker:
     :class:`~mlv_ros.core.tags.SliceTracker`: ``params`` (None when no family was read at ED),
     ``track_id`` (every ED track) and ``alive`` (the tracks at the last phase).
 
+    A pair's two series come from two breath-holds: at ED the second's in-plane shift from the
+    first is estimated on the anatomy they share
+    (:func:`~mlv_ros.core.tags.line_pair.estimate_pair_shift`, ``pair_shift``). A sure one is
+    corrected (the second family is detected in the ED mask moved by it, its points moved back
+    onto the first's anatomy); an unsure one is not, and a sure one beyond
+    :data:`~mlv_ros.core.tags.line_pair.LARGE_SHIFT_MM` likely came with a through-plane shift
+    no in-plane estimate sees: either way the ED status gets a part beginning
+    :data:`~mlv_ros.core.types.PAIR_MISREGISTERED` (``pair_note``), which degrades every phase
+    the solver solves.
+
     Parameters
     ----------
     geometry : SliceGeometry
@@ -538,6 +557,9 @@ class LineSliceTracker:
         self.params = None
         self.track_id = np.zeros(0, np.int32)
         self.alive = np.zeros(0, np.int32)
+        self.pair_shift: PairShift | None = None
+        self.pair_note = ''
+        self._masks: list = []
 
     def _start(self, images, mask) -> str:
         """Estimate each family at ED and start its tracker; return why none started, or ''."""
@@ -559,7 +581,36 @@ class LineSliceTracker:
         live = [f for f in self.families if f is not None]
         if live:
             self.params = [f.params for f in live]
+        self._masks = [m] * len(self.families)
+        if len(live) == 2:
+            self._register_pair(images, m, px)
         return '' if live else '; '.join(why)
+
+    def _register_pair(self, images, mask, px: float) -> None:
+        """Estimate the second series' shift, correct it when sure, note it when it is not."""
+        lam = max(float(f.params.spacing_px[0]) for f in self.families)
+        est = self.pair_shift = estimate_pair_shift(images[0], images[1], mask, lam, px)
+        if est.sure:
+            self.families[1].offset_rc = est.shift_rc
+            moved = np.zeros_like(mask)
+            dr, dc = (int(round(v)) for v in est.shift_rc)
+            h, w = mask.shape
+            moved[max(dr, 0):h + min(dr, 0), max(dc, 0):w + min(dc, 0)] = mask[
+                max(-dr, 0):h + min(-dr, 0), max(-dc, 0):w + min(-dc, 0)
+            ]
+            self._masks[1] = moved
+        if not est.sure:
+            self.pair_note = (
+                f'{PAIR_MISREGISTERED}: the shift between its two series is unsure '
+                f"({est.reason}); not corrected, the second family's points may be off along "
+                'their normals by it'
+            )
+        elif est.large:
+            self.pair_note = (
+                f'{PAIR_MISREGISTERED}: its second series is {est.shift_mm:.1f} mm off the first '
+                f'in-plane (more than breath-holds usually differ, {LARGE_SHIFT_MM:g} mm), '
+                'corrected in-plane, while a through-plane shift of that order cannot be'
+            )
 
     def update(self, frame: Frame, mask=None) -> TagPointSet:
         """
@@ -583,7 +634,7 @@ class LineSliceTracker:
         if frame.tag_lines == TAGS_LINE_PAIR and frame.line_image is not None:
             images.append(frame.line_image)
         if int(frame.phase_index) == 0:
-            self.params = None
+            self.params, self.pair_shift, self.pair_note = None, None, ''
             why = self._start(images, mask)
             if why:
                 self.families = []
@@ -596,7 +647,9 @@ class LineSliceTracker:
                 continue
             if k >= len(images):  # the second series lacks this phase
                 continue
-            one = tracker.update(replace(frame, image=images[k]), mask)
+            one = tracker.update(
+                replace(frame, image=images[k]), self._masks[k] if self._masks else mask
+            )
             sets.append((k, one))
         if not sets:
             return LineTracker(self.geometry, spacing_px=2.0, angle=0.0)._result(
@@ -609,6 +662,8 @@ class LineSliceTracker:
         self.alive = ids
         if int(frame.phase_index) == 0:
             self.track_id = ids
+            if self.pair_note:
+                out.status = '; '.join(x for x in (out.status, self.pair_note) if x)
         return out
 
 
