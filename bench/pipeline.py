@@ -18,7 +18,7 @@ Benchmark: the whole graph on the default study as ``mlv-ros run`` runs it.
 The default study: normal phantom, 8 SA + 3 LA, 256², 25 phases, SNR 20; the tag detector in a
 child process and the phantom simulated in another (MLV_ROS_ONE_PROCESS=1: all in one). Prints
 one JSON document: total time, per-stage latency per phase (from the recording's receive times),
-peak RSS (and RSS / PSS / USS summed over the processes, sampled: ``bench/memory.py``),
+peak RSS (and RSS / PSS / USS summed over the processes, sampled: ``bench/_memory.py``),
 messages published vs recorded, accuracy; then ``local_stage``: the run's recorded tag
 points replayed through a tracker built as the solver node builds it, every local solve timed
 with the new stage and with the old one (``bench/reference_local.py``) on identical inputs
@@ -50,7 +50,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from memory import TreeMemory  # noqa: E402, I100
+from _memory import TreeMemory  # noqa: E402, I100
 from reference_local import tracker_local_solve  # noqa: E402
 
 
@@ -209,6 +209,40 @@ def recorded_solver_input(mcap: Path) -> tuple:
     return cloud, state, sets
 
 
+def recorded_tracker(cloud, state, ed_sets=None, tracker_class=MotionTracker, **options):
+    """
+    Build a tracker on a run's registration as the solver node builds it.
+
+    Parameters
+    ----------
+    cloud, state :
+        The registered cloud and global state (:func:`recorded_solver_input`).
+    ed_sets : dict, optional
+        (view, slice) → the ED TagPointSet, each set as a reference; default none.
+    tracker_class : type
+        ``MotionTracker``, or another source tree's (``bench/solver_pair.py``).
+    **options
+        MotionTracker keywords.
+
+    Returns
+    -------
+    MotionTracker
+        The tracker.
+
+    """
+    tr = tracker_class(
+        conversions.xyz(cloud),
+        state.translation,
+        state.rotation,
+        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
+        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
+        **options,
+    )
+    for pts in (ed_sets or {}).values():
+        tr.set_reference(pts)
+    return tr
+
+
 def local_stage_replay(mcap: Path) -> dict:
     """
     Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
@@ -220,13 +254,7 @@ def local_stage_replay(mcap: Path) -> dict:
     """
     cloud, state, sets = recorded_solver_input(mcap)
     t0 = time.perf_counter()
-    tr = MotionTracker(
-        conversions.xyz(cloud),
-        state.translation,
-        state.rotation,
-        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
-        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
-    )
+    tr = recorded_tracker(cloud, state)
     build_s = time.perf_counter() - t0
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
@@ -350,7 +378,7 @@ def main():
         'peak_rss_mb_child_process': round(
             resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1
         ),
-        # RSS / PSS / USS summed over the run's processes at one instant (bench/memory.py)
+        # RSS / PSS / USS summed over the run's processes at one instant (bench/_memory.py)
         'memory': memory.result() if memory is not None else None,
         'latency': stage_latencies(out / 'run.mcap'),
         'published_vs_recorded': {

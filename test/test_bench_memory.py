@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-``bench/memory.py``: a process tree's RSS / PSS / USS, summed at one instant.
+``bench/_memory.py``: a process tree's RSS / PSS / USS, summed at one instant.
 
 A grandchild (started through a shell, so it is not this process's own child) that writes to
 64 MB of its own is found and its private pages counted; the three figures are ordered as their
@@ -28,7 +28,7 @@ import sys
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
-from memory import descendants, rollup, TreeMemory  # noqa: E402, I100
+from _memory import descendants, rollup, TreeMemory  # noqa: E402, I100
 
 pytestmark = pytest.mark.skipif(
     not Path('/proc/self/smaps_rollup').exists(), reason='needs Linux /proc smaps_rollup'

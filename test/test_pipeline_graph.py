@@ -126,23 +126,12 @@ def test_local_stage_matches_the_reference_on_the_recorded_tag_points(phantom_ru
     CG runs to rtol 1e-6 either way, so what differs is the operators, not where CG stopped
     (the simulated-tag check at the node's rtol is test_local_stage's).
     """
-    from mlv_ros import conversions
-    from mlv_ros.core.tracking import MotionTracker
-    from pipeline import recorded_solver_input
+    from pipeline import recorded_solver_input, recorded_tracker
     from reference_local import tracker_local_solve
 
     out, _ = phantom_run
     cloud, state, sets = recorded_solver_input(out / 'run.mcap')
-    tr = MotionTracker(
-        conversions.xyz(cloud),
-        state.translation,
-        state.rotation,
-        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
-        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
-        longitudinal_coupling=0.0,
-    )
-    for pts in sets[0].values():
-        tr.set_reference(pts)
+    tr = recorded_tracker(cloud, state, sets[0], longitudinal_coupling=0.0)
     tr.cg_rtol = tr.cg_rtol_following = 1e-6  # every pass, and the reference (it reads cg_rtol)
     tr.cg_maxiter = 5000
     new_solve, cache, diffs = tr._local_solve, {}, []
