@@ -72,6 +72,8 @@ def test_a_grandchilds_private_memory_is_found_and_the_figures_are_ordered():
     assert peak['pss'] < peak['rss']
 
 
-def test_period_must_be_positive():
+def test_periods_must_be_positive():
     with pytest.raises(ValueError, match='period_s must be > 0'):
         TreeMemory(period_s=0)
+    with pytest.raises(ValueError, match='rescan_s must be > 0'):
+        TreeMemory(rescan_s=-1.0)
