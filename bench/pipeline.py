@@ -18,7 +18,8 @@ Benchmark: the whole graph on the default study as ``mlv-ros run`` runs it.
 The default study: normal phantom, 8 SA + 3 LA, 256², 25 phases, SNR 20; the tag detector in a
 child process and the phantom simulated in another (MLV_ROS_ONE_PROCESS=1: all in one). Prints
 one JSON document: total time, per-stage latency per phase (from the recording's receive times),
-peak RSS, messages published vs recorded, accuracy; then ``local_stage``: the run's recorded tag
+peak RSS (and RSS / PSS / USS summed over the processes, sampled: ``bench/_memory.py``),
+messages published vs recorded, accuracy; then ``local_stage``: the run's recorded tag
 points replayed through a tracker built as the solver node builds it, every local solve timed
 with the new stage and with the old one (``bench/reference_local.py``) on identical inputs
 (``--no-replay`` skips it).
@@ -27,6 +28,7 @@ with the new stage and with the old one (``bench/reference_local.py``) on identi
 """
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 import resource
@@ -48,7 +50,8 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reference_local import tracker_local_solve  # noqa: E402, I100
+from _memory import TreeMemory  # noqa: E402, I100
+from reference_local import tracker_local_solve  # noqa: E402
 
 
 def stage_latencies(mcap: Path) -> dict:
@@ -73,11 +76,11 @@ def stage_latencies(mcap: Path) -> dict:
         else:
             metrics_t[deserialize_message(m.data, MotionMetrics).phase_index] = m.log_time_ns
     tag_ms = [(tag_t[k] - frame_t[k]) / 1e6 for k in tag_t if k in frame_t]
-    solve_ms = []
+    solve_ms = {}
     for ph, t in motion_t.items():
         last_tag = max((v for k, v in tag_t.items() if k[2] == ph), default=None)
         if last_tag is not None and ph > 0:
-            solve_ms.append((t - last_tag) / 1e6)
+            solve_ms[ph] = (t - last_tag) / 1e6
     analyse_ms = [(metrics_t[ph] - t) / 1e6 for ph, t in motion_t.items() if ph in metrics_t]
 
     def stats(v):
@@ -89,7 +92,9 @@ def stage_latencies(mcap: Path) -> dict:
 
     return {
         'tag_detector_per_frame_ms': stats(tag_ms),
-        'solver_per_phase_ms': stats(solve_ms),
+        'solver_per_phase_ms': stats(list(solve_ms.values())),
+        # the first solved phase: its last tag points → its motion, model build waits included
+        'solver_first_phase_ms': round(solve_ms[min(solve_ms)], 1) if solve_ms else None,
         'analyzer_per_phase_ms': stats(analyse_ms),
     }
 
@@ -204,6 +209,40 @@ def recorded_solver_input(mcap: Path) -> tuple:
     return cloud, state, sets
 
 
+def recorded_tracker(cloud, state, ed_sets=None, tracker_class=MotionTracker, **options):
+    """
+    Build a tracker on a run's registration as the solver node builds it.
+
+    Parameters
+    ----------
+    cloud, state :
+        The registered cloud and global state (:func:`recorded_solver_input`).
+    ed_sets : dict, optional
+        (view, slice) → the ED TagPointSet, each set as a reference; default none.
+    tracker_class : type
+        ``MotionTracker``, or another source tree's (``bench/solver_pair.py``).
+    **options
+        MotionTracker keywords.
+
+    Returns
+    -------
+    MotionTracker
+        The tracker.
+
+    """
+    tr = tracker_class(
+        conversions.xyz(cloud),
+        state.translation,
+        state.rotation,
+        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
+        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
+        **options,
+    )
+    for pts in (ed_sets or {}).values():
+        tr.set_reference(pts)
+    return tr
+
+
 def local_stage_replay(mcap: Path) -> dict:
     """
     Old vs new local stage on the run's recorded tag points (seconds; medians over the solves).
@@ -215,13 +254,7 @@ def local_stage_replay(mcap: Path) -> dict:
     """
     cloud, state, sets = recorded_solver_input(mcap)
     t0 = time.perf_counter()
-    tr = MotionTracker(
-        conversions.xyz(cloud),
-        state.translation,
-        state.rotation,
-        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
-        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
-    )
+    tr = recorded_tracker(cloud, state)
     build_s = time.perf_counter() - t0
     for pts in sets.get(0, {}).values():
         tr.set_reference(pts)
@@ -300,14 +333,27 @@ def main():
     ap.add_argument(
         '--no-replay', action='store_true', help='skip the old-vs-new local stage replay'
     )
+    ap.add_argument(
+        '--memory-period-s',
+        type=float,
+        default=0.1,
+        help='sample the RSS/PSS/USS of this process and its children this often (0 = off)',
+    )
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix='mlv-bench-pipeline-'))
+    memory = TreeMemory(period_s=args.memory_period_s) if args.memory_period_s > 0 else None
     t0 = time.perf_counter()
-    s = run_graph(
-        {'source': 'phantom', 'preset': args.preset, 'size': args.size, 'num_phases': args.phases},
-        out,
-        progress=lambda *_: None,
-    )
+    with memory or contextlib.nullcontext():
+        s = run_graph(
+            {
+                'source': 'phantom',
+                'preset': args.preset,
+                'size': args.size,
+                'num_phases': args.phases,
+            },
+            out,
+            progress=lambda *_: None,
+        )
     wall = time.perf_counter() - t0
     topics = bagio.bag_topics(out / 'run.mcap')
     acc = phantom_accuracy(out / 'run.mcap', args.preset, args.phases) if s['complete'] else {}
@@ -332,6 +378,8 @@ def main():
         'peak_rss_mb_child_process': round(
             resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1
         ),
+        # RSS / PSS / USS summed over the run's processes at one instant (bench/_memory.py)
+        'memory': memory.result() if memory is not None else None,
         'latency': stage_latencies(out / 'run.mcap'),
         'published_vs_recorded': {
             t: [published[t], topics.get(t, {}).get('count', 0)] for t in published

@@ -78,6 +78,7 @@ from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import FAILED, OK
 from mlv_ros.recording import motion_accuracy
 import numpy as np
+from pipeline import recorded_tracker
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 import yaml
@@ -137,14 +138,7 @@ def solve(sets: dict, cloud, state, **solver_kwargs):
 
     known = inspect.signature(MotionTracker).parameters
     attrs = {k: solver_kwargs.pop(k) for k in list(solver_kwargs) if k not in known}
-    tr = MotionTracker(
-        conversions.xyz(cloud),
-        state.translation,
-        state.rotation,
-        polar=(cloud['alpha'], cloud['beta'], cloud['w']),
-        shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
-        **solver_kwargs,
-    )
+    tr = recorded_tracker(cloud, state, **solver_kwargs)
     for k, v in attrs.items():
         if not hasattr(tr, k):
             raise ValueError(f'MotionTracker has no parameter or attribute {k!r}')

@@ -36,7 +36,7 @@ import tempfile
 import time
 
 import numpy as np
-from pipeline import recorded_solver_input
+from pipeline import recorded_solver_input, recorded_tracker
 
 
 def load_tree(tree: Path, name: str, into: Path):
@@ -88,20 +88,13 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(work))
     try:
         mods = {t: load_tree(getattr(args, t), f'mlv_ros_{t}', work) for t in ('old', 'new')}
-        _, conv, threads = mods['new']
+        threads = mods['new'][2]
         cloud, state, sets = recorded_solver_input(args.run)
         if cloud is None or state is None or len(sets) < 3:
             raise SystemExit(f'solver_pair: {args.run} holds no registration or too few phases')
 
         def tracker(t):
-            tr = mods[t][0].MotionTracker(
-                conv.xyz(cloud), state.translation, state.rotation,
-                polar=(cloud['alpha'], cloud['beta'], cloud['w']),
-                shape=(state.a0, state.a1, state.a2, state.a3, state.tau),
-            )
-            for pts in sets.get(0, {}).values():
-                tr.set_reference(pts)
-            return tr
+            return recorded_tracker(cloud, state, sets.get(0), mods[t][0].MotionTracker)
 
         cpu: dict = {'old': [], 'new': []}
         same, num_phases = True, max(sets) + 1

@@ -42,6 +42,13 @@ import threading
 from typing import Callable
 
 HEADER = struct.Struct('<iii')
+# Most frames handed to the parent and not yet published (:meth:`RenderProcess.taken`): the child
+# waits (its pipe full) beyond that. While the run's executor is busy (the registration), frames
+# rendered ahead would wait in the parent and, once published, in the tag detector's queue; 64
+# frames of 256² float32 are 16 MB. Measured on the default study, paired at load 8-10: summed
+# RSS / PSS of the run's processes 673 / 532 and 664 / 546 MB against 730 / 624 and 718 / 602
+# unbounded (docs/benchmarks.md, issue 17).
+RENDER_AHEAD = 64
 
 
 def processes_allowed() -> bool:
@@ -65,7 +72,7 @@ class RenderProcess:
         ``(view, slice_index, phase)`` of every frame to render, in this order.
     on_frame : callable
         ``on_frame(index, image)`` on the reader thread, for each frame in order (``image``
-        float32 (rows, cols)).
+        float32 (rows, cols)); at most :data:`RENDER_AHEAD` frames ahead of :meth:`taken`.
     on_failure : callable
         ``on_failure(reason)`` on the reader thread, once, if the child fails or ends early.
 
@@ -85,6 +92,7 @@ class RenderProcess:
         self.failure: str | None = None
         self._closed = False
         self._on_frame, self._on_failure = on_frame, on_failure
+        self._room = threading.Semaphore(RENDER_AHEAD)  # frames it may hand over before taken()
         self.proc = subprocess.Popen(
             [sys.executable, '-m', 'mlv_ros.render_process'],
             stdin=subprocess.PIPE,
@@ -108,6 +116,9 @@ class RenderProcess:
         out = self.proc.stdout
         try:
             while self.received < self.total:
+                while not self._room.acquire(timeout=0.2):
+                    if self._closed:
+                        return
                 head = out.read(HEADER.size)
                 if len(head) < HEADER.size:
                     break
@@ -127,6 +138,10 @@ class RenderProcess:
                 why = f'exit status {rc}' if rc >= 0 else f'killed by signal {-rc}'
                 self.failure = self.failure or f'the render process ended early ({why})'
                 self._on_failure(self.failure)
+
+    def taken(self) -> None:
+        """Say that a frame handed over is published and dropped: one more may come."""
+        self._room.release()
 
     def close(self) -> None:
         """End the child if it still runs and wait for it and its reader (no failure reported)."""

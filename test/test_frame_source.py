@@ -25,11 +25,12 @@ bit.
 
 import shutil
 import sys
+import time
 
 from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 from mlv_msgs.msg import TaggedFrame
-from mlv_ros import conversions, qos
+from mlv_ros import conversions, qos, render_process
 from mlv_ros.core.sim.pattern import pattern_frames
 from mlv_ros.nodes import frame_source
 from mlv_ros.nodes.frame_source import FrameSource, order_frames
@@ -85,6 +86,7 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
     from mlv_ros.core.sim import load_preset, simulate_study
 
     monkeypatch.setenv('MLV_ROS_ONE_PROCESS', '1' if layout == 'one_process' else '0')
+    monkeypatch.setattr(render_process, 'RENDER_AHEAD', 4)  # of 33 frames: the bound is met
     if layout == 'render_process_fails':
         monkeypatch.setattr(sys, 'executable', shutil.which('false'))  # exits 1 at once
 
@@ -108,6 +110,16 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
     # Nothing is simulated before the node is asked for frames: only the plan.
     assert len(src.frames) == 33 and all(f.image is None for f in src.frames)
     assert (src._render_process is None) == (layout == 'one_process')
+    ahead = []  # frames handed over and not yet published, as each is handed over
+    proc = src._render_process
+    if proc is not None:
+        hand_over = proc._on_frame
+        proc._on_frame = lambda i, img: (ahead.append(i + 1 - src.published), hand_over(i, img))
+        # Nothing is published before the executor spins: the child renders up to the bound.
+        deadline = time.monotonic() + 30.0
+        while proc.received < 4 and proc.failure is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.5)  # unbounded, all 33 would be handed over meanwhile
     executor.add_node(sink)
     executor.add_node(src)
     assert spin_until(executor, lambda: src.done and len(received) == 33, timeout=60, step=0.01)
@@ -119,6 +131,9 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
     ]
     for f, e in zip(got, expected):
         np.testing.assert_array_equal(f.image, e.image)
+    # The render process waits while RENDER_AHEAD frames are handed over and not published.
+    assert max(ahead, default=0) <= 4, ahead
+    assert (len(ahead) > 20) == (layout == 'render_process'), ahead
     # Published pixels are not kept by the node (the writer's history holds them).
     assert all(f.image is None for f in src.frames)
     # A failed render process is said on /diagnostics (the node's status: diagnostic_updater

@@ -21,7 +21,9 @@ the console scripts.
 """
 
 import json
+from pathlib import Path
 import subprocess
+import sys
 
 from conftest import console_script, spin_until
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -33,6 +35,8 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 
 pytestmark = pytest.mark.slow  # a graph run: scheduled first (conftest)
 
@@ -109,6 +113,48 @@ def test_recording_opens_with_rosbags_with_every_topic(phantom_run):
     run = read_run(out / 'run.mcap')
     assert sorted(run['positions']) == list(range(16))
     np.testing.assert_allclose(run['positions'][0], run['ed'], atol=1e-4)  # phase 0 = ED
+
+
+def test_local_stage_matches_the_reference_on_the_recorded_tag_points(phantom_run):
+    """
+    Check the local stage against the old one (bench/reference_local.py) on recorded tag points.
+
+    The run's registration and detected tag points (noisy, screened, unequally confident) are
+    solved by a tracker built as the solver node builds it; each local solve of end-systole
+    (solved from rest) is run by both stages from the same start on the same attachment and
+    global fit, without the per-point weights and the longitudinal coupling the old stage lacks.
+    CG runs to rtol 1e-6 either way, so what differs is the operators, not where CG stopped
+    (the simulated-tag check at the node's rtol is test_local_stage's).
+    """
+    from pipeline import recorded_solver_input, recorded_tracker
+    from reference_local import tracker_local_solve
+
+    out, _ = phantom_run
+    cloud, state, sets = recorded_solver_input(out / 'run.mcap')
+    tr = recorded_tracker(cloud, state, sets[0], longitudinal_coupling=0.0)
+    tr.cg_rtol = tr.cg_rtol_following = 1e-6  # every pass, and the reference (it reads cg_rtol)
+    tr.cg_maxiter = 5000
+    new_solve, cache, diffs = tr._local_solve, {}, []
+
+    def both(phi, targets, normals, x_global, weights=None, rtol=None, scale=None):
+        start = (None if tr.delta is None else tr.delta.copy(), tr._local_gradients)
+        plain = new_solve(phi, targets, normals, x_global)
+        old, _ = tracker_local_solve(tr, phi, targets, normals, x_global, start[0], cache)
+        tr.delta, tr._local_gradients = start  # the node's solve goes on from the same start
+        diffs.append((np.linalg.norm(plain - old, axis=1), np.abs(old).max()))
+        return new_solve(phi, targets, normals, x_global, weights, rtol, scale)
+
+    tr._local_solve = both
+    volume = {p: m['cavity_volume_ml'] for p, m in read_run(out / 'run.mcap')['metrics'].items()}
+    es = min(volume, key=volume.get)  # the analyzer's end-systole
+    tr.solve(es, sets[es], 16)
+    assert len(diffs) == 2
+    assert max(d for _, d in diffs) > 1.0  # δ reaches millimetres by end-systole
+    # measured 1.7e-5 / 8e-5 mm (median / p95); a fit-error penalty 5 % off: 0.0057 mm median
+    assert max(np.median(d) for d, _ in diffs) < 1e-3, [np.median(d) for d, _ in diffs]
+    assert max(np.percentile(d, 95) for d, _ in diffs) < 5e-3, [
+        np.percentile(d, 95) for d, _ in diffs
+    ]
 
 
 def test_report_from_the_recording(phantom_run, tmp_path):

@@ -509,6 +509,8 @@ class FrameSource(GraphNode):
         if self._renderer is not None:
             frame.image = None
         self.published += 1
+        if self._render_process is not None:
+            self._render_process.taken()  # dropped: the render process may hand over one more
         self._next_at += self._frame_interval(frame)
 
     def _publish_due(self) -> None:
