@@ -42,13 +42,15 @@ import threading
 from typing import Callable
 
 HEADER = struct.Struct('<iii')
-# Most frames handed to the parent and not yet published (:meth:`RenderProcess.taken`): the child
-# waits (its pipe full) beyond that. While the run's executor is busy (the registration), frames
-# rendered ahead would wait in the parent and, once published, in the tag detector's queue; 64
-# frames of 256² float32 are 16 MB. Measured on the default study, paired at load 8-10: summed
-# RSS / PSS of the run's processes 673 / 532 and 664 / 546 MB against 730 / 624 and 718 / 602
-# unbounded (docs/benchmarks.md, issue 17).
-RENDER_AHEAD = 64
+# Most bytes of frames handed to the parent and not yet published (:meth:`RenderProcess.taken`):
+# the child waits (its pipe full) beyond that. While the run's executor is busy (the
+# registration), frames rendered ahead wait in the parent; a bound in bytes keeps a large study
+# (e.g. 40 phases x 20 slices of 512^2 float32, 840 MB) from piling up, while the default study
+# (275 frames of 256^2, 72 MB) never waits: using the idle core early pays on 2 cores. Measured on
+# the default study at load 1-2, 4 rounds alternated: whole study 12.6-13.0 s unbounded against
+# 12.7-14.2 s with a 64-frame (16 MB) bound, paired median 1.08 (docs/benchmarks.md, issue 17);
+# the bound's saving, ~50 MB summed RSS (673 against 722 MB), is not needed for the 800 MB must.
+RENDER_AHEAD_BYTES = 128 * 2**20
 
 
 def processes_allowed() -> bool:
@@ -72,7 +74,8 @@ class RenderProcess:
         ``(view, slice_index, phase)`` of every frame to render, in this order.
     on_frame : callable
         ``on_frame(index, image)`` on the reader thread, for each frame in order (``image``
-        float32 (rows, cols)); at most :data:`RENDER_AHEAD` frames ahead of :meth:`taken`.
+        float32 (rows, cols)); at most :data:`RENDER_AHEAD_BYTES` of frames ahead of
+        :meth:`taken` (at least one frame).
     on_failure : callable
         ``on_failure(reason)`` on the reader thread, once, if the child fails or ends early.
 
@@ -92,7 +95,9 @@ class RenderProcess:
         self.failure: str | None = None
         self._closed = False
         self._on_frame, self._on_failure = on_frame, on_failure
-        self._room = threading.Semaphore(RENDER_AHEAD)  # frames it may hand over before taken()
+        self._ahead = 0  # frames handed over and not yet taken()
+        self._limit: int | None = None  # frames the byte budget holds (known at the first frame)
+        self._room = threading.Condition()
         self.proc = subprocess.Popen(
             [sys.executable, '-m', 'mlv_ros.render_process'],
             stdin=subprocess.PIPE,
@@ -116,19 +121,25 @@ class RenderProcess:
         out = self.proc.stdout
         try:
             while self.received < self.total:
-                while not self._room.acquire(timeout=0.2):
-                    if self._closed:
-                        return
+                with self._room:
+                    while self._limit is not None and self._ahead >= self._limit:
+                        self._room.wait(timeout=0.2)
+                        if self._closed:
+                            return
                 head = out.read(HEADER.size)
                 if len(head) < HEADER.size:
                     break
                 index, rows, cols = HEADER.unpack(head)
+                if self._limit is None and index >= 0:
+                    self._limit = max(1, RENDER_AHEAD_BYTES // (4 * rows * cols))
                 if index < 0:
                     self.failure = out.read(rows).decode('utf-8', 'replace')
                     break
                 data = out.read(4 * rows * cols)
                 if len(data) < 4 * rows * cols:
                     break
+                with self._room:
+                    self._ahead += 1
                 self._on_frame(index, np.frombuffer(data, np.float32).reshape(rows, cols))
                 self.received += 1
         finally:
@@ -141,7 +152,9 @@ class RenderProcess:
 
     def taken(self) -> None:
         """Say that a frame handed over is published and dropped: one more may come."""
-        self._room.release()
+        with self._room:
+            self._ahead -= 1
+            self._room.notify()
 
     def close(self) -> None:
         """End the child if it still runs and wait for it and its reader (no failure reported)."""

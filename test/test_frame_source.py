@@ -86,7 +86,8 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
     from mlv_ros.core.sim import load_preset, simulate_study
 
     monkeypatch.setenv('MLV_ROS_ONE_PROCESS', '1' if layout == 'one_process' else '0')
-    monkeypatch.setattr(render_process, 'RENDER_AHEAD', 4)  # of 33 frames: the bound is met
+    # 4 frames of 40² float32, of 33: the bound is met
+    monkeypatch.setattr(render_process, 'RENDER_AHEAD_BYTES', 4 * 4 * 40 * 40)
     if layout == 'render_process_fails':
         monkeypatch.setattr(sys, 'executable', shutil.which('false'))  # exits 1 at once
 
@@ -131,7 +132,7 @@ def test_phantom_frames_rendered_on_demand_equal_the_simulated_study(
     ]
     for f, e in zip(got, expected):
         np.testing.assert_array_equal(f.image, e.image)
-    # The render process waits while RENDER_AHEAD frames are handed over and not published.
+    # The render process waits while RENDER_AHEAD_BYTES of frames are handed over, not published.
     assert max(ahead, default=0) <= 4, ahead
     assert (len(ahead) > 20) == (layout == 'render_process'), ahead
     # Published pixels are not kept by the node (the writer's history holds them).
