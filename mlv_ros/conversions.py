@@ -817,7 +817,7 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
             'B', _check_segments(getattr(state, 'degraded_segments', ())), np.uint8
         ),
         **{
-            name: _fast_array('d', _check_tag_evidence(state, name), np.float64)
+            name: _fast_array('d', _on_the_wire(_check_tag_evidence(state, name)), np.float64)
             for name in TAG_EVIDENCE_FIELDS
         },
     )
@@ -825,6 +825,18 @@ def model_state_to_msg(state: ModelState, stamp: float | Time = 0.0) -> ModelSta
 
 #: ModelState's per-segment tag evidence (17 or empty, NaN allowed; uncertainties ≥ 0).
 TAG_EVIDENCE_FIELDS = ('tag_ecc', 'tag_ecc_unc')
+
+
+def _on_the_wire(v: np.ndarray) -> np.ndarray:
+    """
+    Return per-segment tag evidence as sent: 17 NaN (no evidence) in place of none.
+
+    The evidence arrays end ModelState and MotionMetrics. rmw_fastrtps pads an empty float64[]
+    as if it held an 8-aligned element, so a message ending with one carries 4 bytes more than
+    its CDR says, which rosbags (an independent reader of our recordings) refuses; 17 NaN read
+    the same as empty everywhere here (no segment has evidence).
+    """
+    return v if v.size else np.full(17, np.nan)
 
 
 def _check_tag_evidence(source, name: str) -> np.ndarray:
@@ -986,6 +998,8 @@ def metrics_to_msg(metrics, stamp: float | Time = 0.0) -> MotionMetricsMsg:
         if name == 'segment_class':
             msg.segment_class = _fast_array('B', v, np.uint8)
         else:
+            if name in ('segment_tag_ecc', 'segment_tag_ecc_unc'):
+                v = _on_the_wire(v)
             setattr(msg, name, _fast_array('d', v, np.float64))
     # Optional in the input: metrics without a verdict are ok with no reasons, without a study
     # of no known study, without findings of an unknown segment origin and ES phase.

@@ -685,12 +685,14 @@ def test_tag_evidence_survives_cdr_and_bad_arrays_are_refused():
     """
     Carry the tag tracks' segment Ecc and its uncertainty through ModelState and MotionMetrics.
 
-    NaN (no evidence) survives; empty by default; a length other than 0 / 17, an infinite value
-    or a negative uncertainty is refused by name, both ways.
+    NaN (no evidence) survives; none (empty, the default) goes out as 17 NaN, since an empty
+    float64[] ending a message is padded by rmw_fastrtps beyond what rosbags reads; a length other
+    than 0 / 17, an infinite value or a negative uncertainty is refused by name, both ways.
     """
     s = ModelState(num_phases=20, phase_index=8)
     back = cv.msg_to_model_state(cdr(cv.model_state_to_msg(s)))
-    assert back.tag_ecc.size == 0 and back.tag_ecc_unc.size == 0
+    assert back.tag_ecc.size == back.tag_ecc_unc.size == 17
+    assert np.isnan(back.tag_ecc).all() and np.isnan(back.tag_ecc_unc).all()
     s.tag_ecc = np.linspace(-0.2, 0.05, 17)
     s.tag_ecc[16] = np.nan
     s.tag_ecc_unc = np.full(17, 0.03)
