@@ -21,16 +21,135 @@ For benchmarks and the equivalence test only; not part of the package.
   matvec calls the MLS gradient and adjoint and an assembled (N, N) fit-error matrix
   (:func:`tracker_fit_error_matrix`, the slow part of the first phase).
 - :class:`PhantomSystemReference`: the PCG system of ``MeshlessModel.fit``
-  (``local_update="solve"``) on :func:`mlv_ros.core.meshless.elastic.linear_stiffness_apply` +
-  :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`.
+  (``local_update="solve"``) on the matrix-free stage that was ``mlv_ros.core.meshless.elastic``'s
+  until session 17 (:func:`linear_stiffness_apply`, :func:`stiffness_diagonal`,
+  :func:`stabilisation_weights`, :func:`stabilisation_apply`, :func:`stabilisation_diagonal`,
+  here unchanged; the package has one local stage, :mod:`mlv_ros.core.meshless.local`).
 """
 
 from __future__ import annotations
 
-from mlv_ros.core.meshless import elastic, quat_to_matrix
+from mlv_ros.core.meshless import quat_to_matrix, svk_stress
+from mlv_ros.core.meshless.mls import MLSOperator
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import cg, LinearOperator
+
+
+def linear_stiffness_apply(
+    op: MLSOperator, u: np.ndarray, volume: np.ndarray, lam: float, mu: float
+) -> np.ndarray:
+    """
+    ``K u`` for the stiffness linearised at the rest state (small strain ``ε = sym H``).
+
+    ``K`` is the Hessian of the energy at ``u = 0`` (so ``internal_forces(u) ≈ −K u`` for small u);
+    it is never assembled (it would couple neighbours of neighbours).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+
+    """
+    h = op.gradient(u)
+    eps = 0.5 * (h + h.transpose(0, 2, 1))
+    return op.adjoint(volume[:, None, None] * svk_stress(eps, lam, mu))
+
+
+def stiffness_diagonal(op: MLSOperator, volume: np.ndarray, lam: float, mu: float) -> np.ndarray:
+    """
+    Diagonal of the linearised stiffness, shape (N, 3) (Jacobi preconditioner).
+
+    A unit displacement of ``u_j[a]`` gives phyxel ``i`` the gradient ``e_a d_ijᵀ``, hence energy
+    ``½ v_i (λ d_a² + μ (|d|² + d_a²))``.
+    """
+    coo = op.matrix.tocoo()
+    i, b = np.divmod(coo.row, 3)
+    # Gather the 3-vector d_ij for every (i, j): entries with the same (i, j) differ only in b.
+    key = i.astype(np.int64) * op.n + coo.col
+    order = np.lexsort((b, key))
+    key_s, vals = key[order], coo.data[order]
+    uniq, start = np.unique(key_s, return_index=True)
+    d = np.zeros((uniq.size, 3))
+    d[np.searchsorted(uniq, key_s), b[order]] = vals
+    ii, jj = np.divmod(uniq, op.n)
+    v = volume[ii]
+    dsq = np.einsum('pa,pa->p', d, d)
+    per = v[:, None] * (lam * d**2 + mu * (dsq[:, None] + d**2))
+    return np.stack([np.bincount(jj, weights=per[:, a], minlength=op.n) for a in range(3)], axis=1)
+
+
+def stabilisation_weights(op: MLSOperator, volume: np.ndarray) -> np.ndarray:
+    """
+    Return the per-pair coefficients ``c_ij = v_i ŵ_ij / h_i²`` of :func:`stabilisation_apply`.
+
+    Shape (P,), with ``ŵ_ij = w_ij / Σ_j w_ij`` (normalised kernel weights).
+    """
+    ph = op.phyxels
+    wsum = np.bincount(ph.pair_i, weights=ph.wij, minlength=ph.num_particles)
+    return volume[ph.pair_i] * ph.wij / wsum[ph.pair_i] / ph.h[ph.pair_i] ** 2
+
+
+def stabilisation_apply(op: MLSOperator, u: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """
+    Gradient of the zero-energy-mode penalty ``½ Σ_ij c_ij |u_j − u_i − H_i x_ij|²``.
+
+    The MLS gradient of a phyxel averages ~100 neighbours, so displacing single particles away
+    from the local affine fit costs almost no strain energy (nodal-integration zero-energy
+    modes): with sparse control points the free particles would not follow their neighbours.
+    This penalises exactly the MLS fitting error of eq. 16 (it vanishes for affine fields, so it
+    adds no stiffness to rigid motion, uniform strain or the global deformation).
+
+    Parameters
+    ----------
+    op : MLSOperator
+        MLS gradient operator on the rest configuration (its neighbour pairs and gradients).
+    u : ndarray, shape (N, 3)
+        Displacements from the operator's rest configuration, mm.
+    coef : ndarray, shape (P,)
+        From :func:`stabilisation_weights` (times a modulus).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        ``∂/∂u`` of the penalty (a symmetric positive semi-definite linear map of u).
+
+    """
+    ph = op.phyxels
+    n = ph.num_particles
+    h = op.gradient(u)
+    r = u[ph.pair_j] - u[ph.pair_i] - np.einsum('pab,pb->pa', h[ph.pair_i], ph.xij)
+    cr = coef[:, None] * r
+    g = np.stack(
+        [
+            np.bincount(ph.pair_j, weights=cr[:, a], minlength=n)
+            - np.bincount(ph.pair_i, weights=cr[:, a], minlength=n)
+            for a in range(3)
+        ],
+        axis=1,
+    )
+    # through H_i: ∂/∂H_i[a, b] of the penalty is −Σ_j c_ij r_ij[a] x_ij[b]
+    gh = np.stack(
+        [
+            np.bincount(ph.pair_i, weights=-cr[:, a] * ph.xij[:, b], minlength=n)
+            for a in range(3)
+            for b in range(3)
+        ],
+        axis=1,
+    ).reshape(n, 3, 3)
+    return g + op.adjoint(gh)
+
+
+def stabilisation_diagonal(op: MLSOperator, coef: np.ndarray) -> np.ndarray:
+    """
+    Return the approximate diagonal of :func:`stabilisation_apply`, shape (N,).
+
+    The direct ``u_j − u_i`` terms; used in the Jacobi preconditioner.
+    """
+    ph = op.phyxels
+    n = ph.num_particles
+    return np.bincount(ph.pair_j, weights=coef, minlength=n) + np.bincount(
+        ph.pair_i, weights=coef, minlength=n
+    )
 
 
 def tracker_fit_error_matrix(model):
@@ -136,8 +255,7 @@ class PhantomSystemReference:
     The old local-stage system of ``MeshlessModel.fit`` (``local_update="solve"``).
 
     Matrix-free ``κ ΦᵀQᵀPQΦ + K + S + ε`` on
-    :func:`~mlv_ros.core.meshless.elastic.linear_stiffness_apply` and
-    :func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`, Jacobi-preconditioned CG. Same
+    :func:`linear_stiffness_apply` and :func:`stabilisation_apply`, Jacobi-preconditioned CG. Same
     interface as :class:`mlv_ros.core.meshless.local.LocalSystem` (``internal``, ``solve``), so
     ``model._local_system = lambda data: PhantomSystemReference(model, data)`` runs a whole fit
     with it.
@@ -146,11 +264,11 @@ class PhantomSystemReference:
     def __init__(self, model, data):
         self.model, self.n = model, model.num_particles
         vol = model.phyxels.volume
-        kdiag = elastic.stiffness_diagonal(model.operator, vol, model.lam, model.mu)
+        kdiag = stiffness_diagonal(model.operator, vol, model.lam, model.mu)
         self.coef = (
-            model.stabilisation * model.mu * elastic.stabilisation_weights(model.operator, vol)
+            model.stabilisation * model.mu * stabilisation_weights(model.operator, vol)
         )
-        kdiag = kdiag + elastic.stabilisation_diagonal(model.operator, self.coef)[:, None]
+        kdiag = kdiag + stabilisation_diagonal(model.operator, self.coef)[:, None]
         self.eps = 1e-4 * float(np.median(kdiag))
         self.kappa, self.phi, self.pq = data
         self.phi_t = self.phi.T.tocsr()
@@ -162,9 +280,9 @@ class PhantomSystemReference:
 
     def internal(self, v):
         m = self.model
-        out = elastic.linear_stiffness_apply(m.operator, v, m.phyxels.volume, m.lam, m.mu)
+        out = linear_stiffness_apply(m.operator, v, m.phyxels.volume, m.lam, m.mu)
         if m.stabilisation:
-            out = out + elastic.stabilisation_apply(m.operator, v, self.coef)
+            out = out + stabilisation_apply(m.operator, v, self.coef)
         return out + self.eps * v
 
     def matvec(self, v):

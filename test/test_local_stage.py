@@ -23,12 +23,14 @@ from pathlib import Path
 import sys
 
 from mlv_ros.core import tracking
-from mlv_ros.core.meshless import cylindrical_frame, elastic, MeshlessModel
+from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
 from mlv_ros.core.meshless import plane_projectors
 from mlv_ros.core.meshless.local import (
     CoarseSpace,
     cofactors_3x3,
     farthest_point_aggregates,
+    LocalOperators,
+    rigid_mode_eps,
     sandwich_3x3,
     symmetric_inverse_3x3,
 )
@@ -47,7 +49,10 @@ from test_tracking import observed, referenced_tracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 from reference_local import (  # noqa: E402, I100
-    PhantomSystemReference,  # noqa: E402, I100
+    linear_stiffness_apply,  # noqa: E402, I100
+    PhantomSystemReference,
+    stabilisation_apply,
+    stabilisation_weights,
     tracker_fit_error_matrix,
     tracker_local_solve,
 )
@@ -66,15 +71,15 @@ def test_operators_equal_the_assembled_fit_error_and_matrix_free_stiffness(study
     system = tr._local.system(fit_error=2.0, eps=0.5)
     for u in (rng.normal(size=(tr.num_particles, 3)), np.sin(tr.rest / 15.0)):  # rough and smooth
         ref = (
-            elastic.linear_stiffness_apply(m.operator, u, m.phyxels.volume, m.lam, m.mu)
+            linear_stiffness_apply(m.operator, u, m.phyxels.volume, m.lam, m.mu)
             + 2.0 * (L @ u)
             + 0.5 * u
         )
         np.testing.assert_allclose(system.internal(u), ref, atol=1e-9 * np.abs(ref).max())
     # the paper model's stabilisation is the same penalty with other weights
-    coef = m.stabilisation * m.mu * elastic.stabilisation_weights(m.operator, m.phyxels.volume)
+    coef = m.stabilisation * m.mu * stabilisation_weights(m.operator, m.phyxels.volume)
     u = rng.normal(size=(tr.num_particles, 3))
-    ref = elastic.stabilisation_apply(m.operator, u, coef)
+    ref = stabilisation_apply(m.operator, u, coef)
     np.testing.assert_allclose(
         m.stabilisation * m.mu * m.local_operators.fit_error_apply(u),
         ref,
@@ -259,6 +264,31 @@ def test_paper_model_fit_matches_the_reference_local_stage():
     )
     assert abs(rms_new - rms_old) < 1e-3, (rms_new, rms_old)
     assert np.median(np.linalg.norm(new.positions - old.positions, axis=1)) < 0.02
+
+
+def test_both_callers_hold_rigid_modes_by_one_rule(study, monkeypatch):
+    """Check that the tracker's and the paper model's systems both take ``ε = 10⁻⁶ κ``."""
+    built, system = [], LocalOperators.system
+
+    def record(self, **kw):
+        built.append((kw['eps'], kw['data'][0]))
+        return system(self, **kw)
+
+    monkeypatch.setattr(LocalOperators, 'system', record)
+    _, tr, refs = referenced_tracker(study, n=800)
+    tr.solve(1, observed(study, refs, 1), study.motion.num_phases)
+    x = sample_cylinder_shell(800, seed=0)
+    model = MeshlessModel(
+        x, cylindrical_frame(x, [0, 0, 0], [0, 0, 1], radius=R_OUTER, half_height=H_CYL / 2)
+    )
+    idx = control_subset(len(x), 0.1, seed=1)
+    for weight in (100.0, 7.0):  # the model's ε follows the fit's data weight
+        model.fit(idx, deform(x, 'bulge')[idx], warm_start=False, data_weight=weight)
+    assert len(built) >= 4 and len({k for _, k in built}) >= 3
+    assert all(eps == rigid_mode_eps(kappa) and eps > 0 for eps, kappa in built)
+    for bad in (-1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match='kappa'):
+            rigid_mode_eps(bad)
 
 
 def _coarse_basis(coarse, n):

@@ -53,7 +53,12 @@ from mlv_ros.core.meshless import (
     quat_to_matrix,
     thick_wall_frame,
 )
-from mlv_ros.core.meshless.local import CoarseSpace, cofactors_3x3, LocalOperators
+from mlv_ros.core.meshless.local import (
+    CoarseSpace,
+    cofactors_3x3,
+    LocalOperators,
+    rigid_mode_eps,
+)
 from mlv_ros.core.meshless.solver import control_weights
 from mlv_ros.core.tags.gabor import MIN_DIRECTION_SEPARATION
 from mlv_ros.core.types import ModelState, PAIR_MISREGISTERED, TagPointSet, VIEW_NAMES, VIEW_SA
@@ -798,7 +803,10 @@ class MotionTracker:
         # layout: the warm start's gradient for the next solve and, summed, the positions'.
         self._local_gradients = None
         # The local stage's operators, built with the model; the fit-error penalty is weighted by
-        # the normalised kernel weights and scaled against the elastic diagonal per solve.
+        # the kernel weights w_ij (uniform s_i) and scaled against the elastic diagonal per solve.
+        # MeshlessModel weights the same penalty by v_i w_ij / (W_i h_i²) (see its
+        # local_operators): the weighting hourglass_weight was validated with on the 40 studies
+        # is kept. Rigid modes: rigid_mode_eps(κ), one rule for both.
         ph, lam, mu = self.model.phyxels, self.model.lam, self.model.mu
         self._local = LocalOperators(self.model.operator, ph.volume, lam, mu, 1.0 / ph.wij.max())
         self._kdiag = np.trace(self._local.volume_moment, axis1=1, axis2=2) * (
@@ -877,7 +885,7 @@ class MotionTracker:
                     self.longitudinal_weight * self.model.mu,
                     quat_to_matrix(self.model.rest_params.rotation)[:, 2],
                 ),
-                eps=1e-6 * kappa,
+                eps=rigid_mode_eps(kappa),
             )
 
     @property
@@ -1511,7 +1519,7 @@ class MotionTracker:
             volume=(self.volume_weight * mu, C, Jg - 1.0),
             axial=(self.longitudinal_weight * mu, ax, target),
             data=(kappa, phi, P),
-            eps=1e-6 * kappa,
+            eps=rigid_mode_eps(kappa),
             coarse=self._coarse if reuse is None else None,
             coarse_correction=reuse,
             shear=shear,

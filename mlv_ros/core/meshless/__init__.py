@@ -33,7 +33,6 @@ from mlv_ros.core.meshless.elastic import (  # noqa: F401
     green_lagrange,
     internal_forces,
     lame_parameters,
-    linear_stiffness_apply,
     strain_energy,
     svk_stress,
 )

@@ -31,7 +31,8 @@ The local deformation ``u`` (N, 3) minimises ``½ uᵀ A u − bᵀ u`` with ``A
 - **axial stiffness** ``½ k_l Σ_i v_i (aᵀ H_i a)²`` along the long axis ``a``;
 - **data springs** ``½ κ Σ_k |P_k^½ Σ_j φ_kj u_j|²`` (in-plane tag forces: ``P_k`` the in-plane
   projector, or ``QᵀP_kQ`` when ``u`` is expressed in a rotated frame);
-- ``½ ε |u|²``, which removes the rigid modes that every other term but the data is blind to.
+- ``½ ε |u|²``, which removes the rigid modes that every other term but the data is blind to
+  (one rule for every caller: :func:`rigid_mode_eps`).
 
 Every per-phyxel term is a linear map of ``H_i`` to a stress-like ``S_i`` (a 9 × 9 tangent per
 particle, summed over the terms once per system), so one matrix–vector product is one sparse
@@ -60,6 +61,46 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 _I3 = np.eye(3)
+
+#: The rigid-mode regulariser ``ε`` as a share of the data springs' stiffness ``κ``
+#: (:func:`rigid_mode_eps`).
+RIGID_MODE_EPS = 1e-6
+
+
+def rigid_mode_eps(kappa: float) -> float:
+    """
+    Return the rigid-mode regulariser ``ε = 10⁻⁶ κ`` of ``½ ε |u|²`` (P·mm).
+
+    Elasticity, the fit-error penalty, incompressibility and the axial term are blind to rigid
+    ``u`` (translations, rotations), which the global stage already expresses; the data springs
+    see them only as far as the control points do. ``ε`` makes the split unique and the system
+    positive definite while staying far below the stiffness of any mode the data or the material
+    sets: one millionth of the data springs' stiffness ``κ`` (P·mm; each caller's ``κ`` is its
+    ``data_weight`` times the median of its stiffness diagonal, so ``ε`` scales with the
+    material and the particle spacing as the other terms do). Both callers use this rule:
+    ``MotionTracker`` (``data_weight`` 10⁴: ``ε = 10⁻² ×`` the median elastic diagonal) and
+    ``MeshlessModel.fit`` (default ``data_weight`` 100: ``ε = 10⁻⁴ ×`` the median diagonal).
+
+    Parameters
+    ----------
+    kappa : float
+        The data springs' stiffness ``κ`` of the solve, P·mm (finite, >= 0).
+
+    Returns
+    -------
+    float
+        ``ε``, P·mm.
+
+    Raises
+    ------
+    ValueError
+        ``kappa`` negative or not finite.
+
+    """
+    kappa = float(kappa)
+    if not np.isfinite(kappa) or kappa < 0:
+        raise ValueError(f'the data stiffness kappa must be finite and >= 0, got {kappa}')
+    return RIGID_MODE_EPS * kappa
 
 
 def elastic_tangent(lam: float, mu: float) -> np.ndarray:
@@ -249,7 +290,7 @@ class LocalOperators:
         data : (κ, Φ, P) or None
             ``κ`` (P·mm), weights ``Φ`` sparse (M, N), metrics ``P`` shape (M, 3, 3).
         eps : float
-            Rigid-mode regulariser ``ε`` (P·mm).
+            Rigid-mode regulariser ``ε`` (P·mm), :func:`rigid_mode_eps` of ``κ``.
         coarse : CoarseSpace, optional
             Add its coarse correction to the block-Jacobi preconditioner (its internal part was
             built for these multipliers; see :class:`CoarseSpace`).

@@ -79,7 +79,7 @@ from mlv_ros.core.meshless.kernel import (
     SUPPORT_FACTOR,
     validate_points,
 )
-from mlv_ros.core.meshless.local import LocalOperators
+from mlv_ros.core.meshless.local import LocalOperators, rigid_mode_eps
 from mlv_ros.core.meshless.mls import MLSOperator
 from mlv_ros.core.types import ModelState
 import numpy as np
@@ -604,10 +604,10 @@ class MeshlessModel:
     k, support_factor, cond_max :
         Phyxel parameters (:func:`~mlv_ros.core.meshless.kernel.build_phyxels`).
     stabilisation : float
-        Weight (× μ) of the zero-energy-mode penalty
-        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_apply`) added to the local stage's
-        stiffness; 0 = pure St Venant–Kirchhoff. Without it particles without a control point
-        do not follow their neighbours.
+        Weight (× μ) of the zero-energy-mode penalty (the MLS fit error of eq. 16,
+        :attr:`local_operators`) added to the local stage's stiffness; 0 = pure St
+        Venant–Kirchhoff. Without it particles without a control point do not follow their
+        neighbours.
 
     Raises
     ------
@@ -665,8 +665,17 @@ class MeshlessModel:
         """
         Return the local stage's operators on the current phyxels (built on first use).
 
-        Linear SVK and the zero-energy-mode penalty with weights ``v_i ŵ_ij / h_i²``
-        (:func:`~mlv_ros.core.meshless.elastic.stabilisation_weights`).
+        Linear SVK and the MLS fit-error penalty (eq. 16) with per-pair weights
+        ``s_i w_ij = v_i ŵ_ij / h_i²`` (``ŵ_ij = w_ij / W_i``, ``W_i = Σ_j w_ij``) times
+        ``stabilisation × μ``: normalised per phyxel and scaled by ``v_i / h_i²``, the penalty is
+        an energy like the elastic one (P·mm³), so ``stabilisation`` is in units of μ for any
+        particle spacing. ``MotionTracker`` puts the same penalty on the same operators with
+        uniform ``s_i`` (``w_ij`` alone, its multiplier set against the median elastic
+        diagonal); the two weightings differ where ``W_i`` and ``h_i`` do (enlarged supports at
+        the wall's edges), and each caller's weight was validated with its own: the phantom bench
+        (this one, to the last digit since session 13) and the 40 randomized LV studies (the
+        tracker's ``hourglass_weight``). The rigid-mode regulariser is one rule for both,
+        :func:`~mlv_ros.core.meshless.local.rigid_mode_eps`.
         """
         if self._local_ops is None:
             ph = self.phyxels
@@ -678,9 +687,6 @@ class MeshlessModel:
                 ops.elastic_diagonal()
                 + (self.stabilisation * self.mu * ops.laplacian.diagonal())[:, None]
             )
-            # ½ ε |δ|² with ε ≪ the stiffness of any smooth mode: makes the split between global
-            # parameters and δ unique (K is blind to rigid δ, which c and R already express).
-            self._eps_delta = 1e-4 * float(np.median(self._kdiag))
             self._local_ops = ops
         return self._local_ops
 
@@ -799,21 +805,28 @@ class MeshlessModel:
         return dist.reshape(m, -1), idx.reshape(m, -1)
 
     # ---------------------------------------------------------------- fitting
-    def _local_system(self, data=None):
-        """Build the local system: linear SVK + zero-energy-mode penalty + ε (+ ``data``)."""
-        ops = self.local_operators
-        return ops.system(fit_error=self.stabilisation * self.mu, data=data, eps=self._eps_delta)
+    def _local_system(self, data):
+        """
+        Build the local system: linear SVK + zero-energy-mode penalty + data springs + ε.
+
+        ``data`` is ``(κ, Φ, QᵀPQ)``; ``ε`` is :func:`~mlv_ros.core.meshless.local.rigid_mode_eps`
+        of its ``κ`` (½ ε |δ|² makes the split between the global parameters and δ unique: K is
+        blind to rigid δ, which c and R already express).
+        """
+        return self.local_operators.system(
+            fit_error=self.stabilisation * self.mu, data=data, eps=rigid_mode_eps(data[0])
+        )
 
     def _local_metric(self, proj, phi, kappa):
         """
         Return ``Q = R R₀ᵀ`` (∂x/∂δ), per-control ``QᵀP_kQ`` and the local stage's Jacobi diagonal.
 
-        The diagonal is ``κ diag(ΦᵀQᵀPQΦ) + diag(K)``, shape (N, 3).
+        The diagonal is ``κ diag(ΦᵀQᵀPQΦ) + diag(K) + ε``, shape (N, 3).
         """
         q = self.params.matrix @ self.rest_params.matrix.T
         pq = np.einsum('ba,mbc,cd->mad', q, proj, q)
         diag_data = (phi.multiply(phi)).T @ np.einsum('maa->ma', pq)
-        prec = kappa * diag_data + self._kdiag + self._eps_delta
+        prec = kappa * diag_data + self._kdiag + rigid_mode_eps(kappa)
         return q, pq, prec
 
     def _lm_step(self, dmat, fq, res, mu_lm, residual_fn, prior=None):
@@ -1042,7 +1055,7 @@ class MeshlessModel:
                 fint = fint - self.stabilisation * self.mu * self.local_operators.fit_error_apply(
                     self.delta
                 )
-            dx = dt * (force + fint - self._eps_delta * self.delta) / prec
+            dx = dt * (force + fint - rigid_mode_eps(kappa) * self.delta) / prec
         else:
             system = self._local_system((kappa, phi, pq))
             dx, cg_its = system.solve(
