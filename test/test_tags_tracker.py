@@ -498,6 +498,7 @@ class AkineticScene(ThickeningScene):
         ({'register_missed': True}, 0.06, 0.8),
         ({'confirm_still': True}, 0.0, 0.75),
         ({'confirm_still': True}, 0.04, 0.75),
+        ({'match_still': True, 'confirm_still': True}, 0.0, 1.0),
     ],
 )
 def test_an_akinetic_sector_keeps_its_tracks_to_end_systole(kwargs, noise, share):
@@ -510,7 +511,9 @@ def test_an_akinetic_sector_keeps_its_tracks_to_end_systole(kwargs, noise, share
     # register_missed: a missed track is kept where its own ED neighbourhood registers as well
     # as the slice's confirmed tracks do (all kept). confirm_still: a match nearer its ED
     # position than where the warp puts it is detected again in the ED mask (7 of 8 and 7 of 9;
-    # at σ 0.02 and 0.06 it keeps 6 of 9, as main). Truth: the forward map of each ED point.
+    # at σ 0.02 and 0.06 it keeps 6 of 9, as main). match_still with confirm_still: a track the
+    # first pass missed is matched to a detection in the ED mask itself (8 of 8 at σ 0; 6, 7, 7
+    # of 9 at σ 0.02, 0.04, 0.06). Truth: the forward map of each ED point.
     phases, period = 12, 6.0
     scene = AkineticScene(
         shape=(112, 112),

@@ -230,6 +230,15 @@ class SliceTracker:
         it while the warped mask follows its contracting neighbours. Off by default (README,
         'Tag tracking against the truth': it keeps more of an akinetic sector's tracks but the
         solved sector barely moves).
+    match_still : bool
+        On short-axis views, the live tracks the first pass missed (no detection within ``gate``
+        of the prediction) are offered the intersections detected in the ED mask itself: the
+        first pass filters inside the ED mask warped through the predictions by a smooth
+        spline, which carries a still (akinetic) sector inward with its contracting neighbours,
+        and 17 of the 30 first-pass misses of the akinetic SA tracks of three kept studies were
+        detected there at the slice's threshold (``bench/track_losses.py``). The second pass
+        confirms these matches as any other. Off by default (docs/benchmarks.md: with
+        ``confirm_still`` it keeps more of the sectors' tracks, but their ES error barely moves).
     **detect_kwargs
         Extra keywords for :func:`detect_intersections` (e.g. ``min_confidence``).
 
@@ -262,6 +271,7 @@ class SliceTracker:
         ed_coverage: bool = True,
         register: bool = True,
         confirm_still: bool = False,
+        match_still: bool = False,
         **detect_kwargs,
     ):
         self.geometry = geometry
@@ -283,6 +293,7 @@ class SliceTracker:
         self.ed_coverage = bool(ed_coverage)
         self.register = bool(register)
         self.confirm_still = bool(confirm_still)
+        self.match_still = bool(match_still)
         if not (0.0 <= self.follow_relative <= 1.0 and 0.0 < self.follow_floor <= 1.0):
             raise ValueError(
                 f'follow_relative must be in [0, 1] and follow_floor in (0, 1]; '
@@ -475,6 +486,8 @@ class SliceTracker:
             conf=det.plain_confidence[np.maximum(res.match, 0)],
             follow=det.confidence[np.maximum(res.match, 0)],
         )
+        if two_pass and self.match_still and view == VIEW_SA and hit.sum() >= 4 and not hit.all():
+            self._match_still(image, pred, sp, roi, m)
         if two_pass and hit.sum() >= 4:
             self._confirm(image, live, roi, m, still=self.confirm_still and view == VIEW_SA)
         return m
@@ -529,6 +542,35 @@ class SliceTracker:
         if still:
             found[~found] = self._confirm_still(image, live, new, idx[~found], m)
         m.unconfirmed[idx[~found]] = True
+
+    def _match_still(self, image, pred, sp: float, roi, m: '_Matches') -> None:
+        """
+        Match the tracks the first pass missed to intersections detected in the ED mask itself.
+
+        The first pass filters inside the ED mask warped through the predictions by a smooth
+        thin-plate spline: a sector that stays still while its neighbours contract (akinetic) is
+        carried inward with them, and the masked filter then loses its intersections although
+        the prediction is right. Detected again in the ED mask (the hypothesis that the wall
+        stays where it was), a detection no matched track holds (farther than ``REVIVE_GATE``
+        periods from every match) within ``gate`` of a missed track's prediction matches it.
+        Updates ``m`` in place; the second pass confirms these matches as any other.
+        """
+        det = self._detect_following(image, self.ed_mask, None, roi, tuned=False)
+        if not det.ok or not len(det):
+            return
+        d, _ = cKDTree(m.new[m.hit]).query(det.pixel_rc)
+        free = np.nonzero(d > REVIVE_GATE * sp)[0]
+        miss = np.nonzero(~m.hit)[0]
+        if not free.size:
+            return
+        k, j = _nearest_unique(pred[miss], det.pixel_rc[free], self.gate * sp)
+        if not len(k):
+            return
+        got, jj = miss[k], free[j]
+        m.hit[got] = True
+        m.new[got] = det.pixel_rc[jj]
+        m.conf[got] = det.plain_confidence[jj]
+        m.follow[got] = det.confidence[jj]
 
     def _confirm_still(self, image, live, new, idx, m: '_Matches') -> np.ndarray:
         """
