@@ -1388,7 +1388,6 @@ class MotionTracker:
                 ),
             )
         keys, tids, edges = self._tag_edges
-        noise = getattr(self, 'noise_mm', None) or {}
         now = np.full((edges.num_tracks, 3), np.nan)
         row = 0
         for key, tid in zip(keys, tids):
@@ -1398,7 +1397,7 @@ class MotionTracker:
                                      np.asarray(pts.position)).lookup(tid)
                 now[row:row + len(tid)][hit] = x[hit]
             row += len(tid)
-        sigma = [np.nan if noise.get(k) is None else noise[k] for k in keys]
+        sigma = [np.nan if self.noise_mm.get(k) is None else self.noise_mm[k] for k in keys]
         ev = edges.segment_strain(now, sigma)
         return ev['ecc'], ev['ecc_unc']
 
