@@ -17,9 +17,10 @@ Offline re-track and re-solve of a recorded run, with the code the nodes use.
 
 Reads a run's recorded frames and registration (``run.mcap`` of ``mlv-ros run --dicom``),
 tracks every slice again as the tag detector does (:class:`StreamingMasker` ED masks +
-:class:`SliceTracker`), solves every phase as the solver node does (:class:`MotionTracker` with
-the node's default parameters) and scores the result against the study's ``groundtruth.json``
-as ``bench/robustness.py`` does. A tracking or solving change can then be compared on the same
+:class:`SliceTracker`, or :class:`LineSliceTracker` on a single-line study's slices), solves
+every phase as the solver node does (:class:`MotionTracker` with the node's default parameters)
+and scores the result against the study's ``groundtruth.json`` as ``bench/robustness.py``
+does. A tracking or solving change can then be compared on the same
 studies without the graph (seconds to a minute per study instead of minutes).
 
     python bench/retrack.py CASE_DIR [CASE_DIR ...]     # CASE_DIR holds run/run.mcap and study/
@@ -73,8 +74,9 @@ from mlv_msgs.msg import ModelState, TaggedFrame
 from mlv_ros import bagio, conversions, qos
 from mlv_ros.core.io.groundtruth import motion_from_groundtruth
 from mlv_ros.core.registration.streaming import StreamingMasker
-from mlv_ros.core.tags import SliceTracker
+from mlv_ros.core.tags import LineSliceTracker, SliceTracker
 from mlv_ros.core.tracking import MotionTracker
+from mlv_ros.core.types import TAGS_GRID
 from mlv_ros.core.verdict import FAILED, OK
 from mlv_ros.recording import motion_accuracy
 import numpy as np
@@ -119,7 +121,13 @@ def track(frames, **tracker_kwargs) -> dict:
         key = (f.view, f.slice_index)
         mask = None
         if f.phase_index == 0 or key not in trackers:
-            trackers[key] = SliceTracker(f.geometry, **tracker_kwargs)
+            # As the tag detector node (its _tracker): a single-line study's slices (one family
+            # or a line pair) are read by the line tracker, which takes no grid options.
+            trackers[key] = (
+                SliceTracker(f.geometry, **tracker_kwargs)
+                if f.tag_lines == TAGS_GRID
+                else LineSliceTracker(f.geometry, spacing_px=tracker_kwargs.get('spacing_px'))
+            )
             mask, _ = masker.ed_mask(f)
         pts = trackers[key].update(f, mask=mask)
         sets.setdefault(int(f.phase_index), {})[key] = pts

@@ -259,6 +259,7 @@ def segment_around_axis(frames: list) -> dict:
     out = {}
     for f in frames:
         g, sp = f.geometry, f.geometry.row_spacing
+        fam = seg.tag_families(f.tag_lines)
         if f.view == VIEW_SA:
             x = _axis_in_plane(g, est.point, est.direction)
             if x is None:
@@ -267,12 +268,13 @@ def segment_around_axis(frames: list) -> dict:
                     'SA plane is nearly parallel to the long axis',
                 )
                 continue
-            s = seg.segment_sa(f.image, g.patient_to_pixel(x)[0], sp)
+            s = seg.segment_sa(f.image, g.patient_to_pixel(x)[0], sp, families=fam)
         else:
             axis_rc = np.array(
                 [est.direction @ g.column_direction, est.direction @ g.row_direction]
             )
-            s = seg.segment_la(f.image, g.patient_to_pixel(est.point)[0], axis_rc, sp)
+            c = g.patient_to_pixel(est.point)[0]
+            s = seg.segment_la(f.image, c, axis_rc, sp, families=fam)
         out[(f.view, f.slice_index)] = (s.mask if s.ok else None, s.reason)
     return out
 
@@ -485,9 +487,9 @@ def _segment_slice(f: Frame, k: tuple, axis_pt, axis_dir, user: dict):
         s.source = 'mask'
         return s
     if k[0] == VIEW_SA:
-        s = seg.segment_sa(img, centre_rc, sp)
+        s = seg.segment_sa(img, centre_rc, sp, families=seg.tag_families(f.tag_lines))
     else:
-        s = seg.segment_la(img, centre_rc, axis_rc, sp)
+        s = seg.segment_la(img, centre_rc, axis_rc, sp, families=seg.tag_families(f.tag_lines))
     s.source = 'auto'
     return s
 

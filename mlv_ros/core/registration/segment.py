@@ -66,6 +66,7 @@ import functools
 
 from mlv_ros.core.filters import running_median
 from mlv_ros.core.tags.gabor import TAG_PERIOD_RANGE_MM  # plausible SPAMM periods, mm
+from mlv_ros.core.types import TAGS_LINE_PAIR, TAGS_LINES
 import numpy as np
 from scipy import ndimage as ndi
 from scipy.special import ndtr
@@ -117,14 +118,15 @@ class TagFeatures:
     Attributes
     ----------
     energy : ndarray, shape (rows, cols)
-        Local tag amplitude E (image intensity units): the two directions' demodulated Gabor
-        responses projected on their phases, summed (module docstring).
+        Local tag amplitude E (image intensity units): each direction's demodulated Gabor
+        response projected on its phase, summed (module docstring).
     mean : ndarray, shape (rows, cols)
         Tag-free local mean intensity M (average over one cell of the tag lattice).
     wavelength_px : float
-        Tag period λ (mean of the two directions), px.
-    wavevectors : ndarray, shape (2, 2)
-        (row, col) spatial frequencies of the two tag directions, cycles / px.
+        Tag period λ (mean of the directions), px.
+    wavevectors : ndarray, shape (F, 2)
+        (row, col) spatial frequencies of the F tag directions (2: a grid, 1: one family of
+        tag lines), cycles / px.
     blur_px : float
         Gaussian σ of the energy filter, px: the blur of an edge in ``energy``.
     noise : float
@@ -186,6 +188,16 @@ class SliceSegmentation:
 
 
 # --------------------------------------------------------------------------- features
+def tag_families(tag_lines: int) -> int:
+    """
+    Tag directions in a frame's ``image``: 1 for one family of tag lines, else 2 (a grid).
+
+    ``tag_lines`` is ``Frame.tag_lines``; a line pair's ``image`` holds one family too (its
+    partner series is ``line_image``).
+    """
+    return 1 if tag_lines in (TAGS_LINES, TAGS_LINE_PAIR) else 2
+
+
 def tag_period_band_px(pixel_spacing_mm: float | None) -> tuple[float, float]:
     """
     Search band of tag periods for :func:`tag_wavevectors`, px.
@@ -313,14 +325,20 @@ def tag_features(
     ----------
     image : ndarray, shape (rows, cols)
         Tagged image (intensity, any scale).
-    wavevectors : ndarray, shape (2, 2), optional
-        (row, col) tag frequencies, cycles / px; estimated from the spectrum by default.
+    wavevectors : ndarray, shape (2, 2) or (1, 2), optional
+        (row, col) tag frequencies, cycles / px: a grid's two directions, or the one direction
+        of a single family of tag lines; a grid's two estimated from the spectrum by default.
     pixel_spacing_mm : float, optional
         Narrows the spectral search to plausible tag periods (:func:`tag_period_band_px`).
 
     Returns
     -------
     TagFeatures
+
+    Raises
+    ------
+    ValueError
+        ``wavevectors`` not of shape (1, 2) or (2, 2), or not finite and non-zero.
 
     """
     img = np.asarray(image, dtype=np.float64)
@@ -329,6 +347,10 @@ def tag_features(
         if wavevectors is None
         else np.asarray(wavevectors, dtype=np.float64)
     )
+    if kv.ndim != 2 or kv.shape[0] not in (1, 2) or kv.shape[1] != 2:
+        raise ValueError(f'wavevectors must have shape (1, 2) or (2, 2), got {kv.shape}')
+    if not np.all(np.isfinite(kv)) or np.any(np.linalg.norm(kv, axis=1) <= 0):
+        raise ValueError(f'wavevectors must be finite and non-zero, got {kv.tolist()}')
     lam = float(np.mean(1.0 / np.linalg.norm(kv, axis=1)))
     sigma = ENERGY_SIGMA_PERIODS * lam
     # Reflect-pad by two periods: the circular FFT filters then see a continuous border.
@@ -340,9 +362,13 @@ def tag_features(
     inner = (slice(pad, pad + img.shape[0]), slice(pad, pad + img.shape[1]))
     # Tag-free mean: the average over one cell of the tag lattice, whose transfer function
     # sinc(f·a1) sinc(f·a2) (a1, a2 the cell's edge vectors, a_i·k_j = δ_ij) vanishes on every
-    # harmonic n1 k1 + n2 k2 of the grid.
+    # harmonic n1 k1 + n2 k2 of the grid. One family of lines: the average over one period
+    # across the lines (a1 = k1 / |k1|²), sinc(f·a1), vanishing on every harmonic n1 k1; along
+    # the lines there is nothing to average out.
     cell = np.linalg.pinv(kv)
-    box = np.sinc(fy * cell[0, 0] + fx * cell[1, 0]) * np.sinc(fy * cell[0, 1] + fx * cell[1, 1])
+    box = np.ones((fy.shape[0], fx.shape[1]))
+    for a in cell.T:
+        box = box * np.sinc(fy * a[0] + fx * a[1])
     mean = np.real(np.fft.ifft2(spec * box))
     # Complex Gabor response of the mean-free image at each wave vector (Gaussian envelope σ),
     # demodulated: at ED the grid is undeformed, so the tags have one phase per direction all
@@ -368,7 +394,7 @@ def tag_features(
 
 
 def candidate_features(
-    image: np.ndarray, pixel_spacing_mm: float | None = None
+    image: np.ndarray, pixel_spacing_mm: float | None = None, families: int = 2
 ) -> list[TagFeatures]:
     """
     :func:`tag_features` at the plain and the whitened spectral estimate (:func:`tag_wavevectors`).
@@ -377,15 +403,27 @@ def candidate_features(
     order free), else two, plain first. The segmenters keep the one under which the wall stands
     out most (:func:`_best_of`): the right tag frequency gives the wall its largest tag energy
     over the noise, whichever spectrum found it.
+
+    ``families``: 2 for a grid; 1 for one family of tag lines (``Frame.tag_lines`` is
+    ``TAGS_LINES``), whose image has no second direction: the strongest peak of each estimate
+    only. The grid's second peak, searched ≥ 30° away, would be noise or a blood pool's
+    outline there; demodulated as if tags, it added energy where there are none and halved
+    the period's share of the filter width (mean of a true and a wrong period).
     """
+    if families not in (1, 2):
+        raise ValueError(f'families must be 1 (tag lines) or 2 (a grid), got {families!r}')
     img = np.asarray(image, dtype=np.float64)
     band = tag_period_band_px(pixel_spacing_mm)
-    a, b = _spectral_peaks(img, *band, (False, True))
+    a, b = (k[:families] for k in _spectral_peaks(img, *band, (False, True)))
 
     def close(x, y):
         return min(np.linalg.norm(x - y), np.linalg.norm(x + y)) <= 0.05 * np.linalg.norm(y)
 
-    same = (close(a[0], b[0]) and close(a[1], b[1])) or (close(a[0], b[1]) and close(a[1], b[0]))
+    same = (
+        close(a[0], b[0])
+        if families == 1
+        else (close(a[0], b[0]) and close(a[1], b[1])) or (close(a[0], b[1]) and close(a[1], b[0]))
+    )
     return [tag_features(img, a)] if same else [tag_features(img, a), tag_features(img, b)]
 
 
@@ -1078,6 +1116,7 @@ def segment_sa(
     min_wall_mm: float = 2.0,
     max_invalid_fraction: float = 0.25,
     features: TagFeatures | None = None,
+    families: int = 2,
 ) -> SliceSegmentation:
     """
     Segment the myocardium of one ED short-axis tagged image.
@@ -1099,6 +1138,9 @@ def segment_sa(
     features : TagFeatures or list of TagFeatures, optional
         Precomputed :func:`tag_features` (only that estimate is tried) or
         :func:`candidate_features` (each tried, the better kept, as by default).
+    families : int
+        Tag directions in the image when ``features`` are not given: 2 for a grid, 1 for one
+        family of tag lines (``Frame.tag_lines`` ``TAGS_LINES``; :func:`candidate_features`).
 
     Returns
     -------
@@ -1119,6 +1161,7 @@ def segment_sa(
         max_radius_mm,
         min_wall_mm,
         'SA',
+        families,
         lambda angles, endo, epi, feat: _sa_from_runs(
             img.shape,
             c,
@@ -1134,16 +1177,17 @@ def segment_sa(
 
 
 def _segment_candidates(
-    img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, finish
+    img, features, c, pixel_spacing_mm, max_radius_mm, min_wall_mm, view, families, finish
 ):
     """
     Find the wall runs around ``c`` under each of :func:`candidate_features` and keep the best.
 
-    Under the given ``features`` instead when passed; runs are shaped by
+    Under the given ``features`` instead when passed (``families``: tag directions, 2 or 1, of
+    the estimated ones); runs are shaped by
     ``finish(angles, endo, epi, features)``; the best by :func:`_best_of`.
     """
     feats = (
-        candidate_features(img, pixel_spacing_mm)
+        candidate_features(img, pixel_spacing_mm, families)
         if features is None
         else [features]
         if isinstance(features, TagFeatures)
@@ -1215,6 +1259,7 @@ def segment_la(
     min_wall_mm: float = 2.0,
     min_arc_deg: float = 150.0,
     features: TagFeatures | None = None,
+    families: int = 2,
 ) -> SliceSegmentation:
     """
     Segment the horseshoe myocardium of one ED long-axis tagged image.
@@ -1236,6 +1281,8 @@ def segment_la(
     min_arc_deg : float
         Reject when the contiguous arc of rays that meet myocardium is shorter than this.
     features : TagFeatures, optional
+        As :func:`segment_sa`.
+    families : int
         As :func:`segment_sa`.
 
     Returns
@@ -1259,6 +1306,7 @@ def segment_la(
         max_radius_mm,
         min_wall_mm,
         'LA',
+        families,
         lambda angles, endo, epi, feat: _la_from_runs(
             img.shape,
             c,

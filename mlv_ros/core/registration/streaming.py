@@ -83,16 +83,17 @@ def cavity_centre(s: seg.SliceSegmentation) -> np.ndarray | None:
     return None
 
 
-def _finite_features(img: np.ndarray, sp: float) -> list:
+def _finite_features(img: np.ndarray, sp: float, families: int = 2) -> list:
     """
     Return the :func:`.segment.candidate_features` with finite energy and period.
 
     Both spectral estimates (a bright RV pool beside the wall can mislead the plain one), the plain
-    one first (the blood-pool search uses it); empty when none is finite.
+    one first (the blood-pool search uses it); empty when none is finite. ``families``: tag
+    directions in the image (2: a grid, 1: one family of tag lines).
     """
     return [
         f
-        for f in seg.candidate_features(img, pixel_spacing_mm=sp)
+        for f in seg.candidate_features(img, pixel_spacing_mm=sp, families=families)
         if np.all(np.isfinite(f.energy)) and np.isfinite(f.wavelength_px)
     ]
 
@@ -427,7 +428,7 @@ class StreamingMasker:
 
     def _sa(self, frame: Frame, img: np.ndarray, sp: float):
         g = frame.geometry
-        feats = _finite_features(img, sp)
+        feats = _finite_features(img, sp, seg.tag_families(frame.tag_lines))
         if not feats:
             return None, 'no tag pattern found (tag features not finite)'
         feat = feats[0]
@@ -492,7 +493,7 @@ class StreamingMasker:
         centre_rc, off = g.patient_to_pixel(p)
         if abs(float(off)) > self.max_plane_offset_mm:
             return None, f'LA plane is {abs(float(off)):.1f} mm from the long axis'
-        feats = _finite_features(img, sp)
+        feats = _finite_features(img, sp, seg.tag_families(frame.tag_lines))
         if not feats:
             return None, 'no tag pattern found (tag features not finite)'
         # Axis point: mid stack first; then toward the apex (a basal point can sit in the
