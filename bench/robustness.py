@@ -25,13 +25,13 @@ truth.
 Per case (JSON): the drawn protocol, exit codes, phases solved, ES median / p95 3D error (mm), the
 largest twist error over levels at ES (deg; also over the levels the SA stack spans only: beyond it
 twist is extrapolated, and the must-criterion takes all levels; and the extrapolated levels'
-largest error over the uncertainty the run states for them, ≤ 1 within it), particles inside the
-true myocardium, the fraction of the true myocardium the model covers, tag points per slice (ED and
-fewest over the cycle), seconds, and whether the issue's must-criteria hold (ES median ≤ 1.0 mm,
-p95 ≤ 2.5 mm, twist error ≤ 2°, every phase solved) with the model covering ≥ 90 % of the true
-myocardium (errors are measured on the particles, so a model short of the base would pass on what
-it has). The summary gives the worst and the median of each measure and the number of cases
-passing.
+largest error over the rate part of the uncertainty the run states for them, ≤ 1 within even that),
+particles inside the true myocardium, the fraction of the true myocardium the model covers, tag
+points per slice (ED and fewest over the cycle), seconds, and whether the issue's must-criteria
+hold (ES median ≤ 1.0 mm, p95 ≤ 2.5 mm, twist error ≤ 2°, every phase solved) with the model
+covering ≥ 90 % of the true myocardium (errors are measured on the particles, so a model short of
+the base would pass on what it has). The summary gives the worst and the median of each measure and
+the number of cases passing.
 
     mlv-ros bench robustness [-- --cases 16 --seed 1000 --jobs 1 --out DIR --keep --abnormal
                               --rv on]

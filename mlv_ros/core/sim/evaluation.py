@@ -50,9 +50,10 @@ def evaluate_run(
         ``twist_error_measured_deg``, the twist error over the levels the SA stack spans (beyond
         it SA tags, the only ones that see circumferential motion, are absent and twist is
         extrapolated), and, when some level is extrapolated, ``twist_extrapolated_over_stated``:
-        the largest ratio of an extrapolated level's twist error to the uncertainty the run
-        states for it (:func:`~mlv_ros.core.analysis.frame.twist_extrapolation_bound`; ≤ 1:
-        within what the run said).
+        the largest ratio of an extrapolated level's twist error to the rate part of the
+        uncertainty the run states for it
+        (:func:`~mlv_ros.core.analysis.frame.twist_extrapolation_bound`; ≤ 1: within even the
+        least the run states, whose sentence adds the study's own gradient noise).
 
     Returns
     -------
