@@ -684,7 +684,13 @@ def replay_case(
         **({'ideal_segments': sorted(ideal_segments)} if ideal and ideal_segments else {}),
         **{
             k: round(es[k], 3)
-            for k in ('median_mm', 'p95_mm', 'twist_error_deg', 'twist_error_measured_deg')
+            for k in (
+                'median_mm',
+                'p95_mm',
+                'twist_error_deg',
+                'twist_error_measured_deg',
+                'twist_extrapolated_over_stated',
+            )
             if k in es
         },
         'coverage': round(acc['coverage'], 3),

@@ -171,6 +171,29 @@ def test_plane_levels_and_what_twist_is_extrapolated():
         plane_level_span(fr, [(fr.apex, [0, np.nan, 1])])
 
 
+def test_stated_twist_uncertainty_per_level_matches_the_note():
+    from mlv_ros.core.analysis.frame import (
+        twist_extrapolation_bound,
+        twist_extrapolation_note,
+        TWIST_EXTRAPOLATION_DEG_PER_TENTH,
+    )
+
+    rate = TWIST_EXTRAPOLATION_DEG_PER_TENTH
+    centres = (np.arange(10) + 0.5) / 10
+    bound = twist_extrapolation_bound(centres, (0.42, 0.85))
+    # 0 where measured (0.45 … 0.85); the rate times the lever beyond: apical bins 0.05 … 0.35
+    # (0.37 … 0.07 below the span), the basal bin 0.95 (0.10 above).
+    expect = np.zeros(10)
+    expect[:4] = rate['apical'] * np.array([3.7, 2.7, 1.7, 0.7])
+    expect[9] = rate['basal'] * 1.0
+    np.testing.assert_allclose(bound, expect, atol=1e-9)
+    # The farthest bin of each end is what the run's sentence states.
+    note = twist_extrapolation_note((0.42, 0.85))
+    assert f'about ±{bound[0]:.1f}°' in note and f'about ±{bound[9]:.1f}°' in note, note
+    assert not twist_extrapolation_bound(centres, (0.04, 0.96)).any()
+    assert np.isinf(twist_extrapolation_bound(centres, None)).all()
+
+
 def test_apex_cap_strain_is_taken_across_its_wall():
     """
     Read an analytic thickening apical cap's strain in the wall-normal frame.

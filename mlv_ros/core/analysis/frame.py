@@ -489,6 +489,41 @@ def levels_outside(level_position, span, levels: int | None = None) -> np.ndarra
     return (pos < span[0] - half) | (pos > span[1] + half)
 
 
+def twist_extrapolation_bound(level_position, span, levels: int | None = None) -> np.ndarray:
+    """
+    Return the twist uncertainty a run states for each level bin, degrees (0 where measured).
+
+    The rate part of :func:`twist_extrapolation_note`'s sentence, per level: a bin beyond the SA
+    span by more than half a bin (:func:`levels_outside`) is uncertain by
+    ``TWIST_EXTRAPOLATION_DEG_PER_TENTH`` (apical or basal) per 0.1 of the length its centre lies
+    beyond the span. The run's sentence adds the study's own gradient noise, so this is the
+    least it states: an error within it is one the run said it might make.
+
+    Parameters
+    ----------
+    level_position : array_like, shape (L,)
+        Level bin centres, 0 apex → 1 base.
+    span : (float, float) or None
+        Measured levels (:func:`plane_level_span`); None = nothing measured (every bin
+        unbounded: ``inf``).
+    levels : int, optional
+        Number of bins on [0, 1]; default ``len(level_position)``.
+
+    Returns
+    -------
+    ndarray, shape (L,)
+        Stated uncertainty per bin, degrees.
+
+    """
+    pos = np.asarray(level_position, dtype=np.float64).reshape(-1)
+    if span is None:
+        return np.full(pos.shape, np.inf)
+    out = levels_outside(pos, span, levels)
+    below = np.maximum(span[0] - pos, 0.0) * TWIST_EXTRAPOLATION_DEG_PER_TENTH['apical']
+    above = np.maximum(pos - span[1], 0.0) * TWIST_EXTRAPOLATION_DEG_PER_TENTH['basal']
+    return np.where(out, (below + above) / 0.1, 0.0)
+
+
 def twist_extrapolation_note(span, levels: int = 10, gradient_se=None) -> str:
     """
     Say what of the reported twist is extrapolated, how far and how uncertain, in one sentence.

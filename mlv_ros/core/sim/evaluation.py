@@ -24,7 +24,7 @@ definition.
 from __future__ import annotations
 
 from mlv_ros.core.analysis import LVAnalyzer
-from mlv_ros.core.analysis.frame import levels_outside
+from mlv_ros.core.analysis.frame import levels_outside, twist_extrapolation_bound
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -49,7 +49,11 @@ def evaluate_run(
         Lowest and highest SA slice as level positions (0 apex … 1 base): adds
         ``twist_error_measured_deg``, the twist error over the levels the SA stack spans (beyond
         it SA tags, the only ones that see circumferential motion, are absent and twist is
-        extrapolated).
+        extrapolated), and, when some level is extrapolated, ``twist_extrapolated_over_stated``:
+        the largest ratio of an extrapolated level's twist error to the rate part of the
+        uncertainty the run states for it
+        (:func:`~mlv_ros.core.analysis.frame.twist_extrapolation_bound`; ≤ 1: within even the
+        least the run states, whose sentence adds the study's own gradient noise).
 
     Returns
     -------
@@ -88,6 +92,14 @@ def evaluate_run(
                     if inside.any():
                         row['twist_error_measured_deg'] = float(
                             np.max(np.abs(got.twist_deg - true.twist_deg)[inside])
+                        )
+                    if not inside.all():
+                        # the extrapolated levels' errors against what the run states for them
+                        row['twist_extrapolated_over_stated'] = float(
+                            np.max(
+                                np.abs(got.twist_deg - true.twist_deg)[~inside]
+                                / twist_extrapolation_bound(got.level_position, sa_span)[~inside]
+                            )
                         )
                 row['radius_error_mm'] = float(
                     np.max(np.abs(got.sa_radius_mm - true.sa_radius_mm))
