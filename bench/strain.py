@@ -35,10 +35,11 @@ with truth and ours), ``classification`` (sensitivity / specificity of akinetic 
 segments, from the findings :mod:`mlv_ros.core.analysis.findings` makes of the recorded
 metrics as ``mlv-ros report`` does; an indeterminate segment is no finding: a missed abnormal
 one, counted apart too; ``possibly_akinetic``: the segments the findings name "hypokinetic or
-akinetic", no class claimed, per truth class), ``segment_origin`` (1: the septum is the anatomical prior's, the
-segment names are not tied to the anatomy), ``explained`` (per abnormal segment of the truth:
-found, or why not, :func:`explain_abnormal`: the truth's own motion of our particles analysed
-in our frame and in the truth's tells the motion from the frame, the names and the rule) and
+akinetic", no class claimed, per truth class), ``segment_origin`` (1: the septum is the
+anatomical prior's, the segment names are not tied to the anatomy), ``explained`` (per
+abnormal segment of the truth: found, or why not, :func:`explain_abnormal`: the truth's own
+motion of our particles analysed in our frame and in the truth's tells the motion from the
+frame, the names and the rule) and
 ``cap`` (the apex cap's truth and ours in the wall-normal frame our findings use there, the
 truth's cylindrical values beside: :func:`truth_in_our_cap_frame`; the segment comparisons use
 the wall-frame truth for 17) and
