@@ -34,10 +34,12 @@ the right sign: fraction and the wrong ones), ``abnormal`` (truth class per abno
 with truth and ours), ``classification`` (sensitivity / specificity of akinetic + dyskinetic
 segments, from the findings :mod:`mlv_ros.core.analysis.findings` makes of the recorded
 metrics as ``mlv-ros report`` does; an indeterminate segment is no finding: a missed abnormal
-one, counted apart too), ``segment_origin`` (1: the septum is the anatomical prior's, the
-segment names are not tied to the anatomy), ``explained`` (per abnormal segment of the truth:
-found, or why not, :func:`explain_abnormal`: the truth's own motion of our particles analysed
-in our frame and in the truth's tells the motion from the frame, the names and the rule) and
+one, counted apart too; ``possibly_akinetic``: the segments the findings name "hypokinetic or
+akinetic", no class claimed, per truth class), ``segment_origin`` (1: the septum is the
+anatomical prior's, the segment names are not tied to the anatomy), ``explained`` (per
+abnormal segment of the truth: found, or why not, :func:`explain_abnormal`: the truth's own
+motion of our particles analysed in our frame and in the truth's tells the motion from the
+frame, the names and the rule) and
 ``cap`` (the apex cap's truth and ours in the wall-normal frame our findings use there, the
 truth's cylindrical values beside: :func:`truth_in_our_cap_frame`; the segment comparisons use
 the wall-frame truth for 17) and
@@ -382,6 +384,16 @@ def brief(result: dict) -> dict:
     }
 
 
+def _possibly_by_truth(seg: list, ours: dict, ok) -> dict:
+    """Count the segments the findings name possibly akinetic, per truth class."""
+    named = getattr(ours.get('findings'), 'possibly_akinetic', ())
+    out = {k: 0 for k in ('normal', 'hypokinetic', *ABNORMAL)}
+    for k in named:
+        if ok[k - 1]:
+            out[seg[k - 1]['class']] += 1
+    return out
+
+
 def compare(truth: dict, ours: dict) -> dict:
     """Strain errors of one case (see the module docstring)."""
     seg = truth['segments']
@@ -469,6 +481,9 @@ def compare(truth: dict, ours: dict) -> dict:
             'false_positive': int(np.sum(~pos & got)),
             'indeterminate_abnormal': int(np.sum(pos & ind)),
             'indeterminate_other': int(np.sum(~pos & ind)),
+            # Named "hypokinetic or akinetic" (no class claimed): per truth class, among the
+            # segments compared.
+            'possibly_akinetic': _possibly_by_truth(seg, ours, ok),
             'per_segment': [
                 {'segment': int(k + 1), 'truth': seg[k]['class'], 'ours': ours['classes'][k]}
                 for k in np.flatnonzero(ok)
@@ -568,6 +583,11 @@ def summarise(cases: list[dict]) -> dict:
             )
         out['indeterminate'] = {
             k: sum(c[f'indeterminate_{k}'] for c in cls) for k in ('abnormal', 'other')
+        }
+        # Segments named "hypokinetic or akinetic" (findings.possibly_akinetic), by truth class.
+        out['possibly_akinetic'] = {
+            k: sum(c.get('possibly_akinetic', {}).get(k, 0) for c in cls)
+            for k in ('normal', 'hypokinetic', *ABNORMAL)
         }
     else:
         out['sensitivity'] = out['specificity'] = None  # no run had metrics to classify

@@ -243,3 +243,66 @@ def test_a_weak_heart_is_said_and_its_still_segments_are_akinetic_on_absolute_bo
     cls, _, _, ref = classify(normal, unc)
     assert global_function(ref) == 'measured' and list(cls).count('akinetic') == 2
     assert cls[16] == 'indeterminate'  # the cap: no class claimed
+
+
+def test_segments_read_between_hypokinesis_and_akinesis_are_named_not_classed():
+    """
+    Name "hypokinetic or akinetic" where akinesis is within 1σ of a below-normal reading.
+
+    A weak heart (median ES Ecc −0.09, Err 0.16; the readers' spreads as σ) whose apical
+    segments 13–15 read Ecc −0.022, Err 0.035: against the apical ring's expected share (0.6,
+    0.75 of the median) f = 0.36 ± 0.28, hypokinetic, akinesis 1σ below: named, the class kept.
+    The same reading in a segment the model carried (16) is not named (no measurement); the
+    remote segments (f ≈ 1) and the cap never are. In a normal heart (−0.15, 0.40) a segment at
+    half the function (f 0.50 ± 0.09) is plainly hypokinetic and not named; one at f 0.40 ± 0.09
+    is.
+    """
+    from mlv_ros.core.analysis.findings import findings_notes, Findings, possibly_akinetic
+
+    unc = {'ecc': np.full(17, 0.02), 'err': np.full(17, 0.05)}
+    es = {'ecc': np.full(17, -0.09), 'err': np.full(17, 0.16)}
+    es['ecc'][12:16], es['err'][12:16] = -0.022, 0.035
+    cls, f_idx, f_unc, ref = classify(es, unc, unsupported=(16,))
+    w = np.array([1 / (0.02 / 0.054) ** 2, 1 / (0.05 / 0.12) ** 2])
+    expect = (w @ [0.022 / 0.054, 0.035 / 0.12]) / w.sum()
+    assert f_idx[12] == pytest.approx(expect, rel=1e-2) and f_unc[12] == pytest.approx(
+        1 / np.sqrt(w.sum()), rel=1e-2
+    )
+    assert list(cls[12:15]) == ['hypokinetic'] * 3 and cls[15] == 'indeterminate'
+    named = possibly_akinetic(list(cls), f_idx, f_unc, unsupported=(16,))
+    assert named == [13, 14, 15]
+    f = Findings(es=es, es_unc=unc, classes=[str(c) for c in cls], function_index=f_idx,
+                 function_unc=f_unc, reference=ref, possibly_akinetic=named)
+    note = [n for n in findings_notes(f) if n.startswith('hypokinetic or akinetic')]
+    assert len(note) == 1 and note[0].endswith(f'15 (f {f_idx[14]:.2f} ± {f_unc[14]:.2f})')
+    assert f.to_dict()['possibly_akinetic'] == [13, 14, 15] and f.classes[12] == 'hypokinetic'
+
+    normal = {'ecc': np.full(17, -0.15), 'err': np.full(17, 0.40)}
+    normal['ecc'][7], normal['err'][7] = -0.075, 0.20  # f 0.50 ± 0.09
+    normal['ecc'][8], normal['err'][8] = -0.06, 0.16  # f 0.40 ± 0.09
+    cls, f_idx, f_unc, _ = classify(normal, unc)
+    assert cls[7] == cls[8] == 'hypokinetic'
+    assert possibly_akinetic(list(cls), f_idx, f_unc) == [9]
+    with pytest.raises(ValueError, match='17 entries'):
+        possibly_akinetic(list(cls)[:16], f_idx, f_unc)
+
+
+def test_streamed_findings_name_possibly_akinetic_segments():
+    """The streamed findings set possibly_akinetic at their ES phase and say it in the notes."""
+    def phase(index, volume, ecc13):
+        ecc = np.full(17, -0.15)
+        ecc[12] = ecc13
+        return PhaseMetrics(
+            phase_index=index, num_phases=10, cavity_volume_ml=volume,
+            segment_err=np.full(17, 0.3), segment_ecc=ecc, segment_ell=np.full(17, -0.1),
+            segment_count=np.full(17, 500), segment_err_unc=np.full(17, 0.3),
+            segment_ecc_unc=np.full(17, 0.02), segment_ell_unc=np.full(17, 0.02),
+        )
+
+    # Segment 13 (apical, expected 0.6 of the median Ecc): Ecc −0.04 → f_ecc 0.44 ± 0.22, Err as
+    # the others (f_err 1.33 ± 1.33, little weight): f ≈ 0.47 ± 0.22, hypokinetic, named.
+    f = segment_findings([phase(1, 100.0, -0.14), phase(4, 60.0, -0.04)])
+    assert f.es_phase == 4 and f.classes[12] == 'hypokinetic' and f.possibly_akinetic == [13]
+    assert any(n.startswith('hypokinetic or akinetic') for n in f.notes)
+    early = segment_findings([phase(1, 100.0, -0.09)])
+    assert early.possibly_akinetic == []

@@ -119,6 +119,15 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   still ``akinetic`` when even 2σ above its reading it moves less than the absolute bounds
   :data:`AKINETIC_ABS` (Err 0.10: < 10 % thickening, the echo criterion; |Ecc| 0.05: 2.5
   reader spreads): e.g. the still segments of a weak heart.
+* Possibly akinetic (:func:`possibly_akinetic`, :attr:`Findings.possibly_akinetic`): a
+  segment 1–16 classed ``hypokinetic`` or ``indeterminate`` (not unsupported) whose model
+  reading is below the normal bound (``f < 0.6``) and within one σ of akinesis
+  (``f − σ_f < 0.35``) is named in the notes as "hypokinetic or akinetic", the echo reader's
+  "hypokinetic to akinetic" when a segment's thickening is between the two (ASE/EACVI wall-motion
+  scoring, Lang et al. 2015): no class is claimed (the class stays), but the reader is told where
+  akinesis is as likely as the class read. It names what the 2σ rules leave out: a weak heart's
+  still segments, whose reader-spread floors keep σ_f near :data:`MAX_SIGMA_F`, and a narrow
+  still sector the model carries part-way with its neighbours (f 0.4–0.5 ± 0.15).
 * Heart-level finding (:func:`global_function`): ``globally hypokinetic`` when the heart's
   references are within about three reader spreads of no motion (``Σ (ref_k / FLOOR_k)² <
   1 / MAX_SIGMA_F²``): its segments cannot be told apart relative to it, so they are
@@ -544,6 +553,9 @@ class Findings:
         ``f_tag`` and ``σ_f_tag`` (NaN where not computable).
     from_tags : list of int
         Segments (1–17) whose class is the tags' (module docstring, "Tag evidence").
+    possibly_akinetic : list of int
+        Segments (1–16) classed hypokinetic or indeterminate whose reading is within 1σ of
+        akinesis (:func:`possibly_akinetic`): said in :attr:`notes`, their class unchanged.
 
     """
 
@@ -565,6 +577,7 @@ class Findings:
     tag_function_index: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
     tag_function_unc: np.ndarray = field(default_factory=lambda: np.full(17, np.nan))
     from_tags: list = field(default_factory=list)
+    possibly_akinetic: list = field(default_factory=list)
 
     def abnormal(self, kinds=('akinetic', 'dyskinetic')) -> list[int]:
         """Segment numbers (1–17) classed as one of ``kinds``."""
@@ -630,6 +643,7 @@ class Findings:
             'global_function': self.global_function,
             'notes': list(self.notes),
             'from_tags': list(self.from_tags),
+            'possibly_akinetic': list(self.possibly_akinetic),
             'thresholds': {
                 'class_bounds': {
                     n: (None if not math.isfinite(b) else b) for n, b in CLASS_BOUNDS
@@ -726,10 +740,54 @@ class SegmentFindings:
                 cls, f.tag_ecc, f.tag_ecc_unc, f.unsupported
             )
             f.classes = [str(c) for c in cls]
+            f.possibly_akinetic = possibly_akinetic(
+                f.classes, f.function_index, f.function_unc, f.unsupported
+            )
             f.global_function = global_function(f.reference)
             f.notes = findings_notes(f)
         self.findings = f
         return f
+
+
+def possibly_akinetic(classes, f, f_unc, unsupported=()) -> list[int]:
+    """
+    Return the segments whose reading is as compatible with akinesis as with their class.
+
+    Module docstring, "Possibly akinetic": segments 1–16 classed ``hypokinetic`` or
+    ``indeterminate``, not unsupported, with ``f`` below the normal bound and ``f − σ_f`` below
+    the akinetic bound (:data:`CLASS_BOUNDS`). The tags' own ``f_tag`` is not used: where the tags
+    read akinesis beyond their uncertainty they already set the class (:func:`tag_override`).
+
+    Parameters
+    ----------
+    classes : sequence of str, shape (17,)
+        The segments' classes.
+    f, f_unc : array_like, shape (17,)
+        The model's function index and its uncertainty (NaN: not computable).
+    unsupported : sequence of int, optional
+        AHA segments (1–17) carried by the model at ES (never named: not a measurement).
+
+    Returns
+    -------
+    list of int
+        AHA segment numbers, ascending.
+
+    """
+    bounds = dict(CLASS_BOUNDS)
+    fi = np.asarray(f, dtype=np.float64).reshape(-1)
+    fu = np.asarray(f_unc, dtype=np.float64).reshape(-1)
+    if len(classes) != 17 or fi.size != 17 or fu.size != 17:
+        raise ValueError(
+            f'classes, f and f_unc must have 17 entries, got {len(classes)}, {fi.size}, {fu.size}'
+        )
+    carried = {int(k) for k in np.asarray(unsupported, dtype=np.int64).reshape(-1)}
+    with np.errstate(invalid='ignore'):
+        near = (fi < bounds['normal']) & (fi - fu < bounds['hypokinetic'])
+    return [
+        k + 1
+        for k in range(16)
+        if classes[k] in ('hypokinetic', 'indeterminate') and k + 1 not in carried and near[k]
+    ]
 
 
 def findings_notes(f: Findings) -> list[str]:
@@ -745,7 +803,8 @@ def findings_notes(f: Findings) -> list[str]:
     -------
     list of str
         The apex cap's :data:`CAP_NOTE`; for a globally hypokinetic heart, its references and
-        what that means for its segments; the segments classed akinetic on the absolute bounds.
+        what that means for its segments; the segments classed akinetic on the absolute bounds;
+        the segments read hypokinetic or akinetic (:attr:`Findings.possibly_akinetic`).
 
     """
     notes = [CAP_NOTE]
@@ -770,6 +829,15 @@ def findings_notes(f: Findings) -> list[str]:
         notes.append(
             "akinetic on the absolute bounds (too uncertain against the heart's own function): "
             + ', '.join(map(str, absolute))
+        )
+    if f.possibly_akinetic:
+        notes.append(
+            'hypokinetic or akinetic (read below normal and within 1σ of akinesis; no akinetic '
+            'class is claimed): '
+            + ', '.join(
+                f'{k} (f {f.function_index[k - 1]:.2f} ± {f.function_unc[k - 1]:.2f})'
+                for k in f.possibly_akinetic
+            )
         )
     return notes
 

@@ -164,10 +164,12 @@ def _findings_html(summaries: list[dict]) -> str:
             continue
         carried = set(f.get('unsupported') or ())
         tagged = set(f.get('from_tags') or ())
+        possible = set(f.get('possibly_akinetic') or ())
         rows = ''.join(
             f'<tr><td>{r["segment"]} {e(r["name"])}</td><td>{e(r["class"])}'
             + (' (unsupported)' if r['segment'] in carried else '')
             + (' (from its tags)' if r['segment'] in tagged else '')
+            + (' (or akinetic)' if r['segment'] in possible else '')
             + '</td>'
             f'<td>{e(_pm(r["function_index"], r["function_unc"]))}</td>'
             + ''.join(
