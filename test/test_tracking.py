@@ -594,9 +594,9 @@ def test_noisy_slices_pull_less_than_precise_ones(study):
     noisy = {key for key in study.geometries if key[1] % 2 == 0}
     err, noise = {}, {}
     for case, tag_noise_mm in (('exact', 0.15), ('alike', 0.0), ('own noise', 0.15)):
-        # At the volume term these figures were measured with (1000 μ). With the default 4000
-        # the volume term carries more of the motion and the weighting gains less: measured
-        # exact / alike / own noise 0.488 / 0.639 / 0.574 mm, 57 % (session 17, aud20).
+        # At the volume term these figures were measured with (1000 μ: exact / alike / own
+        # noise 0.438 / 0.625 / 0.491 mm, 28 %). With the default 4000 the volume term carries
+        # more of the motion and the weighting gains less: 0.488 / 0.639 / 0.574 mm, 57 %.
         X, tr = make_tracker(study, n=1000, tag_noise_mm=tag_noise_mm, volume_weight=1.0e3)
         for key, g in study.geometries.items():
             tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
