@@ -600,8 +600,8 @@ class MotionTracker:
         session 17): tracked SA points read the wall 1–2 mm thinner at end-systole than it is
         (docs/benchmarks.md, 'Issue 20 acceptance'), and against the tag springs 1000 let the
         solved wall lose 2–3 % of its volume (median det F 0.97–0.98 at ES, 10th percentile
-        0.89; the truth 1.00) and global Err read 0.07–0.08 low; 4000 halves that on fresh
-        studies and leaves the presets' ES error within 0.015 mm.
+        0.89; the truth 1.00) and global Err read 0.07–0.10 low; 4000 takes 30–45 % of that
+        off on fresh studies and leaves the presets' ES error within 0.015 mm.
     longitudinal_weight : float
         Stiffness against local stretch along the long axis, in units of μ (0 = off). The global
         stage carries the longitudinal shortening (axial scale and translation); only LA tag
