@@ -133,7 +133,7 @@ SOLVER_MODEL = (
     ),
     Setting(
         'local.volume_weight',
-        1.0e3,
+        4.0e3,
         'near-incompressibility penalty, in units of the shear modulus (0 = off)',
         0.0,
         1e9,

@@ -222,13 +222,16 @@ def test_tracker_local_stage_matches_the_reference_on_simulated_tags(study, monk
     Check every local solve of three phases against the old one on the same tag points.
 
     Every local solve of three phases (two slice-following passes each) against the old one on
-    the same tag points, global fit and warm start: CG at rtol 1e-3 either way.
+    the same tag points, global fit and warm start: CG at rtol 1e-4 either way.
     """
     m = study.motion
     X, tr, refs = referenced_tracker(study, n=1500)
     new_solve, cache, diffs = tracking.MotionTracker._local_solve, {}, []
 
-    tr.cg_rtol_following = tr.cg_rtol  # every pass at the reference's tolerance
+    # Every pass at the reference's tolerance, 1e-4: with the default volume term (4000 μ, the
+    # system stiffer than with the former 1000) two CG iterates stopped at 2e-3 differ by up to
+    # 0.025 mm in their median by the stopping point alone.
+    tr.cg_rtol = tr.cg_rtol_following = 1e-4
 
     def both(self, phi, targets, normals, x_global, weights=None, rtol=None, scale=None):
         # The reference has no data weights: these tags all have confidence 1, so equal weights;

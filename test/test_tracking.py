@@ -594,7 +594,10 @@ def test_noisy_slices_pull_less_than_precise_ones(study):
     noisy = {key for key in study.geometries if key[1] % 2 == 0}
     err, noise = {}, {}
     for case, tag_noise_mm in (('exact', 0.15), ('alike', 0.0), ('own noise', 0.15)):
-        X, tr = make_tracker(study, n=1000, tag_noise_mm=tag_noise_mm)
+        # At the volume term these figures were measured with (1000 μ: exact / alike / own
+        # noise 0.438 / 0.625 / 0.491 mm, 28 %). With the default 4000 the volume term carries
+        # more of the motion and the weighting gains less: 0.488 / 0.639 / 0.574 mm, 57 %.
+        X, tr = make_tracker(study, n=1000, tag_noise_mm=tag_noise_mm, volume_weight=1.0e3)
         for key, g in study.geometries.items():
             tr.set_reference(tagset(key, g, 0, m.num_phases, refs[key], np.arange(len(refs[key]))))
         rng = np.random.default_rng(7)
@@ -868,3 +871,56 @@ def test_contraction_prior_lets_an_akinetic_sector_without_la_tags_keep_its_leng
     assert np.median(err[1.0]) < np.median(err[0.0]) + 0.02, (
         np.median(err[0.0]), np.median(err[1.0])
     )
+
+
+def toward_mid_wall(study, sets, k):
+    """
+    Move each SA set's points toward its mid-wall radius: ρ' = ρ_m + k (ρ − ρ_m).
+
+    The tag tracker's measured bias at end-systole (tracked minus true, radially, by ED wall
+    quarter endo → epi +1.3 / +0.8 / −0.1 / −0.9 mm on a kept bench study): the tracked wall reads
+    thinner than it is. ρ about the true long axis through the set's centroid, ρ_m its median.
+    """
+    axis = study.motion.frame.long_axis
+    for key, s in sets.items():
+        if key[0] != 0:
+            continue
+        v = s.position - s.position.mean(axis=0)
+        v -= np.outer(v @ axis, axis)
+        rho = np.linalg.norm(v, axis=1)
+        mid = np.median(rho)
+        s.position = s.position + v / rho[:, None] * ((mid + k * (rho - mid)) - rho)[:, None]
+    return sets
+
+
+def test_volume_term_keeps_the_wall_volume_against_tag_points_read_toward_mid_wall(study):
+    # At ES, from exact in-plane tags and from the same tags read toward mid-wall (the SA wall
+    # 15 % thinner than it is: ~1.5 mm of ~11 mm, the tracker's measured bias): the default
+    # volume term (4000 μ) against the former 1000 μ. Measured (mean radial Green strain about
+    # the long axis, truth 0.417; median det F; median 3D error mm): exact 0.398 / 0.986 / 0.341
+    # → 0.413 / 0.995 / 0.346; biased 0.309 / 0.946 / 0.366 → 0.362 / 0.980 / 0.366.
+    m = study.motion
+    es = int(round(m.es_phase))
+    axis = m.frame.long_axis
+
+    def solve(k, **options):
+        X, tr, refs = referenced_tracker(study, **options)
+        tr.solve(es, toward_mid_wall(study, observed(study, refs, es), k), m.num_phases)
+        v = X - X.mean(axis=0)
+        r = v - np.outer(v @ axis, axis)
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        F = np.eye(3) + tr.model.operator.gradient(tr.positions - X)
+        err_rr = np.mean(np.einsum('na,nab,nb->n', r, np.swapaxes(F, 1, 2) @ F, r) - 1) / 2
+        T = m.deformation_gradient(X, es)
+        true_rr = np.mean(np.einsum('na,nab,nb->n', r, np.swapaxes(T, 1, 2) @ T, r) - 1) / 2
+        e = np.linalg.norm(tr.positions - m.position(X, es), axis=1)
+        return err_rr - true_rr, np.median(np.linalg.det(F)), np.median(e)
+
+    exact, biased = solve(1.0), solve(0.85)
+    former = solve(0.85, volume_weight=1.0e3)
+    assert abs(exact[0]) < 0.01 and abs(exact[1] - 1.0) < 0.01, exact
+    # Read toward mid-wall: Err within issue 20's 0.05 + 0.01 and the volume within 3 %, where
+    # the former weight loses 5 % and reads Err 0.11 low; the motion no worse.
+    assert abs(biased[0]) < 0.06 and biased[1] > 0.97, biased
+    assert former[0] < biased[0] - 0.03 and former[1] < biased[1] - 0.02, (former, biased)
+    assert biased[2] < former[2] + 0.02, (biased, former)
