@@ -33,11 +33,14 @@ dropped:
   whether the match lay more than 0.2 periods from the truth.
 
 Tracks are pooled by the truth's class of their ED point's AHA segment: ``still`` (akinetic or
-dyskinetic) and ``other``. Prints one JSON line per case (ED tracks, dropped by ES, per reason the
-miss events and the drops they ended, and the prediction's and matches' errors in periods), then
-one line pooled over the cases.
+dyskinetic) and ``other``; ``--segments K,...`` pools the tracks of those AHA segments (the
+truth's) as ``still`` instead. Prints one JSON line per case (ED tracks, dropped by ES, per reason
+the miss events and the drops they ended, and the prediction's and matches' errors in periods),
+then one line pooled over the cases. ``--view la`` follows the long-axis views' tracks instead of
+the short axis's (the only tracks that see the wall above the basal SA slice move along the axis).
 
     python bench/track_losses.py CASE_DIR [CASE_DIR ...] [--tracker KEY=VALUE ...]
+        [--view sa|la] [--segments K,...]
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ from mlv_ros.core.sim.regional import truth_segments
 from mlv_ros.core.tags import SliceTracker
 from mlv_ros.core.tags.intersections import detect_intersections
 from mlv_ros.core.tags.tracker import FOLLOW_TUNED_MOVE
-from mlv_ros.core.types import VIEW_SA
+from mlv_ros.core.types import VIEW_LA, VIEW_SA
 import numpy as np
 from retrack import ideal_targets, keyword_option, keywords, recorded
 from scipy.spatial import cKDTree
@@ -154,18 +157,24 @@ def _reason(lg, j, x) -> tuple[str, dict]:
     return 'kept', err
 
 
-def case_losses(case: Path, tracker_kwargs=None) -> list:
+def case_losses(case: Path, tracker_kwargs=None, view: int = VIEW_SA, segments=None) -> list:
     """
-    Return one record per short-axis ED track and phase (1..ES) it enters alive.
+    Return one record per ED track of ``view`` and phase (1..ES) it enters alive.
 
     Each record: case, slice, track id, phase, group (``still`` / ``other``), the step's outcome
     (``kept`` or the reason it missed, see the module docstring), whether the track was dropped
-    there, and the prediction's and match's errors against the truth, tag periods.
+    there, and the prediction's and match's errors against the truth, tag periods. ``segments``
+    (AHA numbers, the truth's): the tracks whose ED point lies in them are ``still`` instead of
+    those of the truth's akinetic and dyskinetic segments.
     """
     frames, _, _ = recorded(case / 'run' / 'run.mcap')
     motion = motion_from_groundtruth(case / 'study')
     gt = json.loads((case / 'study' / 'groundtruth.json').read_text())['regional']
-    still = {s['segment'] for s in gt['segments'] if s['class'] in ('akinetic', 'dyskinetic')}
+    still = (
+        {s['segment'] for s in gt['segments'] if s['class'] in ('akinetic', 'dyskinetic')}
+        if segments is None
+        else {int(k) for k in segments}
+    )
     es = int(gt['phase'])
     masker, trackers, sets, logs = StreamingMasker(), {}, {}, []
     for f in frames:
@@ -178,12 +187,12 @@ def case_losses(case: Path, tracker_kwargs=None) -> list:
             mask, _ = masker.ed_mask(f)
         tr = trackers[key]
         sets.setdefault(int(f.phase_index), {})[key] = tr.update(f, mask=mask)
-        if 0 < f.phase_index <= es and f.view == VIEW_SA and tr.log['live'] is not None:
+        if 0 < f.phase_index <= es and f.view == view and tr.log['live'] is not None:
             logs.append((key, int(f.phase_index), tr, tr.log))
     every, _ = ideal_targets(sets, motion, every_track=True)
     group = {}
     for key, pts in sets[0].items():
-        if key[0] == VIEW_SA and len(pts.track_id):
+        if key[0] == view and len(pts.track_id):
             seg = truth_segments(motion, pts.position)
             group |= {
                 (key, int(t)): 'still' if int(s) in still else 'other'
@@ -261,11 +270,21 @@ def main():
     ap.add_argument('cases', nargs='+', type=Path)
     keyword_option(ap, '--tracker', 'SliceTracker')
     ap.add_argument('--events', type=Path, help='write every record (JSON lines) here')
+    ap.add_argument(
+        '--view', choices=('sa', 'la'), default='sa', help='the views whose tracks are followed'
+    )
+    ap.add_argument(
+        '--segments',
+        type=lambda v: [int(k) for k in v.split(',')],
+        help='AHA segments (K,...; the truth\'s) pooled as "still" instead of the akinetic and '
+        'dyskinetic ones',
+    )
     args = ap.parse_args()
+    view = VIEW_LA if args.view == 'la' else VIEW_SA
     kw = keywords(args.tracker)
     everything = []
     for case in args.cases:
-        rec = case_losses(case, kw)
+        rec = case_losses(case, kw, view, args.segments)
         everything += rec
         print(json.dumps({'case': case.name, **summary(rec)}), flush=True)
     if len(args.cases) > 1:
