@@ -23,7 +23,7 @@ from pathlib import Path
 import sys
 
 from mlv_ros.core import tracking
-from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
+from mlv_ros.core.meshless import _fused, cylindrical_frame, MeshlessModel
 from mlv_ros.core.meshless import plane_projectors
 from mlv_ros.core.meshless.local import (
     CoarseSpace,
@@ -194,6 +194,49 @@ def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
             assert np.array_equal(residual.ravel(), b.ravel() - system.matvec(x0).ravel())
         rhs, residual = system.right_hand_side(force, np.zeros((n, 3)))
         assert residual is None and np.array_equal(rhs, b)
+
+
+def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
+    """
+    The compiled pass (``_fused``, numba) gives the scipy products' ``A u`` and ``D u``.
+
+    To 1e-13 of the largest entry (the sums' order differs), with and without the fit error and
+    with the read-only fixed tangent; a tracker's phase solved either way moves no particle by
+    1e-9 mm. ``MLV_ROS_JIT=0`` turns it off.
+    """
+    _, tr, refs = referenced_tracker(study, n=800)
+    ops, rng = tr._local, np.random.default_rng(4)
+    if ops.fused is None:
+        pytest.skip('numba is not installed: the scipy products are the only path')
+    n = tr.num_particles
+    C, J = cofactors_3x3(np.eye(3) + 0.1 * rng.normal(size=(n, 3, 3)))
+    ctrl = tr.model.attach(tr.rest[rng.choice(n, 40, replace=False)])
+    terms = {
+        'volume': (50.0, C, J - 1.0),
+        'axial': (7.0, np.array([0.0, 0.6, 0.8])),
+        'data': (2.0, ctrl.weights, plane_projectors(rng.normal(size=(40, 3)), 40)),
+        'eps': 0.1,
+    }
+    fused = ops.fused
+    for fit_error, kw in ((3.0, terms), (0.0, terms), (3.0, {})):
+        systems = []
+        for kernel in (fused, None):
+            ops.fused = kernel
+            systems.append(ops.system(fit_error=fit_error, **kw))
+        ops.fused = fused
+        for u in (rng.normal(size=(n, 3)), np.sin(tr.rest / 15.0)):
+            got, ref = (s.matvec(u) for s in systems)
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+            g, g_ref = (s._last_gradient.reshape(n, 9) for s in systems)
+            np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+    # a phase solved with and without it
+    _, tr2, _ = referenced_tracker(study, n=800)
+    tr2._local.fused = None
+    sets = observed(study, refs, 2)
+    x, x2 = (t.solve(2, sets, study.motion.num_phases).positions for t in (tr, tr2))
+    assert np.abs(x - x2).max() < 1e-9
+    monkeypatch.setenv('MLV_ROS_JIT', '0')
+    assert _fused.kernel() is None and not _fused.warm()
 
 
 def test_cofactors_and_block_inverses_equal_numpys():

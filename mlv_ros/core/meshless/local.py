@@ -188,6 +188,15 @@ class LocalOperators:
         self._laplacian_csc = self.laplacian.T
         self._fixed = None  # (fit_error, tangent, block) of the last system (see fixed_terms)
         self._stacked = None  # (fit_error, [Dᵀ | fit_error L]) (see adjoint_with_laplacian)
+        # The product as one compiled pass over the pairs when numba is there (_fused): the
+        # gradient operator by phyxel and each entry's fit-error pair weight s_i w_ij.
+        from mlv_ros.core.meshless import _fused
+
+        self.fused = _fused.kernel()
+        ptr, cols, vals, pair = operator.blocks
+        weight = np.zeros(cols.size)
+        weight[pair >= 0] = c[pair[pair >= 0]]
+        self.fused_layout = (ptr, cols, vals, weight)
 
     def adjoint_with_laplacian(self, fit_error: float) -> sp.csc_matrix:
         """
@@ -406,6 +415,18 @@ class LocalSystem:
     def internal(self, u: np.ndarray) -> np.ndarray:
         """Return ``A u`` without the data springs, shape (N, 3)."""
         ops, n = self.ops, self.n
+        if ops.fused is not None and u.shape == (n, 3):
+            # one compiled pass (mlv_ros.core.meshless._fused): the same sums to 1e-15
+            u = np.ascontiguousarray(u, dtype=np.float64)
+            out, g = np.zeros((n, 3)), np.empty((n, 9))
+            tangent = self._tangent
+            if not tangent.flags.writeable:  # one compiled signature: a writable tangent
+                tangent = self._tangent = tangent.copy()
+            ops.fused(*ops.fused_layout, tangent, self.fit_error, u, out, g)
+            self._last_gradient = g[:, :, None]
+            if self.eps:
+                out += self.eps * u
+            return out
         g = (ops.operator.matrix_csc @ u).reshape(n, 9, -1)
         self._last_gradient = g  # D u, for solve's gradient of its iterate
         if self.fit_error:
@@ -477,6 +498,9 @@ class LocalSystem:
         if x0 is None or not np.any(x0):
             return force + self.constant_force(), None
         u = np.asarray(x0, dtype=np.float64).reshape(n, 3)
+        if ops.fused is not None:  # A x0 as matvec takes it, bit for bit
+            b = force + self.constant_force()
+            return b, b - self.matvec(u)
         g = ops.operator.matrix_csc @ u if gradient_x0 is None else gradient_x0
         cols = 3 if self._offset is None else 6
         rows = 4 * n if self.fit_error else 3 * n
@@ -575,6 +599,20 @@ class LocalSystem:
         if self.solution_gradient is not None:
             self.solution_gradient = self.solution_gradient.reshape(3 * n, 3)
         return x.reshape(n, 3), its
+
+
+def warm_compiled() -> bool:
+    """
+    Import and load the compiled product now (:mod:`~mlv_ros.core.meshless._fused`).
+
+    numba's import (~0.4 s of CPU) and the kernel's first call (its cache loaded, ~0.3 s; compiled
+    when there is none, ~2 s) would otherwise fall in the first system built and its first
+    product: a caller with time to spare (the solver node, while it awaits the registration)
+    takes them here, e.g. on a thread. Returns False when there is no compiled product.
+    """
+    from mlv_ros.core.meshless import _fused
+
+    return _fused.warm()
 
 
 def sandwich_3x3(m: np.ndarray, q: np.ndarray) -> np.ndarray:
