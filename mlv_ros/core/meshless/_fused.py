@@ -40,9 +40,11 @@ except ImportError:  # pragma: no cover - numba is in requirements/base.txt
     numba = None
 
 
-def _internal(ptr, cols, d, c, tangent, alpha, u, out, grad):  # pragma: no cover - compiled
+def _product(ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad):  # pragma: no cover
     """
-    Add ``Dᵀ T D u + alpha L u`` to ``out`` (N, 3) and write ``D u`` to ``grad`` (N, 9).
+    Add ``Dᵀ T D u + alpha L u + eps u`` and the data springs' ``κ Φᵀ P Φ u`` to ``out`` (N, 3).
+
+    Also writes ``D u`` to ``grad`` (N, 9).
 
     Parameters
     ----------
@@ -54,8 +56,11 @@ def _internal(ptr, cols, d, c, tangent, alpha, u, out, grad):  # pragma: no cove
     tangent : ndarray, shape (N, 9, 9)
         Per-particle tangent in the operator's layout (flat index ``3b + a`` holds
         ``H[a, b]``).
-    alpha : float
-        Multiplier of the Laplacian.
+    alpha, eps : float
+        Multipliers of the Laplacian and of ``u`` itself (the rigid-mode regulariser).
+    springs : tuple
+        ``(κ, ptr, cols, φ, P)``: the data springs' multiplier, their CSR weights ``Φ`` (M, N) and
+        metrics ``P`` (M, 3, 3); ``M = 0`` for none.
     u : ndarray, shape (N, 3)
         Displacements, C-contiguous.
     out : ndarray, shape (N, 3)
@@ -140,14 +145,62 @@ def _internal(ptr, cols, d, c, tangent, alpha, u, out, grad):  # pragma: no cove
             out[j, 0] += d0 * s0 + d1 * s3 + d2 * s6
             out[j, 1] += d0 * s1 + d1 * s4 + d2 * s7
             out[j, 2] += d0 * s2 + d1 * s5 + d2 * s8
+        out[i, 0] += eps * ui0
+        out[i, 1] += eps * ui1
+        out[i, 2] += eps * ui2
+    kappa, sptr, scols, phi, metric = springs
+    for k in range(sptr.size - 1):
+        v0 = v1 = v2 = 0.0
+        for e in range(sptr[k], sptr[k + 1]):
+            j = scols[e]
+            v0 += phi[e] * u[j, 0]
+            v1 += phi[e] * u[j, 1]
+            v2 += phi[e] * u[j, 2]
+        p = metric[k]
+        f0 = kappa * (p[0, 0] * v0 + p[0, 1] * v1 + p[0, 2] * v2)
+        f1 = kappa * (p[1, 0] * v0 + p[1, 1] * v1 + p[1, 2] * v2)
+        f2 = kappa * (p[2, 0] * v0 + p[2, 1] * v1 + p[2, 2] * v2)
+        for e in range(sptr[k], sptr[k + 1]):
+            j = scols[e]
+            out[j, 0] += phi[e] * f0
+            out[j, 1] += phi[e] * f1
+            out[j, 2] += phi[e] * f2
 
 
-_compiled = None if numba is None else numba.njit(cache=True, nogil=True)(_internal)
+#: No data springs, in the kernel's form.
+NO_SPRINGS = (0.0, np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
+              np.zeros((0, 3, 3)))
+
+
+def springs(kappa: float, phi, metric) -> tuple:
+    """
+    Return data springs in the kernel's form.
+
+    Parameters
+    ----------
+    kappa : float
+        Their multiplier (P·mm).
+    phi : scipy.sparse.csr_matrix, shape (M, N)
+        Interpolation weights.
+    metric : ndarray, shape (M, 3, 3)
+        Their metrics (projectors times weights).
+
+    """
+    return (
+        float(kappa),
+        np.asarray(phi.indptr, dtype=np.int64),
+        np.asarray(phi.indices, dtype=np.int64),
+        np.ascontiguousarray(phi.data, dtype=np.float64),
+        np.ascontiguousarray(metric, dtype=np.float64),
+    )
+
+
+_compiled = None if numba is None else numba.njit(cache=True, nogil=True)(_product)
 
 
 def kernel():
     """
-    Return the compiled product (:func:`_internal`'s signature), or None.
+    Return the compiled product (:func:`_product`'s signature), or None.
 
     None without numba or with ``MLV_ROS_JIT=0`` set: callers then take the scipy products.
     """
@@ -165,5 +218,6 @@ def warm() -> bool:
     cols = np.array([1, 0, 0, 1], dtype=np.int64)
     d = np.zeros((4, 3))
     out, grad = np.zeros((2, 3)), np.zeros((2, 9))
-    k(ptr, cols, d, np.zeros(4), np.zeros((2, 9, 9)), 0.0, np.zeros((2, 3)), out, grad)
+    k(ptr, cols, d, np.zeros(4), np.zeros((2, 9, 9)), 0.0, 0.0, NO_SPRINGS, np.zeros((2, 3)), out,
+      grad)
     return True

@@ -389,6 +389,7 @@ class LocalSystem:
         if self.eps:
             block = block + self.eps * _I3
         self._data = None
+        self._springs = None  # the data springs in the compiled pass's form, once asked for
         if data is not None:
             kappa, phi, metric = (
                 float(data[0]),
@@ -416,17 +417,7 @@ class LocalSystem:
         """Return ``A u`` without the data springs, shape (N, 3)."""
         ops, n = self.ops, self.n
         if ops.fused is not None and u.shape == (n, 3):
-            # one compiled pass (mlv_ros.core.meshless._fused): the same sums to 1e-15
-            u = np.ascontiguousarray(u, dtype=np.float64)
-            out, g = np.zeros((n, 3)), np.empty((n, 9))
-            tangent = self._tangent
-            if not tangent.flags.writeable:  # one compiled signature: a writable tangent
-                tangent = self._tangent = tangent.copy()
-            ops.fused(*ops.fused_layout, tangent, self.fit_error, u, out, g)
-            self._last_gradient = g[:, :, None]
-            if self.eps:
-                out += self.eps * u
-            return out
+            return self._fused(u, False)
         g = (ops.operator.matrix_csc @ u).reshape(n, 9, -1)
         self._last_gradient = g  # D u, for solve's gradient of its iterate
         if self.fit_error:
@@ -442,6 +433,27 @@ class LocalSystem:
             out += self.eps * u
         return out
 
+    def _fused(self, u: np.ndarray, with_data: bool) -> np.ndarray:
+        """Return ``A u`` (with or without the data springs) by the compiled pass, (N, 3)."""
+        # the same sums as the scipy products to 1e-15 (mlv_ros.core.meshless._fused)
+        from mlv_ros.core.meshless import _fused
+
+        ops, n = self.ops, self.n
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        out, g = np.zeros((n, 3)), np.empty((n, 9))
+        tangent = self._tangent
+        if not tangent.flags.writeable:  # one compiled signature: a writable tangent
+            tangent = self._tangent = tangent.copy()
+        springs = _fused.NO_SPRINGS
+        if with_data and self._data is not None:
+            if self._springs is None:
+                kappa, phi, _, metric = self._data
+                self._springs = _fused.springs(kappa, phi, metric)
+            springs = self._springs
+        ops.fused(*ops.fused_layout, tangent, self.fit_error, self.eps, springs, u, out, g)
+        self._last_gradient = g[:, :, None]
+        return out
+
     def data_force(self, u: np.ndarray) -> np.ndarray:
         """Return the data springs' part of ``A u``, shape (N, 3) (zero without data)."""
         if self._data is None:
@@ -452,6 +464,8 @@ class LocalSystem:
 
     def matvec(self, u: np.ndarray) -> np.ndarray:
         """Return ``A u``, shape (N, 3)."""
+        if self.ops.fused is not None and u.shape == (self.n, 3):
+            return self._fused(u, True)
         out = self.internal(u)
         if self._data is not None:
             out += self.data_force(u)
