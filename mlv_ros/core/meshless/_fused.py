@@ -40,7 +40,9 @@ except ImportError:  # pragma: no cover - numba is in requirements/base.txt
     numba = None
 
 
-def _product(ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad):  # pragma: no cover
+def _product(  # pragma: no cover - compiled
+    ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad, offset, out_offset
+):
     """
     Add ``Dᵀ T D u + alpha L u + eps u`` and the data springs' ``κ Φᵀ P Φ u`` to ``out`` (N, 3).
 
@@ -67,6 +69,9 @@ def _product(ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad):  # pr
         Accumulates the product (zero it first).
     grad : ndarray, shape (N, 9)
         ``D u`` in the operator's layout (row ``i``, ``3b + a``).
+    offset, out_offset : ndarray, shapes (N, 9) and (N, 3), or (0, 9) and (0, 3)
+        A constant stress in the same layout and where its ``Dᵀ offset`` is added (the
+        incompressibility offsets of a right-hand side), in the same pass; size 0: none.
 
     """
     n = ptr.size - 1
@@ -145,6 +150,14 @@ def _product(ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad):  # pr
             out[j, 0] += d0 * s0 + d1 * s3 + d2 * s6
             out[j, 1] += d0 * s1 + d1 * s4 + d2 * s7
             out[j, 2] += d0 * s2 + d1 * s5 + d2 * s8
+        if out_offset.shape[0]:
+            o = offset[i]
+            for e in range(ptr[i], ptr[i + 1]):
+                j = cols[e]
+                d0, d1, d2 = d[e, 0], d[e, 1], d[e, 2]
+                out_offset[j, 0] += d0 * o[0] + d1 * o[3] + d2 * o[6]
+                out_offset[j, 1] += d0 * o[1] + d1 * o[4] + d2 * o[7]
+                out_offset[j, 2] += d0 * o[2] + d1 * o[5] + d2 * o[8]
         out[i, 0] += eps * ui0
         out[i, 1] += eps * ui1
         out[i, 2] += eps * ui2
@@ -166,6 +179,9 @@ def _product(ptr, cols, d, c, tangent, alpha, eps, springs, u, out, grad):  # pr
             out[j, 1] += phi[e] * f1
             out[j, 2] += phi[e] * f2
 
+
+#: No constant stress (the kernel's last two arguments).
+NO_OFFSET = (np.zeros((0, 9)), np.zeros((0, 3)))
 
 #: No data springs, in the kernel's form.
 NO_SPRINGS = (0.0, np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
@@ -219,5 +235,5 @@ def warm() -> bool:
     d = np.zeros((4, 3))
     out, grad = np.zeros((2, 3)), np.zeros((2, 9))
     k(ptr, cols, d, np.zeros(4), np.zeros((2, 9, 9)), 0.0, 0.0, NO_SPRINGS, np.zeros((2, 3)), out,
-      grad)
+      grad, *NO_OFFSET)
     return True

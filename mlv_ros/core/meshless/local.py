@@ -433,8 +433,13 @@ class LocalSystem:
             out += self.eps * u
         return out
 
-    def _fused(self, u: np.ndarray, with_data: bool) -> np.ndarray:
-        """Return ``A u`` (with or without the data springs) by the compiled pass, (N, 3)."""
+    def _fused(self, u: np.ndarray, with_data: bool, offset_out=None) -> np.ndarray:
+        """
+        Return ``A u`` (with or without the data springs) by the compiled pass, (N, 3).
+
+        With ``offset_out`` (N, 3) zeros, ``Dᵀ`` of the incompressibility offsets is added to it
+        in the same pass (:meth:`right_hand_side`).
+        """
         # the same sums as the scipy products to 1e-15 (mlv_ros.core.meshless._fused)
         from mlv_ros.core.meshless import _fused
 
@@ -450,7 +455,10 @@ class LocalSystem:
                 kappa, phi, _, metric = self._data
                 self._springs = _fused.springs(kappa, phi, metric)
             springs = self._springs
-        ops.fused(*ops.fused_layout, tangent, self.fit_error, self.eps, springs, u, out, g)
+        extra = _fused.NO_OFFSET
+        if offset_out is not None:
+            extra = (np.ascontiguousarray(self._offset, dtype=np.float64), offset_out)
+        ops.fused(*ops.fused_layout, tangent, self.fit_error, self.eps, springs, u, out, g, *extra)
         self._last_gradient = g[:, :, None]
         return out
 
@@ -512,9 +520,14 @@ class LocalSystem:
         if x0 is None or not np.any(x0):
             return force + self.constant_force(), None
         u = np.asarray(x0, dtype=np.float64).reshape(n, 3)
-        if ops.fused is not None:  # A x0 as matvec takes it, bit for bit
-            b = force + self.constant_force()
-            return b, b - self.matvec(u)
+        if ops.fused is not None:  # A x0 as matvec takes it, bit for bit, and Dᵀ g alongside
+            if self._offset is None:
+                b = force + self.constant_force()
+                return b, b - self.matvec(u)
+            offset = np.zeros((n, 3))
+            ax = self._fused(u, True, offset)
+            b = force - offset
+            return b, b - ax
         g = ops.operator.matrix_csc @ u if gradient_x0 is None else gradient_x0
         cols = 3 if self._offset is None else 6
         rows = 4 * n if self.fit_error else 3 * n
