@@ -13,18 +13,19 @@
 # limitations under the License.
 
 """
-The local stage's internal product ``Dᵀ T D u + α L u`` as one compiled pass (numba).
+The local stage's CG product ``A u`` as one compiled pass (numba).
 
 Issue 17: with scipy the product is three sparse passes — ``D u`` (CSC), the batched 9 × 9
 tangent, ``[Dᵀ | α L]`` on the stacked stresses and displacements — that read the pair layout
-three times (2.85 of an iteration's 3.3 ms at 3000 particles). Here each phyxel ``i`` reads
-its members once to gather ``H_i = Σ_j u_j ⊗ d_ij`` and the fit error's Laplacian pairs
-``s_i w_ij (u_i − u_j)``, applies its tangent and scatters ``d_ijᵀ S_i`` back: measured 1.6–1.9×
-faster than the scipy product on the default study's operator (load 12–17), equal to it to
-1e-15 relative (the sums' order differs, so not to the bit).
+three times (2.85 of an iteration's 3.3 ms at 3000 particles), plus the data springs' products.
+Here each phyxel ``i`` reads its members once to gather ``H_i = Σ_j u_j ⊗ d_ij`` and the fit
+error's Laplacian pairs ``s_i w_ij (u_i − u_j)``, applies its tangent and scatters ``d_ijᵀ S_i``
+back; then each data spring gathers and scatters its particles: measured 1.6–1.9× faster than
+the scipy products on the default study's operator (load 12–17), equal to them to 1e-15
+relative (the sums' order differs, so not to the bit).
 
-Imported by :mod:`mlv_ros.core.meshless.local` only when a system is built (numba's import is
-~0.4 s of CPU). The kernel is compiled on its first call and cached beside this file
+Imported by :mod:`mlv_ros.core.meshless.local` only when its operators are built (numba's import
+is ~0.4 s of CPU). The kernel is compiled on its first call and cached beside this file
 (``cache=True``; ``make bootstrap`` compiles it once, :func:`warm`); without numba, or with
 ``MLV_ROS_JIT=0`` in the environment, :func:`kernel` returns None and the scipy products are
 used.

@@ -38,9 +38,11 @@ Every per-phyxel term is a linear map of ``H_i`` to a stress-like ``S_i`` (a 9 �
 particle, summed over the terms once per system), so one matrix–vector product is one sparse
 gradient, one batched 9 × 9 product, one sparse adjoint, one Laplacian product and the data
 springs — each a pass over the compact pair layout of
-:class:`~mlv_ros.core.meshless.mls.MLSOperator`. The preconditioner is the exact 3 × 3 diagonal
-block per particle (the incompressibility block uses the particle's own cofactor for its
-neighbours', which only the preconditioner sees), optionally plus an additive coarse correction
+:class:`~mlv_ros.core.meshless.mls.MLSOperator` — or, with numba, all of them in one compiled
+pass over the pairs (:mod:`~mlv_ros.core.meshless._fused`, the same sums to 1e-15). The
+preconditioner is the exact 3 × 3 diagonal block per particle (the incompressibility block uses
+the particle's own cofactor for its neighbours', which only the preconditioner sees), optionally
+plus an additive coarse correction
 (:class:`CoarseSpace`: affine fields per aggregate of particles, built once per model) that
 removes the smooth error block-Jacobi is slow on.
 
