@@ -206,16 +206,16 @@ def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
 
 def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
     """
-    The compiled pass (``_fused``, numba) gives the scipy products' ``A u`` and ``D u``.
+    The compiled pass (``_fused.c``) gives the scipy products' ``A u`` and ``D u``.
 
     To 1e-13 of the largest entry (the sums' order differs), with and without the fit error and
     with the read-only fixed tangent; a tracker's phase solved either way moves no particle by
-    1e-9 mm. ``MLV_ROS_JIT=0`` turns it off.
+    1e-9 mm. ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
     """
     _, tr, refs = referenced_tracker(study, n=800)
     ops, rng = tr._local, np.random.default_rng(4)
     if ops.fused is None:
-        pytest.skip('numba is not installed: the scipy products are the only path')
+        pytest.skip('_fused_c.so is not built (make bootstrap): the scipy products only')
     n = tr.num_particles
     C, J = cofactors_3x3(np.eye(3) + 0.1 * rng.normal(size=(n, 3, 3)))
     ctrl = tr.model.attach(tr.rest[rng.choice(n, 40, replace=False)])
@@ -243,8 +243,12 @@ def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
     sets = observed(study, refs, 2)
     x, x2 = (t.solve(2, sets, study.motion.num_phases).positions for t in (tr, tr2))
     assert np.abs(x - x2).max() < 1e-9
-    monkeypatch.setenv('MLV_ROS_JIT', '0')
-    assert _fused.kernel() is None and not _fused.warm()
+    with pytest.raises(ValueError, match='outside'):
+        _fused.checked_rows([0, 2], [0, n], n)
+    with pytest.raises(ValueError, match='span'):
+        _fused.checked_rows([0, 3], [0, 1], n)
+    monkeypatch.setenv('MLV_ROS_COMPILED', '0')
+    assert _fused.kernel() is None
 
 
 def test_cofactors_and_block_inverses_equal_numpys():

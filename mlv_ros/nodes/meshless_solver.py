@@ -34,7 +34,6 @@ Published model states carry the study.
 
 from __future__ import annotations
 
-import threading
 import time
 
 from mlv_msgs.msg import ModelState as ModelStateMsg
@@ -42,7 +41,6 @@ from mlv_msgs.msg import TaggedFrame, TagPoints
 from mlv_ros import conversions, qos
 from mlv_ros.core.analysis import cardiac_coordinates, cardiac_strain, LVFrame
 from mlv_ros.core.analysis.frame import lv_frame_axes, plane_level_span
-from mlv_ros.core.meshless.local import warm_compiled
 from mlv_ros.core.streaming import PhaseSchedule
 from mlv_ros.core.tracking import MotionTracker
 from mlv_ros.core.verdict import LEVEL_NAMES
@@ -81,9 +79,6 @@ class MeshlessSolver(GraphNode):
         self.published = 0  # phases solved and published
         self.messages_handled = 0
         self.create_timer(TIMER_PERIOD_S, self._on_timer)
-        # The local stage's compiled product loaded while the registration is awaited, not in
-        # the first phase (~0.7 s of CPU; the tracker waits on the import if it comes first).
-        threading.Thread(target=warm_compiled, name='solver-warm', daemon=True).start()
         self.report(OK, 'waiting for the registered model')
 
     @property

@@ -38,13 +38,13 @@ Every per-phyxel term is a linear map of ``H_i`` to a stress-like ``S_i`` (a 9 �
 particle, summed over the terms once per system), so one matrix–vector product is one sparse
 gradient, one batched 9 × 9 product, one sparse adjoint, one Laplacian product and the data
 springs — each a pass over the compact pair layout of
-:class:`~mlv_ros.core.meshless.mls.MLSOperator` — or, with numba, all of them in one compiled
-pass over the pairs (:mod:`~mlv_ros.core.meshless._fused`, the same sums to 1e-15). The
-preconditioner is the exact 3 × 3 diagonal block per particle (the incompressibility block uses
-the particle's own cofactor for its neighbours', which only the preconditioner sees), optionally
-plus an additive coarse correction
-(:class:`CoarseSpace`: affine fields per aggregate of particles, built once per model) that
-removes the smooth error block-Jacobi is slow on.
+:class:`~mlv_ros.core.meshless.mls.MLSOperator` — or, where ``make bootstrap`` built it, all of
+them in one compiled pass over the pairs (:mod:`~mlv_ros.core.meshless._fused`, the same sums
+to 1e-15). The preconditioner is the exact 3 × 3 diagonal block per particle (the
+incompressibility block uses the particle's own cofactor for its neighbours', which only the
+preconditioner sees), optionally plus an additive coarse correction (:class:`CoarseSpace`:
+affine fields per aggregate of particles, built once per model) that removes the smooth error
+block-Jacobi is slow on.
 
 Everything is float64: the fit-error penalty is a difference of two terms that nearly cancel
 for smooth fields, and float32 sparse products measured no faster here (1.6 vs 1.5 ms at 3000
@@ -55,6 +55,7 @@ Units: moduli in any pressure unit P, volumes mm³, displacements mm, forces P·
 
 from __future__ import annotations
 
+from mlv_ros.core.meshless import _fused
 from mlv_ros.core.meshless.mls import MLSOperator
 import numpy as np
 import scipy.linalg as sla
@@ -190,15 +191,13 @@ class LocalOperators:
         self._laplacian_csc = self.laplacian.T
         self._fixed = None  # (fit_error, tangent, block) of the last system (see fixed_terms)
         self._stacked = None  # (fit_error, [Dᵀ | fit_error L]) (see adjoint_with_laplacian)
-        # The product as one compiled pass over the pairs when numba is there (_fused): the
+        # The product as one compiled pass over the pairs when it is built (_fused): the
         # gradient operator by phyxel and each entry's fit-error pair weight s_i w_ij.
-        from mlv_ros.core.meshless import _fused
-
         self.fused = _fused.kernel()
         ptr, cols, vals, pair = operator.blocks
         weight = np.zeros(cols.size)
         weight[pair >= 0] = c[pair[pair >= 0]]
-        self.fused_layout = (ptr, cols, vals, weight)
+        self.fused_layout = (*_fused.checked_rows(ptr, cols, n), vals, weight)
 
     def adjoint_with_laplacian(self, fit_error: float) -> sp.csc_matrix:
         """
@@ -443,8 +442,6 @@ class LocalSystem:
         in the same pass (:meth:`right_hand_side`).
         """
         # the same sums as the scipy products to 1e-15 (mlv_ros.core.meshless._fused)
-        from mlv_ros.core.meshless import _fused
-
         ops, n = self.ops, self.n
         u = np.ascontiguousarray(u, dtype=np.float64)
         out, g = np.zeros((n, 3)), np.empty((n, 9))
@@ -628,20 +625,6 @@ class LocalSystem:
         if self.solution_gradient is not None:
             self.solution_gradient = self.solution_gradient.reshape(3 * n, 3)
         return x.reshape(n, 3), its
-
-
-def warm_compiled() -> bool:
-    """
-    Import and load the compiled product now (:mod:`~mlv_ros.core.meshless._fused`).
-
-    numba's import (~0.4 s of CPU) and the kernel's first call (its cache loaded, ~0.3 s; compiled
-    when there is none, ~2 s) would otherwise fall in the first system built and its first
-    product: a caller with time to spare (the solver node, while it awaits the registration)
-    takes them here, e.g. on a thread. Returns False when there is no compiled product.
-    """
-    from mlv_ros.core.meshless import _fused
-
-    return _fused.warm()
 
 
 def sandwich_3x3(m: np.ndarray, q: np.ndarray) -> np.ndarray:
