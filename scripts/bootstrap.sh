@@ -50,6 +50,14 @@ if stale "$VENV/.stamp-pkg" setup.py setup.cfg package.xml "$VENV/.stamp-deps"; 
   touch "$VENV/.stamp-pkg"
 fi
 
+# The local stage's CG product as one C pass (mlv_ros/core/meshless/_fused.py loads it with
+# ctypes; without it the scipy products are used). -O2 only: no fast-math, no CPU-specific code.
+FUSED=mlv_ros/core/meshless/_fused
+if stale "${FUSED}_c.so" "$FUSED.c"; then
+  log "building the local stage's compiled product (${FUSED}_c.so)"
+  cc -O2 -fPIC -shared -o "${FUSED}_c.so" "$FUSED.c" || log "not built: the scipy products are used"
+fi
+
 # setup.cfg sends console scripts to .venv/lib/mlv_ros (where `ros2 run` looks); link them
 # into .venv/bin too so they are on the venv's PATH.
 for exe in "$VENV"/lib/mlv_ros/*; do

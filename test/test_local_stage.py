@@ -23,7 +23,7 @@ from pathlib import Path
 import sys
 
 from mlv_ros.core import tracking
-from mlv_ros.core.meshless import cylindrical_frame, MeshlessModel
+from mlv_ros.core.meshless import _fused, cylindrical_frame, MeshlessModel
 from mlv_ros.core.meshless import plane_projectors
 from mlv_ros.core.meshless.local import (
     CoarseSpace,
@@ -167,7 +167,12 @@ def test_shear_term_is_its_strain_measure_squared_for_affine_fields(study):
 
 
 def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
-    """``right_hand_side`` and ``MLSOperator.apply`` stack columns: the same sums, bit for bit."""
+    """
+    ``right_hand_side`` and ``MLSOperator.apply`` stack columns: the same sums, bit for bit.
+
+    The start's residual is ``b − A x0`` of :meth:`matvec` to the bit; with the compiled pass
+    ``b``'s ``Dᵀ g`` is summed in that pass, the same as :meth:`constant_force` to 1e-13.
+    """
     _, tr, _ = referenced_tracker(study, n=800)
     n, rng = tr.num_particles, np.random.default_rng(2)
     op = tr.model.operator
@@ -190,10 +195,60 @@ def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
         b = force + system.constant_force()
         for start, grad in ((x0, None), (x0, gx0)):
             rhs, residual = system.right_hand_side(force, start, grad)
-            assert np.array_equal(rhs, b)
-            assert np.array_equal(residual.ravel(), b.ravel() - system.matvec(x0).ravel())
+            if tr._local.fused is None or offsets is None:
+                assert np.array_equal(rhs, b)
+            else:  # the compiled pass takes Dᵀ g beside A x0: the same sums to rounding
+                np.testing.assert_allclose(rhs, b, rtol=0, atol=1e-13 * np.abs(b).max())
+            assert np.array_equal(residual.ravel(), rhs.ravel() - system.matvec(x0).ravel())
         rhs, residual = system.right_hand_side(force, np.zeros((n, 3)))
         assert residual is None and np.array_equal(rhs, b)
+
+
+def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
+    """
+    The compiled pass (``_fused.c``) gives the scipy products' ``A u`` and ``D u``.
+
+    To 1e-13 of the largest entry (the sums' order differs), with and without the fit error and
+    with the read-only fixed tangent; a tracker's phase solved either way moves no particle by
+    1e-9 mm. ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
+    """
+    _, tr, refs = referenced_tracker(study, n=800)
+    ops, rng = tr._local, np.random.default_rng(4)
+    if ops.fused is None:
+        pytest.skip('_fused_c.so is not built (make bootstrap): the scipy products only')
+    n = tr.num_particles
+    C, J = cofactors_3x3(np.eye(3) + 0.1 * rng.normal(size=(n, 3, 3)))
+    ctrl = tr.model.attach(tr.rest[rng.choice(n, 40, replace=False)])
+    terms = {
+        'volume': (50.0, C, J - 1.0),
+        'axial': (7.0, np.array([0.0, 0.6, 0.8])),
+        'data': (2.0, ctrl.weights, plane_projectors(rng.normal(size=(40, 3)), 40)),
+        'eps': 0.1,
+    }
+    fused = ops.fused
+    for fit_error, kw in ((3.0, terms), (0.0, terms), (3.0, {})):
+        systems = []
+        for kernel in (fused, None):
+            ops.fused = kernel
+            systems.append(ops.system(fit_error=fit_error, **kw))
+        ops.fused = fused
+        for u in (rng.normal(size=(n, 3)), np.sin(tr.rest / 15.0)):
+            got, ref = (s.matvec(u) for s in systems)
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+            g, g_ref = (s._last_gradient.reshape(n, 9) for s in systems)
+            np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+    # a phase solved with and without it
+    _, tr2, _ = referenced_tracker(study, n=800)
+    tr2._local.fused = None
+    sets = observed(study, refs, 2)
+    x, x2 = (t.solve(2, sets, study.motion.num_phases).positions for t in (tr, tr2))
+    assert np.abs(x - x2).max() < 1e-9
+    with pytest.raises(ValueError, match='outside'):
+        _fused.checked_rows([0, 2], [0, n], n)
+    with pytest.raises(ValueError, match='span'):
+        _fused.checked_rows([0, 3], [0, 1], n)
+    monkeypatch.setenv('MLV_ROS_COMPILED', '0')
+    assert _fused.kernel() is None
 
 
 def test_cofactors_and_block_inverses_equal_numpys():

@@ -38,11 +38,13 @@ Every per-phyxel term is a linear map of ``H_i`` to a stress-like ``S_i`` (a 9 �
 particle, summed over the terms once per system), so one matrix–vector product is one sparse
 gradient, one batched 9 × 9 product, one sparse adjoint, one Laplacian product and the data
 springs — each a pass over the compact pair layout of
-:class:`~mlv_ros.core.meshless.mls.MLSOperator`. The preconditioner is the exact 3 × 3 diagonal
-block per particle (the incompressibility block uses the particle's own cofactor for its
-neighbours', which only the preconditioner sees), optionally plus an additive coarse correction
-(:class:`CoarseSpace`: affine fields per aggregate of particles, built once per model) that
-removes the smooth error block-Jacobi is slow on.
+:class:`~mlv_ros.core.meshless.mls.MLSOperator` — or, where ``make bootstrap`` built it, all of
+them in one compiled pass over the pairs (:mod:`~mlv_ros.core.meshless._fused`, the same sums
+to 1e-15). The preconditioner is the exact 3 × 3 diagonal block per particle (the
+incompressibility block uses the particle's own cofactor for its neighbours', which only the
+preconditioner sees), optionally plus an additive coarse correction (:class:`CoarseSpace`:
+affine fields per aggregate of particles, built once per model) that removes the smooth error
+block-Jacobi is slow on.
 
 Everything is float64: the fit-error penalty is a difference of two terms that nearly cancel
 for smooth fields, and float32 sparse products measured no faster here (1.6 vs 1.5 ms at 3000
@@ -53,6 +55,7 @@ Units: moduli in any pressure unit P, volumes mm³, displacements mm, forces P·
 
 from __future__ import annotations
 
+from mlv_ros.core.meshless import _fused
 from mlv_ros.core.meshless.mls import MLSOperator
 import numpy as np
 import scipy.linalg as sla
@@ -188,6 +191,13 @@ class LocalOperators:
         self._laplacian_csc = self.laplacian.T
         self._fixed = None  # (fit_error, tangent, block) of the last system (see fixed_terms)
         self._stacked = None  # (fit_error, [Dᵀ | fit_error L]) (see adjoint_with_laplacian)
+        # The product as one compiled pass over the pairs when it is built (_fused): the
+        # gradient operator by phyxel and each entry's fit-error pair weight s_i w_ij.
+        self.fused = _fused.kernel()
+        ptr, cols, vals, pair = operator.blocks
+        weight = np.zeros(cols.size)
+        weight[pair >= 0] = c[pair[pair >= 0]]
+        self.fused_layout = (*_fused.checked_rows(ptr, cols, n), vals, weight)
 
     def adjoint_with_laplacian(self, fit_error: float) -> sp.csc_matrix:
         """
@@ -380,6 +390,7 @@ class LocalSystem:
         if self.eps:
             block = block + self.eps * _I3
         self._data = None
+        self._springs = None  # the data springs in the compiled pass's form, once asked for
         if data is not None:
             kappa, phi, metric = (
                 float(data[0]),
@@ -406,6 +417,8 @@ class LocalSystem:
     def internal(self, u: np.ndarray) -> np.ndarray:
         """Return ``A u`` without the data springs, shape (N, 3)."""
         ops, n = self.ops, self.n
+        if ops.fused is not None and u.shape == (n, 3):
+            return self._fused(u, False)
         g = (ops.operator.matrix_csc @ u).reshape(n, 9, -1)
         self._last_gradient = g  # D u, for solve's gradient of its iterate
         if self.fit_error:
@@ -421,6 +434,33 @@ class LocalSystem:
             out += self.eps * u
         return out
 
+    def _fused(self, u: np.ndarray, with_data: bool, offset_out=None) -> np.ndarray:
+        """
+        Return ``A u`` (with or without the data springs) by the compiled pass, (N, 3).
+
+        With ``offset_out`` (N, 3) zeros, ``Dᵀ`` of the incompressibility offsets is added to it
+        in the same pass (:meth:`right_hand_side`).
+        """
+        # the same sums as the scipy products to 1e-15 (mlv_ros.core.meshless._fused)
+        ops, n = self.ops, self.n
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        out, g = np.zeros((n, 3)), np.empty((n, 9))
+        tangent = self._tangent
+        if not tangent.flags.writeable:  # one compiled signature: a writable tangent
+            tangent = self._tangent = tangent.copy()
+        springs = _fused.NO_SPRINGS
+        if with_data and self._data is not None:
+            if self._springs is None:
+                kappa, phi, _, metric = self._data
+                self._springs = _fused.springs(kappa, phi, metric)
+            springs = self._springs
+        extra = _fused.NO_OFFSET
+        if offset_out is not None:
+            extra = (np.ascontiguousarray(self._offset, dtype=np.float64), offset_out)
+        ops.fused(*ops.fused_layout, tangent, self.fit_error, self.eps, springs, u, out, g, *extra)
+        self._last_gradient = g[:, :, None]
+        return out
+
     def data_force(self, u: np.ndarray) -> np.ndarray:
         """Return the data springs' part of ``A u``, shape (N, 3) (zero without data)."""
         if self._data is None:
@@ -431,6 +471,8 @@ class LocalSystem:
 
     def matvec(self, u: np.ndarray) -> np.ndarray:
         """Return ``A u``, shape (N, 3)."""
+        if self.ops.fused is not None and u.shape == (self.n, 3):
+            return self._fused(u, True)
         out = self.internal(u)
         if self._data is not None:
             out += self.data_force(u)
@@ -477,6 +519,14 @@ class LocalSystem:
         if x0 is None or not np.any(x0):
             return force + self.constant_force(), None
         u = np.asarray(x0, dtype=np.float64).reshape(n, 3)
+        if ops.fused is not None:  # A x0 as matvec takes it, bit for bit, and Dᵀ g alongside
+            if self._offset is None:
+                b = force + self.constant_force()
+                return b, b - self.matvec(u)
+            offset = np.zeros((n, 3))
+            ax = self._fused(u, True, offset)
+            b = force - offset
+            return b, b - ax
         g = ops.operator.matrix_csc @ u if gradient_x0 is None else gradient_x0
         cols = 3 if self._offset is None else 6
         rows = 4 * n if self.fit_error else 3 * n

@@ -1,0 +1,73 @@
+/* The local stage's CG product A u as one pass over the pairs (see _fused.py, issue 17).
+ * Built by scripts/bootstrap.sh into _fused_c.so beside this file; loaded with ctypes. */
+#include <stdint.h>
+
+void product(
+    int64_t n, const int64_t *ptr, const int64_t *cols, const double *d, const double *c,
+    const double *tangent, double alpha, double eps,
+    double kappa, int64_t m, const int64_t *sptr, const int64_t *scols, const double *phi,
+    const double *metric,
+    const double *u, double *out, double *grad, const double *offset, double *out_offset)
+{
+    for (int64_t i = 0; i < n; ++i) {
+        double g0 = 0, g1 = 0, g2 = 0, g3 = 0, g4 = 0, g5 = 0, g6 = 0, g7 = 0, g8 = 0;
+        const double ui0 = u[3 * i], ui1 = u[3 * i + 1], ui2 = u[3 * i + 2];
+        double l0 = 0, l1 = 0, l2 = 0;
+        for (int64_t e = ptr[i]; e < ptr[i + 1]; ++e) {
+            const int64_t j = cols[e];
+            const double u0 = u[3 * j], u1 = u[3 * j + 1], u2 = u[3 * j + 2];
+            const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
+            g0 += d0 * u0; g1 += d0 * u1; g2 += d0 * u2;
+            g3 += d1 * u0; g4 += d1 * u1; g5 += d1 * u2;
+            g6 += d2 * u0; g7 += d2 * u1; g8 += d2 * u2;
+            const double w = alpha * c[e];
+            const double f0 = w * (u0 - ui0), f1 = w * (u1 - ui1), f2 = w * (u2 - ui2);
+            l0 += f0; l1 += f1; l2 += f2;
+            out[3 * j] += f0; out[3 * j + 1] += f1; out[3 * j + 2] += f2;
+        }
+        out[3 * i] -= l0; out[3 * i + 1] -= l1; out[3 * i + 2] -= l2;
+        double *gi = grad + 9 * i;
+        gi[0] = g0; gi[1] = g1; gi[2] = g2; gi[3] = g3; gi[4] = g4;
+        gi[5] = g5; gi[6] = g6; gi[7] = g7; gi[8] = g8;
+        const double *t = tangent + 81 * i;
+        double s[9];
+        for (int r = 0; r < 9; ++r) {
+            const double *tr = t + 9 * r;
+            s[r] = tr[0] * g0 + tr[1] * g1 + tr[2] * g2 + tr[3] * g3 + tr[4] * g4
+                + tr[5] * g5 + tr[6] * g6 + tr[7] * g7 + tr[8] * g8;
+        }
+        for (int64_t e = ptr[i]; e < ptr[i + 1]; ++e) {
+            const int64_t j = cols[e];
+            const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
+            out[3 * j] += d0 * s[0] + d1 * s[3] + d2 * s[6];
+            out[3 * j + 1] += d0 * s[1] + d1 * s[4] + d2 * s[7];
+            out[3 * j + 2] += d0 * s[2] + d1 * s[5] + d2 * s[8];
+        }
+        if (out_offset) {
+            const double *o = offset + 9 * i;
+            for (int64_t e = ptr[i]; e < ptr[i + 1]; ++e) {
+                const int64_t j = cols[e];
+                const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
+                out_offset[3 * j] += d0 * o[0] + d1 * o[3] + d2 * o[6];
+                out_offset[3 * j + 1] += d0 * o[1] + d1 * o[4] + d2 * o[7];
+                out_offset[3 * j + 2] += d0 * o[2] + d1 * o[5] + d2 * o[8];
+            }
+        }
+        out[3 * i] += eps * ui0; out[3 * i + 1] += eps * ui1; out[3 * i + 2] += eps * ui2;
+    }
+    for (int64_t k = 0; k < m; ++k) {
+        double v0 = 0, v1 = 0, v2 = 0;
+        for (int64_t e = sptr[k]; e < sptr[k + 1]; ++e) {
+            const int64_t j = scols[e];
+            v0 += phi[e] * u[3 * j]; v1 += phi[e] * u[3 * j + 1]; v2 += phi[e] * u[3 * j + 2];
+        }
+        const double *p = metric + 9 * k;
+        const double f0 = kappa * (p[0] * v0 + p[1] * v1 + p[2] * v2);
+        const double f1 = kappa * (p[3] * v0 + p[4] * v1 + p[5] * v2);
+        const double f2 = kappa * (p[6] * v0 + p[7] * v1 + p[8] * v2);
+        for (int64_t e = sptr[k]; e < sptr[k + 1]; ++e) {
+            const int64_t j = scols[e];
+            out[3 * j] += phi[e] * f0; out[3 * j + 1] += phi[e] * f1; out[3 * j + 2] += phi[e] * f2;
+        }
+    }
+}
