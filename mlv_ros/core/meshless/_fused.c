@@ -1,3 +1,18 @@
+/* Copyright 2026 The mlv_ros authors
+ *
+ * Licensed under the Apache License, Version 2.0 (the "License");
+ * you may not use this file except in compliance with the License.
+ * You may obtain a copy of the License at
+ *
+ *     http://www.apache.org/licenses/LICENSE-2.0
+ *
+ * Unless required by applicable law or agreed to in writing, software
+ * distributed under the License is distributed on an "AS IS" BASIS,
+ * WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ * See the License for the specific language governing permissions and
+ * limitations under the License.
+ */
+
 /* The local stage's CG product A u as one pass over the pairs (see _fused.py, issue 17).
  * Built by scripts/bootstrap.sh into _fused_c.so beside this file; loaded with ctypes. */
 #include <stdint.h>
