@@ -42,8 +42,9 @@ def test_compute_threads_hold_every_pool_at_one_and_restore_them():
         one = _product()
     cv_before = cv2.getNumThreads()
     with threadpool_limits(limits=2):
-        two = _product()
-        assert not np.array_equal(one, two)  # the premise: the bits depend on the thread count
+        # On most OpenBLAS kernels this product's bits depend on the thread count, so ``held ==
+        # one`` below shows the pools held; some (the Haswell kernel on an AMD EPYC host) give the
+        # same bits at 1 and 2 threads, and there the thread counts asserted are what shows it.
         with compute_threads():
             assert {p['num_threads'] for p in threadpool_info()} == {COMPUTE_THREADS}
             assert cv2.getNumThreads() == COMPUTE_THREADS
