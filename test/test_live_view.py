@@ -118,6 +118,7 @@ class FoxgloveClient:
                             self.server_info = op
                         elif op['op'] == 'status':
                             self.statuses.append(op)
+                            await self._resubscribe(ws, op, subs)
                         elif op['op'] == 'advertise':
                             self._note(f'advertised {[c["topic"] for c in op["channels"]]}')
                             new = [c for c in op['channels'] if c['topic'] in self.topics]
@@ -155,6 +156,29 @@ class FoxgloveClient:
         except BaseException as exc:  # reported by the test
             self.error = exc
             self.subscribed.set()
+
+    async def _resubscribe(self, ws, status: dict, subs: dict[int, str]) -> None:
+        # foxglove-sdk 0.30 can advertise a new channel before its server knows it for this client
+        # (reproduced under load: 'Unknown channel ID: N', the subscription dropped); a client
+        # that wants the channel asks again, as often as the server says so.
+        found = re.fullmatch(r'Unknown channel ID: (\d+)', status.get('message', ''))
+        if not found:
+            return
+        channel_id = int(found.group(1))
+        self._note(f'server: {status["message"]}; subscribing again')
+        await asyncio.sleep(0.05)
+        await ws.send(
+            json.dumps(
+                {
+                    'op': 'subscribe',
+                    'subscriptions': [
+                        {'id': sid, 'channelId': channel_id}
+                        for sid, topic in subs.items()
+                        if self.channels[topic]['id'] == channel_id
+                    ],
+                }
+            )
+        )
 
     def _note(self, what: str) -> None:
         self.log.append(f'{time.monotonic() - self._t0:.3f} s: {what}')
