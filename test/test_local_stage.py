@@ -237,12 +237,20 @@ def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
             np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
             g, g_ref = (s._last_gradient.reshape(n, 9) for s in systems)
             np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+            # the AVX2 loop (where the CPU has it) gives the scalar loop's bits
+            monkeypatch.setattr(_fused, 'WIDE', False)
+            scalar = systems[0].matvec(u)
+            g_scalar = systems[0]._last_gradient.reshape(n, 9).copy()
+            monkeypatch.setattr(_fused, 'WIDE', True)
+            assert np.array_equal(systems[0].matvec(u), scalar)
+            assert np.array_equal(systems[0]._last_gradient.reshape(n, 9), g_scalar)
     # a phase solved with and without it
     _, tr2, _ = referenced_tracker(study, n=800)
     tr2._local.fused = None
     sets = observed(study, refs, 2)
     x, x2 = (t.solve(2, sets, study.motion.num_phases).positions for t in (tr, tr2))
     assert np.abs(x - x2).max() < 1e-9
+    assert _fused.wide_available() in (True, False)
     with pytest.raises(ValueError, match='outside'):
         _fused.checked_rows([0, 2], [0, n], n)
     with pytest.raises(ValueError, match='span'):
