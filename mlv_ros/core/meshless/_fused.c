@@ -30,7 +30,8 @@ typedef double v4 __attribute__((vector_size(32)));
 __attribute__((target("avx2")))
 static void phyxels_avx2(
     int64_t n, const int64_t *ptr, const int64_t *cols, const double *d, const double *c,
-    const double *tangent, double alpha, double eps, const double *u, double *out, double *grad)
+    const double *tangent, double alpha, double eps, const double *u, double *out, double *grad,
+    const double *offset, double *out_offset)
 {
     for (int64_t i = 0; i < n; ++i) {
         v4 ga = {0, 0, 0, 0}, gb = {0, 0, 0, 0}, gc = {0, 0, 0, 0}, l = {0, 0, 0, 0};
@@ -66,6 +67,19 @@ static void phyxels_avx2(
             const v4 a = b0 * s0 + b1 * s1 + b2 * s2;
             out[3 * j] += a[0]; out[3 * j + 1] += a[1]; out[3 * j + 2] += a[2];
         }
+        if (out_offset) {
+            const double *o = offset + 9 * i;
+            const v4 o0 = {o[0], o[1], o[2], 0}, o1 = {o[3], o[4], o[5], 0};
+            const v4 o2 = {o[6], o[7], o[8], 0};
+            for (int64_t e = ptr[i]; e < ptr[i + 1]; ++e) {
+                const int64_t j = cols[e];
+                const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
+                const v4 b0 = {d0, d0, d0, d0}, b1 = {d1, d1, d1, d1}, b2 = {d2, d2, d2, d2};
+                const v4 a = b0 * o0 + b1 * o1 + b2 * o2;
+                out_offset[3 * j] += a[0]; out_offset[3 * j + 1] += a[1];
+                out_offset[3 * j + 2] += a[2];
+            }
+        }
         out[3 * i] += eps * ui[0]; out[3 * i + 1] += eps * ui[1]; out[3 * i + 2] += eps * ui[2];
     }
 }
@@ -90,8 +104,8 @@ void product(
     int64_t wide)
 {
 #ifdef MLV_WIDE
-    if (wide && !out_offset && __builtin_cpu_supports("avx2")) {
-        phyxels_avx2(n, ptr, cols, d, c, tangent, alpha, eps, u, out, grad);
+    if (wide && __builtin_cpu_supports("avx2")) {
+        phyxels_avx2(n, ptr, cols, d, c, tangent, alpha, eps, u, out, grad, offset, out_offset);
         n = 0;  /* the phyxels are done: only the data springs below */
     }
 #else
