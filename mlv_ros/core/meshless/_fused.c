@@ -16,13 +16,15 @@
 /* The local stage's CG product A u as one pass over the pairs (see _fused.py, issue 17).
  * Built by scripts/bootstrap.sh into _fused_c.so beside this file; loaded with ctypes. */
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 
 /* The phyxels' part with AVX2 vectors, chosen at run time where the CPU has AVX2 (the build
- * stays generic x86-64, -O2): each member's three components in the lanes of one vector. Every
- * lane does the scalar pass's multiplications and additions in the scalar pass's order, and
- * "avx2" does not enable FMA, so nothing is contracted: the same bits as the scalar loop below
- * (test_local_stage checks it). */
+ * stays generic x86-64, -O2): each member's three components in the lanes of one vector, u and
+ * the sums padded to four lanes a particle (one load / store a member). Every lane does the
+ * scalar pass's multiplications and additions in the scalar pass's order, and "avx2" does not
+ * enable FMA, so nothing is contracted: with out zero on entry (as _fused.py passes it), the
+ * same bits as the scalar loop below (test_local_stage checks it). */
 #if defined(__x86_64__) && defined(__GNUC__)
 #define MLV_WIDE 1
 typedef double v4 __attribute__((vector_size(32)));
@@ -30,15 +32,18 @@ typedef double v4 __attribute__((vector_size(32)));
 __attribute__((target("avx2")))
 static void phyxels_avx2(
     int64_t n, const int64_t *ptr, const int64_t *cols, const double *d, const double *c,
-    const double *tangent, double alpha, double eps, const double *u, double *out, double *grad,
-    const double *offset, double *out_offset)
+    const double *tangent, double alpha, double eps, const double *u4, double *out4,
+    double *grad, const double *offset, double *out_offset)
 {
+    /* u4, out4: (n, 4), the fourth lane zero, so that a member is one vector load / store */
     for (int64_t i = 0; i < n; ++i) {
         v4 ga = {0, 0, 0, 0}, gb = {0, 0, 0, 0}, gc = {0, 0, 0, 0}, l = {0, 0, 0, 0};
-        const v4 ui = {u[3 * i], u[3 * i + 1], u[3 * i + 2], 0};
+        v4 ui;
+        memcpy(&ui, u4 + 4 * i, sizeof ui);
         for (int64_t e = ptr[i]; e < ptr[i + 1]; ++e) {
             const int64_t j = cols[e];
-            const v4 uj = {u[3 * j], u[3 * j + 1], u[3 * j + 2], 0};
+            v4 uj, oj;
+            memcpy(&uj, u4 + 4 * j, sizeof uj);
             const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
             const v4 b0 = {d0, d0, d0, d0}, b1 = {d1, d1, d1, d1}, b2 = {d2, d2, d2, d2};
             ga += b0 * uj; gb += b1 * uj; gc += b2 * uj;
@@ -46,9 +51,14 @@ static void phyxels_avx2(
             const v4 wv = {w, w, w, w};
             const v4 f = wv * (uj - ui);
             l += f;
-            out[3 * j] += f[0]; out[3 * j + 1] += f[1]; out[3 * j + 2] += f[2];
+            memcpy(&oj, out4 + 4 * j, sizeof oj);
+            oj += f;
+            memcpy(out4 + 4 * j, &oj, sizeof oj);
         }
-        out[3 * i] -= l[0]; out[3 * i + 1] -= l[1]; out[3 * i + 2] -= l[2];
+        v4 oi;
+        memcpy(&oi, out4 + 4 * i, sizeof oi);
+        oi -= l;
+        memcpy(out4 + 4 * i, &oi, sizeof oi);
         const double g[9] = {ga[0], ga[1], ga[2], gb[0], gb[1], gb[2], gc[0], gc[1], gc[2]};
         memcpy(grad + 9 * i, g, sizeof g);
         const double *t = tangent + 81 * i;
@@ -64,8 +74,10 @@ static void phyxels_avx2(
             const int64_t j = cols[e];
             const double d0 = d[3 * e], d1 = d[3 * e + 1], d2 = d[3 * e + 2];
             const v4 b0 = {d0, d0, d0, d0}, b1 = {d1, d1, d1, d1}, b2 = {d2, d2, d2, d2};
-            const v4 a = b0 * s0 + b1 * s1 + b2 * s2;
-            out[3 * j] += a[0]; out[3 * j + 1] += a[1]; out[3 * j + 2] += a[2];
+            v4 oj;
+            memcpy(&oj, out4 + 4 * j, sizeof oj);
+            oj += b0 * s0 + b1 * s1 + b2 * s2;
+            memcpy(out4 + 4 * j, &oj, sizeof oj);
         }
         if (out_offset) {
             const double *o = offset + 9 * i;
@@ -80,7 +92,10 @@ static void phyxels_avx2(
                 out_offset[3 * j + 2] += a[2];
             }
         }
-        out[3 * i] += eps * ui[0]; out[3 * i + 1] += eps * ui[1]; out[3 * i + 2] += eps * ui[2];
+        const v4 ev = {eps, eps, eps, eps};
+        memcpy(&oi, out4 + 4 * i, sizeof oi);
+        oi += ev * ui;
+        memcpy(out4 + 4 * i, &oi, sizeof oi);
     }
 }
 #endif
@@ -104,8 +119,21 @@ void product(
     int64_t wide)
 {
 #ifdef MLV_WIDE
-    if (wide && __builtin_cpu_supports("avx2")) {
-        phyxels_avx2(n, ptr, cols, d, c, tangent, alpha, eps, u, out, grad, offset, out_offset);
+    double *pad = (wide && n > 0 && __builtin_cpu_supports("avx2"))
+        ? malloc(8 * (size_t)n * sizeof(double)) : NULL;
+    if (pad) {  /* u and the phyxels' sums padded to four lanes a particle */
+        double *u4 = pad, *out4 = pad + 4 * n;
+        for (int64_t i = 0; i < n; ++i) {
+            u4[4 * i] = u[3 * i]; u4[4 * i + 1] = u[3 * i + 1]; u4[4 * i + 2] = u[3 * i + 2];
+            u4[4 * i + 3] = 0.0;
+        }
+        memset(out4, 0, 4 * (size_t)n * sizeof(double));
+        phyxels_avx2(n, ptr, cols, d, c, tangent, alpha, eps, u4, out4, grad, offset, out_offset);
+        for (int64_t i = 0; i < n; ++i) {
+            out[3 * i] += out4[4 * i]; out[3 * i + 1] += out4[4 * i + 1];
+            out[3 * i + 2] += out4[4 * i + 2];
+        }
+        free(pad);
         n = 0;  /* the phyxels are done: only the data springs below */
     }
 #else
