@@ -210,7 +210,8 @@ def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
 
     To 1e-13 of the largest entry (the sums' order differs), with and without the fit error and
     with the read-only fixed tangent; a tracker's phase solved either way moves no particle by
-    1e-9 mm. Its AVX2 loop (where the CPU has one) gives its scalar loop's bits. ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
+    1e-9 mm. Its AVX2 loop (where the CPU has one) gives its scalar loop's bits.
+    ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
     """
     _, tr, refs = referenced_tracker(study, n=800)
     ops, rng = tr._local, np.random.default_rng(4)
