@@ -28,10 +28,10 @@ sums' order differs, so not to the bit).
 already needs (``cc -O2``: no fast-math, no CPU-specific code, so every build sums alike);
 without it, or with ``MLV_ROS_COMPILED=0`` in the environment, :func:`kernel` returns None and
 the scipy products are used. Where the CPU has AVX2 the phyxels' loop takes a vector copy of it
-chosen at run time (a member's three components in one vector's lanes, each lane summing as the
-scalar loop does, no FMA: the same bits; :data:`WIDE` False keeps the scalar loop): the product
-0.80× on the default study's operator (1.64 against 2.02 ms median at 3000 particles, 300 paired
-calls, load ~15).
+chosen at run time (a member's three components in one vector's lanes, ``u`` and the sums padded
+to four lanes a particle; each lane sums as the scalar loop does, no FMA: the same bits;
+:data:`WIDE` False keeps the scalar loop): the product 0.61× of the scalar pass on the default
+study's operator (1.76 against 2.89 ms median at 3000 particles, 300 paired calls, load ~16).
 """
 
 import ctypes
