@@ -210,7 +210,8 @@ def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
 
     To 1e-13 of the largest entry (the sums' order differs), with and without the fit error and
     with the read-only fixed tangent; a tracker's phase solved either way moves no particle by
-    1e-9 mm. ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
+    1e-9 mm. Its AVX2 loop (where the CPU has one) gives its scalar loop's bits.
+    ``MLV_ROS_COMPILED=0`` turns it off; index arrays out of range are refused.
     """
     _, tr, refs = referenced_tracker(study, n=800)
     ops, rng = tr._local, np.random.default_rng(4)
@@ -237,12 +238,26 @@ def test_compiled_product_equals_the_scipy_products(study, monkeypatch):
             np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
             g, g_ref = (s._last_gradient.reshape(n, 9) for s in systems)
             np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+            # the AVX2 loop (where the CPU has it) gives the scalar loop's bits
+            # the AVX2 loop (where the CPU has it) gives the scalar loop's bits, the right-hand
+            # side's Dᵀ of the incompressibility offsets included
+            force = rng.normal(size=(n, 3))
+            both = []
+            for wide in (False, True):
+                monkeypatch.setattr(_fused, 'WIDE', wide)
+                both.append((
+                    systems[0].matvec(u),
+                    systems[0]._last_gradient.reshape(n, 9).copy(),
+                    *systems[0].right_hand_side(force, u),
+                ))
+            assert all(np.array_equal(a, b) for a, b in zip(*both))
     # a phase solved with and without it
     _, tr2, _ = referenced_tracker(study, n=800)
     tr2._local.fused = None
     sets = observed(study, refs, 2)
     x, x2 = (t.solve(2, sets, study.motion.num_phases).positions for t in (tr, tr2))
     assert np.abs(x - x2).max() < 1e-9
+    assert _fused.wide_available() in (True, False)
     with pytest.raises(ValueError, match='outside'):
         _fused.checked_rows([0, 2], [0, n], n)
     with pytest.raises(ValueError, match='span'):
