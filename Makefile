@@ -24,4 +24,4 @@ fuzz: bootstrap
 	@$(PY) fuzz/run.py --seconds $(FUZZ_SECONDS)
 
 clean:
-	rm -rf build install log .venv mlv_ros/core/meshless/_fused_c.so
+	rm -rf build install log .venv mlv_ros/core/meshless/_fused_c.so mlv_ros/core/_median_c.so

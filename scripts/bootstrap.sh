@@ -57,6 +57,13 @@ if stale "${FUSED}_c.so" "$FUSED.c"; then
   log "building the local stage's compiled product (${FUSED}_c.so)"
   cc -O2 -fPIC -shared -o "${FUSED}_c.so" "$FUSED.c" || log "not built: the scipy products are used"
 fi
+# The running median's middle ranks (mlv_ros/core/filters.py; without it numpy's partition, the
+# same integers).
+MEDIAN=mlv_ros/core/_median
+if stale "${MEDIAN}_c.so" "$MEDIAN.c"; then
+  log "building the running median's compiled pass (${MEDIAN}_c.so)"
+  cc -O2 -fPIC -shared -o "${MEDIAN}_c.so" "$MEDIAN.c" || log "not built: numpy's partition is used"
+fi
 
 # setup.cfg sends console scripts to .venv/lib/mlv_ros (where `ros2 run` looks); link them
 # into .venv/bin too so they are on the venv's PATH.

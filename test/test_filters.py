@@ -63,7 +63,13 @@ def test_running_median_keeps_a_bounded_number_of_images(monkeypatch):
         ((300, 260), 5, True),  # more pixels than 16-bit ranks hold
     ],
 )
-def test_running_median_by_rank_is_scipys_to_the_bit(shape, size, ties):
+@pytest.mark.parametrize('compiled', ['1', '0'])
+def test_running_median_by_rank_is_scipys_to_the_bit(shape, size, ties, compiled, monkeypatch):
+    # Both the compiled middle ranks (_median.c, where make bootstrap built it) and numpy's
+    # partition (MLV_ROS_COMPILED=0, or not built).
+    if compiled == '1' and filters._compiled() is None:
+        pytest.skip('_median_c.so is not built (make bootstrap): numpy only')
+    monkeypatch.setenv('MLV_ROS_COMPILED', compiled)
     rng = np.random.default_rng(size)
     img = rng.normal(size=shape)
     if ties:
@@ -72,3 +78,15 @@ def test_running_median_by_rank_is_scipys_to_the_bit(shape, size, ties):
     assert np.array_equal(
         filters.running_median(img, size), ndi.median_filter(img, size=size, mode='reflect')
     )
+
+
+def test_compiled_median_of_ranks_refuses_what_it_cannot_index():
+    compiled = filters._compiled()
+    if compiled is None:
+        pytest.skip('_median_c.so is not built (make bootstrap)')
+    pad = np.arange(36, dtype=np.int32).reshape(6, 6)
+    assert compiled(pad, (4, 4), 1, 36).shape == (4, 4)
+    with pytest.raises(ValueError, match='outside'):
+        compiled(pad, (4, 4), 1, 35)  # a rank beyond the histogram
+    with pytest.raises(ValueError, match='padded shape'):
+        compiled(pad, (5, 4), 1, 36)  # the pass would read past the array

@@ -16,6 +16,7 @@
 
 from mlv_ros.core.sim.tag_scene import TagScene
 from mlv_ros.core.tags import detect_intersections, estimate_tag_parameters, TagParameters
+from mlv_ros.core.tags.phase import PhaseField
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -222,3 +223,21 @@ def test_coverage_normalised_confidence_keeps_faded_tags_on_a_thin_wall():
         found[norm], err[norm] = int(hit.sum()), float(np.median(d[hit])) if hit.any() else np.inf
     assert found[True] >= found[False] + max(3, len(truth) // 5), (found, len(truth))
     assert err[True] < err[False] + 0.1, err
+
+
+def test_phase_field_reads_the_phases_it_is_asked_for_to_the_bit():
+    # The detector reads the wrapped phases at a few pixels (psi_at) without the whole map:
+    # the same float32 values as np.angle of the whole complex map, in any order, repeated.
+    rng = np.random.default_rng(3)
+    z = (rng.normal(size=(2, 37, 53)) + 1j * rng.normal(size=(2, 37, 53))).astype(np.complex64)
+    field_ = PhaseField.from_complex(z)
+    rows, cols = rng.integers(0, 37, 200), rng.integers(0, 53, 200)
+    whole = np.angle(z).astype(np.float32)
+    assert np.array_equal(field_.psi_at(rows, cols), whole[:, rows, cols])
+    assert np.array_equal(field_.psi, whole)
+    assert np.array_equal(field_.psi_at(rows, cols), whole[:, rows, cols])  # from the map now
+    # sample() starts from the nearest pixel's phase: at a pixel centre, that phase itself
+    psi, _, inside = PhaseField.from_complex(z).sample(np.array([[10.0, 21.0], [0.0, 0.0]]))
+    assert inside.tolist() == [True, False] and psi[0, 0] == whole[0, 10, 21]
+    with pytest.raises(ValueError, match='phases psi or the complex maps'):
+        PhaseField(None, np.zeros((2, 2, 3, 3), np.float32))

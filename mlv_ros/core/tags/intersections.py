@@ -862,7 +862,7 @@ def _valid_pixels(field_: PhaseField, conf, min_confidence, acc, m):
 def _newton_starts(field_: PhaseField, valid, det) -> np.ndarray:
     """Roots predicted by one Newton step that fall in their own pixel's cell, (N, 2) px."""
     rr, cc = np.nonzero(valid)
-    psi = field_.psi[:, rr, cc].T
+    psi = field_.psi_at(rr, cc).T
     jj = np.moveaxis(field_.jac[:, :, rr, cc], -1, 0)
     dd = det[rr, cc]
     # One Newton step from each pixel: δ = −J⁻¹ψ; keep pixels whose predicted root is in its cell.

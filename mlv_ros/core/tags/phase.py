@@ -26,12 +26,9 @@ spacing 4 px, and a derivative of the complex field would shrink it by sin(k)/k)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 
-@dataclass
 class PhaseField:
     """
     Two wrapped phases on a pixel grid with their Jacobian.
@@ -39,14 +36,32 @@ class PhaseField:
     Attributes
     ----------
     psi : ndarray of float32, shape (2, H, W)
-        Wrapped phases, rad, in (−π, π].
+        Wrapped phases, rad, in (−π, π]. From :meth:`from_complex` computed when first asked
+        for: :meth:`psi_at` (what the detector and :meth:`sample` read) takes the few pixels it
+        needs (issue 17: ~11 % of a tracked frame's window is valid, and ``np.angle`` costs
+        ~36 ns a pixel, a third of the field's cost), the same values to the bit.
     jac : ndarray of float32, shape (2, 2, H, W)
         ``jac[d, a]`` = ∂ψ_d/∂(row, col)[a], rad/px; zero on the one-pixel border.
 
     """
 
-    psi: np.ndarray
-    jac: np.ndarray
+    def __init__(self, psi: np.ndarray | None, jac: np.ndarray, z: np.ndarray | None = None):
+        if psi is None and z is None:
+            raise ValueError('PhaseField needs its phases psi or the complex maps z')
+        self._psi, self._z, self.jac = psi, z, jac
+
+    @property
+    def psi(self) -> np.ndarray:
+        if self._psi is None:
+            self._psi = np.angle(self._z).astype(np.float32)
+        return self._psi
+
+    def psi_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Return ``psi[:, rows, cols]``, shape (2, N), float32, without the whole map."""
+        if self._psi is not None:
+            return self._psi[:, rows, cols]
+        # np.angle of the same complex64 values, element by element: psi's values to the bit.
+        return np.angle(self._z[:, rows, cols]).astype(np.float32)
 
     @classmethod
     def from_complex(cls, z: np.ndarray) -> 'PhaseField':
@@ -56,7 +71,6 @@ class PhaseField:
         Phase 0 where the quantity of interest is.
         """
         z = np.asarray(z)
-        psi = np.angle(z).astype(np.float32)
         jac = np.zeros((2, 2) + z.shape[1:], np.float32)
         # Mean of the wrapped one-pixel differences: each is unambiguous up to |∇ψ| < π rad/px
         # (tag spacing > 2 px), where angle(z(x+1) conj z(x−1)) would fold beyond π/2 (4 px).
@@ -68,7 +82,7 @@ class PhaseField:
         jac[:, :, -1, :] = 0
         jac[:, :, :, 0] = 0
         jac[:, :, :, -1] = 0
-        return cls(psi=psi, jac=jac)
+        return cls(None, jac, z=z)
 
     @property
     def shape(self):
@@ -129,7 +143,7 @@ class PhaseField:
             ],
             -1,
         )
-        psi = self.psi[:, q[:, 0], q[:, 1]].T.astype(float) + lin
+        psi = self.psi_at(q[:, 0], q[:, 1]).T.astype(float) + lin
         return wrap(psi), j, inside
 
 
