@@ -28,7 +28,10 @@ dropped:
   the truth when the same phase is detected inside the ED mask itself (``ed mask finds it``);
 - ``unconfirmed``: the second pass (inside the mask warped through the matches) has no point
   within ``confirm_px`` of the match; split by whether it has one within 0.25 periods of the truth
-  (the passes disagree by more than ``confirm_px``) and whether the truth lies inside its mask;
+  (the passes disagree by more than ``confirm_px``), whether the truth lies inside its mask, and
+  whether the second pass run again without its tuned refinement has a point within 0.25 periods
+  of the truth (``untuned has it``: the refinement moved the intersection off its accept mask or
+  beyond ``FOLLOW_TUNED_MOVE``, and dropped it);
 - ``register rejected``: the match's own ED neighbourhood does not register there; split by
   whether the match lay more than 0.2 periods from the truth.
 
@@ -89,6 +92,10 @@ class LoggingTracker(SliceTracker):
     def _detect_following(self, image, region, accept, roi, tuned=True):
         det = super()._detect_following(image, region, accept, roi, tuned)
         self.log['dets'].append((det, region))
+        # Kept to run the second pass again untuned (``_reason``).
+        self.log['again'] = lambda: super(LoggingTracker, self)._detect_following(
+            image, region, accept, roi, tuned=False
+        )
         return det
 
     def _match(self, image, mask, live, pred, sp, view=VIEW_SA):
@@ -150,7 +157,8 @@ def _reason(lg, j, x) -> tuple[str, dict]:
         if _near(second[0], x, sp) <= NEAR:
             return 'unconfirmed; 2nd pass has it, beyond confirm_px of the 1st', err
         where = 'truth in 2nd-pass mask' if _inside(second[1], x) else 'truth outside it'
-        return f'unconfirmed; 2nd pass has nothing near the truth; {where}', err
+        untuned = 'untuned has it' if _near(lg['again'](), x, sp) <= NEAR else 'untuned does not'
+        return f'unconfirmed; 2nd pass has nothing near the truth; {where}; {untuned}', err
     if not lg['final'][j]:
         off = 'match off > 0.2 periods' if err['match'] > 0.2 else 'match right'
         return f'register rejected; {off}', err
