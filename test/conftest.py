@@ -41,15 +41,39 @@ os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+# The longest modules, longest first (seconds on one of the 2-core CI host's workers, from
+# `pytest --durations`: the graph runs' fixtures and tests summed per module).
+LONGEST = (
+    'test_random_protocol_graph',  # ~150 s: 4 studies simulated and run
+    'test_pipeline_graph',  # ~100 s
+    'test_run_interrupt',  # ~90 s: 15 `mlv-ros run`s
+    'test_flake8',  # ~40 s (on both cores)
+    'test_pipeline_bad_input',
+    'test_single_line_graph',
+    'test_namespaces',
+    'test_multihost',
+    'test_dicom_foreign',
+    'test_load',
+)
+
+
 def pytest_collection_modifyitems(config, items):
     """
-    Modules with a ``slow`` test run first, each module's tests kept together.
+    Order the modules longest first, each module's tests kept together.
 
     pytest-xdist (``-n 2 --dist loadfile``, pytest.ini) hands whole modules to its workers in
-    this order; the long graph runs starting first keeps the two workers busy to the end.
+    this order: the :data:`LONGEST` ones in their order, then the other modules with a ``slow``
+    test, then the rest. Longest first, the many short modules fill in at the end and the two
+    workers finish together.
     """
+    rank = {name: i for i, name in enumerate(LONGEST)}
     slow = {item.module.__name__ for item in items if item.get_closest_marker('slow')}
-    items.sort(key=lambda item: item.module.__name__ not in slow)  # stable: modules stay whole
+
+    def key(item):
+        name = item.module.__name__
+        return (rank.get(name, len(rank)), name not in slow)
+
+    items.sort(key=key)  # stable: modules stay whole, in collection order within a rank
 
 
 @pytest.fixture
