@@ -41,19 +41,21 @@ os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
-# The longest modules, longest first (seconds on one of the 2-core CI host's workers, from
-# `pytest --durations`: the graph runs' fixtures and tests summed per module).
+# The longest modules, longest first: their share of the suite's time (`pytest --durations=0`
+# summed per module, one whole run on the 2-core host; docs/benchmarks.md).
 LONGEST = (
-    'test_random_protocol_graph',  # ~150 s: 4 studies simulated and run
-    'test_pipeline_graph',  # ~100 s
-    'test_run_interrupt',  # ~90 s: 15 `mlv-ros run`s
-    'test_flake8',  # ~40 s (on both cores)
-    'test_pipeline_bad_input',
-    'test_single_line_graph',
-    'test_namespaces',
-    'test_multihost',
-    'test_dicom_foreign',
-    'test_load',
+    'test_random_protocol_graph',  # 11 %: four studies simulated and run
+    'test_pipeline_graph',  # 8 %
+    'test_tags_grid_estimate',  # 8 %
+    'test_calm_console',  # 6 %
+    'test_run_interrupt',  # 6 %
+    'test_tracking',  # 6 %
+    'test_flake8',  # 5 % (on both cores)
+    'test_dicom_study_selection',  # 4 %
+    'test_registration_pipeline',  # 4 %
+    'test_report_build',  # 3 %
+    'test_tags_tracker',  # 3 %
+    'test_dicom_properties',  # 2.5 %
 )
 
 
