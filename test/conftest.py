@@ -41,15 +41,41 @@ os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+# The longest modules, longest first: their share of the suite's time (`pytest --durations=0`
+# summed per module, one whole run on the 2-core host; docs/benchmarks.md).
+LONGEST = (
+    'test_random_protocol_graph',  # 11 %: four studies simulated and run
+    'test_pipeline_graph',  # 8 %
+    'test_tags_grid_estimate',  # 8 %
+    'test_calm_console',  # 6 %
+    'test_run_interrupt',  # 6 %
+    'test_tracking',  # 6 %
+    'test_flake8',  # 5 % (on both cores)
+    'test_dicom_study_selection',  # 4 %
+    'test_registration_pipeline',  # 4 %
+    'test_report_build',  # 3 %
+    'test_tags_tracker',  # 3 %
+    'test_dicom_properties',  # 2.5 %
+)
+
+
 def pytest_collection_modifyitems(config, items):
     """
-    Modules with a ``slow`` test run first, each module's tests kept together.
+    Order the modules longest first, each module's tests kept together.
 
     pytest-xdist (``-n 2 --dist loadfile``, pytest.ini) hands whole modules to its workers in
-    this order; the long graph runs starting first keeps the two workers busy to the end.
+    this order: the :data:`LONGEST` ones in their order, then the other modules with a ``slow``
+    test, then the rest. Longest first, the many short modules fill in at the end and the two
+    workers finish together.
     """
+    rank = {name: i for i, name in enumerate(LONGEST)}
     slow = {item.module.__name__ for item in items if item.get_closest_marker('slow')}
-    items.sort(key=lambda item: item.module.__name__ not in slow)  # stable: modules stay whole
+
+    def key(item):
+        name = item.module.__name__
+        return (rank.get(name, len(rank)), name not in slow)
+
+    items.sort(key=key)  # stable: modules stay whole, in collection order within a rank
 
 
 @pytest.fixture

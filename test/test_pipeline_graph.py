@@ -255,13 +255,15 @@ def test_nodes_in_separate_processes(ros_context, executor, tmp_path):
     assert topics[qos.TAG_POINTS]['count'] == 6
 
 
-def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
+def restart_mid_run(ros_context, executor, victim: str, phases: int = 4):
     """
     Run the graph on a phantom, SIGKILL and restart ``victim``, and return what it published.
 
     Run tag_detector, registration and meshless_solver as processes on a phantom, SIGKILL
-    ``victim`` after three phases are solved, start it again, and return the model states and
-    tag sets published after the restart (the run must then complete).
+    ``victim`` after half the phases are solved, start it again, and return the model states and
+    tag sets published after the restart (the run must then complete). Four phases: two solved
+    before the kill, two (and, for a new solver, all four again) after it, which is all the
+    checks need; every phase more only costs tag detection and solves.
     """
     from mlv_msgs.msg import ModelState, TagPoints
     from rclpy.node import Node
@@ -308,7 +310,8 @@ def restart_mid_run(ros_context, executor, victim: str, phases: int = 6):
         stderr=subprocess.DEVNULL,
     )
     try:
-        assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= 3, 240), (
+        half = phases // 2
+        assert spin_until(executor, lambda: len({s.phase_index for s in states}) >= half, 240), (
             f'phases before the kill: {sorted({s.phase_index for s in states})}'
         )
         procs[victim].kill()
