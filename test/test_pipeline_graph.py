@@ -49,7 +49,11 @@ PARTICLES = {'registration': {'num_particles': 2000}}
 @pytest.fixture(scope='module')
 def phantom_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('run')
-    summary = run_graph(PHANTOM, out, overrides=PARTICLES, timeout=400, progress=lambda *_: None)
+    with pytest.MonkeyPatch.context() as mp:  # the default study as a user runs it: the layout too
+        mp.delenv('MLV_ROS_ONE_PROCESS', raising=False)
+        summary = run_graph(
+            PHANTOM, out, overrides=PARTICLES, timeout=400, progress=lambda *_: None
+        )
     return out, summary
 
 

@@ -170,7 +170,7 @@ def check_interrupted(run_dir: Path, rc: int, lines: list[str], name: str, code:
 
 
 # ---------------------------------------------------------------------------------- signals
-def test_sigint_mid_run_keeps_every_solved_phase(tmp_path):
+def test_sigint_mid_run_keeps_every_solved_phase(tmp_path, default_layout):
     run_dir = tmp_path / 'run'
     # Phase-major at half real time (the cine takes ~22 s to stream): phases are solved while
     # frames still stream in, however long the registration takes on a loaded machine (3.7 s seen,
@@ -194,7 +194,7 @@ def test_sigint_mid_run_keeps_every_solved_phase(tmp_path):
     assert len(rec[qos.FRAMES]) == summary['frames_published']
 
 
-def test_sigterm_mid_run_closes_the_recording(tmp_path):
+def test_sigterm_mid_run_closes_the_recording(tmp_path, default_layout):
     run_dir = tmp_path / 'run'
     run = Run([*SMALL, '--phases', '4', '--out', str(run_dir)])
     run.wait_for('[mlv-ros] 44 frames, 4 phases')  # the graph is running
@@ -205,7 +205,7 @@ def test_sigterm_mid_run_closes_the_recording(tmp_path):
     assert rec[qos.DIAGNOSTICS]  # closed and readable: the index and summary are there
 
 
-def test_signal_while_starting_leaves_nothing(tmp_path):
+def test_signal_while_starting_leaves_nothing(tmp_path, default_layout):
     run_dir = tmp_path / 'run'
     # The full-size phantom takes seconds to simulate: the signal comes while it is loading.
     run = Run(['--phantom', 'normal', '--out', str(run_dir)])
@@ -322,7 +322,7 @@ def test_value_inside_the_range_the_model_refuses_ends_the_start_at_once(tmp_pat
     assert not (tmp_path / 'new').exists()
 
 
-def test_tag_detector_process_killed_ends_the_run_with_the_reason(tmp_path):
+def test_tag_detector_process_killed_ends_the_run_with_the_reason(tmp_path, default_layout):
     """
     Check that the run ends at once when the tag detector's process dies.
 
