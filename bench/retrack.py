@@ -40,8 +40,10 @@ moves a segment's solved motion, its own tracks' or the rest's.
 
 ``--tracks`` adds the tracker's own error against the truth (:func:`track_errors`): per view at
 ES, the tracks kept, the in-plane error of each reported point against its ED material line's
-crossing, split radial / circumferential and pooled by ED wall quarter and AHA segment, and the
-median error per phase; ``--no-solve`` only tracks (seconds per study).
+crossing, split radial / circumferential and pooled by ED wall quarter and AHA segment, and by
+distance to the nearest true ES wall border in tag periods (``sa_border_bands``: how far the
+points near the endo- and epicardium read toward mid-wall), and the median error per phase;
+``--no-solve`` only tracks (seconds per study).
 
 ``--strain`` adds ``bench/strain.py``'s ES strain comparison and wall-motion findings
 (:func:`strain_errors`) of the re-solved motion and, beside it, of the truth's motion of the same
@@ -423,7 +425,10 @@ def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
         signed), and ``quarters``: per wall quarter ``[ED tracks, kept share, radial median,
         circumferential median, |error| median]`` (mm); ``sa_segments``: per AHA segment present
         ``[ED tracks, kept share, radial median]``; ``sa_phase_err_mm``: per phase ≥ 1 the median
-        SA in-plane error (mm) and the points reported.
+        SA in-plane error (mm) and the points reported; ``sa_border_bands`` (with
+        ``period_mm``): per nearest ES border (``endo``, ``epi``) and band of distance to it
+        (``BORDER_BANDS``, periods) ``[from, to, points, median error toward mid-wall mm]``
+        (:func:`_toward_mid_wall`; positive: the wall read thinner there).
 
     """
     from mlv_ros.core.sim.regional import truth_segments
@@ -445,6 +450,8 @@ def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
         return e_r, e_c
 
     rows = []  # view (0 SA), phase, quarter, segment, |err|, radial, circ
+    bands = []  # SA at ES: (side 0 endo / 1 epi, distance to that border in periods, error
+    # toward mid-wall mm), the points whose true place is inside the ES wall
     visible, ed_rows = set(), []
     for key, pts in sets.get(0, {}).items():
         if not len(pts.track_id):
@@ -466,6 +473,12 @@ def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
             for t, e, er, ec in zip(got.track_id, err, e_r, e_c):
                 if int(t) in info:
                     rows.append((la, phase, *info[int(t)], np.linalg.norm(e), e @ er, e @ ec))
+            if phase == es and not la and period_mm:
+                known = np.array([int(t) in info for t in got.track_id], dtype=bool)
+                bands += _toward_mid_wall(
+                    motion, np.asarray(want.position)[known], err[known], e_r[known],
+                    pts.geometry.normal, es, period_mm,
+                )
     if not rows:
         return {}
     r = np.array(rows, float)
@@ -521,11 +534,61 @@ def track_errors(sets: dict, motion, period_mm: float | None = None) -> dict:
                 ]
                 for k in sorted({e[4] for e in eds})
             }
+    if bands:
+        b = np.array(bands, float)
+        out['sa_border_bands'] = {
+            side: [
+                [lo, hi, int(np.sum(sel)), med(b[sel, 2])]
+                for lo, hi in zip(BORDER_BANDS[:-1], BORDER_BANDS[1:])
+                for sel in [(b[:, 0] == k) & (b[:, 1] >= lo) & (b[:, 1] < hi)]
+            ]
+            for k, side in enumerate(('endo', 'epi'))
+        }
     sa = r[r[:, 0] == 0]
     out['sa_phase_err_mm'] = [
         [int(p), med(sa[sa[:, 1] == p, 4]), int(np.sum(sa[:, 1] == p))]
         for p in sorted(set(sa[:, 1].astype(int)))
     ]
+    return out
+
+
+#: Bands of distance to the nearest ES wall border, tag periods (:func:`_toward_mid_wall`).
+BORDER_BANDS = (0.0, 0.25, 0.5, 1.0, float('inf'))
+
+
+def _toward_mid_wall(motion, true_pos, err, e_r, normal, phase, period_mm: float) -> list:
+    """
+    Return each point's nearest ES wall border, its distance and its error toward mid-wall.
+
+    From each point's true place (mm, (N, 3)) the in-plane radial line (``e_r`` projected onto
+    the image plane) is walked inward and outward in steps of 1/40 period, up to one period,
+    until the material there (the truth's inverse map at ``phase``) leaves the myocardium: the
+    endocardial and epicardial borders' distances. Returns ``(side, distance in periods, error
+    toward mid-wall in mm)`` per point whose true place lies inside the wall (side 0: the
+    endocardium is nearer, the radial error counts outward; 1: the epicardium, inward); a
+    border farther than a period counts as one period away. ``err`` (N, 3) the tracked minus
+    the true position, mm.
+    """
+    if not len(true_pos):
+        return []
+    n = np.asarray(normal, float)
+    d = e_r - (e_r @ n)[:, None] * n
+    d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+    steps = np.arange(0.0, 1.0 + 1e-9, 1.0 / 40.0) * period_mm
+    dist = []
+    for sign in (-1.0, 1.0):
+        pts = true_pos[:, None, :] + sign * steps[None, :, None] * d[:, None, :]
+        inside = motion.inside_myocardium(
+            motion.inverse(pts.reshape(-1, 3), phase)
+        ).reshape(len(true_pos), steps.size)
+        first_out = np.where(inside.all(axis=1), steps.size, np.argmax(~inside, axis=1))
+        dist.append(np.where(inside[:, 0], np.minimum(first_out * steps[1], period_mm), np.nan))
+    radial = np.einsum('ij,ij->i', err, d)
+    out = []
+    for de, dp, er in zip(dist[0], dist[1], radial):
+        if np.isfinite(de):
+            side = int(dp < de)
+            out.append((side, min(de, dp) / period_mm, er if side == 0 else -er))
     return out
 
 

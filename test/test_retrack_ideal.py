@@ -156,7 +156,8 @@ def test_segment_tracks_counts_what_the_tracker_kept_in_the_abnormal_segment(stu
 def test_track_errors_measure_a_known_radial_offset_and_the_tracks_kept(study):
     # Every other SA track kept at ES, each moved 0.6 mm outward along the truth's radial
     # direction (at its true position): the report reads +0.6 mm radial, 0 circumferential, in
-    # every wall quarter, and the SA tracks kept counted; LA points left exact read 0.
+    # every wall quarter and, signed toward mid-wall, by distance to the nearest ES border, and the
+    # SA tracks kept counted; LA points left exact read 0.
     m = study.motion
     refs = grid_tags(study)
     es = int(round(m.es_phase))
@@ -185,3 +186,10 @@ def test_track_errors_measure_a_known_radial_offset_and_the_tracks_kept(study):
         assert n_ed > 0 and radial == pytest.approx(0.6, abs=0.05) and abs(circ) <= 0.05
     assert sa['kept'] == n_kept and n_kept < sa['visible'] <= sa['ed']
     assert la['err_median_mm'] <= 0.05 and la['kept'] <= la['visible'] <= la['ed']
+    # Split by the nearest ES border: outward is toward mid-wall from the endocardium (+0.6)
+    # and away from it at the epicardium (-0.6), in every band that holds points.
+    bands = out['sa_border_bands']
+    for side, want in (('endo', 0.6), ('epi', -0.6)):
+        held = [b for b in bands[side] if b[2]]
+        assert held and all(b[3] == pytest.approx(want, abs=0.05) for b in held), (side, held)
+    assert sum(b[2] for side in bands.values() for b in side) <= n_kept
