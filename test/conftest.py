@@ -69,9 +69,9 @@ def pytest_collection_modifyitems(config, items):
     """
     Order the modules longest first, each module's tests kept together.
 
-    pytest-xdist (``-n 2 --dist loadfile``, pytest.ini) hands whole modules to its workers in
+    pytest-xdist (``-n 3 --dist loadfile``, pytest.ini) hands whole modules to its workers in
     this order: the :data:`LONGEST` ones in their order, then the other modules with a ``slow``
-    test, then the rest. Longest first, the many short modules fill in at the end and the two
+    test, then the rest. Longest first, the many short modules fill in at the end and the
     workers finish together.
     """
     rank = {name: i for i, name in enumerate(LONGEST)}
