@@ -122,7 +122,7 @@ def test_a_miss_is_told_apart_from_its_cause(heart, findings_heart):  # noqa: F8
 
 
 def _case(truth_classes, our_classes, coverage=0.8):
-    """A scored case from 17 truth and 17 of our classes (strain equal to the truth's)."""
+    """Return a truth and our reading of 17 segments with these classes (strain alike)."""
     seg = [
         {
             'segment': k + 1, 'class': c, 'count': 100, 'err': 0.3, 'ecc': -0.1, 'ell': -0.1,

@@ -157,9 +157,10 @@ def test_tags_tell_a_still_segment_that_bulges_and_an_unsure_stretch_sets_no_cla
     Dyskinetic from the tags where the model reads still; no class from an unsure stretch.
 
     Segment 13 (apical: 0.6 of the median Ecc expected) the model reads akinetic, its tags
-    stretch (Ecc +0.04 ± 0.022: f_tag −0.44 ± 0.24): dyskinetic. Segment 9 akinetic with tags that read still: kept. Segment 10 normal to
-    the model, its tags read Ecc +0.78 ± 0.36 (a slipped track: 2.2σ "stretching", σ_f_tag 2.4):
-    indeterminate, not dyskinetic. Segment 14 akinetic with tags stretching as unsurely: kept.
+    stretch (Ecc +0.04 ± 0.022: f_tag −0.44 ± 0.24): dyskinetic. Segment 9 akinetic with tags
+    that read still: kept. Segment 10 normal to the model, its tags read Ecc +0.78 ± 0.36 (a
+    slipped track: 2.2σ "stretching", σ_f_tag 2.4): indeterminate, not dyskinetic. Segment 14
+    akinetic with tags stretching as unsurely: kept.
     """
     classes = ['normal'] * 16 + ['indeterminate']
     classes[8] = classes[12] = classes[13] = 'akinetic'
@@ -171,7 +172,8 @@ def test_tags_tell_a_still_segment_that_bulges_and_an_unsure_stretch_sets_no_cla
     tag[9], unc[9] = 0.78, 0.36
     tag[13], unc[13] = 0.5, 0.2
     out, from_tags, (f, fu, _) = tag_override(classes, tag, unc)
-    assert f[12] == pytest.approx(-0.444, abs=1e-3) and fu[12] == pytest.approx(0.244, abs=1e-3)
+    assert f[12] == pytest.approx(-0.444, abs=1e-3)
+    assert fu[12] == pytest.approx(0.244, abs=1e-3)
     assert out[12] == 'dyskinetic' and out[8] == 'akinetic' and out[13] == 'akinetic'
     assert out[9] == 'indeterminate' and fu[9] > 0.33
     assert from_tags == [10, 13]
