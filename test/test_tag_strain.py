@@ -152,6 +152,34 @@ def test_tags_overrule_a_model_that_smooths_a_still_segment_into_line():
     assert list(out) == classes and from_tags == []
 
 
+def test_tags_tell_a_still_segment_that_bulges_and_an_unsure_stretch_sets_no_class():
+    """
+    Dyskinetic from the tags where the model reads still; no class from an unsure stretch.
+
+    Segment 13 (apical: 0.6 of the median Ecc expected) the model reads akinetic, its tags
+    stretch (Ecc +0.04 ± 0.022: f_tag −0.44 ± 0.24): dyskinetic. Segment 9 akinetic with tags
+    that read still: kept. Segment 10 normal to the model, its tags read Ecc +0.78 ± 0.36 (a
+    slipped track: 2.2σ "stretching", σ_f_tag 2.4): indeterminate, not dyskinetic. Segment 14
+    akinetic with tags stretching as unsurely: kept.
+    """
+    classes = ['normal'] * 16 + ['indeterminate']
+    classes[8] = classes[12] = classes[13] = 'akinetic'
+    tag = np.full(17, -0.15)
+    unc = np.full(17, 0.022)
+    tag[16] = np.nan
+    tag[12] = 0.04
+    tag[8] = -0.005
+    tag[9], unc[9] = 0.78, 0.36
+    tag[13], unc[13] = 0.5, 0.2
+    out, from_tags, (f, fu, _) = tag_override(classes, tag, unc)
+    assert f[12] == pytest.approx(-0.444, abs=1e-3)
+    assert fu[12] == pytest.approx(0.244, abs=1e-3)
+    assert out[12] == 'dyskinetic' and out[8] == 'akinetic' and out[13] == 'akinetic'
+    assert out[9] == 'indeterminate' and fu[9] > 0.33
+    assert from_tags == [10, 13]
+    assert [c for k, c in enumerate(out) if k + 1 not in (9, 10, 13, 14, 17)] == ['normal'] * 12
+
+
 def test_streamed_findings_take_the_es_phase_tag_evidence():
     """The findings read the tag evidence the metrics of their ES phase carry, and say so."""
     from mlv_ros.core.analysis import PhaseMetrics, segment_findings

@@ -83,12 +83,17 @@ near 0), so where the two disagree the data win:
 * ``f_tag = Ecc_tag / (P_cc Ecc_ref_tag)`` and ``σ_f_tag = σ_tag / |P_cc Ecc_ref_tag|`` (the
   apex cap has no tag Ecc);
 * a segment the model classes ``normal`` or ``hypokinetic`` whose tags read ``f_tag`` below the
-  akinetic bound (0.35) takes the tags' class: ``akinetic`` / ``dyskinetic`` by the same bounds
-  (dyskinetic also when ``Ecc_tag > Z σ_tag``, stretching), or ``indeterminate`` when
-  ``σ_f_tag > MAX_SIGMA_F`` (the data disagree with the model but cannot say how much). Never
-  ``normal``: listed in :attr:`Findings.from_tags`.
-* Nothing else changes: a segment the model finds abnormal keeps its class (the tags are not used
-  to clear a finding: where tracks are few the tags see less than the model), and segments
+  akinetic bound (0.35) takes the tags' class: ``indeterminate`` when ``σ_f_tag > MAX_SIGMA_F``
+  (the data disagree with the model but cannot say how much; stretching or not: a slipped
+  track's Ecc +0.78 ± 0.36 is no finding), else ``akinetic`` / ``dyskinetic`` by the same bounds
+  (dyskinetic also when ``Ecc_tag > Z σ_tag``, stretching). Never ``normal``;
+* a segment the model classes ``akinetic`` whose tags read it moving the wrong way, as surely
+  (``σ_f_tag ≤ MAX_SIGMA_F`` and ``f_tag < −0.2`` or ``Ecc_tag > Z σ_tag``), is ``dyskinetic``:
+  the model reads a narrow bulging region as still (its neighbours pull it in), its own tags
+  read the stretch (7308's apical ring: model f −0.05…−0.14, tags −0.27…−0.42 ± 0.24–0.27,
+  truth dyskinetic). Both listed in :attr:`Findings.from_tags`.
+* Nothing else changes: a segment the model finds abnormal keeps its finding (the tags are not
+  used to clear one: where tracks are few the tags see less than the model), and segments
   without tag evidence (too few tracked edges: an apex cap, a sector whose tracks are lost) keep
   the model's.
 
@@ -103,9 +108,14 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   tapers and shortens less. The apex cap (17) is not classified (always ``indeterminate``, said
   in :attr:`Findings.notes`): its strain is taken in the wall-normal frame
   (:func:`mlv_ros.core.analysis.frame.wall_normal_frame`: Err = thickening across the cap, Ecc
-  and Ell in the wall), but no truth validates a class there yet: in that frame the
-  simulator's normal caps stretch in the wall at ES (Ecc +0.02…+0.07) and several thin, which a
-  physiological rule reads dyskinetic.
+  and Ell in the wall), but no truth validates a class there: the simulator shortens its solid
+  apex tip along the axis with the wall and widens it (no cavity to contract round), so in that
+  frame its normal caps thin (Err −0.04…−0.08) and stretch in the wall (Ecc +0.045…+0.08),
+  which a physiological rule reads dyskinetic, and its dyskinetic caps thicken (+0.03…+0.05);
+  our cap's Err follows the apical ring's instead (over 23 graph runs r 0.74 with our ring's,
+  0.05 with the truth's cap; right only where the tip is thick, the hypertrophic shape's), so
+  it is not the cap's own measurement either (docs/benchmarks.md, "Abnormal segments one by
+  one"; ``bench/strain.py`` scores the cap apart).
 * Function index ``f`` = inverse-variance weighted mean of ``Ecc / (P_cc Ecc_ref)`` and
   ``Err / (P_rr Err_ref)`` (1 = as the rest of the heart, 0 = no motion, < 0 = moves the wrong
   way), with its uncertainty ``σ_f``. Classes on ``f`` (:data:`CLASS_BOUNDS`): normal
@@ -426,18 +436,28 @@ def tag_override(classes, tag_ecc, tag_unc, unsupported=()) -> tuple[np.ndarray,
         return out, [], (f, fu, ref)
     e = np.asarray(tag_ecc, dtype=np.float64)
     u = np.asarray(tag_unc, dtype=np.float64)
-    akinetic_bound = dict(CLASS_BOUNDS)['hypokinetic']
+    bounds = dict(CLASS_BOUNDS)
     carried = {int(k) for k in np.asarray(unsupported).reshape(-1)}
     from_tags = []
     for k in range(17):
-        if k + 1 in carried or out[k] not in ('normal', 'hypokinetic'):
+        if k + 1 in carried or not np.isfinite(f[k]):
             continue
-        if not (np.isfinite(f[k]) and f[k] < akinetic_bound):
+        # A reading the tags cannot make sure of sets no class of its own: as sure as the
+        # model's classes must be (σ_f_tag ≤ MAX_SIGMA_F), stretching included (a slipped track
+        # reads Ecc +0.78 ± 0.36: "stretching" at 2σ, 12× the σ_f a class is given with).
+        sure = fu[k] <= MAX_SIGMA_F
+        wrong_way = sure and (f[k] < bounds['akinetic'] or e[k] > STRETCH_Z * u[k])
+        if out[k] == 'akinetic':
+            if wrong_way:  # still to the model, moving the wrong way to its own tags
+                out[k] = 'dyskinetic'
+                from_tags.append(k + 1)
             continue
-        if e[k] > STRETCH_Z * u[k]:
-            cls = 'dyskinetic'  # stretching beyond its own uncertainty
-        elif fu[k] > MAX_SIGMA_F:
+        if out[k] not in ('normal', 'hypokinetic') or not f[k] < bounds['hypokinetic']:
+            continue
+        if not sure:
             cls = 'indeterminate'
+        elif e[k] > STRETCH_Z * u[k]:
+            cls = 'dyskinetic'  # stretching beyond its own uncertainty
         else:
             cls = _class_of(f[k])
         out[k] = cls
