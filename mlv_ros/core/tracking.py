@@ -824,9 +824,13 @@ class MotionTracker:
         )
         self.hourglass_weight = hourglass_weight
         self.volume_weight = float(volume_weight)
-        # the volume term linearised about the warm start's deformation (see _local_solve);
-        # False: about the global fit's alone, as before session 19 (benchmarks compare the two)
-        self.volume_about_start = True
+        # True: the volume term linearised about the warm start's deformation F_g + ∇δ₀ instead
+        # of the global fit's F_g alone (see _local_solve). Off: it keeps the solved wall's
+        # volume (median det F 0.975 → 0.998 on 7303 from exact points) and reads more
+        # thickening from exact points, but on tracked points it moved the global Err little and
+        # turned the volume into axial motion (infarct preset ES p95 +0.075 mm at the base; the
+        # dilated 2007 1.33 → 5.29 mm): docs/benchmarks.md, 'The volume term's linearisation'.
+        self.volume_about_start = False
 
     def _init_coupling(self, longitudinal_weight, longitudinal_coupling, regional_coupling):
         """
@@ -1510,7 +1514,7 @@ class MotionTracker:
             # Linearised about the warm start F₀ = F_g + ∇δ₀ instead of F_g alone:
             # det(F₀ + ∇(δ − δ₀)) ≈ J₀ + C₀ : ∇δ − C₀ : ∇δ₀. About F_g the δ that restores the
             # affine shape's lost wall volume (J_g − 1 ≈ −0.4 at ES) is itself large, and the
-            # neglected second-order terms of det left the solved wall 2–3 % short of its volume
+            # neglected second-order terms of det leave the solved wall 2–3 % short of its volume
             # whatever the weight (7303 with exact points: median det F 0.975 at volume_weight
             # 4000, 16000 and 64000); about the start only the phase's change is linearised.
             hd = grads[1].reshape(-1, 3, 3).transpose(0, 2, 1)
