@@ -197,10 +197,15 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
         / max(float(np.median(L.diagonal())), 1e-300)
     )
     Fg = np.eye(3) + op.gradient(x_global - tracker.rest)
-    Jg = np.linalg.det(Fg)
+    H0 = 0.0
+    if delta0 is not None and np.any(delta0) and getattr(tracker, 'volume_about_start', False):
+        # the volume term linearised about the warm start's deformation (session 19)
+        H0 = op.gradient(delta0)
+    Jg = np.linalg.det(Fg + H0)
     ok = np.abs(Jg) > 1e-6
     C = np.zeros_like(Fg)
-    C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv(Fg[ok]), 1, 2)
+    C[ok] = Jg[ok, None, None] * np.swapaxes(np.linalg.inv((Fg + H0)[ok]), 1, 2)
+    offset = Jg - 1.0 - np.einsum('iab,iab->i', C, np.broadcast_to(H0, C.shape))
     kv = tracker.volume_weight * mu
     kl = tracker.longitudinal_weight * mu
     ax = quat_to_matrix(model.params.rotation)[:, 2]
@@ -223,7 +228,7 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
     r = np.einsum('kab,kb->ka', P, targets - phi @ x_global)
     rhs = kappa * (phi_t @ r)
     if kv:
-        rhs = rhs - op.adjoint((kv * vol * (Jg - 1.0))[:, None, None] * C)
+        rhs = rhs - op.adjoint((kv * vol * offset)[:, None, None] * C)
     rhs = rhs.ravel()
     diag_data = np.asarray(phi.multiply(phi).T @ np.ones(phi.shape[0])).ravel()
     vdiag = kdiag * kv / (mu + (mu + lam) / 3.0)
