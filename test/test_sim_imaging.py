@@ -202,7 +202,7 @@ def test_presets_simulate(tmp_path):
 
 
 def _render_direct(syn, phase, time_s):
-    """The noiseless image before the PSF, as render() formed it before p17 (every point)."""
+    """Return the noiseless image before the PSF as render() formed it before p17 (all points)."""
     im, m = syn.im, syn.motion
     E = np.exp(-time_s / float(im['t1_s']))
     sig = syn.bg_m0 * (E * syn.bg_tags + 1.0 - E)
