@@ -102,7 +102,11 @@ def resident(pid: int) -> float | None:
 
 def descendants(root: int) -> list:
     """
-    Return the processes below ``root`` (children, their children, ...), by a scan of ``/proc``.
+    Return the processes below ``root`` (children, their children, ...).
+
+    From each process's ``/proc/PID/task/TID/children`` (~0.01 ms a thread); where the kernel
+    has none (no ``CONFIG_PROC_CHILDREN``), by a scan of every process's ``/proc/PID/stat``
+    (~3.5–8 ms on a host with ~130 processes, once a ``rescan_s``).
 
     Parameters
     ----------
@@ -115,6 +119,29 @@ def descendants(root: int) -> list:
         Their pids, ``root`` not included.
 
     """
+    if not Path(f'/proc/{root}/task/{root}/children').exists():
+        return _descendants_by_scan(root)
+    found, frontier = [], [root]
+    while frontier:
+        pid = frontier.pop()
+        kids = []
+        try:
+            tasks = os.listdir(f'/proc/{pid}/task')
+        except OSError:
+            continue  # gone
+        for tid in tasks:
+            try:
+                with open(f'/proc/{pid}/task/{tid}/children', 'rb') as fh:
+                    kids += [int(c) for c in fh.read().split()]
+            except OSError:
+                continue  # the thread ended
+        found += kids
+        frontier += kids
+    return found
+
+
+def _descendants_by_scan(root: int) -> list:
+    """Return :func:`descendants` from every process's parent in ``/proc/PID/stat``."""
     parent = {}
     for entry in os.scandir('/proc'):
         if not entry.name.isdigit():
@@ -161,8 +188,8 @@ class TreeMemory:
         Seconds between samples (a peak shorter than that may be missed; each process's own
         exact peak is ``ru_maxrss``).
     rescan_s : float
-        Seconds between scans of ``/proc`` for the tree's processes (~3.5 ms of CPU a scan); a
-        process started in between is sampled from the next scan.
+        Seconds between looks for the tree's processes (:func:`descendants`); a process started
+        in between is sampled from the next.
     rollup_s : float
         Longest time between two rollups of PSS and USS (also taken whenever the summed RSS is
         :data:`ROLLUP_MARGIN` above the largest sum rolled up so far, and by every
