@@ -77,3 +77,16 @@ def test_periods_must_be_positive():
         TreeMemory(period_s=0)
     with pytest.raises(ValueError, match='rescan_s must be > 0'):
         TreeMemory(rescan_s=-1.0)
+    with pytest.raises(ValueError, match='rollup_s must be > 0'):
+        TreeMemory(rollup_s=0.0)
+
+
+def test_samples_between_rollups_read_rss_alone():
+    mem = TreeMemory(period_s=0.05, rollup_s=3600.0)
+    first = mem.sample()  # a direct call rolls up
+    assert first['pss'] is not None and mem.rollups == 1
+    cheap = mem.sample(rollup_all=False)  # not due, RSS not 1 % above the last rollup's
+    assert cheap['pss'] is None and cheap['uss'] is None and mem.rollups == 1
+    # the kernel's counters and the page walk give this process's RSS alike (a few pages apart)
+    assert cheap['rss'] == pytest.approx(first['rss'], rel=0.01)
+    assert mem.samples == 2 and mem.result()['rollups'] == 1

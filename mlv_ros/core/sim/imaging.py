@@ -394,6 +394,7 @@ class ImageSynthesizer:
         # process holds every slice's synthesizer at once).
         self.base = pix[self.cand]
         self.normal = g.normal
+        self._local = None  # _sub_planes_local()
 
     def _tags(self, pts):
         return tag_pattern(
@@ -405,13 +406,24 @@ class ImageSynthesizer:
             self.tag_lines,
         )
 
+    def _sub_planes_local(self) -> list:
+        """
+        Return each sub-plane's candidate pixel centres in the LV frame, ``(r, θ, z)`` each.
+
+        The same at every phase: computed on the first render and kept (~0.6 MB a slice of
+        the default study).
+        """
+        if self._local is None:
+            f = self.motion.frame
+            self._local = [f.to_local(self.base + off * self.normal) for off in self.offsets]
+        return self._local
+
     def tissue_fractions(self, phase) -> tuple[np.ndarray, np.ndarray]:
         """Return slab-weighted myocardium and blood fractions at ``phase``, (rows, cols), 0..1."""
         myo = np.zeros(self.size * self.size)
         blood = np.zeros_like(myo)
-        base = self.base
-        for off, w in zip(self.offsets, self.weights):
-            X = self.motion.inverse(base + off * self.normal, phase)
+        for local, w in zip(self._sub_planes_local(), self.weights):
+            X = self.motion.inverse_local(local, phase)
             myo[self.cand] += w * self.motion.inside_myocardium(X)
             blood[self.cand] += w * self.motion.inside_blood(X)
         return myo.reshape(self.size, self.size), blood.reshape(self.size, self.size)
@@ -428,20 +440,15 @@ class ImageSynthesizer:
             sig = self.bg_m0 * (E * self.bg_tags + 1.0 - E)  # sub-plane independent
         else:
             sig = self.bg_m0.copy()
-        base = self.base
-        acc = np.zeros(base.shape[0])
+        acc = np.zeros(self.base.shape[0])
         m_myo, m_blood = float(im['myocardium_m0']), float(im['blood_m0'])
         bg = sig[self.cand]
-        for off, w in zip(self.offsets, self.weights):
-            X = self.motion.inverse(base + off * self.normal, phase)
-            myo = self.motion.inside_myocardium(X)
-            blood = self.motion.inside_blood(X)
-            if self.motion.rv is not None:  # the RV's wall is tagged, its blood is not
-                rv_wall, rv_blood = self.motion.inside_rv(X)
-                myo, blood = myo | rv_wall, blood | rv_blood
-            val = np.where(
-                myo, m_myo * (E * self._tags(X) + 1.0 - E), np.where(blood, m_blood, bg)
-            )
+        for local, w in zip(self._sub_planes_local(), self.weights):
+            X = self.motion.inverse_local(local, phase)
+            myo, blood = self.motion.tissue(X)
+            val = np.where(blood, m_blood, bg)
+            # tagged magnetisation where there is myocardium (the tags evaluated there only)
+            val[myo] = m_myo * (E * self._tags(X[myo]) + 1.0 - E)
             acc += w * val
         sig = sig.copy()
         sig[self.cand] = acc

@@ -441,6 +441,36 @@ class LVMotion:
             cav |= (z > self.length) & (z <= self.length + self.atrium_height) & (r < self.endo_a)
         return cav
 
+    def tissue(self, X_ed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return ``(myocardium, blood)`` at ED points as the images show them.
+
+        Myocardium: :meth:`inside_myocardium` or the RV free wall; blood: :meth:`inside_blood`
+        or RV blood (:meth:`inside_rv`). The same values, to the bit, from one change of frame
+        and one endocardial radius instead of three and two.
+
+        Parameters
+        ----------
+        X_ed : ndarray, shape (N, 3)
+            ED positions, mm (LPS).
+
+        Returns
+        -------
+        myocardium, blood : ndarray of bool, shape (N,)
+
+        """
+        r, th, z = self.frame.to_local(np.asarray(X_ed, dtype=np.float64).reshape(-1, 3))
+        endo = self.endo_radius(z)
+        lv = (z >= 0) & (z <= self.length)
+        myo = lv & (r <= self.epi_radius(z, th)) & (r >= endo)
+        blood = lv & (r < endo)
+        if self.atrium_height > 0:
+            top = self.length + self.atrium_height
+            blood |= (z > self.length) & (z <= top) & (r < self.endo_a)
+        if self.rv is not None:  # the RV's wall is tagged, its blood is not
+            myo, blood = myo | self.rv.free_wall(r, th, z), blood | self.rv.blood(r, th, z)
+        return myo, blood
+
     def inside_rv(self, X_ed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """
         Return ``(wall, blood)``: whether ED points are RV free wall and RV blood.
@@ -660,9 +690,33 @@ class LVMotion:
 
         """
         xa = np.asarray(x, dtype=np.float64)
-        flat = xa.reshape(-1, 3)
+        local = self.frame.to_local(xa.reshape(-1, 3))
+        return self.inverse_local(local, phase, tol, max_iter).reshape(xa.shape)
+
+    def inverse_local(
+        self, local: tuple, phase, tol: float = 1e-9, max_iter: int = 30
+    ) -> np.ndarray:
+        """
+        :meth:`inverse` of points given in the LV frame (``frame.to_local`` of them).
+
+        The change of frame does not depend on the phase: a renderer that maps the same pixels
+        at every phase computes it once (the same numbers as :meth:`inverse`, to the bit).
+
+        Parameters
+        ----------
+        local : tuple of ndarray, each shape (N,)
+            ``(r, θ, z)`` of the positions at ``phase``: mm, rad, mm.
+        phase, tol, max_iter
+            As :meth:`inverse`'s.
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            ED positions, mm (LPS).
+
+        """
+        rp, thp, zp = local
         s = self._s(phase)
-        rp, thp, zp = self.frame.to_local(flat)
         # Normal hearts: Z = (1 − sε) z, so the first Newton step is exact.
         z = zp / (1.0 - s * self.eps)
         for _ in range(max_iter if self._regions else 1):
@@ -676,7 +730,7 @@ class LVMotion:
         _, _, _, _, _, J2, rho = self._components(th, z, s)
         q = self._ref_q(z)
         r2 = np.maximum(q + J2 * (rp * rp - rho * rho * q), 0.0)
-        return self.frame.from_local(np.sqrt(r2), th, z).reshape(xa.shape)
+        return self.frame.from_local(np.sqrt(r2), th, z)
 
     def deformation_gradient(self, X_ed: np.ndarray, phase, h: float = 1e-3) -> np.ndarray:
         """
