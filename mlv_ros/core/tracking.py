@@ -680,11 +680,11 @@ class MotionTracker:
         the incompressible thick-walled cylinder per level): the wall thickens as the fitted
         shape contracts, with no new parameter. False: the paper's affine shape, whose volume
         changes by ``a0³ a1 a2 a3`` (J − 1 ≈ −0.43 at ES), which the local stage's volume term
-        must then restore. With it the local stage also costs the transmural axial shear
-        (:meth:`_axial_shear`), which the thick-walled map's volume term otherwise lets repay the
-        thickening the tracked points miss (the wall moved up to 5 mm toward the base between the
-        LA planes). Off: the global Err error is smaller with it on every kept study measured,
-        the ES p95 is not (README, Global stage).
+        must then restore. Either way the local stage costs the transmural axial shear
+        (:meth:`_axial_shear`), through which the volume term otherwise repays that volume
+        (affine shape) or the thickening the tracked points miss (thick-walled map): the wall
+        moved toward the base between the LA planes. Off: the global Err error is smaller with
+        it on every kept study measured, the ES p95 is not (README, Global stage).
 
     """
 
