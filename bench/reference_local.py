@@ -210,6 +210,9 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
     kl = tracker.longitudinal_weight * mu
     ax = quat_to_matrix(model.params.rotation)[:, 2]
     aa = np.outer(ax, ax)
+    # the transmural axial shear ½ k_s Σ v_i (M_i : H_i)² (MotionTracker._axial_shear; its
+    # measures M_i = a r_iᵀ), None without axial stiffness
+    shear = tracker._axial_shear(ax) if hasattr(tracker, '_axial_shear') else None
 
     def apply(v):
         d = v.reshape(n, 3)
@@ -222,6 +225,9 @@ def tracker_local_solve(tracker, phi, targets, normals, x_global, delta0=None, c
             S = S + (kv * vol * np.einsum('iab,iab->i', C, H))[:, None, None] * C
         if kl:
             S = S + (kl * vol * np.einsum('a,iab,b->i', ax, H, ax))[:, None, None] * aa
+        if shear is not None:
+            ks, ms = shear
+            S = S + (ks * vol * np.einsum('iab,iab->i', ms, H))[:, None, None] * ms
         data = phi_t @ np.einsum('kab,kb->ka', P, phi @ d)
         return (op.adjoint(S) + alpha * (L @ d) + kappa * data + eps * d).ravel()
 

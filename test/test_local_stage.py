@@ -160,10 +160,16 @@ def test_shear_term_is_its_strain_measure_squared_for_affine_fields(study):
     expect = 0.5 * k * float(np.sum(vol * (0.1 * r_x) ** 2))
     assert energy(u, (k, measures)) == pytest.approx(expect, rel=1e-8)
     assert energy(np.outer(tr.rest @ axis, axis), (k, measures)) == pytest.approx(0.0, abs=1e-9)
+    # the paper's affine shape has the term too (la19); no axial stiffness, no term
     plain = tracking.MotionTracker(
         tr.rest, tr.model.rest_params.translation, tr.model.rest_params.rotation
     )
-    assert plain._axial_shear(axis) is None  # the paper's affine shape: no such term
+    assert plain._axial_shear(axis)[0] == pytest.approx(k)
+    free = tracking.MotionTracker(
+        tr.rest, tr.model.rest_params.translation, tr.model.rest_params.rotation,
+        longitudinal_weight=0.0,
+    )
+    assert free._axial_shear(axis) is None
 
 
 def test_start_residual_from_stacked_products_equals_the_separate_ones(study):
@@ -379,12 +385,18 @@ def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(stud
 
     The coarse matrix assembled from sparse products equals ``Zᵀ A Z`` taken column by column
     through the system's own matrix–vector product (every term: elasticity, volume at rest, axial,
-    fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``.
+    transmural shear, fit error, ε, data springs), and the correction applies ``Z A_c⁻¹ Zᵀ``.
     """
     _, tr, _ = referenced_tracker(study, n=800, coarse_aggregates=0)
     ops, n, rng = tr._local, tr.num_particles, np.random.default_rng(3)
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-    coarse = CoarseSpace(ops, 6, fit_error=3.0, volume_weight=50.0, axial=(7.0, axis), eps=0.1)
+    rad = rng.normal(size=(n, 3))
+    rad /= np.linalg.norm(rad, axis=1)[:, None]
+    shear = (4.0, axis[None, :, None] * rad[:, None, :])  # the system's measures a r_iᵀ
+    coarse = CoarseSpace(
+        ops, 6, fit_error=3.0, volume_weight=50.0, axial=(7.0, axis), eps=0.1,
+        shear=(4.0, axis, rad),
+    )
     m = 40
     phi = sp.random(m, n, density=0.02, random_state=1, format='csr')
     nrm = rng.normal(size=(m, 3))
@@ -398,6 +410,7 @@ def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(stud
         axial=(7.0, axis),
         data=(5.0, phi, metric),
         eps=0.1,
+        shear=shear,
     )
     z = _coarse_basis(coarse, n)
     az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
@@ -412,6 +425,7 @@ def test_coarse_operator_is_the_galerkin_projection_of_the_reference_system(stud
         volume=(50.0, np.broadcast_to(np.eye(3), (n, 3, 3)), None),
         axial=(7.0, axis),
         eps=0.1,
+        shear=shear,
     )
     az = np.stack([system.matvec(z[:, :, c]) for c in range(z.shape[2])], axis=2)
     np.testing.assert_allclose(

@@ -680,11 +680,11 @@ class MotionTracker:
         the incompressible thick-walled cylinder per level): the wall thickens as the fitted
         shape contracts, with no new parameter. False: the paper's affine shape, whose volume
         changes by ``a0³ a1 a2 a3`` (J − 1 ≈ −0.43 at ES), which the local stage's volume term
-        must then restore. With it the local stage also costs the transmural axial shear
-        (:meth:`_axial_shear`), which the thick-walled map's volume term otherwise lets repay the
-        thickening the tracked points miss (the wall moved up to 5 mm toward the base between the
-        LA planes). Off: the global Err error is smaller with it on every kept study measured,
-        the ES p95 is not (README, Global stage).
+        must then restore. Either way the local stage costs the transmural axial shear
+        (:meth:`_axial_shear`), through which the volume term otherwise repays that volume
+        (affine shape) or the thickening the tracked points miss (thick-walled map): the wall
+        moved toward the base between the LA planes. Off: the global Err error is smaller with
+        it on every kept study measured, the ES p95 is not (README, Global stage).
 
     """
 
@@ -888,16 +888,16 @@ class MotionTracker:
         if coarse_aggregates:
             # The reference at rest: cofactors I, the rest long axis (see CoarseSpace).
             kappa, alpha = self._multipliers()
+            axis = quat_to_matrix(self.model.rest_params.rotation)[:, 2]
+            kl = self.longitudinal_weight * self.model.mu
             self._coarse = CoarseSpace(
                 self._local,
                 min(int(coarse_aggregates), self.rest.shape[0]),
                 fit_error=alpha,
                 volume_weight=self.volume_weight * self.model.mu,
-                axial=(
-                    self.longitudinal_weight * self.model.mu,
-                    quat_to_matrix(self.model.rest_params.rotation)[:, 2],
-                ),
+                axial=(kl, axis),
                 eps=rigid_mode_eps(kappa),
+                shear=(kl, axis, self._rest_radial()) if kl else None,
             )
 
     @property
@@ -1566,18 +1566,24 @@ class MotionTracker:
 
     def _axial_shear(self, ax):
         """
-        Return the thick-walled shape's transmural axial shear term ``(k_s, M)``, or None.
+        Return the local stage's transmural axial shear term ``(k_s, M)``, or None.
 
-        With ``global_thickening`` the global map shears the wall in the radial–axial plane
-        (``∂r'/∂Z ≈ −0.1…−0.3`` at ES where the endocardial radius changes with height, none in
-        the paper's affine shape), so in the volume term ``C : H`` the local stage's transmural
-        axial shear ``∂δ_a/∂r`` changes volume. What the tracked points miss of the thickening
-        (issue 20) was repaid through it at the cost of the elasticity alone, and no SA point
-        sees it: the wall moved toward the base between the LA planes (README, Global stage).
-        The term ``½ k_s Σ_i v_i (aᵀ H_i r_i)²`` (``r_i`` the particle's rest radial direction
-        about the long axis, ``a`` the fitted axis) costs it as the axial term costs the local
+        Only the LA planes measure axial motion, and a plane measures it only where it cuts the
+        wall: the local stage's transmural axial shear ``∂δ_a/∂r`` is seen by no SA point and by
+        an LA point only at its own angle, and against the elasticity alone (μ) it is the
+        cheapest way to repay the volume the global stage leaves to the local one (the paper's
+        affine shape loses ~42 % of the wall's volume at ES; with ``global_thickening``, what the
+        tracked points miss of the thickening, issue 20). The wall then moved along the axis
+        between the LA planes, more the more one plane's points held it at that plane: study
+        2007 (one LA view tracked), every tracked point where the truth puts it, ES median / p95
+        0.288 / 0.878 mm, 0.321 / 0.986 with a confirm variant keeping six more of that view's
+        tracks at ES (docs/benchmarks.md, la19), its error along the axis +0.6…+1.0 mm 90° from
+        the plane and ≈ 0 at it, the global stage's ±0.03 mm everywhere. The term
+        ``½ k_s Σ_i v_i (aᵀ H_i r_i)²`` (``r_i`` the particle's rest radial direction about the
+        long axis, ``a`` the fitted axis) costs that shear as the axial term costs the local
         longitudinal stretch, for the same reason and with the same stiffness
-        (``longitudinal_weight``): only the LA planes measure axial motion.
+        (``longitudinal_weight``). It is in the coarse space as well
+        (:class:`~mlv_ros.core.meshless.local.CoarseSpace`, ``shear``).
 
         Parameters
         ----------
@@ -1587,22 +1593,26 @@ class MotionTracker:
         Returns
         -------
         (float, ndarray of shape (N, 3, 3)) or None
-            ``k_s`` (P) and the measures ``M_i = a r_iᵀ``; None without ``global_thickening``
-            or with ``longitudinal_weight`` 0.
+            ``k_s`` (P) and the measures ``M_i = a r_iᵀ``; None with ``longitudinal_weight`` 0.
 
         """
-        if not (self.global_thickening and self.longitudinal_weight):
+        if not self.longitudinal_weight:
             return None
+        return (
+            self.longitudinal_weight * self.model.mu,
+            ax[None, :, None] * self._rest_radial()[:, None, :],
+        )
+
+    def _rest_radial(self) -> np.ndarray:
+        """Return each particle's rest radial direction about the rest long axis, (N, 3) unit."""
         if self._radial is None:
             rest = self.model.rest_params
             axis = quat_to_matrix(rest.rotation)[:, 2]
             v = self.rest - rest.translation
             v = v - np.outer(v @ axis, axis)
             self._radial = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-        return (
-            self.longitudinal_weight * self.model.mu,
-            ax[None, :, None] * self._radial[:, None, :],
-        )
+            self._radial.flags.writeable = False
+        return self._radial
 
     def _coupled_axial(self, ax, Fg, x_global) -> np.ndarray:
         """
