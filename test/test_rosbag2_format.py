@@ -516,6 +516,9 @@ IMPORT_KEYS = {
     'highdicom': None,  # tests only
     'ament_flake8': 'ament_flake8',
     'ament_pep257': 'ament_pep257',  # the lint tests
+    # test_flake8 checks that flake8-docstrings' codes are among test_pep257's
+    'flake8_docstrings': 'python3-flake8-docstrings',
+    'pydocstyle': 'python3-pydocstyle',
     # DICOM decoders pydicom loads by itself; listed in case one is imported directly. No keys.
     'pylibjpeg': None,
     'libjpeg': None,
