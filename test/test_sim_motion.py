@@ -191,7 +191,7 @@ def _f4(m, X, phase, h):
 
 @pytest.mark.parametrize('cap', [None, -0.5])
 def test_det_f_is_one_to_1e9_with_the_apex_profile(cap):
-    """det F = 1 to 1e-9 (the isochoric construction, apex profile and a dyskinetic cap)."""
+    """The map is isochoric to 1e-9 (apex profile, and with a dyskinetic cap)."""
     p = load_preset('normal')
     if cap is not None:
         p['motion']['regions'] = [

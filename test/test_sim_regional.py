@@ -287,9 +287,11 @@ def test_groundtruth_carries_regional_truth(tmp_path):
 )
 def test_apex_cap_in_the_wall_normal_frame(contraction, sign):
     """
-    The cap's true ES strain in the wall-normal frame: a normal (or hypokinetic) cap thickens
-    (Err > 0) and shortens in-wall (Ecc < 0), an akinetic one has none, a dyskinetic one thins
-    and stretches; the apical ring above is normal in each case (thickens, shortens).
+    Check the cap's true ES strain in the wall-normal frame.
+
+    A normal (or hypokinetic) cap thickens (Err > 0) and shortens in-wall (Ecc < 0), an akinetic
+    one has none, a dyskinetic one thins and stretches; the apical ring above is normal in each
+    case (thickens, shortens).
     """
     from mlv_ros.core.analysis import LVAnalyzer
     from mlv_ros.core.sim.regional import truth_frame

@@ -214,6 +214,7 @@ def _piecewise(piece, breaks) -> tuple[PPoly, PPoly]:
         ``f`` and ``F(u) = ∫_0^u f`` (both extrapolate: f is constant beyond the breaks). The
         map uses F for the height and f for its derivative, so ``∂Z/∂z`` is exactly the
         derivative of ``Z`` (det F = 1 needs it) whatever the rounding of the coefficients.
+
     """
     b = np.unique(np.asarray(breaks, dtype=np.float64))
     x = np.concatenate([[b[0] - 1.0], b, [b[-1] + 1.0]])
@@ -442,9 +443,9 @@ class LVMotion:
 
         Prolate: ``g = ε_w − (ε_w + τ) h(u)``, ``h = 1`` through the solid apical wall up to
         ``u_c = min(u_tip, 0.1)`` (``u_tip`` the endocardial apex's level, 0.1 the AHA cap's
-        top), 0 from ``u_c + w`` up (C² blend, ``w = APEX_BLEND_FRACTION``): the cap thickens axially by ``τ`` (``apex_thickening``),
-        the wall above shortens by ``ε_w``, chosen so that the base still descends
-        ``base_descent_mm``: ``ε_w (1 − H) − τ H = ε`` with ``H = ∫_0^1 h = u_c + w/2``.
+        top), 0 from ``u_c + w`` up (C² blend, ``w = APEX_BLEND_FRACTION``): the cap thickens
+        axially by ``τ`` (``apex_thickening``), the wall above shortens by ``ε_w``, chosen so
+        that the base still descends ``base_descent_mm``: ``ε_w (1 − H) − τ H = ε`` with ``H = ∫_0^1 h = u_c + w/2``.
         Cylinder (no apex cap), or no ``apex_thickening`` in the preset (the ground truth of
         studies simulated before the cap had a model, rebuilt from their stored preset):
         ``g = ε`` everywhere, every level shortens alike.
