@@ -15,7 +15,6 @@
 """Image formation: slice planning, material-carried SPAMM tags, blood, noise, through-plane."""
 
 from mlv_ros.core.sim import ImageSynthesizer, plan_slices, simulate_study, slab_profile
-from mlv_ros.core.sim.motion import APEX_BLEND_FRACTION
 from mlv_ros.core.types import VIEW_LA, VIEW_SA
 import numpy as np
 import pytest
@@ -169,13 +168,8 @@ def test_through_plane_motion_is_real(study):
     X = m.inverse(pts, m.es_phase)
     dz = (X - pts) @ m.frame.long_axis
     z_plane = (pts[0] - m.frame.apex) @ m.frame.long_axis
-    # Normal preset above the apex profile's blend (u ≥ u_c + w, motion.py): every level shortens
-    # by ε_w after the cap's rise, z' = (1 − ε_w) z + L (ε_w + τ) H, H = u_c + w/2.
-    H = min((m.length - m.endo_c) / m.length, 0.1) + 0.5 * APEX_BLEND_FRACTION
-    lift = m.length * (m.eps_wall + m.apex_thickening) * H
-    z_ed = (z_plane - lift) / (1.0 - m.eps_wall)
-    assert z_ed / m.length > 0.25  # the slice's ED level is above the blend
-    np.testing.assert_allclose(dz, z_ed - z_plane, rtol=1e-9)
+    lam = 1.0 - m.eps  # normal preset: z' = λ z, so the ED level is z / λ
+    np.testing.assert_allclose(dz, z_plane * (1.0 / lam - 1.0), rtol=1e-9)
     myo_ed, _ = syn.tissue_fractions(0)
     myo_es, _ = syn.tissue_fractions(m.es_phase)
     assert np.abs(myo_es - myo_ed).sum() > 50  # pixels' worth of myocardium changed

@@ -83,10 +83,7 @@ def test_myocardial_volume_conserved_on_a_grid(motion):
     R = 1.2 * motion.max_radius
     h = 1.0 if motion.kind == 'cylinder' else 1.5
     g = np.arange(-R, R, h)
-    # Layers offset by h/3 from the integers: with the normal preset's 12 mm descent a layer at
-    # 73.0 mm lies exactly on the ES base plane, where the count hinges on the last bit of the
-    # inverse's rounding (a whole layer, ~3 %), not on the volume.
-    zz = np.arange(-2.0, motion.length + 2.0, h) + h / 3.0
+    zz = np.arange(-2.0, motion.length + 2.0, h)
     A, B, Z = np.meshgrid(g, g, zz, indexing='ij')
     pts = (
         f.apex
@@ -193,6 +190,7 @@ def _f4(m, X, phase, h):
 def test_det_f_is_one_to_1e9_with_the_apex_profile(cap):
     """The map is isochoric to 1e-9 (apex profile, and with a dyskinetic cap)."""
     p = load_preset('normal')
+    p['motion']['apex_thickening'] = 0.3
     if cap is not None:
         p['motion']['regions'] = [
             {'kind': 'dyskinetic', 'levels': [0.0, 0.25], 'centre_deg': 0.0,
@@ -224,6 +222,7 @@ def test_apex_cap_thickens_along_the_axis(contraction):
     The base still descends base_descent_mm (the wall above the cap shortens more, ε_w).
     """
     p = load_preset('normal')
+    p['motion']['apex_thickening'] = tau = 0.3
     c = 1.0
     if contraction is not None:
         c = contraction
@@ -233,7 +232,6 @@ def test_apex_cap_thickens_along_the_axis(contraction):
              'contraction': contraction}
         ]
     m = make_motion(p)
-    tau = p['motion']['apex_thickening']
     es = m.es_phase
     assert float(m.activation(es)) == 1.0
     z = np.linspace(0.0, 0.1 * m.length, 7)  # up to the thickening slab's top (u_c = 0.1)
@@ -245,3 +243,18 @@ def test_apex_cap_thickens_along_the_axis(contraction):
         # the base descends as prescribed (to the mid-wall ring's twist, within 0.05 mm).
         assert m.eps_wall > m.eps
         assert abs(m.base_descent_mm(es) - p['motion']['base_descent_mm']) < 0.05
+
+
+def test_legacy_cap_without_apex_thickening():
+    """Without apex_thickening every level shortens by ε alike (the presets, older studies)."""
+    m = make_motion('normal')
+    assert m.apex_thickening is None and m.eps_wall == m.eps
+    z = np.linspace(0.0, m.length, 9)
+    x = m.position(m.frame.from_local(np.zeros_like(z), np.zeros_like(z), z), m.es_phase)
+    np.testing.assert_allclose((x - m.frame.apex) @ m.frame.long_axis, (1.0 - m.eps) * z,
+                               atol=1e-9)
+    p = load_preset('normal')
+    for bad in (-0.1, 0.9, True, 'x'):
+        p['motion']['apex_thickening'] = bad
+        with pytest.raises(ValueError, match='apex_thickening'):
+            make_motion(p)

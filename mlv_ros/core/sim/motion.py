@@ -73,7 +73,8 @@ Apical systolic wall thickening of normal hearts, ~20–60 %: Moore et al., "Thr
 systolic strain patterns in the normal human left ventricle: characterization with tagged MR
 imaging", Radiology 214 (2000) 453–466; ASE/EACVI chamber quantification (Lang et al., J Am Soc
 Echocardiogr 28 (2015) 1–39: normal segments thicken, akinetic ones < 10 %, dyskinetic ones
-thin and move outward). The presets' 0.2–0.3 and the random draw's 0.2–0.5 lie in that range.
+thin and move outward). The random draw's 0.2–0.5 lies in that range (citations from memory,
+to be checked). The presets have no ``apex_thickening`` yet (legacy cap, docs/benchmarks.md).
 Paper §3.2 and Fig. 9–16 (shortening, radial contraction, apex CCW / base CW twist); method
 notes "Coordinates and conventions" (twist sign, ≈45 % zero-rotation level); AHA 17-segment
 model (Cerqueira et al., Circulation 2002) for the infarct segment and the AHA angles of regions.
@@ -97,8 +98,8 @@ from scipy.interpolate import PchipInterpolator, PPoly
 _RING6 = [-90.0, -30.0, 30.0, 90.0, 150.0, -150.0]
 _RING4 = [-90.0, 0.0, 90.0, 180.0]
 AHA_LEVELS = {'apex': (0.0, 0.1), 'apical': (0.1, 0.4), 'mid': (0.4, 0.7), 'basal': (0.7, 1.0)}
-#: ES axial thickening of the solid apical wall (the apex cap), fraction of its ED thickness,
-#: of the normal preset: normal apical systolic wall thickening is ~20–60 % (module docstring).
+#: A typical ES axial thickening of the solid apical wall (the apex cap), fraction of its ED
+#: thickness: normal apical systolic wall thickening is ~20–60 % (module docstring).
 DEFAULT_APEX_THICKENING = 0.3
 #: Accepted range of ``motion.apex_thickening``.
 APEX_THICKENING_RANGE = (0.0, 0.8)
@@ -445,10 +446,11 @@ class LVMotion:
         ``u_c = min(u_tip, 0.1)`` (``u_tip`` the endocardial apex's level, 0.1 the AHA cap's
         top), 0 from ``u_c + w`` up (C² blend, ``w = APEX_BLEND_FRACTION``): the cap thickens
         axially by ``τ`` (``apex_thickening``), the wall above shortens by ``ε_w``, chosen so
-        that the base still descends ``base_descent_mm``: ``ε_w (1 − H) − τ H = ε`` with ``H = ∫_0^1 h = u_c + w/2``.
-        Cylinder (no apex cap), or no ``apex_thickening`` in the preset (the ground truth of
-        studies simulated before the cap had a model, rebuilt from their stored preset):
-        ``g = ε`` everywhere, every level shortens alike.
+        that the base still descends ``base_descent_mm``: ``ε_w (1 − H) − τ H = ε`` with
+        ``H = ∫_0^1 h = u_c + w/2``.
+        Cylinder (no apex cap), or no ``apex_thickening`` in the preset (the presets today, and
+        the ground truth of studies simulated before the cap had a model, rebuilt from their
+        stored preset): ``g = ε`` everywhere, every level shortens alike.
 
         Raises
         ------

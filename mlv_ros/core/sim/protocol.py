@@ -279,10 +279,11 @@ _ITEMS = [
         'apex_thickening',
         'ES axial thickening of the solid apical wall (the apex cap, whose wall normal is the '
         'long axis), fraction of its ED thickness (mlv_ros/core/sim/motion.py; normal apical '
-        'wall thickening ~20–60 %)',
+        'wall thickening ~20–60 %); null: the legacy cap, every level shortening alike (the '
+        "presets' own, and studies drawn before the item existed)",
         '0.2 … 0.5',
-        '0 … 0.8',
-        _float(0.0, 0.8),
+        '0 … 0.8, or null',
+        _optional(_float(0.0, 0.8)),
     ),
     Item(
         'right_ventricle',
@@ -637,7 +638,9 @@ def default_protocol(shape: str = 'normal') -> dict:
         'septum_deg': 0.0,
         'base_centre_mm': [float(x) for x in o['base_centre_mm']],
         'abnormal_regions': [],
-        'apex_thickening': float(m['apex_thickening']),
+        'apex_thickening': (
+            None if m.get('apex_thickening') is None else float(m['apex_thickening'])
+        ),
         'right_ventricle': bool(p['geometry'].get('rv')),
         'tag_angle_deg': float(im.get('tag_angle_deg', 0.0)),
         'tag_lines': str(im.get('tag_lines', 'grid')),
@@ -1125,7 +1128,10 @@ def protocol_preset(protocol: dict) -> dict:
         preset['geometry'].pop('rv', None)
     if p['abnormal_regions']:
         m['regions'] = [dict(r) for r in p['abnormal_regions']]
-    m['apex_thickening'] = p['apex_thickening']
+    if p['apex_thickening'] is None:
+        m.pop('apex_thickening', None)
+    else:
+        m['apex_thickening'] = p['apex_thickening']
     stack = (p['sa_slices'] - 1) * p['sa_spacing_mm']
     apex_gap = s['length'] - p['sa_base_gap_mm'] - stack
     if abs(apex_gap - s['apex_gap']) < 1e-9:
