@@ -708,8 +708,10 @@ class LVMotion:
         Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s.
 
         Regions enter through sums over their windows (they do not overlap, so at most one
-        term is non-zero anywhere); each term keeps the single-infarct expression's operation
-        order, so the infarct preset's motion is bit-identical to its one-region original.
+        term is non-zero anywhere). Without an apex profile each term keeps the single-infarct
+        expression's operation order, so the infarct preset's motion is bit-identical to its
+        one-region original; with one the heights come from the exact piecewise polynomials of
+        :meth:`_init_profile`.
         """
         L = self.length
         u = z / L
@@ -718,19 +720,34 @@ class LVMotion:
         phi = s * self._twist(uc)
         dphi = np.where(inside, s * self._dtwist(uc) / L, 0.0)
         zero = np.zeros_like(u)
-        kab, kagb, kaC, kdaC = zero, zero, zero, zero
-        for reg, (gb, C) in zip(self._regions, self._region_gb):
-            k = reg[0]
-            a, da, b, _ = self._window(reg, theta, u)
-            kab = kab + k * a * b
-            kagb = kagb + k * a * gb(u)
-            kaC = kaC + k * a * C(u)
-            kdaC = kdaC + k * da * C(u)
-        # Z = z − s L (G(u) − Σ k a C_i(u)), G = ∫_0^u g, C_i = ∫_0^u g b_i: the local axial
-        # stretch is 1 − s g (1 − Σ k a b), the normal profile scaled by the contraction kept.
-        Z = z - s * L * (self._G(u) - kaC)
-        Zz = 1.0 - s * (self._g(u) - kagb)
-        Zt = s * L * kdaC
+        if self.apex_thickening is None:
+            # g = ε: the closed forms (C_i = ε B_i), bit-identical to the map before the apex
+            # profile and cheaper than the piecewise polynomials (the imaging inverts per pixel).
+            kab, kLaB, zt = zero, zero, zero
+            for reg in self._regions:
+                k = reg[0]
+                a, da, b, B = self._window(reg, theta, u)
+                kab = kab + k * a * b
+                kLaB = kLaB + k * L * a * B
+                zt = zt + s * self.eps * k * L * da * B
+            Z = z - s * self.eps * (z - kLaB)
+            Zz = 1.0 - s * self.eps * (1.0 - kab)
+            Zt = zt
+        else:
+            kab, kagb, kaC, kdaC = zero, zero, zero, zero
+            for reg, (gb, C) in zip(self._regions, self._region_gb):
+                k = reg[0]
+                a, da, b, _ = self._window(reg, theta, u)
+                Cu = C(u)
+                kab = kab + k * a * b
+                kagb = kagb + k * a * gb(u)
+                kaC = kaC + k * a * Cu
+                kdaC = kdaC + k * da * Cu
+            # Z = z − s L (G(u) − Σ k a C_i(u)), G = ∫_0^u g, C_i = ∫_0^u g b_i: the local axial
+            # stretch is 1 − s g (1 − Σ k a b), the normal profile scaled by the contraction kept.
+            Z = z - s * L * (self._G(u) - kaC)
+            Zz = 1.0 - s * (self._g(u) - kagb)
+            Zt = s * L * kdaC
         J2 = Zz - dphi * Zt
         rho = 1.0 - s * (1.0 - self.rho_es) * (1.0 - kab)
         return phi, dphi, Z, Zz, Zt, J2, rho
@@ -817,9 +834,11 @@ class LVMotion:
         flat = xa.reshape(-1, 3)
         s = self._s(phase)
         rp, thp, zp = self.frame.to_local(flat)
-        # Z is monotone in z (J₂ > 0); start from the wall's uniform shortening.
+        # Z is monotone in z (J₂ > 0); start from the wall's uniform shortening, exact (one step)
+        # for a heart without an apex profile or regions, where Z = (1 − sε) z.
         z = zp / (1.0 - s * self.eps_wall)
-        for _ in range(max_iter):
+        linear = self.apex_thickening is None and not self._regions
+        for _ in range(1 if linear else max_iter):
             th = thp - s * self._twist(np.clip(z / self.length, 0.0, 1.0))
             _, _, Z, _, _, J2, _ = self._components(th, z, s)
             step = (Z - zp) / J2
