@@ -170,3 +170,91 @@ def test_sample_myocardium_deterministic():
     assert not np.array_equal(m.sample_myocardium(100, 7), m.sample_myocardium(100, 8))
     with pytest.raises(ValueError):
         m.position(np.zeros((1, 3)), [0, 1])
+
+
+def _f4(m, X, phase, h):
+    """F by a fourth-order central stencil (step h mm): truncation O(h⁴) where the map is C⁵."""
+    F = np.empty((len(X), 3, 3))
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = h
+
+        def at(k):
+            return m.position(X + k * d, phase)
+
+        F[:, :, j] = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) / (12.0 * h)
+    return F
+
+
+@pytest.mark.parametrize('cap', [None, -0.5])
+def test_det_f_is_one_to_1e9_with_the_apex_profile(cap):
+    """The map is isochoric to 1e-9 (apex profile, and with a dyskinetic cap)."""
+    p = load_preset('normal')
+    p['motion']['apex_thickening'] = 0.3
+    if cap is not None:
+        p['motion']['regions'] = [
+            {'kind': 'dyskinetic', 'levels': [0.0, 0.25], 'centre_deg': 0.0,
+             'width_deg': 360.0, 'contraction': cap}
+        ]
+    m = make_motion(p)
+    X = m.sample_myocardium(1500, seed=4)
+    r, _, z = m.frame.to_local(X)
+    u = z / m.length
+    # Off the map's features that are C¹ only (a 4th-order stencil is not 4th order there, and
+    # they are older than the apex profile): the twist PCHIP's knot, the clip at the base plane,
+    # the reference radius's ramp at the endocardial apex; off the axis (cylindrical singularity).
+    keep = (
+        (r > 3.0)
+        & (np.abs(u - p['motion']['twist_zero_level']) > 0.003)
+        & (u < 0.995)
+        & (np.abs(z - (m.length - m.endo_c) - 0.5) > 1.5)
+    )
+    d = np.abs(np.linalg.det(_f4(m, X[keep], m.es_phase, 0.01)) - 1.0)
+    assert np.percentile(d, 99) < 1e-9 and d.max() < 1e-6, (np.percentile(d, 99), d.max())
+
+
+@pytest.mark.parametrize('contraction', [None, 0.0, -0.4])
+def test_apex_cap_thickens_along_the_axis(contraction):
+    """
+    The solid apical wall's axis points stretch by exactly 1 + s τ c (c the contraction kept).
+
+    Normal cap (c = 1): thickens by τ; akinetic (c = 0): not at all; dyskinetic (c < 0): thins.
+    The base still descends base_descent_mm (the wall above the cap shortens more, ε_w).
+    """
+    p = load_preset('normal')
+    p['motion']['apex_thickening'] = tau = 0.3
+    c = 1.0
+    if contraction is not None:
+        c = contraction
+        kind = 'akinetic' if contraction == 0.0 else 'dyskinetic'
+        p['motion']['regions'] = [
+            {'kind': kind, 'levels': [0.0, 0.3], 'centre_deg': 0.0, 'width_deg': 360.0,
+             'contraction': contraction}
+        ]
+    m = make_motion(p)
+    es = m.es_phase
+    assert float(m.activation(es)) == 1.0
+    z = np.linspace(0.0, 0.1 * m.length, 7)  # up to the thickening slab's top (u_c = 0.1)
+    x = m.position(m.frame.from_local(np.zeros_like(z), np.zeros_like(z), z), es)
+    np.testing.assert_allclose((x - m.frame.apex) @ m.frame.long_axis, (1.0 + tau * c) * z,
+                               atol=1e-9)
+    if contraction is None:
+        # Endocardial-apex rise of the normal cap: the wall above shortens by ε_w > ε so that
+        # the base descends as prescribed (to the mid-wall ring's twist, within 0.05 mm).
+        assert m.eps_wall > m.eps
+        assert abs(m.base_descent_mm(es) - p['motion']['base_descent_mm']) < 0.05
+
+
+def test_legacy_cap_without_apex_thickening():
+    """Without apex_thickening every level shortens by ε alike (the presets, older studies)."""
+    m = make_motion('normal')
+    assert m.apex_thickening is None and m.eps_wall == m.eps
+    z = np.linspace(0.0, m.length, 9)
+    x = m.position(m.frame.from_local(np.zeros_like(z), np.zeros_like(z), z), m.es_phase)
+    np.testing.assert_allclose((x - m.frame.apex) @ m.frame.long_axis, (1.0 - m.eps) * z,
+                               atol=1e-9)
+    p = load_preset('normal')
+    for bad in (-0.1, 0.9, True, 'x'):
+        p['motion']['apex_thickening'] = bad
+        with pytest.raises(ValueError, match='apex_thickening'):
+            make_motion(p)

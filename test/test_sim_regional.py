@@ -243,6 +243,7 @@ def test_groundtruth_carries_regional_truth(tmp_path):
         complete_protocol(
             {
                 'abnormal_regions': regions,
+                'apex_thickening': 0.3,
                 'size': 64,
                 'num_phases': 6,
                 'sa_slices': 3,
@@ -256,7 +257,9 @@ def test_groundtruth_carries_regional_truth(tmp_path):
     reg = gt.regional
     assert [r['kind'] for r in reg['regions']] == ['dyskinetic', 'akinetic']
     seg = {s['segment']: s for s in reg['segments']}
-    assert seg[17]['class'] == 'dyskinetic' and seg[17]['err'] < 0 and seg[17]['ell'] > 0
+    # The truth's frame is cylindrical: in the cap, err is in-wall (radial) and ell along the
+    # axis, the cap's wall normal; the dyskinetic cap thins (ell < 0) and stretches (err > 0).
+    assert seg[17]['class'] == 'dyskinetic' and seg[17]['err'] > 0 and seg[17]['ell'] < 0
     assert seg[11]['class'] == 'akinetic' and abs(seg[11]['ecc']) < 0.03
     assert seg[8]['class'] == 'normal' and seg[8]['err'] > 0.2 and seg[8]['ecc'] < -0.1
     assert reg['phase'] == round(study.motion.es_phase)
@@ -275,3 +278,45 @@ def test_groundtruth_carries_regional_truth(tmp_path):
     # the dense truth and the stored points' means agree on the strong segment
     again = regional_truth(study.motion, n_points=20000, seed=study.seed)
     assert again['segments'][7]['err'] == seg[8]['err']
+
+
+@pytest.mark.parametrize(
+    'contraction, sign', [(None, 1.0), (0.5, 1.0), (0.0, 0.0), (-0.3, -1.0), (-0.6, -1.0)]
+)
+def test_apex_cap_in_the_wall_normal_frame(contraction, sign):
+    """
+    Check the cap's true ES strain in the wall-normal frame.
+
+    A normal (or hypokinetic) cap thickens (Err > 0) and shortens in-wall (Ecc < 0), an akinetic
+    one has none, a dyskinetic one thins and stretches; the apical ring above is normal in each
+    case (thickens, shortens).
+    """
+    from mlv_ros.core.analysis import LVAnalyzer
+    from mlv_ros.core.sim.regional import truth_frame
+
+    extra = ()
+    if contraction is not None:
+        kind = {1.0: 'hypokinetic', 0.0: 'akinetic', -1.0: 'dyskinetic'}[sign]
+        extra = ({'kind': kind, 'levels': [0.0, 0.12], 'centre_deg': 0.0, 'width_deg': 360.0,
+                  'contraction': contraction, 'blend_fraction': 0.04},)
+    p = load_preset('normal')
+    p['motion']['apex_thickening'] = 0.3
+    if extra:
+        p['motion']['regions'] = list(extra)
+    m = make_motion(p)
+    X = m.sample_myocardium(4000, seed=5)
+    an = LVAnalyzer(X, truth_frame(m))
+    es = int(round(m.es_phase))
+    st = an.strain(m.position(X, es), m.deformation_gradient(X, es), segment_frame=True)
+    cap = an.segments == 17
+    err, ecc = float(np.mean(st['rr'][cap])), float(np.mean(st['cc'][cap]))
+    if sign > 0:
+        assert err > 0.05 and ecc < -0.03, (err, ecc)
+    elif sign == 0:
+        assert abs(err) < 0.01 and abs(ecc) < 0.01, (err, ecc)
+    else:
+        assert err < -0.02 and ecc > 0.02, (err, ecc)
+    # the apical ring above the region and its blend (levels 0.2–0.4)
+    apical = (an.segments >= 13) & (an.segments <= 16) & (an.coords.h > 0.2)
+    assert np.mean(st['rr'][apical]) > 0.1 and np.mean(st['cc'][apical]) < -0.03
+    assert np.mean(st['ll'][apical]) < -0.03

@@ -30,12 +30,21 @@ With the activation ``s(t) ∈ [0, 1]`` (0 at ED, 1 at ES; raised-cosine rise an
 
 * twist:        ``θ' = θ + s φ_ES(u)``, ``φ_ES`` a monotone PCHIP through
   ``(0, φ_apex), (u_0, 0), (1, φ_base)``;
-* long axis:    ``z' = Z(z, θ) = z − s ε (z − L Σ_i k_i a_i(θ) B_i(u))``, ``ε = base_descent / L``:
-  the apex is fixed and the base descends ``ε L``; each abnormal region i (the infarct preset's
-  segment, ``motion.regions``; :mod:`mlv_ros.core.sim.regional`) has a C² window
-  ``a_i(θ) b_i(u)``, ``B_i(u) = ∫_0^u b_i`` and ``k_i = 1 − contraction`` the lost share of the
-  normal motion: k = 1 stops the region shortening (akinetic), 0 < k < 1 reduces it
-  (hypokinetic), k > 1 reverses it (dyskinetic: the region lengthens);
+* long axis:    ``z' = Z(z, θ) = z − s L (G(u) − Σ_i k_i a_i(θ) C_i(u))`` with the normal
+  long-axis strain profile ``g(u)`` (ES shortening of the material at level u; ``G = ∫_0^u g``,
+  ``C_i = ∫_0^u g b_i``), so the local axial stretch is ``Z_z = 1 − s g(u) (1 − Σ k a b)``:
+  the apex is fixed and each region scales the normal motion. ``g`` (prolate hearts with
+  ``apex_thickening`` τ) is ``−τ`` through the solid apical wall up to ``u_c = min(u_tip, 0.1)``
+  (``u_tip`` the endocardial apex's level, 0.1 the AHA cap's top) — the cap *thickens* along its
+  wall normal, the axis, by τ at ES — and ``ε_w`` from ``u_c + w`` up (C² blend over
+  ``w = 0.1``), ``ε_w`` chosen so that the base still descends ``base_descent_mm``
+  (:meth:`LVMotion._init_profile`). Without ``apex_thickening`` (cylinder; presets of studies
+  simulated before it existed) ``g = ε = base_descent / L`` everywhere. Each abnormal region i
+  (the infarct preset's segment, ``motion.regions``; :mod:`mlv_ros.core.sim.regional`) has a C²
+  window ``a_i(θ) b_i(u)`` and ``k_i = 1 − contraction`` the lost share of the normal motion:
+  k = 1 stops the region shortening or thickening (akinetic), 0 < k < 1 reduces it
+  (hypokinetic), k > 1 reverses it (dyskinetic: the wall lengthens, an apical cap thins and
+  stretches in-wall, the aneurysm's bulge);
 * radial:       ``r'² = ρ² Q(z) + (r² − Q(z)) / J₂``, with ``Q`` the squared reference
   endocardial radius, ``ρ = 1 − s (1 − ρ_ES)(1 − Σ k a b)`` the endocardial radius ratio (k > 1:
   the endocardium moves outward, the wall thins: a bulge) and
@@ -43,13 +52,29 @@ With the activation ``s(t) ∈ [0, 1]`` (0 at ED, 1 at ES; raised-cosine rise an
 
 In the volume coordinates ``(r²/2, θ, z)`` the Jacobian is triangular with determinant
 ``(1/J₂)·J₂ = 1``: the map is exactly isochoric (det F = 1) for any smooth ``Q, ρ, φ, Z``, and
-every step inverts in closed form except ``z`` with abnormal regions (a few Newton steps).
-Regions do not overlap, so ``Σ k a b ≤ max k ≤ 2`` and ``J₂ ≥ 1 − ε − s²ε k |φ'_u a' B| > 0``.
+every step inverts in closed form except ``z`` (a few Newton steps). ``G`` and ``C_i`` are exact
+piecewise-polynomial antiderivatives (:func:`_piecewise`), so ``Z_z`` is exactly ``∂Z/∂z``.
+Regions do not overlap, so ``Σ k a b ≤ max k ≤ 2`` and
+``J₂ ≥ 1 − max(ε_w, τ) − s² |φ'_u Z_θ| > 0`` (τ ≤ 0.8, ε_w < 0.9: :meth:`LVMotion._init_profile`).
+
+Why the apex needs its own profile: with one shortening ε at every level the solid cap (whose
+wall normal is the axis) shortened axially, i.e. *thinned*, and the isochoric radial step
+stretched it in-wall — the opposite of a heart, whose normal apex thickens and shortens in-wall
+while an apical aneurysm thins and bulges. Limitation: ``Z`` depends on the height only, so the
+cap's axial thickening lifts all material above it by about ``τ (u_c L)`` (2–3 mm): apical
+levels move little along the axis at ES, mid levels about a third of the base's descent.
+
 The geometry (which ED points are myocardium) is independent of the map; material outside the
 myocardium moves with the same formula, but the imaging treats the background as static.
 
 References
 ----------
+Apical systolic wall thickening of normal hearts, ~20–60 %: Moore et al., "Three-dimensional
+systolic strain patterns in the normal human left ventricle: characterization with tagged MR
+imaging", Radiology 214 (2000) 453–466; ASE/EACVI chamber quantification (Lang et al., J Am Soc
+Echocardiogr 28 (2015) 1–39: normal segments thicken, akinetic ones < 10 %, dyskinetic ones
+thin and move outward). The random draw's 0.2–0.5 lies in that range (citations from memory,
+to be checked). The presets have no ``apex_thickening`` yet (legacy cap, docs/benchmarks.md).
 Paper §3.2 and Fig. 9–16 (shortening, radial contraction, apex CCW / base CW twist); method
 notes "Coordinates and conventions" (twist sign, ≈45 % zero-rotation level); AHA 17-segment
 model (Cerqueira et al., Circulation 2002) for the infarct segment and the AHA angles of regions.
@@ -64,7 +89,8 @@ from mlv_ros.core.sim.presets import load_preset
 from mlv_ros.core.sim.regional import check_regions
 from mlv_ros.core.sim.rv import check_rv, RightVentricle
 import numpy as np
-from scipy.interpolate import PchipInterpolator
+from numpy.polynomial import Polynomial
+from scipy.interpolate import PchipInterpolator, PPoly
 
 # AHA segment centres in the local angle θ (deg, CCW from apex, 0 = mid-septum): basal and mid
 # rings 60° wide in the order anterior, anteroseptal, inferoseptal, inferior, inferolateral,
@@ -72,6 +98,14 @@ from scipy.interpolate import PchipInterpolator
 _RING6 = [-90.0, -30.0, 30.0, 90.0, 150.0, -150.0]
 _RING4 = [-90.0, 0.0, 90.0, 180.0]
 AHA_LEVELS = {'apex': (0.0, 0.1), 'apical': (0.1, 0.4), 'mid': (0.4, 0.7), 'basal': (0.7, 1.0)}
+#: A typical ES axial thickening of the solid apical wall (the apex cap), fraction of its ED
+#: thickness: normal apical systolic wall thickening is ~20–60 % (module docstring).
+DEFAULT_APEX_THICKENING = 0.3
+#: Accepted range of ``motion.apex_thickening``.
+APEX_THICKENING_RANGE = (0.0, 0.8)
+#: Height (fraction of the length) of the C² blend above the endocardial apex over which the
+#: cap's thickening turns into the wall's shortening (the AHA cap is 10 % of the length).
+APEX_BLEND_FRACTION = 0.1
 
 
 def aha_segment_window(segment: int) -> tuple[float, float, float, float]:
@@ -149,6 +183,50 @@ def _smoothstep_integral(x):
     """∫_0^x smoothstep, valid for any x (0 below 0, x − ½ above 1)."""
     xc = np.clip(x, 0.0, 1.0)
     return xc**4 * (xc * (xc - 3.0) + 2.5) + np.maximum(x - 1.0, 0.0)
+
+
+_SMOOTHSTEP = Polynomial([0.0, 0.0, 0.0, 10.0, -15.0, 6.0])
+
+
+def _ramp_piece(x0: float, w: float, mid: float) -> Polynomial:
+    """Polynomial (in u) of the ramp ``smoothstep((u − x0)/w)`` on an interval around ``mid``."""
+    if mid <= x0:
+        return Polynomial([0.0])
+    if mid >= x0 + w:
+        return Polynomial([1.0])
+    return _SMOOTHSTEP(Polynomial([-x0 / w, 1.0 / w]))
+
+
+def _piecewise(piece, breaks) -> tuple[PPoly, PPoly]:
+    """
+    Exact piecewise polynomial of a product of ramps and its antiderivative from u = 0.
+
+    Parameters
+    ----------
+    piece : callable
+        ``piece(mid) -> Polynomial`` in u, the function on the interval around ``mid``
+        (constant outside the breaks).
+    breaks : sequence of float
+        Every level where a factor changes piece.
+
+    Returns
+    -------
+    f, F : PPoly
+        ``f`` and ``F(u) = ∫_0^u f`` (both extrapolate: f is constant beyond the breaks). The
+        map uses F for the height and f for its derivative, so ``∂Z/∂z`` is exactly the
+        derivative of ``Z`` (det F = 1 needs it) whatever the rounding of the coefficients.
+
+    """
+    b = np.unique(np.asarray(breaks, dtype=np.float64))
+    x = np.concatenate([[b[0] - 1.0], b, [b[-1] + 1.0]])
+    c = np.zeros((11, x.size - 1))  # ramps are degree 5: products of two are degree 10
+    for i in range(x.size - 1):
+        q = piece(0.5 * (x[i] + x[i + 1]))(Polynomial([x[i], 1.0])).trim()  # t = u − x_i
+        c[11 - q.coef.size:, i] = q.coef[::-1]
+    f = PPoly(c, x, extrapolate=True)
+    F = f.antiderivative()
+    F.c[-1] -= F(0.0)  # a constant shift of every piece keeps F continuous
+    return f, F
 
 
 @dataclass(frozen=True)
@@ -268,7 +346,7 @@ class LVMotion:
 
         self._init_shape(g)
 
-        self.eps = float(m['base_descent_mm']) / L
+        self.eps = float(m['base_descent_mm']) / L  # nominal; the wall's own: self.eps_wall
         self.rho_es = float(m['endo_radius_ratio_es'])
         u0 = float(m['twist_zero_level'])
         self._twist = PchipInterpolator(
@@ -277,6 +355,7 @@ class LVMotion:
         self._dtwist = self._twist.derivative()
 
         self._init_regions(m, g)
+        self._init_profile(m)
         # Ramp width of the reference radius Q near the endocardial apex (mm²), see _ref_q.
         self._q_soft = 0.02 * (self.endo_a**2 if self.kind == 'prolate' else self.r_in**2)
         # Optional right ventricle (mlv_ros.core.sim.rv): seen in the images, not LV myocardium.
@@ -358,6 +437,78 @@ class LVMotion:
                 )
             )
             self.regions.append(r)
+
+    def _init_profile(self, m: dict) -> None:
+        """
+        Set the normal long-axis strain profile g(u) and each region's ``∫ g b`` (see the map).
+
+        Prolate: ``g = ε_w − (ε_w + τ) h(u)``, ``h = 1`` through the solid apical wall up to
+        ``u_c = min(u_tip, 0.1)`` (``u_tip`` the endocardial apex's level, 0.1 the AHA cap's
+        top), 0 from ``u_c + w`` up (C² blend, ``w = APEX_BLEND_FRACTION``): the cap thickens
+        axially by ``τ`` (``apex_thickening``), the wall above shortens by ``ε_w``, chosen so
+        that the base still descends ``base_descent_mm``: ``ε_w (1 − H) − τ H = ε`` with
+        ``H = ∫_0^1 h = u_c + w/2``.
+        Cylinder (no apex cap), or no ``apex_thickening`` in the preset (the presets today, and
+        the ground truth of studies simulated before the cap had a model, rebuilt from their
+        stored preset): ``g = ε`` everywhere, every level shortens alike.
+
+        Raises
+        ------
+        ValueError
+            ``apex_thickening`` out of :data:`APEX_THICKENING_RANGE`, or a cap so thick that the
+            wall above it would have to shorten by 100 % or more.
+
+        """
+        tau = m.get('apex_thickening')
+        lo, hi = APEX_THICKENING_RANGE
+        if tau is not None and (
+            isinstance(tau, bool)
+            or not isinstance(tau, (int, float))
+            or not lo <= float(tau) <= hi
+        ):
+            raise ValueError(
+                f'motion.apex_thickening = {tau!r}; allowed: a number {lo:g} … {hi:g} (the ES '
+                'axial thickening of the apical wall, fraction of its ED thickness)'
+            )
+        if self.kind == 'prolate' and tau is not None:
+            self.apex_thickening = float(tau)
+            # The thickening slab: the solid wall below the endocardial apex, at most the AHA
+            # cap's height; above that level a thick (hypertrophic) apical wall's flank is the
+            # apical segments' oblique wall, which an axial stretch would lengthen in-wall.
+            tip = (self.length - self.endo_c) / self.length
+            x0, w = min(tip, AHA_LEVELS['apex'][1]), APEX_BLEND_FRACTION
+            H = x0 + 0.5 * w
+            self.eps_wall = (self.eps + self.apex_thickening * H) / (1.0 - H)
+            if self.eps_wall >= 0.9:
+                raise ValueError(
+                    f'motion: base_descent_mm {self.eps * self.length:g} with apex_thickening '
+                    f'{tau:g} of a {x0 * self.length:g} mm apical wall needs the wall above it '
+                    f'to shorten by {100 * self.eps_wall:.0f} % (at most 90 %)'
+                )
+            gain = self.eps_wall + self.apex_thickening
+
+            def g_piece(mid):
+                return gain * _ramp_piece(x0, w, mid) - self.apex_thickening
+
+            g_breaks = [x0, x0 + w]
+        else:  # no cap model: every level shortens by ε (the map before the cap had one)
+            self.apex_thickening = None
+            self.eps_wall = self.eps
+
+            def g_piece(mid):
+                return Polynomial([self.eps])
+
+            g_breaks = [0.0]
+        self._g, self._G = _piecewise(g_piece, g_breaks)
+        self._region_gb = []
+        for reg in self._regions:
+            w, (u_lo, u_hi) = reg[4], reg[5]
+            a0, a1 = u_lo - 0.5 * w, u_hi - 0.5 * w  # b = ramp(a0) − ramp(a1), as _window
+
+            def gb_piece(mid, a0=a0, a1=a1, w=w):
+                return g_piece(mid) * (_ramp_piece(a0, w, mid) - _ramp_piece(a1, w, mid))
+
+            self._region_gb.append(_piecewise(gb_piece, [*g_breaks, a0, a0 + w, a1, a1 + w]))
 
     # ----------------------------------------------------------------- time course
     def activation(self, phase) -> np.ndarray:
@@ -587,8 +738,10 @@ class LVMotion:
         Twist φ, its z-derivative, Z, Z_z, Z_θ, J₂ and ρ at ED (θ, z) and activation s.
 
         Regions enter through sums over their windows (they do not overlap, so at most one
-        term is non-zero anywhere); each term keeps the single-infarct expression's operation
-        order, so the infarct preset's motion is bit-identical to its one-region original.
+        term is non-zero anywhere). Without an apex profile each term keeps the single-infarct
+        expression's operation order, so the infarct preset's motion is bit-identical to its
+        one-region original; with one the heights come from the exact piecewise polynomials of
+        :meth:`_init_profile`.
         """
         L = self.length
         u = z / L
@@ -597,16 +750,34 @@ class LVMotion:
         phi = s * self._twist(uc)
         dphi = np.where(inside, s * self._dtwist(uc) / L, 0.0)
         zero = np.zeros_like(u)
-        kab, kLaB, zt = zero, zero, zero
-        for reg in self._regions:
-            k = reg[0]
-            a, da, b, B = self._window(reg, theta, u)
-            kab = kab + k * a * b
-            kLaB = kLaB + k * L * a * B
-            zt = zt + s * self.eps * k * L * da * B
-        Z = z - s * self.eps * (z - kLaB)
-        Zz = 1.0 - s * self.eps * (1.0 - kab)
-        Zt = zt
+        if self.apex_thickening is None:
+            # g = ε: the closed forms (C_i = ε B_i), bit-identical to the map before the apex
+            # profile and cheaper than the piecewise polynomials (the imaging inverts per pixel).
+            kab, kLaB, zt = zero, zero, zero
+            for reg in self._regions:
+                k = reg[0]
+                a, da, b, B = self._window(reg, theta, u)
+                kab = kab + k * a * b
+                kLaB = kLaB + k * L * a * B
+                zt = zt + s * self.eps * k * L * da * B
+            Z = z - s * self.eps * (z - kLaB)
+            Zz = 1.0 - s * self.eps * (1.0 - kab)
+            Zt = zt
+        else:
+            kab, kagb, kaC, kdaC = zero, zero, zero, zero
+            for reg, (gb, C) in zip(self._regions, self._region_gb):
+                k = reg[0]
+                a, da, b, _ = self._window(reg, theta, u)
+                Cu = C(u)
+                kab = kab + k * a * b
+                kagb = kagb + k * a * gb(u)
+                kaC = kaC + k * a * Cu
+                kdaC = kdaC + k * da * Cu
+            # Z = z − s L (G(u) − Σ k a C_i(u)), G = ∫_0^u g, C_i = ∫_0^u g b_i: the local axial
+            # stretch is 1 − s g (1 − Σ k a b), the normal profile scaled by the contraction kept.
+            Z = z - s * L * (self._G(u) - kaC)
+            Zz = 1.0 - s * (self._g(u) - kagb)
+            Zt = s * L * kdaC
         J2 = Zz - dphi * Zt
         rho = 1.0 - s * (1.0 - self.rho_es) * (1.0 - kab)
         return phi, dphi, Z, Zz, Zt, J2, rho
@@ -678,7 +849,7 @@ class LVMotion:
         phase : int or float
             Phase index.
         tol : float
-            Newton tolerance on the height z, mm (only abnormal regions need iterations).
+            Newton tolerance on the height z, mm.
         max_iter : int
             Newton iteration cap.
 
@@ -717,9 +888,11 @@ class LVMotion:
         """
         rp, thp, zp = local
         s = self._s(phase)
-        # Normal hearts: Z = (1 − sε) z, so the first Newton step is exact.
-        z = zp / (1.0 - s * self.eps)
-        for _ in range(max_iter if self._regions else 1):
+        # Z is monotone in z (J₂ > 0); start from the wall's uniform shortening, exact (one step)
+        # for a heart without an apex profile or regions, where Z = (1 − sε) z.
+        z = zp / (1.0 - s * self.eps_wall)
+        linear = self.apex_thickening is None and not self._regions
+        for _ in range(1 if linear else max_iter):
             th = thp - s * self._twist(np.clip(z / self.length, 0.0, 1.0))
             _, _, Z, _, _, J2, _ = self._components(th, z, s)
             step = (Z - zp) / J2

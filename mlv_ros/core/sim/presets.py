@@ -166,6 +166,14 @@ def validate_preset(preset: dict, source: str = '<preset>') -> None:
         raise ValueError(f'{source}: motion.base_descent_mm must be in [0, length_mm)')
     if not 0 < m['endo_radius_ratio_es'] <= 1.5:
         raise ValueError(f'{source}: motion.endo_radius_ratio_es must be in (0, 1.5]')
+    tau = m.get('apex_thickening')
+    if tau is not None and (
+        isinstance(tau, bool) or not isinstance(tau, (int, float)) or not 0.0 <= tau <= 0.8
+    ):
+        raise ValueError(
+            f'{source}: motion.apex_thickening must be a number in [0, 0.8] (the ES axial '
+            f'thickening of the apical wall, fraction) or absent, got {tau!r}'
+        )
     if not 0 < m['twist_zero_level'] < 1:
         raise ValueError(f'{source}: motion.twist_zero_level must be in (0, 1)')
     if m.get('regions') is not None:

@@ -276,6 +276,16 @@ _ITEMS = [
         _regions,
     ),
     Item(
+        'apex_thickening',
+        'ES axial thickening of the solid apical wall (the apex cap, whose wall normal is the '
+        'long axis), fraction of its ED thickness (mlv_ros/core/sim/motion.py; normal apical '
+        'wall thickening ~20–60 %); null: the legacy cap, every level shortening alike (the '
+        "presets' own, and studies drawn before the item existed)",
+        '0.2 … 0.5',
+        '0 … 0.8, or null',
+        _optional(_float(0.0, 0.8)),
+    ),
+    Item(
         'right_ventricle',
         'a right ventricle (mlv_ros/core/sim/rv.py): blood crescent and thin '
         'tagged free wall on the septal side, insertions 120° apart about the septum direction',
@@ -628,6 +638,9 @@ def default_protocol(shape: str = 'normal') -> dict:
         'septum_deg': 0.0,
         'base_centre_mm': [float(x) for x in o['base_centre_mm']],
         'abnormal_regions': [],
+        'apex_thickening': (
+            None if m.get('apex_thickening') is None else float(m['apex_thickening'])
+        ),
         'right_ventricle': bool(p['geometry'].get('rv')),
         'tag_angle_deg': float(im.get('tag_angle_deg', 0.0)),
         'tag_lines': str(im.get('tag_lines', 'grid')),
@@ -953,6 +966,7 @@ def draw_protocol(seed: int, fixed: dict | None = None, tag_lines: str = 'grid')
     pick('septum_deg', lambda r: _uniform(r, 0.0, 360.0, 2) % 360.0)
     pick('base_centre_mm', lambda r: [_uniform(r, -50.0, 50.0, 1) for _ in range(3)])
     pick('abnormal_regions', lambda r: _draw_regions(r, p['shape']))
+    pick('apex_thickening', lambda r: _uniform(r, 0.2, 0.5, 2))
     pick('right_ventricle', lambda r: bool(r.random() < 0.75))
     pick('tag_angle_deg', lambda r: _uniform(r, 0.0, 180.0, 2) % 180.0)
     kinds, odds = TAG_LINES_ANY
@@ -1114,6 +1128,10 @@ def protocol_preset(protocol: dict) -> dict:
         preset['geometry'].pop('rv', None)
     if p['abnormal_regions']:
         m['regions'] = [dict(r) for r in p['abnormal_regions']]
+    if p['apex_thickening'] is None:
+        m.pop('apex_thickening', None)
+    else:
+        m['apex_thickening'] = p['apex_thickening']
     stack = (p['sa_slices'] - 1) * p['sa_spacing_mm']
     apex_gap = s['length'] - p['sa_base_gap_mm'] - stack
     if abs(apex_gap - s['apex_gap']) < 1e-9:
