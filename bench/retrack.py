@@ -685,7 +685,9 @@ def strain_errors(case: Path, rest, rotation, positions, verdicts, motion, origi
     for name, pos, states in (('strain', positions, verdicts), ('strain_truth', exact, None)):
         ours = bench_strain.ours_from_positions(rest, rotation, pos, es, states)
         ours['segment_origin'] = int(origin)
-        result = bench_strain.compare(gt, ours)
+        result = bench_strain.compare(
+            gt, ours, cap_scored=motion.apex_thickening is not None
+        )
         if name == 'strain':
             result['explained'] = bench_strain.explain_abnormal(
                 gt, ours, motion, rest, rotation, positions

@@ -177,3 +177,28 @@ def test_the_apex_cap_is_scored_apart_and_partial_segments_are_counted_by_covera
     assert s['found_cap'] == '0/2' and s['found_with_cap'] == '2/5'
     assert s['found_by_coverage'] == {'>=0.6': '1/1', '<0.6': '1/2'}
     assert s['not_assessable'] == 1 and s['missed_why'] == {'cap': 2, 'unsupported': 1}
+
+
+def test_a_physiological_apex_cap_is_scored_with_the_rest():
+    """
+    Count an abnormal cap in the criterion when the study's cap moves as a heart's does.
+
+    Random protocols draw ``motion.apex_thickening`` (a cap that thickens and shortens): its
+    label is what its motion shows, so a dyskinetic cap the product leaves indeterminate is a
+    miss, and nothing of it is counted beside.
+    """
+    from strain import summarise
+
+    truth_cls = ['normal'] * 17
+    truth_cls[6] = 'akinetic'
+    truth_cls[16] = 'dyskinetic'
+    ours_cls = ['normal'] * 16 + ['indeterminate']
+    ours_cls[6] = 'akinetic'
+    truth, ours = _case(truth_cls, ours_cls)
+    got = compare(truth, ours, cap_scored=True)
+    cls = got['classification']
+    assert cls['true_positive'] == 1 and cls['false_negative'] == 1
+    assert cls['true_negative'] == 15 and cls['cap'] is None and cls['cap_scored']
+    s = summarise([{'seed': 1, 'must': False, **got, 'explained': []}])
+    assert s['found'] == '1/2' and s['abnormal_segments'] == 2
+    assert s['found_cap'] == '0/0' and s['found_with_cap'] == '1/2'

@@ -108,14 +108,15 @@ Relative to the heart's own function, so it holds for normal, dilated and hypert
   tapers and shortens less. The apex cap (17) is not classified (always ``indeterminate``, said
   in :attr:`Findings.notes`): its strain is taken in the wall-normal frame
   (:func:`mlv_ros.core.analysis.frame.wall_normal_frame`: Err = thickening across the cap, Ecc
-  and Ell in the wall), but no truth validates a class there: the simulator shortens its solid
-  apex tip along the axis with the wall and widens it (no cavity to contract round), so in that
-  frame its normal caps thin (Err −0.04…−0.08) and stretch in the wall (Ecc +0.045…+0.08),
-  which a physiological rule reads dyskinetic, and its dyskinetic caps thicken (+0.03…+0.05);
-  our cap's Err follows the apical ring's instead (over 23 graph runs r 0.74 with our ring's,
-  0.05 with the truth's cap; right only where the tip is thick, the hypertrophic shape's), so
-  it is not the cap's own measurement either (docs/benchmarks.md, "Abnormal segments one by
-  one"; ``bench/strain.py`` scores the cap apart).
+  and Ell in the wall), but no class is validated there: the legacy simulator cap (the presets,
+  studies drawn before session 19) shortens its solid apex tip along the axis with the wall
+  and widens it, so in that frame its normal caps thin (Err −0.04…−0.08) and stretch in the
+  wall (Ecc +0.045…+0.08); our cap's Err followed the apical ring's (over 23 graph runs r 0.74
+  with our ring's, 0.05 with the truth's cap: docs/benchmarks.md, "Abnormal segments one by
+  one"). Against a cap that thickens and shortens as a heart's does (random protocols'
+  ``motion.apex_thickening``) the solver does not yet follow it (the normal preset with τ 0.3:
+  cap median error 0.34 → 1.40 mm, cap Err +0.12 against the truth's +0.24: docs/benchmarks.md,
+  "The simulator's apex cap moves like a heart's"), so no class is claimed there yet.
 * Function index ``f`` = inverse-variance weighted mean of ``Ecc / (P_cc Ecc_ref)`` and
   ``Err / (P_rr Err_ref)`` (1 = as the rest of the heart, 0 = no motion, < 0 = moves the wrong
   way), with its uncertainty ``σ_f``. Classes on ``f`` (:data:`CLASS_BOUNDS`): normal
