@@ -534,3 +534,67 @@ def test_an_akinetic_sector_keeps_its_tracks_to_end_systole(kwargs, noise, share
     err = np.linalg.norm(es.pixel_rc - scene.forward(x0, 0.5), axis=1)
     in_sector = np.isin(es.track_id, ed.track_id[still])
     assert np.median(err[in_sector]) < 0.05 * period and err.max() < 0.25 * period
+
+
+@pytest.mark.parametrize('period_px', [4.4, 6.6])
+def test_border_confirm_in_tag_periods(period_px):
+    """
+    A right match 1-2 px beyond the warped mask is confirmed, a wrong one is not, in periods.
+
+    The same 8 mm tags at 1.8 and 1.2 mm pixels. The detector (a stand-in reporting the points
+    its accept mask allows) reads a border intersection 0.15 periods from the first pass's match
+    and 1.5 px outside the wall mask: ``confirm_border_views`` accepts it (the first pass's
+    ``FOLLOW_ACCEPT_PX``) and confirms it (within ``CONFIRM_BORDER_PERIODS`` = 0.2 periods); the
+    plain second pass neither accepts beyond its mask nor confirms beyond ``confirm_px``. A read
+    0.225 periods at 4.4 px (0.99 px, right at 6.6 px) or 0.3 periods at 6.6 px away is not
+    the same intersection read by two filters and is not confirmed.
+    """
+    from mlv_ros.core.tags.gabor import TagParameters
+    from mlv_ros.core.tags.intersections import Detection
+    from mlv_ros.core.tags.tracker import _Matches, CONFIRM_BORDER_PERIODS, FOLLOW_ACCEPT_PX
+    from mlv_ros.core.types import VIEW_LA
+
+    assert CONFIRM_BORDER_PERIODS == 0.2 and FOLLOW_ACCEPT_PX == 2
+    centre, outer = np.array([48.0, 48.0]), 30.0
+    rr, cc = np.indices((96, 96))
+    ring = np.hypot(rr - centre[0], cc - centre[1])
+    mask = (ring >= 20.0) & (ring <= outer)
+    ang = np.deg2rad(np.arange(0, 360, 45))
+    radial = np.stack([np.cos(ang), np.sin(ang)], 1)
+    tangent = radial[:, ::-1] * [-1.0, 1.0]
+    # Tracks 0-5 mid-wall; 1 and 3 on the outer border: 1 read right, 3 read wrong.
+    rad = np.full(8, 25.0)
+    rad[[1, 3]] = outer + 1.5 - 0.15 * period_px
+    ed = centre + rad[:, None] * radial
+    truth = ed.copy()
+    truth[1] = centre + (outer + 1.5) * radial[1]  # 0.15 periods out, 1.5 px beyond the mask
+    wrong = 0.225 if period_px < 5 else 0.3
+    truth[3] = ed[3] + wrong * period_px * tangent[3]
+
+    def run(views):
+        tr = SliceTracker(GEOM, confirm_border_views=views)
+        tr.params = TagParameters(np.array([period_px, period_px]), np.array([0.0, np.pi / 2]))
+        tr.ed_mask, tr.ed_rc = mask, ed.copy()
+
+        def detect(image, region, accept, roi, tuned=True):
+            r, c = np.round(truth).astype(int).T
+            keep = accept[r, c]
+            n = int(keep.sum())
+            return Detection(
+                pixel_rc=truth[keep],
+                confidence=np.ones(n, np.float32),
+                plain_confidence=np.ones(n, np.float32),
+                params=tr.params,
+            )
+
+        tr._detect_following = detect
+        m = _Matches(None, None, np.ones(8, bool), np.zeros(8, bool), ed.copy(), np.zeros(8),
+                     np.zeros(8))
+        tr._confirm(np.zeros((96, 96)), np.arange(8), None, m, border=VIEW_LA in views)
+        return m
+
+    m = run((VIEW_LA,))
+    assert not m.unconfirmed[[0, 1, 2, 4, 5, 6, 7]].any()
+    assert np.allclose(m.new[1], truth[1]) and m.unconfirmed[3]
+    plain = run(())
+    assert plain.unconfirmed[1] and plain.unconfirmed[3] and not plain.unconfirmed[0]

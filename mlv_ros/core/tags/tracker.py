@@ -43,7 +43,7 @@ from functools import lru_cache
 
 import cv2
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import Frame, TagPointSet, VIEW_SA
+from mlv_ros.core.types import Frame, TagPointSet, VIEW_LA, VIEW_SA
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -81,6 +81,19 @@ ED_THIN_SHARE = 0.5
 # pixels and SNR 11 it dropped about one in five matched points on a 7 mm wall, most on the right
 # intersection (bench seed 1009), and two misses in a row end a track.
 FOLLOW_TUNED_MOVE = 0.2
+# Following, the passes accept points this far beyond the mask warped to the phase, px: the warped
+# mask is the ED segmentation (a pixel raster, its border ±1 px) carried by a spline and sampled
+# to the nearest pixel, and the first pass's is warped through the ~0.5 px uncertain prediction.
+# A border is a pixel-raster quantity, not a tag-period one, hence pixels.
+FOLLOW_ACCEPT_PX = 2
+# On the views of ``confirm_border_views`` the second pass confirms a first-pass match within this
+# many tag periods. The first pass reads the untuned bank's intersection, the second the tuned
+# refinement's, which may move it by up to FOLLOW_TUNED_MOVE periods, so the two passes read one
+# intersection up to that far apart whatever the pixel size; the nearest other intersection is a
+# period or more away, so within 0.2 periods no wrong one is confirmed. ``confirm_px`` (0.5 px) was
+# 0.08-0.12 periods on the bench's 4.1-6.6 px tags: it dropped right matches the passes read
+# 0.5-1.5 px apart at the wall's border (bench seed 6507, docs/benchmarks.md la14).
+CONFIRM_BORDER_PERIODS = FOLLOW_TUNED_MOVE
 # A slice's tracks are followed only while at least this many are alive: fewer cannot propagate
 # the wall mask (a thin-plate warp needs 4 points) nor check each other through the RPM warp, and
 # an isolated track then takes whatever lies within its gate. Measured on bench seed 1009 (tracks
@@ -182,6 +195,18 @@ class SliceTracker:
         solver's longitudinal motion) the extra points cost accuracy (seed 2007 ES p95
         1.13 → 1.26 mm short axis only, 1.55 with the long axis too in a variant that also
         confirmed within 0.2 periods).
+    confirm_border_views : tuple of int
+        Views (``VIEW_SA``, ``VIEW_LA``) whose second pass accepts points as far beyond its
+        warped mask as the first pass does (``FOLLOW_ACCEPT_PX``) and confirms a first-pass
+        match within ``CONFIRM_BORDER_PERIODS`` tag periods instead of ``confirm_px``. The tuned
+        refinement moves an intersection lying near the warped mask's border off a mask
+        accepting nothing beyond it, and reads it up to 0.2 periods from the untuned first pass:
+        the second pass dropped right long-axis matches at the wall's border (bench seed 6507:
+        21 of 23 long-axis ED tracks lost by ES; ES p95 3.18 → 1.68 mm with it). The points it
+        keeps are right (normal preset: 84 of 101 long-axis tracks kept at ES instead of 63,
+        none wrong, median error 0.29 mm), but a healthy heart's solve reads slightly worse with
+        them (normal preset ES p95 0.48 → 0.54 mm; docs/benchmarks.md, v3la). Long axis only by
+        default: unmeasured on the short axis.
     revive : bool
         Offer dropped tracks again at the position the live tracks' warp predicts for them; a
         detection matching it (within ``gate``) resumes the track. Once the slice has lost its
@@ -272,6 +297,7 @@ class SliceTracker:
         register: bool = True,
         confirm_still: bool = False,
         match_still: bool = False,
+        confirm_border_views=(VIEW_LA,),
         **detect_kwargs,
     ):
         self.geometry = geometry
@@ -294,6 +320,7 @@ class SliceTracker:
         self.register = bool(register)
         self.confirm_still = bool(confirm_still)
         self.match_still = bool(match_still)
+        self.confirm_border_views = tuple(int(v) for v in confirm_border_views)
         if not (0.0 <= self.follow_relative <= 1.0 and 0.0 < self.follow_floor <= 1.0):
             raise ValueError(
                 f'follow_relative must be in [0, 1] and follow_floor in (0, 1]; '
@@ -455,8 +482,10 @@ class SliceTracker:
             region = np.asarray(mask, bool)
         elif self.propagate_mask and self.ed_mask is not None:
             # First pass, for matching only: the mask from the prediction is ~0.5 px uncertain, so
-            # filter with it as is and accept points up to 2 px beyond it.
-            region, accept = self._propagated_mask(pred, live, np.shape(image), erode=0, dilate=2)
+            # filter with it as is and accept points up to FOLLOW_ACCEPT_PX beyond it.
+            region, accept = self._propagated_mask(
+                pred, live, np.shape(image), erode=0, dilate=FOLLOW_ACCEPT_PX
+            )
         lo = np.floor(pred.min(0) - 2 * sp)
         hi = np.ceil(pred.max(0) + 2 * sp) + 1
         roi = (lo[0], hi[0], lo[1], hi[1])
@@ -489,7 +518,14 @@ class SliceTracker:
         if two_pass and self.match_still and view == VIEW_SA and hit.sum() >= 4 and not hit.all():
             self._match_still(image, pred, sp, roi, m)
         if two_pass and hit.sum() >= 4:
-            self._confirm(image, live, roi, m, still=self.confirm_still and view == VIEW_SA)
+            self._confirm(
+                image,
+                live,
+                roi,
+                m,
+                still=self.confirm_still and view == VIEW_SA,
+                border=view in self.confirm_border_views,
+            )
         return m
 
     def _detect_following(self, image, region, accept, roi, tuned: bool = True) -> Detection:
@@ -511,7 +547,9 @@ class SliceTracker:
             **kwargs,
         )
 
-    def _confirm(self, image, live, roi, m: '_Matches', still: bool = False) -> None:
+    def _confirm(
+        self, image, live, roi, m: '_Matches', still: bool = False, border: bool = False
+    ) -> None:
         """
         Detect again inside the mask warped through the matches and confirm each match there.
 
@@ -522,18 +560,29 @@ class SliceTracker:
         not may have come from tags just outside the predicted border: it is marked
         ``unconfirmed`` (dropped, or on the views of ``register_missed_views`` kept only where
         its own ED neighbourhood registers, ``RECOVER_NCC_PERCENTILE``).
+
+        With ``border`` (the views of ``confirm_border_views``) the second pass accepts points
+        up to ``FOLLOW_ACCEPT_PX`` beyond its mask, as the first does (the filter mask is
+        unchanged), and confirms within ``CONFIRM_BORDER_PERIODS`` tag periods.
         """
         hit, new = m.hit, m.new
         region2, accept2 = self._propagated_mask(
-            new[hit], live[hit], np.shape(image), erode=self.mask_erosion_px, dilate=0
+            new[hit],
+            live[hit],
+            np.shape(image),
+            erode=self.mask_erosion_px,
+            dilate=FOLLOW_ACCEPT_PX if border else 0,
         )
         if region2 is None:
             return
         det2 = m.final = self._detect_following(image, region2, accept2, roi)
         found = np.zeros(int(hit.sum()), bool)
         j2 = np.zeros(int(hit.sum()), int)
+        tol = self.confirm_px
+        if border:
+            tol = CONFIRM_BORDER_PERIODS * float(np.mean(self.params.spacing_px))
         if det2.ok and len(det2):
-            d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=self.confirm_px)
+            d2, j2 = cKDTree(det2.pixel_rc).query(new[hit], distance_upper_bound=tol)
             found = np.isfinite(d2)
         idx = np.nonzero(hit)[0]
         new[idx[found]] = det2.pixel_rc[j2[found]]
