@@ -233,7 +233,7 @@ def ours_from_positions(ed, rotation, positions: dict, es: int, states=None, fra
 #: Why an abnormal segment of the truth was not found (:func:`explain_abnormal`), in the order
 #: the causes are tested.
 MISS_REASONS = {
-    'cap': "the apex cap, where the product claims no class (a legacy simulator cap: scored apart)",
+    'cap': 'the apex cap, where the product claims no class (a legacy simulator cap: apart)',
     'unsupported': "the ES verdict names the segment's sector as carried by the model",
     'rule': "the truth's own motion, in the truth's frame, is not read abnormal either",
     'names': "the septum is the prior's, and the segment named so is mostly not the truth's",
@@ -767,7 +767,7 @@ def summarise(cases: list[dict]) -> dict:
         out['indeterminate'] = {
             k: sum(c[f'indeterminate_{k}'] for c in cls) for k in ('abnormal', 'other')
         }
-        # Legacy apex caps, scored apart (CAP), and the counts with them (earlier sessions' figures).
+        # Legacy apex caps, scored apart (CAP), and the counts with them (earlier figures).
         caps = [c['cap'] for c in cls if c.get('cap') and c['cap']['truth'] in ABNORMAL]
         cap_tp = sum(c['ours'] in ABNORMAL for c in caps)
         out['found_cap'] = f'{cap_tp}/{len(caps)}'
