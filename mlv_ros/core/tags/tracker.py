@@ -205,8 +205,12 @@ class SliceTracker:
         21 of 23 long-axis ED tracks lost by ES; ES p95 3.18 → 1.68 mm with it). The points it
         keeps are right (normal preset: 84 of 101 long-axis tracks kept at ES instead of 63,
         none wrong, median error 0.29 mm), but a healthy heart's solve reads slightly worse with
-        them (normal preset ES p95 0.48 → 0.54 mm; docs/benchmarks.md, v3la). Long axis only by
-        default: unmeasured on the short axis.
+        them (normal preset ES p95 0.48 → 0.54 mm; docs/benchmarks.md, v3la). Off by default:
+        with a random protocol's thickening apex cap (``motion.apex_thickening``) the extra
+        long-axis points there pulled the apical twist (seed 502, hypertrophic, τ 0.45: twist
+        error at level 0.05 −1.17 → −2.00°, 1.56× the uncertainty the run states for it), and
+        the solver does not yet follow such a cap; ``(VIEW_LA,)`` turns it on (the short axis is
+        unmeasured).
     revive : bool
         Offer dropped tracks again at the position the live tracks' warp predicts for them; a
         detection matching it (within ``gate``) resumes the track. Once the slice has lost its
@@ -297,7 +301,7 @@ class SliceTracker:
         register: bool = True,
         confirm_still: bool = False,
         match_still: bool = False,
-        confirm_border_views=(VIEW_LA,),
+        confirm_border_views=(),
         **detect_kwargs,
     ):
         self.geometry = geometry
