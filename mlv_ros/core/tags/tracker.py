@@ -43,7 +43,7 @@ from functools import lru_cache
 
 import cv2
 from mlv_ros.core.geometry import SliceGeometry
-from mlv_ros.core.types import Frame, TagPointSet, VIEW_LA, VIEW_SA
+from mlv_ros.core.types import Frame, TagPointSet, VIEW_SA
 import numpy as np
 from scipy.spatial import cKDTree
 
